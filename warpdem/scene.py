@@ -1,0 +1,970 @@
+"""Scene files: the validated TOML schema (SI units) that describes one simulation.
+
+A scene file maps onto the pydantic models below (all ``extra="forbid"``). Every problem found while
+loading is reported as one line ``<file>: <key.path>: <what is allowed> (got <value>)``, and all
+problems of a file are reported together in one :class:`SceneError`, so a user fixes a file in one
+pass instead of one error per run.
+
+Loading happens in three passes:
+
+1. TOML parsing (``tomllib``): syntax errors carry line and column.
+2. Field validation (pydantic): types, ranges, unknown keys, unknown ``kind`` values.
+3. Cross references and files: material / part names used before they are defined, duplicate
+   interaction pairs, particle files that do not exist. These run only on a structurally valid scene,
+   because they need the validated objects.
+
+Python users build scenes without files through :func:`parse_scene`, which reports the same errors.
+This module is pure host code: it must not import warp, so ``warpdem --help`` and scene checks stay fast.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import tomllib
+import types
+import typing
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import (
+    AfterValidator,
+    AllowInfNan,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    Strict,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+__all__ = [
+    "RESERVED_SECTIONS",
+    "SCHEMA_VERSION",
+    "BondRegion",
+    "Box",
+    "BoxWall",
+    "Capacity",
+    "ContactSettings",
+    "Cylinder",
+    "FileSource",
+    "Gravity",
+    "InteractionPair",
+    "InteractionProps",
+    "Interactions",
+    "Material",
+    "Output",
+    "PackingSource",
+    "Part",
+    "ParticleSource",
+    "PlaneWall",
+    "Region",
+    "Run",
+    "Scene",
+    "SceneError",
+    "SphereSource",
+    "Vec3",
+    "Wall",
+    "default_scene_path",
+    "load_scene",
+    "parse_scene",
+]
+
+SCHEMA_VERSION = 1
+"""The only scene schema version this release reads."""
+
+RESERVED_SECTIONS = ("tets", "mesh", "joints", "loads", "fracture", "conversion", "boundaries")
+"""Top-level sections planned for later schema versions; named explicitly so users are not told 'unknown key'."""
+
+_NAME_PATTERN = re.compile(r"[A-Za-z_][A-Za-z0-9_-]*")
+_BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
+_DEVICE_PATTERN = re.compile(r"cpu|cuda(:\d+)?")
+_USD_SUFFIXES = (".usd", ".usda", ".usdc")
+_MAX_GOT_CHARS = 80
+
+# pydantic messages that speak Python where the user wrote TOML.
+_PLAIN_MESSAGES = {
+    "model_type": "must be a table",
+    "model_attributes_type": "must be a table",
+    "dict_type": "must be a table",
+    "list_type": "must be an array",
+    "tuple_type": "must be an array",
+}
+
+
+class SceneError(Exception):
+    """A scene could not be loaded; carries one readable line per problem.
+
+    Attributes:
+        problems: One line per problem, ``<file>: <key.path>: <message>``.
+    """
+
+    def __init__(self, problems: list[str] | str) -> None:
+        self.problems: list[str] = [problems] if isinstance(problems, str) else list(problems)
+        super().__init__("\n".join(self.problems))
+
+    def __str__(self) -> str:
+        return "\n".join(self.problems)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Scalar and vector types
+# ----------------------------------------------------------------------------------------------------------------------
+
+# Strict so that a quoted number ("1.0") or a boolean is reported instead of being silently converted;
+# ints are still accepted for floats because TOML writers often drop the ".0".
+Float = Annotated[float, Strict(), AllowInfNan(False)]
+Int = Annotated[int, Strict()]
+Bool = Annotated[bool, Strict()]
+Str = Annotated[str, Strict()]
+
+
+def _array_to_list(value: Any) -> Any:
+    # Python users pass numpy vectors; TOML gives lists. Both must validate as the same tuple.
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return value
+
+
+Vec3 = Annotated[tuple[Float, Float, Float], BeforeValidator(_array_to_list)]
+"""Three finite floats; accepts a list, tuple or numpy array of length 3."""
+
+
+def _check_name(value: str) -> str:
+    if not _NAME_PATTERN.fullmatch(value):
+        raise ValueError("invalid name; names start with a letter or '_' and contain only letters, digits, '_' and '-'")
+    return value
+
+
+Name = Annotated[str, Strict(), AfterValidator(_check_name)]
+"""A material or part name: ``[A-Za-z_][A-Za-z0-9_-]*``."""
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _auto_or_positive(value: Any) -> Literal["auto"] | float:
+    # Hand-written instead of a Literal | float union: a union reports one error per branch, and the
+    # user should see a single line.
+    if value == "auto":
+        return "auto"
+    if _is_number(value) and value > 0:
+        return float(value)
+    raise ValueError("must be 'auto' or a number > 0")
+
+
+def _auto_or_non_negative(value: Any) -> Literal["auto"] | float:
+    if value == "auto":
+        return "auto"
+    if _is_number(value) and value >= 0:
+        return float(value)
+    raise ValueError("must be 'auto' or a number >= 0")
+
+
+AutoOrPositive = Annotated[Literal["auto"] | float, BeforeValidator(_auto_or_positive)]
+AutoOrNonNegative = Annotated[Literal["auto"] | float, BeforeValidator(_auto_or_non_negative)]
+
+
+class _Model(BaseModel):
+    """Base of all scene models: unknown keys are errors, because a misspelt key silently ignored is a wrong run."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Run control and global fields
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+class Run(_Model):
+    """Time integration and execution settings."""
+
+    end_time: Float = Field(gt=0, description="Simulated end time [s].")
+    dt: AutoOrPositive = Field(
+        default="auto",
+        description="Time step [s], or 'auto' for safety_factor times the critical (Rayleigh / Hertz) time step.",
+    )
+    safety_factor: Float = Field(
+        default=0.2, gt=0, le=1, description="Fraction (0, 1] of the critical time step used when dt = 'auto' [-]."
+    )
+    output_rate: Float = Field(default=50.0, gt=0, description="Output frames per simulated second [Hz].")
+    seed: Int = Field(default=0, ge=0, description="Seed of the random number generator (random packings) [-].")
+    device: Str = Field(default="cpu", description="Warp device: 'cpu', 'cuda' or 'cuda:<index>'.")
+
+    @field_validator("device")
+    @classmethod
+    def _check_device(cls, value: str) -> str:
+        if not _DEVICE_PATTERN.fullmatch(value):
+            raise ValueError("must be 'cpu', 'cuda' or 'cuda:<index>'")
+        return value
+
+
+class Gravity(_Model):
+    """Uniform body acceleration."""
+
+    vector: Vec3 = Field(default=(0.0, 0.0, -9.81), description="Gravitational acceleration [m/s^2].")
+
+
+def _check_poisson(value: float) -> float:
+    # nu = 0.5 makes the bulk modulus infinite and nu <= -1 the shear modulus non-positive.
+    if not -1.0 < value < 0.5:
+        raise ValueError("must be > -1 and < 0.5")
+    return value
+
+
+class Material(_Model):
+    """Elastic solid material of particles, bonds and walls."""
+
+    density: Float = Field(gt=0, description="Mass density [kg/m^3].")
+    youngs_modulus: Float = Field(gt=0, description="Young's modulus [Pa].")
+    poisson_ratio: Annotated[Float, AfterValidator(_check_poisson)] = Field(
+        description="Poisson's ratio (-1, 0.5) [-]."
+    )
+
+    @property
+    def shear_modulus(self) -> float:
+        """Shear modulus G = E / (2 (1 + nu)) [Pa]."""
+        return self.youngs_modulus / (2.0 * (1.0 + self.poisson_ratio))
+
+
+class InteractionProps(_Model):
+    """Contact properties between two materials."""
+
+    friction: Float = Field(default=0.5, ge=0, description="Coulomb sliding friction coefficient [-].")
+    restitution: Float = Field(default=0.5, gt=0, le=1, description="Normal coefficient of restitution (0, 1] [-].")
+    rolling_friction: Float = Field(
+        default=0.0, ge=0, description="Dimensionless rolling resistance coefficient (torque / (F_n R)) [-]."
+    )
+
+
+class InteractionPair(_Model):
+    """Contact properties for one pair of materials; omitted values come from ``interactions.default``."""
+
+    materials: tuple[Str, Str] = Field(description="The two material names (order-free; may be equal).")
+    friction: Float | None = Field(default=None, ge=0, description="Coulomb sliding friction coefficient [-].")
+    restitution: Float | None = Field(
+        default=None, gt=0, le=1, description="Normal coefficient of restitution (0, 1] [-]."
+    )
+    rolling_friction: Float | None = Field(
+        default=None, ge=0, description="Dimensionless rolling resistance coefficient [-]."
+    )
+
+
+class Interactions(_Model):
+    """Default contact properties and per-pair overrides."""
+
+    default: InteractionProps = Field(
+        default_factory=InteractionProps, description="Properties for every material pair not listed in pairs."
+    )
+    pairs: list[InteractionPair] = Field(default_factory=list, description="Per material pair overrides.")
+
+
+class ContactSettings(_Model):
+    """Choice of contact laws and neighbour-list skin."""
+
+    normal: Literal["hertz", "linear"] = Field(default="hertz", description="Normal force law.")
+    tangential: Literal["mindlin", "linear"] = Field(default="mindlin", description="Tangential force law.")
+    rolling: Literal["none", "constant_torque"] = Field(default="none", description="Rolling resistance law.")
+    skin: AutoOrNonNegative = Field(
+        default="auto", description="Verlet skin of the neighbour list [m], or 'auto' (chosen from the radii)."
+    )
+
+
+class Part(_Model):
+    """A named group of particles sharing one material."""
+
+    material: Str = Field(description="Name of a material defined in [materials].")
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Regions
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+def _hi_above_lo(hi: tuple[float, float, float], info: ValidationInfo) -> tuple[float, float, float]:
+    lo = info.data.get("lo")
+    # lo failed its own validation: that error is already reported, do not add a second one.
+    if lo is not None and not all(h > l for h, l in zip(hi, lo, strict=True)):
+        raise ValueError(f"must be > lo = {list(lo)} in every component")
+    return hi
+
+
+class Box(_Model):
+    """Axis-aligned box."""
+
+    lo: Vec3 = Field(description="Lower corner [m].")
+    hi: Vec3 = Field(description="Upper corner [m]; greater than lo in every component.")
+
+    @field_validator("hi")
+    @classmethod
+    def _check_hi(cls, value: tuple[float, float, float], info: ValidationInfo) -> tuple[float, float, float]:
+        return _hi_above_lo(value, info)
+
+
+_AXIS_INDEX = {"x": 0, "y": 1, "z": 2}
+
+
+class Cylinder(_Model):
+    """Solid circular cylinder along a coordinate axis."""
+
+    center: Vec3 = Field(description="Centre of the base disc [m].")
+    radius: Float = Field(gt=0, description="Radius [m].")
+    height: Float = Field(gt=0, description="Height along the axis, measured from the base disc [m].")
+    axis: Literal["x", "y", "z"] = Field(default="z", description="Coordinate axis of the cylinder.")
+
+
+class Region(_Model):
+    """A region of space: exactly one of ``box`` or ``cylinder``."""
+
+    box: Box | None = Field(default=None, description="Axis-aligned box region.")
+    cylinder: Cylinder | None = Field(default=None, description="Cylinder region.")
+
+    @model_validator(mode="after")
+    def _exactly_one(self) -> Region:
+        given = [name for name in ("box", "cylinder") if getattr(self, name) is not None]
+        if len(given) != 1:
+            raise ValueError(f"needs exactly one of 'box' or 'cylinder' (got {', '.join(given) or 'none'})")
+        return self
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """Tests which points lie inside the region (boundary included).
+
+        Args:
+            points: Positions [m], shape (..., 3).
+
+        Returns:
+            Boolean array of shape (...,): True where the point is inside.
+        """
+        p = np.asarray(points, dtype=np.float64)
+        if self.box is not None:
+            lo = np.asarray(self.box.lo)
+            hi = np.asarray(self.box.hi)
+            return np.all((p >= lo) & (p <= hi), axis=-1)
+        cyl = self.cylinder
+        assert cyl is not None  # guaranteed by the validator
+        a = _AXIS_INDEX[cyl.axis]
+        d = p - np.asarray(cyl.center)
+        along = d[..., a]
+        radial_sq = np.sum(d * d, axis=-1) - along * along
+        return (along >= 0.0) & (along <= cyl.height) & (radial_sq <= cyl.radius * cyl.radius)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned bounding box of the region.
+
+        Returns:
+            ``(lo, hi)`` corners [m], each a float64 array of shape (3,).
+        """
+        if self.box is not None:
+            return np.asarray(self.box.lo, dtype=np.float64), np.asarray(self.box.hi, dtype=np.float64)
+        cyl = self.cylinder
+        assert cyl is not None
+        a = _AXIS_INDEX[cyl.axis]
+        c = np.asarray(cyl.center, dtype=np.float64)
+        half = np.full(3, cyl.radius)
+        half[a] = 0.0
+        lo = c - half
+        hi = c + half
+        hi[a] += cyl.height
+        return lo, hi
+
+    def volume(self) -> float:
+        """Volume of the region [m^3]."""
+        if self.box is not None:
+            return float(np.prod(np.subtract(self.box.hi, self.box.lo)))
+        cyl = self.cylinder
+        assert cyl is not None
+        return math.pi * cyl.radius**2 * cyl.height
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Particle sources
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+class PackingSource(_Model):
+    """Fills a region with spheres."""
+
+    kind: Literal["packing"] = Field(description="Source kind.")
+    part: Str = Field(description="Name of a part defined in [parts].")
+    region: Region = Field(description="Region to fill.")
+    radius: Float = Field(gt=0, description="Sphere radius, or the smallest radius when radius_max is given [m].")
+    radius_max: Float | None = Field(
+        default=None, gt=0, description="Largest radius [m]; radii are uniform in [radius, radius_max]."
+    )
+    arrangement: Literal["hcp", "cubic", "random"] = Field(default="hcp", description="Lattice or random packing.")
+    count: Int | None = Field(
+        default=None, gt=0, description="At most this many spheres (random arrangement: the target count)."
+    )
+    volume_fraction: Float | None = Field(
+        default=None,
+        gt=0,
+        le=0.74,
+        description="Target solid fraction (0, 0.74] of a random packing; 0.5 when omitted.",
+    )
+    velocity: Vec3 = Field(default=(0.0, 0.0, 0.0), description="Initial velocity [m/s].")
+
+    @field_validator("radius_max")
+    @classmethod
+    def _check_radius_max(cls, value: float | None, info: ValidationInfo) -> float | None:
+        radius = info.data.get("radius")
+        if value is not None and radius is not None and value < radius:
+            raise ValueError(f"must be >= radius = {radius}")
+        return value
+
+    @field_validator("volume_fraction")
+    @classmethod
+    def _check_volume_fraction(cls, value: float | None, info: ValidationInfo) -> float | None:
+        # A lattice has a fixed solid fraction; accepting the key would silently ignore it.
+        arrangement = info.data.get("arrangement")
+        if value is not None and arrangement is not None and arrangement != "random":
+            raise ValueError(f"only used with arrangement = 'random', not {arrangement!r}")
+        return value
+
+    @property
+    def target_volume_fraction(self) -> float:
+        """Solid fraction a random packing aims for [-]."""
+        return 0.5 if self.volume_fraction is None else self.volume_fraction
+
+
+class SphereSource(_Model):
+    """One sphere."""
+
+    kind: Literal["sphere"] = Field(description="Source kind.")
+    part: Str = Field(description="Name of a part defined in [parts].")
+    center: Vec3 = Field(description="Centre [m].")
+    radius: Float = Field(gt=0, description="Radius [m].")
+    velocity: Vec3 = Field(default=(0.0, 0.0, 0.0), description="Initial velocity [m/s].")
+    angular_velocity: Vec3 = Field(default=(0.0, 0.0, 0.0), description="Initial angular velocity [rad/s].")
+    motion: Literal["free", "fixed", "prescribed"] = Field(
+        default="free",
+        description="'free', 'fixed' (never moves) or 'prescribed' (keeps its initial velocity and spin).",
+    )
+
+
+class FileSource(_Model):
+    """Sphere centres (and optionally radii) read from a text file of ``x y z [r]`` lines."""
+
+    kind: Literal["file"] = Field(description="Source kind.")
+    part: Str = Field(description="Name of a part defined in [parts].")
+    path: Path = Field(
+        description="Text file, relative to the scene file; absolute after loading. Lines 'x y z' or 'x y z r' [m]."
+    )
+    radius: Float | None = Field(default=None, gt=0, description="Radius for 3-column files [m].")
+    velocity: Vec3 = Field(default=(0.0, 0.0, 0.0), description="Initial velocity [m/s].")
+
+
+ParticleSource = Annotated[PackingSource | SphereSource | FileSource, Field(discriminator="kind")]
+"""One ``[[particles]]`` entry, selected by ``kind``."""
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Bonds and walls
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+class BondRegion(_Model):
+    """Bonds every pair of touching (or nearly touching) particles whose centres lie in a region."""
+
+    region: Region = Field(description="Particles with centres inside are bonded.")
+    material: Str | None = Field(
+        default=None, description="Material whose Young's modulus the bonds use when youngs_modulus is omitted."
+    )
+    youngs_modulus: Float | None = Field(default=None, gt=0, description="Bond Young's modulus [Pa].")
+    stiffness_ratio: Float = Field(default=2.5, gt=0, description="Normal to shear stiffness ratio kn/ks [-].")
+    tensile_strength: Float = Field(gt=0, description="Tensile strength [Pa].")
+    shear_strength: Float = Field(gt=0, description="Shear strength [Pa].")
+    radius_factor: Float = Field(
+        default=1.0, gt=0, le=2, description="Bond radius divided by the smaller sphere radius (0, 2] [-]."
+    )
+    gap_tolerance: Float = Field(
+        default=0.05, ge=0, description="Pairs with gap <= gap_tolerance * (r_i + r_j) are bonded [-]."
+    )
+    damping_ratio: Float = Field(
+        default=0.05, ge=0, le=1, description="Damping ratio of the bond dashpots, c = 2 zeta sqrt(m* k) [-]."
+    )
+
+    @model_validator(mode="after")
+    def _check_stiffness_source(self) -> BondRegion:
+        if self.material is None and self.youngs_modulus is None:
+            raise ValueError("needs 'material' or 'youngs_modulus' to set the bond stiffness")
+        return self
+
+
+class PlaneWall(_Model):
+    """Infinite plane; particles are pushed to the side the normal points to."""
+
+    kind: Literal["plane"] = Field(description="Wall kind.")
+    point: Vec3 = Field(description="A point on the plane [m].")
+    normal: Vec3 = Field(description="Normal [-]; any nonzero length, stored normalised.")
+    material: Str = Field(description="Name of a material defined in [materials].")
+    velocity: Vec3 = Field(default=(0.0, 0.0, 0.0), description="Constant translation velocity [m/s].")
+
+    @field_validator("normal")
+    @classmethod
+    def _normalise(cls, value: tuple[float, float, float]) -> tuple[float, float, float]:
+        length = math.sqrt(sum(c * c for c in value))
+        if not length > 1e-12:
+            raise ValueError("must be a nonzero vector")
+        return (value[0] / length, value[1] / length, value[2] / length)
+
+
+class BoxWall(_Model):
+    """The six inner faces of an axis-aligned box (a container)."""
+
+    kind: Literal["box"] = Field(description="Wall kind.")
+    lo: Vec3 = Field(description="Lower corner [m].")
+    hi: Vec3 = Field(description="Upper corner [m]; greater than lo in every component.")
+    material: Str = Field(description="Name of a material defined in [materials].")
+    open_top: Bool = Field(default=False, description="Drop the +z face.")
+
+    @field_validator("hi")
+    @classmethod
+    def _check_hi(cls, value: tuple[float, float, float], info: ValidationInfo) -> tuple[float, float, float]:
+        return _hi_above_lo(value, info)
+
+
+Wall = Annotated[PlaneWall | BoxWall, Field(discriminator="kind")]
+"""One ``[[walls]]`` entry, selected by ``kind``."""
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Output and capacity
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+class Output(_Model):
+    """What is written and where."""
+
+    directory: Str = Field(default="out", description="Output directory.")
+    usd: Str | None = Field(
+        default=None, description="USD file inside directory (.usd, .usda or .usdc); '<name>.usdc' after loading."
+    )
+    color_by: Literal["speed", "part"] = Field(default="speed", description="Particle colouring in the USD file.")
+    bonds_as_curves: Bool = Field(default=False, description="Write intact bonds as USD curves.")
+    checkpoint_every: Float = Field(
+        default=0.0, ge=0, description="Checkpoint interval in simulated time [s]; 0 = only at the end."
+    )
+    checkpoint_dir: Str = Field(default="checkpoints", description="Checkpoint directory, relative to directory.")
+
+    @field_validator("usd")
+    @classmethod
+    def _check_usd(cls, value: str | None) -> str | None:
+        if value is not None and not value.lower().endswith(_USD_SUFFIXES):
+            raise ValueError("must end with .usd, .usda or .usdc")
+        return value
+
+
+class Capacity(_Model):
+    """Initial buffer sizes; buffers still grow on overflow, these only avoid the first regrowths."""
+
+    particles: Int | None = Field(default=None, gt=0, description="Particle slots; default chosen by the builder.")
+    neighbors_per_particle: Int = Field(default=16, gt=0, description="Contact candidate slots per particle.")
+    bonds_per_particle: Int = Field(default=16, gt=0, description="Bond slots per particle.")
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Scene
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+def _check_schema_version(value: int) -> int:
+    if value != SCHEMA_VERSION:
+        raise ValueError(f"unsupported schema version; supported: {SCHEMA_VERSION}")
+    return value
+
+
+def _check_scene_name(value: str) -> str:
+    # The name becomes the default USD file name.
+    if not value or "/" in value or "\\" in value:
+        raise ValueError("must be a non-empty name without path separators")
+    return value
+
+
+def _check_materials(value: dict[str, Material]) -> dict[str, Material]:
+    if not value:
+        raise ValueError("at least one material is required")
+    return value
+
+
+class Scene(_Model):
+    """A complete simulation description. Build it with :func:`load_scene` or :func:`parse_scene`."""
+
+    schema_version: Annotated[Int, AfterValidator(_check_schema_version)] = Field(
+        default=SCHEMA_VERSION, description="Scene schema version; this release reads 1."
+    )
+    name: Annotated[Str, AfterValidator(_check_scene_name)] = Field(
+        default="scene", description="Scene name; defaults to the file stem."
+    )
+    description: Str = Field(default="", description="Free text.")
+    run: Run = Field(description="Time integration and execution settings.")
+    gravity: Gravity = Field(default_factory=Gravity, description="Uniform body acceleration.")
+    materials: Annotated[dict[Name, Material], AfterValidator(_check_materials)] = Field(
+        description="Materials by name."
+    )
+    interactions: Interactions = Field(default_factory=Interactions, description="Contact properties.")
+    contact: ContactSettings = Field(default_factory=ContactSettings, description="Contact laws.")
+    parts: dict[Name, Part] = Field(default_factory=dict, description="Parts by name.")
+    particles: list[ParticleSource] = Field(default_factory=list, description="Particle sources.")
+    bonds: list[BondRegion] = Field(default_factory=list, description="Bonded regions.")
+    walls: list[Wall] = Field(default_factory=list, description="Rigid walls.")
+    output: Output = Field(default_factory=Output, description="Output settings.")
+    capacity: Capacity = Field(default_factory=Capacity, description="Initial buffer capacities.")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_name(cls, data: Any, info: ValidationInfo) -> Any:
+        # The default name depends on the file the scene came from, which only the loader knows.
+        default = (info.context or {}).get("default_name")
+        if default is not None and isinstance(data, Mapping) and "name" not in data:
+            return {**data, "name": default}
+        return data
+
+    @model_validator(mode="after")
+    def _default_usd(self) -> Scene:
+        if self.output.usd is None:
+            self.output.usd = f"{self.name}.usdc"
+        return self
+
+    def material_names(self) -> list[str]:
+        """Material names in definition order; a material's position is its integer id."""
+        return list(self.materials)
+
+    def material_index(self, name: str) -> int:
+        """Integer id of a material (its position in [materials]).
+
+        Raises:
+            KeyError: No such material.
+        """
+        try:
+            return self.material_names().index(name)
+        except ValueError:
+            raise KeyError(name) from None
+
+    def part_names(self) -> list[str]:
+        """Part names in definition order; a part's position is its integer id."""
+        return list(self.parts)
+
+    def part_material(self, part: str) -> Material:
+        """Material of a part."""
+        return self.materials[self.parts[part].material]
+
+    def interaction_for(self, a: str, b: str) -> InteractionProps:
+        """Contact properties between materials ``a`` and ``b`` (order-free).
+
+        Values a matching ``[[interactions.pairs]]`` entry sets take precedence; the rest come from
+        ``interactions.default``.
+        """
+        default = self.interactions.default
+        for pair in self.interactions.pairs:
+            if sorted(pair.materials) == sorted((a, b)):
+                overrides = {
+                    key: getattr(pair, key) for key in InteractionProps.model_fields if getattr(pair, key) is not None
+                }
+                return default.model_copy(update=overrides)
+        return default.model_copy()
+
+    def bond_youngs_modulus(self, bond: BondRegion) -> float:
+        """Young's modulus of the bonds of a bonded region [Pa]: its own, else its material's."""
+        if bond.youngs_modulus is not None:
+            return bond.youngs_modulus
+        assert bond.material is not None  # guaranteed by the validator
+        return self.materials[bond.material].youngs_modulus
+
+    def reference_problems(self) -> list[tuple[str, str]]:
+        """Cross-reference checks that need the whole validated scene.
+
+        Returns:
+            ``(key path, message)`` per problem: unknown material or part names, duplicate interaction pairs.
+        """
+        problems: list[tuple[str, str]] = []
+        materials = self.material_names()
+        parts = self.part_names()
+
+        def check(path: str, name: str, defined: list[str], what: str) -> None:
+            if name not in defined:
+                listed = ", ".join(repr(n) for n in defined) or "(none)"
+                problems.append((path, f"unknown {what} {name!r}; defined {what}s: {listed}"))
+
+        for part_name, part in self.parts.items():
+            check(f"parts.{_format_key(part_name)}.material", part.material, materials, "material")
+        seen: dict[tuple[str, ...], int] = {}
+        for i, pair in enumerate(self.interactions.pairs):
+            for j, name in enumerate(pair.materials):
+                check(f"interactions.pairs[{i}].materials[{j}]", name, materials, "material")
+            key = tuple(sorted(pair.materials))
+            if key in seen:
+                problems.append(
+                    (
+                        f"interactions.pairs[{i}].materials",
+                        f"duplicate pair {list(pair.materials)}; already defined at interactions.pairs[{seen[key]}]",
+                    )
+                )
+            else:
+                seen[key] = i
+        for i, source in enumerate(self.particles):
+            check(f"particles[{i}].part", source.part, parts, "part")
+        for i, bond in enumerate(self.bonds):
+            if bond.material is not None:
+                check(f"bonds[{i}].material", bond.material, materials, "material")
+        for i, wall in enumerate(self.walls):
+            check(f"walls[{i}].material", wall.material, materials, "material")
+        return problems
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Loading
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+def default_scene_path() -> Path:
+    """Path of the scene shipped with the package (``warpdem/data/default.toml``)."""
+    return Path(__file__).parent / "data" / "default.toml"
+
+
+def load_scene(path: str | os.PathLike[str]) -> Scene:
+    """Reads and validates a TOML scene file.
+
+    Relative particle file paths are resolved against the scene file's directory.
+
+    Args:
+        path: Scene file.
+
+    Returns:
+        The validated scene; ``FileSource.path`` values are absolute.
+
+    Raises:
+        SceneError: The file is missing, unreadable, not TOML, or not a valid scene; lists every problem.
+    """
+    path = Path(path)
+    source = str(path)
+    if not path.exists():
+        raise SceneError(f"{source}: file not found")
+    if path.is_dir():
+        raise SceneError(f"{source}: is a directory, expected a TOML scene file")
+    try:
+        with path.open("rb") as f:
+            data = tomllib.load(f)
+    except tomllib.TOMLDecodeError as err:
+        raise SceneError(f"{source}: invalid TOML: {err}") from None
+    except UnicodeDecodeError as err:
+        raise SceneError(f"{source}: not UTF-8 text ({err.reason} at byte {err.start})") from None
+    except OSError as err:
+        raise SceneError(f"{source}: cannot read: {err.strerror or err}") from None
+    return _parse(data, source, path.resolve().parent, default_name=path.stem or "scene")
+
+
+def parse_scene(data: Mapping[str, Any], source: str = "<scene>", base_dir: Path | None = None) -> Scene:
+    """Validates a scene given as a dict (the structure of the TOML file).
+
+    Args:
+        data: Scene tables and values, SI units.
+        source: Name used at the start of every problem line.
+        base_dir: Directory that relative particle file paths are resolved against; the current working
+            directory when None.
+
+    Returns:
+        The validated scene.
+
+    Raises:
+        SceneError: Lists every problem, one line each.
+    """
+    default_name = "scene" if source.startswith("<") else (Path(source).stem or "scene")
+    return _parse(data, source, base_dir, default_name=default_name)
+
+
+def _parse(data: Any, source: str, base_dir: Path | None, default_name: str) -> Scene:
+    if not isinstance(data, Mapping):
+        raise SceneError(f"{source}: a scene must be a table (dict), got {type(data).__name__}")
+    try:
+        scene = Scene.model_validate(data, context={"default_name": default_name})
+    except ValidationError as err:
+        raise SceneError(_format_validation_error(err, source)) from None
+    problems = [f"{source}: {path}: {message}" for path, message in scene.reference_problems()]
+    problems += _resolve_files(scene, source, base_dir if base_dir is not None else Path.cwd())
+    if problems:
+        raise SceneError(problems)
+    return scene
+
+
+def _resolve_files(scene: Scene, source: str, base_dir: Path) -> list[str]:
+    problems = []
+    for i, particle_source in enumerate(scene.particles):
+        if not isinstance(particle_source, FileSource):
+            continue
+        resolved = particle_source.path.expanduser()
+        if not resolved.is_absolute():
+            resolved = base_dir / resolved
+        if not resolved.exists():
+            problems.append(f"{source}: particles[{i}].path: file not found: {resolved}")
+        elif not resolved.is_file():
+            problems.append(f"{source}: particles[{i}].path: not a regular file: {resolved}")
+        particle_source.path = resolved
+    return problems
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Validation error formatting
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+def _format_key(key: str) -> str:
+    # TOML quoting, so a path with odd characters can still be found in the file.
+    return key if _BARE_KEY.fullmatch(key) else '"' + key.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def _format_path(path: list[str | int]) -> str:
+    text = ""
+    for part in path:
+        if isinstance(part, int):
+            text += f"[{part}]"
+        else:
+            text += ("." if text else "") + _format_key(part)
+    return text
+
+
+def _unwrap(tp: Any) -> Any:
+    """Strips Annotated and Optional wrappers from a type annotation."""
+    while True:
+        origin = typing.get_origin(tp)
+        if origin is Annotated:
+            tp = typing.get_args(tp)[0]
+        elif origin in (typing.Union, types.UnionType):
+            args = [a for a in typing.get_args(tp) if a is not type(None)]
+            if len(args) != 1:
+                return tp
+            tp = args[0]
+        else:
+            return tp
+
+
+def _is_model(tp: Any) -> bool:
+    return isinstance(tp, type) and issubclass(tp, BaseModel)
+
+
+def _union_members(tp: Any) -> list[type[BaseModel]]:
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        return [a for a in typing.get_args(tp) if _is_model(a)]
+    return []
+
+
+def _tags(members: list[type[BaseModel]], discriminator: str = "kind") -> list[str]:
+    tags = []
+    for member in members:
+        field = member.model_fields.get(discriminator)
+        if field is not None:
+            tags += [str(v) for v in typing.get_args(_unwrap(field.annotation))]
+    return tags
+
+
+def _walk(loc: tuple[str | int, ...]) -> tuple[list[str | int], Any, Any]:
+    """Follows a pydantic error location through the Scene type tree.
+
+    Returns:
+        The user-facing key path (union tags and validator labels removed), the annotation at the end of the
+        path and the annotation of its parent (None where unknown).
+    """
+    path: list[str | int] = []
+    tp: Any = Scene
+    parent: Any = None
+    for part in loc:
+        tp = _unwrap(tp)
+        members = _union_members(tp)
+        if members:
+            # pydantic inserts the tag of a discriminated union member into the location; the user never wrote it.
+            chosen = [m for m in members if str(part) in _tags([m])]
+            tp = chosen[0] if chosen else None
+            continue
+        if part == "[key]":  # dict key validation label: the key is already in the path
+            continue
+        parent = tp
+        if isinstance(part, int):
+            path.append(part)
+            origin = typing.get_origin(tp)
+            args = typing.get_args(tp)
+            if origin is list and args:
+                tp = args[0]
+            elif origin is tuple and args:
+                tp = args[0] if args[-1] is Ellipsis else (args[part] if part < len(args) else None)
+            else:
+                tp = None
+        elif _is_model(tp):
+            path.append(part)
+            field = tp.model_fields.get(part)
+            tp = field.annotation if field is not None else None
+        elif typing.get_origin(tp) is dict:
+            path.append(part)
+            tp = typing.get_args(tp)[1]
+        elif tp is None and _BARE_KEY.fullmatch(part):
+            path.append(part)
+        # Otherwise a validator label such as "function-after[...]": not part of the user's key path.
+    return path, _unwrap(tp) if tp is not None else None, parent
+
+
+def _got(value: Any) -> str:
+    text = repr(value)
+    if len(text) > _MAX_GOT_CHARS:
+        text = text[: _MAX_GOT_CHARS - 3] + "..."
+    return f" (got {text})"
+
+
+def _format_error(error: Mapping[str, Any]) -> tuple[str, str]:
+    """One pydantic error as ``(key path, message)``."""
+    kind = error["type"]
+    loc = tuple(error["loc"])
+    ctx = error.get("ctx") or {}
+    value = error.get("input")
+    path, tp, parent = _walk(loc)
+
+    if kind == "extra_forbidden":
+        if len(path) == 1 and path[0] in RESERVED_SECTIONS:
+            return _format_path(path), (
+                f"section not supported by this version of warpdem (schema_version {SCHEMA_VERSION}) yet"
+            )
+        allowed = ", ".join(parent.model_fields) if _is_model(parent) else "see the documentation"
+        return _format_path(path), f"unknown key; allowed keys: {allowed}"
+    if kind == "missing":
+        if path and isinstance(path[-1], int):
+            expected = len(typing.get_args(parent)) if typing.get_origin(parent) is tuple else "more"
+            return _format_path(path[:-1]), f"too few values; expected {expected}{_got(value)}"
+        return _format_path(path), "required key is missing"
+    if kind in ("union_tag_invalid", "union_tag_not_found"):
+        discriminator = str(ctx.get("discriminator", "kind")).strip("'")
+        allowed = ", ".join(repr(t) for t in _tags(_union_members(tp), discriminator))
+        path = [*path, discriminator]
+        if kind == "union_tag_not_found":
+            return _format_path(path), f"required key is missing; allowed: {allowed}"
+        return _format_path(path), f"unknown value {ctx.get('tag')!r}; allowed: {allowed}"
+    if kind == "literal_error":
+        values = typing.get_args(tp) if typing.get_origin(tp) is Literal else ()
+        allowed = ", ".join(repr(v) for v in values) if values else str(ctx.get("expected", ""))
+        return _format_path(path), f"unknown value {value!r}; allowed: {allowed}"
+
+    message = _PLAIN_MESSAGES.get(kind) or str(error["msg"])
+    for prefix in ("Value error, ", "Assertion failed, "):
+        message = message.removeprefix(prefix)
+    # A whole table as 'got' is noise; the message of a table-level check already says what is wrong.
+    if not isinstance(value, Mapping):
+        message += _got(value)
+    return _format_path(path), message
+
+
+def _format_validation_error(err: ValidationError, source: str) -> list[str]:
+    errors = err.errors(include_url=False)
+    # A file written for another schema version produces errors everywhere; only the version matters then.
+    version_errors = [e for e in errors if tuple(e["loc"]) == ("schema_version",)]
+    if version_errors:
+        errors = version_errors
+    lines: list[str] = []
+    for error in errors:
+        path, message = _format_error(error)
+        line = f"{source}: {path}: {message}" if path else f"{source}: {message}"
+        if line not in lines:
+            lines.append(line)
+    return lines
