@@ -1,0 +1,224 @@
+"""Tests for warpdem.usd: the written stage is read back with pxr and compared with the input.
+
+Tolerances: positions, velocities, widths and colours are stored as float32, so values are compared with a
+relative tolerance of 1e-6 (float32 epsilon is 1.2e-7); times are stored as double and compared exactly.
+"""
+
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+import pytest
+from pxr import Usd, UsdGeom
+
+from warpdem.usd import UsdWriter
+
+RTOL = 1e-6  # float32 storage
+FPS = 24.0
+
+
+def make_frames(seed: int = 0) -> list[dict[str, np.ndarray | float]]:
+    """Three frames with 4, 4 and 3 particles; the third drops the particle with id 11."""
+    rng = np.random.default_rng(seed)
+    frames = []
+    ids_per_frame = [np.array([10, 11, 12, 13]), np.array([10, 11, 12, 13]), np.array([10, 12, 13])]
+    for k, ids in enumerate(ids_per_frame):
+        n = ids.size
+        frames.append(
+            {
+                "time": 1.0e-3 * (k + 1) + 1.0e-9,  # not a multiple of 1/FPS: time codes must not derive from it
+                "positions": rng.normal(size=(n, 3)),
+                "radii": rng.uniform(0.01, 0.05, size=n),
+                "velocities": rng.normal(size=(n, 3)),
+                "ids": ids.astype(np.int64),
+                "colors": rng.uniform(0.0, 1.0, size=(n, 3)),
+            }
+        )
+    return frames
+
+
+def test_round_trip(tmp_path: pathlib.Path) -> None:
+    final = tmp_path / "out" / "run.usdc"
+    frames = make_frames()
+    writer = UsdWriter(final, FPS, comment="unit test")
+    partial = tmp_path / "out" / "run.partial.usdc"
+    assert writer.partial_path == partial.resolve()
+    codes = [writer.write_frame(**frame) for frame in frames]
+    assert codes == [0, 1, 2]
+    assert writer.frame_count == 3
+    assert not final.exists()
+    assert writer.close() == final.resolve()
+    assert final.exists()
+    assert not partial.exists()
+
+    stage = Usd.Stage.Open(str(final))
+    assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z
+    assert UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+    assert stage.GetTimeCodesPerSecond() == FPS
+    assert stage.GetFramesPerSecond() == FPS
+    assert stage.GetStartTimeCode() == 0.0
+    assert stage.GetEndTimeCode() == 2.0
+    assert stage.GetDefaultPrim().GetPath() == "/World"
+    assert stage.GetRootLayer().comment == "unit test"
+    assert stage.GetRootLayer().GetFileFormat().formatId == "usdc"
+
+    world = stage.GetPrimAtPath("/World")
+    time_attr = world.GetAttribute("warpdem:time")
+    assert time_attr.IsCustom()
+    assert time_attr.GetTimeSamples() == [0.0, 1.0, 2.0]
+    for code, frame in enumerate(frames):
+        assert time_attr.Get(code) == frame["time"]
+
+    points = UsdGeom.Points(stage.GetPrimAtPath("/World/Particles"))
+    assert points
+    assert points.GetPointsAttr().GetTimeSamples() == [0.0, 1.0, 2.0]
+    assert points.GetIdsAttr().GetTimeSamples() == [0.0, 2.0]
+    assert points.GetWidthsInterpolation() == UsdGeom.Tokens.vertex
+    color = points.GetDisplayColorPrimvar()
+    speed = UsdGeom.PrimvarsAPI(points.GetPrim()).GetPrimvar("speed")
+    assert color.GetInterpolation() == UsdGeom.Tokens.vertex
+    assert speed.GetInterpolation() == UsdGeom.Tokens.vertex
+    assert not stage.GetPrimAtPath("/World/Bonds")
+
+    for code, frame in enumerate(frames):
+        pos = np.asarray(points.GetPointsAttr().Get(code))
+        widths = np.asarray(points.GetWidthsAttr().Get(code))
+        vel = np.asarray(points.GetVelocitiesAttr().Get(code))
+        np.testing.assert_allclose(pos, frame["positions"], rtol=RTOL, atol=1e-7)
+        np.testing.assert_allclose(widths, 2.0 * frame["radii"], rtol=RTOL)
+        np.testing.assert_allclose(vel, frame["velocities"], rtol=RTOL, atol=1e-7)
+        # ids are held between authored samples, so every frame reads back its own list.
+        np.testing.assert_array_equal(np.asarray(points.GetIdsAttr().Get(code)), frame["ids"])
+        np.testing.assert_allclose(np.asarray(color.Get(code)), frame["colors"], rtol=RTOL, atol=1e-7)
+        np.testing.assert_allclose(
+            np.asarray(speed.Get(code)), np.linalg.norm(frame["velocities"], axis=1), rtol=RTOL, atol=1e-7
+        )
+        extent = np.asarray(points.GetExtentAttr().Get(code))
+        r = frame["radii"][:, None]
+        np.testing.assert_allclose(extent[0], (frame["positions"] - r).min(axis=0), rtol=RTOL, atol=1e-7)
+        np.testing.assert_allclose(extent[1], (frame["positions"] + r).max(axis=0), rtol=RTOL, atol=1e-7)
+
+
+def test_bonds(tmp_path: pathlib.Path) -> None:
+    final = tmp_path / "bonds.usda"
+    frames = make_frames(seed=1)
+    bonds = [np.array([[0, 1], [2, 3]]), np.zeros((0, 2), dtype=np.int32), np.array([[0, 2]])]
+    with UsdWriter(final, FPS) as writer:
+        for frame, frame_bonds in zip(frames, bonds, strict=True):
+            writer.write_frame(**frame, bonds=frame_bonds)
+    assert (tmp_path / "bonds.usda").exists()
+    assert not (tmp_path / "bonds.partial.usda").exists()
+
+    stage = Usd.Stage.Open(str(final))
+    assert stage.GetRootLayer().GetFileFormat().formatId == "usda"
+    curves = UsdGeom.BasisCurves(stage.GetPrimAtPath("/World/Bonds"))
+    assert curves
+    assert curves.GetTypeAttr().Get() == UsdGeom.Tokens.linear
+    assert curves.GetWidthsInterpolation() == UsdGeom.Tokens.constant
+    assert curves.GetPointsAttr().GetTimeSamples() == [0.0, 1.0, 2.0]
+    for code, (frame, frame_bonds) in enumerate(zip(frames, bonds, strict=True)):
+        pts = np.asarray(curves.GetPointsAttr().Get(code)).reshape(-1, 3)
+        counts = np.asarray(curves.GetCurveVertexCountsAttr().Get(code))
+        widths = np.asarray(curves.GetWidthsAttr().Get(code))
+        expected = frame["positions"][frame_bonds.reshape(-1)]
+        np.testing.assert_allclose(pts, expected, rtol=RTOL, atol=1e-7)
+        np.testing.assert_array_equal(counts, np.full(len(frame_bonds), 2))
+        np.testing.assert_allclose(widths, [0.5 * frame["radii"].mean()], rtol=RTOL)
+
+
+def test_bonds_appear_late(tmp_path: pathlib.Path) -> None:
+    """Frames before the first bonds read back as no bonds, and frames that omit bonds draw none."""
+    final = tmp_path / "late.usdc"
+    frames = make_frames(seed=2)
+    with UsdWriter(final, FPS) as writer:
+        writer.write_frame(**frames[0])
+        writer.write_frame(**frames[1], bonds=np.array([[0, 3]]))
+        writer.write_frame(**frames[2])
+    stage = Usd.Stage.Open(str(final))  # prims do not keep their stage alive
+    curves = UsdGeom.BasisCurves(stage.GetPrimAtPath("/World/Bonds"))
+    assert len(curves.GetCurveVertexCountsAttr().Get(0)) == 0
+    assert len(curves.GetCurveVertexCountsAttr().Get(1)) == 1
+    assert len(curves.GetCurveVertexCountsAttr().Get(2)) == 0
+
+
+def test_periodic_save(tmp_path: pathlib.Path) -> None:
+    """Saving the crate file mid-run must not lose or corrupt samples authored before or after."""
+    final = tmp_path / "periodic.usd"
+    frames = make_frames(seed=3) * 3
+    writer = UsdWriter(final, FPS)
+    writer.save_interval_frames = 2
+    for frame in frames:
+        writer.write_frame(**frame)
+    assert writer.partial_path.exists()
+    writer.close()
+    assert final.read_bytes()[:8] == b"PXR-USDC"  # ".usd" is written as binary crate
+    stage = Usd.Stage.Open(str(final))
+    assert stage.GetEndTimeCode() == len(frames) - 1
+    points = UsdGeom.Points(stage.GetPrimAtPath("/World/Particles"))
+    for code, frame in enumerate(frames):
+        np.testing.assert_allclose(
+            np.asarray(points.GetPointsAttr().Get(code)), frame["positions"], rtol=RTOL, atol=1e-7
+        )
+    assert points.GetIdsAttr().GetTimeSamples() == [0.0, 2.0, 3.0, 5.0, 6.0, 8.0]
+
+
+def test_abort_leaves_no_file(tmp_path: pathlib.Path) -> None:
+    final = tmp_path / "aborted.usdc"
+    writer = UsdWriter(final, FPS)
+    writer.write_frame(**make_frames()[0])
+    assert writer.partial_path.exists()
+    writer.abort()
+    assert list(tmp_path.iterdir()) == []
+    writer.abort()  # idempotent
+    with pytest.raises(RuntimeError, match="closed"):
+        writer.write_frame(**make_frames()[0])
+
+
+def test_abort_keeps_previous_output(tmp_path: pathlib.Path) -> None:
+    final = tmp_path / "keep.usdc"
+    with UsdWriter(final, FPS) as writer:
+        writer.write_frame(**make_frames()[0])
+    before = final.read_bytes()
+    writer = UsdWriter(final, FPS)
+    writer.write_frame(**make_frames()[1])
+    writer.abort()
+    assert final.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.usdc"]
+
+
+def test_context_manager_aborts_on_exception(tmp_path: pathlib.Path) -> None:
+    final = tmp_path / "ctx.usdc"
+    with pytest.raises(KeyError), UsdWriter(final, FPS) as writer:
+        writer.write_frame(**make_frames()[0])
+        raise KeyError("simulated failure")
+    assert not final.exists()
+    assert not writer.partial_path.exists()
+
+
+def test_stale_partial_is_replaced(tmp_path: pathlib.Path) -> None:
+    (tmp_path / "stale.partial.usdc").write_bytes(b"left over from a crash")
+    with UsdWriter(tmp_path / "stale.usdc", FPS) as writer:
+        writer.write_frame(**make_frames()[0])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["stale.usdc"]
+
+
+@pytest.mark.parametrize("name", ["run.abc", "run", "run.usdz", "run.h5"])
+def test_bad_suffix(tmp_path: pathlib.Path, name: str) -> None:
+    with pytest.raises(ValueError, match="unsupported suffix"):
+        UsdWriter(tmp_path / name, FPS)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_bad_inputs(tmp_path: pathlib.Path) -> None:
+    with pytest.raises(ValueError, match="frames_per_second"):
+        UsdWriter(tmp_path / "x.usda", 0.0)
+    frame = make_frames()[0]
+    with UsdWriter(tmp_path / "x.usda", FPS) as writer:
+        with pytest.raises(ValueError, match="radii"):
+            writer.write_frame(**{**frame, "radii": frame["radii"][:2]})
+        with pytest.raises(ValueError, match="ids"):
+            writer.write_frame(**{**frame, "ids": frame["ids"].astype(np.float64)})
+        with pytest.raises(ValueError, match="bonds"):
+            writer.write_frame(**frame, bonds=np.array([[0, 4]]))
+        assert writer.frame_count == 0

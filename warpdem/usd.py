@@ -1,0 +1,372 @@
+"""Animated USD stage output for DEM particles and bonds.
+
+The writer authors one time sample per recorded frame. Time codes are integer frame numbers counted by the
+writer (0, 1, 2, ...), so any frame rate plays back at the same speed in every USD viewer; the simulated time
+of each frame is stored alongside in the time-sampled attribute ``/World.warpdem:time`` [s].
+
+Stage layout::
+
+    /World              Xform, default prim; custom double ``warpdem:time`` [s], one sample per frame
+    /World/Particles    Points: points [m], widths (diameters) [m], velocities [m/s], ids,
+                        primvars:displayColor (vertex), primvars:speed [m/s] (vertex), extent [m]
+    /World/Bonds        BasisCurves, linear, one 2-vertex curve per bond (only when bonds are given)
+
+The stage is authored into ``<stem>.partial<suffix>`` next to the final file and moved over the final name
+with ``os.replace`` at :meth:`UsdWriter.close`, so a crashed run never leaves a half-written file under the
+name a viewer or a later pipeline step would pick up.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import pathlib
+from types import TracebackType
+from typing import Any
+
+import numpy as np
+
+__all__ = ["UsdWriter"]
+
+_SUFFIXES = (".usd", ".usdc", ".usda")
+
+# Radius-to-width ratio of the bond curves: thin enough to leave the spheres visible, thick enough to see.
+_BOND_WIDTH_PER_MEAN_RADIUS = 0.5
+
+
+class UsdWriter:
+    """Writes DEM frames into an animated USD stage.
+
+    Example::
+
+        with UsdWriter("out/run.usdc", frames_per_second=60.0) as usd:
+            for frame in frames:
+                usd.write_frame(time=frame.t, positions=..., radii=..., velocities=..., ids=..., colors=...)
+
+    Leaving the ``with`` block normally publishes the file (:meth:`close`); leaving it through an exception
+    deletes the partial file (:meth:`abort`) and lets the exception propagate.
+
+    Attributes:
+        save_interval_frames: For crate files (``.usd``/``.usdc``), the partial file is saved every this many
+            frames; crate saves hand the authored samples over to the file, which bounds the writer's memory
+            on long runs. Text files (``.usda``) are rewritten whole on every save, so they are saved only at
+            :meth:`close`. ``0`` saves only at close.
+    """
+
+    save_interval_frames: int = 50
+
+    def __init__(self, path: str | os.PathLike, frames_per_second: float, *, comment: str | None = None) -> None:
+        """Creates the partial stage and authors the stage metadata.
+
+        Args:
+            path: Final file name; the suffix picks the format: ``.usdc`` or ``.usd`` (binary crate) or
+                ``.usda`` (text). Parent directories are created.
+            frames_per_second: Playback rate [frames/s], stored as both ``timeCodesPerSecond`` and
+                ``framesPerSecond`` since one time code is one frame.
+            comment: Optional free text stored as the layer comment (e.g. the scene file and command line).
+
+        Raises:
+            ValueError: If the suffix is not one of ``.usd``, ``.usdc``, ``.usda``, or the frame rate is not a
+                positive finite number.
+            RuntimeError: If another writer in this process is already authoring the same file.
+        """
+        from pxr import Sdf, Usd, UsdGeom
+
+        final_path = pathlib.Path(path)
+        suffix = final_path.suffix.lower()
+        if suffix not in _SUFFIXES:
+            raise ValueError(
+                f"USD output {str(final_path)!r}: unsupported suffix {final_path.suffix!r}, "
+                f"expected one of {', '.join(_SUFFIXES)}"
+            )
+        fps = float(frames_per_second)
+        if not (math.isfinite(fps) and fps > 0.0):
+            raise ValueError(f"USD output {str(final_path)!r}: frames_per_second must be > 0, got {frames_per_second}")
+
+        final_path.parent.mkdir(parents=True, exist_ok=True)
+        final_path = final_path.resolve()
+        # USD picks the file format from the extension, so the suffix stays last on the temporary name.
+        partial_path = final_path.with_name(f"{final_path.stem}.partial{final_path.suffix}")
+        if Sdf.Layer.Find(str(partial_path)) is not None:
+            raise RuntimeError(f"USD output {str(final_path)!r} is already being written by another writer")
+        # A partial file on disk is the leftover of a crashed run: nothing can resume it.
+        partial_path.unlink(missing_ok=True)
+
+        # ".usd" may be either encoding; the brief for this format is crate, whatever USD_DEFAULT_FILE_FORMAT says.
+        layer_args = {"format": "usdc"} if suffix == ".usd" else {}
+        layer = Sdf.Layer.CreateNew(str(partial_path), args=layer_args)
+        if layer is None:
+            raise RuntimeError(f"USD output {str(final_path)!r}: could not create {str(partial_path)!r}")
+        if comment is not None:
+            layer.comment = comment
+        stage = Usd.Stage.Open(layer)
+
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+        UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+        stage.SetTimeCodesPerSecond(fps)
+        stage.SetFramesPerSecond(fps)
+        stage.SetStartTimeCode(0.0)
+        stage.SetEndTimeCode(0.0)
+
+        world = UsdGeom.Xform.Define(stage, "/World")
+        stage.SetDefaultPrim(world.GetPrim())
+        self._time_attr = world.GetPrim().CreateAttribute("warpdem:time", Sdf.ValueTypeNames.Double, custom=True)
+
+        points = UsdGeom.Points.Define(stage, "/World/Particles")
+        self._points = points
+        self._points_attr = points.CreatePointsAttr()
+        self._widths_attr = points.CreateWidthsAttr()
+        points.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
+        self._velocities_attr = points.CreateVelocitiesAttr()
+        self._ids_attr = points.CreateIdsAttr()
+        self._extent_attr = points.CreateExtentAttr()
+        self._color_primvar = points.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex)
+        self._speed_primvar = UsdGeom.PrimvarsAPI(points.GetPrim()).CreatePrimvar(
+            "speed", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex
+        )
+
+        self._final_path = final_path
+        self._partial_path = partial_path
+        self._crate = suffix in (".usd", ".usdc")
+        self._layer: Any = layer
+        self._stage: Any = stage
+        self._bonds: Any = None  # UsdGeom.BasisCurves, defined on the first frame that carries bonds
+        self._last_ids: np.ndarray | None = None
+        self._frame_count = 0
+        self._closed = False
+
+    @property
+    def frame_count(self) -> int:
+        """Number of frames written so far; also the time code the next frame gets."""
+        return self._frame_count
+
+    @property
+    def path(self) -> pathlib.Path:
+        """Final (published) file path."""
+        return self._final_path
+
+    @property
+    def partial_path(self) -> pathlib.Path:
+        """Temporary file the stage is authored into until :meth:`close`."""
+        return self._partial_path
+
+    def write_frame(
+        self,
+        *,
+        time: float,
+        positions: np.ndarray,
+        radii: np.ndarray,
+        velocities: np.ndarray,
+        ids: np.ndarray,
+        colors: np.ndarray,
+        bonds: np.ndarray | None = None,
+    ) -> int:
+        """Authors one frame of particle (and optionally bond) data.
+
+        Args:
+            time: Simulated time of the frame [s], stored in ``/World.warpdem:time``.
+            positions: Particle centres [m], shape (N, 3).
+            radii: Particle radii [m], shape (N,); written as widths = diameters.
+            velocities: Particle velocities [m/s], shape (N, 3).
+            ids: Stable particle ids, shape (N,), integer. Authored only at frame 0 and whenever N or the id list
+                changes; USD holds the last sample in between.
+            colors: Display colours, linear RGB in [0, 1], shape (N, 3).
+            bonds: Optional bonded pairs as indices into this frame's arrays, shape (M, 2), integer. Once any
+                frame has carried bonds, a later frame without them authors an empty bond set so stale bonds
+                are not drawn.
+
+        Returns:
+            The time code (frame number) of the frame just written.
+
+        Raises:
+            ValueError: If array shapes disagree, ids or bonds are not integers, or a bond index is out of range.
+            RuntimeError: If the writer is already closed or aborted.
+        """
+        from pxr import Vt
+
+        self._check_open()
+        t = float(time)
+        if not math.isfinite(t):
+            raise ValueError(f"USD frame {self._frame_count}: time must be finite, got {time}")
+        pos = _as_float32(positions, "positions", (-1, 3))
+        n = pos.shape[0]
+        rad = _as_float32(radii, "radii", (n,))
+        vel = _as_float32(velocities, "velocities", (n, 3))
+        col = _as_float32(colors, "colors", (n, 3))
+        ids_arr = np.asarray(ids)
+        if ids_arr.shape != (n,) or not np.issubdtype(ids_arr.dtype, np.integer):
+            raise ValueError(f"ids: expected integer array of shape ({n},), got {ids_arr.dtype} {ids_arr.shape}")
+        ids_arr = np.ascontiguousarray(ids_arr, dtype=np.int64)
+        bond_arr = None
+        if bonds is not None:
+            bond_arr = np.asarray(bonds)
+            if bond_arr.ndim != 2 or bond_arr.shape[1] != 2 or not np.issubdtype(bond_arr.dtype, np.integer):
+                raise ValueError(
+                    f"bonds: expected integer array of shape (M, 2), got {bond_arr.dtype} {bond_arr.shape}"
+                )
+            if bond_arr.size and (bond_arr.min() < 0 or bond_arr.max() >= n):
+                raise ValueError(f"bonds: indices must lie in [0, {n}), got range [{bond_arr.min()}, {bond_arr.max()}]")
+
+        code = float(self._frame_count)
+        widths = Vt.FloatArray.FromNumpy(2.0 * rad)
+        points = Vt.Vec3fArray.FromNumpy(pos)
+        self._time_attr.Set(t, code)
+        self._points_attr.Set(points, code)
+        self._widths_attr.Set(widths, code)
+        self._velocities_attr.Set(Vt.Vec3fArray.FromNumpy(vel), code)
+        self._color_primvar.Set(Vt.Vec3fArray.FromNumpy(col), code)
+        speed = np.linalg.norm(vel, axis=1).astype(np.float32)
+        self._speed_primvar.Set(Vt.FloatArray.FromNumpy(speed), code)
+        self._extent_attr.Set(self._points.ComputeExtent(points, widths), code)
+        # ids are only needed where the particle set changes; held samples keep the file small.
+        if self._last_ids is None or not np.array_equal(self._last_ids, ids_arr):
+            self._ids_attr.Set(Vt.Int64Array.FromNumpy(ids_arr), code)
+            self._last_ids = ids_arr.copy()
+
+        if bond_arr is not None:
+            self._write_bonds(code, pos, rad, bond_arr)
+        elif self._bonds is not None:
+            self._write_bonds(code, pos, rad, np.zeros((0, 2), dtype=np.int64))
+
+        self._frame_count += 1
+        if self._crate and self.save_interval_frames > 0 and self._frame_count % self.save_interval_frames == 0:
+            self._stage.SetEndTimeCode(float(self._frame_count - 1))
+            self._layer.Save()
+        return int(code)
+
+    def close(self) -> pathlib.Path:
+        """Saves the stage and atomically moves it to the final path.
+
+        Returns:
+            The final file path.
+
+        Raises:
+            RuntimeError: If the writer is already closed or aborted.
+        """
+        self._check_open()
+        try:
+            self._stage.SetStartTimeCode(0.0)
+            self._stage.SetEndTimeCode(float(max(self._frame_count - 1, 0)))
+            if not self._layer.Save():
+                raise RuntimeError(f"USD output {str(self._final_path)!r}: saving {str(self._partial_path)!r} failed")
+        except BaseException:
+            self.abort()
+            raise
+        # Release the layer before the rename so no memory map still points at the old name.
+        self._release()
+        try:
+            os.replace(self._partial_path, self._final_path)
+        except BaseException:
+            self._partial_path.unlink(missing_ok=True)
+            raise
+        return self._final_path
+
+    def abort(self) -> None:
+        """Drops the stage and deletes the partial file; the final path is left as it was.
+
+        Does nothing if the writer is already closed or aborted.
+        """
+        if self._closed:
+            return
+        self._release()
+        self._partial_path.unlink(missing_ok=True)
+
+    def __enter__(self) -> UsdWriter:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        if exc_type is None:
+            if not self._closed:
+                self.close()
+        else:
+            self.abort()
+
+    def _write_bonds(self, code: float, pos: np.ndarray, rad: np.ndarray, bonds: np.ndarray) -> None:
+        """Authors the bond curves of one frame.
+
+        Args:
+            code: Time code of the frame.
+            pos: Particle centres [m], shape (N, 3), float32.
+            rad: Particle radii [m], shape (N,), float32.
+            bonds: Bonded pairs, shape (M, 2), integer indices into ``pos``.
+        """
+        from pxr import UsdGeom
+
+        if self._bonds is None:
+            self._bonds = UsdGeom.BasisCurves.Define(self._stage, "/World/Bonds")
+            self._bonds.CreateTypeAttr(UsdGeom.Tokens.linear)
+            self._bonds.CreateWidthsAttr()
+            self._bonds.SetWidthsInterpolation(UsdGeom.Tokens.constant)
+            if code > 0.0:
+                # USD holds the first sample backwards in time; an empty sample before it keeps earlier frames
+                # from drawing bonds that did not exist yet.
+                self._set_bonds(code - 1.0, np.zeros((0, 3), np.float32), np.zeros(0, np.int32), 0.0)
+
+        endpoints = np.ascontiguousarray(pos[bonds.reshape(-1)], dtype=np.float32)
+        width = _BOND_WIDTH_PER_MEAN_RADIUS * float(rad.mean()) if rad.size else 0.0
+        counts = np.full(bonds.shape[0], 2, dtype=np.int32)
+        self._set_bonds(code, endpoints, counts, width)
+
+    def _set_bonds(self, code: float, endpoints: np.ndarray, counts: np.ndarray, width: float) -> None:
+        """Sets the bond curve attributes at one time code.
+
+        Args:
+            code: Time code.
+            endpoints: Curve vertices [m], shape (2 M, 3), float32.
+            counts: Vertices per curve, shape (M,), all 2.
+            width: Constant curve width [m].
+        """
+        from pxr import Gf, Vt
+
+        self._bonds.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(endpoints), code)
+        self._bonds.GetCurveVertexCountsAttr().Set(Vt.IntArray.FromNumpy(counts), code)
+        self._bonds.GetWidthsAttr().Set(Vt.FloatArray([width]), code)
+        if endpoints.shape[0]:
+            half = 0.5 * width
+            lo = endpoints.min(axis=0) - half
+            hi = endpoints.max(axis=0) + half
+        else:
+            # USD's empty range: min above max.
+            lo = np.full(3, np.finfo(np.float32).max)
+            hi = -lo
+        self._bonds.GetExtentAttr().Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]), code)
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise RuntimeError(f"USD output {str(self._final_path)!r}: writer is already closed")
+
+    def _release(self) -> None:
+        """Drops every handle on the stage so USD releases the layer."""
+        self._closed = True
+        self._time_attr = self._points_attr = self._widths_attr = None
+        self._velocities_attr = self._ids_attr = self._extent_attr = None
+        self._color_primvar = self._speed_primvar = None
+        self._points = self._bonds = None
+        self._stage = None
+        self._layer = None
+
+
+def _as_float32(values: np.ndarray, name: str, shape: tuple[int, ...]) -> np.ndarray:
+    """Converts an array to contiguous float32 and checks its shape.
+
+    Args:
+        values: Input array.
+        name: Argument name for the error message.
+        shape: Expected shape; ``-1`` accepts any length in that axis.
+
+    Returns:
+        C-contiguous float32 array.
+
+    Raises:
+        ValueError: If the shape does not match.
+    """
+    arr = np.asarray(values)
+    if arr.ndim != len(shape) or any(want not in (-1, got) for want, got in zip(shape, arr.shape, strict=True)):
+        expected = "(" + ", ".join("N" if s == -1 else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+        raise ValueError(f"{name}: expected shape {expected}, got {arr.shape}")
+    return np.ascontiguousarray(arr, dtype=np.float32)
