@@ -1,0 +1,491 @@
+"""Initial sphere arrangements, built once on the host: regular lattices and random sequential addition.
+
+Regions are small frozen dataclasses (:class:`Box`, :class:`Cylinder`). Every placed sphere lies fully inside its
+region: its centre is at least its radius from the boundary. Spheres of a packing never overlap.
+
+Lattices (:func:`lattice_packing`) put equal spheres in contact with their neighbours: simple cubic (6 contacts,
+solid fraction π/6 ≈ 0.524) or hexagonal close packing (12 contacts, π/(3√2) ≈ 0.7405) with close-packed
+layers stacked ABAB along z. Random packings (:func:`random_packing`) place spheres one at a time at uniformly
+random positions, rejecting overlaps (random sequential addition, RSA); RSA of equal spheres jams near a solid
+fraction of 0.38 (Widom 1966; Talbot, Schaaf, Tarjus 1991 give φ_∞ ≈ 0.3841), lower still in small regions
+because walls exclude a layer of thickness r. Denser random packings need dynamic compaction (gravity
+deposition, isotropic compression) in the simulator itself.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+__all__ = ["Box", "Cylinder", "lattice_packing", "random_packing"]
+
+_REL_TOL = 1e-12
+"""Containment tolerance relative to the region size: lattice points that land on the boundary of the allowed
+region up to round-off (a box exactly n diameters wide) are kept."""
+
+
+def _check_positive(value: float, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not (math.isfinite(value) and value > 0.0):
+        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    return float(value)
+
+
+def _vec3(value: np.ndarray | tuple[float, float, float] | list[float], name: str) -> np.ndarray:
+    array = np.array(value, dtype=np.float64).reshape(-1)
+    if array.shape != (3,) or not np.all(np.isfinite(array)):
+        raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
+    array.flags.writeable = False  # the dataclasses are frozen; so are their arrays
+    return array
+
+
+@dataclass(frozen=True, eq=False)
+class Box:
+    """Axis-aligned box.
+
+    Attributes:
+        lo: lower corner [m], shape (3,).
+        hi: upper corner [m], shape (3,), hi > lo componentwise.
+    """
+
+    lo: np.ndarray
+    hi: np.ndarray
+
+    def __post_init__(self) -> None:
+        lo, hi = _vec3(self.lo, "Box.lo"), _vec3(self.hi, "Box.hi")
+        if not np.all(hi > lo):
+            raise ValueError(f"Box needs hi > lo in every component, got lo={lo.tolist()}, hi={hi.tolist()}")
+        object.__setattr__(self, "lo", lo)
+        object.__setattr__(self, "hi", hi)
+
+    def contains(self, points: np.ndarray, margin: float | np.ndarray = 0.0) -> np.ndarray:
+        """Which points lie inside the box, at least margin from its faces.
+
+        Args:
+            points: positions [m], shape (N, 3).
+            margin: distance to keep from the boundary [m], scalar or shape (N,).
+
+        Returns:
+            Mask, shape (N,), bool.
+        """
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        margin = np.asarray(margin, dtype=np.float64).reshape(-1, 1)
+        return np.all((points >= self.lo + margin) & (points <= self.hi - margin), axis=1)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned bounding box (lo, hi) [m], each shape (3,)."""
+        return self.lo.copy(), self.hi.copy()
+
+    def volume(self) -> float:
+        """Volume [m³]."""
+        return float(np.prod(self.hi - self.lo))
+
+
+@dataclass(frozen=True, eq=False)
+class Cylinder:
+    """Solid circular cylinder aligned with a coordinate axis.
+
+    Attributes:
+        center: centre of the base disc [m], shape (3,); the cylinder extends from it by height along +axis.
+        radius: radius [m], > 0.
+        height: height [m], > 0.
+        axis: coordinate axis of the cylinder: 0 (x), 1 (y) or 2 (z).
+    """
+
+    center: np.ndarray
+    radius: float
+    height: float
+    axis: int = 2
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "center", _vec3(self.center, "Cylinder.center"))
+        for name in ("radius", "height"):
+            object.__setattr__(self, name, _check_positive(getattr(self, name), f"Cylinder.{name}"))
+        if isinstance(self.axis, bool) or not isinstance(self.axis, numbers.Integral) or self.axis not in (0, 1, 2):
+            raise ValueError(f"Cylinder.axis must be 0, 1 or 2, got {self.axis!r}")
+        object.__setattr__(self, "axis", int(self.axis))
+
+    def _radial_axes(self) -> tuple[int, int]:
+        return (self.axis + 1) % 3, (self.axis + 2) % 3
+
+    def contains(self, points: np.ndarray, margin: float | np.ndarray = 0.0) -> np.ndarray:
+        """Which points lie inside the cylinder, at least margin from its mantle and end discs.
+
+        Args:
+            points: positions [m], shape (N, 3).
+            margin: distance to keep from the boundary [m], scalar or shape (N,).
+
+        Returns:
+            Mask, shape (N,), bool.
+        """
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        margin = np.broadcast_to(np.asarray(margin, dtype=np.float64), points.shape[:1])
+        rel = points - self.center
+        u, w = self._radial_axes()
+        rho = np.hypot(rel[:, u], rel[:, w])
+        along = rel[:, self.axis]
+        return (rho <= self.radius - margin) & (along >= margin) & (along <= self.height - margin)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned bounding box (lo, hi) [m], each shape (3,)."""
+        lo = self.center - self.radius
+        hi = self.center + self.radius
+        lo[self.axis] = self.center[self.axis]
+        hi[self.axis] = self.center[self.axis] + self.height
+        return lo, hi
+
+    def volume(self) -> float:
+        """Volume π r² h [m³]."""
+        return math.pi * self.radius**2 * self.height
+
+
+Region = Box | Cylinder
+
+
+def _tolerance(region: Region) -> float:
+    lo, hi = region.bounds()
+    return _REL_TOL * float(max(np.max(np.abs(lo)), np.max(np.abs(hi)), np.max(hi - lo)))
+
+
+def _check_max_count(max_count: int | None) -> int | None:
+    if max_count is not None and (isinstance(max_count, bool) or not isinstance(max_count, int) or max_count < 0):
+        raise ValueError(f"max_count must be None or an integer >= 0, got {max_count!r}")
+    return max_count
+
+
+def lattice_packing(
+    region: Region,
+    radius: float,
+    arrangement: Literal["hcp", "cubic"],
+    max_count: int | None = None,
+) -> np.ndarray:
+    """Equal spheres on a lattice, each touching its lattice neighbours, all fully inside a region.
+
+    The lattice is anchored at the lower corner of the region's bounding box, offset by the radius, so a box
+    exactly n diameters wide holds n spheres per row.
+
+    - "cubic": centres at lo + r + 2r (i, j, k); 6 contacts per sphere, solid fraction π/6.
+    - "hcp": close-packed (triangular) layers of spacing 2r normal to z; within a layer, rows are √3 r apart in y
+      and every other row is shifted by r in x; layers are 2r sqrt(2/3) apart in z, and every other layer (B) is
+      shifted by (r, r/√3), the centroid of a triangle of layer A, giving ABAB stacking: 12 contacts per sphere
+      (6 in-plane, 3 above, 3 below), solid fraction π/(3√2).
+
+    Args:
+        region: region to fill.
+        radius: sphere radius r [m], > 0.
+        arrangement: "hcp" or "cubic".
+        max_count: keep at most this many spheres; the order is z-major, then y, then x, so the lowest layers
+            are kept. None keeps all.
+
+    Returns:
+        Centres [m], shape (N, 3), ordered by layer (z), then row (y), then x.
+
+    Raises:
+        ValueError: unknown arrangement, radius not > 0, or max_count negative.
+    """
+    r = _check_positive(radius, "radius")
+    max_count = _check_max_count(max_count)
+    lo, hi = region.bounds()
+    extent = hi - lo
+    if arrangement == "cubic":
+        spacing = np.array([2.0 * r, 2.0 * r, 2.0 * r])
+    elif arrangement == "hcp":
+        spacing = np.array([2.0 * r, math.sqrt(3.0) * r, 2.0 * r * math.sqrt(2.0 / 3.0)])
+    else:
+        raise ValueError(f"arrangement must be 'hcp' or 'cubic', got {arrangement!r}")
+    # Index ranges cover the bounding box; offset rows/layers shift by at most r, so one extra index at each end
+    # suffices and the containment test trims the rest.
+    counts = np.floor(np.maximum(extent - 2.0 * r, 0.0) / spacing + 1e-9).astype(np.int64) + 1
+    k, j, i = np.meshgrid(
+        np.arange(counts[2]), np.arange(counts[1]), np.arange(-1, counts[0] + 1), indexing="ij"
+    )  # z-major then y then x, the documented order
+    k, j, i = k.ravel(), j.ravel(), i.ravel()
+    x = i * spacing[0]
+    y = j * spacing[1]
+    z = k * spacing[2]
+    if arrangement == "hcp":
+        layer_b = (k % 2).astype(np.float64)
+        x = x + r * (j % 2) + r * layer_b
+        y = y + r / math.sqrt(3.0) * layer_b
+    points = np.stack([x, y, z], axis=1) + (lo + r)
+    keep = region.contains(points, margin=r - _tolerance(region))
+    points = points[keep]
+    if max_count is not None:
+        points = points[:max_count]
+    return np.ascontiguousarray(points)
+
+
+class _CellGrid:
+    """Uniform grid of cubic cells of side >= 2 r_max holding sphere indices, for overlap queries.
+
+    Two spheres can overlap only if their centres are less than r_i + r_j <= 2 r_max apart, i.e. in the same or
+    adjacent cells, so a query reads the 27 cells around a point. The grid has one empty cell of padding on every
+    side, so the 27 neighbours of any cell inside the region exist.
+    """
+
+    def __init__(self, lo: np.ndarray, hi: np.ndarray, cell: float) -> None:
+        self.lo = lo
+        self.cell = cell
+        self.dims = np.ceil((hi - lo) / cell).astype(np.int64) + 2
+        n_cells = int(np.prod(self.dims))
+        self.capacity = 2  # grown on demand; mostly 0-2 spheres per cell of side 2 r_max at RSA densities
+        self.slots = np.full((n_cells, self.capacity), -1, dtype=np.int64)
+        self.fill = np.zeros(n_cells, dtype=np.int64)
+        offsets = np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"), axis=-1).reshape(-1, 3)
+        strides = np.array([self.dims[1] * self.dims[2], self.dims[2], 1], dtype=np.int64)
+        self.strides = strides
+        self.neighbour_offsets = offsets @ strides
+
+    def cell_of(self, points: np.ndarray) -> np.ndarray:
+        """Flat cell index of each point, shape (N,)."""
+        ijk = np.floor((points - self.lo) / self.cell).astype(np.int64) + 1
+        ijk = np.clip(ijk, 1, self.dims - 2)  # round-off at the far faces stays inside the unpadded range
+        return ijk @ self.strides
+
+    def neighbours(self, points: np.ndarray) -> np.ndarray:
+        """Indices of the spheres in the 27 cells around each point, -1 for empty slots, shape (N, 27 * capacity)."""
+        cells = self.cell_of(points)[:, None] + self.neighbour_offsets[None, :]
+        return self.slots[cells].reshape(len(points), -1)
+
+    def insert(self, indices: np.ndarray, points: np.ndarray) -> None:
+        """Add spheres (indices, shape (M,)) at points (shape (M, 3))."""
+        cells = self.cell_of(points)
+        order = np.argsort(cells, kind="stable")
+        cells, indices = cells[order], indices[order]
+        # Position of each new sphere among the new ones in the same cell, then its slot after those already there.
+        first = np.searchsorted(cells, cells, side="left")
+        slot = self.fill[cells] + np.arange(len(cells)) - first
+        needed = int(slot.max(initial=-1)) + 1
+        if needed > self.capacity:
+            # Grow to exactly what is needed: every query reads 27 * capacity slots, so spare slots cost time.
+            slots = np.full((self.slots.shape[0], needed), -1, dtype=np.int64)
+            slots[:, : self.capacity] = self.slots
+            self.slots, self.capacity = slots, needed
+        self.slots[cells, slot] = indices
+        np.add.at(self.fill, cells, 1)
+
+
+class _ExclusionVoxels:
+    """Fine voxels known to be covered by the exclusion zone of a placed sphere, to reject candidates cheaply.
+
+    A candidate of radius ρ >= r_min overlaps sphere j iff its centre is within ρ + r_j >= r_min + r_j of c_j.
+    A voxel (side h) whose every point is closer than r_min + r_j to c_j can therefore never take a centre. Near
+    jamming such voxels cover most of the region, and one table lookup rejects a candidate that would otherwise
+    cost 27 cells of distance tests (about 5x faster at a solid fraction of 0.3). With c_j anywhere in its own
+    voxel, every point of the voxel at integer offset o is within h sqrt(Σ (|o_i| + 1)²) of c_j, so the stencil
+    of offsets with that bound below r_min + r_j is marked.
+    """
+
+    def __init__(self, lo: np.ndarray, hi: np.ndarray, r_min: float, r_max: float, max_voxels: int) -> None:
+        self.lo = lo
+        # h = r_min/3 kills the exclusion zone up to radius 2 r_min - 0.58 r_min ≈ 1.7 r_min for equal spheres;
+        # coarser only where the voxel count would exceed max_voxels.
+        self.h = max(r_min / 3.0, float(np.prod(hi - lo) / max_voxels) ** (1.0 / 3.0))
+        reach = int(math.ceil((r_min + r_max) / self.h))
+        o = np.arange(-reach, reach + 1)
+        offsets = np.stack(np.meshgrid(o, o, o, indexing="ij"), axis=-1).reshape(-1, 3)
+        bound = self.h * np.sqrt(np.sum((np.abs(offsets) + 1.0) ** 2, axis=1))
+        keep = bound < r_min + r_max
+        self.pad = reach
+        self.dims = np.ceil((hi - lo) / self.h).astype(np.int64) + 2 * reach + 1
+        self.strides = np.array([self.dims[1] * self.dims[2], self.dims[2], 1], dtype=np.int64)
+        self.stencil = offsets[keep] @ self.strides
+        self.stencil_bound = bound[keep]
+        self.r_min = r_min
+        self.dead = np.zeros(int(np.prod(self.dims)) if len(self.stencil) else 1, dtype=bool)
+
+    def voxel_of(self, points: np.ndarray) -> np.ndarray:
+        """Flat voxel index of each point, shape (N,)."""
+        ijk = np.floor((points - self.lo) / self.h).astype(np.int64) + self.pad
+        return np.clip(ijk, self.pad, self.dims - 1 - self.pad) @ self.strides
+
+    def is_dead(self, points: np.ndarray) -> np.ndarray:
+        """Whether each point certainly overlaps a placed sphere, shape (N,)."""
+        if len(self.stencil) == 0:
+            return np.zeros(len(points), dtype=bool)
+        return self.dead[self.voxel_of(points)]
+
+    def insert(self, points: np.ndarray, radii: np.ndarray) -> None:
+        """Mark the voxels covered by the exclusion zones of new spheres (centres (M, 3), radii (M,))."""
+        if len(self.stencil) == 0 or len(points) == 0:
+            return
+        within = self.stencil_bound[None, :] < (self.r_min + radii)[:, None]
+        cells = self.voxel_of(points)[:, None] + self.stencil[None, :]
+        self.dead[cells[within]] = True
+
+
+def _sample_inside(region: Region, margin: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Uniform random points in the region shrunk by margin (one margin per point, shape (N,)); shape (N, 3)."""
+    n = len(margin)
+    if isinstance(region, Box):
+        span = (region.hi - region.lo)[None, :] - 2.0 * margin[:, None]
+        return region.lo + margin[:, None] + rng.random((n, 3)) * span
+    u, w = region._radial_axes()
+    # Uniform in the disc: radius ∝ sqrt(uniform), since the area within radius ρ grows as ρ².
+    rho = (region.radius - margin) * np.sqrt(rng.random(n))
+    phi = 2.0 * math.pi * rng.random(n)
+    points = np.empty((n, 3))
+    points[:, u] = region.center[u] + rho * np.cos(phi)
+    points[:, w] = region.center[w] + rho * np.sin(phi)
+    points[:, region.axis] = region.center[region.axis] + margin + (region.height - 2.0 * margin) * rng.random(n)
+    return points
+
+
+def _fits(region: Region, radius: np.ndarray) -> np.ndarray:
+    """Whether a sphere of each radius fits into the region at all, shape (N,)."""
+    if isinstance(region, Box):
+        return np.all(2.0 * radius[:, None] <= (region.hi - region.lo)[None, :], axis=1)
+    return (radius <= region.radius) & (2.0 * radius <= region.height)
+
+
+def random_packing(
+    region: Region,
+    radius_min: float,
+    radius_max: float,
+    rng: np.random.Generator,
+    volume_fraction: float = 0.5,
+    max_count: int | None = None,
+    max_attempts: int | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Random non-overlapping spheres fully inside a region, by random sequential addition.
+
+    Each sphere gets a radius drawn uniformly from [radius_min, radius_max] (radii that cannot fit into the region
+    at all are redrawn) and is then tried at uniformly random positions inside the region shrunk by its radius
+    until one overlaps no sphere placed before it. For speed, up to 1024 spheres are processed per round: each
+    pooled sphere draws a few candidate positions (about 2 / the current acceptance rate), all are tested at once
+    against the placed spheres on a cell grid (cell side >= 2 radius_max, so only 27 cells are read), each sphere
+    takes its first free candidate, and the spheres are accepted in pool order unless they overlap one accepted
+    earlier in the same round. Rejected spheres stay in the pool with their radius. The placed radii are thus
+    the drawn uniform radii, except for those still pooled when the run stops (few, unless it stops jammed).
+
+    The run stops once the solid fraction (placed sphere volume / region volume) reaches volume_fraction, once
+    max_count spheres are placed, or once max_attempts candidate positions have been tried, whichever comes
+    first. RSA of equal spheres jams near a solid fraction of 0.38 (lower in small regions, whose walls exclude
+    a layer of thickness r), and candidates are then almost all rejected: a target above that is not an error;
+    the run uses up max_attempts and returns what was placed.
+
+    The result is a deterministic function of the arguments and the state of rng.
+
+    Args:
+        region: region to fill.
+        radius_min: smallest radius [m], > 0.
+        radius_max: largest radius [m], >= radius_min.
+        rng: random generator; advanced by the call.
+        volume_fraction: target solid fraction, in (0, 1) [-].
+        max_count: at most this many spheres; None for no limit.
+        max_attempts: at most this many candidate positions tried in total (a sphere's candidates count up to
+            its first free one). None: 100 000 + 200 per sphere needed for the target, enough to get within
+            about 0.01 of the jamming fraction.
+
+    Returns:
+        (centres [m], shape (N, 3); radii [m], shape (N,)), in placement order.
+
+    Raises:
+        ValueError: invalid radii, volume fraction, max_count or max_attempts.
+    """
+    r_min = _check_positive(radius_min, "radius_min")
+    r_max = _check_positive(radius_max, "radius_max")
+    if r_max < r_min:
+        raise ValueError(f"radius_max must be >= radius_min, got {radius_max!r} < {radius_min!r}")
+    if isinstance(volume_fraction, bool) or not (isinstance(volume_fraction, numbers.Real) and 0 < volume_fraction < 1):
+        raise ValueError(f"volume_fraction must be in (0, 1), got {volume_fraction!r}")
+    max_count = _check_max_count(max_count)
+
+    target_volume = volume_fraction * region.volume()
+    mean_volume = math.pi / 3.0 * (r_min + r_max) * (r_min**2 + r_max**2)  # (4π/3) E[r³] for r ~ U(a, b)
+    count_limit = max_count if max_count is not None else np.iinfo(np.int64).max
+    expected = min(target_volume / mean_volume, count_limit)
+    if max_attempts is None:
+        max_attempts = 100_000 + int(200 * expected)
+    if isinstance(max_attempts, bool) or not isinstance(max_attempts, numbers.Integral) or max_attempts < 0:
+        raise ValueError(f"max_attempts must be None or an integer >= 0, got {max_attempts!r}")
+
+    lo, hi = region.bounds()
+    # Cells of side 2 r_max, coarsened when that would make far more cells than spheres (tiny spheres, small
+    # max_count in a large region); larger cells are still correct, the grid grows its per-cell capacity.
+    cell = max(2.0 * r_max, float(np.prod(hi - lo) / max(4.0 * expected, 4096.0)) ** (1.0 / 3.0))
+    grid = _CellGrid(lo, hi, cell)
+
+    voxels = _ExclusionVoxels(lo, hi, r_min, r_max, max_voxels=1 << 25)
+
+    capacity = max(int(expected * 1.1) + 16, 64)
+    xyzr = np.zeros((capacity, 4))  # placed centres [m] and radii [m], packed for one gather per neighbour
+    n_placed = 0
+    placed_volume = 0.0
+    attempts = 0
+    pool = np.empty(0)
+    pool_size = 1024
+    candidates_per_round = 16384
+    acceptance = 1.0  # fraction of free candidates in the last round
+
+    while n_placed < count_limit and placed_volume < target_volume and attempts < max_attempts:
+        # Refill the pool, but not far beyond what the stopping criteria still need, so that a run stopped by
+        # them leaves few drawn radii unplaced.
+        remaining = min(count_limit - n_placed, (target_volume - placed_volume) / mean_volume)
+        want = int(min(pool_size, max(1.0, math.ceil(remaining))))
+        while len(pool) < want:
+            fresh = r_min + (r_max - r_min) * rng.random(want - len(pool))
+            fresh = fresh[_fits(region, fresh)]
+            if len(fresh) == 0 and not _fits(region, np.array([r_min]))[0]:
+                return np.zeros((0, 3)), np.zeros(0)  # not even the smallest sphere fits
+            pool = np.concatenate([pool, fresh])
+        # Enough candidates per sphere that most find a free one, within the round's budget and max_attempts.
+        n_active = int(min(len(pool), max_attempts - attempts))
+        tries = int(np.clip(math.ceil(2.0 / max(acceptance, 1e-6)), 1, max(1, candidates_per_round // n_active)))
+        radius = np.repeat(pool[:n_active], tries)
+        trial = _sample_inside(region, radius, rng)
+
+        # Overlap with placed spheres: |p - c_j| < r + r_j for any j in the 27 surrounding cells; candidates in
+        # voxels already covered by an exclusion zone are rejected without the search.
+        free = ~voxels.is_dead(trial)
+        test = np.flatnonzero(free)
+        near = grid.neighbours(trial[test])
+        valid = near >= 0
+        other = xyzr[np.where(valid, near, 0)]
+        gap2 = np.sum((other[:, :, :3] - trial[test, None, :]) ** 2, axis=2)
+        reach = other[:, :, 3] + radius[test, None]
+        free[test] = ~np.any(valid & (gap2 < reach * reach), axis=1)
+        free = free.reshape(n_active, tries)
+        acceptance = float(free.mean())
+
+        # Each pooled sphere takes its first free candidate (the later ones were never tried), then clashes
+        # within the round are resolved in pool order, as sequential addition would.
+        has_free = free.any(axis=1)
+        first = np.argmax(free, axis=1)
+        attempts += int(np.where(has_free, first + 1, tries).sum())
+        who = np.flatnonzero(has_free)
+        pos = trial.reshape(n_active, tries, 3)[who, first[who]]
+        rad = pool[who]
+        accept = np.ones(len(who), dtype=bool)
+        if len(who) > 1:
+            d2 = np.sum((pos[:, None, :] - pos[None, :, :]) ** 2, axis=2)
+            clash = np.tril(d2 < (rad[:, None] + rad[None, :]) ** 2, k=-1)
+            for m in np.flatnonzero(clash.any(axis=1)):
+                accept[m] = not np.any(clash[m, :m] & accept[:m])
+        who, pos, rad = who[accept], pos[accept], rad[accept]
+
+        # Stop exactly where sequential addition would: after the sphere that reaches the count or the volume.
+        volumes = 4.0 / 3.0 * math.pi * rad**3
+        reached = (placed_volume + np.cumsum(volumes) >= target_volume) | (
+            n_placed + np.arange(1, len(rad) + 1) >= count_limit
+        )
+        if reached.any():
+            stop = int(np.argmax(reached)) + 1
+            who, pos, rad, volumes = who[:stop], pos[:stop], rad[:stop], volumes[:stop]
+
+        if n_placed + len(rad) > capacity:
+            capacity = max(2 * capacity, n_placed + len(rad))
+            xyzr = np.concatenate([xyzr, np.zeros((capacity - len(xyzr), 4))])
+        new = np.arange(n_placed, n_placed + len(rad))
+        xyzr[new, :3] = pos
+        xyzr[new, 3] = rad
+        grid.insert(new, pos)
+        voxels.insert(pos, rad)
+        n_placed += len(rad)
+        placed_volume += float(volumes.sum())
+        pool = np.delete(pool, who)
+
+    return xyzr[:n_placed, :3].copy(), xyzr[:n_placed, 3].copy()
