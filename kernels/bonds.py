@@ -1,0 +1,196 @@
+"""Cohesive bonds between spheres: the bonded-particle model of the CIMNE paper (adaptive_dem_fem_blast.txt §2).
+
+A bond joins spheres i < j with normal and shear springs of stiffness k_n = E_b A / L_0 and k_s = k_n / κ, A the
+bond cross-section. It carries tension and compression. It breaks when its normal stress k_n (L - L_0) / A reaches
+the tensile strength or its shear stress k_s |u_s| / A reaches the shear strength; a broken bond applies no force,
+and the pair is then an ordinary frictional contact (contact stage). Broken bonds are removed between steps by a
+compaction pass.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from .contact import rotate_into_plane
+
+wp.set_module_options({"enable_backward": False})
+
+BOND_INTACT = wp.constant(0)
+BOND_BROKEN_TENSION = wp.constant(1)
+BOND_BROKEN_SHEAR = wp.constant(2)
+
+
+@wp.func
+def bond_arms(ri: float, rj: float, dist: float) -> wp.vec2:
+    """Lever arms from the centres to the bond's mid-plane, splitting the distance in proportion to the radii."""
+    s = dist / (ri + rj)
+    return wp.vec2(ri * s, rj * s)
+
+
+@wp.kernel
+def eval_bonds_kernel(
+    # Model:
+    particle_radius: wp.array(dtype=float),
+    particle_inv_mass: wp.array(dtype=float),
+    dt: float,
+    # State in:
+    particle_q: wp.array(dtype=wp.vec3),
+    particle_qd: wp.array(dtype=wp.vec3),
+    particle_omega: wp.array(dtype=wp.vec3),
+    bond_count: wp.array(dtype=int),
+    bond_i: wp.array(dtype=int),
+    bond_j: wp.array(dtype=int),
+    bond_rest_length: wp.array(dtype=float),
+    bond_kn: wp.array(dtype=float),
+    bond_ks: wp.array(dtype=float),
+    bond_area: wp.array(dtype=float),
+    bond_tensile_strength: wp.array(dtype=float),
+    bond_shear_strength: wp.array(dtype=float),
+    bond_damping: wp.array(dtype=float),
+    # State out:
+    bond_shear: wp.array(dtype=wp.vec3),
+    bond_broken: wp.array(dtype=int),
+    bonds_broken_total: wp.array(dtype=int),
+    particle_f: wp.array(dtype=wp.vec3),
+    particle_t: wp.array(dtype=wp.vec3),
+    energy_damping: wp.array(dtype=wp.float64),
+    energy_bond_broken: wp.array(dtype=wp.float64),
+):
+    b = wp.tid()  # one thread per bond slot
+    if b >= bond_count[0]:
+        return
+    if bond_broken[b] != BOND_INTACT:
+        return
+    i = bond_i[b]
+    j = bond_j[b]
+    ri = particle_radius[i]
+    rj = particle_radius[j]
+    d = particle_q[i] - particle_q[j]
+    dist = wp.length(d)
+    n = d / dist
+    arms = bond_arms(ri, rj, dist)
+    wi = particle_omega[i]
+    wj = particle_omega[j]
+    v_rel = (particle_qd[i] - arms[0] * wp.cross(wi, n)) - (particle_qd[j] + arms[1] * wp.cross(wj, n))
+    vn = wp.dot(v_rel, n)
+    vt = v_rel - vn * n
+    stretch = dist - bond_rest_length[b]
+    kn = bond_kn[b]
+    ks = bond_ks[b]
+    us = rotate_into_plane(bond_shear[b], n) + vt * dt
+    area = bond_area[b]
+    # Strength check on the elastic (spring) forces, before they are applied: the bond fails within one step's
+    # load increment of its strength.
+    mode = BOND_INTACT
+    if kn * stretch >= bond_tensile_strength[b] * area:
+        mode = BOND_BROKEN_TENSION
+    elif ks * wp.length(us) >= bond_shear_strength[b] * area:
+        mode = BOND_BROKEN_SHEAR
+    if mode != BOND_INTACT:
+        bond_broken[b] = mode
+        wp.atomic_add(bonds_broken_total, 0, 1)
+        # The springs' energy is released with the bond.
+        released = 0.5 * kn * stretch * stretch + 0.5 * ks * wp.dot(us, us)
+        wp.atomic_add(energy_bond_broken, i, wp.float64(released))
+        return
+    bond_shear[b] = us
+    inv_sum = particle_inv_mass[i] + particle_inv_mass[j]
+    mstar = float(0.0)
+    if inv_sum > 0.0:
+        mstar = 1.0 / inv_sum
+    zeta = bond_damping[b]
+    gn = 2.0 * zeta * wp.sqrt(mstar * kn)
+    gs = 2.0 * zeta * wp.sqrt(mstar * ks)
+    fn = -kn * stretch - gn * vn
+    ft = -ks * us - gs * vt
+    force = fn * n + ft
+    wp.atomic_add(particle_f, i, force)
+    wp.atomic_add(particle_f, j, -force)
+    wp.atomic_add(particle_t, i, wp.cross(-arms[0] * n, ft))
+    wp.atomic_add(particle_t, j, wp.cross(arms[1] * n, -ft))
+    wp.atomic_add(energy_damping, i, wp.float64((gn * vn * vn + gs * wp.dot(vt, vt)) * dt))
+
+
+@wp.kernel
+def bond_energy_kernel(
+    # State in:
+    particle_q: wp.array(dtype=wp.vec3),
+    bond_count: wp.array(dtype=int),
+    bond_i: wp.array(dtype=int),
+    bond_j: wp.array(dtype=int),
+    bond_rest_length: wp.array(dtype=float),
+    bond_kn: wp.array(dtype=float),
+    bond_ks: wp.array(dtype=float),
+    bond_shear: wp.array(dtype=wp.vec3),
+    bond_broken: wp.array(dtype=int),
+    # Out:
+    energy: wp.array(dtype=wp.float64),
+    intact: wp.array(dtype=int),
+):
+    b = wp.tid()  # one thread per bond slot
+    if b >= bond_count[0]:
+        return
+    if bond_broken[b] != BOND_INTACT:
+        return
+    stretch = wp.length(particle_q[bond_i[b]] - particle_q[bond_j[b]]) - bond_rest_length[b]
+    us = bond_shear[b]
+    e = 0.5 * bond_kn[b] * stretch * stretch + 0.5 * bond_ks[b] * wp.dot(us, us)
+    wp.atomic_add(energy, 0, wp.float64(e))
+    wp.atomic_add(intact, 0, 1)
+
+
+@wp.kernel
+def count_bond_pairs_kernel(
+    # Model:
+    particle_radius: wp.array(dtype=float),
+    gap_tolerance: float,
+    search_radius: float,
+    # In:
+    grid: wp.uint64,
+    particle_q: wp.array(dtype=wp.vec3),
+    bondable: wp.array(dtype=int),
+    # Out:
+    pair_count: wp.array(dtype=int),
+):
+    i = wp.tid()  # one thread per particle; counts the j > i it bonds to
+    pair_count[i] = 0
+    if bondable[i] == 0:
+        return
+    xi = particle_q[i]
+    ri = particle_radius[i]
+    n = int(0)
+    for j in wp.hash_grid_query(grid, xi, search_radius):
+        if j > i and bondable[j] == bondable[i]:
+            rsum = ri + particle_radius[j]
+            if wp.length(xi - particle_q[j]) <= rsum * (1.0 + gap_tolerance):
+                n += 1
+    pair_count[i] = n
+
+
+@wp.kernel
+def fill_bond_pairs_kernel(
+    # Model:
+    particle_radius: wp.array(dtype=float),
+    gap_tolerance: float,
+    search_radius: float,
+    # In:
+    grid: wp.uint64,
+    particle_q: wp.array(dtype=wp.vec3),
+    bondable: wp.array(dtype=int),
+    pair_offset: wp.array(dtype=int),
+    # Out:
+    pairs: wp.array(dtype=wp.vec2i),
+):
+    i = wp.tid()  # one thread per particle; writes its pairs from its scanned offset (order within a particle is
+    # the grid's, and is sorted on the host)
+    if bondable[i] == 0:
+        return
+    xi = particle_q[i]
+    ri = particle_radius[i]
+    slot = pair_offset[i]
+    for j in wp.hash_grid_query(grid, xi, search_radius):
+        if j > i and bondable[j] == bondable[i]:
+            rsum = ri + particle_radius[j]
+            if wp.length(xi - particle_q[j]) <= rsum * (1.0 + gap_tolerance):
+                pairs[slot] = wp.vec2i(i, j)
+                slot += 1

@@ -1,0 +1,78 @@
+"""Compaction passes: flag → exclusive scan → scatter → remap (deterministic by construction).
+
+Used wherever topology changes: removing broken bonds now; splitting nodes and converting tets later. The scan
+itself is ``wp.utils.array_scan``; these kernels are the steps around it.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def flag_survivors_kernel(
+    # In:
+    count: wp.array(dtype=int),
+    dead: wp.array(dtype=int),
+    # Out:
+    keep: wp.array(dtype=int),
+):
+    k = wp.tid()  # one thread per slot of the compacted set (over its capacity)
+    if k < count[0] and dead[k] == 0:
+        keep[k] = 1
+    else:
+        keep[k] = 0
+
+
+@wp.kernel
+def old_to_new_kernel(
+    # In:
+    count: wp.array(dtype=int),
+    keep: wp.array(dtype=int),
+    offset: wp.array(dtype=int),
+    # Out:
+    old_to_new: wp.array(dtype=int),
+    new_count: wp.array(dtype=int),
+):
+    k = wp.tid()  # one thread per slot (over capacity)
+    if keep[k] != 0:
+        old_to_new[k] = offset[k]
+    else:
+        old_to_new[k] = -1
+    last = keep.shape[0] - 1
+    if k == last:
+        new_count[0] = offset[last] + keep[last]
+
+
+@wp.kernel
+def scatter_kernel(
+    # In:
+    count: wp.array(dtype=int),
+    old_to_new: wp.array(dtype=int),
+    src: wp.array(dtype=Any),
+    # Out:
+    dst: wp.array(dtype=Any),
+):
+    k = wp.tid()  # one thread per old slot
+    if k >= count[0]:
+        return
+    new = old_to_new[k]
+    if new >= 0:
+        dst[new] = src[k]
+
+
+@wp.kernel
+def remap_indices_kernel(
+    # In:
+    old_to_new: wp.array(dtype=int),
+    # State out:
+    indices: wp.array(dtype=int),
+):
+    t = wp.tid()  # one thread per stored index
+    idx = indices[t]
+    if idx >= 0:
+        indices[t] = old_to_new[idx]

@@ -1,0 +1,590 @@
+"""Sphere contact: neighbour-list build from a hash grid, and contact forces with tangential history.
+
+Conventions (as in LIGGGHTS' ``pair gran``): for a pair (i, j) the unit normal ``n = (x_i - x_j) / |x_i - x_j|``
+points from j to i, the overlap is ``delta = r_i + r_j - |x_i - x_j|`` and the normal speed
+``v_n = (v_i - v_j) . n`` is negative while the spheres approach. A positive normal force pushes i along +n.
+
+The neighbour list is a *half* list: particle i stores the j > i within ``r_i + r_j + skin``, in fixed slots
+``i * K .. i * K + K - 1``. Each slot carries the tangential spring of that pair (``shear``, [m], in the
+current contact plane) and the bond between the pair, if any (``bond``, index into the bond arrays or -1).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+# Motion kinds of a particle (``particle_motion``).
+MOTION_FREE = wp.constant(0)
+MOTION_FIXED = wp.constant(1)
+MOTION_PRESCRIBED = wp.constant(2)
+
+
+@wp.struct
+class ContactPair:
+    """Interaction properties of one (material a, material b) pair; a table of n_mat² entries.
+
+    Attributes:
+        estar: effective Young's modulus E* = 1 / ((1 - ν_a²)/E_a + (1 - ν_b²)/E_b) [Pa].
+        gstar: effective shear modulus G* = 1 / (2(2 - ν_a)(1 + ν_a)/E_a + 2(2 - ν_b)(1 + ν_b)/E_b) [Pa].
+        young_a: Young's modulus of material a [Pa] (linear stiffness k_n = 2 E_a r_a E_b r_b / (E_a r_a + E_b r_b)).
+        young_b: Young's modulus of material b [Pa].
+        kt_ratio: k_t / k_n of the linear tangential spring, 2(1 - ν)/(2 - ν) with ν the mean Poisson ratio [-].
+        friction: Coulomb coefficient μ [-].
+        rolling: rolling-resistance coefficient μ_r [-] (torque μ_r R* F_n).
+        damp_n: normal damping: ζ of the linear model or c of the Hertz model, from the restitution [-].
+        damp_t: tangential damping ratio ζ_t (damping 2 ζ_t sqrt(m* k_t)) [-].
+    """
+
+    estar: float
+    gstar: float
+    young_a: float
+    young_b: float
+    kt_ratio: float
+    friction: float
+    rolling: float
+    damp_n: float
+    damp_t: float
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Contact laws. Each normal law returns (total normal force, elastic part, stiffness k_n = dF_el/dδ-secant) so
+# that the tangential laws and the energy bookkeeping can be composed with any of them.
+
+
+@wp.func
+def hertz_normal_force(delta: float, vn: float, rstar: float, mstar: float, p: ContactPair) -> wp.vec3:
+    """Hertz normal force with Tsuji-type damping, clamped non-negative.
+
+    F_el = (4/3) E* sqrt(R*) δ^{3/2} (Hertz); F = max(0, F_el - c sqrt(m* k) δ^{1/4} v_n) with
+    k = (4/3) E* sqrt(R*) and c from the restitution (warpdem.restitution.hertz_damping_coefficient), which makes
+    the restitution exact and independent of the impact speed.
+
+    Returns:
+        (F [N], F_el [N], k_n = F_el / δ [N/m]).
+    """
+    k = 4.0 / 3.0 * p.estar * wp.sqrt(rstar)
+    sqrt_delta = wp.sqrt(delta)
+    f_el = k * delta * sqrt_delta
+    eta = p.damp_n * wp.sqrt(mstar * k) * wp.sqrt(sqrt_delta)
+    f = wp.max(f_el - eta * vn, 0.0)
+    return wp.vec3(f, f_el, k * sqrt_delta)
+
+
+@wp.func
+def linear_normal_force(delta: float, vn: float, kn: float, mstar: float, p: ContactPair) -> wp.vec3:
+    """Linear spring–dashpot normal force, clamped non-negative: F = max(0, k_n δ - 2 ζ sqrt(m* k_n) v_n).
+
+    Returns:
+        (F [N], F_el [N], k_n [N/m]).
+    """
+    f_el = kn * delta
+    f = wp.max(f_el - 2.0 * p.damp_n * wp.sqrt(mstar * kn) * vn, 0.0)
+    return wp.vec3(f, f_el, kn)
+
+
+@wp.func
+def linear_stiffness(ra: float, rb: float, p: ContactPair) -> float:
+    """Normal stiffness of the linear model, k_n = 2 E_a r_a E_b r_b / (E_a r_a + E_b r_b) [N/m] (YADE FrictPhys)."""
+    ka = p.young_a * ra
+    kb = p.young_b * rb
+    return 2.0 * ka * kb / (ka + kb)
+
+
+@wp.func
+def mindlin_stiffness(delta: float, rstar: float, kn: float, p: ContactPair) -> float:
+    """Mindlin no-slip tangential stiffness k_t = 8 G* sqrt(R* δ) [N/m]."""
+    return 8.0 * p.gstar * wp.sqrt(rstar * delta)
+
+
+@wp.func
+def linear_tangential_stiffness(delta: float, rstar: float, kn: float, p: ContactPair) -> float:
+    """Linear tangential stiffness k_t = (k_t/k_n) k_n [N/m]."""
+    return p.kt_ratio * kn
+
+
+@wp.func
+def rotate_into_plane(shear: wp.vec3, n: wp.vec3) -> wp.vec3:
+    """Project a tangential spring onto the plane normal to n, keeping its length (the contact plane rotates)."""
+    length = wp.length(shear)
+    projected = shear - wp.dot(shear, n) * n
+    plen = wp.length(projected)
+    if plen > 0.0:
+        return projected * (length / plen)
+    return wp.vec3(0.0)
+
+
+@wp.func
+def coulomb_tangential(
+    shear: wp.vec3, vt: wp.vec3, kt: float, gamma_t: float, fn: float, mu: float, dt: float
+) -> wp.mat33:
+    """Tangential spring with a Coulomb limit and a dashpot while sticking (Cundall & Strack; LIGGGHTS history).
+
+    ξ ← ξ + v_t dt and F_s = -k_t ξ. Sliding (|F_s| > μ F_n): F_t = μ F_n F_s/|F_s| and the spring is cut back to
+    ξ = -F_t / k_t, so a sliding contact stores no more than (μ F_n)² / (2 k_t). Sticking: F_t = F_s - γ_t v_t.
+
+    Returns:
+        Rows: (F_t on body a [N], new spring ξ [m], zero row).
+    """
+    s = shear + vt * dt
+    ft = -kt * s
+    limit = mu * fn
+    ft_len = wp.length(ft)
+    if ft_len > limit:
+        if ft_len > 0.0:
+            ft = ft * (limit / ft_len)
+        if kt > 0.0:
+            s = -ft / kt
+        else:
+            s = wp.vec3(0.0)
+    else:
+        ft = ft - gamma_t * vt
+    return wp.mat33(ft[0], ft[1], ft[2], s[0], s[1], s[2], 0.0, 0.0, 0.0)
+
+
+@wp.func
+def constant_rolling_torque(omega_rel: wp.vec3, fn: float, rstar: float, p: ContactPair) -> wp.vec3:
+    """Constant directional torque rolling resistance (model A of Ai et al. 2011): M = -μ_r R* F_n ω_r/|ω_r| on i."""
+    w = wp.length(omega_rel)
+    if w > 1.0e-12:
+        return -p.rolling * rstar * fn * omega_rel / w
+    return wp.vec3(0.0)
+
+
+@wp.func
+def no_rolling_torque(omega_rel: wp.vec3, fn: float, rstar: float, p: ContactPair) -> wp.vec3:
+    """No rolling resistance."""
+    return wp.vec3(0.0)
+
+
+@wp.func
+def hertz_elastic_energy(delta: float, kn: float) -> float:
+    """Hertz contact energy U = (2/5) k_n δ² with k_n = F_el/δ, i.e. ∫F dδ = (2/5)(4/3)E* sqrt(R*) δ^{5/2} [J]."""
+    return 0.4 * kn * delta * delta
+
+
+@wp.func
+def linear_elastic_energy(delta: float, kn: float) -> float:
+    """Linear spring energy U = k_n δ² / 2 [J]."""
+    return 0.5 * kn * delta * delta
+
+
+NORMAL_MODELS = ("hertz", "linear")
+TANGENTIAL_MODELS = ("mindlin", "linear")
+ROLLING_MODELS = ("none", "constant_torque")
+
+
+@functools.cache
+def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energy: bool):
+    """Build the contact kernels for one choice of laws, specialised at code-generation time.
+
+    Args:
+        normal: "hertz" or "linear".
+        tangential: "mindlin" or "linear".
+        rolling: "none" or "constant_torque".
+        track_energy: accumulate damping/friction dissipation and wall work per particle (float64).
+
+    Returns:
+        (eval_contacts_kernel, contact_energy_kernel).
+    """
+    if normal not in NORMAL_MODELS or tangential not in TANGENTIAL_MODELS or rolling not in ROLLING_MODELS:
+        raise ValueError(f"unknown contact model {normal!r}/{tangential!r}/{rolling!r}")
+    hertz = normal == "hertz"
+    tangential_stiffness = mindlin_stiffness if tangential == "mindlin" else linear_tangential_stiffness
+    rolling_torque = constant_rolling_torque if rolling == "constant_torque" else no_rolling_torque
+    elastic_energy = hertz_elastic_energy if hertz else linear_elastic_energy
+
+    @wp.func
+    def normal_force(delta: float, vn: float, ra: float, rb: float, rstar: float, mstar: float, p: ContactPair):
+        if wp.static(hertz):
+            return hertz_normal_force(delta, vn, rstar, mstar, p)
+        else:
+            return linear_normal_force(delta, vn, linear_stiffness(ra, rb, p), mstar, p)
+
+    @wp.func
+    def pair_interaction(
+        n: wp.vec3,
+        delta: float,
+        ra: float,
+        rb: float,
+        rstar: float,
+        mstar: float,
+        v_rel: wp.vec3,
+        omega_rel: wp.vec3,
+        shear: wp.vec3,
+        p: ContactPair,
+        dt: float,
+    ) -> wp.mat33:
+        """Force and torque on body a of a touching pair, and the updated tangential spring.
+
+        v_rel is the velocity of a's contact point relative to b's. Returns rows: (force on a [N],
+        rolling torque on a [N m], new spring ξ [m]); the caller adds the moment of the tangential force.
+        """
+        vn = wp.dot(v_rel, n)
+        fnv = normal_force(delta, vn, ra, rb, rstar, mstar, p)
+        fn = fnv[0]
+        kn = fnv[2]
+        vt = v_rel - vn * n
+        kt = tangential_stiffness(delta, rstar, kn, p)
+        gamma_t = 2.0 * p.damp_t * wp.sqrt(mstar * kt)
+        tang = coulomb_tangential(rotate_into_plane(shear, n), vt, kt, gamma_t, fn, p.friction, dt)
+        ft = tang[0]
+        force = fn * n + ft
+        torque = rolling_torque(omega_rel, fn, rstar, p)
+        return wp.mat33(
+            force[0], force[1], force[2], torque[0], torque[1], torque[2], tang[1, 0], tang[1, 1], tang[1, 2]
+        )
+
+    @wp.func
+    def pair_dissipation(
+        n: wp.vec3,
+        delta: float,
+        ra: float,
+        rb: float,
+        rstar: float,
+        mstar: float,
+        v_rel: wp.vec3,
+        omega_rel: wp.vec3,
+        shear_old: wp.vec3,
+        shear_new: wp.vec3,
+        force: wp.vec3,
+        rolling_t: wp.vec3,
+        p: ContactPair,
+        dt: float,
+    ) -> wp.vec2:
+        """Energy dissipated by this pair during this step [J]: (normal damping, friction + tangential damping).
+
+        Normal: -(F_n - F_el) v_n dt, which is the dashpot's work and, while the clamp holds F_n at 0, the
+        elastic energy released without doing work. Tangential: the work of F_t on the sliding minus the change
+        of the spring's energy k_t |ξ|²/2. Rolling torque work counts as friction.
+        """
+        vn = wp.dot(v_rel, n)
+        fnv = normal_force(delta, vn, ra, rb, rstar, mstar, p)
+        d_n = -(fnv[0] - fnv[1]) * vn * dt
+        kt = tangential_stiffness(delta, rstar, fnv[2], p)
+        vt = v_rel - vn * n
+        ft = force - fnv[0] * n
+        s_old = rotate_into_plane(shear_old, n)
+        d_t = -wp.dot(ft, vt) * dt - 0.5 * kt * (wp.dot(shear_new, shear_new) - wp.dot(s_old, s_old))
+        d_t = d_t - wp.dot(rolling_t, omega_rel) * dt
+        return wp.vec2(d_n, d_t)
+
+    @wp.kernel(module="unique")
+    def eval_contacts_kernel(
+        # Model:
+        particle_radius: wp.array(dtype=float),
+        particle_inv_mass: wp.array(dtype=float),
+        particle_material: wp.array(dtype=int),
+        pair_table: wp.array(dtype=ContactPair),
+        num_materials: int,
+        wall_normal: wp.array(dtype=wp.vec3),
+        wall_velocity: wp.array(dtype=wp.vec3),
+        wall_material: wp.array(dtype=int),
+        num_walls: int,
+        max_neighbors: int,
+        dt: float,
+        # State in:
+        particle_count: wp.array(dtype=int),
+        particle_q: wp.array(dtype=wp.vec3),
+        particle_qd: wp.array(dtype=wp.vec3),
+        particle_omega: wp.array(dtype=wp.vec3),
+        nbr_count: wp.array(dtype=int),
+        nbr_index: wp.array(dtype=int),
+        nbr_bond: wp.array(dtype=int),
+        bond_broken: wp.array(dtype=int),
+        wall_point: wp.array(dtype=wp.vec3),
+        # State out:
+        nbr_shear: wp.array(dtype=wp.vec3),
+        wall_shear: wp.array(dtype=wp.vec3),
+        particle_f: wp.array(dtype=wp.vec3),
+        particle_t: wp.array(dtype=wp.vec3),
+        energy_damping: wp.array(dtype=wp.float64),
+        energy_friction: wp.array(dtype=wp.float64),
+        energy_wall_work: wp.array(dtype=wp.float64),
+    ):
+        i = wp.tid()  # one thread per particle slot; it owns the pairs (i, j > i) of its half list
+        if i >= particle_count[0]:
+            return
+        xi = particle_q[i]
+        vi = particle_qd[i]
+        wi = particle_omega[i]
+        ri = particle_radius[i]
+        inv_mi = particle_inv_mass[i]
+        mat_i = particle_material[i]
+        f_i = wp.vec3(0.0)
+        t_i = wp.vec3(0.0)
+        d_damp = float(0.0)
+        d_fric = float(0.0)
+        w_wall = float(0.0)
+        count = wp.min(nbr_count[i], max_neighbors)
+        for s in range(count):
+            slot = i * max_neighbors + s
+            b = nbr_bond[slot]
+            if b >= 0:
+                if bond_broken[b] == 0:
+                    continue  # an intact bond carries this pair (bonds stage)
+            j = nbr_index[slot]
+            xj = particle_q[j]
+            rj = particle_radius[j]
+            d = xi - xj
+            dist2 = wp.dot(d, d)
+            rsum = ri + rj
+            if dist2 >= rsum * rsum:
+                nbr_shear[slot] = wp.vec3(0.0)  # history lives only as long as the pair touches
+                continue
+            inv_mj = particle_inv_mass[j]
+            inv_sum = inv_mi + inv_mj
+            if inv_sum == 0.0:
+                continue  # two immovable bodies exchange no force
+            dist = wp.sqrt(dist2)
+            n = d / dist
+            delta = rsum - dist
+            ci = ri - 0.5 * delta  # lever arms to the contact point
+            cj = rj - 0.5 * delta
+            vj = particle_qd[j]
+            wj = particle_omega[j]
+            v_rel = (vi - ci * wp.cross(wi, n)) - (vj + cj * wp.cross(wj, n))
+            omega_rel = wi - wj
+            rstar = ri * rj / rsum
+            mstar = 1.0 / inv_sum
+            p = pair_table[mat_i * num_materials + particle_material[j]]
+            shear_old = nbr_shear[slot]
+            out = pair_interaction(n, delta, ri, rj, rstar, mstar, v_rel, omega_rel, shear_old, p, dt)
+            force = out[0]
+            roll = out[1]
+            nbr_shear[slot] = out[2]
+            ft = force - wp.dot(force, n) * n
+            f_i += force
+            t_i += wp.cross(-ci * n, ft) + roll
+            wp.atomic_add(particle_f, j, -force)
+            wp.atomic_add(particle_t, j, wp.cross(cj * n, -ft) - roll)
+            if wp.static(track_energy):
+                dd = pair_dissipation(
+                    n, delta, ri, rj, rstar, mstar, v_rel, omega_rel, shear_old, out[2], force, roll, p, dt
+                )
+                d_damp += dd[0]
+                d_fric += dd[1]
+        for w in range(num_walls):
+            nw = wall_normal[w]
+            gap = wp.dot(xi - wall_point[w], nw)
+            slot = i * num_walls + w
+            if gap >= ri:
+                wall_shear[slot] = wp.vec3(0.0)
+                continue
+            if inv_mi == 0.0:
+                continue
+            delta = ri - gap
+            ci = ri - delta
+            vw = wall_velocity[w]
+            v_rel = (vi - ci * wp.cross(wi, nw)) - vw
+            p = pair_table[mat_i * num_materials + wall_material[w]]
+            mstar = 1.0 / inv_mi
+            shear_old = wall_shear[slot]
+            # A flat wall is a sphere of infinite radius: R* = r_i, and the linear stiffness uses r_wall = r_i.
+            out = pair_interaction(nw, delta, ri, ri, ri, mstar, v_rel, wi, shear_old, p, dt)
+            force = out[0]
+            roll = out[1]
+            wall_shear[slot] = out[2]
+            ft = force - wp.dot(force, nw) * nw
+            f_i += force
+            t_i += wp.cross(-ci * nw, ft) + roll
+            if wp.static(track_energy):
+                dd = pair_dissipation(nw, delta, ri, ri, ri, mstar, v_rel, wi, shear_old, out[2], force, roll, p, dt)
+                d_damp += dd[0]
+                d_fric += dd[1]
+                w_wall += wp.dot(force, vw) * dt  # work of the moving wall on the sphere
+        wp.atomic_add(particle_f, i, f_i)
+        wp.atomic_add(particle_t, i, t_i)
+        if wp.static(track_energy):
+            energy_damping[i] = energy_damping[i] + wp.float64(d_damp)
+            energy_friction[i] = energy_friction[i] + wp.float64(d_fric)
+            energy_wall_work[i] = energy_wall_work[i] + wp.float64(w_wall)
+
+    @wp.kernel(module="unique")
+    def contact_energy_kernel(
+        # Model:
+        particle_radius: wp.array(dtype=float),
+        particle_inv_mass: wp.array(dtype=float),
+        particle_material: wp.array(dtype=int),
+        pair_table: wp.array(dtype=ContactPair),
+        num_materials: int,
+        wall_normal: wp.array(dtype=wp.vec3),
+        wall_material: wp.array(dtype=int),
+        num_walls: int,
+        max_neighbors: int,
+        # State in:
+        particle_count: wp.array(dtype=int),
+        particle_q: wp.array(dtype=wp.vec3),
+        nbr_count: wp.array(dtype=int),
+        nbr_index: wp.array(dtype=int),
+        nbr_bond: wp.array(dtype=int),
+        bond_broken: wp.array(dtype=int),
+        nbr_shear: wp.array(dtype=wp.vec3),
+        wall_point: wp.array(dtype=wp.vec3),
+        wall_shear: wp.array(dtype=wp.vec3),
+        # Out:
+        energy_elastic: wp.array(dtype=wp.float64),
+        contact_count: wp.array(dtype=int),
+    ):
+        i = wp.tid()  # one thread per particle slot
+        if i >= particle_count[0]:
+            return
+        xi = particle_q[i]
+        ri = particle_radius[i]
+        mat_i = particle_material[i]
+        e = float(0.0)
+        touching = int(0)
+        count = wp.min(nbr_count[i], max_neighbors)
+        for s in range(count):
+            slot = i * max_neighbors + s
+            b = nbr_bond[slot]
+            if b >= 0:
+                if bond_broken[b] == 0:
+                    continue
+            j = nbr_index[slot]
+            rj = particle_radius[j]
+            delta = ri + rj - wp.length(xi - particle_q[j])
+            if delta <= 0.0:
+                continue
+            if particle_inv_mass[i] + particle_inv_mass[j] == 0.0:
+                continue
+            p = pair_table[mat_i * num_materials + particle_material[j]]
+            rstar = ri * rj / (ri + rj)
+            fnv = normal_force(delta, 0.0, ri, rj, rstar, 1.0, p)
+            kt = tangential_stiffness(delta, rstar, fnv[2], p)
+            sh = nbr_shear[slot]
+            e += elastic_energy(delta, fnv[2]) + 0.5 * kt * wp.dot(sh, sh)
+            touching += 1
+        for w in range(num_walls):
+            delta = ri - wp.dot(xi - wall_point[w], wall_normal[w])
+            if delta <= 0.0 or particle_inv_mass[i] == 0.0:
+                continue
+            p = pair_table[mat_i * num_materials + wall_material[w]]
+            fnv = normal_force(delta, 0.0, ri, ri, ri, 1.0, p)
+            kt = tangential_stiffness(delta, ri, fnv[2], p)
+            sh = wall_shear[i * num_walls + w]
+            e += elastic_energy(delta, fnv[2]) + 0.5 * kt * wp.dot(sh, sh)
+        energy_elastic[i] = wp.float64(e)
+        wp.atomic_add(contact_count, 0, touching)
+
+    return eval_contacts_kernel, contact_energy_kernel
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Neighbour list with a Verlet skin.
+
+
+@wp.func
+def find_bond(bond_key: wp.array(dtype=wp.int64), bond_count: int, key: wp.int64) -> int:
+    """Binary search of a sorted bond-key array (key = i * capacity + j, i < j); -1 when absent."""
+    lo = int(0)
+    hi = bond_count
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if bond_key[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    if lo < bond_count:
+        if bond_key[lo] == key:
+            return lo
+    return -1
+
+
+@wp.kernel
+def build_neighbors_kernel(
+    # Model:
+    particle_radius: wp.array(dtype=float),
+    max_neighbors: int,
+    skin: float,
+    search_radius: float,
+    # State in:
+    grid: wp.uint64,
+    particle_count: wp.array(dtype=int),
+    particle_q: wp.array(dtype=wp.vec3),
+    nbr_count: wp.array(dtype=int),
+    nbr_index: wp.array(dtype=int),
+    nbr_shear: wp.array(dtype=wp.vec3),
+    nbr_bond: wp.array(dtype=int),
+    bond_count: wp.array(dtype=int),
+    bond_key: wp.array(dtype=wp.int64),
+    # Out:
+    new_count: wp.array(dtype=int),
+    new_index: wp.array(dtype=int),
+    new_shear: wp.array(dtype=wp.vec3),
+    new_bond: wp.array(dtype=int),
+    particle_q_at_build: wp.array(dtype=wp.vec3),
+    nbr_needed: wp.array(dtype=int),
+):
+    i = wp.tid()  # one thread per particle slot
+    n_live = particle_count[0]
+    if i >= n_live:
+        return
+    xi = particle_q[i]
+    ri = particle_radius[i]
+    old_n = wp.min(nbr_count[i], max_neighbors)
+    n_bonds = bond_count[0]
+    count = int(0)
+    query = wp.hash_grid_query(grid, xi, search_radius)
+    for j in query:
+        if j <= i or j >= n_live:
+            continue
+        cutoff = ri + particle_radius[j] + skin
+        d = xi - particle_q[j]
+        if wp.dot(d, d) >= cutoff * cutoff:
+            continue
+        if count < max_neighbors:
+            slot = i * max_neighbors + count
+            new_index[slot] = j
+            # Carry the pair's history over from the previous list; a pair that is new starts untouched.
+            shear = wp.vec3(0.0)
+            bond = int(-1)
+            found = int(0)
+            for s in range(old_n):
+                if nbr_index[i * max_neighbors + s] == j:
+                    shear = nbr_shear[i * max_neighbors + s]
+                    bond = nbr_bond[i * max_neighbors + s]
+                    found = 1
+                    break
+            if found == 0:
+                bond = find_bond(bond_key, n_bonds, wp.int64(i) * wp.int64(particle_q.shape[0]) + wp.int64(j))
+            new_shear[slot] = shear
+            new_bond[slot] = bond
+        count += 1
+    new_count[i] = count
+    particle_q_at_build[i] = xi
+    wp.atomic_max(nbr_needed, 0, count)
+
+
+@wp.kernel
+def commit_neighbors_kernel(
+    # Model:
+    max_neighbors: int,
+    # In:
+    particle_count: wp.array(dtype=int),
+    new_count: wp.array(dtype=int),
+    new_index: wp.array(dtype=int),
+    new_shear: wp.array(dtype=wp.vec3),
+    new_bond: wp.array(dtype=int),
+    # State out:
+    nbr_count: wp.array(dtype=int),
+    nbr_index: wp.array(dtype=int),
+    nbr_shear: wp.array(dtype=wp.vec3),
+    nbr_bond: wp.array(dtype=int),
+    rebuild_flag: wp.array(dtype=int),
+):
+    i = wp.tid()  # one thread per particle slot
+    if i == 0:
+        rebuild_flag[0] = 0
+    if i >= particle_count[0]:
+        return
+    n = wp.min(new_count[i], max_neighbors)
+    nbr_count[i] = new_count[i]
+    for s in range(n):
+        slot = i * max_neighbors + s
+        nbr_index[slot] = new_index[slot]
+        nbr_shear[slot] = new_shear[slot]
+        nbr_bond[slot] = new_bond[slot]

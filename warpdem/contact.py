@@ -1,0 +1,192 @@
+"""Contact stage (host side): hash-grid neighbour list with a Verlet skin, and contact forces.
+
+The neighbour list is rebuilt only when some sphere has moved more than half the skin since the last build (the
+integrator raises ``State.rebuild_flag`` on the device). The rebuild is a conditional branch
+(``wp.capture_if``), so the step stays one graph on CPU and CUDA and never reads the flag back to the host.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from .kernels import contact as kc
+from .model import Model, State
+
+
+def hash_grid_dims(n: int) -> int:
+    """Cells per axis of the hash grid: about one cell per particle, at least 16³ and at most 256³."""
+    return int(min(256, max(16, round(n ** (1.0 / 3.0)))))
+
+
+class NeighborList:
+    """Builds the half neighbour list of a Model/State pair and holds its scratch buffers.
+
+    Args:
+        model: the model (radii, capacities).
+        state: the state whose ``nbr_*`` arrays are rebuilt in place.
+    """
+
+    def __init__(self, model: Model, state: State) -> None:
+        self.model = model
+        self.state = state
+        device = model.device
+        cap = model.particle_capacity
+        k = model.max_neighbors
+        self.grid = wp.HashGrid(*(hash_grid_dims(cap),) * 3, device=device)
+        self.cell = 2.0 * model.max_radius + model.skin
+        self.new_count = wp.zeros(cap, dtype=int, device=device)
+        self.new_index = wp.zeros(cap * k, dtype=int, device=device)
+        self.new_shear = wp.zeros(cap * k, dtype=wp.vec3, device=device)
+        self.new_bond = wp.zeros(cap * k, dtype=int, device=device)
+
+    def rebuild(self) -> None:
+        """Rebuild the list now (launches only: usable inside a graph capture)."""
+        m, s = self.model, self.state
+        self.grid.build(s.particle_q, self.cell)
+        wp.launch(
+            kc.build_neighbors_kernel,
+            dim=m.particle_capacity,
+            inputs=[
+                # Model:
+                m.particle_radius,
+                m.max_neighbors,
+                m.skin,
+                self.cell,
+                # State in:
+                self.grid.id,
+                s.particle_count,
+                s.particle_q,
+                s.nbr_count,
+                s.nbr_index,
+                s.nbr_shear,
+                s.nbr_bond,
+                s.bond_count,
+                s.bond_key,
+            ],
+            outputs=[
+                self.new_count,
+                self.new_index,
+                self.new_shear,
+                self.new_bond,
+                s.particle_q_at_build,
+                s.nbr_needed,
+            ],
+            device=m.device,
+        )
+        wp.launch(
+            kc.commit_neighbors_kernel,
+            dim=m.particle_capacity,
+            inputs=[m.max_neighbors, s.particle_count, self.new_count, self.new_index, self.new_shear, self.new_bond],
+            outputs=[s.nbr_count, s.nbr_index, s.nbr_shear, s.nbr_bond, s.rebuild_flag],
+            device=m.device,
+        )
+
+    def rebuild_if_needed(self) -> None:
+        """Rebuild when the device flag says so: a conditional graph node under capture, a branch otherwise."""
+        wp.capture_if(self.state.rebuild_flag, on_true=self.rebuild)
+
+
+def eval_contacts(model: Model, state: State, track_energy: bool, dt: float | None = None) -> None:
+    """Accumulate sphere–sphere and sphere–wall contact forces and torques into ``state.particle_f/t``.
+
+    ``dt`` overrides the model step for the history increments; 0 evaluates forces without advancing any
+    history (the initial evaluation, as LIGGGHTS does at set-up).
+    """
+    kernel, _ = kc.make_contact_kernels(model.normal_model, model.tangential_model, model.rolling_model, track_energy)
+    m, s = model, state
+    wp.launch(
+        kernel,
+        dim=m.particle_capacity,
+        inputs=[
+            # Model:
+            m.particle_radius,
+            m.particle_inv_mass,
+            m.particle_material,
+            m.pair_table,
+            m.num_materials,
+            m.wall_normal,
+            m.wall_velocity,
+            m.wall_material,
+            m.num_walls,
+            m.max_neighbors,
+            m.dt if dt is None else dt,
+            # State in:
+            s.particle_count,
+            s.particle_q,
+            s.particle_qd,
+            s.particle_omega,
+            s.nbr_count,
+            s.nbr_index,
+            s.nbr_bond,
+            s.bond_broken,
+            s.wall_point,
+        ],
+        outputs=[
+            s.nbr_shear,
+            s.wall_shear,
+            s.particle_f,
+            s.particle_t,
+            s.energy_damping,
+            s.energy_friction,
+            s.energy_boundary_work,
+        ],
+        device=m.device,
+    )
+
+
+def contact_energy(model: Model, state: State) -> tuple[float, int]:
+    """Elastic energy stored in the contacts [J] (normal and tangential springs) and the number of touching
+    sphere–sphere pairs. Allocates and reads back: call between steps."""
+    _, kernel = kc.make_contact_kernels(model.normal_model, model.tangential_model, model.rolling_model, False)
+    m, s = model, state
+    energy = wp.zeros(m.particle_capacity, dtype=wp.float64, device=m.device)
+    count = wp.zeros(1, dtype=int, device=m.device)
+    wp.launch(
+        kernel,
+        dim=m.particle_capacity,
+        inputs=[
+            m.particle_radius,
+            m.particle_inv_mass,
+            m.particle_material,
+            m.pair_table,
+            m.num_materials,
+            m.wall_normal,
+            m.wall_material,
+            m.num_walls,
+            m.max_neighbors,
+            s.particle_count,
+            s.particle_q,
+            s.nbr_count,
+            s.nbr_index,
+            s.nbr_bond,
+            s.bond_broken,
+            s.nbr_shear,
+            s.wall_point,
+            s.wall_shear,
+        ],
+        outputs=[energy, count],
+        device=m.device,
+    )
+    return float(energy.numpy().sum()), int(count.numpy()[0])
+
+
+def neighbor_pairs(model: Model, state: State) -> np.ndarray:
+    """The (i, j) pairs, i < j, held in the neighbour list, shape (P, 2), sorted (for tests and bond building)."""
+    cap, k = model.particle_capacity, model.max_neighbors
+    n = int(state.particle_count.numpy()[0])
+    counts = np.minimum(state.nbr_count.numpy()[:n], k)
+    index = state.nbr_index.numpy().reshape(cap, k)[:n]
+    used = np.arange(k)[None, :] < counts[:, None]
+    rows = np.broadcast_to(np.arange(n)[:, None], (n, k))
+    pairs = np.stack([rows[used], index[used]], axis=1).astype(np.int64)
+    order = np.lexsort((pairs[:, 1], pairs[:, 0]))
+    return pairs[order]
+
+
+def critical_time_step_hertz(radius: float, density: float, young: float, poisson: float) -> float:
+    """Rayleigh time step of a sphere, π r sqrt(ρ/G) / (0.1631 ν + 0.8766) [s] (the usual Hertz DEM bound)."""
+    shear = young / (2.0 * (1.0 + poisson))
+    return math.pi * radius * math.sqrt(density / shear) / (0.1631 * poisson + 0.8766)

@@ -1,0 +1,64 @@
+"""Integration stage (host side): the two half kicks of velocity Verlet around the force evaluation, and moving
+walls."""
+
+from __future__ import annotations
+
+import warp as wp
+
+from .kernels import integrate as ki
+from .model import Model, State
+
+
+def integrate_first_half(model: Model, state: State) -> None:
+    """Kick by dt/2 with the forces of the last evaluation, drift by dt, clear the force accumulators and raise the
+    rebuild flag if a sphere has moved half the skin."""
+    m, s = model, state
+    wp.launch(
+        ki.integrate_first_half_kernel,
+        dim=m.particle_capacity,
+        inputs=[
+            # Model:
+            m.particle_inv_mass,
+            m.particle_inv_inertia,
+            m.particle_motion,
+            wp.vec3(*m.gravity),
+            m.dt,
+            0.5 * m.skin,
+            # State in:
+            s.particle_count,
+            s.particle_q_at_build,
+        ],
+        outputs=[s.particle_q, s.particle_qd, s.particle_omega, s.particle_f, s.particle_t, s.rebuild_flag],
+        device=m.device,
+    )
+    if m.walls_move:
+        wp.launch(
+            ki.advance_walls_kernel,
+            dim=m.num_walls,
+            inputs=[m.wall_velocity, m.dt],
+            outputs=[s.wall_point],
+            device=m.device,
+        )
+
+
+def integrate_second_half(model: Model, state: State) -> None:
+    """Kick by dt/2 with the forces at the new positions; count the work of driven spheres."""
+    m, s = model, state
+    wp.launch(
+        ki.integrate_second_half_kernel,
+        dim=m.particle_capacity,
+        inputs=[
+            # Model:
+            m.particle_inv_mass,
+            m.particle_inv_inertia,
+            m.particle_motion,
+            wp.vec3(*m.gravity),
+            m.dt,
+            # State in:
+            s.particle_count,
+            s.particle_f,
+            s.particle_t,
+        ],
+        outputs=[s.particle_qd, s.particle_omega, s.energy_boundary_work],
+        device=m.device,
+    )

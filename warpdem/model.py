@@ -1,0 +1,259 @@
+"""Model (what a step does not change) and State (what it does), as flat struct-of-arrays ``wp.array``s.
+
+Every per-particle array is sized by ``particle_capacity``; the live count sits on the device
+(``State.particle_count``) so kernels launch over capacity and return early past it, and a step never reads a
+count back to the host. Neighbour slots are ``particle_capacity * max_neighbors`` long, wall histories
+``particle_capacity * num_walls``, bond arrays ``bond_capacity``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from .kernels.contact import ContactPair
+
+
+def _array_fields(obj: object) -> dict[str, wp.array]:
+    return {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj) if isinstance(getattr(obj, f.name), wp.array)}
+
+
+@dataclass
+class Model:
+    """Static description of a DEM system on one device.
+
+    Attributes:
+        device: Warp device the arrays live on.
+        particle_capacity: slots per particle array.
+        max_neighbors: neighbour slots per particle (grows ×2 on overflow between steps).
+        num_materials: number of materials; ``pair_table`` has num_materials² entries.
+        num_walls: number of planar walls.
+        dt: time step [s].
+        skin: Verlet skin of the neighbour list [m].
+        gravity: gravitational acceleration [m/s²].
+        normal_model: "hertz" or "linear".
+        tangential_model: "mindlin" or "linear".
+        rolling_model: "none" or "constant_torque".
+        material_names: names of the materials, index = material id.
+        part_names: names of the parts, index = part id.
+        particle_radius: radii [m], shape (particle_capacity,), float32.
+        particle_mass: masses [kg], shape (particle_capacity,), float32.
+        particle_inv_mass: 1/m [1/kg], 0 for fixed and prescribed spheres, shape (particle_capacity,).
+        particle_inv_inertia: 1/I = 1/(2/5 m r²) [1/(kg m²)], 0 for fixed and prescribed, shape (particle_capacity,).
+        particle_material: material id, shape (particle_capacity,), int32.
+        particle_motion: 0 free, 1 fixed, 2 prescribed velocity and spin, shape (particle_capacity,), int32.
+        particle_part: part id, shape (particle_capacity,), int32.
+        particle_id: stable id (order of creation), shape (particle_capacity,), int32.
+        pair_table: interaction properties of material pairs, shape (num_materials²,), ContactPair.
+        wall_normal: unit normals pointing into the domain, shape (num_walls,), vec3.
+        wall_velocity: wall velocities [m/s], shape (num_walls,), vec3.
+        wall_material: material id of each wall, shape (num_walls,), int32.
+    """
+
+    device: wp.context.Device
+    particle_capacity: int
+    max_neighbors: int
+    num_materials: int
+    num_walls: int
+    dt: float
+    skin: float
+    gravity: tuple[float, float, float]
+    normal_model: str
+    tangential_model: str
+    rolling_model: str
+    material_names: list[str]
+    part_names: list[str]
+    particle_radius: wp.array
+    particle_mass: wp.array
+    particle_inv_mass: wp.array
+    particle_inv_inertia: wp.array
+    particle_material: wp.array
+    particle_motion: wp.array
+    particle_part: wp.array
+    particle_id: wp.array
+    pair_table: wp.array
+    wall_normal: wp.array
+    wall_velocity: wp.array
+    wall_material: wp.array
+    walls_move: bool = False
+    bond_capacity: int = 0
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def max_radius(self) -> float:
+        """Largest sphere radius [m] (host copy, for the grid cell size)."""
+        r = self.particle_radius.numpy()
+        return float(r.max()) if r.size else 0.0
+
+    def arrays(self) -> dict[str, wp.array]:
+        """All per-item arrays of the model by field name."""
+        return _array_fields(self)
+
+
+@dataclass
+class State:
+    """Dynamic state of a DEM system: everything a restart needs besides the Model.
+
+    Attributes:
+        particle_count: live particles, shape (1,), int32.
+        particle_q: centres [m], shape (particle_capacity,), vec3.
+        particle_qd: velocities [m/s], shape (particle_capacity,), vec3.
+        particle_omega: angular velocities [rad/s], shape (particle_capacity,), vec3.
+        particle_f: forces [N] (gravity excluded), shape (particle_capacity,), vec3.
+        particle_t: torques [N m], shape (particle_capacity,), vec3.
+        particle_q_at_build: centres when the neighbour list was built [m], shape (particle_capacity,), vec3.
+        rebuild_flag: 1 when the neighbour list must be rebuilt before the next force evaluation, shape (1,).
+        nbr_needed: the largest neighbour count seen at a build (overflow when > max_neighbors), shape (1,).
+        nbr_count: neighbours of each particle in its half list, shape (particle_capacity,), int32.
+        nbr_index: neighbour j > i in each slot, shape (particle_capacity * max_neighbors,), int32.
+        nbr_shear: tangential spring of each slot [m], shape (particle_capacity * max_neighbors,), vec3.
+        nbr_bond: bond between the slot's pair or -1, shape (particle_capacity * max_neighbors,), int32.
+        wall_point: a point on each wall [m], shape (num_walls,), vec3.
+        wall_shear: tangential spring of each sphere–wall pair [m], shape (particle_capacity * num_walls,), vec3.
+        bond_count: live bonds (intact or broken but not yet compacted), shape (1,), int32.
+        bond_i, bond_j: the bonded spheres, i < j, shape (bond_capacity,), int32.
+        bond_key: i * particle_capacity + j, sorted ascending, shape (bond_capacity,), int64.
+        bond_rest_length: L_0 [m]; bond_kn, bond_ks: stiffnesses [N/m]; bond_area: cross-section [m²];
+        bond_tensile_strength, bond_shear_strength: [Pa]; bond_damping: damping ratio ζ [-];
+        bond_shear: shear spring [m] (vec3); bond_broken: 0 intact, 1 broke in tension, 2 in shear.
+        bonds_broken_total: bonds broken since the start, shape (1,).
+        energy_damping, energy_friction, energy_boundary_work, energy_bond_broken: per-particle accumulators
+            [J], shape (particle_capacity,), float64: dissipated by dashpots, by friction (and tangential
+            dashpots), work done on the spheres by moving walls and driven spheres, and spring energy released
+            by breaking bonds.
+    """
+
+    particle_count: wp.array
+    particle_q: wp.array
+    particle_qd: wp.array
+    particle_omega: wp.array
+    particle_f: wp.array
+    particle_t: wp.array
+    particle_q_at_build: wp.array
+    rebuild_flag: wp.array
+    nbr_needed: wp.array
+    nbr_count: wp.array
+    nbr_index: wp.array
+    nbr_shear: wp.array
+    nbr_bond: wp.array
+    wall_point: wp.array
+    wall_shear: wp.array
+    bond_count: wp.array
+    bond_i: wp.array
+    bond_j: wp.array
+    bond_key: wp.array
+    bond_rest_length: wp.array
+    bond_kn: wp.array
+    bond_ks: wp.array
+    bond_area: wp.array
+    bond_tensile_strength: wp.array
+    bond_shear_strength: wp.array
+    bond_damping: wp.array
+    bond_shear: wp.array
+    bond_broken: wp.array
+    bonds_broken_total: wp.array
+    energy_damping: wp.array
+    energy_friction: wp.array
+    energy_boundary_work: wp.array
+    energy_bond_broken: wp.array
+
+    def arrays(self) -> dict[str, wp.array]:
+        """All arrays of the state by field name."""
+        return _array_fields(self)
+
+    def clone(self) -> State:
+        """A deep copy on the same device."""
+        return State(**{name: wp.clone(a) for name, a in self.arrays().items()})
+
+    def assign(self, other: State) -> None:
+        """Copy another state of the same capacities into this one, array by array (no reallocation)."""
+        for name, a in self.arrays().items():
+            wp.copy(a, getattr(other, name))
+
+
+BOND_FIELDS = (
+    "bond_i",
+    "bond_j",
+    "bond_key",
+    "bond_rest_length",
+    "bond_kn",
+    "bond_ks",
+    "bond_area",
+    "bond_tensile_strength",
+    "bond_shear_strength",
+    "bond_damping",
+    "bond_shear",
+    "bond_broken",
+)
+"""State fields indexed by bond (compacted together)."""
+
+NEIGHBOR_FIELDS = ("nbr_index", "nbr_shear", "nbr_bond")
+"""State fields with max_neighbors slots per particle (regrown together)."""
+
+
+@dataclass
+class ParticleData:
+    """Host-side description of the spheres to create, in the order they get their ids.
+
+    Attributes:
+        q: centres [m], shape (N, 3). qd: velocities [m/s], (N, 3). omega: spins [rad/s], (N, 3).
+        radius: [m], (N,). material: material id, (N,). motion: 0 free / 1 fixed / 2 prescribed, (N,).
+        part: part id, (N,).
+    """
+
+    q: np.ndarray
+    qd: np.ndarray
+    omega: np.ndarray
+    radius: np.ndarray
+    material: np.ndarray
+    motion: np.ndarray
+    part: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.radius)
+
+
+@dataclass
+class BondData:
+    """Host-side bonds to create: pairs (i < j), rest lengths [m], stiffnesses [N/m], areas [m²], strengths [Pa],
+    damping ratios [-]; all shape (M,) except ``pairs`` (M, 2)."""
+
+    pairs: np.ndarray
+    rest_length: np.ndarray
+    kn: np.ndarray
+    ks: np.ndarray
+    area: np.ndarray
+    tensile_strength: np.ndarray
+    shear_strength: np.ndarray
+    damping: np.ndarray
+
+    @staticmethod
+    def empty() -> BondData:
+        z = np.zeros(0, dtype=np.float32)
+        return BondData(np.zeros((0, 2), dtype=np.int32), z, z, z, z, z, z, z)
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+
+@dataclass
+class WallData:
+    """Host-side planar walls: points [m] (W, 3), inward unit normals (W, 3), velocities [m/s] (W, 3),
+    material ids (W,)."""
+
+    point: np.ndarray
+    normal: np.ndarray
+    velocity: np.ndarray
+    material: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.material)
+
+
+def pair_table_array(pairs: list[list[ContactPair]], device: wp.context.Device) -> wp.array:
+    """Flatten a num_materials × num_materials table of ContactPair into a device array (row-major)."""
+    flat = [p for row in pairs for p in row]
+    return wp.array(flat, dtype=ContactPair, device=device)
