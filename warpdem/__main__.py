@@ -1,0 +1,5 @@
+"""``python -m warpdem``: see :mod:`warpdem.cli`."""
+
+from .cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,605 @@
+"""Building a Model and its initial State: from Python (:class:`ModelBuilder`) or from a scene (:func:`build_scene`).
+
+Everything here runs once, on the host, before the first step.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+from . import packing
+from .bonds import find_bond_pairs
+from .contact import critical_time_step_hertz
+from .kernels.contact import ContactPair
+from .model import BondData, Model, ParticleData, State, WallData, pair_table_array
+from .restitution import hertz_damping_coefficient, linear_damping_ratio
+from .scene import Scene, SceneError
+
+MOTIONS = {"free": 0, "fixed": 1, "prescribed": 2}
+
+
+@dataclass
+class MaterialProps:
+    """Elastic properties of a material: density [kg/m³], Young's modulus [Pa], Poisson ratio [-]."""
+
+    density: float
+    youngs_modulus: float
+    poisson_ratio: float
+
+
+@dataclass
+class InteractionProps:
+    """Contact properties of a material pair: Coulomb friction [-], restitution (0, 1] [-], rolling friction [-]."""
+
+    friction: float = 0.5
+    restitution: float = 0.5
+    rolling_friction: float = 0.0
+
+
+def effective_moduli(a: MaterialProps, b: MaterialProps) -> tuple[float, float]:
+    """E* and G* of a pair [Pa] (Hertz and Mindlin)."""
+    estar = 1.0 / ((1.0 - a.poisson_ratio**2) / a.youngs_modulus + (1.0 - b.poisson_ratio**2) / b.youngs_modulus)
+    ga = 2.0 * (2.0 - a.poisson_ratio) * (1.0 + a.poisson_ratio) / a.youngs_modulus
+    gb = 2.0 * (2.0 - b.poisson_ratio) * (1.0 + b.poisson_ratio) / b.youngs_modulus
+    return estar, 1.0 / (ga + gb)
+
+
+def morton_order(q: np.ndarray, cell: float) -> np.ndarray:
+    """Permutation that sorts points along a Z-order curve of cells of size ``cell`` (memory locality)."""
+    if len(q) == 0:
+        return np.zeros(0, dtype=np.int64)
+    c = np.floor((q - q.min(axis=0)) / cell).astype(np.uint64)
+    c = np.minimum(c, np.uint64(2**21 - 1))
+    code = np.zeros(len(q), dtype=np.uint64)
+    for bit in range(21):
+        for axis in range(3):
+            code |= ((c[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
+    return np.argsort(code, kind="stable")
+
+
+def bond_critical_time_step(particles: ParticleData, bonds: BondData, materials: dict[str, MaterialProps]) -> float:
+    """Stable step [s] of the bonded spheres, from the stiffest mode each sphere can have.
+
+    A sphere with Z bonds, mass m and I = (2/5) m r² has a translational mode ω² = Z k_n / m and a rotational one
+    ω² = Z (k_s r²)·2 / I = 5 Z k_s / m (neighbours counter-rotating). Explicit central differences are stable for
+    dt < (2/ω)(sqrt(1 + ζ²) - ζ), ζ the mode's damping ratio. The bond dashpot c = 2 ζ sqrt(m* k) with m* = m/2
+    gives ζ/√2 in translation and sqrt(5/2) ζ ≈ 1.58 ζ in rotation, where the small moment of inertia makes the
+    same dashpot relatively much stronger.
+    """
+    names = list(materials)
+    density = np.array([materials[names[m]].density for m in particles.material])
+    mass = density * 4.0 / 3.0 * math.pi * particles.radius**3
+    z = np.bincount(bonds.pairs.ravel(), minlength=len(mass)).astype(np.float64)
+    i, j = bonds.pairs[:, 0], bonds.pairs[:, 1]
+    m = np.minimum(mass[i], mass[j])
+    zmax = np.maximum(z[i], z[j])
+    zeta = np.asarray(bonds.damping, dtype=np.float64)
+
+    def step(omega2: np.ndarray, damping_ratio: np.ndarray) -> float:
+        return float(np.min(2.0 / np.sqrt(omega2) * (np.sqrt(1.0 + damping_ratio**2) - damping_ratio)))
+
+    return min(step(zmax * bonds.kn / m, zeta / math.sqrt(2.0)), step(5.0 * zmax * bonds.ks / m, 1.58 * zeta))
+
+
+@dataclass
+class ModelBuilder:
+    """Collects materials, spheres, walls and bonds, then allocates a Model and State on a device.
+
+    Args:
+        normal: normal contact law, "hertz" or "linear".
+        tangential: tangential law, "mindlin" or "linear".
+        rolling: rolling resistance, "none" or "constant_torque".
+        gravity: gravitational acceleration [m/s²].
+    """
+
+    normal: str = "hertz"
+    tangential: str = "mindlin"
+    rolling: str = "none"
+    gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
+    materials: dict[str, MaterialProps] = field(default_factory=dict)
+    interactions: dict[tuple[str, str], InteractionProps] = field(default_factory=dict)
+    default_interaction: InteractionProps = field(default_factory=InteractionProps)
+    parts: list[str] = field(default_factory=list)
+    _spheres: list[tuple] = field(default_factory=list)
+    _walls: list[tuple] = field(default_factory=list)
+    _bond_groups: list[tuple] = field(default_factory=list)
+
+    # -- materials and interactions ---------------------------------------------------------------------------
+    def add_material(self, name: str, density: float, youngs_modulus: float, poisson_ratio: float) -> int:
+        """Add a material; returns its id."""
+        self.materials[name] = MaterialProps(density, youngs_modulus, poisson_ratio)
+        return list(self.materials).index(name)
+
+    def set_interaction(self, a: str, b: str, props: InteractionProps) -> None:
+        """Contact properties of the pair (a, b), order-free."""
+        self.interactions[tuple(sorted((a, b)))] = props
+
+    def interaction(self, a: str, b: str) -> InteractionProps:
+        return self.interactions.get(tuple(sorted((a, b))), self.default_interaction)
+
+    def part_id(self, part: str) -> int:
+        if part not in self.parts:
+            self.parts.append(part)
+        return self.parts.index(part)
+
+    # -- bodies ------------------------------------------------------------------------------------------------
+    def add_spheres(
+        self,
+        centers: np.ndarray,
+        radii: np.ndarray | float,
+        material: str,
+        *,
+        velocity: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
+        angular_velocity: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
+        motion: str = "free",
+        part: str = "default",
+    ) -> np.ndarray:
+        """Add spheres; returns their ids.
+
+        Args:
+            centers: [m], shape (N, 3). radii: [m], scalar or (N,). material: material name.
+            velocity, angular_velocity: [m/s], [rad/s], shape (3,) or (N, 3).
+            motion: "free", "fixed" or "prescribed" (keeps its velocity and spin).
+            part: part name (for colouring and output).
+        """
+        centers = np.atleast_2d(np.asarray(centers, dtype=np.float64))
+        n = len(centers)
+        radii = np.broadcast_to(np.asarray(radii, dtype=np.float64), (n,))
+        vel = np.broadcast_to(np.asarray(velocity, dtype=np.float64), (n, 3))
+        omega = np.broadcast_to(np.asarray(angular_velocity, dtype=np.float64), (n, 3))
+        if material not in self.materials:
+            raise KeyError(f"unknown material {material!r}")
+        first = self.sphere_count
+        self._spheres.append(
+            (centers, radii.copy(), vel.copy(), omega.copy(), material, MOTIONS[motion], self.part_id(part))
+        )
+        return np.arange(first, first + n)
+
+    def add_sphere(self, center: Sequence[float], radius: float, material: str, **kwargs) -> int:
+        """Add one sphere (keyword arguments as :meth:`add_spheres`); returns its id."""
+        return int(self.add_spheres(np.asarray([center]), radius, material, **kwargs)[0])
+
+    @property
+    def sphere_count(self) -> int:
+        return sum(len(s[0]) for s in self._spheres)
+
+    def add_plane_wall(
+        self, point: Sequence[float], normal: Sequence[float], material: str, velocity: Sequence[float] = (0, 0, 0)
+    ) -> None:
+        """A rigid plane; ``normal`` points into the domain (spheres live on its + side)."""
+        n = np.asarray(normal, dtype=np.float64)
+        self._walls.append(
+            (np.asarray(point, dtype=np.float64), n / np.linalg.norm(n), np.asarray(velocity, float), material)
+        )
+
+    def add_box_walls(self, lo: Sequence[float], hi: Sequence[float], material: str, open_top: bool = False) -> None:
+        """The inner faces of an axis-aligned box (without the +z face if ``open_top``)."""
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        for axis in range(3):
+            e = np.eye(3)[axis]
+            self.add_plane_wall(lo, e, material)
+            if not (open_top and axis == 2):
+                self.add_plane_wall(hi, -e, material)
+
+    def add_bonded_group(
+        self,
+        ids: np.ndarray,
+        *,
+        youngs_modulus: float,
+        tensile_strength: float,
+        shear_strength: float,
+        stiffness_ratio: float = 2.5,
+        radius_factor: float = 1.0,
+        gap_tolerance: float = 0.05,
+        damping_ratio: float = 0.0,
+    ) -> None:
+        """Bond every pair of the given spheres whose gap is at most ``gap_tolerance (r_i + r_j)`` (at finalize).
+
+        Bond stiffness k_n = E_b A / L_0 with A = π (radius_factor · min(r_i, r_j))², k_s = k_n / stiffness_ratio;
+        strengths in [Pa]; ``damping_ratio`` ζ of the bond dashpots.
+        """
+        props = (
+            youngs_modulus,
+            tensile_strength,
+            shear_strength,
+            stiffness_ratio,
+            radius_factor,
+            gap_tolerance,
+            damping_ratio,
+        )
+        self._bond_groups.append((np.asarray(ids, dtype=np.int64), props))
+
+    # -- finalize ----------------------------------------------------------------------------------------------
+    def particle_data(self) -> ParticleData:
+        if not self._spheres:
+            z = np.zeros((0, 3))
+            return ParticleData(z, z, z, np.zeros(0), np.zeros(0, int), np.zeros(0, int), np.zeros(0, int))
+        names = list(self.materials)
+        return ParticleData(
+            q=np.concatenate([s[0] for s in self._spheres]),
+            qd=np.concatenate([s[2] for s in self._spheres]),
+            omega=np.concatenate([s[3] for s in self._spheres]),
+            radius=np.concatenate([s[1] for s in self._spheres]),
+            material=np.concatenate([np.full(len(s[0]), names.index(s[4])) for s in self._spheres]),
+            motion=np.concatenate([np.full(len(s[0]), s[5]) for s in self._spheres]),
+            part=np.concatenate([np.full(len(s[0]), s[6]) for s in self._spheres]),
+        )
+
+    def wall_data(self) -> WallData:
+        names = list(self.materials)
+        w = self._walls
+        return WallData(
+            point=np.array([x[0] for x in w]).reshape(-1, 3),
+            normal=np.array([x[1] for x in w]).reshape(-1, 3),
+            velocity=np.array([x[2] for x in w]).reshape(-1, 3),
+            material=np.array([names.index(x[3]) for x in w], dtype=np.int32),
+        )
+
+    def pair_table(self) -> list[list[ContactPair]]:
+        names = list(self.materials)
+        table = []
+        for a in names:
+            row = []
+            for b in names:
+                ma, mb = self.materials[a], self.materials[b]
+                inter = self.interaction(a, b)
+                estar, gstar = effective_moduli(ma, mb)
+                nu = 0.5 * (ma.poisson_ratio + mb.poisson_ratio)
+                p = ContactPair()
+                p.estar = estar
+                p.gstar = gstar
+                p.young_a = ma.youngs_modulus
+                p.young_b = mb.youngs_modulus
+                p.kt_ratio = 2.0 * (1.0 - nu) / (2.0 - nu)
+                p.friction = inter.friction
+                p.rolling = inter.rolling_friction
+                e = inter.restitution
+                p.damp_n = hertz_damping_coefficient(e) if self.normal == "hertz" else linear_damping_ratio(e)
+                p.damp_t = linear_damping_ratio(e)
+                row.append(p)
+            table.append(row)
+        return table
+
+    def bond_data(self, particles: ParticleData, device: wp.context.Device) -> BondData:
+        """Bonds of every bonded group (pairs found with the hash grid), with their springs and strengths."""
+        parts: list[BondData] = []
+        group = np.zeros(len(particles), dtype=np.int32)
+        for k, (ids, _) in enumerate(self._bond_groups):
+            group[ids] = k + 1  # a sphere belongs to the last group that names it
+        for k, (_, props) in enumerate(self._bond_groups):
+            e_b, sig_t, tau_c, ratio, lam, tol, zeta = props
+            mine = np.where(group == k + 1, 1, 0)
+            pairs = find_bond_pairs(particles.q, particles.radius, mine, tol, device)
+            if len(pairs) == 0:
+                continue
+            i, j = pairs[:, 0], pairs[:, 1]
+            length = np.linalg.norm(particles.q[i] - particles.q[j], axis=1)
+            area = math.pi * (lam * np.minimum(particles.radius[i], particles.radius[j])) ** 2
+            kn = e_b * area / length
+            m = len(pairs)
+            parts.append(
+                BondData(
+                    pairs=pairs,
+                    rest_length=length,
+                    kn=kn,
+                    ks=kn / ratio,
+                    area=area,
+                    tensile_strength=np.full(m, sig_t),
+                    shear_strength=np.full(m, tau_c),
+                    damping=np.full(m, zeta),
+                )
+            )
+        if not parts:
+            return BondData.empty()
+        return BondData(*(np.concatenate([getattr(p, f) for p in parts]) for f in BondData.__dataclass_fields__))
+
+    def critical_time_step(self, particles: ParticleData, bonds: BondData) -> float:
+        """Critical time step [s] before the safety factor: the smallest of the Rayleigh step (Hertz) or
+        2 sqrt(m*/k_n) (linear) of every sphere size and material, the Hertz contact time at the fastest initial
+        approach / 10, and the bond step (:func:`bond_critical_time_step`)."""
+        names = list(self.materials)
+        free = particles.motion == 0
+        if not np.any(free) and not len(bonds):
+            return math.inf
+        steps = []
+        for mid in np.unique(particles.material):
+            mat = self.materials[names[mid]]
+            r = float(particles.radius[particles.material == mid].min())
+            mass = mat.density * 4.0 / 3.0 * math.pi * r**3
+            if self.normal == "hertz":
+                steps.append(critical_time_step_hertz(r, mat.density, mat.youngs_modulus, mat.poisson_ratio))
+                speed = 2.0 * float(np.linalg.norm(particles.qd, axis=1).max(initial=0.0))
+                if speed > 0.0:
+                    estar, _ = effective_moduli(mat, mat)
+                    mstar, rstar = 0.5 * mass, 0.5 * r
+                    steps.append(0.1 * 2.87 * (mstar**2 / (rstar * estar**2 * speed)) ** 0.2)
+            else:
+                steps.append(2.0 * math.sqrt(0.5 * mass / (mat.youngs_modulus * r)))
+        if len(bonds):
+            steps.append(bond_critical_time_step(particles, bonds, self.materials))
+        return min(steps)
+
+    def finalize(
+        self,
+        device: wp.context.DeviceLike = None,
+        *,
+        dt: float | None = None,
+        safety_factor: float = 0.2,
+        skin: float | None = None,
+        max_neighbors: int = 16,
+        particle_capacity: int | None = None,
+        sort: bool = True,
+    ) -> tuple[Model, State]:
+        """Allocate the model and initial state.
+
+        Args:
+            device: Warp device.
+            dt: time step [s]; None = ``safety_factor`` × critical time step.
+            safety_factor: fraction of the critical step used when dt is None.
+            skin: Verlet skin [m]; None = 0.4 × the smallest radius.
+            max_neighbors: initial neighbour slots per particle (grown on overflow).
+            particle_capacity: particle slots (default: the sphere count).
+            sort: reorder spheres along a Z-order curve for memory locality (ids keep the creation order).
+        """
+        device = wp.get_device(device)
+        particles = self.particle_data()
+        n = len(particles)
+        bonds = self.bond_data(particles, device)
+        if sort and n:
+            perm = morton_order(particles.q, 2.0 * float(particles.radius.max()))
+            particles = ParticleData(*(getattr(particles, f)[perm] for f in ParticleData.__dataclass_fields__))
+            ids = perm
+            if len(bonds):
+                inv = np.empty_like(perm)
+                inv[perm] = np.arange(n)
+                p = inv[bonds.pairs]
+                p.sort(axis=1)
+                order = np.lexsort((p[:, 1], p[:, 0]))
+                bonds = BondData(p[order], *(getattr(bonds, f)[order] for f in list(BondData.__dataclass_fields__)[1:]))
+        else:
+            ids = np.arange(n)
+        if dt is None:
+            dt = safety_factor * self.critical_time_step(particles, bonds)
+            if not math.isfinite(dt):
+                dt = 1.0e-4
+        if skin is None:
+            skin = 0.4 * float(particles.radius.min()) if n else 0.0
+        walls = self.wall_data()
+        cap = max(particle_capacity or n, n, 1)
+        names = list(self.materials)
+        density = np.array([self.materials[names[m]].density for m in particles.material])
+        mass = density * 4.0 / 3.0 * math.pi * particles.radius**3
+        free = particles.motion == 0
+        inv_mass = np.where(free, 1.0 / np.where(mass > 0, mass, 1.0), 0.0)
+        inertia = 0.4 * mass * particles.radius**2
+        inv_inertia = np.where(free, 1.0 / np.where(inertia > 0, inertia, 1.0), 0.0)
+
+        def f32(a: np.ndarray, width: int | None = None) -> wp.array:
+            out = np.zeros((cap, width) if width else cap, dtype=np.float32)
+            out[:n] = a
+            return wp.array(out, dtype=wp.vec3 if width else float, device=device)
+
+        def i32(a: np.ndarray, fill: int = 0) -> wp.array:
+            out = np.full(cap, fill, dtype=np.int32)
+            out[:n] = a
+            return wp.array(out, dtype=int, device=device)
+
+        nw = len(walls)
+        model = Model(
+            device=device,
+            particle_capacity=cap,
+            max_neighbors=max_neighbors,
+            num_materials=len(names),
+            num_walls=nw,
+            dt=float(dt),
+            skin=float(skin),
+            gravity=tuple(float(g) for g in self.gravity),
+            normal_model=self.normal,
+            tangential_model=self.tangential,
+            rolling_model=self.rolling,
+            material_names=names,
+            part_names=list(self.parts),
+            particle_radius=f32(particles.radius),
+            particle_mass=f32(mass),
+            particle_inv_mass=f32(inv_mass),
+            particle_inv_inertia=f32(inv_inertia),
+            particle_material=i32(particles.material),
+            particle_motion=i32(particles.motion),
+            particle_part=i32(particles.part),
+            particle_id=i32(ids, fill=-1),
+            pair_table=pair_table_array(self.pair_table(), device),
+            wall_normal=wp.array(walls.normal.astype(np.float32), dtype=wp.vec3, device=device),
+            wall_velocity=wp.array(walls.velocity.astype(np.float32), dtype=wp.vec3, device=device),
+            wall_material=wp.array(walls.material, dtype=int, device=device),
+            walls_move=bool(nw and np.any(walls.velocity != 0.0)),
+            bond_capacity=len(bonds),
+        )
+        state = new_state(model, particles, walls, bonds)
+        return model, state
+
+
+def new_state(model: Model, particles: ParticleData, walls: WallData, bonds: BondData) -> State:
+    """Allocate the initial State of a model: spheres at rest in their initial positions, bonds intact."""
+    device, cap, k = model.device, model.particle_capacity, model.max_neighbors
+    n, nb = len(particles), len(bonds)
+
+    def vec(a: np.ndarray | None, size: int) -> wp.array:
+        out = np.zeros((size, 3), dtype=np.float32)
+        if a is not None:
+            out[: len(a)] = a
+        return wp.array(out, dtype=wp.vec3, device=device)
+
+    def arr(a: np.ndarray, dtype, size: int, fill=0) -> wp.array:
+        out = np.full(size, fill, dtype={int: np.int32, float: np.float32, wp.int64: np.int64}[dtype])
+        out[: len(a)] = a
+        return wp.array(out, dtype=dtype, device=device)
+
+    def scalar(v: int) -> wp.array:
+        return wp.array([v], dtype=int, device=device)
+
+    pairs = bonds.pairs.astype(np.int64)
+    q = particles.q
+    return State(
+        particle_count=scalar(n),
+        particle_q=vec(q, cap),
+        particle_qd=vec(particles.qd, cap),
+        particle_omega=vec(particles.omega, cap),
+        particle_f=vec(None, cap),
+        particle_t=vec(None, cap),
+        particle_q_at_build=vec(q, cap),
+        rebuild_flag=scalar(1),
+        nbr_needed=scalar(0),
+        nbr_count=wp.zeros(cap, dtype=int, device=device),
+        nbr_index=wp.zeros(cap * k, dtype=int, device=device),
+        nbr_shear=wp.zeros(cap * k, dtype=wp.vec3, device=device),
+        nbr_bond=wp.full(cap * k, -1, dtype=int, device=device),
+        wall_point=vec(walls.point, len(walls)),
+        wall_shear=wp.zeros(cap * len(walls), dtype=wp.vec3, device=device),
+        bond_count=scalar(nb),
+        bond_i=arr(pairs[:, 0], int, nb),
+        bond_j=arr(pairs[:, 1], int, nb),
+        bond_key=arr(pairs[:, 0] * cap + pairs[:, 1], wp.int64, nb),
+        bond_rest_length=arr(bonds.rest_length, float, nb),
+        bond_kn=arr(bonds.kn, float, nb),
+        bond_ks=arr(bonds.ks, float, nb),
+        bond_area=arr(bonds.area, float, nb),
+        bond_tensile_strength=arr(bonds.tensile_strength, float, nb),
+        bond_shear_strength=arr(bonds.shear_strength, float, nb),
+        bond_damping=arr(bonds.damping, float, nb),
+        bond_shear=vec(None, nb),
+        bond_broken=arr(np.zeros(nb), int, nb),
+        bonds_broken_total=scalar(0),
+        energy_damping=wp.zeros(cap, dtype=wp.float64, device=device),
+        energy_friction=wp.zeros(cap, dtype=wp.float64, device=device),
+        energy_boundary_work=wp.zeros(cap, dtype=wp.float64, device=device),
+        energy_bond_broken=wp.zeros(cap, dtype=wp.float64, device=device),
+    )
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Scenes
+
+
+def packing_region(region) -> packing.Box | packing.Cylinder:
+    """The packing module's region for a scene Region."""
+    if region.box is not None:
+        return packing.Box(np.asarray(region.box.lo, float), np.asarray(region.box.hi, float))
+    c = region.cylinder
+    return packing.Cylinder(np.asarray(c.center, float), float(c.radius), float(c.height), "xyz".index(c.axis))
+
+
+def read_particle_file(path: Path, radius: float | None, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """Centres (N, 3) [m] and radii (N,) [m] from a text file of ``x y z`` or ``x y z r`` lines."""
+    try:
+        data = np.loadtxt(path, comments="#", ndmin=2, dtype=np.float64)
+    except (OSError, ValueError) as exc:
+        raise SceneError(f"{where}.path: cannot read particle file {path}: {exc}") from None
+    if data.size == 0:
+        raise SceneError(f"{where}.path: particle file {path} has no spheres")
+    if data.shape[1] not in (3, 4):
+        raise SceneError(f"{where}.path: {path} has {data.shape[1]} columns; allowed: 3 (x y z) or 4 (x y z r)")
+    if not np.all(np.isfinite(data)):
+        raise SceneError(f"{where}.path: {path} contains non-finite numbers")
+    if data.shape[1] == 4:
+        if np.any(data[:, 3] <= 0):
+            raise SceneError(f"{where}.path: {path} has radii <= 0")
+        return data[:, :3], data[:, 3]
+    if radius is None:
+        raise SceneError(f"{where}.radius: required because {path} has 3 columns (x y z)")
+    return data, np.full(len(data), radius)
+
+
+def scene_builder(scene: Scene) -> ModelBuilder:
+    """A ModelBuilder holding everything a validated scene describes.
+
+    Raises:
+        SceneError: a particle file cannot be read, or a region holds no sphere.
+    """
+    source = scene.name
+    c = scene.contact
+    b = ModelBuilder(normal=c.normal, tangential=c.tangential, rolling=c.rolling, gravity=tuple(scene.gravity.vector))
+    for name, mat in scene.materials.items():
+        b.add_material(name, mat.density, mat.youngs_modulus, mat.poisson_ratio)
+    names = scene.material_names()
+    for ia, a in enumerate(names):
+        for bname in names[ia:]:
+            it = scene.interaction_for(a, bname)
+            b.set_interaction(a, bname, InteractionProps(it.friction, it.restitution, it.rolling_friction))
+    rng = np.random.default_rng(scene.run.seed)
+    for k, src in enumerate(scene.particles):
+        where = f"particles[{k}]"
+        material = scene.parts[src.part].material
+        if src.kind == "packing":
+            region = packing_region(src.region)
+            if src.arrangement == "random":
+                q, r = packing.random_packing(
+                    region,
+                    src.radius,
+                    src.radius_max or src.radius,
+                    rng,
+                    volume_fraction=src.target_volume_fraction,
+                    max_count=src.count,
+                )
+            else:
+                q = packing.lattice_packing(region, src.radius, src.arrangement, max_count=src.count)
+                r = np.full(len(q), src.radius)
+            if len(q) == 0:
+                raise SceneError(f"{source}: {where}.region: no sphere of radius {src.radius} fits in the region")
+            b.add_spheres(q, r, material, velocity=src.velocity, part=src.part)
+        elif src.kind == "sphere":
+            b.add_sphere(
+                src.center,
+                src.radius,
+                material,
+                velocity=src.velocity,
+                angular_velocity=src.angular_velocity,
+                motion=src.motion,
+                part=src.part,
+            )
+        else:
+            q, r = read_particle_file(Path(src.path), src.radius, f"{source}: {where}")
+            b.add_spheres(q, r, material, velocity=src.velocity, part=src.part)
+    q_all = b.particle_data().q
+    for k, bond in enumerate(scene.bonds):
+        ids = np.nonzero(bond.region.contains(q_all))[0] if len(q_all) else np.zeros(0, int)
+        if len(ids) < 2:
+            raise SceneError(f"{source}: bonds[{k}].region: contains {len(ids)} sphere(s); a bond needs two")
+        b.add_bonded_group(
+            ids,
+            youngs_modulus=scene.bond_youngs_modulus(bond),
+            tensile_strength=bond.tensile_strength,
+            shear_strength=bond.shear_strength,
+            stiffness_ratio=bond.stiffness_ratio,
+            radius_factor=bond.radius_factor,
+            gap_tolerance=bond.gap_tolerance,
+            damping_ratio=bond.damping_ratio,
+        )
+    for wall in scene.walls:
+        if wall.kind == "plane":
+            b.add_plane_wall(wall.point, wall.normal, wall.material, wall.velocity)
+        else:
+            b.add_box_walls(wall.lo, wall.hi, wall.material, open_top=wall.open_top)
+    return b
+
+
+def build_scene(scene: Scene, device: wp.context.DeviceLike = None) -> tuple[Model, State]:
+    """Model and initial state of a validated scene on ``device`` (default: the scene's run.device)."""
+    b = scene_builder(scene)
+    if b.sphere_count == 0:
+        raise SceneError(f"{scene.name}: particles: the scene creates no sphere")
+    run = scene.run
+    skin = None if scene.contact.skin == "auto" else float(scene.contact.skin)
+    return b.finalize(
+        device if device is not None else run.device,
+        dt=None if run.dt == "auto" else float(run.dt),
+        safety_factor=run.safety_factor,
+        skin=skin,
+        max_neighbors=scene.capacity.neighbors_per_particle,
+        particle_capacity=scene.capacity.particles,
+    )

@@ -1,0 +1,294 @@
+"""Running a scene: frames of captured steps, USD output, HDF5 checkpoints, restart, and the closing summary."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+from . import __version__
+from .builder import build_scene
+from .checkpoint import CheckpointError, checkpoint_name, read_checkpoint, write_checkpoint
+from .model import Model, State
+from .scene import Scene, SceneError
+from .simulation import EnergyBalance, Simulation
+
+# Model fields that describe spheres (saved with a checkpoint so a restart never depends on rebuilding them).
+MODEL_PARTICLE_FIELDS = (
+    "particle_radius",
+    "particle_mass",
+    "particle_inv_mass",
+    "particle_inv_inertia",
+    "particle_material",
+    "particle_motion",
+    "particle_part",
+    "particle_id",
+)
+
+
+@dataclass
+class RunOptions:
+    """Command-line overrides of a scene's run and output settings (None = the scene's value).
+
+    Attributes:
+        device: Warp device. end_time: simulated end time [s]. frames: number of output frames after the first
+        (overrides end_time). out_dir: output directory. usd: USD file path. checkpoint_every: checkpoint period
+        [s] (0 = at the end only). restart: checkpoint file to continue from. quiet: no progress bar or summary.
+    """
+
+    device: str | None = None
+    end_time: float | None = None
+    frames: int | None = None
+    out_dir: Path | None = None
+    usd: Path | None = None
+    checkpoint_every: float | None = None
+    restart: Path | None = None
+    quiet: bool = False
+
+
+@dataclass
+class RunSummary:
+    """What a run did: simulated time [s], steps, wall time [s], throughput [particle-steps/s], contacts now,
+    bonds broken, the energy balance at start and end, and the files written."""
+
+    simulated_time: float
+    steps: int
+    wall_time: float
+    particle_steps_per_second: float
+    particles: int
+    contacts: int
+    bonds_broken: int
+    bonds_intact: int
+    energy_start: EnergyBalance
+    energy_end: EnergyBalance
+    usd_path: Path | None
+    checkpoints: list[Path]
+
+    def format(self) -> str:
+        e0, e1 = self.energy_start, self.energy_end
+        scale = max(abs(e0.total), e1.kinetic + e1.elastic + abs(e1.gravity_potential), 1e-300)
+        lines = [
+            f"simulated time   {self.simulated_time:.6g} s in {self.steps} steps",
+            f"wall time        {self.wall_time:.3f} s  ({self.particle_steps_per_second / 1e6:.3f} M particle-steps/s)",
+            f"particles        {self.particles}   contacts {self.contacts}",
+            f"bonds            {self.bonds_intact} intact, {self.bonds_broken} broken",
+            "energy [J]       start          end",
+            f"  kinetic        {e0.kinetic:<14.6g} {e1.kinetic:.6g}",
+            f"  elastic        {e0.elastic:<14.6g} {e1.elastic:.6g}",
+            f"  gravity pot.   {e0.gravity_potential:<14.6g} {e1.gravity_potential:.6g}",
+            f"  damping diss.  {e0.dissipated_damping:<14.6g} {e1.dissipated_damping:.6g}",
+            f"  friction diss. {e0.dissipated_friction:<14.6g} {e1.dissipated_friction:.6g}",
+            f"  bond breakage  {e0.released_by_bond_breakage:<14.6g} {e1.released_by_bond_breakage:.6g}",
+            f"  wall work      {e0.boundary_work:<14.6g} {e1.boundary_work:.6g}",
+            f"  balance        {e0.total:<14.6g} {e1.total:.6g}   (error {(e1.total - e0.total) / scale:+.2e})",
+        ]
+        if self.usd_path is not None:
+            lines.append(f"USD              {self.usd_path}")
+        if self.checkpoints:
+            lines.append(f"checkpoint       {self.checkpoints[-1]}")
+        return "\n".join(lines)
+
+
+def speed_colors(speed: np.ndarray, scale: float) -> np.ndarray:
+    """Blue (at rest) → red (at ``scale`` m/s and above), shape (N, 3)."""
+    t = np.clip(speed / max(scale, 1e-12), 0.0, 1.0)[:, None]
+    return (1.0 - t) * np.array([0.15, 0.3, 0.85]) + t * np.array([0.95, 0.25, 0.1])
+
+
+PART_PALETTE = np.array(
+    [[0.55, 0.55, 0.6], [0.85, 0.45, 0.2], [0.2, 0.6, 0.85], [0.4, 0.75, 0.3], [0.8, 0.3, 0.5], [0.9, 0.8, 0.3]]
+)
+
+
+def save_checkpoint(path: Path, sim: Simulation, frame: int, extra: dict) -> Path:
+    """Write the complete state of a simulation (and the sphere part of its model) to an HDF5 checkpoint."""
+    arrays = {f"state/{name}": a.numpy() for name, a in sim.state.arrays().items()}
+    for name in MODEL_PARTICLE_FIELDS:
+        arrays[f"model/{name}"] = getattr(sim.model, name).numpy()
+    attrs = {
+        "step": sim.step_count,
+        "time": sim.time,
+        "frame": frame,
+        "dt": sim.model.dt,
+        "particle_capacity": sim.model.particle_capacity,
+        "max_neighbors": sim.model.max_neighbors,
+        "bond_capacity": sim.model.bond_capacity,
+        "num_walls": sim.model.num_walls,
+        "warpdem_version": __version__,
+        **extra,
+    }
+    return write_checkpoint(path, arrays, attrs)
+
+
+def restore_checkpoint(path: Path, model: Model, template: State) -> tuple[Model, State, dict]:
+    """Model and state of a checkpoint, on the device of ``model`` (built from the same scene; ``template`` is its
+    initial state and gives each array's type).
+
+    Raises:
+        CheckpointError: unreadable file, or one that does not belong to this scene.
+    """
+    arrays, attrs = read_checkpoint(path)
+    for key, expected in (("bond_capacity", model.bond_capacity), ("num_walls", model.num_walls)):
+        if int(attrs.get(key, -1)) != expected:
+            raise CheckpointError(f"{path}: {key} is {attrs.get(key)} but the scene builds {expected}; wrong scene?")
+    missing = [
+        k
+        for k in [f"model/{n}" for n in MODEL_PARTICLE_FIELDS] + [f"state/{n}" for n in template.arrays()]
+        if k not in arrays
+    ]
+    if missing:
+        raise CheckpointError(f"{path}: missing arrays {', '.join(missing)}")
+    device = model.device
+
+    def load(key: str, like: wp.array) -> wp.array:
+        return wp.array(arrays[key], dtype=like.dtype, device=device)
+
+    model = dataclasses.replace(
+        model,
+        particle_capacity=int(attrs["particle_capacity"]),
+        max_neighbors=int(attrs["max_neighbors"]),
+        dt=float(attrs["dt"]),
+        **{name: load(f"model/{name}", getattr(model, name)) for name in MODEL_PARTICLE_FIELDS},
+    )
+    state = State(**{name: load(f"state/{name}", a) for name, a in template.arrays().items()})
+    return model, state, attrs
+
+
+def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
+    """Run a validated scene to its end time, writing USD frames and checkpoints.
+
+    Raises:
+        SceneError: the scene cannot be built (for example a particle file that cannot be read).
+        CheckpointError: the restart file cannot be used.
+    """
+    options = options or RunOptions()
+    run = scene.run
+    device_name = options.device or run.device
+    try:
+        device = wp.get_device(device_name)
+    except (ValueError, RuntimeError) as exc:
+        raise SceneError(f"{scene.name}: run.device: device {device_name!r} is not available here ({exc})") from None
+    model, state = build_scene(scene, device)
+
+    fps = run.output_rate
+    frame_period = 1.0 / fps
+    if run.dt == "auto":
+        substeps = max(1, math.ceil(frame_period / model.dt))
+        model = dataclasses.replace(model, dt=frame_period / substeps)
+    else:
+        substeps = max(1, round(frame_period / model.dt))
+    frame_period = substeps * model.dt
+
+    step, sim_time, first_frame, primed = 0, 0.0, 0, False
+    if options.restart is not None:
+        model, state, attrs = restore_checkpoint(Path(options.restart), model, state)
+        step, sim_time, first_frame, primed = int(attrs["step"]), float(attrs["time"]), int(attrs["frame"]), True
+        if abs(model.dt * substeps - frame_period) > 1e-12 * frame_period:
+            substeps = max(1, round(frame_period / model.dt))
+    sim = Simulation(model, state, primed=primed, step=step, time=sim_time)
+
+    end_time = options.end_time if options.end_time is not None else run.end_time
+    total_frames = options.frames if options.frames is not None else max(1, math.ceil(end_time / frame_period - 1e-9))
+    frames_left = max(0, total_frames - first_frame)
+
+    out_dir = Path(options.out_dir) if options.out_dir is not None else Path(scene.output.directory)
+    usd_path = Path(options.usd) if options.usd is not None else out_dir / scene.output.usd
+    checkpoint_every = (
+        options.checkpoint_every if options.checkpoint_every is not None else scene.output.checkpoint_every
+    )
+    checkpoint_dir = out_dir / scene.output.checkpoint_dir
+    frames_per_checkpoint = max(1, round(checkpoint_every / frame_period)) if checkpoint_every > 0 else 0
+    ckpt_extra = {"scene": scene.name, "substeps": substeps}
+
+    from .usd import UsdWriter
+
+    speed_scale = [1e-12]
+    checkpoints: list[Path] = []
+
+    def write_frame(writer: UsdWriter) -> None:
+        n = sim.particle_count
+        q = sim.state.particle_q.numpy()[:n]
+        v = sim.state.particle_qd.numpy()[:n]
+        speed = np.linalg.norm(v, axis=1)
+        if scene.output.color_by == "part":
+            colors = PART_PALETTE[sim.model.particle_part.numpy()[:n] % len(PART_PALETTE)]
+        else:
+            speed_scale[0] = max(speed_scale[0], float(speed.max(initial=0.0)))
+            colors = speed_colors(speed, speed_scale[0])
+        bonds = None
+        if scene.output.bonds_as_curves and sim.model.bond_capacity:
+            nb = sim.bond_count
+            intact = sim.state.bond_broken.numpy()[:nb] == 0
+            bonds = np.stack([sim.state.bond_i.numpy()[:nb][intact], sim.state.bond_j.numpy()[:nb][intact]], axis=1)
+        writer.write_frame(
+            time=sim.time,
+            positions=q,
+            radii=sim.model.particle_radius.numpy()[:n],
+            velocities=v,
+            ids=sim.model.particle_id.numpy()[:n].astype(np.int64),
+            colors=colors,
+            bonds=bonds,
+        )
+
+    energy_start = sim.energy()
+    progress = None
+    if not options.quiet and sys.stderr.isatty():
+        from tqdm import tqdm
+
+        progress = tqdm(
+            total=round(frames_left * frame_period, 9), unit="s", unit_scale=False, desc=scene.name, file=sys.stderr
+        )
+    wall0 = time.perf_counter()
+    steps0 = sim.step_count
+    with UsdWriter(usd_path, 1.0 / frame_period, comment=f"warpdem {__version__}: {scene.name}") as writer:
+        write_frame(writer)
+        for k in range(frames_left):
+            sim.advance(substeps)
+            frame = first_frame + k + 1
+            write_frame(writer)
+            if progress is not None:
+                progress.update(round(frame_period, 9))
+            if frames_per_checkpoint and frame % frames_per_checkpoint == 0 and k < frames_left - 1:
+                checkpoints.append(
+                    save_checkpoint(checkpoint_dir / checkpoint_name(sim.step_count), sim, frame, ckpt_extra)
+                )
+        wall = time.perf_counter() - wall0
+        checkpoints.append(
+            save_checkpoint(
+                checkpoint_dir / checkpoint_name(sim.step_count), sim, first_frame + frames_left, ckpt_extra
+            )
+        )
+    if progress is not None:
+        progress.close()
+    steps = sim.step_count - steps0
+    n = sim.particle_count
+    energy_end = sim.energy()
+    return RunSummary(
+        simulated_time=sim.time,
+        steps=sim.step_count,
+        wall_time=wall,
+        particle_steps_per_second=n * steps / wall if wall > 0 else 0.0,
+        particles=n,
+        contacts=sim.contact_count(),
+        bonds_broken=int(sim.state.bonds_broken_total.numpy()[0]),
+        bonds_intact=sim.bond_count,
+        energy_start=energy_start,
+        energy_end=energy_end,
+        usd_path=writer.path if hasattr(writer, "path") else usd_path,
+        checkpoints=checkpoints,
+    )
+
+
+def summary_json(summary: RunSummary) -> str:
+    """The summary as JSON (for scripts)."""
+    d = dataclasses.asdict(summary)
+    d["usd_path"] = str(summary.usd_path) if summary.usd_path else None
+    d["checkpoints"] = [str(p) for p in summary.checkpoints]
+    return json.dumps(d, indent=1)
