@@ -575,10 +575,12 @@ def commit_neighbors_kernel(
     nbr_shear: wp.array(dtype=wp.vec3),
     nbr_bond: wp.array(dtype=int),
     rebuild_flag: wp.array(dtype=int),
+    rebuild_total: wp.array(dtype=int),
 ):
     i = wp.tid()  # one thread per particle slot
     if i == 0:
         rebuild_flag[0] = 0
+        rebuild_total[0] = rebuild_total[0] + 1
     if i >= particle_count[0]:
         return
     n = wp.min(new_count[i], max_neighbors)

@@ -332,7 +332,7 @@ class ModelBuilder:
         dt: float | None = None,
         safety_factor: float = 0.2,
         skin: float | None = None,
-        max_neighbors: int = 16,
+        max_neighbors: int = 8,
         particle_capacity: int | None = None,
         sort: bool = True,
     ) -> tuple[Model, State]:
@@ -454,6 +454,7 @@ def new_state(model: Model, particles: ParticleData, walls: WallData, bonds: Bon
         particle_t=vec(None, cap),
         particle_q_at_build=vec(q, cap),
         rebuild_flag=scalar(1),
+        rebuild_total=scalar(0),
         nbr_needed=scalar(0),
         nbr_count=wp.zeros(cap, dtype=int, device=device),
         nbr_index=wp.zeros(cap * k, dtype=int, device=device),

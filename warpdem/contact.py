@@ -80,7 +80,7 @@ class NeighborList:
             kc.commit_neighbors_kernel,
             dim=m.particle_capacity,
             inputs=[m.max_neighbors, s.particle_count, self.new_count, self.new_index, self.new_shear, self.new_bond],
-            outputs=[s.nbr_count, s.nbr_index, s.nbr_shear, s.nbr_bond, s.rebuild_flag],
+            outputs=[s.nbr_count, s.nbr_index, s.nbr_shear, s.nbr_bond, s.rebuild_flag, s.rebuild_total],
             device=m.device,
         )
 

@@ -106,6 +106,7 @@ class State:
         particle_t: torques [N m], shape (particle_capacity,), vec3.
         particle_q_at_build: centres when the neighbour list was built [m], shape (particle_capacity,), vec3.
         rebuild_flag: 1 when the neighbour list must be rebuilt before the next force evaluation, shape (1,).
+        rebuild_total: neighbour-list builds since the start, shape (1,).
         nbr_needed: the largest neighbour count seen at a build (overflow when > max_neighbors), shape (1,).
         nbr_count: neighbours of each particle in its half list, shape (particle_capacity,), int32.
         nbr_index: neighbour j > i in each slot, shape (particle_capacity * max_neighbors,), int32.
@@ -134,6 +135,7 @@ class State:
     particle_t: wp.array
     particle_q_at_build: wp.array
     rebuild_flag: wp.array
+    rebuild_total: wp.array
     nbr_needed: wp.array
     nbr_count: wp.array
     nbr_index: wp.array

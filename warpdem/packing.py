@@ -269,52 +269,103 @@ class _CellGrid:
 
 
 class _ExclusionVoxels:
-    """Fine voxels known to be covered by the exclusion zone of a placed sphere, to reject candidates cheaply.
+    """Fine voxels that record which candidate radii certainly overlap a placed sphere, to reject cheaply.
 
-    A candidate of radius ρ >= r_min overlaps sphere j iff its centre is within ρ + r_j >= r_min + r_j of c_j.
-    A voxel (side h) whose every point is closer than r_min + r_j to c_j can therefore never take a centre. Near
-    jamming such voxels cover most of the region, and one table lookup rejects a candidate that would otherwise
-    cost 27 cells of distance tests (about 5x faster at a solid fraction of 0.3). With c_j anywhere in its own
-    voxel, every point of the voxel at integer offset o is within h sqrt(Σ (|o_i| + 1)²) of c_j, so the stencil
-    of offsets with that bound below r_min + r_j is marked.
+    A candidate of radius ρ overlaps sphere j iff its centre is closer than ρ + r_j to c_j. If f_j(v) is the
+    distance from c_j to the farthest point of voxel v, every candidate centred in v with ρ > f_j(v) - r_j overlaps
+    j. Each voxel keeps min_j (f_j(v) - r_j), rounded up onto 256 levels over [r_min, r_max] (uint8) so that the
+    test "ρ > level" never rejects a free position. With voxels of side r_min/3 this rejects about 97 % of the
+    candidates of an RSA packing of equal spheres at a solid fraction of 0.3 (where 0.1 % are free) by one
+    table lookup instead of a search of 27 cells.
     """
+
+    _CHUNK = 256
+    """Spheres marked per vectorised batch, bounding the temporaries to ~_CHUNK (2 reach + 1)³ floats."""
+
+    _LEVELS = 254
+    """Codes 1.._LEVELS are thresholds r_min + code/_LEVELS (r_max - r_min); 0 rejects all radii, 255 none."""
 
     def __init__(self, lo: np.ndarray, hi: np.ndarray, r_min: float, r_max: float, max_voxels: int) -> None:
         self.lo = lo
-        # h = r_min/3 kills the exclusion zone up to radius 2 r_min - 0.58 r_min ≈ 1.7 r_min for equal spheres;
-        # coarser only where the voxel count would exceed max_voxels.
+        # Side r_min/3, coarser only where the voxel count would exceed max_voxels (then fewer candidates are
+        # rejected early, which costs speed, never correctness).
         self.h = max(r_min / 3.0, float(np.prod(hi - lo) / max_voxels) ** (1.0 / 3.0))
-        reach = int(math.ceil((r_min + r_max) / self.h))
-        o = np.arange(-reach, reach + 1)
-        offsets = np.stack(np.meshgrid(o, o, o, indexing="ij"), axis=-1).reshape(-1, 3)
-        bound = self.h * np.sqrt(np.sum((np.abs(offsets) + 1.0) ** 2, axis=1))
-        keep = bound < r_min + r_max
-        self.pad = reach
-        self.dims = np.ceil((hi - lo) / self.h).astype(np.int64) + 2 * reach + 1
+        self.r_min, self.span = r_min, r_max - r_min
+        self.reach = math.ceil(2.0 * r_max / self.h)  # f_j - r_j < r_max needs f_j < r_j + r_max <= 2 r_max
+        self.top = np.floor((hi - lo) / self.h).astype(np.int64)  # largest unpadded voxel index per axis
+        self.dims = self.top + 1 + 2 * self.reach
         self.strides = np.array([self.dims[1] * self.dims[2], self.dims[2], 1], dtype=np.int64)
-        self.stencil = offsets[keep] @ self.strides
-        self.stencil_bound = bound[keep]
-        self.r_min = r_min
-        self.dead = np.zeros(int(np.prod(self.dims)) if len(self.stencil) else 1, dtype=bool)
+        o = np.arange(-self.reach, self.reach + 1)
+        self.offsets = o
+        self.stencil = (np.stack(np.meshgrid(o, o, o, indexing="ij"), axis=-1).reshape(-1, 3) @ self.strides).ravel()
+        self.code = np.full(int(np.prod(self.dims)), 255, dtype=np.uint8)
+        self.threshold = np.concatenate(
+            [[-np.inf], r_min + np.arange(1, self._LEVELS + 1) / self._LEVELS * self.span, [np.inf]]
+        )
 
-    def voxel_of(self, points: np.ndarray) -> np.ndarray:
-        """Flat voxel index of each point, shape (N,)."""
-        ijk = np.floor((points - self.lo) / self.h).astype(np.int64) + self.pad
-        return np.clip(ijk, self.pad, self.dims - 1 - self.pad) @ self.strides
+    def _voxel(self, points: np.ndarray) -> np.ndarray:
+        """Unpadded integer voxel coordinates, shape (N, 3)."""
+        return np.clip(np.floor((points - self.lo) / self.h).astype(np.int64), 0, self.top)
 
-    def is_dead(self, points: np.ndarray) -> np.ndarray:
-        """Whether each point certainly overlaps a placed sphere, shape (N,)."""
-        if len(self.stencil) == 0:
-            return np.zeros(len(points), dtype=bool)
-        return self.dead[self.voxel_of(points)]
+    def is_dead(self, points: np.ndarray, radii: np.ndarray) -> np.ndarray:
+        """Whether candidates (centres (N, 3), radii (N,)) certainly overlap a placed sphere, shape (N,)."""
+        return radii > self.threshold[self.code[(self._voxel(points) + self.reach) @ self.strides]]
 
     def insert(self, points: np.ndarray, radii: np.ndarray) -> None:
-        """Mark the voxels covered by the exclusion zones of new spheres (centres (M, 3), radii (M,))."""
-        if len(self.stencil) == 0 or len(points) == 0:
-            return
-        within = self.stencil_bound[None, :] < (self.r_min + radii)[:, None]
-        cells = self.voxel_of(points)[:, None] + self.stencil[None, :]
-        self.dead[cells[within]] = True
+        """Record the exclusion zones of new spheres (centres (M, 3), radii (M,))."""
+        for start in range(0, len(points), self._CHUNK):
+            centre, radius = points[start : start + self._CHUNK], radii[start : start + self._CHUNK]
+            voxel = self._voxel(centre)
+            # Per axis, the squared distance from the centre to the farther face of each voxel in the stencil.
+            faces = self.lo + (voxel[:, None, :] + self.offsets[None, :, None]) * self.h  # (M, 2 reach + 1, 3)
+            rel = centre[:, None, :] - faces
+            far2 = np.maximum(rel * rel, (rel - self.h) ** 2)
+            d2 = far2[:, :, None, None, 0] + far2[:, None, :, None, 1] + far2[:, None, None, :, 2]
+            block = np.sqrt(d2.reshape(len(centre), -1)) - radius[:, None]  # reject ρ > block
+            if self.span > 0.0:
+                level = np.ceil((block - self.r_min) / self.span * self._LEVELS)  # rounded up: never too strict
+                code = np.where(block < self.r_min, 0, np.where(level > self._LEVELS, 255, np.maximum(level, 1)))
+            else:
+                code = np.where(block < self.r_min, 0, 255)
+            which, cell = np.nonzero(code < 255)
+            flat = ((voxel + self.reach) @ self.strides)[which] + self.stencil[cell]
+            np.minimum.at(self.code, flat, code[which, cell].astype(np.uint8))
+
+
+def _first_come(points: np.ndarray, radii: np.ndarray, grid: _CellGrid) -> np.ndarray:
+    """Greedy selection in order: sphere i is kept unless it overlaps a kept sphere j < i.
+
+    Candidate pairs come from the cell grid (same or adjacent cells), found by sorting the cell ids.
+
+    Args:
+        points: centres [m], shape (M, 3).
+        radii: radii [m], shape (M,).
+        grid: the cell grid, for its cell ids only (nothing is inserted).
+
+    Returns:
+        Mask of kept spheres, shape (M,), bool.
+    """
+    keep = np.ones(len(points), dtype=bool)
+    if len(points) < 2:
+        return keep
+    cells = grid.cell_of(points)
+    order = np.argsort(cells, kind="stable")
+    sorted_cells = cells[order]
+    targets = cells[:, None] + grid.neighbour_offsets[None, :]  # (M, 27)
+    first = np.searchsorted(sorted_cells, targets, side="left").ravel()
+    count = np.searchsorted(sorted_cells, targets, side="right").ravel() - first
+    i = np.repeat(np.repeat(np.arange(len(points)), targets.shape[1]), count)
+    run_start = np.cumsum(count) - count
+    j = order[np.repeat(first, count) + np.arange(int(count.sum())) - np.repeat(run_start, count)]
+    lower = j < i
+    i, j = i[lower], j[lower]
+    close = np.sum((points[i] - points[j]) ** 2, axis=1) < (radii[i] + radii[j]) ** 2
+    i, j = i[close], j[close]
+    pair_order = np.argsort(i, kind="stable")
+    i, j = i[pair_order], j[pair_order]  # overlapping pairs i > j, by i
+    for row in np.unique(i):
+        keep[row] = not keep[j[i == row]].any()
+    return keep
 
 
 def _sample_inside(region: Region, margin: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -440,7 +491,7 @@ def random_packing(
 
         # Overlap with placed spheres: |p - c_j| < r + r_j for any j in the 27 surrounding cells; candidates in
         # voxels already covered by an exclusion zone are rejected without the search.
-        free = ~voxels.is_dead(trial)
+        free = ~voxels.is_dead(trial, radius)
         test = np.flatnonzero(free)
         near = grid.neighbours(trial[test])
         valid = near >= 0
@@ -459,12 +510,7 @@ def random_packing(
         who = np.flatnonzero(has_free)
         pos = trial.reshape(n_active, tries, 3)[who, first[who]]
         rad = pool[who]
-        accept = np.ones(len(who), dtype=bool)
-        if len(who) > 1:
-            d2 = np.sum((pos[:, None, :] - pos[None, :, :]) ** 2, axis=2)
-            clash = np.tril(d2 < (rad[:, None] + rad[None, :]) ** 2, k=-1)
-            for m in np.flatnonzero(clash.any(axis=1)):
-                accept[m] = not np.any(clash[m, :m] & accept[:m])
+        accept = _first_come(pos, rad, grid)
         who, pos, rad = who[accept], pos[accept], rad[accept]
 
         # Stop exactly where sequential addition would: after the sphere that reaches the count or the volume.

@@ -565,7 +565,7 @@ class Capacity(_Model):
     """Initial buffer sizes; buffers still grow on overflow, these only avoid the first regrowths."""
 
     particles: Int | None = Field(default=None, gt=0, description="Particle slots; default chosen by the builder.")
-    neighbors_per_particle: Int = Field(default=16, gt=0, description="Contact candidate slots per particle.")
+    neighbors_per_particle: Int = Field(default=8, gt=0, description="Contact candidate slots per particle.")
     bonds_per_particle: Int = Field(default=16, gt=0, description="Bond slots per particle.")
 
 
