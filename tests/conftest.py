@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import logging
+
 import pytest
 import warp as wp
 
-wp.config.quiet = True
+wp.config.log_level = logging.WARNING  # no init banner; warnings still show
 wp.init()
 
 DEVICES = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])

@@ -8,6 +8,7 @@ under gravity 9.81 m/s²; dt = 5e-5 s; 2000 steps; nothing is written inside the
 from __future__ import annotations
 
 import json
+import logging
 import resource
 import sys
 import time
@@ -134,7 +135,7 @@ def run_bench(
     """``python -m warpdem bench``: print the table; returns the exit status."""
     import warp as wp
 
-    wp.config.quiet = True
+    wp.config.log_level = logging.WARNING  # no init banner; warnings still show
     rows = []
     for n in sizes:
         try:

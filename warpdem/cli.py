@@ -7,6 +7,7 @@ before any output file is opened.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 
@@ -88,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import warp as wp
 
-    wp.config.quiet = True
+    wp.config.log_level = logging.WARNING  # no init banner; warnings still show
     from .checkpoint import CheckpointError
     from .runner import RunOptions, run_scene, summary_json
 

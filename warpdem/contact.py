@@ -36,6 +36,8 @@ class NeighborList:
         cap = model.particle_capacity
         k = model.max_neighbors
         self.grid = wp.HashGrid(*(hash_grid_dims(cap),) * 3, device=device)
+        # Reserve for every slot now, so that a rebuild inside a captured graph never allocates.
+        self.grid.reserve(cap)
         self.cell = 2.0 * model.max_radius + model.skin
         self.new_count = wp.zeros(cap, dtype=int, device=device)
         self.new_index = wp.zeros(cap * k, dtype=int, device=device)

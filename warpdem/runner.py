@@ -205,7 +205,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     )
     checkpoint_dir = out_dir / scene.output.checkpoint_dir
     frames_per_checkpoint = max(1, round(checkpoint_every / frame_period)) if checkpoint_every > 0 else 0
-    ckpt_extra = {"scene": scene.name, "substeps": substeps}
+    ckpt_extra = {"scene": scene.name, "substeps": substeps, "seed": run.seed}
 
     from .usd import UsdWriter
 

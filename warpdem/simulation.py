@@ -17,6 +17,7 @@ there too.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -148,8 +149,15 @@ class Simulation:
             # The first step compiles the kernels outside the capture; the rest replay the recorded step.
             self.step()
             n_steps -= 1
-            with wp.ScopedCapture(device=self.model.device) as capture:
-                self.step()
+            try:
+                with wp.ScopedCapture(device=self.model.device) as capture:
+                    self.step()
+            except RuntimeError as exc:
+                # Conditional graph nodes need CUDA 12.4+; without them the same launches run one by one.
+                warnings.warn(f"graph capture unavailable ({exc}); running steps without a graph", stacklevel=2)
+                self.use_graph = False
+                self._run(n_steps)
+                return
             self._graph = capture.graph
         for _ in range(n_steps):
             wp.capture_launch(self._graph)
