@@ -222,3 +222,20 @@ def test_bad_inputs(tmp_path: pathlib.Path) -> None:
         with pytest.raises(ValueError, match="bonds"):
             writer.write_frame(**frame, bonds=np.array([[0, 4]]))
         assert writer.frame_count == 0
+
+
+def test_first_frame_offsets_the_timeline(tmp_path: pathlib.Path) -> None:
+    """A restarted run continues the original timeline: codes first_frame, first_frame + 1, ... and the stage's
+    start/end time codes say so."""
+    frames = make_frames()
+    path = tmp_path / "restart.usdc"
+    with UsdWriter(path, 25.0, first_frame=7) as writer:
+        codes = [writer.write_frame(**f) for f in frames[:2]]
+    assert codes == [7, 8]
+    stage = Usd.Stage.Open(str(path))
+    assert stage.GetStartTimeCode() == 7.0
+    assert stage.GetEndTimeCode() == 8.0
+    points = UsdGeom.Points.Get(stage, "/World/Particles").GetPointsAttr()
+    assert points.GetTimeSamples() == [7.0, 8.0]
+    # Stored as float32 (Vec3f): equal to the input rounded to float32, bit for bit.
+    np.testing.assert_array_equal(np.asarray(points.Get(8.0)), np.asarray(frames[1]["positions"], dtype=np.float32))

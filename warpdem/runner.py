@@ -200,6 +200,9 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
 
     out_dir = Path(options.out_dir) if options.out_dir is not None else Path(scene.output.directory)
     usd_path = Path(options.usd) if options.usd is not None else out_dir / scene.output.usd
+    if options.restart is not None and options.usd is None:
+        # A restart gets its own stage, on the original timeline, instead of replacing the first run's stage.
+        usd_path = usd_path.with_name(f"{usd_path.stem}_from{first_frame:06d}{usd_path.suffix}")
     checkpoint_every = (
         options.checkpoint_every if options.checkpoint_every is not None else scene.output.checkpoint_every
     )
@@ -247,7 +250,8 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         )
     wall0 = time.perf_counter()
     steps0 = sim.step_count
-    with UsdWriter(usd_path, 1.0 / frame_period, comment=f"warpdem {__version__}: {scene.name}") as writer:
+    comment = f"warpdem {__version__}: {scene.name}"
+    with UsdWriter(usd_path, 1.0 / frame_period, comment=comment, first_frame=first_frame) as writer:
         write_frame(writer)
         for k in range(frames_left):
             sim.advance(substeps)

@@ -55,7 +55,9 @@ class UsdWriter:
 
     save_interval_frames: int = 50
 
-    def __init__(self, path: str | os.PathLike, frames_per_second: float, *, comment: str | None = None) -> None:
+    def __init__(
+        self, path: str | os.PathLike, frames_per_second: float, *, comment: str | None = None, first_frame: int = 0
+    ) -> None:
         """Creates the partial stage and authors the stage metadata.
 
         Args:
@@ -64,6 +66,7 @@ class UsdWriter:
             frames_per_second: Playback rate [frames/s], stored as both ``timeCodesPerSecond`` and
                 ``framesPerSecond`` since one time code is one frame.
             comment: Optional free text stored as the layer comment (e.g. the scene file and command line).
+            first_frame: Time code of the first frame written (a restarted run continues the original timeline).
 
         Raises:
             ValueError: If the suffix is not one of ``.usd``, ``.usdc``, ``.usda``, or the frame rate is not a
@@ -133,6 +136,7 @@ class UsdWriter:
         self._bonds: Any = None  # UsdGeom.BasisCurves, defined on the first frame that carries bonds
         self._last_ids: np.ndarray | None = None
         self._frame_count = 0
+        self._first_frame = int(first_frame)
         self._closed = False
 
     @property
@@ -207,7 +211,7 @@ class UsdWriter:
             if bond_arr.size and (bond_arr.min() < 0 or bond_arr.max() >= n):
                 raise ValueError(f"bonds: indices must lie in [0, {n}), got range [{bond_arr.min()}, {bond_arr.max()}]")
 
-        code = float(self._frame_count)
+        code = float(self._first_frame + self._frame_count)
         widths = Vt.FloatArray.FromNumpy(2.0 * rad)
         points = Vt.Vec3fArray.FromNumpy(pos)
         self._time_attr.Set(t, code)
@@ -230,7 +234,7 @@ class UsdWriter:
 
         self._frame_count += 1
         if self._crate and self.save_interval_frames > 0 and self._frame_count % self.save_interval_frames == 0:
-            self._stage.SetEndTimeCode(float(self._frame_count - 1))
+            self._stage.SetEndTimeCode(float(self._first_frame + self._frame_count - 1))
             self._layer.Save()
         return int(code)
 
@@ -245,8 +249,8 @@ class UsdWriter:
         """
         self._check_open()
         try:
-            self._stage.SetStartTimeCode(0.0)
-            self._stage.SetEndTimeCode(float(max(self._frame_count - 1, 0)))
+            self._stage.SetStartTimeCode(float(self._first_frame))
+            self._stage.SetEndTimeCode(float(self._first_frame + max(self._frame_count - 1, 0)))
             if not self._layer.Save():
                 raise RuntimeError(f"USD output {str(self._final_path)!r}: saving {str(self._partial_path)!r} failed")
         except BaseException:
