@@ -54,13 +54,14 @@ def _impact(force: Callable[[float, float], float], mass: float, v0: float, dt: 
     """
     delta, vel, t = 0.0, v0, 0.0
     acc = -max(0.0, force(delta, vel)) / mass
-    while True:
+    for _ in range(10 * REFERENCE_STEPS):
         delta_new = delta + vel * dt + 0.5 * acc * dt * dt
         acc_new = -max(0.0, force(max(delta_new, 0.0), vel + acc * dt)) / mass
         vel = vel + 0.5 * (acc + acc_new) * dt
         delta, acc, t = delta_new, acc_new, t + dt
         if delta < 0.0:
             return -vel, t
+    raise AssertionError("the spheres did not separate")
 
 
 def _restitution_reference(force: Callable[[float, float], float], mass: float, v0: float, t_scale: float) -> float:

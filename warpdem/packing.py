@@ -7,7 +7,7 @@ Lattices (:func:`lattice_packing`) put equal spheres in contact with their neigh
 solid fraction π/6 ≈ 0.524) or hexagonal close packing (12 contacts, π/(3√2) ≈ 0.7405) with close-packed
 layers stacked ABAB along z. Random packings (:func:`random_packing`) place spheres one at a time at uniformly
 random positions, rejecting overlaps (random sequential addition, RSA); RSA of equal spheres jams near a solid
-fraction of 0.38 (Widom 1966; Talbot, Schaaf, Tarjus 1991 give φ_∞ ≈ 0.3841), lower still in small regions
+fraction of 0.38 (Widom 1966; φ_∞ = 0.3841 by Zhang & Torquato 2013), lower still in small regions
 because walls exclude a layer of thickness r. Denser random packings need dynamic compaction (gravity
 deposition, isotropic compression) in the simulator itself.
 """
@@ -219,39 +219,64 @@ def lattice_packing(
 
 
 class _CellGrid:
-    """Uniform grid of cubic cells of side >= 2 r_max holding sphere indices, for overlap queries.
+    """Placed spheres binned on a uniform grid of cubic cells of side >= 2 r_max, for overlap queries.
 
     Two spheres can overlap only if their centres are less than r_i + r_j <= 2 r_max apart, i.e. in the same or
     adjacent cells, so a query reads the 27 cells around a point. The grid has one empty cell of padding on every
-    side, so the 27 neighbours of any cell inside the region exist.
+    side, so the 27 neighbours of any cell inside the region exist. Coordinates and radii are kept as separate
+    arrays with one trailing NaN sentinel that empty slots (-1) point to: comparisons with NaN are false, so the
+    query needs no validity mask, and the gathers stay contiguous.
     """
 
-    def __init__(self, lo: np.ndarray, hi: np.ndarray, cell: float) -> None:
+    def __init__(self, lo: np.ndarray, hi: np.ndarray, cell: float, capacity: int) -> None:
         self.lo = lo
         self.cell = cell
         self.dims = np.ceil((hi - lo) / cell).astype(np.int64) + 2
         n_cells = int(np.prod(self.dims))
-        self.capacity = 2  # grown on demand; mostly 0-2 spheres per cell of side 2 r_max at RSA densities
-        self.slots = np.full((n_cells, self.capacity), -1, dtype=np.int64)
+        self.depth = 1  # slots per cell, grown on demand: mostly 0-3 spheres per cell of side 2 r_max
+        self.slots = np.full((n_cells, self.depth), -1, dtype=np.int64)
         self.fill = np.zeros(n_cells, dtype=np.int64)
         offsets = np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"), axis=-1).reshape(-1, 3)
-        strides = np.array([self.dims[1] * self.dims[2], self.dims[2], 1], dtype=np.int64)
-        self.strides = strides
-        self.neighbour_offsets = offsets @ strides
+        self.strides = np.array([self.dims[1] * self.dims[2], self.dims[2], 1], dtype=np.int64)
+        self.neighbour_offsets = offsets @ self.strides
+        self.count = 0
+        self.xyzr = np.full((4, capacity + 1), np.nan)  # rows x, y, z, r [m]; column -1 is the sentinel
 
     def cell_of(self, points: np.ndarray) -> np.ndarray:
-        """Flat cell index of each point, shape (N,)."""
+        """Flat cell index of each point (shape (N, 3)), shape (N,)."""
         ijk = np.floor((points - self.lo) / self.cell).astype(np.int64) + 1
         ijk = np.clip(ijk, 1, self.dims - 2)  # round-off at the far faces stays inside the unpadded range
         return ijk @ self.strides
 
-    def neighbours(self, points: np.ndarray) -> np.ndarray:
-        """Indices of the spheres in the 27 cells around each point, -1 for empty slots, shape (N, 27 * capacity)."""
+    def overlaps(self, points: np.ndarray, radii: np.ndarray) -> np.ndarray:
+        """Whether spheres (centres (N, 3), radii (N,)) overlap a placed sphere, shape (N,)."""
         cells = self.cell_of(points)[:, None] + self.neighbour_offsets[None, :]
-        return self.slots[cells].reshape(len(points), -1)
+        near = np.take(self.slots, cells, axis=0).reshape(len(points), -1)  # np.take: ~5x faster than [] here
+        x, y, z, r = self.xyzr
+        # |p - c_j|² < (ρ + r_j)², accumulated in place: this is the innermost loop of the packing.
+        gap2 = np.take(x, near)
+        gap2 -= points[:, 0:1]
+        gap2 *= gap2
+        for axis, coord in ((1, y), (2, z)):
+            d = np.take(coord, near)
+            d -= points[:, axis : axis + 1]
+            d *= d
+            gap2 += d
+        reach = np.take(r, near)
+        reach += radii[:, None]
+        reach *= reach
+        return np.any(gap2 < reach, axis=1)
 
-    def insert(self, indices: np.ndarray, points: np.ndarray) -> None:
-        """Add spheres (indices, shape (M,)) at points (shape (M, 3))."""
+    def insert(self, points: np.ndarray, radii: np.ndarray) -> None:
+        """Add spheres (centres (M, 3), radii (M,)); they get the next indices in order."""
+        indices = np.arange(self.count, self.count + len(points))
+        if self.count + len(points) >= self.xyzr.shape[1]:
+            grown = np.full((4, max(2 * self.xyzr.shape[1], self.count + len(points) + 1)), np.nan)
+            grown[:, : self.count] = self.xyzr[:, : self.count]
+            self.xyzr = grown
+        self.xyzr[:3, indices] = points.T
+        self.xyzr[3, indices] = radii
+        self.count += len(points)
         cells = self.cell_of(points)
         order = np.argsort(cells, kind="stable")
         cells, indices = cells[order], indices[order]
@@ -259,13 +284,17 @@ class _CellGrid:
         first = np.searchsorted(cells, cells, side="left")
         slot = self.fill[cells] + np.arange(len(cells)) - first
         needed = int(slot.max(initial=-1)) + 1
-        if needed > self.capacity:
-            # Grow to exactly what is needed: every query reads 27 * capacity slots, so spare slots cost time.
+        if needed > self.depth:
+            # Grow to exactly what is needed: every query reads 27 * depth slots, so spare slots cost time.
             slots = np.full((self.slots.shape[0], needed), -1, dtype=np.int64)
-            slots[:, : self.capacity] = self.slots
-            self.slots, self.capacity = slots, needed
+            slots[:, : self.depth] = self.slots
+            self.slots, self.depth = slots, needed
         self.slots[cells, slot] = indices
         np.add.at(self.fill, cells, 1)
+
+    def spheres(self) -> tuple[np.ndarray, np.ndarray]:
+        """Copies of the placed centres [m], shape (N, 3), and radii [m], shape (N,)."""
+        return self.xyzr[:3, : self.count].T.copy(), self.xyzr[3, : self.count].copy()
 
 
 class _ExclusionVoxels:
@@ -274,22 +303,23 @@ class _ExclusionVoxels:
     A candidate of radius ρ overlaps sphere j iff its centre is closer than ρ + r_j to c_j. If f_j(v) is the
     distance from c_j to the farthest point of voxel v, every candidate centred in v with ρ > f_j(v) - r_j overlaps
     j. Each voxel keeps min_j (f_j(v) - r_j), rounded up onto 256 levels over [r_min, r_max] (uint8) so that the
-    test "ρ > level" never rejects a free position. With voxels of side r_min/3 this rejects about 97 % of the
-    candidates of an RSA packing of equal spheres at a solid fraction of 0.3 (where 0.1 % are free) by one
-    table lookup instead of a search of 27 cells.
+    test "ρ > level" never rejects a free position. With voxels of side r_max/2.5 this rejects ~88 % of all
+    candidates of an RSA run of equal spheres up to a solid fraction of 0.3 (where only 0.1 % of the space is
+    still free) by one table lookup instead of a search of 27 cells. Finer voxels reject more but cost more to
+    mark (∝ h⁻³ per sphere); r_max/2.5 was the fastest in total for 10⁵ spheres.
     """
 
     _CHUNK = 256
-    """Spheres marked per vectorised batch, bounding the temporaries to ~_CHUNK (2 reach + 1)³ floats."""
+    """Spheres marked per vectorised batch, bounding the temporaries to _CHUNK × stencil size floats."""
 
     _LEVELS = 254
     """Codes 1.._LEVELS are thresholds r_min + code/_LEVELS (r_max - r_min); 0 rejects all radii, 255 none."""
 
     def __init__(self, lo: np.ndarray, hi: np.ndarray, r_min: float, r_max: float, max_voxels: int) -> None:
         self.lo = lo
-        # Side r_min/3, coarser only where the voxel count would exceed max_voxels (then fewer candidates are
-        # rejected early, which costs speed, never correctness).
-        self.h = max(r_min / 3.0, float(np.prod(hi - lo) / max_voxels) ** (1.0 / 3.0))
+        # Coarser only where the voxel count would exceed max_voxels (then fewer candidates are rejected early,
+        # which costs speed, never correctness).
+        self.h = max(r_max / 2.5, float(np.prod(hi - lo) / max_voxels) ** (1.0 / 3.0))
         self.r_min, self.span = r_min, r_max - r_min
         self.reach = math.ceil(2.0 * r_max / self.h)  # f_j - r_j < r_max needs f_j < r_j + r_max <= 2 r_max
         self.top = np.floor((hi - lo) / self.h).astype(np.int64)  # largest unpadded voxel index per axis
@@ -297,7 +327,12 @@ class _ExclusionVoxels:
         self.strides = np.array([self.dims[1] * self.dims[2], self.dims[2], 1], dtype=np.int64)
         o = np.arange(-self.reach, self.reach + 1)
         self.offsets = o
-        self.stencil = (np.stack(np.meshgrid(o, o, o, indexing="ij"), axis=-1).reshape(-1, 3) @ self.strides).ravel()
+        grid = np.stack(np.meshgrid(o, o, o, indexing="ij"), axis=-1).reshape(-1, 3)
+        # The farthest point of the voxel at offset o is at least h sqrt(Σ max(|o_i|, 1/2)²) from any centre in
+        # the own voxel; beyond 2 r_max no radius is ever rejected, so the stencil is a ball, not a cube.
+        near = self.h * np.sqrt(np.sum(np.maximum(np.abs(grid), 0.5) ** 2, axis=1)) < 2.0 * r_max
+        self.stencil_axes = (grid[near] + self.reach).T  # per-axis indices into the offsets, shape (3, S)
+        self.stencil = grid[near] @ self.strides
         self.code = np.full(int(np.prod(self.dims)), 255, dtype=np.uint8)
         self.threshold = np.concatenate(
             [[-np.inf], r_min + np.arange(1, self._LEVELS + 1) / self._LEVELS * self.span, [np.inf]]
@@ -320,8 +355,9 @@ class _ExclusionVoxels:
             faces = self.lo + (voxel[:, None, :] + self.offsets[None, :, None]) * self.h  # (M, 2 reach + 1, 3)
             rel = centre[:, None, :] - faces
             far2 = np.maximum(rel * rel, (rel - self.h) ** 2)
-            d2 = far2[:, :, None, None, 0] + far2[:, None, :, None, 1] + far2[:, None, None, :, 2]
-            block = np.sqrt(d2.reshape(len(centre), -1)) - radius[:, None]  # reject ρ > block
+            ox, oy, oz = self.stencil_axes
+            d2 = far2[:, ox, 0] + far2[:, oy, 1] + far2[:, oz, 2]  # (M, S)
+            block = np.sqrt(d2) - radius[:, None]  # reject ρ > block
             if self.span > 0.0:
                 level = np.ceil((block - self.r_min) / self.span * self._LEVELS)  # rounded up: never too strict
                 code = np.where(block < self.r_min, 0, np.where(level > self._LEVELS, 255, np.maximum(level, 1)))
@@ -361,10 +397,13 @@ def _first_come(points: np.ndarray, radii: np.ndarray, grid: _CellGrid) -> np.nd
     i, j = i[lower], j[lower]
     close = np.sum((points[i] - points[j]) ** 2, axis=1) < (radii[i] + radii[j]) ** 2
     i, j = i[close], j[close]
+    if len(i) == 0:
+        return keep
     pair_order = np.argsort(i, kind="stable")
     i, j = i[pair_order], j[pair_order]  # overlapping pairs i > j, by i
-    for row in np.unique(i):
-        keep[row] = not keep[j[i == row]].any()
+    rows, starts = np.unique(i, return_index=True)
+    for row, earlier in zip(rows, np.split(j, starts[1:]), strict=True):
+        keep[row] = not keep[earlier].any()
     return keep
 
 
@@ -401,22 +440,27 @@ def random_packing(
     max_count: int | None = None,
     max_attempts: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Random non-overlapping spheres fully inside a region, by random sequential addition.
+    """Random non-overlapping spheres fully inside a region, by random sequential addition (RSA).
 
-    Each sphere gets a radius drawn uniformly from [radius_min, radius_max] (radii that cannot fit into the region
-    at all are redrawn) and is then tried at uniformly random positions inside the region shrunk by its radius
-    until one overlaps no sphere placed before it. For speed, up to 1024 spheres are processed per round: each
-    pooled sphere draws a few candidate positions (about 2 / the current acceptance rate), all are tested at once
-    against the placed spheres on a cell grid (cell side >= 2 radius_max, so only 27 cells are read), each sphere
-    takes its first free candidate, and the spheres are accepted in pool order unless they overlap one accepted
-    earlier in the same round. Rejected spheres stay in the pool with their radius. The placed radii are thus
-    the drawn uniform radii, except for those still pooled when the run stops (few, unless it stops jammed).
+    Radii are drawn one after another from U(radius_min, radius_max) (a radius too large to fit into the region
+    at all is redrawn) until their total volume reaches volume_fraction × the region volume or max_count radii
+    are drawn; the radius that crosses the target is kept. Each drawn sphere is then tried at uniformly random
+    positions inside the region (shrunk by its radius) until one overlaps no placed sphere. Because every drawn
+    radius is placed unless the attempts run out, the placed radii are the draws themselves: the size
+    distribution is not skewed towards small spheres, which fit more easily.
 
-    The run stops once the solid fraction (placed sphere volume / region volume) reaches volume_fraction, once
-    max_count spheres are placed, or once max_attempts candidate positions have been tried, whichever comes
-    first. RSA of equal spheres jams near a solid fraction of 0.38 (lower in small regions, whose walls exclude
-    a layer of thickness r), and candidates are then almost all rejected: a target above that is not an error;
-    the run uses up max_attempts and returns what was placed.
+    For speed, up to 1024 drawn spheres are handled per round: each draws a few candidate positions (about
+    2 / the current acceptance rate); candidates are rejected through a voxel table of known exclusion zones,
+    then tested exactly against the placed spheres on a cell grid (cell side >= 2 radius_max, so 27 cells are
+    read); each sphere takes its first free candidate, and the spheres are accepted in draw order unless they
+    overlap one accepted earlier in the round. The rest retry in the next round.
+
+    The run ends when all drawn spheres are placed, or earlier when max_attempts candidate positions have been
+    tried; the spheres placed so far are returned either way. RSA of equal spheres jams near a solid fraction of
+    0.38 (0.3841, Zhang & Torquato 2013), lower in small regions, whose walls exclude a layer of thickness r, and
+    lower for the largest radii of a wide distribution: near that limit almost every candidate is rejected, so
+    a target above it is not an error, the run just uses up max_attempts. 10⁵ equal spheres at a solid fraction
+    of 0.3 take about 4 s.
 
     The result is a deterministic function of the arguments and the state of rng.
 
@@ -428,8 +472,7 @@ def random_packing(
         volume_fraction: target solid fraction, in (0, 1) [-].
         max_count: at most this many spheres; None for no limit.
         max_attempts: at most this many candidate positions tried in total (a sphere's candidates count up to
-            its first free one). None: 100 000 + 200 per sphere needed for the target, enough to get within
-            about 0.01 of the jamming fraction.
+            its first free one). None: 100 000 + 200 per sphere the target needs.
 
     Returns:
         (centres [m], shape (N, 3); radii [m], shape (N,)), in placement order.
@@ -456,33 +499,41 @@ def random_packing(
 
     lo, hi = region.bounds()
     # Cells of side 2 r_max, coarsened when that would make far more cells than spheres (tiny spheres, small
-    # max_count in a large region); larger cells are still correct, the grid grows its per-cell capacity.
+    # max_count in a large region); larger cells are still correct, the grid grows its per-cell depth.
     cell = max(2.0 * r_max, float(np.prod(hi - lo) / max(4.0 * expected, 4096.0)) ** (1.0 / 3.0))
-    grid = _CellGrid(lo, hi, cell)
+    grid = _CellGrid(lo, hi, cell, capacity=max(int(expected * 1.1) + 16, 64))
 
-    voxels = _ExclusionVoxels(lo, hi, r_min, r_max, max_voxels=1 << 25)
+    voxels = _ExclusionVoxels(lo, hi, r_min, r_max, max_voxels=1 << 26)
 
-    capacity = max(int(expected * 1.1) + 16, 64)
-    xyzr = np.zeros((capacity, 4))  # placed centres [m] and radii [m], packed for one gather per neighbour
-    n_placed = 0
-    placed_volume = 0.0
+    if not _fits(region, np.array([r_min]))[0]:
+        return np.zeros((0, 3)), np.zeros(0)  # not even the smallest sphere fits
+
+    # Radii are committed when drawn: drawing stops after the radius whose volume reaches the target (or at
+    # max_count), exactly as in one-at-a-time addition, and every drawn sphere is then placed unless the attempts
+    # run out. So the placed radii are the first draws of U(radius_min, radius_max), unbiased by their size.
+    drawn_count = 0
+    drawn_volume = 0.0
     attempts = 0
-    pool = np.empty(0)
+    pool = np.empty(0)  # drawn radii not yet placed, in draw order
     pool_size = 1024
     candidates_per_round = 16384
     acceptance = 1.0  # fraction of free candidates in the last round
 
-    while n_placed < count_limit and placed_volume < target_volume and attempts < max_attempts:
-        # Refill the pool, but not far beyond what the stopping criteria still need, so that a run stopped by
-        # them leaves few drawn radii unplaced.
-        remaining = min(count_limit - n_placed, (target_volume - placed_volume) / mean_volume)
-        want = int(min(pool_size, max(1.0, math.ceil(remaining))))
-        while len(pool) < want:
-            fresh = r_min + (r_max - r_min) * rng.random(want - len(pool))
-            fresh = fresh[_fits(region, fresh)]
-            if len(fresh) == 0 and not _fits(region, np.array([r_min]))[0]:
-                return np.zeros((0, 3)), np.zeros(0)  # not even the smallest sphere fits
+    while attempts < max_attempts:
+        if len(pool) < pool_size and drawn_count < count_limit and drawn_volume < target_volume:
+            fresh = r_min + (r_max - r_min) * rng.random(pool_size - len(pool))
+            fresh = fresh[_fits(region, fresh)]  # radii too large for a thin region are redrawn
+            volume = drawn_volume + np.cumsum(4.0 / 3.0 * math.pi * fresh**3)
+            reached = (volume >= target_volume) | (drawn_count + np.arange(1, len(fresh) + 1) >= count_limit)
+            if reached.any():
+                fresh = fresh[: int(np.argmax(reached)) + 1]
+            drawn_count += len(fresh)
+            drawn_volume = float(volume[len(fresh) - 1]) if len(fresh) else drawn_volume
             pool = np.concatenate([pool, fresh])
+        if len(pool) == 0:
+            if drawn_count >= count_limit or drawn_volume >= target_volume:
+                break
+            continue
         # Enough candidates per sphere that most find a free one, within the round's budget and max_attempts.
         n_active = int(min(len(pool), max_attempts - attempts))
         tries = int(np.clip(math.ceil(2.0 / max(acceptance, 1e-6)), 1, max(1, candidates_per_round // n_active)))
@@ -493,12 +544,7 @@ def random_packing(
         # voxels already covered by an exclusion zone are rejected without the search.
         free = ~voxels.is_dead(trial, radius)
         test = np.flatnonzero(free)
-        near = grid.neighbours(trial[test])
-        valid = near >= 0
-        other = xyzr[np.where(valid, near, 0)]
-        gap2 = np.sum((other[:, :, :3] - trial[test, None, :]) ** 2, axis=2)
-        reach = other[:, :, 3] + radius[test, None]
-        free[test] = ~np.any(valid & (gap2 < reach * reach), axis=1)
+        free[test] = ~grid.overlaps(trial[test], radius[test])
         free = free.reshape(n_active, tries)
         acceptance = float(free.mean())
 
@@ -513,25 +559,8 @@ def random_packing(
         accept = _first_come(pos, rad, grid)
         who, pos, rad = who[accept], pos[accept], rad[accept]
 
-        # Stop exactly where sequential addition would: after the sphere that reaches the count or the volume.
-        volumes = 4.0 / 3.0 * math.pi * rad**3
-        reached = (placed_volume + np.cumsum(volumes) >= target_volume) | (
-            n_placed + np.arange(1, len(rad) + 1) >= count_limit
-        )
-        if reached.any():
-            stop = int(np.argmax(reached)) + 1
-            who, pos, rad, volumes = who[:stop], pos[:stop], rad[:stop], volumes[:stop]
-
-        if n_placed + len(rad) > capacity:
-            capacity = max(2 * capacity, n_placed + len(rad))
-            xyzr = np.concatenate([xyzr, np.zeros((capacity - len(xyzr), 4))])
-        new = np.arange(n_placed, n_placed + len(rad))
-        xyzr[new, :3] = pos
-        xyzr[new, 3] = rad
-        grid.insert(new, pos)
+        grid.insert(pos, rad)
         voxels.insert(pos, rad)
-        n_placed += len(rad)
-        placed_volume += float(volumes.sum())
         pool = np.delete(pool, who)
 
-    return xyzr[:n_placed, :3].copy(), xyzr[:n_placed, 3].copy()
+    return grid.spheres()

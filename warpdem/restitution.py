@@ -49,12 +49,12 @@ _STEPS_PER_UNIT_TIME = 200
 c >= 1e-6 (4th-order convergence; the end of a nearly elastic Hertz contact, at tiny x, is the worst case), far
 below the 1e-6 required, at about 1 ms per evaluation."""
 
-
 _MAX_STEPS = 2_000_000
 """Safety stop: no contact in the admissible parameter range lasts this many steps."""
 
 _E_TOL = 1e-11
-"""Absolute tolerance on e of the inverse maps (required 1e-8; the forward maps are smooth to ~1e-13)."""
+"""Absolute tolerance on e of the inverse maps (1e-8 required); the discrete forward maps are continuous and
+monotone far below this (the end of the contact is located by root finding, not snapped to the step grid)."""
 
 
 def _rk4_step(accel: _Accel, x: float, v: float, h: float) -> tuple[float, float]:
