@@ -124,7 +124,9 @@ def coulomb_tangential(
     """Tangential spring with a Coulomb limit and a dashpot while sticking (Cundall & Strack; LIGGGHTS history).
 
     ξ ← ξ + v_t dt and F_s = -k_t ξ. Sliding (|F_s| > μ F_n): F_t = μ F_n F_s/|F_s| and the spring is cut back to
-    ξ = -F_t / k_t, so a sliding contact stores no more than (μ F_n)² / (2 k_t). Sticking: F_t = F_s - γ_t v_t.
+    ξ = -F_t / k_t, so a sliding contact stores no more than (μ F_n)² / (2 k_t). Sticking: F_t = F_s - γ_t v_t,
+    itself capped at μ F_n (Coulomb bounds the whole tangential force; the spring keeps its length, so the cap
+    does not feed the 1/k_t blow-up of the dashpot term at first touch).
 
     Returns:
         Rows: (F_t on body a [N], new spring ξ [m], zero row).
@@ -142,6 +144,9 @@ def coulomb_tangential(
             s = wp.vec3(0.0)
     else:
         ft = ft - gamma_t * vt
+        ft_len = wp.length(ft)
+        if ft_len > limit:
+            ft = ft * (limit / ft_len)
     return wp.mat33(ft[0], ft[1], ft[2], s[0], s[1], s[2], 0.0, 0.0, 0.0)
 
 

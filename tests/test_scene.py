@@ -92,8 +92,7 @@ def test_minimal_scene_defaults(tmp_path: Path) -> None:
     assert scene.output.checkpoint_every == 0.0
     assert scene.output.checkpoint_dir == "checkpoints"
     assert scene.capacity.particles is None
-    assert scene.capacity.neighbors_per_particle == 16
-    assert scene.capacity.bonds_per_particle == 16
+    assert scene.capacity.neighbors_per_particle == 8
     assert scene.material_names() == ["rock"]
     assert scene.part_names() == ["grains"]
     assert scene.part_material("grains").density == 2500.0

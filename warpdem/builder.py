@@ -145,7 +145,8 @@ class ModelBuilder:
         Args:
             centers: [m], shape (N, 3). radii: [m], scalar or (N,). material: material name.
             velocity, angular_velocity: [m/s], [rad/s], shape (3,) or (N, 3).
-            motion: "free", "fixed" or "prescribed" (keeps its velocity and spin).
+            motion: "free", "fixed" (never moves; velocity and spin are ignored) or "prescribed" (keeps its
+                velocity and spin).
             part: part name (for colouring and output).
         """
         centers = np.atleast_2d(np.asarray(centers, dtype=np.float64))
@@ -153,6 +154,9 @@ class ModelBuilder:
         radii = np.broadcast_to(np.asarray(radii, dtype=np.float64), (n,))
         vel = np.broadcast_to(np.asarray(velocity, dtype=np.float64), (n, 3))
         omega = np.broadcast_to(np.asarray(angular_velocity, dtype=np.float64), (n, 3))
+        if motion == "fixed":
+            # A fixed sphere never moves: whatever velocity it was given is dropped (use "prescribed" to drive it).
+            vel, omega = np.zeros((n, 3)), np.zeros((n, 3))
         if material not in self.materials:
             raise KeyError(f"unknown material {material!r}")
         first = self.sphere_count

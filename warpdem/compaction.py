@@ -64,6 +64,8 @@ class Compactor:
             tmp = self._scratch.get(key)
             if tmp is None:
                 tmp = self._scratch[key] = wp.zeros_like(a)
+            else:
+                tmp.zero_()  # slots past the survivors must not keep another array's leftovers (bitwise restarts)
             wp.launch(
                 kc.scatter_kernel,
                 dim=self.capacity,

@@ -174,7 +174,8 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     try:
         device = wp.get_device(device_name)
     except (ValueError, RuntimeError) as exc:
-        raise SceneError(f"{scene.name}: run.device: device {device_name!r} is not available here ({exc})") from None
+        where = "--device" if options.device else f"{scene.name}: run.device"
+        raise SceneError(f"{where}: device {device_name!r} is not available here ({exc})") from None
     model, state = build_scene(scene, device)
 
     fps = run.output_rate

@@ -566,7 +566,6 @@ class Capacity(_Model):
 
     particles: Int | None = Field(default=None, gt=0, description="Particle slots; default chosen by the builder.")
     neighbors_per_particle: Int = Field(default=8, gt=0, description="Contact candidate slots per particle.")
-    bonds_per_particle: Int = Field(default=16, gt=0, description="Bond slots per particle.")
 
 
 # ----------------------------------------------------------------------------------------------------------------------

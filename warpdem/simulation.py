@@ -113,6 +113,10 @@ class Simulation:
         self._setup()
         if not primed:
             self.evaluate_forces()
+            # The set-up build is checked like any other: a list that overflowed here would be the snapshot the
+            # first advance restores, so grow until it fits and evaluate again.
+            while self._grow_if_overflowed(self.state):
+                self.evaluate_forces()
 
     def _setup(self) -> None:
         self.neighbors = NeighborList(self.model, self.state)
@@ -170,20 +174,27 @@ class Simulation:
             self._snapshot.assign(self.state)
         while True:
             self._run(n_steps)
-            needed = int(self.state.nbr_needed.numpy()[0])
-            if needed <= self.model.max_neighbors:
-                break
             # A particle had more neighbours than slots: some contacts were not seen. Grow, restore, redo.
-            k = self.model.max_neighbors
-            while k < needed:
-                k *= 2
-            self.model, self.state = regrow_neighbors(self.model, self._snapshot, k)
-            self.growths += 1
-            self._setup()
+            if not self._grow_if_overflowed(self._snapshot):
+                break
             self._snapshot = self.state.clone()
         self.step_count += n_steps
         self.time += n_steps * self.model.dt
         self.remove_broken_bonds()
+
+    def _grow_if_overflowed(self, restore_from: State) -> bool:
+        """If the last neighbour build needed more slots than there are, grow ×2 until they fit and continue from
+        ``restore_from`` (a state whose own list fits). Returns whether it grew."""
+        needed = int(self.state.nbr_needed.numpy()[0])
+        if needed <= self.model.max_neighbors:
+            return False
+        k = self.model.max_neighbors
+        while k < needed:
+            k *= 2
+        self.model, self.state = regrow_neighbors(self.model, restore_from, k)
+        self.growths += 1
+        self._setup()
+        return True
 
     def remove_broken_bonds(self) -> int:
         """Compact broken bonds away (a topology pass between steps). Returns the live bond count."""
