@@ -1,0 +1,590 @@
+"""Jointed-rock meshing (warpdem.geology) against analytic geometry.
+
+Tolerances:
+- ``REL_FLAT``: volumes and areas of meshes bounded by planes only are exact up to float64 round-off summed over
+  ~10⁴ elements, so 1e-9 relative (the brief asks 1e-6 for joint areas; the mesh does far better).
+- ``NORMAL_TOL``: Gmsh places nodes on a planar OCC face to ~1e-15 m; a face normal computed from nodes ~0.1 m
+  apart is good to ~1e-13, so 1e-9.
+- Curved walls (tunnels, shafts, discs): nodes lie on the exact surface and faces are flat, so the mesh region
+  differs from the exact one by the chord error only. A flat face whose vertices span an arc of chord c on a
+  circle of radius R lies inside it by at most the sagitta R (1 − cos(θ/2)), θ = 2 asin(c / 2R); the volume
+  error is then between 0 and (curved wall area) × sagitta. ``CHORD_FACTOR`` bounds the wall edges relative to
+  the requested size (checked in the tests, so the bound rests on measured edges, not on faith in the mesher).
+"""
+
+from __future__ import annotations
+
+import math
+import pathlib
+
+import meshio
+import numpy as np
+import pytest
+
+pytest.importorskip("gmsh")
+
+from warpdem.geology import (
+    Geology,
+    GeologyMesh,
+    JointSet,
+    MeshImportError,
+    RockMass,
+    Room,
+    Shaft,
+    Tunnel,
+    joint_normal,
+    mesh_geology,
+    read_mesh,
+    write_mesh,
+)
+
+REL_FLAT = 1e-9
+NORMAL_TOL = 1e-9
+CHORD_FACTOR = 1.6
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Independent mesh measures
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def tet_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    a, b, c, d = (points[tets[:, i]] for i in range(4))
+    return np.einsum("ij,ij->i", np.cross(b - a, c - a), d - a) / 6.0
+
+
+def face_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted normals (length = 2 × area)."""
+    a, b, c = (points[faces[:, i]] for i in range(3))
+    return np.cross(b - a, c - a)
+
+
+def face_areas(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    return 0.5 * np.linalg.norm(face_normals(points, faces), axis=1)
+
+
+def tets_on_faces(tets: np.ndarray) -> dict[tuple[int, ...], list[tuple[int, int]]]:
+    """Sorted node triple → [(tet, opposite node)] for every tet face."""
+    table: dict[tuple[int, ...], list[tuple[int, int]]] = {}
+    for t, tet in enumerate(tets.tolist()):
+        for i in range(4):
+            face = tuple(sorted(tet[:i] + tet[i + 1 :]))
+            table.setdefault(face, []).append((t, tet[i]))
+    return table
+
+
+def assert_conforming(mesh: GeologyMesh) -> None:
+    """Each joint face appears once and is a face of exactly two tets lying on opposite sides of it."""
+    keys = {tuple(sorted(f)) for f in mesh.joint_faces.tolist()}
+    assert len(keys) == len(mesh.joint_faces), "a joint face appears twice"
+    table = tets_on_faces(mesh.tets)
+    normals = face_normals(mesh.points, mesh.joint_faces)
+    for face, n in zip(mesh.joint_faces.tolist(), normals, strict=True):
+        owners = table[tuple(sorted(face))]
+        assert len(owners) == 2, f"joint face {face} belongs to {len(owners)} tets"
+        sides = [float(n @ (mesh.points[opposite] - mesh.points[face[0]])) for _, opposite in owners]
+        assert sides[0] * sides[1] < 0.0, f"joint face {face}: both tets on one side"
+
+
+def assert_valid(mesh: GeologyMesh) -> None:
+    """Index ranges, contiguous numbering, positive tets, every tet in exactly one block."""
+    n, m = len(mesh.points), len(mesh.tets)
+    assert mesh.points.shape == (n, 3) and mesh.points.dtype == np.float64
+    assert mesh.tets.shape == (m, 4) and mesh.tets.dtype == np.int64
+    np.testing.assert_array_equal(np.unique(mesh.tets), np.arange(n))
+    assert np.all(tet_volumes(mesh.points, mesh.tets) > 0.0)
+    assert mesh.tet_block.shape == (m,) and mesh.tet_material.shape == (m,)
+    np.testing.assert_array_equal(np.unique(mesh.tet_block), np.arange(mesh.num_blocks))
+    assert mesh.tet_material.min() >= 0 and mesh.tet_material.max() < len(mesh.material_names)
+    assert mesh.joint_faces.shape == (len(mesh.joint_face_set), 3)
+    for faces in [mesh.joint_faces, *mesh.boundary_faces.values()]:
+        assert faces.size == 0 or (faces.min() >= 0 and faces.max() < n)
+
+
+def sagitta(radius: float, chord: float) -> float:
+    """Largest distance from a chord (of an arc of chord length ``chord``) to its circle of ``radius``."""
+    theta = 2.0 * math.asin(min(1.0, chord / (2.0 * radius)))
+    return radius * (1.0 - math.cos(0.5 * theta))
+
+
+def max_edge(points: np.ndarray, faces: np.ndarray) -> float:
+    p = points[faces]
+    return float(np.linalg.norm(p - np.roll(p, 1, axis=1), axis=2).max())
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Persistent joint grid
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("on_faces", [True, False], ids=["planes-on-faces", "planes-inside"])
+def test_persistent_grid_blocks_volume_and_joint_area(on_faces: bool) -> None:
+    length, height, s, s_z = 3.0, 2.0, 1.0, 1.0
+    # offset 0 puts planes on the box faces, which cut nothing and are dropped: (L/s)² (H/s_z) blocks. Offset
+    # s/2 keeps every plane off the faces: L/s planes per horizontal axis, so (L/s + 1)² (H/s_z + 1) blocks.
+    offset = 0.0 if on_faces else 0.5 * s
+    sets = [JointSet(90.0, 0.0, s, offset), JointSet(90.0, 90.0, s, offset), JointSet(0.0, 0.0, s_z, offset)]
+    mesh = mesh_geology(Geology(RockMass((0, 0, 0), (length, length, height)), joint_sets=sets, h=0.5))
+    assert_valid(mesh)
+
+    cuts_xy = np.arange(offset, length + 1e-12, s)
+    cuts_xy = cuts_xy[(cuts_xy > 1e-12) & (cuts_xy < length - 1e-12)]
+    cuts_z = np.arange(offset, height + 1e-12, s_z)
+    cuts_z = cuts_z[(cuts_z > 1e-12) & (cuts_z < height - 1e-12)]
+    n_xy, n_z = len(cuts_xy), len(cuts_z)
+    expected_blocks = (length / s) ** 2 * (height / s_z) if on_faces else (length / s + 1) ** 2 * (height / s_z + 1)
+    assert (n_xy + 1) ** 2 * (n_z + 1) == expected_blocks
+    assert mesh.num_blocks == expected_blocks
+
+    volumes = tet_volumes(mesh.points, mesh.tets)
+    np.testing.assert_allclose(volumes.sum(), length * length * height, rtol=REL_FLAT)
+
+    # Each block is one grid cell: all its tet centroids fall in the same cell, and its volume is the cell's.
+    edges = [np.concatenate([[0.0], cuts_xy, [length]])] * 2 + [np.concatenate([[0.0], cuts_z, [height]])]
+    centroids = mesh.points[mesh.tets].mean(axis=1)
+    cell = np.stack([np.searchsorted(edges[a], centroids[:, a]) - 1 for a in range(3)], axis=1)
+    for b in range(mesh.num_blocks):
+        cells = np.unique(cell[mesh.tet_block == b], axis=0)
+        assert len(cells) == 1, f"block {b} spans cells {cells.tolist()}"
+        i, j, k = cells[0]
+        cell_volume = np.prod([edges[a][c + 1] - edges[a][c] for a, c in enumerate((i, j, k))])
+        np.testing.assert_allclose(volumes[mesh.tet_block == b].sum(), cell_volume, rtol=REL_FLAT)
+    assert len(np.unique(cell, axis=0)) == mesh.num_blocks
+
+    # Joint area: internal planes × plane area, per set.
+    areas = face_areas(mesh.points, mesh.joint_faces)
+    expected = [n_xy * length * height, n_xy * length * height, n_z * length * length]
+    per_set = np.bincount(mesh.joint_face_set, weights=areas, minlength=3)
+    np.testing.assert_allclose(per_set, expected, rtol=REL_FLAT)
+    assert_conforming(mesh)
+
+    # Boundary faces tile the six box faces.
+    for name, area in [("x-", length * height), ("y+", length * height), ("z-", length * length)]:
+        np.testing.assert_allclose(face_areas(mesh.points, mesh.boundary_faces[name]).sum(), area, rtol=REL_FLAT)
+    assert len(mesh.boundary_faces["opening"]) == 0
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Openings
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def test_circular_tunnel_volume_walls_and_clipped_joint() -> None:
+    side, radius, h_wall = 4.0, 1.0, 0.2
+    # A horizontal joint through the tunnel axis: its piece inside the tunnel must be removed.
+    geology = Geology(
+        RockMass((0, 0, 0), (side, side, side)),
+        openings=[Tunnel("y", (2.0, 2.0), radius=radius)],
+        joint_sets=[JointSet(0.0, 0.0, spacing=10.0, offset=2.0)],
+        h=0.6,
+        h_opening=h_wall,
+        refine_distance=1.0,
+    )
+    mesh = mesh_geology(geology)
+    assert_valid(mesh)
+    walls = mesh.boundary_faces["opening"]
+    wall_points = mesh.points[np.unique(walls)]
+    r_wall = np.hypot(wall_points[:, 0] - 2.0, wall_points[:, 2] - 2.0)
+    np.testing.assert_allclose(r_wall, radius, atol=1e-9)  # wall nodes on the exact cylinder
+
+    chord = max_edge(mesh.points, walls)
+    assert chord <= CHORD_FACTOR * h_wall, f"wall edges up to {chord:.3f} m for h_opening {h_wall} m"
+    sag = sagitta(radius, CHORD_FACTOR * h_wall)
+    exact = side**3 - math.pi * radius**2 * side
+    excess = tet_volumes(mesh.points, mesh.tets).sum() - exact
+    assert 0.0 <= excess <= 2.0 * math.pi * radius * side * sag, f"volume excess {excess:.3e} m³"
+
+    # No tet centroid inside the tunnel (beyond the faceted wall).
+    centroids = mesh.points[mesh.tets].mean(axis=1)
+    r = np.hypot(centroids[:, 0] - 2.0, centroids[:, 2] - 2.0)
+    assert r.min() >= radius - sag
+
+    # The joint plane z = 2 meets the wall at nodes on the circle, so its area (L − 2R) L is exact.
+    np.testing.assert_allclose(
+        face_areas(mesh.points, mesh.joint_faces).sum(), (side - 2 * radius) * side, rtol=REL_FLAT
+    )
+    jc = mesh.points[mesh.joint_faces].mean(axis=1)
+    assert np.all(np.abs(jc[:, 0] - 2.0) > radius - 1e-9)
+    assert_conforming(mesh)
+    assert mesh.num_blocks == 2
+
+
+OPENINGS = {
+    "room": (Room((1.0, 1.0, 1.0), (2.5, 3.0, 2.0)), 1.5 * 2.0 * 1.0, 0.0),
+    "rectangular-x": (Tunnel("x", (2.0, 1.5), shape="rectangular", width=1.2, height=1.0), 1.2 * 1.0 * 4.0, 0.0),
+    # horseshoe: w (H − w/2) + π (w/2)² / 2 per metre; the crown (half cylinder of radius w/2) is curved.
+    "horseshoe-y": (
+        Tunnel("y", (2.0, 1.5), shape="horseshoe", width=1.2, height=1.4, span=(0.5, 3.5)),
+        (1.2 * (1.4 - 0.6) + 0.5 * math.pi * 0.6**2) * 3.0,
+        math.pi * 0.6 * 3.0,
+    ),
+    "shaft": (Shaft((2.0, 2.0), radius=0.6, bottom=1.0), math.pi * 0.6**2 * 2.0, 2.0 * math.pi * 0.6 * 2.0),
+}
+
+
+@pytest.mark.parametrize("kind", list(OPENINGS))
+def test_opening_volume(kind: str) -> None:
+    opening, void, curved_area = OPENINGS[kind]
+    h = 0.25
+    mesh = mesh_geology(Geology(RockMass((0, 0, 0), (4.0, 4.0, 3.0)), openings=[opening], h=h))
+    assert_valid(mesh)
+    exact = 4.0 * 4.0 * 3.0 - void
+    excess = tet_volumes(mesh.points, mesh.tets).sum() - exact
+    if curved_area == 0.0:
+        np.testing.assert_allclose(excess, 0.0, atol=REL_FLAT * exact)
+    else:
+        radius = 0.6
+        assert max_edge(mesh.points, mesh.boundary_faces["opening"]) <= CHORD_FACTOR * h
+        assert -REL_FLAT * exact <= excess <= curved_area * sagitta(radius, CHORD_FACTOR * h)
+    assert len(mesh.boundary_faces["opening"]) > 0
+    assert mesh.num_blocks == 1
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Orientation convention
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def test_joint_normal_convention() -> None:
+    # x east, y north, z up; dip direction clockwise from north.
+    np.testing.assert_allclose(joint_normal(0.0, 123.0), [0, 0, 1], atol=1e-15)
+    np.testing.assert_allclose(joint_normal(90.0, 0.0), [0, 1, 0], atol=1e-15)  # dips due north
+    np.testing.assert_allclose(joint_normal(90.0, 90.0), [1, 0, 0], atol=1e-15)  # dips due east
+    s = math.sqrt(0.5)
+    np.testing.assert_allclose(joint_normal(45.0, 180.0), [0, -s, s], atol=1e-15)
+
+
+def line_length_in_rectangle(a: np.ndarray, d: float, lo: np.ndarray, hi: np.ndarray) -> float:
+    """Length of the line a · (u, v) = d inside the rectangle [lo, hi] (2-D)."""
+    hits = []
+    for axis in range(2):
+        other = 1 - axis
+        for value in (lo[axis], hi[axis]):
+            if abs(a[other]) > 1e-15:
+                t = (d - a[axis] * value) / a[other]
+                if lo[other] - 1e-12 <= t <= hi[other] + 1e-12:
+                    p = np.zeros(2)
+                    p[axis], p[other] = value, t
+                    hits.append(p)
+    return max((float(np.linalg.norm(p - q)) for p in hits for q in hits), default=0.0)
+
+
+def test_dip_and_dip_direction_give_face_normals() -> None:
+    dip, dip_direction, spacing, offset = 30.0, 90.0, 0.7, 0.1
+    lo, hi = np.zeros(3), np.array([2.0, 1.5, 2.0])
+    mesh = mesh_geology(
+        Geology(RockMass(tuple(lo), tuple(hi)), joint_sets=[JointSet(dip, dip_direction, spacing, offset)], h=0.3)
+    )
+    assert_valid(mesh)
+    expected = np.array(
+        [
+            math.sin(math.radians(dip)) * math.sin(math.radians(dip_direction)),
+            math.sin(math.radians(dip)) * math.cos(math.radians(dip_direction)),
+            math.cos(math.radians(dip)),
+        ]
+    )
+    normals = face_normals(mesh.points, mesh.joint_faces)
+    unit = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    np.testing.assert_allclose(unit, np.broadcast_to(expected, unit.shape), atol=NORMAL_TOL)  # oriented along +n
+
+    # Area: the planes are extrusions along y (strike) of lines x sin δ + z cos δ = d in the xz rectangle.
+    a = expected[[0, 2]]
+    corners = np.array([[x, z] for x in (lo[0], hi[0]) for z in (lo[2], hi[2])]) @ a
+    ks = range(math.ceil((corners.min() - offset) / spacing), math.floor((corners.max() - offset) / spacing) + 1)
+    area = sum(line_length_in_rectangle(a, offset + k * spacing, lo[[0, 2]], hi[[0, 2]]) for k in ks) * hi[1]
+    np.testing.assert_allclose(face_areas(mesh.points, mesh.joint_faces).sum(), area, rtol=REL_FLAT)
+    assert mesh.num_blocks == len(ks) + 1
+    assert_conforming(mesh)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Non-persistent joints
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("layers", "phase"), [(1, 0), (2, 0), (1, 1)])
+def test_layer_joints_fill_alternate_slab_groups(layers: int, phase: int) -> None:
+    side, s_ref, z0 = 2.0, 0.5, 0.25
+    sets = [
+        JointSet(0.0, 0.0, spacing=s_ref, offset=z0),  # persistent bedding at z = 0.25, 0.75, 1.25, 1.75
+        JointSet(90.0, 90.0, 0.5, 0.25, persistence="layers", reference=0, layers=layers, phase=phase),
+    ]
+    mesh = mesh_geology(Geology(RockMass((0, 0, 0), (side, side, side)), joint_sets=sets, h=0.25))
+    assert_valid(mesh)
+
+    # Slab k lies between bedding planes k and k + 1; joints fill it when (k // layers) % 2 == phase.
+    slabs = {k: (max(0.0, z0 + k * s_ref), min(side, z0 + (k + 1) * s_ref)) for k in range(-1, 4)}
+    filled = {k for k in slabs if (k // layers) % 2 == phase}
+    vertical = mesh.joint_faces[mesh.joint_face_set == 1]
+    z = mesh.points[vertical][:, :, 2]
+    slab_of_face = np.floor((z.mean(axis=1) - z0) / s_ref).astype(int)
+    assert set(slab_of_face.tolist()) == filled
+    for k in filled:
+        zk = z[slab_of_face == k]
+        assert zk.min() >= slabs[k][0] - 1e-12 and zk.max() <= slabs[k][1] + 1e-12
+
+    thickness = sum(slabs[k][1] - slabs[k][0] for k in filled)
+    areas = face_areas(mesh.points, mesh.joint_faces)
+    np.testing.assert_allclose(areas[mesh.joint_face_set == 1].sum(), 4 * side * thickness, rtol=REL_FLAT)
+    np.testing.assert_allclose(areas[mesh.joint_face_set == 0].sum(), 4 * side * side, rtol=REL_FLAT)
+    # A filled slab is cut into 5 blocks by the 4 vertical planes, an empty one stays whole.
+    assert mesh.num_blocks == sum(5 if k in filled else 1 for k in slabs)
+    assert_conforming(mesh)
+
+
+def test_disc_joint_is_embedded_not_cutting() -> None:
+    radius, h = 0.5, 0.15
+    disc = JointSet(90.0, 90.0, spacing=10.0, offset=0.2, persistence="disc", radius=radius, disc_spacing=3.0)
+    mesh = mesh_geology(Geology(RockMass((-1, -1, -1), (1, 1, 1)), joint_sets=[disc], h=h))
+    assert_valid(mesh)
+    assert mesh.num_blocks == 1
+    np.testing.assert_allclose(mesh.points[np.unique(mesh.joint_faces)][:, 0], 0.2, atol=1e-12)
+    area = face_areas(mesh.points, mesh.joint_faces).sum()
+    # Inscribed polygon: the area lost is at most the rim length times the sagitta.
+    assert max_edge(mesh.points, mesh.joint_faces) <= CHORD_FACTOR * h
+    deficit = math.pi * radius**2 - area
+    assert 0.0 <= deficit <= 2.0 * math.pi * radius * sagitta(radius, CHORD_FACTOR * h)
+    assert_conforming(mesh)
+    np.testing.assert_allclose(tet_volumes(mesh.points, mesh.tets).sum(), 8.0, rtol=REL_FLAT)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Jitter and reproducibility
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def jittered(seed: int) -> Geology:
+    return Geology(
+        RockMass((0, 0, 0), (2.0, 2.0, 1.5)),
+        joint_sets=[
+            JointSet(80.0, 30.0, spacing=0.6, offset=0.1, jitter_position=0.08, jitter_angle=6.0),
+            JointSet(20.0, 200.0, spacing=0.7, offset=0.2, jitter_position=0.05, jitter_angle=4.0),
+            JointSet(60.0, 120.0, 0.8, persistence="disc", radius=0.4, jitter_position=0.1, jitter_angle=10.0),
+        ],
+        h=0.3,
+        seed=seed,
+    )
+
+
+def test_seed_jitter_reproducible_and_bounded() -> None:
+    a, b, c = mesh_geology(jittered(7)), mesh_geology(jittered(7)), mesh_geology(jittered(8))
+    np.testing.assert_array_equal(a.points, b.points)
+    np.testing.assert_array_equal(a.tets, b.tets)
+    np.testing.assert_array_equal(a.joint_faces, b.joint_faces)
+    np.testing.assert_array_equal(a.tet_block, b.tet_block)
+    assert a.points.shape != c.points.shape or not np.array_equal(a.points, c.points)
+
+    for mesh in (a, c):
+        assert_valid(mesh)
+        assert_conforming(mesh)
+        np.testing.assert_allclose(tet_volumes(mesh.points, mesh.tets).sum(), 2.0 * 2.0 * 1.5, rtol=REL_FLAT)
+        normals = face_normals(mesh.points, mesh.joint_faces)
+        unit = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+        for k, js in enumerate(jittered(0).joint_sets):
+            cosines = unit[mesh.joint_face_set == k] @ joint_normal(js.dip, js.dip_direction)
+            assert len(cosines) > 0
+            assert np.all(cosines >= math.cos(math.radians(js.jitter_angle)) - 1e-9), f"set {k} tilted too far"
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Import and export
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def layered_mesh() -> GeologyMesh:
+    geology = Geology(
+        RockMass((0, 0, 0), (3.0, 3.0, 3.0), layers=[(1.2, "shale")], material="granite"),
+        openings=[Tunnel("x", (1.5, 2.0), radius=0.5)],
+        joint_sets=[
+            JointSet(90.0, 0.0, 1.0, 0.4),
+            JointSet(70.0, 250.0, 1.3, persistence="layers", reference=0, jitter_position=0.1, jitter_angle=5.0),
+        ],
+        h=0.4,
+    )
+    return mesh_geology(geology)
+
+
+def test_layers_give_materials(layered_mesh: GeologyMesh) -> None:
+    """Material layers, a tunnel and jittered non-persistent joints ending on the reference planes together."""
+    mesh = layered_mesh
+    assert_valid(mesh)
+    assert_conforming(mesh)
+    radius, h = 0.5, 0.4
+    exact = 27.0 - math.pi * radius**2 * 3.0
+    assert max_edge(mesh.points, mesh.boundary_faces["opening"]) <= CHORD_FACTOR * h
+    excess = tet_volumes(mesh.points, mesh.tets).sum() - exact
+    assert 0.0 <= excess <= 2.0 * math.pi * radius * 3.0 * sagitta(radius, CHORD_FACTOR * h)
+    assert mesh.material_names == ["shale", "granite"]
+    z = mesh.points[mesh.tets].mean(axis=1)[:, 2]
+    np.testing.assert_array_equal(mesh.tet_material, (z > 1.2).astype(np.int64))
+    for b in range(mesh.num_blocks):  # the layer top is conforming: no block straddles it
+        assert len(np.unique(mesh.tet_material[mesh.tet_block == b])) == 1
+
+
+@pytest.mark.parametrize("suffix", [".msh", ".vtu"])
+def test_write_read_round_trip(layered_mesh: GeologyMesh, tmp_path: pathlib.Path, suffix: str) -> None:
+    path = tmp_path / f"rock{suffix}"
+    write_mesh(path, layered_mesh)
+    back = read_mesh(path)
+    np.testing.assert_array_equal(back.points, layered_mesh.points)
+    np.testing.assert_array_equal(back.tets, layered_mesh.tets)
+    np.testing.assert_array_equal(back.tet_material, layered_mesh.tet_material)
+    np.testing.assert_array_equal(back.tet_block, layered_mesh.tet_block)
+    assert back.material_names == layered_mesh.material_names
+    assert back.num_blocks == layered_mesh.num_blocks
+    assert back.joint_set_names == layered_mesh.joint_set_names
+    np.testing.assert_array_equal(back.joint_faces, layered_mesh.joint_faces)
+    np.testing.assert_array_equal(back.joint_face_set, layered_mesh.joint_face_set)
+    expected = {k: v for k, v in layered_mesh.boundary_faces.items() if len(v)}
+    assert sorted(back.boundary_faces) == sorted(expected)
+    for name, faces in expected.items():
+        np.testing.assert_array_equal(back.boundary_faces[name], faces)
+
+    mapped = read_mesh(path, material_map={"shale": "soft", "granite": "hard"})
+    assert mapped.material_names == ["soft", "hard"]
+
+
+def test_blocks_from_joint_faces_without_entity_data(layered_mesh: GeologyMesh, tmp_path: pathlib.Path) -> None:
+    """A VTU with only tets, materials and joint triangles: blocks are rebuilt as components across non-joint
+    faces, which merges blocks split only by the layer top."""
+    mesh = layered_mesh
+    path = tmp_path / "plain.vtu"
+    meshio.write(
+        path,
+        meshio.Mesh(
+            mesh.points,
+            [("tetra", mesh.tets), ("triangle", mesh.joint_faces)],
+            cell_data={"material": [mesh.tet_material, np.full(len(mesh.joint_faces), -1)]},
+        ),
+    )
+    back = read_mesh(path, material_array="material", joint_groups=["0"])
+    np.testing.assert_array_equal(back.tet_material, mesh.tet_material)
+    assert len(back.joint_faces) == len(mesh.joint_faces)
+    # Expected: the Gmsh blocks merged wherever two of them share a non-joint face (union-find over blocks).
+    joint_keys = {tuple(sorted(f)) for f in mesh.joint_faces.tolist()}
+    parent = list(range(mesh.num_blocks))
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            i = parent[i]
+        return i
+
+    for face, owners in tets_on_faces(mesh.tets).items():
+        if len(owners) == 2 and face not in joint_keys:
+            a, b = find(int(mesh.tet_block[owners[0][0]])), find(int(mesh.tet_block[owners[1][0]]))
+            parent[max(a, b)] = min(a, b)
+    merged = np.array([find(int(b)) for b in mesh.tet_block])
+    assert back.num_blocks == len(np.unique(merged)) < mesh.num_blocks
+    for b in range(back.num_blocks):
+        assert len(np.unique(merged[back.tet_block == b])) == 1
+
+
+def gmsh_native_file(path: pathlib.Path, version: float) -> None:
+    """A 2×1×1 box split at x = 1 into 'granite' and 'shale', the split face 'joint_bedding', the top 'top'."""
+    import gmsh
+
+    gmsh.initialize(readConfigFiles=False, interruptible=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add("native")
+        occ = gmsh.model.occ
+        left, right = occ.addBox(0, 0, 0, 1, 1, 1), occ.addBox(1, 0, 0, 1, 1, 1)
+        occ.fragment([(3, left)], [(3, right)])
+        occ.synchronize()
+        split = [s for _, s in gmsh.model.getEntities(2) if np.allclose(gmsh.model.getBoundingBox(2, s)[::3], 1.0)]
+        top = [s for _, s in gmsh.model.getEntities(2) if np.allclose(gmsh.model.getBoundingBox(2, s)[2::3], 1.0)]
+        gmsh.model.addPhysicalGroup(3, [left], 11, name="granite")
+        gmsh.model.addPhysicalGroup(3, [right], 12, name="shale")
+        gmsh.model.addPhysicalGroup(2, split, 21, name="joint_bedding")
+        gmsh.model.addPhysicalGroup(2, top, 22, name="top")
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.3)
+        gmsh.model.mesh.generate(3)
+        gmsh.option.setNumber("Mesh.MshFileVersion", version)
+        gmsh.write(str(path))
+    finally:
+        gmsh.finalize()
+
+
+@pytest.mark.parametrize("version", [2.2, 4.1])
+def test_read_gmsh_native(tmp_path: pathlib.Path, version: float) -> None:
+    path = tmp_path / f"native{version}.msh"
+    gmsh_native_file(path, version)
+    mesh = read_mesh(path)
+    assert_valid(mesh)
+    assert mesh.material_names == ["granite", "shale"]
+    assert mesh.num_blocks == 2
+    centroid_x = mesh.points[mesh.tets].mean(axis=1)[:, 0]
+    np.testing.assert_array_equal(mesh.tet_material, (centroid_x > 1.0).astype(np.int64))
+    np.testing.assert_allclose(tet_volumes(mesh.points, mesh.tets).sum(), 2.0, rtol=REL_FLAT)
+    assert mesh.joint_set_names == ["joint_bedding"]
+    np.testing.assert_allclose(face_areas(mesh.points, mesh.joint_faces).sum(), 1.0, rtol=REL_FLAT)
+    np.testing.assert_allclose(mesh.points[mesh.joint_faces][:, :, 0], 1.0, atol=1e-12)
+    assert_conforming(mesh)
+    np.testing.assert_allclose(face_areas(mesh.points, mesh.boundary_faces["top"]).sum(), 2.0, rtol=REL_FLAT)
+    by_tag = read_mesh(path, material_map={11: "G", "shale": "S"})
+    assert by_tag.material_names == ["G", "S"]
+
+
+def test_caller_gmsh_session_is_left_as_found() -> None:
+    import gmsh
+
+    gmsh.initialize(readConfigFiles=False, interruptible=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 7.0)
+        gmsh.model.add("mine")
+        models = gmsh.model.list()
+        mesh = mesh_geology(Geology(RockMass((0, 0, 0), (1, 1, 1)), h=0.5))
+        assert gmsh.isInitialized()
+        assert gmsh.option.getNumber("Mesh.MeshSizeMax") == 7.0
+        assert gmsh.model.list() == models
+        assert gmsh.model.getCurrent() == "mine"
+        np.testing.assert_allclose(tet_volumes(mesh.points, mesh.tets).sum(), 1.0, rtol=REL_FLAT)
+    finally:
+        gmsh.finalize()
+
+
+def assert_one_line_error(excinfo: pytest.ExceptionInfo, path: pathlib.Path, *words: str) -> None:
+    message = str(excinfo.value)
+    assert "\n" not in message and str(path) in message, message
+    for word in words:
+        assert word in message, message
+
+
+def test_read_errors(tmp_path: pathlib.Path) -> None:
+    missing = tmp_path / "nope.msh"
+    with pytest.raises(MeshImportError) as excinfo:
+        read_mesh(missing)
+    assert_one_line_error(excinfo, missing, "no such file")
+
+    unknown = tmp_path / "rock.stl"
+    unknown.write_text("solid x\nendsolid x\n")
+    with pytest.raises(MeshImportError) as excinfo:
+        read_mesh(unknown)
+    assert_one_line_error(excinfo, unknown, "unknown mesh format", ".stl")
+
+    hexes = tmp_path / "hex.vtu"
+    cube = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], float)
+    meshio.write(hexes, meshio.Mesh(cube, [("hexahedron", np.array([[0, 1, 3, 2, 4, 5, 7, 6]]))]))
+    with pytest.raises(MeshImportError) as excinfo:
+        read_mesh(hexes)
+    assert_one_line_error(excinfo, hexes, "1 hexahedron", "tetra")
+
+    surface = tmp_path / "surface.vtu"
+    meshio.write(surface, meshio.Mesh(cube[:3], [("triangle", np.array([[0, 1, 2]]))]))
+    with pytest.raises(MeshImportError) as excinfo:
+        read_mesh(surface)
+    assert_one_line_error(excinfo, surface, "no tetrahedra", "triangle")
+
+    garbled = tmp_path / "garbled.msh"
+    garbled.write_text("$MeshFormat\nnot a mesh\n")
+    with pytest.raises(MeshImportError) as excinfo:
+        read_mesh(garbled)
+    assert_one_line_error(excinfo, garbled, "cannot read")
+
+    native = tmp_path / "native.msh"
+    gmsh_native_file(native, 4.1)
+    with pytest.raises(MeshImportError) as excinfo:
+        read_mesh(native, material_map={"granite": "G"})
+    assert_one_line_error(excinfo, native, "12 ('shale')", "material_map")
