@@ -139,6 +139,12 @@ def bond_energy_kernel(
     wp.atomic_add(intact, 0, 1)
 
 
+@wp.func
+def within_bond_gap(xi: wp.vec3, ri: float, xj: wp.vec3, rj: float, gap_tolerance: float) -> bool:
+    """Whether two spheres are close enough to bond: gap ≤ gap_tolerance (r_i + r_j)."""
+    return wp.length(xi - xj) <= (ri + rj) * (1.0 + gap_tolerance)
+
+
 @wp.kernel
 def count_bond_pairs_kernel(
     # Model:
@@ -161,8 +167,7 @@ def count_bond_pairs_kernel(
     n = int(0)
     for j in wp.hash_grid_query(grid, xi, search_radius):
         if j > i and bondable[j] == bondable[i]:
-            rsum = ri + particle_radius[j]
-            if wp.length(xi - particle_q[j]) <= rsum * (1.0 + gap_tolerance):
+            if within_bond_gap(xi, ri, particle_q[j], particle_radius[j], gap_tolerance):
                 n += 1
     pair_count[i] = n
 
@@ -190,7 +195,6 @@ def fill_bond_pairs_kernel(
     slot = pair_offset[i]
     for j in wp.hash_grid_query(grid, xi, search_radius):
         if j > i and bondable[j] == bondable[i]:
-            rsum = ri + particle_radius[j]
-            if wp.length(xi - particle_q[j]) <= rsum * (1.0 + gap_tolerance):
+            if within_bond_gap(xi, ri, particle_q[j], particle_radius[j], gap_tolerance):
                 pairs[slot] = wp.vec2i(i, j)
                 slot += 1

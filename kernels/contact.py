@@ -177,6 +177,14 @@ def linear_elastic_energy(delta: float, kn: float) -> float:
     return 0.5 * kn * delta * delta
 
 
+@wp.func
+def carried_by_bond(bond: int, bond_broken: wp.array(dtype=int)) -> bool:
+    """Whether a neighbour slot's pair is held by an intact bond (then it is no contact)."""
+    if bond >= 0:
+        return bond_broken[bond] == 0
+    return False
+
+
 NORMAL_MODELS = ("hertz", "linear")
 TANGENTIAL_MODELS = ("mindlin", "linear")
 ROLLING_MODELS = ("none", "constant_torque")
@@ -327,10 +335,8 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
         count = wp.min(nbr_count[i], max_neighbors)
         for s in range(count):
             slot = i * max_neighbors + s
-            b = nbr_bond[slot]
-            if b >= 0:
-                if bond_broken[b] == 0:
-                    continue  # an intact bond carries this pair (bonds stage)
+            if carried_by_bond(nbr_bond[slot], bond_broken):
+                continue  # the bonds stage handles this pair
             j = nbr_index[slot]
             xj = particle_q[j]
             rj = particle_radius[j]
@@ -445,10 +451,8 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
         count = wp.min(nbr_count[i], max_neighbors)
         for s in range(count):
             slot = i * max_neighbors + s
-            b = nbr_bond[slot]
-            if b >= 0:
-                if bond_broken[b] == 0:
-                    continue
+            if carried_by_bond(nbr_bond[slot], bond_broken):
+                continue
             j = nbr_index[slot]
             rj = particle_radius[j]
             delta = ri + rj - wp.length(xi - particle_q[j])
