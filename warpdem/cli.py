@@ -61,6 +61,7 @@ def bench_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", help="Warp device")
     p.add_argument("--json", type=Path, help="also write the results as JSON")
     p.add_argument("--data", type=Path, help="folder with init_N*.txt and box_N*.json (default: benchmarks/data)")
+    p.add_argument("--repeat", type=_positive_int, default=3, help="runs per size; the fastest counts")
     return p
 
 
@@ -77,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
         from .bench import run_bench
 
         args = bench_parser().parse_args(argv[1:])
-        return run_bench(args.sizes, args.steps, args.device, args.json, args.data)
+        return run_bench(args.sizes, args.steps, args.device, args.json, args.data, args.repeat)
     args = run_parser().parse_args(argv)
 
     from .scene import SceneError, default_scene_path, load_scene
