@@ -1,8 +1,10 @@
-"""Time integration of spheres: velocity Verlet in two half kicks around the force evaluation.
+"""Time integration of spheres and FEM nodes: velocity Verlet in two half kicks around the force evaluation.
 
 Step n → n+1 (LIGGGHTS ``fix nve/sphere``): first half kick and drift, v ← v + dt/2 a_n, x ← x + dt v, which also
 clears the force accumulators for the new evaluation; then, after the forces at x_{n+1}, the second half kick
-v ← v + dt/2 a_{n+1}. Rotation of spheres is isotropic (I = 2/5 m r²), so ω is kicked the same way.
+v ← v + dt/2 a_{n+1}. Rotation of spheres is isotropic (I = 2/5 m r²), so ω is kicked the same way. FEM nodes
+(lumped mass, translation only) take the same two half kicks in their own kernels; they drift their displacement,
+u ← u + dt v, and x = X + u follows.
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ from __future__ import annotations
 import warp as wp
 
 from .contact import MOTION_FREE
+from .tets import node_free_directions
 
 wp.set_module_options({"enable_backward": False})
 
@@ -81,6 +84,64 @@ def integrate_second_half_kernel(
         # contact forces (zero for a fixed sphere).
         w = -(wp.dot(particle_f[i], particle_qd[i]) + wp.dot(particle_t[i], particle_omega[i])) * dt
         energy_boundary_work[i] = energy_boundary_work[i] + wp.float64(w)
+
+
+@wp.kernel
+def integrate_nodes_first_half_kernel(
+    # Model:
+    node_ref_q: wp.array(dtype=wp.vec3),
+    node_mass: wp.array(dtype=float),
+    node_inv_mass: wp.array(dtype=float),
+    node_motion: wp.array(dtype=int),
+    node_damping: wp.array(dtype=float),
+    gravity: wp.vec3,
+    dt: float,
+    # State in:
+    node_count: wp.array(dtype=int),
+    # State out:
+    node_u: wp.array(dtype=wp.vec3),
+    node_q: wp.array(dtype=wp.vec3),
+    node_qd: wp.array(dtype=wp.vec3),
+    node_f: wp.array(dtype=wp.vec3),
+    node_energy_damping: wp.array(dtype=wp.float64),
+):
+    i = wp.tid()  # one thread per FEM node slot
+    if i >= node_count[0]:
+        return
+    # Held velocity components stay zero (fixed nodes, rollers), so the constraints do no work.
+    free = node_free_directions(node_motion[i])
+    v = wp.cw_mul(free, node_qd[i] + 0.5 * dt * (node_f[i] * node_inv_mass[i] + gravity))
+    node_qd[i] = v
+    # The drift goes into the displacement, small next to the coordinates, so float32 keeps the increment.
+    u = node_u[i] + dt * v
+    node_u[i] = u
+    node_q[i] = node_ref_q[i] + u
+    # The force accumulator starts from the mass-proportional damping force -α m v at the half-step velocity (the
+    # central-difference choice), which then acts in both half kicks around the new forces.
+    alpha = node_damping[i]
+    node_f[i] = -alpha * node_mass[i] * v
+    if alpha > 0.0:
+        node_energy_damping[i] = node_energy_damping[i] + wp.float64(alpha * node_mass[i] * wp.dot(v, v) * dt)
+
+
+@wp.kernel
+def integrate_nodes_second_half_kernel(
+    # Model:
+    node_inv_mass: wp.array(dtype=float),
+    node_motion: wp.array(dtype=int),
+    gravity: wp.vec3,
+    dt: float,
+    # State in:
+    node_count: wp.array(dtype=int),
+    node_f: wp.array(dtype=wp.vec3),
+    # State out:
+    node_qd: wp.array(dtype=wp.vec3),
+):
+    i = wp.tid()  # one thread per FEM node slot
+    if i >= node_count[0]:
+        return
+    free = node_free_directions(node_motion[i])
+    node_qd[i] = wp.cw_mul(free, node_qd[i] + 0.5 * dt * (node_f[i] * node_inv_mass[i] + gravity))
 
 
 @wp.kernel

@@ -17,11 +17,15 @@ from . import packing
 from .bonds import find_bond_pairs
 from .contact import critical_time_step_hertz
 from .kernels.contact import ContactPair
-from .model import BondData, Model, ParticleData, State, WallData, pair_table_array
+from .kernels.tets import TetMaterial
+from .mesh import MeshQuality, check_tets
+from .model import BondData, Model, ParticleData, State, TetMeshData, WallData, pair_table_array
 from .restitution import hertz_damping_coefficient, linear_damping_ratio
 from .scene import Scene, SceneError
+from .tets import TetProps, lumped_node_masses, reference_geometry, tet_material, tet_stable_time_steps
 
 MOTIONS = {"free": 0, "fixed": 1, "prescribed": 2}
+NODE_MOTIONS = {"free": 0, "fixed": 1, "z_only": 2}
 
 
 @dataclass
@@ -109,12 +113,21 @@ class ModelBuilder:
     _spheres: list[tuple] = field(default_factory=list)
     _walls: list[tuple] = field(default_factory=list)
     _bond_groups: list[tuple] = field(default_factory=list)
+    tet_props: dict[str, TetProps] = field(default_factory=dict)
+    mesh_qualities: list[MeshQuality] = field(default_factory=list)
+    _tet_meshes: list[tuple] = field(default_factory=list)
 
     # -- materials and interactions ---------------------------------------------------------------------------
     def add_material(self, name: str, density: float, youngs_modulus: float, poisson_ratio: float) -> int:
         """Add a material; returns its id."""
         self.materials[name] = MaterialProps(density, youngs_modulus, poisson_ratio)
         return list(self.materials).index(name)
+
+    def set_tet_properties(self, material: str, props: TetProps) -> None:
+        """Continuum properties (bulk viscosity, mass-proportional damping) of a material's tets; default TetProps."""
+        if material not in self.materials:
+            raise KeyError(f"unknown material {material!r}")
+        self.tet_props[material] = props
 
     def set_interaction(self, a: str, b: str, props: InteractionProps) -> None:
         """Contact properties of the pair (a, b), order-free."""
@@ -172,6 +185,93 @@ class ModelBuilder:
     @property
     def sphere_count(self) -> int:
         return sum(len(s[0]) for s in self._spheres)
+
+    def add_tet_mesh(
+        self,
+        points: np.ndarray,
+        tets: np.ndarray,
+        material: str,
+        *,
+        fixed_nodes: np.ndarray | None = None,
+        z_only_nodes: np.ndarray | None = None,
+        velocity: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
+    ) -> np.ndarray:
+        """Add a body of Cosserat point tetrahedra; returns the ids of its nodes.
+
+        The mesh is checked first (:func:`warpdem.mesh.check_tets`): inverted tets are re-oriented, degenerate ones
+        rejected; its quality summary is appended to ``mesh_qualities``.
+
+        Args:
+            points: node positions [m], shape (N, 3).
+            tets: node indices into ``points``, shape (M, 4).
+            material: material name (density, E, ν; bulk viscosity from :meth:`set_tet_properties`).
+            fixed_nodes: indices (or a boolean mask) of nodes held in place.
+            z_only_nodes: indices (or a boolean mask) of nodes that move along z only (x and y held).
+            velocity: initial node velocities [m/s], shape (3,) or (N, 3); held components are zeroed.
+
+        Raises:
+            KeyError: unknown material. warpdem.mesh.MeshError: a bad mesh.
+        """
+        if material not in self.materials:
+            raise KeyError(f"unknown material {material!r}")
+        points = np.asarray(points, dtype=np.float64)
+        oriented, quality = check_tets(points, tets)
+        n = len(points)
+        motion = np.zeros(n, dtype=np.int32)
+        for kind, nodes in (("z_only", z_only_nodes), ("fixed", fixed_nodes)):
+            if nodes is not None:
+                motion[np.arange(n)[np.asarray(nodes)]] = NODE_MOTIONS[kind]
+        vel = np.broadcast_to(np.asarray(velocity, dtype=np.float64), (n, 3)).copy()
+        vel[motion == NODE_MOTIONS["fixed"]] = 0.0
+        vel[motion == NODE_MOTIONS["z_only"], :2] = 0.0
+        first = self.node_count
+        self._tet_meshes.append((points.copy(), vel, motion, oriented, material))
+        self.mesh_qualities.append(quality)
+        return np.arange(first, first + n)
+
+    @property
+    def node_count(self) -> int:
+        return sum(len(m[0]) for m in self._tet_meshes)
+
+    def tet_mesh_data(self) -> TetMeshData:
+        """All tet meshes added so far, concatenated (node indices offset accordingly)."""
+        if not self._tet_meshes:
+            return TetMeshData.empty()
+        names = list(self.materials)
+        offsets = np.cumsum([0] + [len(m[0]) for m in self._tet_meshes])[:-1]
+        return TetMeshData(
+            points=np.concatenate([m[0] for m in self._tet_meshes]),
+            velocity=np.concatenate([m[1] for m in self._tet_meshes]),
+            motion=np.concatenate([m[2] for m in self._tet_meshes]),
+            tets=np.concatenate([m[3] + off for m, off in zip(self._tet_meshes, offsets, strict=True)]),
+            material=np.concatenate([np.full(len(m[3]), names.index(m[4]), np.int32) for m in self._tet_meshes]),
+        )
+
+    def tet_material_table(self) -> list[TetMaterial]:
+        """The TetMaterial of every material, index = material id (zeros for materials no tet uses)."""
+        used = {m[4] for m in self._tet_meshes}
+        return [
+            tet_material(p.density, p.youngs_modulus, p.poisson_ratio, self.tet_props.get(name, TetProps()))
+            if name in used
+            else TetMaterial()
+            for name, p in self.materials.items()
+        ]
+
+    def tet_critical_time_step(self, mesh: TetMeshData) -> float:
+        """Critical time step of the tets [s] before the safety factor (:func:`warpdem.tets.tet_stable_time_steps`;
+        inf without tets)."""
+        if len(mesh.tets) == 0:
+            return math.inf
+        table = self.tet_material_table()
+        inv_ref, _ = reference_geometry(mesh.points, mesh.tets)
+
+        def per_tet(attr: str) -> np.ndarray:
+            return np.array([getattr(table[m], attr) for m in range(len(table))], dtype=np.float64)[mesh.material]
+
+        steps = tet_stable_time_steps(
+            inv_ref, per_tet("mu"), per_tet("lam"), per_tet("density"), per_tet("c_lin"), per_tet("alpha")
+        )
+        return float(steps.min())
 
     def add_plane_wall(
         self, point: Sequence[float], normal: Sequence[float], material: str, velocity: Sequence[float] = (0, 0, 0)
@@ -303,14 +403,16 @@ class ModelBuilder:
             return BondData.empty()
         return BondData(*(np.concatenate([getattr(p, f) for p in parts]) for f in BondData.__dataclass_fields__))
 
-    def critical_time_step(self, particles: ParticleData, bonds: BondData) -> float:
+    def critical_time_step(self, particles: ParticleData, bonds: BondData, mesh: TetMeshData | None = None) -> float:
         """Critical time step [s] before the safety factor: the smallest of the Rayleigh step (Hertz) or
         2 sqrt(m*/k_n) (linear) of every sphere size and material, the Hertz contact time at the fastest initial
-        approach / 10, and the bond step (:func:`bond_critical_time_step`)."""
+        approach / 10, the bond step (:func:`bond_critical_time_step`) and the tet step
+        (:meth:`tet_critical_time_step`, of ``mesh`` or of the meshes added)."""
         names = list(self.materials)
         free = particles.motion == 0
+        tet_step = self.tet_critical_time_step(mesh if mesh is not None else self.tet_mesh_data())
         if not np.any(free) and not len(bonds):
-            return math.inf
+            return tet_step
         steps = []
         for mid in np.unique(particles.material):
             mat = self.materials[names[mid]]
@@ -327,7 +429,7 @@ class ModelBuilder:
                 steps.append(2.0 * math.sqrt(0.5 * mass / (mat.youngs_modulus * r)))
         if len(bonds):
             steps.append(bond_critical_time_step(particles, bonds, self.materials))
-        return min(steps)
+        return min(*steps, tet_step)
 
     def finalize(
         self,
@@ -339,6 +441,8 @@ class ModelBuilder:
         max_neighbors: int = 8,
         particle_capacity: int | None = None,
         sort: bool = True,
+        node_capacity: int | None = None,
+        tet_capacity: int | None = None,
     ) -> tuple[Model, State]:
         """Allocate the model and initial state.
 
@@ -350,6 +454,8 @@ class ModelBuilder:
             max_neighbors: initial neighbour slots per particle (grown on overflow).
             particle_capacity: particle slots (default: the sphere count).
             sort: reorder spheres along a Z-order curve for memory locality (ids keep the creation order).
+            node_capacity: FEM node slots (default: the node count).
+            tet_capacity: tet slots (default: the tet count).
         """
         device = wp.get_device(device)
         particles = self.particle_data()
@@ -368,8 +474,9 @@ class ModelBuilder:
                 bonds = BondData(p[order], *(getattr(bonds, f)[order] for f in list(BondData.__dataclass_fields__)[1:]))
         else:
             ids = np.arange(n)
+        mesh = self.tet_mesh_data()
         if dt is None:
-            dt = safety_factor * self.critical_time_step(particles, bonds)
+            dt = safety_factor * self.critical_time_step(particles, bonds, mesh)
             if not math.isfinite(dt):
                 dt = 1.0e-4
         if skin is None:
@@ -395,6 +502,7 @@ class ModelBuilder:
             return wp.array(out, dtype=int, device=device)
 
         nw = len(walls)
+        tet_arrays = self.tet_model_arrays(mesh, device, node_capacity, tet_capacity)
         model = Model(
             device=device,
             particle_capacity=cap,
@@ -423,15 +531,55 @@ class ModelBuilder:
             wall_material=wp.array(walls.material, dtype=int, device=device),
             walls_move=bool(nw and np.any(walls.velocity != 0.0)),
             bond_capacity=len(bonds),
+            **tet_arrays,
         )
-        state = new_state(model, particles, walls, bonds)
+        state = new_state(model, particles, walls, bonds, mesh)
         return model, state
 
+    def tet_model_arrays(
+        self, mesh: TetMeshData, device: wp.context.Device, node_capacity: int | None, tet_capacity: int | None
+    ) -> dict:
+        """The Model fields of the FEM nodes and tets (capacities, masses, reference geometry, materials)."""
+        nn, nt = len(mesh.points), len(mesh.tets)
+        ncap, tcap = max(node_capacity or nn, nn), max(tet_capacity or nt, nt)
+        table = self.tet_material_table()
+        inv_ref, volume = reference_geometry(mesh.points, mesh.tets)
+        density = np.array([m.density for m in table], dtype=np.float64)[mesh.material]
+        alpha = np.array([m.alpha for m in table], dtype=np.float64)[mesh.material]
+        mass, damping = lumped_node_masses(nn, mesh.tets, volume, density, alpha)
+        held = (mesh.motion == NODE_MOTIONS["fixed"]) | (mass <= 0.0)
+        inv_mass = np.where(held, 0.0, 1.0 / np.where(mass > 0.0, mass, 1.0))
 
-def new_state(model: Model, particles: ParticleData, walls: WallData, bonds: BondData) -> State:
-    """Allocate the initial State of a model: spheres at rest in their initial positions, bonds intact."""
+        def padded(a: np.ndarray, cap: int, dtype, np_dtype) -> wp.array:
+            out = np.zeros((cap, *a.shape[1:]), dtype=np_dtype)
+            out[: len(a)] = a
+            return wp.array(out, dtype=dtype, device=device)
+
+        return {
+            "node_capacity": ncap,
+            "tet_capacity": tcap,
+            "node_ref_q": padded(mesh.points, ncap, wp.vec3, np.float32),
+            "node_mass": padded(mass, ncap, float, np.float32),
+            "node_inv_mass": padded(inv_mass, ncap, float, np.float32),
+            "node_motion": padded(mesh.motion, ncap, int, np.int32),
+            "node_damping": padded(damping, ncap, float, np.float32),
+            "tet_nodes": padded(mesh.tets, tcap, wp.vec4i, np.int32),
+            "tet_inv_ref": padded(inv_ref, tcap, wp.mat33, np.float32),
+            "tet_volume": padded(volume, tcap, float, np.float32),
+            "tet_material": padded(mesh.material, tcap, int, np.int32),
+            "tet_material_table": wp.array(table, dtype=TetMaterial, device=device),
+        }
+
+
+def new_state(
+    model: Model, particles: ParticleData, walls: WallData, bonds: BondData, mesh: TetMeshData | None = None
+) -> State:
+    """Allocate the initial State of a model: spheres and FEM nodes at their initial positions and velocities,
+    bonds intact, tets active."""
     device, cap, k = model.device, model.particle_capacity, model.max_neighbors
     n, nb = len(particles), len(bonds)
+    mesh = mesh if mesh is not None else TetMeshData.empty()
+    nn, nt = len(mesh.points), len(mesh.tets)
 
     def vec(a: np.ndarray | None, size: int) -> wp.array:
         out = np.zeros((size, 3), dtype=np.float32)
@@ -484,6 +632,15 @@ def new_state(model: Model, particles: ParticleData, walls: WallData, bonds: Bon
         energy_friction=wp.zeros(cap, dtype=wp.float64, device=device),
         energy_boundary_work=wp.zeros(cap, dtype=wp.float64, device=device),
         energy_bond_broken=wp.zeros(cap, dtype=wp.float64, device=device),
+        node_count=scalar(nn),
+        tet_count=scalar(nt),
+        node_u=vec(None, model.node_capacity),
+        node_q=vec(mesh.points, model.node_capacity),
+        node_qd=vec(mesh.velocity, model.node_capacity),
+        node_f=vec(None, model.node_capacity),
+        node_energy_damping=wp.zeros(model.node_capacity, dtype=wp.float64, device=device),
+        tet_active=arr(np.ones(nt), int, model.tet_capacity),
+        tet_stress=wp.zeros(model.tet_capacity, dtype=wp.mat33, device=device),
     )
 
 

@@ -1,5 +1,5 @@
-"""Integration stage (host side): the two half kicks of velocity Verlet around the force evaluation, and moving
-walls."""
+"""Integration stage (host side): the two half kicks of velocity Verlet around the force evaluation, for spheres and
+FEM nodes, and moving walls."""
 
 from __future__ import annotations
 
@@ -10,8 +10,9 @@ from .model import Model, State
 
 
 def integrate_first_half(model: Model, state: State) -> None:
-    """Kick by dt/2 with the forces of the last evaluation, drift by dt, clear the force accumulators and raise the
-    rebuild flag if a sphere has moved half the skin."""
+    """Kick by dt/2 with the forces of the last evaluation, drift by dt, clear the force accumulators (FEM nodes:
+    start them at the mass-proportional damping force) and raise the rebuild flag if a sphere has moved half the
+    skin."""
     m, s = model, state
     wp.launch(
         ki.integrate_first_half_kernel,
@@ -31,6 +32,25 @@ def integrate_first_half(model: Model, state: State) -> None:
         outputs=[s.particle_q, s.particle_qd, s.particle_omega, s.particle_f, s.particle_t, s.rebuild_flag],
         device=m.device,
     )
+    if m.node_capacity:
+        wp.launch(
+            ki.integrate_nodes_first_half_kernel,
+            dim=m.node_capacity,
+            inputs=[
+                # Model:
+                m.node_ref_q,
+                m.node_mass,
+                m.node_inv_mass,
+                m.node_motion,
+                m.node_damping,
+                wp.vec3(*m.gravity),
+                m.dt,
+                # State in:
+                s.node_count,
+            ],
+            outputs=[s.node_u, s.node_q, s.node_qd, s.node_f, s.node_energy_damping],
+            device=m.device,
+        )
     if m.walls_move:
         wp.launch(
             ki.advance_walls_kernel,
@@ -62,3 +82,20 @@ def integrate_second_half(model: Model, state: State) -> None:
         outputs=[s.particle_qd, s.particle_omega, s.energy_boundary_work],
         device=m.device,
     )
+    if m.node_capacity:
+        wp.launch(
+            ki.integrate_nodes_second_half_kernel,
+            dim=m.node_capacity,
+            inputs=[
+                # Model:
+                m.node_inv_mass,
+                m.node_motion,
+                wp.vec3(*m.gravity),
+                m.dt,
+                # State in:
+                s.node_count,
+                s.node_f,
+            ],
+            outputs=[s.node_qd],
+            device=m.device,
+        )

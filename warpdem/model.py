@@ -3,7 +3,9 @@
 Every per-particle array is sized by ``particle_capacity``; the live count sits on the device
 (``State.particle_count``) so kernels launch over capacity and return early past it, and a step never reads a
 count back to the host. Neighbour slots are ``particle_capacity * max_neighbors`` long, wall histories
-``particle_capacity * num_walls``, bond arrays ``bond_capacity``.
+``particle_capacity * num_walls``, bond arrays ``bond_capacity``. FEM node arrays are ``node_capacity`` long and
+tet arrays ``tet_capacity`` (live counts ``State.node_count`` / ``State.tet_count``); both exist, possibly empty,
+in a model without tets.
 """
 
 from __future__ import annotations
@@ -51,6 +53,19 @@ class Model:
         wall_normal: unit normals pointing into the domain, shape (num_walls,), vec3.
         wall_velocity: wall velocities [m/s], shape (num_walls,), vec3.
         wall_material: material id of each wall, shape (num_walls,), int32.
+        node_capacity: FEM node slots.
+        tet_capacity: tet slots.
+        node_ref_q: reference positions X [m], shape (node_capacity,), vec3.
+        node_mass: lumped mass Σ ρV₀/4 over the node's tets [kg], shape (node_capacity,), float32.
+        node_inv_mass: 1/m [1/kg], 0 for fixed nodes, shape (node_capacity,), float32.
+        node_motion: 0 free, 1 fixed, 2 moves along z only (x, y held), shape (node_capacity,), int32.
+        node_damping: mass-proportional damping α of the node (mass-weighted over its tets) [1/s],
+            shape (node_capacity,), float32.
+        tet_nodes: node indices, positively oriented, shape (tet_capacity,), vec4i.
+        tet_inv_ref: [D1 D2 D3]⁻¹ of the reference directors D_i = X_i - X_0 [1/m], shape (tet_capacity,), mat33.
+        tet_volume: reference volume V₀ [m³], shape (tet_capacity,), float32.
+        tet_material: material id, shape (tet_capacity,), int32.
+        tet_material_table: continuum properties per material id, shape (num_materials,), TetMaterial.
     """
 
     device: wp.context.Device
@@ -78,6 +93,18 @@ class Model:
     wall_normal: wp.array
     wall_velocity: wp.array
     wall_material: wp.array
+    node_capacity: int
+    tet_capacity: int
+    node_ref_q: wp.array
+    node_mass: wp.array
+    node_inv_mass: wp.array
+    node_motion: wp.array
+    node_damping: wp.array
+    tet_nodes: wp.array
+    tet_inv_ref: wp.array
+    tet_volume: wp.array
+    tet_material: wp.array
+    tet_material_table: wp.array
     walls_move: bool = False
     bond_capacity: int = 0
     extra: dict = field(default_factory=dict)
@@ -95,7 +122,7 @@ class Model:
 
 @dataclass
 class State:
-    """Dynamic state of a DEM system: everything a restart needs besides the Model.
+    """Dynamic state of a DEM/FEM system: everything a restart needs besides the Model.
 
     Attributes:
         particle_count: live particles, shape (1,), int32.
@@ -125,6 +152,20 @@ class State:
             [J], shape (particle_capacity,), float64: dissipated by dashpots, by friction (and tangential
             dashpots), work done on the spheres by moving walls and driven spheres, and spring energy released
             by breaking bonds.
+        node_count: live FEM nodes, shape (1,), int32.
+        tet_count: live tet slots (active or not), shape (1,), int32.
+        node_u: node displacements x - X [m], shape (node_capacity,), vec3. The integrator advances u and the tets
+            read it: float32 then resolves strains to ε₃₂ |u|/h instead of ε₃₂ |x|/h, and a step's increment dt·v
+            is not lost against the size of the coordinates.
+        node_q: node positions x = X + u [m] (kept for contact and output), shape (node_capacity,), vec3.
+        node_qd: node velocities [m/s], shape (node_capacity,), vec3.
+        node_f: node forces [N] (gravity excluded; starts each step at the damping force -α m v), shape
+            (node_capacity,), vec3.
+        node_energy_damping: energy dissipated by bulk viscosity and mass-proportional damping [J], per node,
+            shape (node_capacity,), float64.
+        tet_active: 1 for a tet that carries forces, 0 for one taken out (converted), shape (tet_capacity,), int32.
+        tet_stress: Cauchy stress of the last force evaluation (elastic, without bulk viscosity) [Pa], tension
+            positive, shape (tet_capacity,), mat33.
     """
 
     particle_count: wp.array
@@ -161,6 +202,15 @@ class State:
     energy_friction: wp.array
     energy_boundary_work: wp.array
     energy_bond_broken: wp.array
+    node_count: wp.array
+    tet_count: wp.array
+    node_u: wp.array
+    node_q: wp.array
+    node_qd: wp.array
+    node_f: wp.array
+    node_energy_damping: wp.array
+    tet_active: wp.array
+    tet_stress: wp.array
 
     def arrays(self) -> dict[str, wp.array]:
         """All arrays of the state by field name."""
@@ -216,6 +266,27 @@ class ParticleData:
 
     def __len__(self) -> int:
         return len(self.radius)
+
+
+@dataclass
+class TetMeshData:
+    """Host-side FEM nodes and tets to create.
+
+    Attributes:
+        points: node positions [m], (N, 3). velocity: node velocities [m/s], (N, 3). motion: 0 free / 1 fixed /
+        2 z only, (N,). tets: positively oriented node indices, (M, 4). material: material id per tet, (M,).
+    """
+
+    points: np.ndarray
+    velocity: np.ndarray
+    motion: np.ndarray
+    tets: np.ndarray
+    material: np.ndarray
+
+    @staticmethod
+    def empty() -> TetMeshData:
+        z3 = np.zeros((0, 3))
+        return TetMeshData(z3, z3, np.zeros(0, np.int32), np.zeros((0, 4), np.int32), np.zeros(0, np.int32))
 
 
 @dataclass

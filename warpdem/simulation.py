@@ -2,11 +2,13 @@
 
 A step (DESIGN.md, stages in order):
 
-1. integrate, first half — kick by dt/2, drift by dt, clear forces, flag a neighbour rebuild if needed;
-2. contact search — rebuild the skinned neighbour list from the hash grid when flagged (conditional node);
-3. contact — sphere–sphere and sphere–wall forces with tangential history;
-4. bonds — cohesive bond forces and breakage;
-5. integrate, second half — kick by dt/2 with the new forces.
+1. integrate, first half — kick by dt/2, drift by dt, clear forces, flag a neighbour rebuild if needed (spheres
+   and FEM nodes);
+2. tetrahedra — Cosserat point element forces, bulk viscosity and Cauchy stresses;
+3. contact search — rebuild the skinned neighbour list from the hash grid when flagged (conditional node);
+4. contact — sphere–sphere and sphere–wall forces with tangential history;
+5. bonds — cohesive bond forces and breakage;
+6. integrate, second half — kick by dt/2 with the new forces.
 
 The step allocates nothing and reads nothing back. Between frames (:meth:`Simulation.advance`) the host checks the
 device's overflow counters; if a capacity was exceeded it grows the buffers ×2, restores the state saved at the
@@ -28,15 +30,18 @@ from .compaction import Compactor
 from .contact import NeighborList, contact_energy, eval_contacts
 from .integrate import integrate_first_half, integrate_second_half
 from .model import NEIGHBOR_FIELDS, Model, State
+from .tets import eval_tets, tet_energy
 
 
 @dataclass
 class EnergyBalance:
-    """Energy bookkeeping of a DEM system [J].
+    """Energy bookkeeping of a DEM/FEM system [J].
 
-    ``total`` = kinetic + elastic + gravity potential + dissipated − boundary work; it stays at its initial value
-    up to time-discretisation error (and the known non-conservation of a Mindlin spring whose stiffness changes
-    with the overlap).
+    ``total`` = kinetic + elastic + strain + gravity potential + dissipated − boundary work; it stays at its initial
+    value up to time-discretisation error (and the known non-conservation of a Mindlin spring whose stiffness
+    changes with the overlap). Spheres and FEM nodes share the gravity potential; ``kinetic_nodes`` is the FEM
+    nodes' kinetic energy, ``strain`` the tets' strain energy, ``dissipated_viscous`` what bulk viscosity and
+    mass-proportional damping took from the continuum.
     """
 
     kinetic_translational: float
@@ -47,10 +52,13 @@ class EnergyBalance:
     dissipated_friction: float
     released_by_bond_breakage: float
     boundary_work: float
+    kinetic_nodes: float = 0.0
+    strain: float = 0.0
+    dissipated_viscous: float = 0.0
 
     @property
     def kinetic(self) -> float:
-        return self.kinetic_translational + self.kinetic_rotational
+        return self.kinetic_translational + self.kinetic_rotational + self.kinetic_nodes
 
     @property
     def total(self) -> float:
@@ -62,6 +70,8 @@ class EnergyBalance:
             + self.dissipated_friction
             + self.released_by_bond_breakage
             - self.boundary_work
+            + self.strain
+            + self.dissipated_viscous
         )
 
 
@@ -119,7 +129,9 @@ class Simulation:
                 self.evaluate_forces()
 
     def _setup(self) -> None:
-        self.neighbors = NeighborList(self.model, self.state)
+        # A model of tets alone has no sphere to size the contact grid by: its sphere contact stages are skipped.
+        self.has_spheres = self.model.max_radius > 0.0
+        self.neighbors = NeighborList(self.model, self.state) if self.has_spheres else None
         self.bond_compactor = Compactor(self.model.bond_capacity, self.model.device)
         self._snapshot: State | None = None
         self._graph = None
@@ -129,19 +141,24 @@ class Simulation:
         """One time step, the stages in the order of the physics (launches only)."""
         m, s = self.model, self.state
         integrate_first_half(m, s)
-        self.neighbors.rebuild_if_needed()
-        eval_contacts(m, s, self.track_energy)
+        eval_tets(m, s)
+        if self.has_spheres:
+            self.neighbors.rebuild_if_needed()
+            eval_contacts(m, s, self.track_energy)
         eval_bonds(m, s)
         integrate_second_half(m, s)
 
     def evaluate_forces(self) -> None:
         """Forces at the current positions without advancing time or history (the set-up evaluation)."""
         m, s = self.model, self.state
-        s.rebuild_flag.fill_(1)
-        self.neighbors.rebuild_if_needed()
         s.particle_f.zero_()
         s.particle_t.zero_()
-        eval_contacts(m, s, self.track_energy, dt=0.0)
+        s.node_f.zero_()
+        eval_tets(m, s, dt=0.0)
+        if self.has_spheres:
+            s.rebuild_flag.fill_(1)
+            self.neighbors.rebuild_if_needed()
+            eval_contacts(m, s, self.track_energy, dt=0.0)
         eval_bonds(m, s, dt=0.0)
 
     def _run(self, n_steps: int) -> None:
@@ -211,6 +228,11 @@ class Simulation:
         return int(self.state.bond_count.numpy()[0])
 
     @property
+    def node_count(self) -> int:
+        """Live FEM nodes (host read-back)."""
+        return int(self.state.node_count.numpy()[0])
+
+    @property
     def particle_count(self) -> int:
         """Live particles (host read-back)."""
         return int(self.state.particle_count.numpy()[0])
@@ -230,15 +252,26 @@ class Simulation:
         e_contact, _ = contact_energy(m, s)
         e_bond, _ = bond_energy(m, s)
         g = np.asarray(m.gravity, dtype=np.float64)
+        nn = self.node_count
+        node_mass = m.node_mass.numpy()[:nn].astype(np.float64)
+        node_v = s.node_qd.numpy()[:nn].astype(np.float64)
+        # X + u in float64 rather than the float32 sum node_q, so the potential keeps the displacements' precision.
+        node_q = m.node_ref_q.numpy()[:nn].astype(np.float64) + s.node_u.numpy()[:nn].astype(np.float64)
+        moving = m.node_inv_mass.numpy()[:nn] > 0.0
         return EnergyBalance(
             kinetic_translational=float(0.5 * np.sum(mass * np.sum(v * v, axis=1))),
             kinetic_rotational=float(0.5 * np.sum(inertia * np.sum(w * w, axis=1))),
             elastic=e_contact + e_bond,
-            gravity_potential=float(-np.sum(mass[free] * (q[free] @ g))),
+            gravity_potential=float(
+                -np.sum(mass[free] * (q[free] @ g)) - np.sum(node_mass[moving] * (node_q[moving] @ g))
+            ),
             dissipated_damping=float(s.energy_damping.numpy()[:n].sum()),
             dissipated_friction=float(s.energy_friction.numpy()[:n].sum()),
             released_by_bond_breakage=float(s.energy_bond_broken.numpy()[:n].sum()),
             boundary_work=float(s.energy_boundary_work.numpy()[:n].sum()),
+            kinetic_nodes=float(0.5 * np.sum(node_mass * np.sum(node_v * node_v, axis=1))),
+            strain=tet_energy(m, s),
+            dissipated_viscous=float(s.node_energy_damping.numpy()[:nn].sum()),
         )
 
     def contact_count(self) -> int:

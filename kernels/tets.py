@@ -1,0 +1,272 @@
+"""Cosserat point tetrahedra (ldec_fem_dem_fracture.txt §2.1; DESIGN.md stage 2): explicit, lumped mass.
+
+Each tet is a homogeneously deformable Cosserat point. Its directors d_i = x_i - x_0 (i = 1..3) against the reference
+directors D_i = X_i - X_0 give the deformation gradient F = [d1 d2 d3][D1 D2 D3]⁻¹; a hyperelastic law gives the
+first Piola stress P(F); the director balance laws with the uncoupled (lumped) director inertia of LDEC reduce to
+nodal forces f_i = -V₀ P D⁻ᵀ e_i on nodes 1..3 and f_0 = -(f_1 + f_2 + f_3), each node carrying ρV₀/4 of every
+tet it belongs to. In a continuum region this is the constant-strain tet of standard FEM. The kernels read the
+nodal displacements u = x - X, not the positions: F = I + [u_i - u_0] D⁻¹ keeps the float32 round-off of a strain
+at ε₃₂ (1 + |u|/h) wherever the body sits, where differences of float32 coordinates would give ε₃₂ |x|/h.
+
+Material law: compressible neo-Hookean, ψ(F) = μ/2 (tr FᵀF - 3) - μ ln J + λ/2 (J - 1)², so P = μ F + g(J) cof F
+with g(J) = λ (J - 1) - μ/J and cof F = J F⁻ᵀ. It is chosen over the corotated law because (i) it is
+frame-indifferent by construction (F = R gives P = μR - μR = 0 exactly, with no polar decomposition whose iterative
+SVD would cost more than the rest of the element), (ii) it linearises to Hooke's law with the same λ, μ
+(P ≈ 2με + λ tr ε I for F = I + ∇u), and (iii) its energy → ∞ as J → 0, so a blast-compressed tet resists collapse
+instead of inverting at finite energy as a corotated tet can. The volumetric term λ/2 (J - 1)² rather than
+λ/2 (ln J)² keeps a logarithm out of the force kernel (the two agree to second order in the strain). Below J_MIN the
+volumetric energy is continued by its second-order Taylor expansion in J (the restoring force keeps growing), so a
+crushed or inverted tet yields finite forces and never NaN (the inversion-safe idea of Irving et al. 2004).
+
+Shock capture: a linear + quadratic bulk viscosity in compression (von Neumann–Richtmyer / Landshoff, as LS-DYNA and
+other explicit shock codes), q = ρ₀ ℓ (c_quad ℓ ε̇_v² - c_lin c_p ε̇_v) for ε̇_v < 0, added to the stress as the
+pressure q, with the reference density and a reference length of the tet; its work is booked as dissipated energy on
+the tet's nodes.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+# Motion kinds of a node (``node_motion``).
+NODE_FREE = wp.constant(0)
+NODE_FIXED = wp.constant(1)
+NODE_Z_ONLY = wp.constant(2)
+
+TET_ACTIVE = wp.constant(1)
+
+J_MIN = wp.constant(0.1)
+"""Volume ratio below which the volumetric energy is continued by its Taylor expansion (and Cauchy stress is
+reported with J = J_MIN) [-]."""
+
+
+@wp.struct
+class TetMaterial:
+    """Continuum properties of one material, one entry per material id.
+
+    Attributes:
+        mu: Lamé shear modulus μ = E / (2(1 + ν)) [Pa].
+        lam: Lamé λ = E ν / ((1 + ν)(1 - 2ν)) [Pa].
+        density: reference density ρ₀ [kg/m³].
+        c_p: P-wave speed sqrt((λ + 2μ)/ρ₀) [m/s].
+        c_lin: linear bulk-viscosity coefficient [-] (default 0.06).
+        c_quad: quadratic bulk-viscosity coefficient [-] (default 1.2).
+        alpha: mass-proportional (Rayleigh α) damping [1/s] (default 0).
+    """
+
+    mu: float
+    lam: float
+    density: float
+    c_p: float
+    c_lin: float
+    c_quad: float
+    alpha: float
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Element physics.
+
+
+@wp.func
+def node_free_directions(motion: int) -> wp.vec3:
+    """Components of a node's velocity that move: 1 free, 0 held (free: all; fixed: none; z only: z)."""
+    if motion == NODE_FREE:
+        return wp.vec3(1.0, 1.0, 1.0)
+    if motion == NODE_Z_ONLY:
+        return wp.vec3(0.0, 0.0, 1.0)
+    return wp.vec3(0.0)
+
+
+@wp.func
+def deformation_gradient(u0: wp.vec3, u1: wp.vec3, u2: wp.vec3, u3: wp.vec3, inv_ref: wp.mat33) -> wp.mat33:
+    """F = [d1 d2 d3] D⁻¹ = I + [u1 - u0, u2 - u0, u3 - u0] D⁻¹ from the nodal displacements u_k = x_k - X_k (LDEC
+    §2.1: directors d_i = x_i - x_0 = D_i + u_i - u_0). Forming the displacement gradient first keeps float32
+    round-off relative to |u| rather than to the coordinates."""
+    return wp.identity(n=3, dtype=float) + wp.matrix_from_cols(u1 - u0, u2 - u0, u3 - u0) * inv_ref
+
+
+@wp.func
+def cofactor(f: wp.mat33) -> wp.mat33:
+    """cof F = det(F) F⁻ᵀ = ∂J/∂F, from the columns f_k of F: [f1 × f2, f2 × f0, f0 × f1]; defined for any F."""
+    c0 = wp.vec3(f[0, 0], f[1, 0], f[2, 0])
+    c1 = wp.vec3(f[0, 1], f[1, 1], f[2, 1])
+    c2 = wp.vec3(f[0, 2], f[1, 2], f[2, 2])
+    return wp.matrix_from_cols(wp.cross(c1, c2), wp.cross(c2, c0), wp.cross(c0, c1))
+
+
+@wp.func
+def volumetric_stress_and_slope(j: Any, mu: Any, lam: Any):
+    """g(J) = dψ_v/dJ = λ (J - 1) - μ/J [Pa] and its slope g'(J) = λ + μ/J² [Pa], J > 0."""
+    return lam * (j - type(j)(1.0)) - mu / j, lam + mu / (j * j)
+
+
+@wp.func
+def volumetric_stress(j: float, mu: float, lam: float) -> float:
+    """g(J) = dψ_v/dJ [Pa], continued linearly below J_MIN (the derivative of the quadratic continuation of ψ_v)."""
+    if j < J_MIN:
+        g_min, slope = volumetric_stress_and_slope(J_MIN, mu, lam)
+        return g_min + slope * (j - J_MIN)
+    g, _slope = volumetric_stress_and_slope(j, mu, lam)
+    return g
+
+
+@wp.func
+def volumetric_energy(j: wp.float64, mu: wp.float64, lam: wp.float64) -> wp.float64:
+    """ψ_v(J) = -μ ln J + λ/2 (J - 1)² [J/m³], continued below J_MIN by its second-order Taylor expansion, float64."""
+    half = wp.float64(0.5)
+    one = wp.float64(1.0)
+    if j < wp.float64(J_MIN):
+        j_min = wp.float64(J_MIN)
+        g_min, slope = volumetric_stress_and_slope(j_min, mu, lam)
+        s = j - j_min
+        return -mu * wp.log(j_min) + half * lam * (j_min - one) * (j_min - one) + g_min * s + half * slope * s * s
+    return -mu * wp.log(j) + half * lam * (j - one) * (j - one)
+
+
+@wp.func
+def cauchy_stress(f: wp.mat33, j: float, g: float, mu: float) -> wp.mat33:
+    """Cauchy stress σ = P Fᵀ / J = (μ F Fᵀ + g J I) / J [Pa] of P = μ F + g cof F (cof F Fᵀ = J I), with J clamped
+    at J_MIN in the division."""
+    inv_j = 1.0 / wp.max(j, J_MIN)
+    return (mu * inv_j) * (f * wp.transpose(f)) + wp.diag(wp.vec3(g * j * inv_j))
+
+
+@wp.func
+def neo_hookean_energy_density(f: wp.mat33d, mat: TetMaterial) -> wp.float64:
+    """Strain energy per reference volume ψ = μ/2 (tr FᵀF - 3) + ψ_v(J) [J/m³], in float64.
+
+    At rock strains ε the two O(με) terms cancel to O(με²); float32 would leave only noise of order μ·1e-7.
+    """
+    mu = wp.float64(mat.mu)
+    psi_v = volumetric_energy(wp.determinant(f), mu, wp.float64(mat.lam))
+    return wp.float64(0.5) * mu * (wp.ddot(f, f) - wp.float64(3.0)) + psi_v
+
+
+@wp.func
+def characteristic_length(inv_ref: wp.mat33) -> float:
+    """Reference length of a tet, ℓ = 2 / sqrt(Σ_a |∇N_a|²) [m] (the height of a regular tet, 0.82 of the cell edge
+    for a Kuhn tet), from the shape-function gradients: the rows of D⁻¹ and minus their sum.
+
+    Unlike V^{1/3} it shrinks with the smallest height of a flat tet, so a bulk viscosity built on it damps the
+    element's fastest mode by the same ratio whatever its shape (warpdem.tets.tet_stable_time_steps).
+    """
+    r0 = inv_ref[0]
+    r1 = inv_ref[1]
+    r2 = inv_ref[2]
+    s = r0 + r1 + r2
+    return 2.0 / wp.sqrt(wp.dot(r0, r0) + wp.dot(r1, r1) + wp.dot(r2, r2) + wp.dot(s, s))
+
+
+@wp.func
+def bulk_viscosity_pressure(volume_rate: float, inv_ref: wp.mat33, mat: TetMaterial) -> float:
+    """Artificial bulk-viscosity pressure q ≥ 0 [Pa] (von Neumann–Richtmyer quadratic + Landshoff linear terms).
+
+    q = ρ₀ ℓ (c_quad ℓ ε̇_v² - c_lin c_p ε̇_v) for ε̇_v < 0 (compression), 0 otherwise. Density and length are those
+    of the reference configuration (a Lagrangian viscosity; rock stays within a few percent of J = 1), ℓ the
+    characteristic length of the tet.
+
+    Args:
+        volume_rate: volumetric strain rate ε̇_v = J̇/J [1/s].
+        inv_ref: D⁻¹ [1/m].
+    """
+    if volume_rate >= 0.0:
+        return 0.0
+    length = characteristic_length(inv_ref)
+    return mat.density * length * (mat.c_quad * length * volume_rate * volume_rate - mat.c_lin * mat.c_p * volume_rate)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Kernels.
+
+
+@wp.kernel
+def eval_tet_forces_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    tet_inv_ref: wp.array(dtype=wp.mat33),
+    tet_volume: wp.array(dtype=float),
+    tet_material: wp.array(dtype=int),
+    tet_material_table: wp.array(dtype=TetMaterial),
+    dt: float,
+    # State in:
+    tet_count: wp.array(dtype=int),
+    tet_active: wp.array(dtype=int),
+    node_u: wp.array(dtype=wp.vec3),
+    node_qd: wp.array(dtype=wp.vec3),
+    # State out:
+    tet_stress: wp.array(dtype=wp.mat33),
+    node_f: wp.array(dtype=wp.vec3),
+    node_energy_damping: wp.array(dtype=wp.float64),
+):
+    t = wp.tid()  # one thread per tet slot
+    if t >= tet_count[0]:
+        return
+    if tet_active[t] != TET_ACTIVE:
+        return
+    n = tet_nodes[t]
+    inv_ref = tet_inv_ref[t]
+    volume0 = tet_volume[t]
+    mat = tet_material_table[tet_material[t]]
+    f = deformation_gradient(node_u[n[0]], node_u[n[1]], node_u[n[2]], node_u[n[3]], inv_ref)
+    cof = cofactor(f)
+    j = wp.determinant(f)
+    g = volumetric_stress(j, mat.mu, mat.lam)
+    # The stored stress is the elastic one: the bulk viscosity is a numerical device, not a rock stress.
+    tet_stress[t] = cauchy_stress(f, j, g, mat.mu)
+    # A = D⁻¹ cof Fᵀ: row i is ∂J/∂d_i, so J̇ = Σ_i A_i · (v_i - v_0) (= cof F : Ḟ) and ε̇_v = J̇ / J.
+    a = inv_ref * wp.transpose(cof)
+    v0 = node_qd[n[0]]
+    j_rate = wp.dot(a[0], node_qd[n[1]] - v0) + wp.dot(a[1], node_qd[n[2]] - v0) + wp.dot(a[2], node_qd[n[3]] - v0)
+    q = bulk_viscosity_pressure(j_rate / wp.max(j, J_MIN), inv_ref, mat)
+    # P = μ F + (g - q) cof F: the elastic law plus the viscous pressure q as -q J F⁻ᵀ. Nodal forces -V₀ P D⁻ᵀ e_i
+    # are the rows of -V₀ D⁻¹ Pᵀ = -V₀ (μ D⁻¹ Fᵀ + (g - q) A) on nodes 1..3, minus their sum on node 0.
+    h = -volume0 * (mat.mu * (inv_ref * wp.transpose(f)) + (g - q) * a)
+    f1 = h[0]
+    f2 = h[1]
+    f3 = h[2]
+    wp.atomic_add(node_f, n[0], -(f1 + f2 + f3))
+    wp.atomic_add(node_f, n[1], f1)
+    wp.atomic_add(node_f, n[2], f2)
+    wp.atomic_add(node_f, n[3], f3)
+    if q > 0.0:
+        # Work of the viscous pressure, q (-J̇) V₀ dt ≥ 0, shared by the four nodes.
+        quarter = wp.float64(-0.25 * q * j_rate * volume0 * dt)
+        wp.atomic_add(node_energy_damping, n[0], quarter)
+        wp.atomic_add(node_energy_damping, n[1], quarter)
+        wp.atomic_add(node_energy_damping, n[2], quarter)
+        wp.atomic_add(node_energy_damping, n[3], quarter)
+
+
+@wp.kernel
+def eval_tet_energy_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    tet_inv_ref: wp.array(dtype=wp.mat33),
+    tet_volume: wp.array(dtype=float),
+    tet_material: wp.array(dtype=int),
+    tet_material_table: wp.array(dtype=TetMaterial),
+    # State in:
+    tet_count: wp.array(dtype=int),
+    tet_active: wp.array(dtype=int),
+    node_u: wp.array(dtype=wp.vec3),
+    # Out:
+    tet_energy: wp.array(dtype=wp.float64),
+):
+    t = wp.tid()  # one thread per tet slot
+    if t >= tet_count[0]:
+        tet_energy[t] = wp.float64(0.0)
+        return
+    if tet_active[t] != TET_ACTIVE:
+        tet_energy[t] = wp.float64(0.0)
+        return
+    n = tet_nodes[t]
+    mat = tet_material_table[tet_material[t]]
+    u0 = node_u[n[0]]
+    # F = I + [u_i - u_0] D⁻¹ formed in float64, so the energy keeps the precision of the displacements.
+    du = wp.matrix_from_cols(node_u[n[1]] - u0, node_u[n[2]] - u0, node_u[n[3]] - u0)
+    f = wp.identity(n=3, dtype=wp.float64) + wp.mat33d(du) * wp.mat33d(tet_inv_ref[t])
+    tet_energy[t] = wp.float64(tet_volume[t]) * neo_hookean_energy_density(f, mat)
