@@ -1,7 +1,8 @@
 """Compaction passes: flag → exclusive scan → scatter → remap (deterministic by construction).
 
-Used wherever topology changes: removing broken bonds now; splitting nodes and converting tets later. The scan
-itself is ``wp.utils.array_scan``; these kernels are the steps around it.
+Used wherever topology changes: removing broken bonds; appending new node slots when joints are pre-split (and when
+nodes split at run time); converting tets later. The scan itself is ``wp.utils.array_scan``; these kernels are the
+steps around it.
 """
 
 from __future__ import annotations
@@ -76,3 +77,61 @@ def remap_indices_kernel(
     idx = indices[t]
     if idx >= 0:
         indices[t] = old_to_new[idx]
+
+
+@wp.kernel
+def first_new_slot_kernel(
+    # In:
+    count: wp.array(dtype=int),
+    copies: wp.array(dtype=int),
+    offset: wp.array(dtype=int),
+    # Out:
+    first_new: wp.array(dtype=int),
+    new_count: wp.array(dtype=int),
+):
+    k = wp.tid()  # one thread per slot (over capacity)
+    n = count[0]
+    # The appended slots follow the live ones, in the order of their parents.
+    if k < n:
+        first_new[k] = n + offset[k]
+    else:
+        first_new[k] = -1
+    last = copies.shape[0] - 1
+    if k == last:
+        # copies is zero past the live count (mask_copies_kernel), so the scan's last entry holds the total. The
+        # count may exceed the capacity: the host learns the size it needs.
+        new_count[0] = n + offset[last] + copies[last]
+
+
+@wp.kernel
+def mask_copies_kernel(
+    # In:
+    count: wp.array(dtype=int),
+    copies_in: wp.array(dtype=int),
+    # Out:
+    copies: wp.array(dtype=int),
+):
+    k = wp.tid()  # one thread per slot (over capacity)
+    if k < count[0]:
+        copies[k] = wp.max(copies_in[k], 0)
+    else:
+        copies[k] = 0
+
+
+@wp.kernel
+def replicate_kernel(
+    # In:
+    count: wp.array(dtype=int),
+    copies: wp.array(dtype=int),
+    first_new: wp.array(dtype=int),
+    # State out:
+    a: wp.array(dtype=Any),
+):
+    k = wp.tid()  # one thread per parent slot; it writes its own appended slots
+    if k >= count[0]:
+        return
+    first = first_new[k]
+    for c in range(copies[k]):
+        dst = first + c
+        if dst < a.shape[0]:  # past capacity: the host grows and redoes the pass, nothing is written out of bounds
+            a[dst] = a[k]

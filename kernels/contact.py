@@ -11,6 +11,7 @@ current contact plane) and the bond between the pair, if any (``bond``, index in
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import warp as wp
@@ -190,18 +191,34 @@ TANGENTIAL_MODELS = ("mindlin", "linear")
 ROLLING_MODELS = ("none", "constant_torque")
 
 
+@dataclasses.dataclass(frozen=True)
+class PairLaws:
+    """The contact laws of one choice of models, composed as wp.funcs (:func:`make_pair_laws`).
+
+    Attributes:
+        normal_force: (δ, v_n, r_a, r_b, R*, m*, p) → (F [N], F_el [N], k_n [N/m]).
+        tangential_stiffness: (δ, R*, k_n, p) → k_t [N/m].
+        elastic_energy: (δ, k_n) → normal spring energy [J].
+        pair_interaction: force and rolling torque on body a of a touching pair and its new tangential spring.
+        pair_dissipation: energy a touching pair dissipated during the step (normal, tangential) [J].
+    """
+
+    normal_force: wp.Function
+    tangential_stiffness: wp.Function
+    elastic_energy: wp.Function
+    pair_interaction: wp.Function
+    pair_dissipation: wp.Function
+
+
 @functools.cache
-def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energy: bool):
-    """Build the contact kernels for one choice of laws, specialised at code-generation time.
+def make_pair_laws(normal: str, tangential: str, rolling: str) -> PairLaws:
+    """Compose the contact laws of one choice of models (shared by the sphere–sphere and sphere–wall kernels here
+    and the sphere–FEM-face kernel of kernels/fem_contact.py, so a face is hit exactly as a wall is).
 
     Args:
         normal: "hertz" or "linear".
         tangential: "mindlin" or "linear".
         rolling: "none" or "constant_torque".
-        track_energy: accumulate damping/friction dissipation and wall work per particle (float64).
-
-    Returns:
-        (eval_contacts_kernel, contact_energy_kernel).
     """
     if normal not in NORMAL_MODELS or tangential not in TANGENTIAL_MODELS or rolling not in ROLLING_MODELS:
         raise ValueError(f"unknown contact model {normal!r}/{tangential!r}/{rolling!r}")
@@ -284,6 +301,29 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
         d_t = -wp.dot(ft, vt) * dt - 0.5 * kt * (wp.dot(shear_new, shear_new) - wp.dot(s_old, s_old))
         d_t = d_t - wp.dot(rolling_t, omega_rel) * dt
         return wp.vec2(d_n, d_t)
+
+    return PairLaws(normal_force, tangential_stiffness, elastic_energy, pair_interaction, pair_dissipation)
+
+
+@functools.cache
+def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energy: bool):
+    """Build the contact kernels for one choice of laws, specialised at code-generation time.
+
+    Args:
+        normal: "hertz" or "linear".
+        tangential: "mindlin" or "linear".
+        rolling: "none" or "constant_torque".
+        track_energy: accumulate damping/friction dissipation and wall work per particle (float64).
+
+    Returns:
+        (eval_contacts_kernel, contact_energy_kernel).
+    """
+    laws = make_pair_laws(normal, tangential, rolling)
+    normal_force = laws.normal_force
+    tangential_stiffness = laws.tangential_stiffness
+    elastic_energy = laws.elastic_energy
+    pair_interaction = laws.pair_interaction
+    pair_dissipation = laws.pair_dissipation
 
     @wp.kernel(module="unique")
     def eval_contacts_kernel(

@@ -4,7 +4,9 @@ Step n → n+1 (LIGGGHTS ``fix nve/sphere``): first half kick and drift, v ← v
 clears the force accumulators for the new evaluation; then, after the forces at x_{n+1}, the second half kick
 v ← v + dt/2 a_{n+1}. Rotation of spheres is isotropic (I = 2/5 m r²), so ω is kicked the same way. FEM nodes
 (lumped mass, translation only) take the same two half kicks in their own kernels; they drift their displacement,
-u ← u + dt v, and x = X + u follows.
+u ← u + dt v, and x = X + u follows. Their held components (fixed, rollers) stay zero, and a node with a velocity
+driver (warpdem.loads) holds its velocity while the driver does, the driver's work booked. The state's time advances
+last, after the second half kick.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import warp as wp
 
 from .contact import MOTION_FREE
+from .loads import NodeDriver, drive_first_half, drive_second_half
 from .tets import node_free_directions
 
 wp.set_module_options({"enable_backward": False})
@@ -94,23 +97,38 @@ def integrate_nodes_first_half_kernel(
     node_inv_mass: wp.array(dtype=float),
     node_motion: wp.array(dtype=int),
     node_damping: wp.array(dtype=float),
+    node_driver: wp.array(dtype=int),
+    drivers: wp.array(dtype=NodeDriver),
+    num_drivers: int,
     gravity: wp.vec3,
     dt: float,
     # State in:
     node_count: wp.array(dtype=int),
+    time: wp.array(dtype=wp.float64),
     # State out:
     node_u: wp.array(dtype=wp.vec3),
     node_q: wp.array(dtype=wp.vec3),
     node_qd: wp.array(dtype=wp.vec3),
     node_f: wp.array(dtype=wp.vec3),
     node_energy_damping: wp.array(dtype=wp.float64),
+    node_energy_boundary_work: wp.array(dtype=wp.float64),
 ):
     i = wp.tid()  # one thread per FEM node slot
     if i >= node_count[0]:
         return
     # Held velocity components stay zero (fixed nodes, rollers), so the constraints do no work.
     free = node_free_directions(node_motion[i])
-    v = wp.cw_mul(free, node_qd[i] + 0.5 * dt * (node_f[i] * node_inv_mass[i] + gravity))
+    v_old = node_qd[i]
+    v = wp.cw_mul(free, v_old + 0.5 * dt * (node_f[i] * node_inv_mass[i] + gravity))
+    if num_drivers > 0:
+        d = node_driver[i]
+        if d >= 0:
+            # A driven node holds the driver's velocity over steps whose midpoint it covers (kernels/loads.py); the
+            # driver works against gravity only where the node's weight counts in the potential (inv_mass > 0).
+            weight = node_mass[i] * gravity * wp.where(node_inv_mass[i] > 0.0, 1.0, 0.0)
+            t_mid = time[0] + wp.float64(0.5 * dt)
+            v, work = drive_first_half(drivers[d], t_mid, dt, free, v_old, v, node_f[i] + weight, node_mass[i])
+            node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(work)
     node_qd[i] = v
     # The drift goes into the displacement, small next to the coordinates, so float32 keeps the increment.
     u = node_u[i] + dt * v
@@ -127,21 +145,47 @@ def integrate_nodes_first_half_kernel(
 @wp.kernel
 def integrate_nodes_second_half_kernel(
     # Model:
+    node_mass: wp.array(dtype=float),
     node_inv_mass: wp.array(dtype=float),
     node_motion: wp.array(dtype=int),
+    node_driver: wp.array(dtype=int),
+    drivers: wp.array(dtype=NodeDriver),
+    num_drivers: int,
     gravity: wp.vec3,
     dt: float,
     # State in:
     node_count: wp.array(dtype=int),
+    time: wp.array(dtype=wp.float64),
     node_f: wp.array(dtype=wp.vec3),
     # State out:
     node_qd: wp.array(dtype=wp.vec3),
+    node_energy_boundary_work: wp.array(dtype=wp.float64),
 ):
     i = wp.tid()  # one thread per FEM node slot
     if i >= node_count[0]:
         return
     free = node_free_directions(node_motion[i])
-    node_qd[i] = wp.cw_mul(free, node_qd[i] + 0.5 * dt * (node_f[i] * node_inv_mass[i] + gravity))
+    v = wp.cw_mul(free, node_qd[i] + 0.5 * dt * (node_f[i] * node_inv_mass[i] + gravity))
+    if num_drivers > 0:
+        d = node_driver[i]
+        if d >= 0:
+            weight = node_mass[i] * gravity * wp.where(node_inv_mass[i] > 0.0, 1.0, 0.0)
+            # The same midpoint as the first half (time still holds t_n), so both halves agree bit for bit.
+            t_mid = time[0] + wp.float64(0.5 * dt)
+            v, work = drive_second_half(drivers[d], t_mid, dt, v, node_f[i] + weight)
+            node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(work)
+    node_qd[i] = v
+
+
+@wp.kernel
+def advance_time_kernel(
+    # Model:
+    dt: wp.float64,
+    # State out:
+    time: wp.array(dtype=wp.float64),
+):
+    i = wp.tid()  # one thread
+    time[i] = time[i] + dt
 
 
 @wp.kernel

@@ -32,10 +32,16 @@ import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
-# Motion kinds of a node (``node_motion``).
+# Motion kinds of a node (``node_motion``): which velocity components are held at zero. Rollers (from
+# warpdem.loads) hold the one normal to their plane; a node on two roller planes moves along their common axis.
 NODE_FREE = wp.constant(0)
 NODE_FIXED = wp.constant(1)
 NODE_Z_ONLY = wp.constant(2)
+NODE_ROLLER_X = wp.constant(3)  # x held
+NODE_ROLLER_Y = wp.constant(4)  # y held
+NODE_ROLLER_Z = wp.constant(5)  # z held
+NODE_X_ONLY = wp.constant(6)  # y, z held
+NODE_Y_ONLY = wp.constant(7)  # x, z held
 
 TET_ACTIVE = wp.constant(1)
 
@@ -73,11 +79,22 @@ class TetMaterial:
 
 @wp.func
 def node_free_directions(motion: int) -> wp.vec3:
-    """Components of a node's velocity that move: 1 free, 0 held (free: all; fixed: none; z only: z)."""
+    """Components of a node's velocity that move: 1 free, 0 held (free: all; fixed: none; z only: z; a roller: the
+    two in its plane; x or y only: that one)."""
     if motion == NODE_FREE:
         return wp.vec3(1.0, 1.0, 1.0)
     if motion == NODE_Z_ONLY:
         return wp.vec3(0.0, 0.0, 1.0)
+    if motion == NODE_ROLLER_X:
+        return wp.vec3(0.0, 1.0, 1.0)
+    if motion == NODE_ROLLER_Y:
+        return wp.vec3(1.0, 0.0, 1.0)
+    if motion == NODE_ROLLER_Z:
+        return wp.vec3(1.0, 1.0, 0.0)
+    if motion == NODE_X_ONLY:
+        return wp.vec3(1.0, 0.0, 0.0)
+    if motion == NODE_Y_ONLY:
+        return wp.vec3(0.0, 1.0, 0.0)
     return wp.vec3(0.0)
 
 

@@ -16,8 +16,11 @@ import warp as wp
 from . import packing
 from .bonds import find_bond_pairs
 from .contact import critical_time_step_hertz
+from .fem_contact import attach_fem_contact, contact_critical_time_step, fem_contact_state
+from .joints import JointData, JointProps, count_split_nodes
 from .kernels.contact import ContactPair
 from .kernels.tets import TetMaterial
+from .loads import LoadModel, LoadSpecs, PressureHistory
 from .mesh import MeshQuality, check_tets
 from .model import BondData, Model, ParticleData, State, TetMeshData, WallData, pair_table_array
 from .restitution import hertz_damping_coefficient, linear_damping_ratio
@@ -116,6 +119,11 @@ class ModelBuilder:
     tet_props: dict[str, TetProps] = field(default_factory=dict)
     mesh_qualities: list[MeshQuality] = field(default_factory=list)
     _tet_meshes: list[tuple] = field(default_factory=list)
+    joint_sets: list[JointProps] = field(default_factory=list)
+    joint_set_names: list[str] = field(default_factory=list)
+    _joint_faces: list[tuple] = field(default_factory=list)
+    contact_stiffness_factor: float = 1.0
+    load_specs: LoadSpecs = field(default_factory=LoadSpecs)
 
     # -- materials and interactions ---------------------------------------------------------------------------
     def add_material(self, name: str, density: float, youngs_modulus: float, poisson_ratio: float) -> int:
@@ -190,11 +198,13 @@ class ModelBuilder:
         self,
         points: np.ndarray,
         tets: np.ndarray,
-        material: str,
+        material: str | Sequence[str],
         *,
         fixed_nodes: np.ndarray | None = None,
         z_only_nodes: np.ndarray | None = None,
         velocity: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
+        joint_faces: np.ndarray | None = None,
+        joint_set: int | np.ndarray = 0,
     ) -> np.ndarray:
         """Add a body of Cosserat point tetrahedra; returns the ids of its nodes.
 
@@ -204,16 +214,24 @@ class ModelBuilder:
         Args:
             points: node positions [m], shape (N, 3).
             tets: node indices into ``points``, shape (M, 4).
-            material: material name (density, E, ν; bulk viscosity from :meth:`set_tet_properties`).
+            material: material name (density, E, ν; bulk viscosity from :meth:`set_tet_properties`), or one name
+                per tet (a layered rock mass).
             fixed_nodes: indices (or a boolean mask) of nodes held in place.
             z_only_nodes: indices (or a boolean mask) of nodes that move along z only (x and y held).
             velocity: initial node velocities [m/s], shape (3,) or (N, 3); held components are zeroed.
+            joint_faces: faces of the mesh that lie on joints, node triples into ``points``, shape (J, 3) (e.g.
+                warpdem.geology.GeologyMesh.joint_faces): their nodes are split at :meth:`finalize` so that the rock
+                on either side is separate, touching through the joint (warpdem.joints). A split node's copies keep
+                its motion kind (a fixed node is fixed on every side).
+            joint_set: joint set of the faces (:meth:`add_joint_set`), one id or one per face, shape (J,).
 
         Raises:
-            KeyError: unknown material. warpdem.mesh.MeshError: a bad mesh.
+            KeyError: unknown material or joint set. warpdem.mesh.MeshError: a bad mesh.
         """
-        if material not in self.materials:
-            raise KeyError(f"unknown material {material!r}")
+        per_tet = np.asarray([material] * len(tets) if isinstance(material, str) else material, dtype=str)
+        unknown = sorted(set(per_tet.tolist()) - set(self.materials))
+        if unknown or len(per_tet) != len(tets):
+            raise KeyError(f"unknown material {unknown[0]!r}" if unknown else "need one material name per tet")
         points = np.asarray(points, dtype=np.float64)
         oriented, quality = check_tets(points, tets)
         n = len(points)
@@ -225,7 +243,15 @@ class ModelBuilder:
         vel[motion == NODE_MOTIONS["fixed"]] = 0.0
         vel[motion == NODE_MOTIONS["z_only"], :2] = 0.0
         first = self.node_count
-        self._tet_meshes.append((points.copy(), vel, motion, oriented, material))
+        if joint_faces is not None and len(joint_faces):
+            faces = np.asarray(joint_faces, dtype=np.int64).reshape(-1, 3)
+            sets = np.broadcast_to(np.asarray(joint_set, dtype=np.int64), (len(faces),)).copy()
+            if np.any((sets < 0) | (sets >= len(self.joint_sets))):
+                raise KeyError(f"unknown joint set in {np.unique(sets).tolist()}: add it with add_joint_set first")
+            if np.any((faces < 0) | (faces >= n)):
+                raise KeyError("joint_faces: a node index is out of range")
+            self._joint_faces.append((faces + first, sets))
+        self._tet_meshes.append((points.copy(), vel, motion, oriented, per_tet))
         self.mesh_qualities.append(quality)
         return np.arange(first, first + n)
 
@@ -233,23 +259,68 @@ class ModelBuilder:
     def node_count(self) -> int:
         return sum(len(m[0]) for m in self._tet_meshes)
 
+    def add_joint_set(self, props: JointProps, name: str | None = None) -> int:
+        """A joint set (friction, cohesion, tensile strength, penalty stiffness); returns its id for
+        :meth:`add_tet_mesh`'s ``joint_set``."""
+        self.joint_sets.append(props)
+        self.joint_set_names.append(name or f"joint{len(self.joint_sets) - 1}")
+        return len(self.joint_sets) - 1
+
+    def joint_data(self) -> JointData:
+        """The joint faces of every mesh added, in global node ids, with their joint sets."""
+        if not self._joint_faces:
+            return JointData.empty()
+        return JointData(
+            faces=np.concatenate([f for f, _ in self._joint_faces]).astype(np.int32),
+            face_set=np.concatenate([k for _, k in self._joint_faces]).astype(np.int32),
+        )
+
+    def contact_critical_time_step(self, mesh: TetMeshData) -> float:
+        """Stable step of the FEM contacts and joints [s] before the safety factor
+        (:func:`warpdem.fem_contact.contact_critical_time_step`). inf where no FEM contact can engage at the start:
+        no tets, or one tet body without joints, walls or spheres (a crack opened at run time brings its own
+        contacts, and the fracture stage its own step)."""
+        joints = self.joint_data()
+        if len(mesh.tets) == 0 or not (len(joints) or self._walls or self._spheres or len(self._tet_meshes) > 1):
+            return math.inf
+        table = self.tet_material_table()
+        young = np.array([m.mu * (3.0 * m.lam + 2.0 * m.mu) / max(m.lam + m.mu, 1e-30) for m in table])
+        density = np.array([m.density for m in table], dtype=np.float64)
+        zeta = [p.damping_ratio for p in self.joint_sets]
+        names = list(self.materials)
+        zeta += [linear_damping_ratio(self.interaction(a, b).restitution) for a in names for b in names]
+        return contact_critical_time_step(
+            mesh.points,
+            mesh.tets,
+            young[mesh.material],
+            density[mesh.material],
+            joints,
+            self.joint_sets,
+            self.contact_stiffness_factor,
+            max(zeta),
+        )
+
     def tet_mesh_data(self) -> TetMeshData:
         """All tet meshes added so far, concatenated (node indices offset accordingly)."""
         if not self._tet_meshes:
             return TetMeshData.empty()
         names = list(self.materials)
         offsets = np.cumsum([0] + [len(m[0]) for m in self._tet_meshes])[:-1]
-        return TetMeshData(
+        mesh = TetMeshData(
             points=np.concatenate([m[0] for m in self._tet_meshes]),
             velocity=np.concatenate([m[1] for m in self._tet_meshes]),
             motion=np.concatenate([m[2] for m in self._tet_meshes]),
             tets=np.concatenate([m[3] + off for m, off in zip(self._tet_meshes, offsets, strict=True)]),
-            material=np.concatenate([np.full(len(m[3]), names.index(m[4]), np.int32) for m in self._tet_meshes]),
+            material=np.concatenate(
+                [np.array([names.index(n) for n in m[4]], dtype=np.int32) for m in self._tet_meshes]
+            ),
         )
+        # Fixed and roller boundaries (add_boundary) add to the held axes of their nodes.
+        return self.load_specs.constrain(mesh)
 
     def tet_material_table(self) -> list[TetMaterial]:
         """The TetMaterial of every material, index = material id (zeros for materials no tet uses)."""
-        used = {m[4] for m in self._tet_meshes}
+        used = {name for m in self._tet_meshes for name in np.unique(m[4]).tolist()}
         return [
             tet_material(p.density, p.youngs_modulus, p.poisson_ratio, self.tet_props.get(name, TetProps()))
             if name in used
@@ -318,6 +389,57 @@ class ModelBuilder:
             damping_ratio,
         )
         self._bond_groups.append((np.asarray(ids, dtype=np.int64), props))
+
+    # -- loads and boundaries ----------------------------------------------------------------------------------
+    def add_face_pressure(self, faces: np.ndarray, history: PressureHistory, name: str = "") -> None:
+        """A pressure history on a set of boundary faces (stage 8, :mod:`warpdem.loads`).
+
+        Args:
+            faces: node ids (as returned by :meth:`add_tet_mesh`) of the loaded faces, shape (F, 3); each must be a
+                boundary face of one tet, and is re-ordered to point out of it. The pressure pushes into the rock.
+            history: p(t, x), e.g. ``PressureHistory.blast(peak, rise_time, decay_time)``.
+            name: a name for reports (default: kind and index).
+
+        Raises:
+            ValueError: bad faces or history (faces that are no boundary faces are found at :meth:`finalize`).
+        """
+        self.load_specs.add_face_pressure(faces, history, name)
+
+    def add_node_velocity(
+        self, nodes: np.ndarray, velocity: Sequence[float], start: float = 0.0, end: float = math.inf
+    ) -> None:
+        """Prescribe the velocity of a node set [m/s] while start ≤ t < end [s] (an impact, a moving support); the
+        nodes are free (or as constrained) outside that window. The driver's work is booked in the energy balance.
+
+        Args:
+            nodes: node ids or a boolean mask over them, shape (K,). velocity: shape (3,).
+
+        Raises:
+            ValueError: bad ids, velocity or window; a node with two drivers (at :meth:`finalize`).
+        """
+        self.load_specs.add_node_velocity(nodes, velocity, start, end)
+
+    def add_boundary(self, faces_or_nodes: np.ndarray, kind: str, *, normal: Sequence[float] | None = None) -> None:
+        """A boundary condition on faces (F, 3) or nodes (K,) (ids or a mask) of the tet meshes.
+
+        Args:
+            faces_or_nodes: node ids of faces, shape (F, 3), or of nodes, shape (K,).
+            kind: "fixed" (the nodes never move), "roller" (the nodes move only in the plane normal to ``normal``,
+                an axis; on faces it defaults to their common normal) or "non_reflecting" (Lysmer–Kuhlemeyer
+                dashpots on boundary faces, with ρ, c_p, c_s of the tet behind each: outgoing waves leave the model).
+            normal: roller only: ±x, ±y or ±z as a 3-vector.
+
+        Raises:
+            ValueError: an unknown kind, a normal that is not axis-aligned, non-reflecting nodes without faces.
+        """
+        self.load_specs.add_boundary(faces_or_nodes, kind, normal)
+
+    def load_model(self, mesh: TetMeshData, tet_arrays: dict, dt: float, device: wp.context.Device) -> LoadModel | None:
+        """The device-side loads and dashpots (None when none were added); ``tet_arrays`` from
+        :meth:`tet_model_arrays`."""
+        if not self.load_specs:
+            return None
+        return self.load_specs.build(mesh, self.tet_material_table(), tet_arrays["node_capacity"], dt, device)
 
     # -- finalize ----------------------------------------------------------------------------------------------
     def particle_data(self) -> ParticleData:
@@ -406,11 +528,16 @@ class ModelBuilder:
     def critical_time_step(self, particles: ParticleData, bonds: BondData, mesh: TetMeshData | None = None) -> float:
         """Critical time step [s] before the safety factor: the smallest of the Rayleigh step (Hertz) or
         2 sqrt(m*/k_n) (linear) of every sphere size and material, the Hertz contact time at the fastest initial
-        approach / 10, the bond step (:func:`bond_critical_time_step`) and the tet step
-        (:meth:`tet_critical_time_step`, of ``mesh`` or of the meshes added)."""
+        approach / 10, the bond step (:func:`bond_critical_time_step`), the tet step
+        (:meth:`tet_critical_time_step`, of ``mesh`` or of the meshes added), the step of the nodes under
+        non-reflecting dashpots (:meth:`warpdem.loads.LoadSpecs.critical_time_step`) and the step of the FEM contact
+        and joint penalty springs (:meth:`contact_critical_time_step`)."""
         names = list(self.materials)
         free = particles.motion == 0
-        tet_step = self.tet_critical_time_step(mesh if mesh is not None else self.tet_mesh_data())
+        mesh = mesh if mesh is not None else self.tet_mesh_data()
+        # Non-reflecting dashpots on light boundary nodes can be stiffer than the tets themselves (warpdem.loads).
+        dashpot_step = self.load_specs.critical_time_step(mesh, self.tet_material_table())
+        tet_step = min(self.tet_critical_time_step(mesh), dashpot_step, self.contact_critical_time_step(mesh))
         if not np.any(free) and not len(bonds):
             return tet_step
         steps = []
@@ -443,8 +570,11 @@ class ModelBuilder:
         sort: bool = True,
         node_capacity: int | None = None,
         tet_capacity: int | None = None,
+        fem_skin: float | None = None,
+        max_sphere_faces: int = 8,
+        max_node_faces: int = 8,
     ) -> tuple[Model, State]:
-        """Allocate the model and initial state.
+        """Allocate the model and initial state; pre-split the joints and build the FEM contact surface.
 
         Args:
             device: Warp device.
@@ -454,8 +584,11 @@ class ModelBuilder:
             max_neighbors: initial neighbour slots per particle (grown on overflow).
             particle_capacity: particle slots (default: the sphere count).
             sort: reorder spheres along a Z-order curve for memory locality (ids keep the creation order).
-            node_capacity: FEM node slots (default: the node count).
+            node_capacity: FEM node slots (default: the node count after splitting the joints).
             tet_capacity: tet slots (default: the tet count).
+            fem_skin: Verlet skin of the FEM contact lists [m] (default: warpdem.fem_contact.attach_fem_contact).
+            max_sphere_faces, max_node_faces: initial FEM contact candidates per sphere and per node (grown on
+                overflow).
         """
         device = wp.get_device(device)
         particles = self.particle_data()
@@ -502,7 +635,10 @@ class ModelBuilder:
             return wp.array(out, dtype=int, device=device)
 
         nw = len(walls)
-        tet_arrays = self.tet_model_arrays(mesh, device, node_capacity, tet_capacity)
+        joints = self.joint_data()
+        # Room for the nodes the joints split off (counted by the same device pass that splits them below).
+        split_count = count_split_nodes(mesh.points, mesh.tets, joints, device)
+        tet_arrays = self.tet_model_arrays(mesh, device, max(node_capacity or 0, split_count), tet_capacity)
         model = Model(
             device=device,
             particle_capacity=cap,
@@ -532,8 +668,20 @@ class ModelBuilder:
             walls_move=bool(nw and np.any(walls.velocity != 0.0)),
             bond_capacity=len(bonds),
             **tet_arrays,
+            loads=self.load_model(mesh, tet_arrays, float(dt), device),
         )
         state = new_state(model, particles, walls, bonds, mesh)
+        model, state = attach_fem_contact(
+            model,
+            state,
+            joints,
+            self.joint_sets,
+            self.pair_table(),
+            fem_skin=fem_skin,
+            max_sphere_faces=max_sphere_faces,
+            max_node_faces=max_node_faces,
+            contact_stiffness_factor=self.contact_stiffness_factor,
+        )
         return model, state
 
     def tet_model_arrays(
@@ -641,6 +789,10 @@ def new_state(
         node_energy_damping=wp.zeros(model.node_capacity, dtype=wp.float64, device=device),
         tet_active=arr(np.ones(nt), int, model.tet_capacity),
         tet_stress=wp.zeros(model.tet_capacity, dtype=wp.mat33, device=device),
+        time=wp.zeros(1, dtype=wp.float64, device=device),
+        node_f_load=vec(None, model.node_capacity),
+        node_energy_boundary_work=wp.zeros(model.node_capacity, dtype=wp.float64, device=device),
+        **fem_contact_state(model),
     )
 
 
@@ -747,21 +899,40 @@ def scene_builder(scene: Scene) -> ModelBuilder:
             b.add_plane_wall(wall.point, wall.normal, wall.material, wall.velocity)
         else:
             b.add_box_walls(wall.lo, wall.hi, wall.material, open_top=wall.open_top)
+    if scene.mesh is not None:
+        from .scene_mesh import add_scene_mesh
+
+        add_scene_mesh(b, scene)
     return b
 
 
 def build_scene(scene: Scene, device: wp.context.DeviceLike = None) -> tuple[Model, State]:
     """Model and initial state of a validated scene on ``device`` (default: the scene's run.device)."""
-    b = scene_builder(scene)
-    if b.sphere_count == 0:
-        raise SceneError(f"{scene.name}: particles: the scene creates no sphere")
+    return finalize_scene(scene, scene_builder(scene), device)
+
+
+def finalize_scene(scene: Scene, b: ModelBuilder, device: wp.context.DeviceLike = None) -> tuple[Model, State]:
+    """Model and initial state from the builder of a scene (:func:`scene_builder`), with the scene's run settings.
+
+    Raises:
+        SceneError: the scene creates neither a sphere nor a tet, or a mesh file's joint faces are not interior faces.
+    """
+    from .joints import JointFaceError
+
+    if b.sphere_count == 0 and b.node_count == 0:
+        raise SceneError(f"{scene.name}: particles: the scene creates no sphere (and has no [mesh])")
     run = scene.run
     skin = None if scene.contact.skin == "auto" else float(scene.contact.skin)
-    return b.finalize(
-        device if device is not None else run.device,
-        dt=None if run.dt == "auto" else float(run.dt),
-        safety_factor=run.safety_factor,
-        skin=skin,
-        max_neighbors=scene.capacity.neighbors_per_particle,
-        particle_capacity=scene.capacity.particles,
-    )
+    try:
+        return b.finalize(
+            device if device is not None else run.device,
+            dt=None if run.dt == "auto" else float(run.dt),
+            safety_factor=run.safety_factor,
+            skin=skin,
+            max_neighbors=scene.capacity.neighbors_per_particle,
+            particle_capacity=scene.capacity.particles,
+            node_capacity=scene.capacity.nodes,
+            tet_capacity=scene.capacity.tets,
+        )
+    except JointFaceError as exc:
+        raise SceneError(f"{scene.name}: mesh: {exc}") from None

@@ -3,6 +3,12 @@
 Removing broken bonds uses it now; node splitting and tet conversion reuse it. A pass keeps the survivors in
 their original order, so it is deterministic, and it produces an ``old_to_new`` map (-1 for removed slots) that
 :meth:`Compactor.remap` applies to every index array pointing into the compacted set.
+
+The same helper runs the mirror-image pass that *appends* slots (pre-split joints now, nodal fracture later):
+count the copies each live slot needs → exclusive scan → each parent's first new slot (``count + offset``) →
+:meth:`Compactor.replicate` copies the parent into its new slots. The new slots follow the live ones in the order
+of their parents, so this pass is deterministic too; a total past the capacity writes nothing out of bounds and
+leaves ``new_count`` at the size the host must grow to before redoing the pass.
 """
 
 from __future__ import annotations
@@ -86,6 +92,58 @@ class Compactor:
                 device=self.device,
             )
 
+    def plan_append(self, count: wp.array, copies: wp.array) -> wp.array:
+        """Plan an append pass: live slot k (k < count) gets ``copies[k]`` new slots after the live ones.
+
+        Args:
+            count: live slots, shape (1,), int32.
+            copies: new slots wanted per slot (negative and past-count entries count as 0), shape (capacity,).
+
+        Returns:
+            ``first_new``: first appended slot of each live slot (-1 past the count), shape (capacity,), int32; its
+            copies take ``first_new[k] .. first_new[k] + copies[k] - 1``. ``self.new_count`` holds count + Σ copies,
+            which may exceed the capacity (then grow and redo; :meth:`replicate` writes nothing out of bounds).
+        """
+        if self.capacity == 0:
+            wp.copy(self.new_count, count)
+            return self.old_to_new
+        wp.launch(
+            kc.mask_copies_kernel, dim=self.capacity, inputs=[count, copies], outputs=[self.keep], device=self.device
+        )
+        wp.utils.array_scan(self.keep, self.offset, inclusive=False)
+        wp.launch(
+            kc.first_new_slot_kernel,
+            dim=self.capacity,
+            inputs=[count, self.keep, self.offset],
+            outputs=[self.old_to_new, self.new_count],
+            device=self.device,
+        )
+        return self.old_to_new
+
+    @property
+    def first_new(self) -> wp.array:
+        """First appended slot of each live slot after :meth:`plan_append` (the buffer ``old_to_new`` uses for a
+        removal pass: one Compactor runs one pass at a time)."""
+        return self.old_to_new
+
+    @property
+    def copies(self) -> wp.array:
+        """Appended slots of each slot after :meth:`plan_append` (0 past the count), shape (capacity,), int32."""
+        return self.keep
+
+    def replicate(self, count: wp.array, arrays: Sequence[wp.array]) -> None:
+        """Copy every live slot of each array into its appended slots (after :meth:`plan_append`), in place."""
+        if self.capacity == 0:
+            return
+        for a in arrays:
+            wp.launch(
+                kc.replicate_kernel,
+                dim=self.capacity,
+                inputs=[count, self.keep, self.old_to_new],
+                outputs=[a],
+                device=self.device,
+            )
+
     def finish(self, count: wp.array) -> None:
-        """Set the compacted set's live count to the survivors' count."""
+        """Set the live count to the pass's new count (the survivors of a removal, count + copies of an append)."""
         wp.copy(count, self.new_count)

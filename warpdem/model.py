@@ -12,11 +12,15 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
 
 from .kernels.contact import ContactPair
+
+if TYPE_CHECKING:
+    from .loads import LoadModel
 
 
 def _array_fields(obj: object) -> dict[str, wp.array]:
@@ -58,7 +62,8 @@ class Model:
         node_ref_q: reference positions X [m], shape (node_capacity,), vec3.
         node_mass: lumped mass Σ ρV₀/4 over the node's tets [kg], shape (node_capacity,), float32.
         node_inv_mass: 1/m [1/kg], 0 for fixed nodes, shape (node_capacity,), float32.
-        node_motion: 0 free, 1 fixed, 2 moves along z only (x, y held), shape (node_capacity,), int32.
+        node_motion: held velocity components: 0 free, 1 fixed, 2 z only (x, y held), 3/4/5 roller normal to x/y/z
+            (that component held), 6 x only, 7 y only (kernels/tets.py), shape (node_capacity,), int32.
         node_damping: mass-proportional damping α of the node (mass-weighted over its tets) [1/s],
             shape (node_capacity,), float32.
         tet_nodes: node indices, positively oriented, shape (tet_capacity,), vec4i.
@@ -66,6 +71,41 @@ class Model:
         tet_volume: reference volume V₀ [m³], shape (tet_capacity,), float32.
         tet_material: material id, shape (tet_capacity,), int32.
         tet_material_table: continuum properties per material id, shape (num_materials,), TetMaterial.
+        loads: pressure loads, non-reflecting dashpots and node velocity drivers (warpdem.loads.LoadModel), or None.
+
+    FEM contact and joints (warpdem.fem_contact, warpdem.joints; the surface topology is rebuilt on the device after
+    every topology pass):
+        face_capacity: boundary face slots.
+        max_sphere_faces: candidate faces per sphere (grows ×2 on overflow between steps).
+        max_node_faces: candidate faces per FEM node (grows ×2 on overflow between steps).
+        fem_skin: Verlet skin of the FEM contact lists [m] (rebuilt when a node has moved half of it).
+        face_radius: largest distance from a boundary face's centroid to its vertices (reference) [m].
+        face_depth_max: largest face_depth [m].
+        contact_stiffness_factor: penalty factor f of faces that are no joint faces [-] (a face of a tet of modulus
+            E and height h is a spring of f E / h per unit area).
+        tet_face_joint: joint set of each tet-face slot 4t + k (face k opposite node k), -1 for none, shape
+            (4 tet_capacity,), int32.
+        star_offset, star_count: the node → tet adjacency: node n's tets are star_tets[star_offset[n] ..
+            star_offset[n] + star_count[n]), sorted, shape (node_capacity,), int32.
+        star_tets: live active tets of every node's star, shape (4 tet_capacity,), int32.
+        tet_face_nbr: the tet across each tet-face slot, -1 on the surface, shape (4 tet_capacity,), int32.
+        face_nodes: boundary faces (faces of active tets used once), nodes in outward order, shape (face_capacity,),
+            vec3i.
+        face_tet: the tet behind each face, shape (face_capacity,), int32.
+        face_joint: joint set of each face, -1 for none, shape (face_capacity,), int32.
+        face_depth: deepest penetration a node may have into the face and still be pushed back out of it: half the
+            tet's height over the face [m], shape (face_capacity,), float32.
+        node_contact_stiffness: penalty stiffness of each node, Σ over its boundary faces of f E A / (3 h) [N/m]
+            (0 for a node inside the rock), shape (node_capacity,), float32.
+        node_contact_material: material id of each node (of its lowest tet), shape (node_capacity,), int32.
+        fem_pair_table: node–face and node–wall interaction of a material pair, as pair_table with damp_n the
+            linear damping ratio ζ, shape (num_materials²,), ContactPair.
+        joint_material_table: properties of each joint set, shape (max(num_joint_sets, 1),), JointMaterial.
+        joint_set_props: the joint sets' warpdem.joints.JointProps (host copies).
+        joint_capacity: joint interface elements.
+        joint_a, joint_b: daughter nodes of each element, a < b, shape (joint_capacity,), int32.
+        joint_area: interface area of each element [m²]; joint_kn: its normal stiffness [N/m]; joint_tet_face: the
+            tet-face slot of A's joint face (its outward normal is the element's); joint_set: its joint set.
     """
 
     device: wp.context.Device
@@ -108,6 +148,35 @@ class Model:
     walls_move: bool = False
     bond_capacity: int = 0
     extra: dict = field(default_factory=dict)
+    loads: LoadModel | None = None
+    face_capacity: int = 0
+    max_sphere_faces: int = 8
+    max_node_faces: int = 8
+    fem_skin: float = 0.0
+    face_radius: float = 0.0
+    face_depth_max: float = 0.0
+    contact_stiffness_factor: float = 1.0
+    tet_face_joint: wp.array | None = None
+    star_offset: wp.array | None = None
+    star_count: wp.array | None = None
+    star_tets: wp.array | None = None
+    tet_face_nbr: wp.array | None = None
+    face_nodes: wp.array | None = None
+    face_tet: wp.array | None = None
+    face_joint: wp.array | None = None
+    face_depth: wp.array | None = None
+    node_contact_stiffness: wp.array | None = None
+    node_contact_material: wp.array | None = None
+    fem_pair_table: wp.array | None = None
+    joint_material_table: wp.array | None = None
+    joint_set_props: list = field(default_factory=list)
+    joint_capacity: int = 0
+    joint_a: wp.array | None = None
+    joint_b: wp.array | None = None
+    joint_area: wp.array | None = None
+    joint_kn: wp.array | None = None
+    joint_tet_face: wp.array | None = None
+    joint_set: wp.array | None = None
 
     @property
     def max_radius(self) -> float:
@@ -161,11 +230,38 @@ class State:
         node_qd: node velocities [m/s], shape (node_capacity,), vec3.
         node_f: node forces [N] (gravity excluded; starts each step at the damping force -α m v), shape
             (node_capacity,), vec3.
-        node_energy_damping: energy dissipated by bulk viscosity and mass-proportional damping [J], per node,
-            shape (node_capacity,), float64.
+        node_energy_damping: energy dissipated by bulk viscosity, mass-proportional damping and non-reflecting
+            dashpots [J], per node, shape (node_capacity,), float64.
         tet_active: 1 for a tet that carries forces, 0 for one taken out (converted), shape (tet_capacity,), int32.
         tet_stress: Cauchy stress of the last force evaluation (elastic, without bulk viscosity) [Pa], tension
             positive, shape (tet_capacity,), mat33.
+        time: simulated time [s], advanced on the device every step (time-dependent loads read it), shape (1,),
+            float64.
+        node_f_load: the pressure-load part of node_f [N] (for the trapezoidal booking of its work), shape
+            (node_capacity,), vec3.
+        node_energy_boundary_work: work done on the nodes by pressure loads and velocity drivers [J], shape
+            (node_capacity,), float64.
+        face_count: live boundary faces, shape (1,), int32.
+        fem_rebuild_flag: 1 when the FEM contact lists must be rebuilt, shape (1,), int32.
+        fem_rebuild_total: FEM contact-list builds since the start, shape (1,), int32.
+        fem_sphere_builds_seen: the sphere list's rebuild_total at the last FEM build (a sphere rebuild means a
+            sphere moved half its skin, so the sphere–face lists are rebuilt too), shape (1,), int32.
+        node_q_at_fem_build: node positions at the last FEM contact-list build [m], shape (node_capacity,), vec3.
+        sphere_face_needed: the most candidate faces a sphere had at a build (overflow when > max_sphere_faces),
+            shape (1,); sphere_face_count: candidate faces of each sphere, shape (particle_capacity,);
+            sphere_face_index: candidate face of each slot, shape (particle_capacity * max_sphere_faces,), int32;
+            sphere_face_shear: tangential spring of each slot [m], same shape, vec3.
+        node_face_needed: the most candidate faces a node had at a build (overflow when > max_node_faces), shape
+            (1,); node_face_count: candidate faces of each node, shape (node_capacity,); node_face_index: candidate
+            face of each slot, shape (node_capacity * max_node_faces,), int32.
+        node_face_shear: tangential spring of each node's face contact [m] (a node touches one face at a time; the
+            spring follows it from face to face), shape (node_capacity,), vec3.
+        node_wall_shear: tangential spring of each node–wall pair [m], shape (node_capacity * num_walls,), vec3.
+        node_energy_contact: energy dissipated by the FEM contacts and joint elements of each node [J] (dashpots,
+            friction, released by failed joints), shape (node_capacity,), float64.
+        joint_count: joint interface elements, shape (1,), int32.
+        joint_broken: 0 intact, 1 failed in tension, 2 failed in shear, shape (joint_capacity,), int32.
+        joints_broken_total: joint elements failed since the start, shape (1,), int32.
     """
 
     particle_count: wp.array
@@ -211,6 +307,27 @@ class State:
     node_energy_damping: wp.array
     tet_active: wp.array
     tet_stress: wp.array
+    time: wp.array
+    node_f_load: wp.array
+    node_energy_boundary_work: wp.array
+    face_count: wp.array
+    fem_rebuild_flag: wp.array
+    fem_rebuild_total: wp.array
+    fem_sphere_builds_seen: wp.array
+    node_q_at_fem_build: wp.array
+    sphere_face_needed: wp.array
+    sphere_face_count: wp.array
+    sphere_face_index: wp.array
+    sphere_face_shear: wp.array
+    node_face_needed: wp.array
+    node_face_count: wp.array
+    node_face_index: wp.array
+    node_face_shear: wp.array
+    node_wall_shear: wp.array
+    node_energy_contact: wp.array
+    joint_count: wp.array
+    joint_broken: wp.array
+    joints_broken_total: wp.array
 
     def arrays(self) -> dict[str, wp.array]:
         """All arrays of the state by field name."""

@@ -6,9 +6,13 @@ A step (DESIGN.md, stages in order):
    and FEM nodes);
 2. tetrahedra — Cosserat point element forces, bulk viscosity and Cauchy stresses;
 3. contact search — rebuild the skinned neighbour list from the hash grid when flagged (conditional node);
-4. contact — sphere–sphere and sphere–wall forces with tangential history;
+4. contact — sphere–sphere and sphere–wall forces with tangential history; FEM contact (its lists rebuilt in a
+   conditional node when a node moved half the FEM skin or the sphere list was rebuilt): sphere–face, node–face
+   across joints and cracks, node–wall, and the joint interface elements (warpdem.fem_contact, warpdem.joints);
 5. bonds — cohesive bond forces and breakage;
-6. integrate, second half — kick by dt/2 with the new forces.
+6. loads and boundaries — pressure histories on faces, non-reflecting dashpots (fixed and roller nodes and velocity
+   drivers are held by the integrator);
+7. integrate, second half — kick by dt/2 with the new forces; advance the time.
 
 The step allocates nothing and reads nothing back. Between frames (:meth:`Simulation.advance`) the host checks the
 device's overflow counters; if a capacity was exceeded it grows the buffers ×2, restores the state saved at the
@@ -28,7 +32,9 @@ import warp as wp
 from .bonds import bond_energy, compact_bonds, eval_bonds
 from .compaction import Compactor
 from .contact import NeighborList, contact_energy, eval_contacts
+from .fem_contact import FemContact, fem_contact_energy, fem_contact_growth, regrow_fem_contacts
 from .integrate import integrate_first_half, integrate_second_half
+from .loads import eval_loads, relax_to_equilibrium
 from .model import NEIGHBOR_FIELDS, Model, State
 from .tets import eval_tets, tet_energy
 
@@ -40,8 +46,10 @@ class EnergyBalance:
     ``total`` = kinetic + elastic + strain + gravity potential + dissipated − boundary work; it stays at its initial
     value up to time-discretisation error (and the known non-conservation of a Mindlin spring whose stiffness
     changes with the overlap). Spheres and FEM nodes share the gravity potential; ``kinetic_nodes`` is the FEM
-    nodes' kinetic energy, ``strain`` the tets' strain energy, ``dissipated_viscous`` what bulk viscosity and
-    mass-proportional damping took from the continuum.
+    nodes' kinetic energy, ``strain`` the tets' strain energy, ``dissipated_viscous`` what bulk viscosity,
+    mass-proportional damping and non-reflecting dashpots took from the continuum, ``load_work`` the work of pressure
+    loads and velocity drivers on the FEM nodes. ``elastic`` includes the springs of the FEM contacts and intact joint
+    elements; ``dissipated_fem_contact`` is what their dashpots and friction took, and the springs of failed joints.
     """
 
     kinetic_translational: float
@@ -55,6 +63,8 @@ class EnergyBalance:
     kinetic_nodes: float = 0.0
     strain: float = 0.0
     dissipated_viscous: float = 0.0
+    load_work: float = 0.0
+    dissipated_fem_contact: float = 0.0
 
     @property
     def kinetic(self) -> float:
@@ -72,6 +82,8 @@ class EnergyBalance:
             - self.boundary_work
             + self.strain
             + self.dissipated_viscous
+            - self.load_work
+            + self.dissipated_fem_contact
         )
 
 
@@ -99,7 +111,8 @@ class Simulation:
         track_energy: accumulate dissipated energy per particle (slightly slower contact kernel).
         use_graph: run steps as a captured graph (CUDA graph on GPUs, Warp's recorded graph on the CPU).
         primed: the state already holds the forces at its positions (a restart from a checkpoint).
-        step: step counter of ``state``; time: its simulated time [s].
+        step: step counter of ``state``; time: its simulated time [s], written to ``state.time`` (None: read from
+            ``state.time``).
     """
 
     def __init__(
@@ -111,13 +124,17 @@ class Simulation:
         use_graph: bool = True,
         primed: bool = False,
         step: int = 0,
-        time: float = 0.0,
+        time: float | None = None,
     ) -> None:
         self.model = model
         self.state = state
         self.track_energy = track_energy
         self.use_graph = use_graph
         self.step_count = step
+        if time is None:
+            time = float(state.time.numpy()[0])
+        else:
+            state.time.fill_(time)
         self.time = time
         self.growths = 0
         self._setup()
@@ -132,6 +149,7 @@ class Simulation:
         # A model of tets alone has no sphere to size the contact grid by: its sphere contact stages are skipped.
         self.has_spheres = self.model.max_radius > 0.0
         self.neighbors = NeighborList(self.model, self.state) if self.has_spheres else None
+        self.fem_contact = FemContact(self.model, self.state, self.has_spheres) if self.model.face_capacity else None
         self.bond_compactor = Compactor(self.model.bond_capacity, self.model.device)
         self._snapshot: State | None = None
         self._graph = None
@@ -145,7 +163,10 @@ class Simulation:
         if self.has_spheres:
             self.neighbors.rebuild_if_needed()
             eval_contacts(m, s, self.track_energy)
+        if self.fem_contact is not None:
+            self.fem_contact.eval(self.track_energy)
         eval_bonds(m, s)
+        eval_loads(m, s)
         integrate_second_half(m, s)
 
     def evaluate_forces(self) -> None:
@@ -159,7 +180,16 @@ class Simulation:
             s.rebuild_flag.fill_(1)
             self.neighbors.rebuild_if_needed()
             eval_contacts(m, s, self.track_energy, dt=0.0)
+        if self.fem_contact is not None:
+            s.fem_rebuild_flag.fill_(1)
+            self.fem_contact.eval(self.track_energy, dt=0.0)
         eval_bonds(m, s, dt=0.0)
+        eval_loads(m, s, dt=0.0)
+
+    def relax_to_equilibrium(self, **kwargs) -> int:
+        """Damped dynamic relaxation of the FEM nodes to the geostatic state before dynamics starts (keyword
+        arguments and return value: :func:`warpdem.loads.relax_to_equilibrium`)."""
+        return relax_to_equilibrium(self, **kwargs)
 
     def _run(self, n_steps: int) -> None:
         if not self.use_graph or n_steps < 2:
@@ -196,19 +226,27 @@ class Simulation:
                 break
             self._snapshot = self.state.clone()
         self.step_count += n_steps
-        self.time += n_steps * self.model.dt
+        # The device clock is the reference (time-dependent loads read it); the host copy follows it bit for bit, so
+        # a restart from a checkpoint continues on the same clock.
+        self.time = float(self.state.time.numpy()[0])
         self.remove_broken_bonds()
 
     def _grow_if_overflowed(self, restore_from: State) -> bool:
-        """If the last neighbour build needed more slots than there are, grow ×2 until they fit and continue from
-        ``restore_from`` (a state whose own list fits). Returns whether it grew."""
+        """If the last neighbour build (or FEM contact build) needed more slots than there are, grow ×2 until they
+        fit and continue from ``restore_from`` (a state whose own lists fit). Returns whether it grew."""
         needed = int(self.state.nbr_needed.numpy()[0])
-        if needed <= self.model.max_neighbors:
+        fem = fem_contact_growth(self.model, self.state)
+        if needed <= self.model.max_neighbors and fem is None:
             return False
-        k = self.model.max_neighbors
-        while k < needed:
-            k *= 2
-        self.model, self.state = regrow_neighbors(self.model, restore_from, k)
+        model, state = self.model, restore_from
+        if needed > model.max_neighbors:
+            k = model.max_neighbors
+            while k < needed:
+                k *= 2
+            model, state = regrow_neighbors(model, state, k)
+        if fem is not None:
+            model, state = regrow_fem_contacts(model, state, *fem)
+        self.model, self.state = model, state
         self.growths += 1
         self._setup()
         return True
@@ -250,6 +288,7 @@ class Simulation:
         q = s.particle_q.numpy()[:n].astype(np.float64)
         inertia = 0.4 * mass * radius**2
         e_contact, _ = contact_energy(m, s)
+        e_fem, d_fem = fem_contact_energy(m, s)
         e_bond, _ = bond_energy(m, s)
         g = np.asarray(m.gravity, dtype=np.float64)
         nn = self.node_count
@@ -261,7 +300,7 @@ class Simulation:
         return EnergyBalance(
             kinetic_translational=float(0.5 * np.sum(mass * np.sum(v * v, axis=1))),
             kinetic_rotational=float(0.5 * np.sum(inertia * np.sum(w * w, axis=1))),
-            elastic=e_contact + e_bond,
+            elastic=e_contact + e_bond + e_fem,
             gravity_potential=float(
                 -np.sum(mass[free] * (q[free] @ g)) - np.sum(node_mass[moving] * (node_q[moving] @ g))
             ),
@@ -272,6 +311,8 @@ class Simulation:
             kinetic_nodes=float(0.5 * np.sum(node_mass * np.sum(node_v * node_v, axis=1))),
             strain=tet_energy(m, s),
             dissipated_viscous=float(s.node_energy_damping.numpy()[:nn].sum()),
+            load_work=float(s.node_energy_boundary_work.numpy()[:nn].sum()),
+            dissipated_fem_contact=d_fem,
         )
 
     def contact_count(self) -> int:

@@ -1,0 +1,1060 @@
+"""FEM contact (DESIGN.md stage 4): the boundary faces of the tet mesh, their skinned candidate lists from a hash
+grid, and sphere–face, node–face and node–wall forces with tangential history.
+
+Surface. The boundary faces are the faces of live, active tets that no other active tet shares (after joints are
+pre-split, both faces of a joint are boundary faces), listed in outward order so that n_f, the right-hand unit
+normal, points out of the rock. A node's penalty stiffness is Σ over its boundary faces of f E A / (3 h) [N/m]:
+each face, of area A on a tet of modulus E and height h over it, is a spring f E / h per unit area shared by its
+three nodes (f the face's stiffness factor: its joint set's, or the model's for other faces).
+
+Sphere–face: the closest point c of the triangle to the sphere centre x (barycentric weights w); touching when
+|x - c| < r with x in front of the face. The force is the sphere contact law of the model (kernels/contact.py,
+``make_pair_laws``) with the face as a flat body (R* = r, as a wall), m* = 1 / (1/m_s + Σ w_i²/m_i), and the equal
+and opposite force goes to the face's nodes with the weights w_i. A sphere may touch several faces; a contact at a
+face's edge or vertex counts only if no other face is nearer (the same edge point seen from the two faces that share
+the edge counts once, and a contact in a face's interior shadows its neighbours' edges).
+
+Node–face: a node penetrates a face when the face faces it (n_f · n_v < 0, n_v the outward normal of the node's own
+surface), it lies behind the face's plane (s = (x - x_a) · n_f < 0), less deep than half the tet's height over the
+face, and it projects inside the triangle. Of the faces it penetrates it is pushed out of the shallowest (the
+shortest way out; a vertex shared by coplanar faces goes to the lowest face index), by a linear spring–dashpot k δ
+with k its penalty stiffness and ζ from the restitution (the laws linear_normal_force and coulomb_tangential of
+kernels/contact.py). One spring of tangential history per node follows it from face to face.
+Candidates exclude every face with a vertex in the node's 1-ring (the node itself or a node it shares a tet with):
+a node never touches a face of a tet holding it, nor a face that holds it, and near a crack tip the rock is still
+continuous. An intact joint element's pair is excluded too (the element carries it).
+
+Node–wall: as sphere–wall, with the node's penalty stiffness.
+
+Skins: the lists are rebuilt when a node has moved half of ``fem_skin`` since the last build or the sphere list was
+rebuilt (a sphere moved half its skin since the sphere build, which may precede the FEM build by another half: up
+to a whole skin since the FEM build). A candidate is kept at a build when it is within r + skin + fem_skin/2
+(sphere) or fem_skin (node), or already behind the face (node), so no pair can start touching between builds
+without being in the list.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import warp as wp
+
+from .contact import (
+    ContactPair,
+    coulomb_tangential,
+    linear_normal_force,
+    make_pair_laws,
+    rotate_into_plane,
+)
+from .joints import JointMaterial, local_index, tet_face, triangle_area_vector, youngs_modulus
+from .tets import TetMaterial
+
+wp.set_module_options({"enable_backward": False})
+
+BARY_EPS = wp.constant(1.0e-5)
+"""A barycentric weight above this is inside the triangle; a contact point with all three above it is in the
+face's interior, otherwise on an edge or vertex [-]."""
+
+TIE_EPS = wp.constant(4.0e-6)
+"""Relative tolerance (about 32 float32 ulps of the lengths involved) within which two contacts are equally near:
+the same edge or vertex point computed from two faces differs by rounding only [-]."""
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Geometry.
+
+
+@wp.func
+def closest_point_barycentric(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.vec3:
+    """Barycentric weights (w_a, w_b, w_c) of the point of triangle abc closest to p (Ericson, Real-Time Collision
+    Detection §5.1.5: Voronoi regions of the vertices, edges and face)."""
+    ab = b - a
+    ac = c - a
+    ap = p - a
+    d1 = wp.dot(ab, ap)
+    d2 = wp.dot(ac, ap)
+    if d1 <= 0.0 and d2 <= 0.0:
+        return wp.vec3(1.0, 0.0, 0.0)
+    bp = p - b
+    d3 = wp.dot(ab, bp)
+    d4 = wp.dot(ac, bp)
+    if d3 >= 0.0 and d4 <= d3:
+        return wp.vec3(0.0, 1.0, 0.0)
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        v = d1 / (d1 - d3)
+        return wp.vec3(1.0 - v, v, 0.0)
+    cp = p - c
+    d5 = wp.dot(ab, cp)
+    d6 = wp.dot(ac, cp)
+    if d6 >= 0.0 and d5 <= d6:
+        return wp.vec3(0.0, 0.0, 1.0)
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        w = d2 / (d2 - d6)
+        return wp.vec3(1.0 - w, 0.0, w)
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        return wp.vec3(0.0, 1.0 - w, w)
+    denom = 1.0 / (va + vb + vc)
+    v = vb * denom
+    w = vc * denom
+    return wp.vec3(1.0 - v - w, v, w)
+
+
+@wp.func
+def projection_barycentric(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, area2: wp.vec3) -> wp.vec3:
+    """Barycentric weights of the projection of p onto the plane of triangle abc (may be negative outside it);
+    area2 = (b - a) × (c - a)."""
+    inv = 1.0 / wp.dot(area2, area2)
+    wa = wp.dot(wp.cross(c - b, p - b), area2) * inv
+    wb = wp.dot(wp.cross(a - c, p - c), area2) * inv
+    return wp.vec3(wa, wb, 1.0 - wa - wb)
+
+
+@wp.func
+def min3(w: wp.vec3) -> float:
+    return wp.min(w[0], wp.min(w[1], w[2]))
+
+
+@wp.func
+def nearer(d: float, interior: int, f: int, best_d: float, best_interior: int, best_f: int, tol: float) -> bool:
+    """Whether a contact (distance or depth d, interior flag, face f) beats the best so far: nearer by more than tol;
+    or as near and in a face's interior where the best is not; or as near, of the same kind, and a lower face index."""
+    if best_f < 0:
+        return True
+    if d < best_d - tol:
+        return True
+    if d > best_d + tol:
+        return False
+    if interior != best_interior:
+        return interior > best_interior
+    return f < best_f
+
+
+@wp.func
+def in_one_ring(
+    v: int,
+    u: int,
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+) -> bool:
+    """Whether node u is node v or shares a tet with it."""
+    found = bool(u == v)
+    start = star_offset[v]
+    for e in range(start, start + star_count[v]):
+        if local_index(tet_nodes[star_tets[e]], u) >= 0:
+            found = True
+    return found
+
+
+@wp.func
+def find_joint(joint_a: wp.array(dtype=int), joint_b: wp.array(dtype=int), count: int, a: int, b: int) -> int:
+    """Index of the joint element (a, b), a < b, in the elements sorted by (a, b) (binary search), -1 if absent."""
+    lo = int(0)
+    hi = count
+    while lo < hi:
+        mid = (lo + hi) // 2
+        ma = joint_a[mid]
+        if ma < a or (ma == a and joint_b[mid] < b):
+            lo = mid + 1
+        else:
+            hi = mid
+    if lo < count:
+        if joint_a[lo] == a and joint_b[lo] == b:
+            return lo
+    return -1
+
+
+@wp.func
+def held_by_joint(
+    v: int,
+    u: int,
+    joint_a: wp.array(dtype=int),
+    joint_b: wp.array(dtype=int),
+    joint_count: int,
+    joint_broken: wp.array(dtype=int),
+) -> bool:
+    """Whether nodes v and u are the daughters of an intact joint element."""
+    k = find_joint(joint_a, joint_b, joint_count, wp.min(v, u), wp.max(v, u))
+    if k < 0:
+        return False
+    return joint_broken[k] == 0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Surface topology (after every topology pass): flag → scan → scatter through warpdem.compaction.
+
+
+@wp.kernel
+def count_tet_faces_kernel(
+    # State in:
+    tet_count: wp.array(dtype=int),
+    # Out:
+    tet_face_count: wp.array(dtype=int),
+):
+    tet_face_count[0] = 4 * tet_count[0]  # one thread
+
+
+@wp.kernel
+def flag_boundary_faces_kernel(
+    # State in:
+    tet_count: wp.array(dtype=int),
+    tet_active: wp.array(dtype=int),
+    # In:
+    tet_face_nbr: wp.array(dtype=int),
+    # Out:
+    dead: wp.array(dtype=int),
+):
+    s = wp.tid()  # one thread per tet-face slot 4t + k
+    t = s // 4
+    dead[s] = 1
+    if t < tet_count[0]:
+        if tet_active[t] != 0 and tet_face_nbr[s] < 0:
+            dead[s] = 0
+
+
+@wp.kernel
+def scatter_boundary_faces_kernel(
+    # Model:
+    node_ref_q: wp.array(dtype=wp.vec3),
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    tet_volume: wp.array(dtype=float),
+    tet_face_joint: wp.array(dtype=int),
+    # In:
+    tet_face_count: wp.array(dtype=int),
+    old_to_new: wp.array(dtype=int),
+    # Out:
+    face_nodes: wp.array(dtype=wp.vec3i),
+    face_tet: wp.array(dtype=int),
+    face_joint: wp.array(dtype=int),
+    face_depth: wp.array(dtype=float),
+):
+    s = wp.tid()  # one thread per tet-face slot; a boundary one writes its face
+    if s >= tet_face_count[0]:
+        return
+    f = old_to_new[s]
+    if f < 0 or f >= face_nodes.shape[0]:
+        return
+    t = s // 4
+    nodes = tet_face(tet_nodes[t], s % 4)
+    area = wp.length(triangle_area_vector(node_ref_q[nodes[0]], node_ref_q[nodes[1]], node_ref_q[nodes[2]]))
+    face_nodes[f] = nodes
+    face_tet[f] = t
+    face_joint[f] = tet_face_joint[s]
+    face_depth[f] = 0.5 * 3.0 * tet_volume[t] / area
+
+
+@wp.kernel
+def node_contact_stiffness_kernel(
+    # Model:
+    node_ref_q: wp.array(dtype=wp.vec3),
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    tet_volume: wp.array(dtype=float),
+    tet_material: wp.array(dtype=int),
+    tet_material_table: wp.array(dtype=TetMaterial),
+    tet_face_nbr: wp.array(dtype=int),
+    tet_face_joint: wp.array(dtype=int),
+    joint_material_table: wp.array(dtype=JointMaterial),
+    stiffness_factor: float,
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    # State in:
+    node_count: wp.array(dtype=int),
+    # Out:
+    node_contact_stiffness: wp.array(dtype=float),
+    node_contact_material: wp.array(dtype=int),
+):
+    v = wp.tid()  # one thread per node slot; sums over its own star in ascending tet order (deterministic)
+    node_contact_stiffness[v] = 0.0
+    node_contact_material[v] = 0
+    if v >= node_count[0]:
+        return
+    k_sum = float(0.0)
+    start = star_offset[v]
+    for e in range(start, start + star_count[v]):
+        t = star_tets[e]
+        n = tet_nodes[t]
+        if e == start:
+            node_contact_material[v] = tet_material[t]
+        for k in range(4):
+            if n[k] == v or tet_face_nbr[4 * t + k] >= 0:
+                continue  # the face opposite v does not hold v; a face with a neighbour is inside the rock
+            f = tet_face(n, k)
+            area = wp.length(triangle_area_vector(node_ref_q[f[0]], node_ref_q[f[1]], node_ref_q[f[2]]))
+            factor = stiffness_factor
+            js = tet_face_joint[4 * t + k]
+            if js >= 0:
+                factor = joint_material_table[js].stiffness_factor
+            # f E / h per unit area over A / 3, with h = 3 V₀ / A.
+            k_sum += factor * youngs_modulus(tet_material_table[tet_material[t]]) * area * area / (9.0 * tet_volume[t])
+    node_contact_stiffness[v] = k_sum
+
+
+@wp.kernel
+def face_extent_kernel(
+    # Model:
+    node_ref_q: wp.array(dtype=wp.vec3),
+    face_nodes: wp.array(dtype=wp.vec3i),
+    face_depth: wp.array(dtype=float),
+    # State in:
+    face_count: wp.array(dtype=int),
+    # Out:
+    extent: wp.array(dtype=float),
+):
+    f = wp.tid()  # one thread per face slot: extent[0] = max centroid–vertex distance, extent[1] = max depth
+    if f >= face_count[0]:
+        return
+    n = face_nodes[f]
+    a = node_ref_q[n[0]]
+    b = node_ref_q[n[1]]
+    c = node_ref_q[n[2]]
+    centre = (a + b + c) / 3.0
+    r = wp.max(wp.length(a - centre), wp.max(wp.length(b - centre), wp.length(c - centre)))
+    wp.atomic_max(extent, 0, r)
+    wp.atomic_max(extent, 1, face_depth[f])
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Candidate lists.
+
+
+@wp.kernel
+def flag_fem_rebuild_kernel(
+    # Model:
+    node_contact_stiffness: wp.array(dtype=float),
+    half_skin: float,
+    # State in:
+    node_count: wp.array(dtype=int),
+    node_q: wp.array(dtype=wp.vec3),
+    node_q_at_fem_build: wp.array(dtype=wp.vec3),
+    rebuild_total: wp.array(dtype=int),
+    fem_sphere_builds_seen: wp.array(dtype=int),
+    # State out:
+    fem_rebuild_flag: wp.array(dtype=int),
+):
+    v = wp.tid()  # one thread per node slot
+    if v == 0:
+        if rebuild_total[0] != fem_sphere_builds_seen[0]:
+            fem_rebuild_flag[0] = 1
+    if v >= node_count[0]:
+        return
+    if node_contact_stiffness[v] == 0.0:
+        return  # a node inside the rock is no contact point
+    moved = node_q[v] - node_q_at_fem_build[v]
+    if wp.dot(moved, moved) > half_skin * half_skin:
+        fem_rebuild_flag[0] = 1
+
+
+@wp.kernel
+def face_centers_kernel(
+    # Model:
+    face_nodes: wp.array(dtype=wp.vec3i),
+    # State in:
+    face_count: wp.array(dtype=int),
+    node_q: wp.array(dtype=wp.vec3),
+    # Out:
+    face_center: wp.array(dtype=wp.vec3),
+):
+    f = wp.tid()  # one thread per face slot
+    if f >= face_count[0]:
+        face_center[f] = wp.vec3(0.0)  # never reported: queries skip indices past the count
+        return
+    n = face_nodes[f]
+    face_center[f] = (node_q[n[0]] + node_q[n[1]] + node_q[n[2]]) / 3.0
+
+
+@wp.kernel
+def build_sphere_faces_kernel(
+    # Model:
+    particle_radius: wp.array(dtype=float),
+    face_nodes: wp.array(dtype=wp.vec3i),
+    max_sphere_faces: int,
+    margin: float,
+    face_radius: float,
+    # State in:
+    grid: wp.uint64,
+    particle_count: wp.array(dtype=int),
+    particle_q: wp.array(dtype=wp.vec3),
+    face_count: wp.array(dtype=int),
+    node_q: wp.array(dtype=wp.vec3),
+    sphere_face_count: wp.array(dtype=int),
+    sphere_face_index: wp.array(dtype=int),
+    sphere_face_shear: wp.array(dtype=wp.vec3),
+    # Out:
+    new_count: wp.array(dtype=int),
+    new_index: wp.array(dtype=int),
+    new_shear: wp.array(dtype=wp.vec3),
+    sphere_face_needed: wp.array(dtype=int),
+):
+    i = wp.tid()  # one thread per particle slot
+    if i >= particle_count[0]:
+        return
+    x = particle_q[i]
+    cutoff = particle_radius[i] + margin
+    n_faces = face_count[0]
+    old_n = wp.min(sphere_face_count[i], max_sphere_faces)
+    count = int(0)
+    query = wp.hash_grid_query(grid, x, cutoff + face_radius)
+    for f in query:
+        if f >= n_faces:
+            continue
+        fn = face_nodes[f]
+        a = node_q[fn[0]]
+        b = node_q[fn[1]]
+        c = node_q[fn[2]]
+        w = closest_point_barycentric(x, a, b, c)
+        d = x - (w[0] * a + w[1] * b + w[2] * c)
+        if wp.dot(d, d) >= cutoff * cutoff:
+            continue
+        if count < max_sphere_faces:
+            slot = i * max_sphere_faces + count
+            new_index[slot] = f
+            # Carry the pair's spring over from the previous list; a new pair starts untouched.
+            shear = wp.vec3(0.0)
+            for s in range(old_n):
+                if sphere_face_index[i * max_sphere_faces + s] == f:
+                    shear = sphere_face_shear[i * max_sphere_faces + s]
+                    break
+            new_shear[slot] = shear
+        count += 1
+    new_count[i] = count
+    wp.atomic_max(sphere_face_needed, 0, count)
+
+
+@wp.kernel
+def commit_sphere_faces_kernel(
+    # Model:
+    max_sphere_faces: int,
+    # In:
+    particle_count: wp.array(dtype=int),
+    new_count: wp.array(dtype=int),
+    new_index: wp.array(dtype=int),
+    new_shear: wp.array(dtype=wp.vec3),
+    # State out:
+    sphere_face_count: wp.array(dtype=int),
+    sphere_face_index: wp.array(dtype=int),
+    sphere_face_shear: wp.array(dtype=wp.vec3),
+):
+    i = wp.tid()  # one thread per particle slot
+    if i >= particle_count[0]:
+        return
+    sphere_face_count[i] = new_count[i]
+    for s in range(wp.min(new_count[i], max_sphere_faces)):
+        slot = i * max_sphere_faces + s
+        sphere_face_index[slot] = new_index[slot]
+        sphere_face_shear[slot] = new_shear[slot]
+
+
+@wp.kernel
+def build_node_faces_kernel(
+    # Model:
+    node_contact_stiffness: wp.array(dtype=float),
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    face_nodes: wp.array(dtype=wp.vec3i),
+    face_depth: wp.array(dtype=float),
+    joint_a: wp.array(dtype=int),
+    joint_b: wp.array(dtype=int),
+    max_node_faces: int,
+    fem_skin: float,
+    search_radius: float,
+    # State in:
+    grid: wp.uint64,
+    node_count: wp.array(dtype=int),
+    node_q: wp.array(dtype=wp.vec3),
+    face_count: wp.array(dtype=int),
+    joint_count: wp.array(dtype=int),
+    joint_broken: wp.array(dtype=int),
+    # State out:
+    node_face_count: wp.array(dtype=int),
+    node_face_index: wp.array(dtype=int),
+    node_face_needed: wp.array(dtype=int),
+):
+    v = wp.tid()  # one thread per node slot; it writes its own list (node history is per node, nothing to carry)
+    if v >= node_count[0]:
+        return
+    if node_contact_stiffness[v] == 0.0:
+        node_face_count[v] = 0
+        return
+    x = node_q[v]
+    n_faces = face_count[0]
+    n_joints = joint_count[0]
+    count = int(0)
+    query = wp.hash_grid_query(grid, x, search_radius)
+    for f in query:
+        if f >= n_faces:
+            continue
+        fn = face_nodes[f]
+        excluded = int(0)
+        for k in range(3):
+            u = fn[k]
+            if in_one_ring(v, u, tet_nodes, star_offset, star_count, star_tets) or held_by_joint(
+                v, u, joint_a, joint_b, n_joints, joint_broken
+            ):
+                excluded = 1
+        if excluded != 0:
+            continue
+        a = node_q[fn[0]]
+        b = node_q[fn[1]]
+        c = node_q[fn[2]]
+        w = closest_point_barycentric(x, a, b, c)
+        d = x - (w[0] * a + w[1] * b + w[2] * c)
+        near = wp.dot(d, d) < fem_skin * fem_skin
+        if not near:
+            # Already deeper than the skin behind the face (a build during a contact) still counts.
+            area2 = wp.cross(b - a, c - a)
+            s = wp.dot(x - a, wp.normalize(area2))
+            if s < 0.0 and -s < face_depth[f]:
+                near = min3(projection_barycentric(x, a, b, c, area2)) >= -BARY_EPS
+        if not near:
+            continue
+        if count < max_node_faces:
+            node_face_index[v * max_node_faces + count] = f
+        count += 1
+    node_face_count[v] = count
+    wp.atomic_max(node_face_needed, 0, count)
+
+
+@wp.kernel
+def finish_fem_rebuild_kernel(
+    # State in:
+    node_count: wp.array(dtype=int),
+    node_q: wp.array(dtype=wp.vec3),
+    rebuild_total: wp.array(dtype=int),
+    # State out:
+    node_q_at_fem_build: wp.array(dtype=wp.vec3),
+    fem_rebuild_flag: wp.array(dtype=int),
+    fem_rebuild_total: wp.array(dtype=int),
+    fem_sphere_builds_seen: wp.array(dtype=int),
+):
+    v = wp.tid()  # one thread per node slot (at least one thread)
+    if v == 0:
+        fem_rebuild_flag[0] = 0
+        fem_rebuild_total[0] = fem_rebuild_total[0] + 1
+        fem_sphere_builds_seen[0] = rebuild_total[0]
+    if v < node_count[0]:
+        node_q_at_fem_build[v] = node_q[v]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Forces.
+
+
+@wp.func
+def sphere_face_contact(x: wp.vec3, r: float, a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """Geometry of a sphere (centre x, radius r) against triangle abc.
+
+    Returns:
+        (barycentric weights of the closest point, unit normal from it to x, distance [m], touching (r beyond the
+        distance and x in front of the face), in the face's interior).
+    """
+    w = closest_point_barycentric(x, a, b, c)
+    d = x - (w[0] * a + w[1] * b + w[2] * c)
+    dist = wp.length(d)
+    nf = wp.cross(b - a, c - a)
+    touching = dist < r and wp.dot(d, nf) > 0.0
+    n = wp.vec3(0.0)
+    if dist > 0.0:
+        n = d / dist
+    interior = min3(w) > BARY_EPS
+    return w, n, dist, touching, interior
+
+
+@functools.cache
+def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_energy: bool):
+    """The sphere–face kernels for one choice of the sphere contact laws (kernels/contact.py).
+
+    Returns:
+        (eval_sphere_faces_kernel, sphere_face_energy_kernel).
+    """
+    laws = make_pair_laws(normal, tangential, rolling)
+    pair_interaction = laws.pair_interaction
+    pair_dissipation = laws.pair_dissipation
+    normal_force = laws.normal_force
+    tangential_stiffness = laws.tangential_stiffness
+    elastic_energy = laws.elastic_energy
+
+    @wp.func
+    def counted_face(
+        i: int,
+        x: wp.vec3,
+        r: float,
+        count: int,
+        max_sphere_faces: int,
+        sphere_face_index: wp.array(dtype=int),
+        face_nodes: wp.array(dtype=wp.vec3i),
+        node_q: wp.array(dtype=wp.vec3),
+    ) -> int:
+        """The nearest touching face of sphere i (an edge or vertex contact counts only if it is this one), -1."""
+        tol = TIE_EPS * (wp.length(x) + r)
+        best_d = float(0.0)
+        best_interior = int(0)
+        best_f = int(-1)
+        for s in range(count):
+            f = sphere_face_index[i * max_sphere_faces + s]
+            fn = face_nodes[f]
+            _w, _n, dist, touching, interior = sphere_face_contact(x, r, node_q[fn[0]], node_q[fn[1]], node_q[fn[2]])
+            if touching:
+                inside = int(interior)
+                if nearer(dist, inside, f, best_d, best_interior, best_f, tol):
+                    best_d = dist
+                    best_interior = inside
+                    best_f = f
+        return best_f
+
+    @wp.kernel(module="unique")
+    def eval_sphere_faces_kernel(
+        # Model:
+        particle_radius: wp.array(dtype=float),
+        particle_inv_mass: wp.array(dtype=float),
+        particle_material: wp.array(dtype=int),
+        pair_table: wp.array(dtype=ContactPair),
+        num_materials: int,
+        node_inv_mass: wp.array(dtype=float),
+        tet_material: wp.array(dtype=int),
+        face_nodes: wp.array(dtype=wp.vec3i),
+        face_tet: wp.array(dtype=int),
+        max_sphere_faces: int,
+        dt: float,
+        # State in:
+        particle_count: wp.array(dtype=int),
+        particle_q: wp.array(dtype=wp.vec3),
+        particle_qd: wp.array(dtype=wp.vec3),
+        particle_omega: wp.array(dtype=wp.vec3),
+        sphere_face_count: wp.array(dtype=int),
+        sphere_face_index: wp.array(dtype=int),
+        node_q: wp.array(dtype=wp.vec3),
+        node_qd: wp.array(dtype=wp.vec3),
+        # State out:
+        sphere_face_shear: wp.array(dtype=wp.vec3),
+        particle_f: wp.array(dtype=wp.vec3),
+        particle_t: wp.array(dtype=wp.vec3),
+        node_f: wp.array(dtype=wp.vec3),
+        energy_damping: wp.array(dtype=wp.float64),
+        energy_friction: wp.array(dtype=wp.float64),
+    ):
+        i = wp.tid()  # one thread per particle slot; it owns its sphere–face pairs
+        if i >= particle_count[0]:
+            return
+        count = wp.min(sphere_face_count[i], max_sphere_faces)
+        if count == 0:
+            return
+        x = particle_q[i]
+        r = particle_radius[i]
+        inv_mi = particle_inv_mass[i]
+        # Pass 1: the nearest contact (an edge or vertex contact counts only if it is the nearest).
+        best_f = counted_face(i, x, r, count, max_sphere_faces, sphere_face_index, face_nodes, node_q)
+        # Pass 2: springs of pairs that no longer count are handed to a pair that starts counting (the contact
+        # point slid from one face onto the next).
+        orphan = wp.vec3(0.0)
+        for s in range(count):
+            slot = i * max_sphere_faces + s
+            f = sphere_face_index[slot]
+            fn = face_nodes[f]
+            w, n, dist, touching, interior = sphere_face_contact(x, r, node_q[fn[0]], node_q[fn[1]], node_q[fn[2]])
+            if not (touching and (interior or f == best_f)):
+                sh = sphere_face_shear[slot]
+                if wp.dot(sh, sh) > wp.dot(orphan, orphan):
+                    orphan = sh
+                sphere_face_shear[slot] = wp.vec3(0.0)
+        # Pass 3: forces.
+        vi = particle_qd[i]
+        wi = particle_omega[i]
+        mat_i = particle_material[i]
+        f_i = wp.vec3(0.0)
+        t_i = wp.vec3(0.0)
+        d_damp = float(0.0)
+        d_fric = float(0.0)
+        for s in range(count):
+            slot = i * max_sphere_faces + s
+            f = sphere_face_index[slot]
+            fn = face_nodes[f]
+            w, n, dist, touching, interior = sphere_face_contact(x, r, node_q[fn[0]], node_q[fn[1]], node_q[fn[2]])
+            if not (touching and (interior or f == best_f)):
+                continue
+            inv_sum = inv_mi
+            inv_sum += w[0] * w[0] * node_inv_mass[fn[0]] + w[1] * w[1] * node_inv_mass[fn[1]]
+            inv_sum += w[2] * w[2] * node_inv_mass[fn[2]]
+            if inv_sum == 0.0:
+                continue
+            shear_old = sphere_face_shear[slot]
+            if wp.dot(shear_old, shear_old) == 0.0:
+                shear_old = orphan
+                orphan = wp.vec3(0.0)
+            delta = r - dist
+            ci = r - delta  # lever arm to the contact point
+            v_face = w[0] * node_qd[fn[0]] + w[1] * node_qd[fn[1]] + w[2] * node_qd[fn[2]]
+            v_rel = (vi - ci * wp.cross(wi, n)) - v_face
+            mstar = 1.0 / inv_sum
+            p = pair_table[mat_i * num_materials + tet_material[face_tet[f]]]
+            # A face is flat: R* = r, as for a wall.
+            out = pair_interaction(n, delta, r, r, r, mstar, v_rel, wi, shear_old, p, dt)
+            force = out[0]
+            roll = out[1]
+            sphere_face_shear[slot] = out[2]
+            ft = force - wp.dot(force, n) * n
+            f_i += force
+            t_i += wp.cross(-ci * n, ft) + roll
+            # Equal and opposite, spread over the face's nodes by the weights of the contact point.
+            wp.atomic_add(node_f, fn[0], -w[0] * force)
+            wp.atomic_add(node_f, fn[1], -w[1] * force)
+            wp.atomic_add(node_f, fn[2], -w[2] * force)
+            if wp.static(track_energy):
+                dd = pair_dissipation(n, delta, r, r, r, mstar, v_rel, wi, shear_old, out[2], force, roll, p, dt)
+                d_damp += dd[0]
+                d_fric += dd[1]
+        wp.atomic_add(particle_f, i, f_i)
+        wp.atomic_add(particle_t, i, t_i)
+        if wp.static(track_energy):
+            energy_damping[i] = energy_damping[i] + wp.float64(d_damp)
+            energy_friction[i] = energy_friction[i] + wp.float64(d_fric)
+
+    @wp.kernel(module="unique")
+    def sphere_face_energy_kernel(
+        # Model:
+        particle_radius: wp.array(dtype=float),
+        particle_inv_mass: wp.array(dtype=float),
+        particle_material: wp.array(dtype=int),
+        pair_table: wp.array(dtype=ContactPair),
+        num_materials: int,
+        node_inv_mass: wp.array(dtype=float),
+        tet_material: wp.array(dtype=int),
+        face_nodes: wp.array(dtype=wp.vec3i),
+        face_tet: wp.array(dtype=int),
+        max_sphere_faces: int,
+        # State in:
+        particle_count: wp.array(dtype=int),
+        particle_q: wp.array(dtype=wp.vec3),
+        sphere_face_count: wp.array(dtype=int),
+        sphere_face_index: wp.array(dtype=int),
+        sphere_face_shear: wp.array(dtype=wp.vec3),
+        node_q: wp.array(dtype=wp.vec3),
+        # Out:
+        energy: wp.array(dtype=wp.float64),
+    ):
+        i = wp.tid()  # one thread per particle slot: elastic energy of its sphere–face springs
+        energy[i] = wp.float64(0.0)
+        if i >= particle_count[0]:
+            return
+        count = wp.min(sphere_face_count[i], max_sphere_faces)
+        x = particle_q[i]
+        r = particle_radius[i]
+        best_f = counted_face(i, x, r, count, max_sphere_faces, sphere_face_index, face_nodes, node_q)
+        e = float(0.0)
+        for s in range(count):
+            slot = i * max_sphere_faces + s
+            f = sphere_face_index[slot]
+            fn = face_nodes[f]
+            w, _n, dist, touching, interior = sphere_face_contact(x, r, node_q[fn[0]], node_q[fn[1]], node_q[fn[2]])
+            if not (touching and (interior or f == best_f)):
+                continue
+            inv_sum = particle_inv_mass[i] + w[0] * w[0] * node_inv_mass[fn[0]]
+            inv_sum += w[1] * w[1] * node_inv_mass[fn[1]] + w[2] * w[2] * node_inv_mass[fn[2]]
+            if inv_sum == 0.0:
+                continue
+            delta = r - dist
+            p = pair_table[particle_material[i] * num_materials + tet_material[face_tet[f]]]
+            fnv = normal_force(delta, 0.0, r, r, r, 1.0, p)
+            kt = tangential_stiffness(delta, r, fnv[2], p)
+            sh = sphere_face_shear[slot]
+            e += elastic_energy(delta, fnv[2]) + 0.5 * kt * wp.dot(sh, sh)
+        energy[i] = wp.float64(e)
+
+    return eval_sphere_faces_kernel, sphere_face_energy_kernel
+
+
+@wp.func
+def node_surface_normal(
+    v: int,
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    tet_face_nbr: wp.array(dtype=int),
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    node_q: wp.array(dtype=wp.vec3),
+) -> wp.vec3:
+    """Outward unit normal of the surface at node v: the sum of the area vectors of its boundary faces (current
+    positions), normalised; zero for a node inside the rock."""
+    acc = wp.vec3(0.0)
+    start = star_offset[v]
+    for e in range(start, start + star_count[v]):
+        t = star_tets[e]
+        n = tet_nodes[t]
+        for k in range(4):
+            if n[k] == v or tet_face_nbr[4 * t + k] >= 0:
+                continue
+            f = tet_face(n, k)
+            acc += triangle_area_vector(node_q[f[0]], node_q[f[1]], node_q[f[2]])
+    length = wp.length(acc)
+    if length > 0.0:
+        return acc / length
+    return acc
+
+
+@wp.func
+def node_face_target(
+    v: int,
+    x: wp.vec3,
+    normal: wp.vec3,
+    max_node_faces: int,
+    node_face_count: wp.array(dtype=int),
+    node_face_index: wp.array(dtype=int),
+    face_nodes: wp.array(dtype=wp.vec3i),
+    face_depth: wp.array(dtype=float),
+    node_q: wp.array(dtype=wp.vec3),
+):
+    """The face node v (at x, its own surface's outward normal ``normal``) is pushed out of: of the candidate faces
+    that face it (n_f · normal < 0) and that it lies behind (less deep than face_depth) and projects into, the
+    shallowest; an interior contact before an edge or vertex one, then the lowest face index.
+
+    The facing test keeps a node on a convex edge of one body, which sits exactly on the edge of the body it rests
+    on, from being pushed out through that body's side face (where it is "behind" the side plane by a rounding
+    error): the side face's normal points along the node's own, the face it rests on against it.
+
+    Returns:
+        (face or -1, depth δ [m], barycentric weights of the projection, the face's unit normal).
+    """
+    tol = TIE_EPS * wp.length(x)
+    best_d = float(0.0)
+    best_interior = int(0)
+    best_f = int(-1)
+    best_w = wp.vec3(0.0)
+    best_n = wp.vec3(0.0)
+    for s in range(wp.min(node_face_count[v], max_node_faces)):
+        f = node_face_index[v * max_node_faces + s]
+        fn = face_nodes[f]
+        a = node_q[fn[0]]
+        b = node_q[fn[1]]
+        c = node_q[fn[2]]
+        area2 = wp.cross(b - a, c - a)
+        nf = wp.normalize(area2)
+        if wp.dot(nf, normal) >= 0.0:
+            continue
+        depth = -wp.dot(x - a, nf)
+        if depth <= 0.0 or depth >= face_depth[f]:
+            continue
+        w = projection_barycentric(x, a, b, c, area2)
+        wmin = min3(w)
+        if wmin < -BARY_EPS:
+            continue
+        inside = int(wmin > BARY_EPS)
+        if nearer(depth, inside, f, best_d, best_interior, best_f, tol + TIE_EPS * depth):
+            best_d = depth
+            best_interior = inside
+            best_f = f
+            best_w = w
+            best_n = nf
+    return best_f, best_d, best_w, best_n
+
+
+@wp.func
+def penalty_contact(
+    n: wp.vec3,
+    delta: float,
+    kn: float,
+    mstar: float,
+    v_rel: wp.vec3,
+    shear: wp.vec3,
+    p: ContactPair,
+    dt: float,
+) -> wp.mat33:
+    """Linear penalty contact of a node (kernels/contact.py laws): normal k δ with the dashpot of ζ = p.damp_n,
+    tangential spring k_t = kt_ratio k with Coulomb limit and ζ = p.damp_t.
+
+    Returns:
+        Rows: (force on the node [N], new tangential spring [m], (energy dissipated in the step [J], 0, 0)).
+    """
+    vn = wp.dot(v_rel, n)
+    fnv = linear_normal_force(delta, vn, kn, mstar, p)
+    vt = v_rel - vn * n
+    kt = p.kt_ratio * kn
+    s_old = rotate_into_plane(shear, n)
+    tang = coulomb_tangential(s_old, vt, kt, 2.0 * p.damp_t * wp.sqrt(mstar * kt), fnv[0], p.friction, dt)
+    ft = tang[0]
+    s_new = tang[1]
+    # Dashpot work plus the tangential force's work on the sliding less the spring's change of energy.
+    dissipated = (
+        -(fnv[0] - fnv[1]) * vn * dt - wp.dot(ft, vt) * dt - 0.5 * kt * (wp.dot(s_new, s_new) - wp.dot(s_old, s_old))
+    )
+    force = fnv[0] * n + ft
+    return wp.mat33(force[0], force[1], force[2], s_new[0], s_new[1], s_new[2], dissipated, 0.0, 0.0)
+
+
+@functools.cache
+def make_node_contact_kernel(track_energy: bool):
+    """The node–face and node–wall force kernel."""
+
+    @wp.kernel(module="unique")
+    def eval_node_contacts_kernel(
+        # Model:
+        node_inv_mass: wp.array(dtype=float),
+        node_contact_stiffness: wp.array(dtype=float),
+        node_contact_material: wp.array(dtype=int),
+        tet_nodes: wp.array(dtype=wp.vec4i),
+        tet_face_nbr: wp.array(dtype=int),
+        star_offset: wp.array(dtype=int),
+        star_count: wp.array(dtype=int),
+        star_tets: wp.array(dtype=int),
+        tet_material: wp.array(dtype=int),
+        face_nodes: wp.array(dtype=wp.vec3i),
+        face_tet: wp.array(dtype=int),
+        face_joint: wp.array(dtype=int),
+        face_depth: wp.array(dtype=float),
+        fem_pair_table: wp.array(dtype=ContactPair),
+        joint_material_table: wp.array(dtype=JointMaterial),
+        num_materials: int,
+        wall_normal: wp.array(dtype=wp.vec3),
+        wall_velocity: wp.array(dtype=wp.vec3),
+        wall_material: wp.array(dtype=int),
+        num_walls: int,
+        max_node_faces: int,
+        dt: float,
+        # State in:
+        node_count: wp.array(dtype=int),
+        node_q: wp.array(dtype=wp.vec3),
+        node_qd: wp.array(dtype=wp.vec3),
+        node_face_count: wp.array(dtype=int),
+        node_face_index: wp.array(dtype=int),
+        wall_point: wp.array(dtype=wp.vec3),
+        # State out:
+        node_face_shear: wp.array(dtype=wp.vec3),
+        node_wall_shear: wp.array(dtype=wp.vec3),
+        node_f: wp.array(dtype=wp.vec3),
+        node_energy_contact: wp.array(dtype=wp.float64),
+        node_energy_boundary_work: wp.array(dtype=wp.float64),
+    ):
+        v = wp.tid()  # one thread per node slot
+        if v >= node_count[0]:
+            return
+        kn = node_contact_stiffness[v]
+        if kn == 0.0:
+            return  # a node inside the rock
+        x = node_q[v]
+        xv = node_qd[v]
+        inv_mv = node_inv_mass[v]
+        mat_v = node_contact_material[v]
+        best_f = int(-1)
+        best_d = float(0.0)
+        best_w = wp.vec3(0.0)
+        best_n = wp.vec3(0.0)
+        if node_face_count[v] > 0:
+            normal = node_surface_normal(v, tet_nodes, tet_face_nbr, star_offset, star_count, star_tets, node_q)
+            best_f, best_d, best_w, best_n = node_face_target(
+                v, x, normal, max_node_faces, node_face_count, node_face_index, face_nodes, face_depth, node_q
+            )
+        f_v = wp.vec3(0.0)
+        e_v = float(0.0)
+        if best_f < 0:
+            node_face_shear[v] = wp.vec3(0.0)  # history lives only as long as the node touches
+        else:
+            fn = face_nodes[best_f]
+            # Weights on the triangle (an edge or vertex contact has one slightly negative): clamp and normalise.
+            w = wp.vec3(wp.max(best_w[0], 0.0), wp.max(best_w[1], 0.0), wp.max(best_w[2], 0.0))
+            w = w / (w[0] + w[1] + w[2])
+            inv_sum = inv_mv
+            inv_sum += w[0] * w[0] * node_inv_mass[fn[0]] + w[1] * w[1] * node_inv_mass[fn[1]]
+            inv_sum += w[2] * w[2] * node_inv_mass[fn[2]]
+            if inv_sum > 0.0:
+                js = face_joint[best_f]
+                p = fem_pair_table[mat_v * num_materials + tet_material[face_tet[best_f]]]
+                if js >= 0:
+                    p = joint_material_table[js].contact
+                v_face = w[0] * node_qd[fn[0]] + w[1] * node_qd[fn[1]] + w[2] * node_qd[fn[2]]
+                out = penalty_contact(best_n, best_d, kn, 1.0 / inv_sum, xv - v_face, node_face_shear[v], p, dt)
+                force = out[0]
+                node_face_shear[v] = out[1]
+                f_v += force
+                wp.atomic_add(node_f, fn[0], -w[0] * force)
+                wp.atomic_add(node_f, fn[1], -w[1] * force)
+                wp.atomic_add(node_f, fn[2], -w[2] * force)
+                e_v += out[2, 0]
+        w_wall = float(0.0)
+        for wall in range(num_walls):
+            nw = wall_normal[wall]
+            slot = v * num_walls + wall
+            gap = wp.dot(x - wall_point[wall], nw)
+            if gap >= 0.0 or inv_mv == 0.0:
+                node_wall_shear[slot] = wp.vec3(0.0)
+                continue
+            vw = wall_velocity[wall]
+            p = fem_pair_table[mat_v * num_materials + wall_material[wall]]
+            out = penalty_contact(nw, -gap, kn, 1.0 / inv_mv, xv - vw, node_wall_shear[slot], p, dt)
+            node_wall_shear[slot] = out[1]
+            f_v += out[0]
+            e_v += out[2, 0]
+            w_wall += wp.dot(out[0], vw) * dt  # work of a moving wall on the node
+        wp.atomic_add(node_f, v, f_v)
+        if wp.static(track_energy):
+            node_energy_contact[v] = node_energy_contact[v] + wp.float64(e_v)
+            node_energy_boundary_work[v] = node_energy_boundary_work[v] + wp.float64(w_wall)
+
+    return eval_node_contacts_kernel
+
+
+@wp.kernel
+def fem_contact_energy_kernel(
+    # Model:
+    node_contact_stiffness: wp.array(dtype=float),
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    tet_face_nbr: wp.array(dtype=int),
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    face_nodes: wp.array(dtype=wp.vec3i),
+    face_joint: wp.array(dtype=int),
+    face_tet: wp.array(dtype=int),
+    tet_material: wp.array(dtype=int),
+    node_contact_material: wp.array(dtype=int),
+    fem_pair_table: wp.array(dtype=ContactPair),
+    joint_material_table: wp.array(dtype=JointMaterial),
+    num_materials: int,
+    wall_normal: wp.array(dtype=wp.vec3),
+    wall_material: wp.array(dtype=int),
+    num_walls: int,
+    face_depth: wp.array(dtype=float),
+    max_node_faces: int,
+    # State in:
+    node_count: wp.array(dtype=int),
+    node_q: wp.array(dtype=wp.vec3),
+    node_face_count: wp.array(dtype=int),
+    node_face_index: wp.array(dtype=int),
+    node_face_shear: wp.array(dtype=wp.vec3),
+    node_wall_shear: wp.array(dtype=wp.vec3),
+    wall_point: wp.array(dtype=wp.vec3),
+    # Out:
+    energy: wp.array(dtype=wp.float64),
+):
+    v = wp.tid()  # one thread per node slot: elastic energy of its node–face and node–wall springs
+    energy[v] = wp.float64(0.0)
+    if v >= node_count[0]:
+        return
+    kn = node_contact_stiffness[v]
+    if kn == 0.0:
+        return
+    x = node_q[v]
+    mat_v = node_contact_material[v]
+    normal = node_surface_normal(v, tet_nodes, tet_face_nbr, star_offset, star_count, star_tets, node_q)
+    best_f, best_d, _best_w, _best_n = node_face_target(
+        v, x, normal, max_node_faces, node_face_count, node_face_index, face_nodes, face_depth, node_q
+    )
+    e = float(0.0)
+    if best_f >= 0:
+        p = fem_pair_table[mat_v * num_materials + tet_material[face_tet[best_f]]]
+        if face_joint[best_f] >= 0:
+            p = joint_material_table[face_joint[best_f]].contact
+        sh = node_face_shear[v]
+        e += 0.5 * kn * best_d * best_d + 0.5 * p.kt_ratio * kn * wp.dot(sh, sh)
+    for wall in range(num_walls):
+        gap = wp.dot(x - wall_point[wall], wall_normal[wall])
+        if gap < 0.0:
+            p = fem_pair_table[mat_v * num_materials + wall_material[wall]]
+            sh = node_wall_shear[v * num_walls + wall]
+            e += 0.5 * kn * gap * gap + 0.5 * p.kt_ratio * kn * wp.dot(sh, sh)
+    energy[v] = wp.float64(e)

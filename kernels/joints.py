@@ -1,0 +1,689 @@
+"""Joints: pre-split faces (the topology pass of ldec_fem_dem_fracture.txt §2.2 run on given faces, §3) and the
+cohesive joint interface elements between the daughter nodes.
+
+Topology conventions. Face k of a positively oriented tet is the face opposite its node k, listed so that its
+right-hand normal points out of the tet (:func:`tet_face`, the table of ``warpdem.mesh.TET_FACES``); tet-face
+slot ``4 t + k``. The *star* of a node is the list of live, active tets that hold it: a CSR layout
+(``star_offset[n]``, ``star_count[n]``, ``star_tets``) built count → exclusive scan → fill, each node's list then
+sorted ascending so that everything derived from it is deterministic.
+
+Splitting a node. Its star falls into connected components when tets that meet across a face holding the node
+are joined, except across a joint face. Component 0 (the one holding the lowest tet index) keeps the node; every
+further component takes a new node slot, appended after the live nodes in the order of their parents
+(warpdem.compaction's append pass), and its tets are remapped onto it. Each component is ordered by its lowest tet
+index, so the result does not depend on thread scheduling.
+
+Joint interface element (a cohesive element A–B between two daughter nodes, as LDEC's, but with a joint's
+strengths): relative displacement g = u_B - u_A (equal reference positions), normal n out of A's joint face
+(current positions), g_n = g · n (> 0 opening), g_t = g - g_n n. While intact it is a spring F_B = -k_n g_n n -
+k_t g_t (F_A = -F_B) with a dashpot on the relative velocity. It fails in tension when k_n g_n > σ_t A and in
+shear when |k_t g_t| > c A + μ max(0, -k_n g_n) (Mohr–Coulomb with cohesion c); a failed element carries nothing
+and the pair is left to the frictional node–face contact (kernels/fem_contact.py).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from .contact import ContactPair
+from .tets import TetMaterial
+
+wp.set_module_options({"enable_backward": False})
+
+NO_KEY = wp.constant(wp.int64(0x7FFFFFFFFFFFFFFF))
+"""Sort key of an emitted joint-pair slot that holds no pair (sorted past every real key)."""
+
+JOINT_INTACT = wp.constant(0)
+JOINT_BROKEN_TENSION = wp.constant(1)
+JOINT_BROKEN_SHEAR = wp.constant(2)
+
+
+@wp.struct
+class JointMaterial:
+    """Properties of one joint set, one entry per set.
+
+    Attributes:
+        contact: contact properties of the joint's faces: friction μ, shear/normal stiffness ratio (kt_ratio), and
+            the damping ratio ζ of the normal and tangential dashpots (damp_n = damp_t = ζ of the restitution).
+        cohesion: cohesion c of an intact joint [Pa].
+        tensile_strength: tensile strength σ_t of an intact joint [Pa].
+        stiffness_factor: penalty factor f of the joint's faces: a face of a tet of Young's modulus E and height h
+            over the face is a spring of f E / h per unit area [-].
+        bonded: 1 when the joint starts intact (c > 0 or σ_t > 0), 0 for a purely frictional joint.
+    """
+
+    contact: ContactPair
+    cohesion: float
+    tensile_strength: float
+    stiffness_factor: float
+    bonded: int
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Topology helpers.
+
+
+@wp.func
+def tet_face(n: wp.vec4i, k: int) -> wp.vec3i:
+    """Nodes of face k (opposite node k) of a positively oriented tet, in outward (right-hand) order."""
+    if k == 0:
+        return wp.vec3i(n[1], n[2], n[3])
+    if k == 1:
+        return wp.vec3i(n[0], n[3], n[2])
+    if k == 2:
+        return wp.vec3i(n[0], n[1], n[3])
+    return wp.vec3i(n[0], n[2], n[1])
+
+
+@wp.func
+def local_index(n: wp.vec4i, v: int) -> int:
+    """Position of node v in a tet (0..3), -1 if the tet does not hold it."""
+    for k in range(4):
+        if n[k] == v:
+            return k
+    return -1
+
+
+@wp.func
+def face_in_tet(n: wp.vec4i, a: int, b: int, c: int) -> int:
+    """Local face index k of the face (a, b, c) in a tet (the node not on it), -1 if the tet does not hold it."""
+    if local_index(n, a) < 0 or local_index(n, b) < 0 or local_index(n, c) < 0:
+        return -1
+    for k in range(4):
+        if n[k] != a and n[k] != b and n[k] != c:
+            return k
+    return -1
+
+
+@wp.func
+def star_find(star_tets: wp.array(dtype=int), start: int, count: int, t: int) -> int:
+    """Entry of tet t in a node's sorted star segment [start, start + count) (binary search), -1 if absent."""
+    lo = start
+    hi = start + count
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if star_tets[mid] < t:
+            lo = mid + 1
+        else:
+            hi = mid
+    if lo < start + count:
+        if star_tets[lo] == t:
+            return lo
+    return -1
+
+
+@wp.func
+def split_node_index(v: int, component: int, first_new: wp.array(dtype=int)) -> int:
+    """Node that component c of node v's star holds after a split: v itself for c = 0, else v's (c-1)-th new slot."""
+    if component == 0:
+        return v
+    return first_new[v] + component - 1
+
+
+@wp.func
+def youngs_modulus(mat: TetMaterial) -> float:
+    """E = μ (3λ + 2μ) / (λ + μ) [Pa] from the Lamé parameters."""
+    return mat.mu * (3.0 * mat.lam + 2.0 * mat.mu) / (mat.lam + mat.mu)
+
+
+@wp.func
+def triangle_area_vector(a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.vec3:
+    """(b - a) × (c - a) / 2: the area [m²] times the right-hand unit normal."""
+    return 0.5 * wp.cross(b - a, c - a)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Node → tet adjacency (the star CSR): count → exclusive scan → fill → sort.
+
+
+@wp.kernel
+def count_node_tets_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    # State in:
+    tet_count: wp.array(dtype=int),
+    tet_active: wp.array(dtype=int),
+    # Out:
+    star_count: wp.array(dtype=int),
+):
+    t = wp.tid()  # one thread per tet slot
+    if t >= tet_count[0] or tet_active[t] == 0:
+        return
+    n = tet_nodes[t]
+    for k in range(4):
+        wp.atomic_add(star_count, n[k], 1)
+
+
+@wp.kernel
+def fill_node_tets_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    # State in:
+    tet_count: wp.array(dtype=int),
+    tet_active: wp.array(dtype=int),
+    # In:
+    star_offset: wp.array(dtype=int),
+    # Out:
+    star_fill: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+):
+    t = wp.tid()  # one thread per tet slot
+    if t >= tet_count[0] or tet_active[t] == 0:
+        return
+    n = tet_nodes[t]
+    for k in range(4):
+        slot = wp.atomic_add(star_fill, n[k], 1)
+        star_tets[star_offset[n[k]] + slot] = t
+
+
+@wp.kernel
+def sort_node_tets_kernel(
+    # In:
+    node_count: wp.array(dtype=int),
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    # Out:
+    star_tets: wp.array(dtype=int),
+):
+    v = wp.tid()  # one thread per node slot; insertion sort of its own (short) star
+    if v >= node_count[0]:
+        return
+    start = star_offset[v]
+    for i in range(1, star_count[v]):
+        key = star_tets[start + i]
+        j = i - 1
+        # The bound is its own test: Warp evaluates both operands of `and`, and star_tets[start - 1] may not exist.
+        while j >= 0:
+            if star_tets[start + j] <= key:
+                break
+            star_tets[start + j + 1] = star_tets[start + j]
+            j -= 1
+        star_tets[start + j + 1] = key
+
+
+@wp.kernel
+def tet_face_neighbors_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    # State in:
+    tet_count: wp.array(dtype=int),
+    tet_active: wp.array(dtype=int),
+    # In:
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    # Out:
+    tet_face_nbr: wp.array(dtype=int),
+):
+    t = wp.tid()  # one thread per tet slot; writes the neighbour across each of its four faces (-1: none)
+    for k in range(4):
+        tet_face_nbr[4 * t + k] = -1
+    if t >= tet_count[0] or tet_active[t] == 0:
+        return
+    n = tet_nodes[t]
+    for k in range(4):
+        f = tet_face(n, k)
+        start = star_offset[f[0]]
+        for e in range(start, start + star_count[f[0]]):
+            t2 = star_tets[e]
+            if t2 != t and face_in_tet(tet_nodes[t2], f[0], f[1], f[2]) >= 0:
+                tet_face_nbr[4 * t + k] = t2
+                break
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Pre-splitting joints.
+
+
+@wp.kernel
+def flag_joint_faces_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    # In:
+    joint_face_nodes: wp.array(dtype=wp.vec3i),
+    joint_face_set: wp.array(dtype=int),
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    # Out:
+    tet_face_joint: wp.array(dtype=int),
+    joint_face_tets: wp.array(dtype=wp.vec2i),
+    unmatched: wp.array(dtype=int),
+):
+    j = wp.tid()  # one thread per joint face: it tags the tet-face slots on both sides with its joint set
+    f = joint_face_nodes[j]
+    start = star_offset[f[0]]
+    found = int(0)
+    lo = int(-1)
+    hi = int(-1)
+    for e in range(start, start + star_count[f[0]]):  # ascending tet index
+        t = star_tets[e]
+        k = face_in_tet(tet_nodes[t], f[0], f[1], f[2])
+        if k >= 0:
+            tet_face_joint[4 * t + k] = joint_face_set[j]
+            if found == 0:
+                lo = t
+            else:
+                hi = t
+            found += 1
+    joint_face_tets[j] = wp.vec2i(lo, hi)
+    if found != 2:
+        wp.atomic_add(unmatched, 0, 1)  # a joint face that is not an interior face of the mesh
+
+
+@wp.kernel
+def label_star_components_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    # State in:
+    node_count: wp.array(dtype=int),
+    # In:
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    tet_face_nbr: wp.array(dtype=int),
+    tet_face_joint: wp.array(dtype=int),
+    # Out:
+    star_comp: wp.array(dtype=int),
+    copies: wp.array(dtype=int),
+):
+    v = wp.tid()  # one thread per node slot; it labels its own star (no other thread touches those entries)
+    if v >= node_count[0]:
+        return
+    start = star_offset[v]
+    count = star_count[v]
+    # Label propagation to a fixed point: every entry takes the smallest local index reachable through a face that
+    # holds v and is no joint face. Entries are sorted by tet index, so component labels follow the lowest tet.
+    for i in range(count):
+        star_comp[start + i] = i
+    changed = int(1)
+    while changed != 0:
+        changed = int(0)
+        for i in range(count):
+            t = star_tets[start + i]
+            n = tet_nodes[t]
+            for k in range(4):
+                if n[k] == v:
+                    continue  # the face opposite v does not hold v
+                if tet_face_joint[4 * t + k] >= 0:
+                    continue
+                t2 = tet_face_nbr[4 * t + k]
+                if t2 < 0:
+                    continue
+                e2 = star_find(star_tets, start, count, t2)
+                if e2 < 0:
+                    continue
+                a = star_comp[start + i]
+                b = star_comp[e2]
+                if b < a:
+                    star_comp[start + i] = b
+                    changed = 1
+                elif a < b:
+                    star_comp[e2] = a
+                    changed = 1
+    # Labels → ordinals 0, 1, 2, ... in order of each component's lowest tet. A component's root (label == own
+    # index) precedes its other entries, so one pass over the roots and one over the rest suffice.
+    ordinal = int(0)
+    for i in range(count):
+        if star_comp[start + i] == i:
+            star_comp[start + i] = -1 - ordinal  # marked, so that the second pass tells roots from members
+            ordinal += 1
+    for i in range(count):
+        c = star_comp[start + i]
+        if c >= 0:
+            star_comp[start + i] = star_comp[start + c]
+    for i in range(count):
+        star_comp[start + i] = -1 - star_comp[start + i]
+    copies[v] = wp.max(ordinal - 1, 0)
+
+
+@wp.kernel
+def relump_split_nodes_kernel(
+    # Model:
+    tet_volume: wp.array(dtype=float),
+    tet_material: wp.array(dtype=int),
+    tet_material_table: wp.array(dtype=TetMaterial),
+    # State in:
+    node_count: wp.array(dtype=int),
+    # In:
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    star_comp: wp.array(dtype=int),
+    copies: wp.array(dtype=int),
+    first_new: wp.array(dtype=int),
+    # Out:
+    node_mass: wp.array(dtype=float),
+    node_inv_mass: wp.array(dtype=float),
+    node_damping: wp.array(dtype=float),
+):
+    v = wp.tid()  # one thread per parent node slot; it writes its own mass and its copies'
+    if v >= node_count[0]:
+        return
+    if copies[v] == 0:
+        return  # an unsplit node keeps its lumped mass
+    held = node_inv_mass[v] == 0.0  # a held node (fixed, massless) stays held on every side
+    start = star_offset[v]
+    for c in range(copies[v] + 1):
+        dst = split_node_index(v, c, first_new)
+        if dst >= node_mass.shape[0]:
+            continue  # past capacity: the host grows and redoes the pass
+        # Σ ρ V₀ / 4 over this component's tets, in ascending tet order (deterministic sums).
+        mass = float(0.0)
+        damping = float(0.0)
+        for e in range(start, start + star_count[v]):
+            if star_comp[e] != c:
+                continue
+            t = star_tets[e]
+            mat = tet_material_table[tet_material[t]]
+            quarter = 0.25 * mat.density * tet_volume[t]
+            mass += quarter
+            damping += quarter * mat.alpha
+        node_mass[dst] = mass
+        if mass > 0.0:
+            node_damping[dst] = damping / mass
+        else:
+            node_damping[dst] = 0.0
+        if held or mass <= 0.0:
+            node_inv_mass[dst] = 0.0
+        else:
+            node_inv_mass[dst] = 1.0 / mass
+
+
+@wp.kernel
+def remap_split_tets_kernel(
+    # State in:
+    tet_count: wp.array(dtype=int),
+    tet_active: wp.array(dtype=int),
+    # In:
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    star_comp: wp.array(dtype=int),
+    first_new: wp.array(dtype=int),
+    # Out:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+):
+    t = wp.tid()  # one thread per tet slot; it rewrites its own four node indices
+    if t >= tet_count[0] or tet_active[t] == 0:
+        return
+    n = tet_nodes[t]
+    out = n
+    for k in range(4):
+        v = n[k]
+        e = star_find(star_tets, star_offset[v], star_count[v], t)
+        out[k] = split_node_index(v, star_comp[e], first_new)
+    tet_nodes[t] = out
+
+
+@wp.kernel
+def remap_split_faces_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    # In:
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    star_comp: wp.array(dtype=int),
+    first_new: wp.array(dtype=int),
+    # Out:
+    faces: wp.array(dtype=wp.vec3i),
+):
+    i = wp.tid()  # one thread per face of a face list (given in pre-split node ids, before the tets are remapped)
+    f = faces[i]
+    # The face's nodes become those of the (lowest) tet that holds it, on whichever side of a joint that tet lies.
+    start = star_offset[f[0]]
+    owner = int(-1)
+    for e in range(start, start + star_count[f[0]]):
+        if face_in_tet(tet_nodes[star_tets[e]], f[0], f[1], f[2]) >= 0:
+            owner = star_tets[e]
+            break
+    if owner < 0:
+        return
+    out = f
+    for a in range(3):
+        v = f[a]
+        e = star_find(star_tets, star_offset[v], star_count[v], owner)
+        out[a] = split_node_index(v, star_comp[e], first_new)
+    faces[i] = out
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Joint interface elements: one per pair of daughter nodes facing each other across a bonded joint.
+
+
+@wp.func
+def face_stiffness_per_area(t: int, area: float, tet_volume: wp.array(dtype=float), mat: TetMaterial) -> float:
+    """E / h [Pa/m] of tet t behind a face of area A: h = 3 V₀ / A is the tet's height over that face."""
+    return youngs_modulus(mat) * area / (3.0 * tet_volume[t])
+
+
+@wp.kernel
+def emit_joint_pairs_kernel(
+    # Model:
+    node_ref_q: wp.array(dtype=wp.vec3),
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    tet_volume: wp.array(dtype=float),
+    tet_material: wp.array(dtype=int),
+    tet_material_table: wp.array(dtype=TetMaterial),
+    joint_material_table: wp.array(dtype=JointMaterial),
+    # In:
+    joint_face_nodes: wp.array(dtype=wp.vec3i),
+    joint_face_set: wp.array(dtype=int),
+    joint_face_tets: wp.array(dtype=wp.vec2i),
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    star_comp: wp.array(dtype=int),
+    first_new: wp.array(dtype=int),
+    # Out:
+    pair_key: wp.array(dtype=wp.int64),
+    pair_value: wp.array(dtype=int),
+    pair_area: wp.array(dtype=float),
+    pair_kn: wp.array(dtype=float),
+    pair_tet_face: wp.array(dtype=int),
+    pair_set: wp.array(dtype=int),
+):
+    j = wp.tid()  # one thread per joint face; it emits one pair per vertex into slots 3j .. 3j+2
+    f = joint_face_nodes[j]
+    s = joint_face_set[j]
+    sides = joint_face_tets[j]
+    bonded = int(0)
+    if sides[0] >= 0 and sides[1] >= 0:
+        bonded = joint_material_table[s].bonded
+    x0 = node_ref_q[f[0]]
+    area = wp.length(triangle_area_vector(x0, node_ref_q[f[1]], node_ref_q[f[2]]))
+    for i in range(3):
+        slot = 3 * j + i
+        pair_value[slot] = slot
+        pair_key[slot] = NO_KEY
+        if bonded == 0:
+            continue
+        v = f[i]
+        ea = star_find(star_tets, star_offset[v], star_count[v], sides[0])
+        eb = star_find(star_tets, star_offset[v], star_count[v], sides[1])
+        a = split_node_index(v, star_comp[ea], first_new)
+        b = split_node_index(v, star_comp[eb], first_new)
+        if a == b:
+            continue  # the rim of a joint that ends inside the rock: the node was not split
+        ta = sides[0]
+        tb = sides[1]
+        if b < a:  # the element's node A is the lower index; its joint face gives the normal
+            tmp = a
+            a = b
+            b = tmp
+            ta = sides[1]
+            tb = sides[0]
+        # Two-sided penalty per unit area f (E_A/h_A + E_B/h_B): the same interface stiffness as the two passes of
+        # the frictional node–face contact, so a joint's stiffness does not jump when it fails.
+        ka = face_stiffness_per_area(ta, area, tet_volume, tet_material_table[tet_material[ta]])
+        kb = face_stiffness_per_area(tb, area, tet_volume, tet_material_table[tet_material[tb]])
+        share = area / 3.0
+        pair_key[slot] = wp.int64(a) * wp.int64(node_ref_q.shape[0]) + wp.int64(b)
+        pair_area[slot] = share
+        pair_kn[slot] = joint_material_table[s].stiffness_factor * (ka + kb) * share
+        pair_tet_face[slot] = 4 * ta + face_in_tet(tet_nodes[ta], f[0], f[1], f[2])
+        pair_set[slot] = s
+
+
+@wp.kernel
+def flag_pair_runs_kernel(
+    # In:
+    num: int,
+    sorted_key: wp.array(dtype=wp.int64),
+    # Out:
+    run_start: wp.array(dtype=int),
+):
+    i = wp.tid()  # one thread per sorted pair slot (of the first num)
+    run_start[i] = 0
+    if i >= num or sorted_key[i] == NO_KEY:
+        return
+    # Two branches, not one `or`: Warp evaluates both operands, and sorted_key[i - 1] does not exist for i = 0.
+    if i == 0:  # noqa: SIM114
+        run_start[i] = 1
+    elif sorted_key[i - 1] != sorted_key[i]:
+        run_start[i] = 1
+
+
+@wp.kernel
+def reduce_joint_pairs_kernel(
+    # In:
+    num: int,
+    node_capacity: int,
+    sorted_key: wp.array(dtype=wp.int64),
+    sorted_value: wp.array(dtype=int),
+    run_start: wp.array(dtype=int),
+    run_offset: wp.array(dtype=int),
+    pair_area: wp.array(dtype=float),
+    pair_kn: wp.array(dtype=float),
+    pair_tet_face: wp.array(dtype=int),
+    pair_set: wp.array(dtype=int),
+    # Out:
+    joint_a: wp.array(dtype=int),
+    joint_b: wp.array(dtype=int),
+    joint_area: wp.array(dtype=float),
+    joint_kn: wp.array(dtype=float),
+    joint_tet_face: wp.array(dtype=int),
+    joint_set: wp.array(dtype=int),
+):
+    i = wp.tid()  # one thread per sorted pair slot; the first slot of each run of equal keys sums the run in order
+    if i >= num or run_start[i] == 0:
+        return
+    key = sorted_key[i]
+    out = run_offset[i]
+    first = sorted_value[i]
+    area = float(0.0)
+    kn = float(0.0)
+    e = i
+    while e < num:
+        if sorted_key[e] != key:
+            break
+        area += pair_area[sorted_value[e]]
+        kn += pair_kn[sorted_value[e]]
+        e += 1
+    joint_a[out] = int(key // wp.int64(node_capacity))
+    joint_b[out] = int(key % wp.int64(node_capacity))
+    joint_area[out] = area
+    joint_kn[out] = kn
+    joint_tet_face[out] = pair_tet_face[first]
+    joint_set[out] = pair_set[first]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Joint interface element forces (part of the contact stage).
+
+
+@wp.func
+def tet_face_normal(tet_nodes: wp.array(dtype=wp.vec4i), tet_face_slot: int, node_q: wp.array(dtype=wp.vec3)):
+    """Outward unit normal of tet-face slot 4t + k at the current positions."""
+    f = tet_face(tet_nodes[tet_face_slot // 4], tet_face_slot % 4)
+    return wp.normalize(triangle_area_vector(node_q[f[0]], node_q[f[1]], node_q[f[2]]))
+
+
+@wp.func
+def joint_element_force(
+    g: wp.vec3, v_rel: wp.vec3, n: wp.vec3, kn: float, area: float, mstar: float, mat: JointMaterial
+) -> wp.mat33:
+    """Force on node B of an intact joint element and its failure mode.
+
+    g = u_B - u_A [m], v_rel = v_B - v_A [m/s], n the unit normal out of A's face. Elastic springs k_n (normal)
+    and k_t = kt_ratio k_n (tangential) with dashpots 2 ζ sqrt(m* k); strength checks on the elastic forces:
+    tension k_n g_n > σ_t A, or shear |k_t g_t| > c A + μ max(0, -k_n g_n) (Mohr–Coulomb).
+
+    Returns:
+        Rows: (elastic force on B [N], dashpot force on B [N], (failure mode JOINT_INTACT / JOINT_BROKEN_TENSION /
+        JOINT_BROKEN_SHEAR, elastic energy [J], 0)).
+    """
+    p = mat.contact
+    gn = wp.dot(g, n)
+    gt = g - gn * n
+    kt = p.kt_ratio * kn
+    vn = wp.dot(v_rel, n)
+    vt = v_rel - vn * n
+    fn_el = kn * gn  # tension positive
+    ft_el = kt * gt
+    mode = float(JOINT_INTACT)
+    if fn_el > mat.tensile_strength * area:
+        mode = float(JOINT_BROKEN_TENSION)
+    elif wp.length(ft_el) > mat.cohesion * area + p.friction * wp.max(-fn_el, 0.0):
+        mode = float(JOINT_BROKEN_SHEAR)
+    f_el = -fn_el * n - ft_el
+    f_damp = -2.0 * p.damp_n * wp.sqrt(mstar * kn) * vn * n - 2.0 * p.damp_t * wp.sqrt(mstar * kt) * vt
+    energy = 0.5 * (kn * gn * gn + kt * wp.dot(gt, gt))
+    return wp.mat33(f_el[0], f_el[1], f_el[2], f_damp[0], f_damp[1], f_damp[2], mode, energy, 0.0)
+
+
+@wp.kernel
+def eval_joints_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    node_inv_mass: wp.array(dtype=float),
+    joint_a: wp.array(dtype=int),
+    joint_b: wp.array(dtype=int),
+    joint_area: wp.array(dtype=float),
+    joint_kn: wp.array(dtype=float),
+    joint_tet_face: wp.array(dtype=int),
+    joint_set: wp.array(dtype=int),
+    joint_material_table: wp.array(dtype=JointMaterial),
+    dt: float,
+    # State in:
+    joint_count: wp.array(dtype=int),
+    node_u: wp.array(dtype=wp.vec3),
+    node_q: wp.array(dtype=wp.vec3),
+    node_qd: wp.array(dtype=wp.vec3),
+    # State out:
+    joint_broken: wp.array(dtype=int),
+    joints_broken_total: wp.array(dtype=int),
+    fem_rebuild_flag: wp.array(dtype=int),
+    node_f: wp.array(dtype=wp.vec3),
+    node_energy_contact: wp.array(dtype=wp.float64),
+):
+    i = wp.tid()  # one thread per joint element slot
+    if i >= joint_count[0] or joint_broken[i] != JOINT_INTACT:
+        return
+    a = joint_a[i]
+    b = joint_b[i]
+    inv_sum = node_inv_mass[a] + node_inv_mass[b]
+    if inv_sum == 0.0:
+        return
+    mat = joint_material_table[joint_set[i]]
+    n = tet_face_normal(tet_nodes, joint_tet_face[i], node_q)
+    # u_B - u_A, not x_B - x_A: the daughters share their reference position, and displacements keep float32
+    # precision where coordinates would not.
+    g = node_u[b] - node_u[a]
+    v_rel = node_qd[b] - node_qd[a]
+    out = joint_element_force(g, v_rel, n, joint_kn[i], joint_area[i], 1.0 / inv_sum, mat)
+    mode = int(out[2, 0])
+    if mode != JOINT_INTACT:
+        if dt > 0.0:  # the set-up evaluation (dt = 0) changes no history
+            joint_broken[i] = mode
+            wp.atomic_add(joints_broken_total, 0, 1)
+            fem_rebuild_flag[0] = 1  # the pair enters the node–face contact list at the next build
+            # The springs' elastic energy is released (booked as dissipated, as a broken bond's is).
+            wp.atomic_add(node_energy_contact, a, wp.float64(out[2, 1]))
+        return
+    f = out[0] + out[1]
+    wp.atomic_add(node_f, b, f)
+    wp.atomic_add(node_f, a, -f)
+    # Work of the dashpots on the relative motion, -F_damp · v_rel dt ≥ 0.
+    wp.atomic_add(node_energy_contact, a, wp.float64(-wp.dot(out[1], v_rel) * dt))

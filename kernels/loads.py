@@ -1,0 +1,327 @@
+"""Loads and boundaries (DESIGN.md stage 8): pressure histories on faces, non-reflecting dashpots, velocity drivers.
+
+Faces are node triples ordered so that their right-hand normal points out of the rock. A face's current area vector
+a = ½ (x1 - x0) × (x2 - x0) is formed from reference edges E (float64 on the host, stored in float32) plus the
+displacement differences, e = E + (u_k - u_0), so it keeps the precision of the displacements wherever the body sits
+(as the tets do, kernels/tets.py).
+
+Pressure: a pressure p pushes into the solid, f = -p a, lumped a third to each node. Histories are picked at
+code-generation time (:func:`make_face_pressure_kernel`); their parameters sit in one :class:`PressureLoad` per load.
+
+Work of the loads: velocity Verlet's energy identity per step is ΔK = ½ (f_n + f_{n+1}) · (x_{n+1} - x_n) plus a
+bounded shadow term, so the load work is booked by the same trapezoid, ½ dt (f_n + f_{n+1}) · v_{n+1/2}: half when a
+force is made (:func:`make_face_pressure_kernel`, with the half-step velocity then in ``node_qd``) and half in the
+next step before the new forces (:func:`book_load_work_kernel`), which is why the load forces are also kept apart in
+``node_f_load``.
+
+Non-reflecting boundary (Lysmer & Kuhlemeyer 1969): the traction t = -ρ c_p (v·n) n - ρ c_s (v - (v·n) n) of a
+semi-infinite continuum carrying a plane wave away normally. It is lumped per node (each node's dashpot sees its
+own velocity, a third of each adjacent face's area), at the half-step velocity as the mass-proportional damping of
+the integrator, and its power -f·v ≥ 0 is booked as dissipated energy.
+
+Velocity drivers hold a node's velocity at V while start ≤ t < end; the integrator applies them
+(kernels/integrate.py) with the predicates here.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+PRESSURE_KINDS = ("blast", "table", "friedlander")
+"""Pressure histories, each specialised into its own kernel."""
+
+
+@wp.struct
+class PressureLoad:
+    """Parameters of one pressure history (the fields a kind does not use are 0).
+
+    Attributes:
+        peak: peak pressure [Pa]: blast peak, Friedlander peak overpressure P_s (table: unused).
+        start: blast start time, Friedlander source time t0 [s], float64.
+        rise: blast rise time t_rise [s].
+        decay: blast decay time t_decay, Friedlander positive-phase duration t_d [s].
+        shape: Friedlander decay coefficient b [-].
+        source: Friedlander source point [m].
+        slowness: 1 / front speed of the Friedlander front [s/m].
+        table_first: first entry of this load's (time, value) table in the shared table arrays.
+        table_count: entries of the table (≥ 2).
+    """
+
+    peak: float
+    start: wp.float64
+    rise: float
+    decay: float
+    shape: float
+    source: wp.vec3
+    slowness: float
+    table_first: int
+    table_count: int
+
+
+@wp.struct
+class NodeDriver:
+    """A prescribed node velocity.
+
+    Attributes:
+        velocity: the velocity held [m/s].
+        start: first time it holds [s], float64.
+        end: time it lets go [s] (inf: never), float64.
+    """
+
+    velocity: wp.vec3
+    start: wp.float64
+    end: wp.float64
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Physics.
+
+
+@wp.func
+def blast_pressure(
+    load: PressureLoad,
+    t: wp.float64,
+    x: wp.vec3,
+    table_times: wp.array(dtype=wp.float64),
+    table_values: wp.array(dtype=float),
+) -> float:
+    """Explosive cavity or borehole [Pa]: linear rise to the peak over t_rise, then exponential decay,
+    p = P τ/t_rise for 0 ≤ τ < t_rise, P exp(-(τ - t_rise)/t_decay) after, τ = t - t_start; 0 before the start."""
+    tau = float(t - load.start)
+    if tau < 0.0:
+        return 0.0
+    if tau < load.rise:
+        return load.peak * tau / load.rise
+    return load.peak * wp.exp(-(tau - load.rise) / load.decay)
+
+
+@wp.func
+def table_pressure(
+    load: PressureLoad,
+    t: wp.float64,
+    x: wp.vec3,
+    table_times: wp.array(dtype=wp.float64),
+    table_values: wp.array(dtype=float),
+) -> float:
+    """Piecewise-linear history through the points (t_k, p_k) [Pa], 0 outside [t_first, t_last]."""
+    lo = load.table_first
+    hi = lo + load.table_count - 1
+    if t < table_times[lo] or t > table_times[hi]:
+        return 0.0
+    # Bisection for the interval [t_lo, t_hi] holding t: t_lo ≤ t ≤ t_hi throughout.
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if table_times[mid] <= t:
+            lo = mid
+        else:
+            hi = mid
+    w = float((t - table_times[lo]) / (table_times[hi] - table_times[lo]))
+    return table_values[lo] + w * (table_values[hi] - table_values[lo])
+
+
+@wp.func
+def friedlander_pressure(
+    load: PressureLoad,
+    t: wp.float64,
+    x: wp.vec3,
+    table_times: wp.array(dtype=wp.float64),
+    table_values: wp.array(dtype=float),
+) -> float:
+    """Surface airblast (Friedlander waveform) [Pa]: the front leaves the source at t0 with a constant speed and
+    arrives at t_a(x) = t0 + |x - source| / front_speed; after it, p = P_s (1 - τ/t_d) exp(-b τ/t_d) with
+    τ = t - t_a (its negative phase included); 0 before the arrival."""
+    arrival = load.start + wp.float64(wp.length(x - load.source) * load.slowness)
+    tau = float(t - arrival)
+    if tau < 0.0:
+        return 0.0
+    s = tau / load.decay
+    return load.peak * (1.0 - s) * wp.exp(-load.shape * s)
+
+
+HISTORIES = {"blast": blast_pressure, "table": table_pressure, "friedlander": friedlander_pressure}
+
+
+@wp.func
+def face_area_vector(n: wp.vec3i, edge_a: wp.vec3, edge_b: wp.vec3, node_u: wp.array(dtype=wp.vec3)) -> wp.vec3:
+    """Current area vector of a face, ½ (x1 - x0) × (x2 - x0) [m²], from its reference edges E_a = X1 - X0,
+    E_b = X2 - X0 and the nodal displacements."""
+    u0 = node_u[n[0]]
+    return 0.5 * wp.cross(edge_a + (node_u[n[1]] - u0), edge_b + (node_u[n[2]] - u0))
+
+
+@wp.func
+def lysmer_traction(v: wp.vec3, normal: wp.vec3, impedance: wp.vec2) -> wp.vec3:
+    """Viscous traction of a non-reflecting boundary [Pa] (Lysmer & Kuhlemeyer 1969):
+    t = -ρ c_p (v·n) n - ρ c_s (v - (v·n) n), impedance = (ρ c_p, ρ c_s) [Pa s/m], n the unit normal."""
+    vn = wp.dot(v, normal)
+    return -impedance[0] * vn * normal - impedance[1] * (v - vn * normal)
+
+
+@wp.func
+def driver_holds(driver: NodeDriver, t: wp.float64) -> bool:
+    """Whether a velocity driver holds its node at time t: start ≤ t < end."""
+    if t < driver.start:
+        return False
+    return t < driver.end
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Kernels.
+
+
+@functools.cache
+def make_face_pressure_kernel(kind: str) -> wp.Kernel:
+    """The pressure kernel of one history kind, the history picked at code-generation time.
+
+    The kernel evaluates p at t_n + dt, the time of the positions the step has just drifted to (``time`` still holds
+    t_n); ``dt`` = 0 is the set-up evaluation at the state's own time, which books no work.
+
+    Args:
+        kind: one of :data:`PRESSURE_KINDS`.
+
+    Raises:
+        ValueError: an unknown kind.
+    """
+    if kind not in HISTORIES:
+        raise ValueError(f"unknown pressure history {kind!r}; allowed: {', '.join(PRESSURE_KINDS)}")
+    history = HISTORIES[kind]
+
+    @wp.kernel(module="unique")
+    def apply_face_pressure_kernel(
+        # Model:
+        face_nodes: wp.array(dtype=wp.vec3i),
+        face_edge_a: wp.array(dtype=wp.vec3),
+        face_edge_b: wp.array(dtype=wp.vec3),
+        face_load: wp.array(dtype=int),
+        loads: wp.array(dtype=PressureLoad),
+        table_times: wp.array(dtype=wp.float64),
+        table_values: wp.array(dtype=float),
+        dt: float,
+        # State in:
+        time: wp.array(dtype=wp.float64),
+        node_u: wp.array(dtype=wp.vec3),
+        node_q: wp.array(dtype=wp.vec3),
+        node_qd: wp.array(dtype=wp.vec3),
+        # State out:
+        node_f: wp.array(dtype=wp.vec3),
+        node_f_load: wp.array(dtype=wp.vec3),
+        node_energy_boundary_work: wp.array(dtype=wp.float64),
+    ):
+        f = wp.tid()  # one thread per loaded face
+        n = face_nodes[f]
+        centroid = (node_q[n[0]] + node_q[n[1]] + node_q[n[2]]) / 3.0
+        # The forces belong to the new positions, at t_{n+1} = t_n + dt (the clock advances at the end of the step).
+        p = history(loads[face_load[f]], time[0] + wp.float64(dt), centroid, table_times, table_values)
+        if p == 0.0:
+            return
+        # f = -p a pushes into the solid; a third on each node.
+        force = (-p / 3.0) * face_area_vector(n, face_edge_a[f], face_edge_b[f], node_u)
+        for k in range(3):
+            node = n[k]
+            wp.atomic_add(node_f, node, force)
+            wp.atomic_add(node_f_load, node, force)
+            # First half of the trapezoid ½ dt (f_{n+1} + f_n) · v_{n+1/2}: node_qd holds v_{n+1/2} here.
+            wp.atomic_add(node_energy_boundary_work, node, wp.float64(0.5 * dt * wp.dot(force, node_qd[node])))
+
+    return apply_face_pressure_kernel
+
+
+@wp.kernel
+def book_load_work_kernel(
+    # Model:
+    loaded_nodes: wp.array(dtype=int),
+    dt: float,
+    # State in:
+    node_qd: wp.array(dtype=wp.vec3),
+    # State out:
+    node_f_load: wp.array(dtype=wp.vec3),
+    node_energy_boundary_work: wp.array(dtype=wp.float64),
+):
+    k = wp.tid()  # one thread per node of a loaded face
+    i = loaded_nodes[k]
+    # Second half of the last step's trapezoid, ½ dt f_n · v_{n+1/2}, then clear for the new load forces.
+    f = node_f_load[i]
+    node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(0.5 * dt * wp.dot(f, node_qd[i]))
+    node_f_load[i] = wp.vec3(0.0)
+
+
+@wp.kernel
+def apply_dashpots_kernel(
+    # Model:
+    face_nodes: wp.array(dtype=wp.vec3i),
+    face_edge_a: wp.array(dtype=wp.vec3),
+    face_edge_b: wp.array(dtype=wp.vec3),
+    face_impedance: wp.array(dtype=wp.vec2),
+    dt: float,
+    # State in:
+    node_u: wp.array(dtype=wp.vec3),
+    node_qd: wp.array(dtype=wp.vec3),
+    # State out:
+    node_f: wp.array(dtype=wp.vec3),
+    node_energy_damping: wp.array(dtype=wp.float64),
+):
+    f = wp.tid()  # one thread per non-reflecting face
+    n = face_nodes[f]
+    a = face_area_vector(n, face_edge_a[f], face_edge_b[f], node_u)
+    area = wp.length(a)
+    if area == 0.0:
+        return
+    normal = a / area
+    third = area / 3.0
+    for k in range(3):
+        node = n[k]
+        v = node_qd[node]
+        force = third * lysmer_traction(v, normal, face_impedance[f])
+        wp.atomic_add(node_f, node, force)
+        # Dissipated: -f · v dt ≥ 0, at the half-step velocity the force was made from.
+        wp.atomic_add(node_energy_damping, node, wp.float64(-wp.dot(force, v) * dt))
+
+
+@wp.func
+def drive_first_half(
+    driver: NodeDriver,
+    t_mid: wp.float64,
+    dt: float,
+    free: wp.vec3,
+    v_old: wp.vec3,
+    v_kicked: wp.vec3,
+    force: wp.vec3,
+    mass: float,
+):
+    """Velocity v_{n+1/2} of a node with a driver, and the driver's work in this half step [J].
+
+    While the driver holds at the step's midpoint t_mid, v = V and the driver does the first half of the trapezoid
+    -½ dt f_n · V against the force f_n on the node (gravity included where it counts in the potential). When it
+    takes hold or lets go (held at t_mid but not at t_mid - dt, or the reverse), the velocity jumps from v_n to V,
+    or V loses its held components: that impulse's work is the jump of ½ m |v|².
+
+    Args:
+        free: the node's free components (1) and held ones (0) without the driver. v_old: v_n [m/s].
+        v_kicked: v_{n+1/2} of the undriven node [m/s]. force: f_n [N]. mass: m [kg].
+    """
+    held = driver_holds(driver, t_mid)
+    before = driver_holds(driver, t_mid - wp.float64(dt))
+    v = v_kicked
+    work = float(0.0)
+    if held:
+        v = driver.velocity
+        work = -0.5 * dt * wp.dot(force, v)
+    if held != before:
+        target = wp.cw_mul(free, v_old)
+        if held:
+            target = driver.velocity
+        work = work + 0.5 * mass * (wp.dot(target, target) - wp.dot(v_old, v_old))
+    return v, work
+
+
+@wp.func
+def drive_second_half(driver: NodeDriver, t_mid: wp.float64, dt: float, v_kicked: wp.vec3, force: wp.vec3):
+    """Velocity v_{n+1} of a node with a driver and the driver's work [J]: while it holds at t_mid, v = V and the
+    second half of the trapezoid, -½ dt f_{n+1} · V."""
+    if driver_holds(driver, t_mid):
+        return driver.velocity, -0.5 * dt * wp.dot(force, driver.velocity)
+    return v_kicked, float(0.0)

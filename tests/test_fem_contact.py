@@ -1,0 +1,448 @@
+"""FEM contact (kernels/fem_contact.py, warpdem/fem_contact.py): boundary faces, candidate lists, sphere–face,
+node–face and node–wall forces.
+
+Oracles:
+- candidate lists against an O(N F) brute force over every node–face and sphere–face pair (exact point-triangle
+  distances in float64): every pair certainly within the cut-off is listed, no pair certainly outside it is, and no
+  node is listed against a face in its 1-ring (a face of a tet holding it, a face holding it);
+- a block on an inclined joint (base held, top block free, gravity at θ to the joint normal): for tan θ < μ it
+  stays put, its displacement within DYNAMIC × the static elastic estimate; for tan θ > μ it slides with
+  a = g (sin θ - μ cos θ);
+- a sphere dropped on a free tet slab without gravity: Newton's third law at every step (the contact forces on the
+  sphere and on the face's nodes sum to zero), total linear momentum conserved to float32 round-off, the sphere
+  rebounds with at most the restitution of a rigid wall; over a vertex shared by six faces it rebounds as over a
+  face's interior (one contact, not six);
+- two free tet bodies colliding without gravity or friction (node–face contact across bodies, both passes): linear
+  momentum conserved to float32 round-off, and once apart their kinetic and strain energy add up to the initial
+  kinetic energy (elastic contact, no damping anywhere);
+- a block resting on a wall: the wall carries its weight, each bottom node at the penetration of its own share;
+- overflow: one candidate slot per sphere and node grows and reproduces the run with ample slots bit for bit;
+- the stable step of the penalty springs (ModelBuilder.contact_critical_time_step) scales as 1/sqrt(f) with the
+  stiffness factor, and is a bound: a bonded two-block model whose step the joint controls runs at it with its
+  energy conserved, and blows up at STEP_BLOWUP times it (so the bound is not grossly pessimistic either).
+
+Tolerances. Block sliding: the acceleration of the top block's centre of mass is fitted over the last 70 % of the
+run, after the first touch; the normal force rings about its mean m g cos θ (the COM's vertical velocity averages
+out) and the lateral rattling of the nodes tilts the friction by a fraction of a percent: SLIDE_RTOL (the 2 % asked
+for). Staying put: a shear traction τ = ρ g H sin θ strains the joint by τ / k_t (k_t = ratio × 2 E / h, both
+faces' penalty) and the block by τ H / (2 G); a suddenly applied load overshoots twice that (DYNAMIC), with
+STATIC_MARGIN for the lumped edges. Momentum: each step rounds every node's and the sphere's velocity update to
+float32, a random walk of ε₃₂ Σ m |v| per step over the steps (MOMENTUM_ROUNDOFF). Force balance: float32 sums of the
+distributed forces, FORCE_ROUNDOFF ε₃₂ of the largest force. Resting block: a settled state (mass-proportional
+damping) has the weight on the wall to REST_RTOL. Collision energy: velocity Verlet returns a penalty spring's
+energy up to O((ω dt)²) of what passed through it, ω dt ≤ 1 at half the stable step: a few tenths of a percent of
+the impact energy (ENERGY_RTOL).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import warp as wp
+
+from warpdem.builder import InteractionProps, ModelBuilder
+from warpdem.joints import JointProps
+from warpdem.mesh import TET_FACES, box_mesh
+from warpdem.model import BondData
+from warpdem.simulation import Simulation
+from warpdem.tets import TetProps
+
+YOUNG = 1.0e8  # [Pa]
+POISSON = 0.25
+DENSITY = 2000.0  # [kg/m³]
+GRAVITY = 9.81  # [m/s²]
+SHEAR = YOUNG / (2.0 * (1.0 + POISSON))
+F32_EPS = float(np.finfo(np.float32).eps)
+FRICTION = 0.3
+SLIDE_RTOL = 0.02
+DYNAMIC = 2.0
+STATIC_MARGIN = 1.5
+MOMENTUM_ROUNDOFF = 4.0
+FORCE_ROUNDOFF = 16.0
+REST_RTOL = 0.01
+ENERGY_RTOL = 0.01
+STEP_BLOWUP = 2.5  # the joint-controlled model measured unstable from 1.7× its computed step
+STABLE_RTOL = 0.1  # at the stable step velocity Verlet's energy oscillates by O((ω dt)²/4) of the fastest modes
+BAND = 1.0e-4  # relative band around a cut-off inside which float32 may decide either way
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Helpers
+
+
+def plane_faces(points: np.ndarray, tets: np.ndarray, axis: int, value: float) -> np.ndarray:
+    faces = tets[:, TET_FACES].reshape(-1, 3)
+    on = np.all(np.isclose(points[faces][:, :, axis], value), axis=1)
+    return np.unique(np.sort(faces[on], axis=1), axis=0)
+
+
+def hold(model, nodes: np.ndarray) -> None:
+    """Fix nodes of a built model (after the split, so that only this side's copies are held)."""
+    inv_mass = model.node_inv_mass.numpy()
+    inv_mass[nodes] = 0.0
+    model.node_inv_mass.assign(inv_mass)
+    motion = model.node_motion.numpy()
+    motion[nodes] = 1
+    model.node_motion.assign(motion)
+
+
+def two_blocks(device, theta_deg: float, divisions: int = 2, **finalize):
+    """A 1 × 1 × 1 m box cut by a horizontal joint at z = 0.5 (friction FRICTION); the lower block held, gravity
+    tilted by θ from the joint normal (the same as a joint inclined at θ). Returns (model, state, upper nodes)."""
+    theta = math.radians(theta_deg)
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (divisions,) * 3)
+    b = ModelBuilder(gravity=(GRAVITY * math.sin(theta), 0.0, -GRAVITY * math.cos(theta)))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    js = b.add_joint_set(JointProps(friction=FRICTION, restitution=0.2))
+    b.add_tet_mesh(points, tets, "rock", joint_faces=plane_faces(points, tets, 2, 0.5), joint_set=js)
+    model, state = b.finalize(device, safety_factor=0.5, **finalize)
+    new_tets = model.tet_nodes.numpy()[: len(tets)]
+    above = points[tets].mean(axis=1)[:, 2] > 0.5
+    hold(model, np.unique(new_tets[~above]))
+    return model, state, np.unique(new_tets[above])
+
+
+def centre_of_mass_motion(sim: Simulation, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    mass = sim.model.node_mass.numpy()[nodes].astype(np.float64)
+    u = sim.state.node_u.numpy()[nodes].astype(np.float64)
+    v = sim.state.node_qd.numpy()[nodes].astype(np.float64)
+    return (mass[:, None] * u).sum(axis=0) / mass.sum(), (mass[:, None] * v).sum(axis=0) / mass.sum()
+
+
+def point_triangle_distance(p: np.ndarray, tri: np.ndarray) -> float:
+    """Exact distance from p to a triangle (float64), by minimising over the face and its three edges."""
+    a, b, c = tri
+    n = np.cross(b - a, c - a)
+    n /= np.linalg.norm(n)
+    q = p - np.dot(p - a, n) * n
+    w = [np.dot(np.cross(c - b, q - b), n), np.dot(np.cross(a - c, q - c), n), np.dot(np.cross(b - a, q - a), n)]
+    if min(w) >= 0.0:
+        return abs(float(np.dot(p - a, n)))
+    best = math.inf
+    for u, v in ((a, b), (b, c), (c, a)):
+        t = np.clip(np.dot(p - u, v - u) / np.dot(v - u, v - u), 0.0, 1.0)
+        best = min(best, float(np.linalg.norm(p - (u + t * (v - u)))))
+    return best
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Candidate lists
+
+
+def test_candidate_lists_match_brute_force(device):
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (3, 3, 2))
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    js = b.add_joint_set(JointProps(friction=0.5))
+    b.add_tet_mesh(points, tets, "rock", joint_faces=plane_faces(points, tets, 2, 0.5), joint_set=js)
+    rng = np.random.default_rng(7)
+    centres = np.column_stack([rng.uniform(-0.1, 1.1, 40), rng.uniform(-0.1, 1.1, 40), rng.uniform(0.95, 1.2, 40)])
+    b.add_spheres(centres, rng.uniform(0.02, 0.06, 40), "rock")
+    model, state = b.finalize(device, max_sphere_faces=4, max_node_faces=4)
+    # Shift the upper block sideways and down a little: nodes now sit inside the lower block's faces, off-vertex.
+    new_tets = model.tet_nodes.numpy()[: len(tets)]
+    upper = np.unique(new_tets[points[tets].mean(axis=1)[:, 2] > 0.5])
+    u = state.node_u.numpy()
+    u[upper] += np.array([0.07, 0.04, -0.01], dtype=np.float32)
+    state.node_u.assign(u)
+    state.node_q.assign(model.node_ref_q.numpy() + u)
+    sim = Simulation(model, state)  # builds the lists (growing them until they fit)
+    m, s = sim.model, sim.state
+
+    n_faces = int(s.face_count.numpy()[0])
+    faces = m.face_nodes.numpy()[:n_faces]
+    face_depth = m.face_depth.numpy()[:n_faces].astype(np.float64)
+    x_nodes = s.node_q_at_fem_build.numpy().astype(np.float64)
+    tets_now = m.tet_nodes.numpy()[: len(tets)]
+    ring = [set() for _ in range(int(s.node_count.numpy()[0]))]
+    for tet in tets_now.tolist():
+        for v in tet:
+            ring[v].update(tet)
+    stiff = m.node_contact_stiffness.numpy()
+    k_nodes = m.max_node_faces
+    index = s.node_face_index.numpy().reshape(-1, k_nodes)
+    count = s.node_face_count.numpy()
+    checked = 0
+    for v in np.nonzero(stiff > 0)[0]:
+        listed = set(index[v, : count[v]].tolist())
+        assert count[v] <= k_nodes
+        for f in range(n_faces):
+            tri = x_nodes[faces[f]]
+            if ring[v] & set(faces[f].tolist()):
+                assert f not in listed, f"node {v} listed against face {f} of its own 1-ring"
+                continue
+            d = point_triangle_distance(x_nodes[v], tri)
+            n = np.cross(tri[1] - tri[0], tri[2] - tri[0])
+            depth = -np.dot(x_nodes[v] - tri[0], n / np.linalg.norm(n))
+            behind = 0.0 < depth < face_depth[f] * (1 - BAND) and d <= depth * (1 + BAND)  # projects inside
+            if d < m.fem_skin * (1 - BAND) or behind:
+                assert f in listed, f"node {v} misses face {f} at {d}"
+                checked += 1
+            elif d > m.fem_skin * (1 + BAND) and not (0.0 < depth < face_depth[f] * (1 + BAND)):
+                assert f not in listed, f"node {v} lists face {f} at {d}"
+    assert checked > 0
+
+    k_spheres = m.max_sphere_faces
+    sindex = s.sphere_face_index.numpy().reshape(-1, k_spheres)
+    scount = s.sphere_face_count.numpy()
+    q = s.particle_q.numpy().astype(np.float64)
+    radius = m.particle_radius.numpy().astype(np.float64)
+    cutoff = m.skin + 0.5 * m.fem_skin
+    hits = 0
+    for i in range(int(s.particle_count.numpy()[0])):
+        listed = set(sindex[i, : scount[i]].tolist())
+        for f in range(n_faces):
+            d = point_triangle_distance(q[i], x_nodes[faces[f]])
+            if d < (radius[i] + cutoff) * (1 - BAND):
+                assert f in listed
+                hits += 1
+            elif d > (radius[i] + cutoff) * (1 + BAND):
+                assert f not in listed
+    assert hits > 0
+    assert sim.growths >= 1  # 4 slots were too few for nodes at the shifted joint
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Friction on a joint
+
+
+@pytest.mark.parametrize("rebuild", ["skinned", "every_step"])
+def test_block_on_joint_stays_below_friction_angle(device, rebuild):
+    """With a skin so thin that the lists are rebuilt at every step, the block holds just the same: the node's
+    tangential spring survives the rebuilds."""
+    theta = 10.0
+    assert math.tan(math.radians(theta)) < FRICTION
+    model, state, upper = two_blocks(device, theta, fem_skin=1e-9 if rebuild == "every_step" else None)
+    sim = Simulation(model, state)
+    steps = int(0.1 / model.dt)
+    sim.advance(steps)
+    if rebuild == "every_step":
+        assert int(sim.state.fem_rebuild_total.numpy()[0]) > steps // 2
+    u, v = centre_of_mass_motion(sim, upper)
+    # Static estimate along the slope: the joint's shear spring and the block's own shear.
+    tau = DENSITY * GRAVITY * 0.5 * math.sin(math.radians(theta))
+    h = 0.5  # tet height over the joint faces
+    k_t = JointProps(friction=FRICTION).shear_stiffness_ratio * 2.0 * YOUNG / h
+    static = tau / k_t + tau * 0.5 / (2.0 * SHEAR)
+    assert abs(u[0]) < STATIC_MARGIN * DYNAMIC * static
+    # On a frictionless joint it would have gone g sin θ t² / 2 by now.
+    assert abs(u[0]) < 1e-2 * 0.5 * GRAVITY * math.sin(math.radians(theta)) * sim.time**2
+    assert abs(v[0]) < 1e-2 * GRAVITY * math.sin(math.radians(theta)) * sim.time
+
+
+@pytest.mark.parametrize("divisions", [2, 4])
+def test_block_on_joint_slides_above_friction_angle(device, divisions):
+    theta = 30.0
+    assert math.tan(math.radians(theta)) > FRICTION
+    model, state, upper = two_blocks(device, theta, divisions)
+    sim = Simulation(model, state)
+    total = 0.1  # [s]
+    chunks = 40
+    per = max(int(total / model.dt) // chunks, 1)
+    times, speeds = [], []
+    for _ in range(chunks):
+        sim.advance(per)
+        times.append(sim.time)
+        speeds.append(centre_of_mass_motion(sim, upper)[1][0])
+    times, speeds = np.array(times), np.array(speeds)
+    late = times > 0.3 * times[-1]
+    a = np.polyfit(times[late], speeds[late], 1)[0]
+    expected = GRAVITY * (math.sin(math.radians(theta)) - FRICTION * math.cos(math.radians(theta)))
+    np.testing.assert_allclose(a, expected, rtol=SLIDE_RTOL)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Sphere on a slab
+
+
+def sphere_on_slab(device, centre_xy, **finalize):
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 0.2), (4, 4, 1))
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", 2500.0, 1.0e9, POISSON)
+    b.set_interaction("rock", "rock", InteractionProps(friction=0.5, restitution=0.8))
+    b.add_tet_mesh(points, tets, "rock")
+    r = 0.05
+    b.add_sphere((*centre_xy, 0.2 + r + 0.002), r, "rock", velocity=(0.5, 0.2, -2.0))
+    return b.finalize(device, **finalize)
+
+
+def momentum(model, state) -> tuple[np.ndarray, float]:
+    """Total linear momentum (sphere + nodes) [kg m/s] and Σ m |v| (the scale of its float32 round-off)."""
+    n = int(state.node_count.numpy()[0])
+    mp = model.particle_mass.numpy()[:1, None].astype(np.float64)
+    vp = state.particle_qd.numpy()[:1].astype(np.float64)
+    mn = model.node_mass.numpy()[:n, None].astype(np.float64)
+    vn = state.node_qd.numpy()[:n].astype(np.float64)
+    p = (mp * vp).sum(axis=0) + (mn * vn).sum(axis=0)
+    scale = float((mp * np.abs(vp)).sum() + (mn * np.abs(vn)).sum())
+    return p, scale
+
+
+@pytest.mark.parametrize("centre_xy", [(0.43, 0.37), (0.5, 0.5)], ids=["face", "vertex"])
+def test_sphere_rebounds_from_slab_conserving_momentum(device, centre_xy):
+    model, state = sphere_on_slab(device, centre_xy)
+    sim = Simulation(model, state)
+    p0, _ = momentum(model, state)
+    steps = 0
+    largest_error = 0.0
+    touched = False
+    while steps < int(0.006 / model.dt):
+        sim.advance(1)
+        steps += 1
+        s = sim.state
+        if int(s.sphere_face_count.numpy()[0]) and np.any(s.particle_f.numpy()[0] != 0.0):
+            touched = True
+            # Newton's third law: with no gravity and no other load, the sphere's force and the nodes' forces
+            # (contact shares plus the tets' internal forces, which sum to zero) balance.
+            f_sphere = s.particle_f.numpy()[0].astype(np.float64)
+            f_nodes = s.node_f.numpy().astype(np.float64)
+            scale = max(np.abs(f_sphere).max(), np.abs(f_nodes).max())
+            largest_error = max(largest_error, float(np.abs(f_sphere + f_nodes.sum(axis=0)).max() / scale))
+    assert touched
+    assert largest_error < FORCE_ROUNDOFF * F32_EPS
+    p, scale = momentum(sim.model, sim.state)
+    assert np.abs(p - p0).max() < MOMENTUM_ROUNDOFF * F32_EPS * math.sqrt(steps) * scale
+    vz = float(sim.state.particle_qd.numpy()[0, 2])
+    # Rebound: up, and at most the restitution of a rigid wall (the free slab takes some energy into its waves).
+    assert 0.5 * 0.8 * 2.0 < vz <= 0.8 * 2.0 * (1.0 + 1e-3)
+
+
+def test_sphere_over_vertex_rebounds_as_over_face(device):
+    """Six faces share the vertex under the sphere; one of them carries the contact (a double count would throw
+    the sphere back several times as hard)."""
+    results = []
+    for centre in ((0.43, 0.37), (0.5, 0.5)):
+        model, state = sphere_on_slab(device, centre)
+        sim = Simulation(model, state)
+        sim.advance(int(0.006 / model.dt))
+        assert int(sim.state.sphere_face_needed.numpy()[0]) >= (6 if centre == (0.5, 0.5) else 1)
+        results.append(float(sim.state.particle_qd.numpy()[0, 2]))
+    np.testing.assert_allclose(results[1], results[0], rtol=0.05)
+
+
+def test_sphere_face_history_survives_rebuild(device):
+    model, state = sphere_on_slab(device, (0.43, 0.37))
+    sim = Simulation(model, state)
+    sim.advance(int(0.0012 / model.dt))  # in contact, sliding along the slab
+    s, k = sim.state, sim.model.max_sphere_faces
+
+    def springs() -> dict[int, tuple]:
+        n = int(s.sphere_face_count.numpy()[0])
+        index = s.sphere_face_index.numpy()[:n]
+        shear = s.sphere_face_shear.numpy()[:n]
+        return {int(f): tuple(sh) for f, sh in zip(index, shear, strict=True)}
+
+    before = springs()
+    assert any(np.any(np.array(sh) != 0.0) for sh in before.values())
+    assert k >= len(before)
+    sim.fem_contact.rebuild()
+    assert springs() == before
+
+
+def test_growth_reproduces_ample_capacity(device):
+    runs = []
+    for slots in (1, 16):
+        model, state = sphere_on_slab(device, (0.5, 0.5), max_sphere_faces=slots, max_node_faces=slots)
+        sim = Simulation(model, state)
+        for _ in range(5):
+            sim.advance(40)
+        runs.append(sim)
+    small, large = runs
+    assert small.growths >= 1 and small.model.max_sphere_faces >= 6
+    for name in ("particle_q", "particle_qd", "particle_omega", "node_q", "node_qd"):
+        np.testing.assert_array_equal(getattr(small.state, name).numpy(), getattr(large.state, name).numpy())
+
+
+def test_two_bodies_collide_elastically(device):
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    b.set_tet_properties("rock", TetProps(bulk_viscosity_linear=0.0, bulk_viscosity_quadratic=0.0))
+    b.set_interaction("rock", "rock", InteractionProps(friction=0.0, restitution=1.0))
+    p1, t1 = box_mesh((0.0, 0.0, 0.0), (0.5, 0.5, 0.5), (2, 2, 2))
+    p2, t2 = box_mesh((0.52, 0.1, 0.05), (1.02, 0.6, 0.55), (3, 3, 3))  # offset, and a different mesh
+    b.add_tet_mesh(p1, t1, "rock", velocity=(1.0, 0.1, 0.0))
+    b.add_tet_mesh(p2, t2, "rock", velocity=(-1.0, 0.0, 0.05))
+    model, state = b.finalize(device, safety_factor=0.5)
+    sim = Simulation(model, state)
+    n = int(state.node_count.numpy()[0])
+    mass = model.node_mass.numpy()[:n].astype(np.float64)
+
+    def momentum() -> np.ndarray:
+        return (mass[:, None] * sim.state.node_qd.numpy()[:n].astype(np.float64)).sum(axis=0)
+
+    p0, e0 = momentum(), sim.energy()
+    steps = int(0.027 / model.dt)
+    sim.advance(steps)
+    e1 = sim.energy()
+    scale = float((mass[:, None] * np.abs(sim.state.node_qd.numpy()[:n])).sum())
+    assert np.abs(momentum() - p0).max() < MOMENTUM_ROUNDOFF * F32_EPS * math.sqrt(steps) * scale
+    v = sim.state.node_qd.numpy()[:n].astype(np.float64)
+    first = len(p1)
+    v1 = (mass[:first, None] * v[:first]).sum(axis=0) / mass[:first].sum()
+    v2 = (mass[first:, None] * v[first:]).sum(axis=0) / mass[first:].sum()
+    assert v1[0] < -0.5 and v2[0] > 0.5  # they bounced apart
+    assert e1.elastic == 0.0  # no contact left
+    np.testing.assert_allclose(e1.total, e0.total, rtol=ENERGY_RTOL)
+
+
+def bonded_blocks(stiffness_factor: float) -> ModelBuilder:
+    """Two blocks on a horizontal joint bonded strongly enough never to fail, no damping anywhere; every face (joint
+    and outer) of penalty factor ``stiffness_factor``."""
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (2, 2, 2))
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0), contact_stiffness_factor=stiffness_factor)
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    b.set_tet_properties("rock", TetProps(bulk_viscosity_linear=0.0, bulk_viscosity_quadratic=0.0))
+    props = JointProps(
+        friction=0.3, cohesion=1e12, tensile_strength=1e12, stiffness_factor=stiffness_factor, restitution=1.0
+    )
+    js = b.add_joint_set(props)
+    b.add_tet_mesh(points, tets, "rock", joint_faces=plane_faces(points, tets, 2, 0.5), joint_set=js)
+    return b
+
+
+def test_contact_time_step_scales_and_bounds(device):
+    steps = {f: bonded_blocks(f).contact_critical_time_step(bonded_blocks(f).tet_mesh_data()) for f in (1.0, 4.0)}
+    np.testing.assert_allclose(steps[4.0] / steps[1.0], 0.5, rtol=1e-12)
+    b = bonded_blocks(10.0)
+    mesh = b.tet_mesh_data()
+    assert b.contact_critical_time_step(mesh) < b.tet_critical_time_step(mesh)  # the joint controls the step
+    critical = b.critical_time_step(b.particle_data(), BondData.empty(), mesh)
+    outcomes = []
+    for factor in (1.0, STEP_BLOWUP):
+        model, state = b.finalize(device, dt=factor * critical)
+        rng = np.random.default_rng(0)  # excite every mode
+        state.node_qd.assign(rng.normal(scale=0.01, size=(model.node_capacity, 3)).astype(np.float32))
+        sim = Simulation(model, state)
+        e0 = sim.energy().total
+        sim.advance(2000)
+        outcomes.append((e0, sim.energy().total))
+    (e0, e1), (_, blown) = outcomes
+    np.testing.assert_allclose(e1, e0, rtol=STABLE_RTOL)
+    assert not np.isfinite(blown) or abs(blown) > 1e3 * abs(e0)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Node–wall
+
+
+def test_block_rests_on_wall(device):
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 0.5), (2, 2, 1))
+    b = ModelBuilder(gravity=(0.0, 0.0, -GRAVITY))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    b.set_tet_properties("rock", TetProps(damping_alpha=200.0))
+    b.add_plane_wall((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "rock")
+    b.add_tet_mesh(points, tets, "rock")
+    model, state = b.finalize(device, safety_factor=0.5)
+    sim = Simulation(model, state)
+    sim.advance(int(0.1 / model.dt))
+    n = int(sim.state.node_count.numpy()[0])
+    bottom = np.nonzero(np.isclose(model.node_ref_q.numpy()[:n, 2], 0.0))[0]
+    depth = -sim.state.node_q.numpy()[bottom, 2].astype(np.float64)
+    k = model.node_contact_stiffness.numpy()[bottom].astype(np.float64)
+    assert np.all(depth > 0.0)
+    weight = DENSITY * 0.5 * GRAVITY
+    np.testing.assert_allclose((k * depth).sum(), weight, rtol=REST_RTOL)
+    assert np.abs(sim.state.node_qd.numpy()[:n]).max() < 1e-3
+    assert wp.get_device(device) == model.device

@@ -1,0 +1,661 @@
+"""FEM contact (host side): the boundary faces of the tet mesh (rebuilt on the device after topology passes), their
+hash-grid candidate lists with a Verlet skin, sphere–face, node–face and node–wall forces, growth on overflow, the
+energy they store, and the stable time step they allow.
+
+The laws and the geometric rules are in :mod:`warpdem.kernels.fem_contact`. The stage runs after the sphere
+contacts in Simulation.step: flag a rebuild (a node moved half ``fem_skin``, or the sphere list was rebuilt) →
+rebuild the lists in a conditional graph node (``wp.capture_if``) → sphere–face forces → node–face and node–wall
+forces → joint interface elements (:func:`warpdem.joints.eval_joints`). It allocates nothing and reads nothing
+back, so it is captured in the step's graph.
+
+Grid. The faces get their own ``wp.HashGrid`` over their centroids rather than a share of the sphere grid: a
+face's extent (the tet size h) is unrelated to the sphere radii that size the sphere grid's cells, the FEM lists
+are rebuilt on node motion rather than sphere motion, and a model of tets alone has no sphere grid at all. The
+mechanism is the sphere list's: skinned lists with capacities, an overflow counter (the largest count seen),
+growth ×2 between steps with the step redone, and tangential history carried across rebuilds by matching pairs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import warp as wp
+
+from .compaction import Compactor
+from .contact import hash_grid_dims
+from .joints import JointData, JointProps, NodeStars, eval_joints, joint_energy, joint_material_table, split_joints
+from .kernels import fem_contact as kf
+from .kernels.contact import ContactPair
+from .mesh import TET_FACES
+from .model import Model, State
+
+DEFAULT_SKIN_FRACTION = 0.25
+"""Default ``fem_skin`` as a fraction of the smallest tet height over a boundary face [-]."""
+
+
+def fem_contact_state(model: Model) -> dict[str, wp.array]:
+    """The State fields of the FEM contact stage and the joint elements of a model: no contact yet, lists to be
+    built (``fem_rebuild_flag`` = 1), every joint element intact."""
+    d = model.device
+    ncap, pcap = model.node_capacity, model.particle_capacity
+
+    def one(v: int = 0) -> wp.array:
+        return wp.array([v], dtype=int, device=d)
+
+    return {
+        "face_count": one(),
+        "fem_rebuild_flag": one(1),
+        "fem_rebuild_total": one(),
+        "fem_sphere_builds_seen": one(-1),
+        "node_q_at_fem_build": wp.zeros(ncap, dtype=wp.vec3, device=d),
+        "sphere_face_needed": one(),
+        "sphere_face_count": wp.zeros(pcap, dtype=int, device=d),
+        "sphere_face_index": wp.zeros(pcap * model.max_sphere_faces, dtype=int, device=d),
+        "sphere_face_shear": wp.zeros(pcap * model.max_sphere_faces, dtype=wp.vec3, device=d),
+        "node_face_needed": one(),
+        "node_face_count": wp.zeros(ncap, dtype=int, device=d),
+        "node_face_index": wp.zeros(ncap * model.max_node_faces, dtype=int, device=d),
+        "node_face_shear": wp.zeros(ncap, dtype=wp.vec3, device=d),
+        "node_wall_shear": wp.zeros(ncap * model.num_walls, dtype=wp.vec3, device=d),
+        "node_energy_contact": wp.zeros(ncap, dtype=wp.float64, device=d),
+        "joint_count": one(model.joint_capacity),
+        "joint_broken": wp.zeros(model.joint_capacity, dtype=int, device=d),
+        "joints_broken_total": one(),
+    }
+
+
+def fem_pair_table(pairs: list[list[ContactPair]], device: wp.context.Device) -> wp.array:
+    """The node–face / node–wall pair table: the sphere pair table with damp_n = damp_t, the linear damping ratio ζ
+    of the restitution (node contacts are linear springs, whatever the sphere normal law)."""
+    flat = []
+    for row in pairs:
+        for p in row:
+            q = ContactPair()
+            for name in ("estar", "gstar", "young_a", "young_b", "kt_ratio", "friction", "rolling", "damp_t"):
+                setattr(q, name, getattr(p, name))
+            q.damp_n = p.damp_t
+            flat.append(q)
+    return wp.array(flat, dtype=ContactPair, device=device)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Surface topology
+
+
+def build_surface(model: Model, state: State) -> Model:
+    """Rebuild the node → tet stars, the tet face neighbours, the boundary faces (a compaction of the tet-face slots
+    to those with no neighbour), every node's penalty stiffness and the faces' extent, on the device. Between steps
+    (reads back the face count and extent); the face arrays grow when the surface outgrows them.
+
+    Returns:
+        The model with the new topology arrays; ``state.face_count`` is set.
+    """
+    m, s = model, state
+    d = m.device
+    ncap, tcap = m.node_capacity, m.tet_capacity
+    stars = NodeStars(ncap, tcap, d)
+    stars.build(m.tet_nodes, s.tet_count, s.tet_active, s.node_count)
+    slots = 4 * tcap
+    compactor = Compactor(slots, d)
+    tet_face_count = wp.zeros(1, dtype=int, device=d)
+    dead = wp.zeros(slots, dtype=int, device=d)
+    if tcap:
+        wp.launch(kf.count_tet_faces_kernel, dim=1, inputs=[s.tet_count], outputs=[tet_face_count], device=d)
+        wp.launch(
+            kf.flag_boundary_faces_kernel,
+            dim=slots,
+            inputs=[s.tet_count, s.tet_active, stars.tet_face_nbr],
+            outputs=[dead],
+            device=d,
+        )
+    old_to_new = compactor.plan(tet_face_count, dead)
+    count = int(compactor.new_count.numpy()[0])
+    cap = max(count, m.face_capacity)
+    if m.face_nodes is not None and m.face_capacity >= count:
+        face_nodes, face_tet, face_joint, face_depth = m.face_nodes, m.face_tet, m.face_joint, m.face_depth
+    else:
+        face_nodes = wp.zeros(cap, dtype=wp.vec3i, device=d)
+        face_tet = wp.zeros(cap, dtype=int, device=d)
+        face_joint = wp.zeros(cap, dtype=int, device=d)
+        face_depth = wp.zeros(cap, dtype=float, device=d)
+    if tcap:
+        wp.launch(
+            kf.scatter_boundary_faces_kernel,
+            dim=slots,
+            inputs=[m.node_ref_q, m.tet_nodes, m.tet_volume, m.tet_face_joint, tet_face_count, old_to_new],
+            outputs=[face_nodes, face_tet, face_joint, face_depth],
+            device=d,
+        )
+    wp.copy(s.face_count, compactor.new_count)
+    stiffness = wp.zeros(ncap, dtype=float, device=d)
+    material = wp.zeros(ncap, dtype=int, device=d)
+    if ncap:
+        wp.launch(
+            kf.node_contact_stiffness_kernel,
+            dim=ncap,
+            inputs=[
+                m.node_ref_q,
+                m.tet_nodes,
+                m.tet_volume,
+                m.tet_material,
+                m.tet_material_table,
+                stars.tet_face_nbr,
+                m.tet_face_joint,
+                m.joint_material_table,
+                m.contact_stiffness_factor,
+                *stars.csr(),
+                s.node_count,
+            ],
+            outputs=[stiffness, material],
+            device=d,
+        )
+    extent = wp.zeros(2, dtype=float, device=d)
+    if cap:
+        wp.launch(
+            kf.face_extent_kernel,
+            dim=cap,
+            inputs=[m.node_ref_q, face_nodes, face_depth, s.face_count],
+            outputs=[extent],
+            device=d,
+        )
+    radius, depth_max = (float(v) for v in extent.numpy())
+    return dataclasses.replace(
+        m,
+        face_capacity=cap,
+        star_offset=stars.offset,
+        star_count=stars.count,
+        star_tets=stars.tets,
+        tet_face_nbr=stars.tet_face_nbr,
+        face_nodes=face_nodes,
+        face_tet=face_tet,
+        face_joint=face_joint,
+        face_depth=face_depth,
+        node_contact_stiffness=stiffness,
+        node_contact_material=material,
+        face_radius=radius,
+        face_depth_max=depth_max,
+    )
+
+
+def attach_fem_contact(
+    model: Model,
+    state: State,
+    joints: JointData,
+    joint_props: list[JointProps],
+    pairs: list[list[ContactPair]],
+    *,
+    fem_skin: float | None = None,
+    max_sphere_faces: int = 8,
+    max_node_faces: int = 8,
+    contact_stiffness_factor: float = 1.0,
+) -> tuple[Model, State]:
+    """Give a freshly built model its joints and FEM contact: pre-split the joint faces (warpdem.joints), build the
+    surface, and allocate the contact lists. Build time.
+
+    Args:
+        joints: joint faces in the model's node ids and their sets.
+        joint_props: properties of each joint set (index = set id).
+        pairs: the sphere pair table (ModelBuilder.pair_table), for the node contacts' friction and restitution.
+        fem_skin: Verlet skin of the FEM lists [m]; None = :data:`DEFAULT_SKIN_FRACTION` × the smallest tet height
+            over a boundary face.
+        max_sphere_faces, max_node_faces: initial candidate slots (grown on overflow).
+        contact_stiffness_factor: penalty factor of faces that are no joint faces [-].
+    """
+    d = model.device
+    nj = len(joints)
+    if nj and (np.max(joints.face_set) >= len(joint_props) or np.min(joints.face_set) < 0):
+        raise ValueError(f"joint face sets must lie in [0, {len(joint_props)}), the joint sets added")
+    empty_int = wp.zeros(0, dtype=int, device=d)
+    model = dataclasses.replace(
+        model,
+        max_sphere_faces=max_sphere_faces,
+        max_node_faces=max_node_faces,
+        contact_stiffness_factor=contact_stiffness_factor,
+        tet_face_joint=wp.full(4 * model.tet_capacity, -1, dtype=int, device=d),
+        fem_pair_table=fem_pair_table(pairs, d),
+        joint_material_table=joint_material_table(joint_props, d),
+        joint_set_props=list(joint_props),
+        joint_capacity=0,
+        joint_a=empty_int,
+        joint_b=empty_int,
+        joint_area=wp.zeros(0, dtype=float, device=d),
+        joint_kn=wp.zeros(0, dtype=float, device=d),
+        joint_tet_face=empty_int,
+        joint_set=empty_int,
+    )
+    if nj:
+        model = split_joints(model, state, joints)
+    model = build_surface(model, state)
+    if fem_skin is None:
+        fem_skin = 2.0 * DEFAULT_SKIN_FRACTION * smallest_face_depth(model, state)
+    model = dataclasses.replace(model, fem_skin=float(fem_skin))
+    state = dataclasses.replace(state, **{k: v for k, v in fem_contact_state(model).items() if k != "face_count"})
+    return model, state
+
+
+def smallest_face_depth(model: Model, state: State) -> float:
+    """Smallest face_depth of the live boundary faces [m] (0 without faces)."""
+    n = int(state.face_count.numpy()[0])
+    return float(model.face_depth.numpy()[:n].min()) if n else 0.0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The stage
+
+
+class FemContact:
+    """The FEM contact stage of a Model/State pair: hash grid, scratch buffers, rebuild and force launches.
+
+    Args:
+        model, state: the pair it works on (the state's lists are rebuilt in place).
+        has_spheres: whether the model has spheres (sphere–face contacts).
+    """
+
+    def __init__(self, model: Model, state: State, has_spheres: bool) -> None:
+        self.model = model
+        self.state = state
+        self.has_spheres = has_spheres
+        d = model.device
+        fcap = max(model.face_capacity, 1)
+        self.grid = wp.HashGrid(*(hash_grid_dims(fcap),) * 3, device=d)
+        self.grid.reserve(fcap)  # so that a rebuild inside a captured graph never allocates
+        self.face_center = wp.zeros(fcap, dtype=wp.vec3, device=d)
+        # A sphere moves at most its whole skin between FEM builds (kernels/fem_contact.py, "Skins"), a face half ours.
+        self.sphere_margin = model.skin + 0.5 * model.fem_skin
+        self.node_search = model.face_radius + max(model.fem_skin, model.face_depth_max)
+        self.sphere_search = model.face_radius + (model.max_radius + self.sphere_margin if has_spheres else 0.0)
+        self.cell = max(self.node_search, self.sphere_search, 1.0e-6)
+        k = model.max_sphere_faces
+        pcap = model.particle_capacity if has_spheres else 0
+        self.new_count = wp.zeros(pcap, dtype=int, device=d)
+        self.new_index = wp.zeros(pcap * k, dtype=int, device=d)
+        self.new_shear = wp.zeros(pcap * k, dtype=wp.vec3, device=d)
+        self.node_dim = max(model.node_capacity, 1)
+
+    def rebuild(self) -> None:
+        """Rebuild the candidate lists now (launches only: usable inside a graph capture)."""
+        m, s, d = self.model, self.state, self.model.device
+        wp.launch(
+            kf.face_centers_kernel,
+            dim=self.face_center.shape[0],
+            inputs=[m.face_nodes, s.face_count, s.node_q],
+            outputs=[self.face_center],
+            device=d,
+        )
+        self.grid.build(self.face_center, self.cell)
+        if self.has_spheres:
+            k = m.max_sphere_faces
+            wp.launch(
+                kf.build_sphere_faces_kernel,
+                dim=m.particle_capacity,
+                inputs=[
+                    # Model:
+                    m.particle_radius,
+                    m.face_nodes,
+                    k,
+                    self.sphere_margin,
+                    m.face_radius,
+                    # State in:
+                    self.grid.id,
+                    s.particle_count,
+                    s.particle_q,
+                    s.face_count,
+                    s.node_q,
+                    s.sphere_face_count,
+                    s.sphere_face_index,
+                    s.sphere_face_shear,
+                ],
+                outputs=[self.new_count, self.new_index, self.new_shear, s.sphere_face_needed],
+                device=d,
+            )
+            wp.launch(
+                kf.commit_sphere_faces_kernel,
+                dim=m.particle_capacity,
+                inputs=[k, s.particle_count, self.new_count, self.new_index, self.new_shear],
+                outputs=[s.sphere_face_count, s.sphere_face_index, s.sphere_face_shear],
+                device=d,
+            )
+        if m.node_capacity:
+            wp.launch(
+                kf.build_node_faces_kernel,
+                dim=m.node_capacity,
+                inputs=[
+                    # Model:
+                    m.node_contact_stiffness,
+                    m.tet_nodes,
+                    m.star_offset,
+                    m.star_count,
+                    m.star_tets,
+                    m.face_nodes,
+                    m.face_depth,
+                    m.joint_a,
+                    m.joint_b,
+                    m.max_node_faces,
+                    m.fem_skin,
+                    self.node_search,
+                    # State in:
+                    self.grid.id,
+                    s.node_count,
+                    s.node_q,
+                    s.face_count,
+                    s.joint_count,
+                    s.joint_broken,
+                ],
+                outputs=[s.node_face_count, s.node_face_index, s.node_face_needed],
+                device=d,
+            )
+        wp.launch(
+            kf.finish_fem_rebuild_kernel,
+            dim=self.node_dim,
+            inputs=[s.node_count, s.node_q, s.rebuild_total],
+            outputs=[s.node_q_at_fem_build, s.fem_rebuild_flag, s.fem_rebuild_total, s.fem_sphere_builds_seen],
+            device=d,
+        )
+
+    def rebuild_if_needed(self) -> None:
+        """Rebuild when a node moved half the skin or the sphere list was rebuilt (conditional node under capture)."""
+        m, s = self.model, self.state
+        wp.launch(
+            kf.flag_fem_rebuild_kernel,
+            dim=self.node_dim,
+            inputs=[
+                m.node_contact_stiffness,
+                0.5 * m.fem_skin,
+                s.node_count,
+                s.node_q,
+                s.node_q_at_fem_build,
+                s.rebuild_total,
+                s.fem_sphere_builds_seen,
+            ],
+            outputs=[s.fem_rebuild_flag],
+            device=m.device,
+        )
+        wp.capture_if(s.fem_rebuild_flag, on_true=self.rebuild)
+
+    def eval(self, track_energy: bool, dt: float | None = None) -> None:
+        """Rebuild if needed, then accumulate sphere–face, node–face, node–wall and joint-element forces.
+
+        ``dt`` overrides the model step for the history increments; 0 evaluates forces without advancing any.
+        """
+        self.rebuild_if_needed()
+        eval_fem_contacts(self.model, self.state, track_energy, self.has_spheres, dt)
+        eval_joints(self.model, self.state, dt)
+
+
+def eval_fem_contacts(model: Model, state: State, track_energy: bool, has_spheres: bool, dt: float | None) -> None:
+    """Sphere–face, node–face and node–wall forces into ``particle_f/t`` and ``node_f`` (launches only)."""
+    m, s = model, state
+    step = m.dt if dt is None else dt
+    if has_spheres and m.face_capacity:
+        kernel, _ = kf.make_sphere_face_kernel(m.normal_model, m.tangential_model, m.rolling_model, track_energy)
+        wp.launch(
+            kernel,
+            dim=m.particle_capacity,
+            inputs=[
+                # Model:
+                m.particle_radius,
+                m.particle_inv_mass,
+                m.particle_material,
+                m.pair_table,
+                m.num_materials,
+                m.node_inv_mass,
+                m.tet_material,
+                m.face_nodes,
+                m.face_tet,
+                m.max_sphere_faces,
+                step,
+                # State in:
+                s.particle_count,
+                s.particle_q,
+                s.particle_qd,
+                s.particle_omega,
+                s.sphere_face_count,
+                s.sphere_face_index,
+                s.node_q,
+                s.node_qd,
+            ],
+            outputs=[
+                s.sphere_face_shear,
+                s.particle_f,
+                s.particle_t,
+                s.node_f,
+                s.energy_damping,
+                s.energy_friction,
+            ],
+            device=m.device,
+        )
+    if m.node_capacity:
+        wp.launch(
+            kf.make_node_contact_kernel(track_energy),
+            dim=m.node_capacity,
+            inputs=[
+                # Model:
+                m.node_inv_mass,
+                m.node_contact_stiffness,
+                m.node_contact_material,
+                m.tet_nodes,
+                m.tet_face_nbr,
+                m.star_offset,
+                m.star_count,
+                m.star_tets,
+                m.tet_material,
+                m.face_nodes,
+                m.face_tet,
+                m.face_joint,
+                m.face_depth,
+                m.fem_pair_table,
+                m.joint_material_table,
+                m.num_materials,
+                m.wall_normal,
+                m.wall_velocity,
+                m.wall_material,
+                m.num_walls,
+                m.max_node_faces,
+                step,
+                # State in:
+                s.node_count,
+                s.node_q,
+                s.node_qd,
+                s.node_face_count,
+                s.node_face_index,
+                s.wall_point,
+            ],
+            outputs=[
+                s.node_face_shear,
+                s.node_wall_shear,
+                s.node_f,
+                s.node_energy_contact,
+                s.node_energy_boundary_work,
+            ],
+            device=m.device,
+        )
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Growth, energy, time step
+
+
+def fem_contact_growth(model: Model, state: State) -> tuple[int, int] | None:
+    """New (max_sphere_faces, max_node_faces), ×2 until the largest counts seen fit, or None when both fit."""
+    if model.node_capacity == 0:
+        return None
+    ks, kn = model.max_sphere_faces, model.max_node_faces
+    need_s = int(state.sphere_face_needed.numpy()[0])
+    need_n = int(state.node_face_needed.numpy()[0])
+    if need_s <= ks and need_n <= kn:
+        return None
+    while ks < need_s:
+        ks *= 2
+    while kn < need_n:
+        kn *= 2
+    return ks, kn
+
+
+def _regrow_rows(a: wp.array, rows: int, old_k: int, new_k: int) -> wp.array:
+    host = a.numpy().reshape(rows, old_k, *a.numpy().shape[1:])
+    pad = [(0, 0), (0, new_k - old_k)] + [(0, 0)] * (host.ndim - 2)
+    return wp.array(np.pad(host, pad).reshape(rows * new_k, *host.shape[2:]), dtype=a.dtype, device=a.device)
+
+
+def regrow_fem_contacts(model: Model, state: State, max_sphere_faces: int, max_node_faces: int) -> tuple[Model, State]:
+    """A model and state with more candidate slots per sphere and node, the existing slots copied over."""
+    pcap, ncap = model.particle_capacity, model.node_capacity
+    ks, kn = model.max_sphere_faces, model.max_node_faces
+    fields = {
+        "sphere_face_index": _regrow_rows(state.sphere_face_index, pcap, ks, max_sphere_faces),
+        "sphere_face_shear": _regrow_rows(state.sphere_face_shear, pcap, ks, max_sphere_faces),
+        "node_face_index": _regrow_rows(state.node_face_index, ncap, kn, max_node_faces),
+    }
+    model = dataclasses.replace(model, max_sphere_faces=max_sphere_faces, max_node_faces=max_node_faces)
+    return model, dataclasses.replace(state, **fields)
+
+
+def fem_contact_energy(model: Model, state: State) -> tuple[float, float]:
+    """Elastic energy of the FEM contacts and intact joint elements [J], and the energy they dissipated [J].
+    Allocates and reads back: call between steps."""
+    m, s = model, state
+    if m.node_capacity == 0 or m.face_capacity == 0:
+        return 0.0, 0.0
+    d = m.device
+    node_e = wp.zeros(m.node_capacity, dtype=wp.float64, device=d)
+    wp.launch(
+        kf.fem_contact_energy_kernel,
+        dim=m.node_capacity,
+        inputs=[
+            m.node_contact_stiffness,
+            m.tet_nodes,
+            m.tet_face_nbr,
+            m.star_offset,
+            m.star_count,
+            m.star_tets,
+            m.face_nodes,
+            m.face_joint,
+            m.face_tet,
+            m.tet_material,
+            m.node_contact_material,
+            m.fem_pair_table,
+            m.joint_material_table,
+            m.num_materials,
+            m.wall_normal,
+            m.wall_material,
+            m.num_walls,
+            m.face_depth,
+            m.max_node_faces,
+            s.node_count,
+            s.node_q,
+            s.node_face_count,
+            s.node_face_index,
+            s.node_face_shear,
+            s.node_wall_shear,
+            s.wall_point,
+        ],
+        outputs=[node_e],
+        device=d,
+    )
+    elastic = float(node_e.numpy().sum()) + joint_energy(m, s)
+    if m.particle_capacity and m.max_radius > 0.0:
+        _, kernel = kf.make_sphere_face_kernel(m.normal_model, m.tangential_model, m.rolling_model, False)
+        sphere_e = wp.zeros(m.particle_capacity, dtype=wp.float64, device=d)
+        wp.launch(
+            kernel,
+            dim=m.particle_capacity,
+            inputs=[
+                m.particle_radius,
+                m.particle_inv_mass,
+                m.particle_material,
+                m.pair_table,
+                m.num_materials,
+                m.node_inv_mass,
+                m.tet_material,
+                m.face_nodes,
+                m.face_tet,
+                m.max_sphere_faces,
+                s.particle_count,
+                s.particle_q,
+                s.sphere_face_count,
+                s.sphere_face_index,
+                s.sphere_face_shear,
+                s.node_q,
+            ],
+            outputs=[sphere_e],
+            device=d,
+        )
+        elastic += float(sphere_e.numpy().sum())
+    dissipated = float(s.node_energy_contact.numpy()[: int(s.node_count.numpy()[0])].sum())
+    return elastic, dissipated
+
+
+def contact_critical_time_step(
+    points: np.ndarray,
+    tets: np.ndarray,
+    young: np.ndarray,
+    density: np.ndarray,
+    joints: JointData,
+    joint_props: list[JointProps],
+    stiffness_factor: float,
+    damping_ratio: float,
+) -> float:
+    """Stable step of the FEM contacts and joint elements [s] (before the safety factor), from the unsplit mesh.
+
+    A node on a surface (boundary faces and both sides of every joint) has the penalty stiffness
+    k = Σ f E A / (3 h) over its surface faces (h = 3 V₀ / A) and mass m = Σ ρ V₀ / 4 over the tets on its side. Off
+    the joints that is the whole star; on a joint the side is not known before the split, but by the mediant
+    inequality k / m is at most the largest ratio, over the tets t at the node, of t's share of k to ρ V₀ / 4. Two
+    such nodes pressed together by both passes of the contact (or a joint element, of the same stiffness) form the
+    relative mode ω² = (k_A + k_B)(1/m_A + 1/m_B) = 4 k/m for equal sides; a node on a wall has ω² = k/m. Hence
+    dt = 2/ω (sqrt(1 + ζ²) - ζ) with ω² = 4 max k/m. For a regular mesh this is about h / (2 c_bar sqrt(f)),
+    c_bar = sqrt(E/ρ): comparable to the tets' own step for f = 1.
+
+    Args:
+        points: (N, 3) [m]. tets: (M, 4), positively oriented. young: E per tet [Pa], (M,). density: ρ per tet
+        [kg/m³], (M,). joints: joint faces and sets. joint_props: per set. stiffness_factor: f of other faces.
+        damping_ratio: the largest ζ of the contact dashpots [-].
+
+    Returns:
+        The step [s]; inf without tets.
+    """
+    tets = np.asarray(tets, dtype=np.int64)
+    if len(tets) == 0:
+        return math.inf
+    x = np.asarray(points, dtype=np.float64)
+    faces = tets[:, TET_FACES]  # (M, 4, 3)
+    key = np.sort(faces, axis=2).reshape(-1, 3)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    surface = counts[inverse.ravel()] == 1
+    factor = np.full(len(key), float(stiffness_factor))
+    if len(joints):
+        jkey = np.sort(np.asarray(joints.faces, dtype=np.int64), axis=1)
+        jfactor = np.array([joint_props[k].stiffness_factor for k in joints.face_set], dtype=np.float64)
+        both = np.concatenate([key, jkey])
+        _, inv = np.unique(both, axis=0, return_inverse=True)
+        inv = inv.ravel()
+        lookup = np.full(inv.max() + 1, -1, dtype=np.int64)
+        lookup[inv[len(key) :]] = np.arange(len(jkey))
+        hit = lookup[inv[: len(key)]]
+        surface |= hit >= 0
+        factor = np.where(hit >= 0, jfactor[np.maximum(hit, 0)], factor)
+    xf = x[faces]
+    area = 0.5 * np.linalg.norm(np.cross(xf[:, :, 1] - xf[:, :, 0], xf[:, :, 2] - xf[:, :, 0]), axis=2).reshape(-1)
+    volume = np.abs(np.linalg.det(x[tets][:, 1:] - x[tets][:, :1])) / 6.0
+    tet_of = np.repeat(np.arange(len(tets)), 4)
+    k_face = np.where(surface, factor * young[tet_of] * area**2 / (9.0 * volume[tet_of]), 0.0).reshape(-1, 4)
+    # Node a of a tet lies on faces k != a: its share of the penalty is the sum of those faces' springs.
+    share = k_face.sum(axis=1)[:, None] - k_face  # (M, 4): node a gets every face but the one opposite it
+    quarter = 0.25 * density * volume
+    n = len(x)
+    k_node = np.bincount(tets.ravel(), weights=share.ravel(), minlength=n)
+    m_node = np.bincount(tets.ravel(), weights=np.repeat(quarter, 4), minlength=n)
+    ratio = np.divide(k_node, m_node, out=np.zeros(n), where=m_node > 0)
+    if len(joints):
+        on_joint = np.zeros(n, dtype=bool)
+        on_joint[np.asarray(joints.faces, dtype=np.int64).ravel()] = True
+        bound = np.zeros(n)
+        np.maximum.at(bound, tets.ravel(), (share / quarter[:, None]).ravel())
+        ratio = np.where(on_joint, bound, ratio)
+    k_over_m = float(ratio.max())
+    if k_over_m <= 0.0:
+        return math.inf
+    omega = math.sqrt(4.0 * k_over_m)
+    return 2.0 / omega * (math.sqrt(1.0 + damping_ratio**2) - damping_ratio)

@@ -1,0 +1,766 @@
+"""Loads and boundaries (host side, DESIGN.md stage 8): pressure histories on face sets, prescribed node velocities,
+fixed, roller and non-reflecting boundaries.
+
+A user describes them on the :class:`~warpdem.builder.ModelBuilder` (``add_face_pressure``, ``add_node_velocity``,
+``add_boundary``), which collects them in a :class:`LoadSpecs`; ``finalize`` turns that into node constraints (the
+``node_motion`` codes) and a :class:`LoadModel` of device arrays, and the step applies the loads with
+:func:`eval_loads` after the other forces and before the second half kick. The kernels and the physics are in
+:mod:`warpdem.kernels.loads`; velocity drivers and constraints are applied by the integrator.
+
+Node indices are the ids :meth:`~warpdem.builder.ModelBuilder.add_tet_mesh` returns. Faces are node triples; the
+faces of a pressure load or of a non-reflecting boundary must each be the face of exactly one tet (a boundary
+face) and are re-ordered so that their normal points out of that tet.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from .kernels import loads as kl
+from .kernels import tets as kt
+from .mesh import TET_FACES
+from .model import Model, State, TetMeshData
+from .tets import lumped_node_masses, reference_geometry, tet_stable_time_steps
+
+BOUNDARY_KINDS = ("fixed", "roller", "non_reflecting")
+
+# node_motion codes (kernels/tets.py) by held axes, bits x = 1, y = 2, z = 4, and back.
+MOTION_OF_HELD = np.array(
+    [
+        kt.NODE_FREE,
+        kt.NODE_ROLLER_X,
+        kt.NODE_ROLLER_Y,
+        kt.NODE_Z_ONLY,
+        kt.NODE_ROLLER_Z,
+        kt.NODE_Y_ONLY,
+        kt.NODE_X_ONLY,
+        kt.NODE_FIXED,
+    ],
+    dtype=np.int32,
+)
+HELD_OF_MOTION = np.argsort(MOTION_OF_HELD).astype(np.int32)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Pressure histories
+
+
+@dataclass(frozen=True)
+class PressureHistory:
+    """A pressure history p(t, x) [Pa] (positive pushes into the solid). Build one with :meth:`blast`,
+    :meth:`table` or :meth:`friedlander`; the constructor validates the parameters of its kind.
+
+    Attributes:
+        kind: "blast", "table" or "friedlander".
+        peak: blast peak pressure, Friedlander peak overpressure P_s [Pa].
+        start: blast start time, Friedlander source time t0 [s].
+        rise_time: blast rise time t_rise [s] (0: instantaneous).
+        decay_time: blast decay time t_decay [s].
+        times, values: table points t_k [s] (strictly increasing) and p_k [Pa].
+        duration: Friedlander positive-phase duration t_d [s].
+        decay_coefficient: Friedlander decay coefficient b [-].
+        source: Friedlander source point [m].
+        front_speed: speed of the Friedlander front [m/s] (inf: it arrives everywhere at t0).
+
+    Raises:
+        ValueError: an unknown kind, or a parameter outside its range (named in the message).
+    """
+
+    kind: str
+    peak: float = 0.0
+    start: float = 0.0
+    rise_time: float = 0.0
+    decay_time: float = 0.0
+    times: tuple[float, ...] = ()
+    values: tuple[float, ...] = ()
+    duration: float = 0.0
+    decay_coefficient: float = 0.0
+    source: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    front_speed: float = math.inf
+
+    def __post_init__(self) -> None:
+        if self.kind not in kl.PRESSURE_KINDS:
+            raise ValueError(f"pressure history kind {self.kind!r}; allowed: {', '.join(kl.PRESSURE_KINDS)}")
+
+        def need(ok: bool, what: str) -> None:
+            if not ok:
+                raise ValueError(f"{self.kind} pressure history: {what}")
+
+        need(math.isfinite(self.start), f"start must be finite, got {self.start}")
+        if self.kind == "blast":
+            need(math.isfinite(self.peak) and self.peak > 0.0, f"peak must be > 0 [Pa], got {self.peak}")
+            need(
+                math.isfinite(self.rise_time) and self.rise_time >= 0.0, f"rise_time must be >= 0, got {self.rise_time}"
+            )
+            need(
+                math.isfinite(self.decay_time) and self.decay_time > 0.0,
+                f"decay_time must be > 0, got {self.decay_time}",
+            )
+        elif self.kind == "table":
+            t, v = np.asarray(self.times, dtype=np.float64), np.asarray(self.values, dtype=np.float64)
+            need(t.ndim == 1 and len(t) >= 2, f"needs at least 2 times, got {len(np.atleast_1d(t))}")
+            need(v.shape == t.shape, f"{len(t)} times but {len(np.atleast_1d(v))} values")
+            need(bool(np.all(np.isfinite(t)) and np.all(np.isfinite(v))), "times and values must be finite")
+            need(bool(np.all(np.diff(t) > 0.0)), "times must be strictly increasing")
+        else:
+            need(math.isfinite(self.peak) and self.peak > 0.0, f"peak must be > 0 [Pa], got {self.peak}")
+            need(math.isfinite(self.duration) and self.duration > 0.0, f"duration must be > 0, got {self.duration}")
+            need(
+                math.isfinite(self.decay_coefficient) and self.decay_coefficient > 0.0,
+                f"decay_coefficient must be > 0, got {self.decay_coefficient}",
+            )
+            need(self.front_speed > 0.0, f"front_speed must be > 0 (inf allowed), got {self.front_speed}")
+            src = np.asarray(self.source, dtype=np.float64)
+            need(src.shape == (3,) and bool(np.all(np.isfinite(src))), f"source must be a finite point, got {src}")
+
+    @staticmethod
+    def blast(peak: float, rise_time: float, decay_time: float, start: float = 0.0) -> PressureHistory:
+        """Explosive cavity or borehole: p = P τ/t_rise for 0 ≤ τ < t_rise, then P exp(-(τ - t_rise)/t_decay),
+        τ = t - start; 0 before the start. Times [s], peak [Pa]."""
+        return PressureHistory(
+            "blast", peak=float(peak), start=float(start), rise_time=float(rise_time), decay_time=float(decay_time)
+        )
+
+    @staticmethod
+    def table(times: Sequence[float], values: Sequence[float]) -> PressureHistory:
+        """Piecewise linear through (times [s], values [Pa]), 0 before the first time and after the last."""
+        return PressureHistory("table", times=tuple(float(t) for t in times), values=tuple(float(v) for v in values))
+
+    @staticmethod
+    def friedlander(
+        peak: float,
+        duration: float,
+        decay_coefficient: float,
+        source: Sequence[float],
+        front_speed: float = math.inf,
+        start: float = 0.0,
+    ) -> PressureHistory:
+        """Surface airblast: the front leaves ``source`` at ``start`` and reaches x at
+        t_a = start + |x - source| / front_speed; then p = P_s (1 - τ/t_d) exp(-b τ/t_d), τ = t - t_a (with its
+        negative phase); 0 before. peak = P_s [Pa], duration = t_d [s], decay_coefficient = b [-]."""
+        return PressureHistory(
+            "friedlander",
+            peak=float(peak),
+            start=float(start),
+            duration=float(duration),
+            decay_coefficient=float(decay_coefficient),
+            source=tuple(float(s) for s in source),
+            front_speed=float(front_speed),
+        )
+
+    def pressure(self, t: np.ndarray | float, x: np.ndarray | None = None) -> np.ndarray:
+        """p(t, x) [Pa] on the host in float64 (plots, checks). t: times [s], any shape; x: points [m] (..., 3)
+        broadcast against t, needed by a Friedlander history with a finite front speed."""
+        t = np.asarray(t, dtype=np.float64)
+        if self.kind == "blast":
+            tau = t - self.start
+            rising = self.peak * tau / self.rise_time if self.rise_time > 0.0 else np.full_like(tau, self.peak)
+            decaying = self.peak * np.exp(-(tau - self.rise_time) / self.decay_time)
+            return np.where(tau < 0.0, 0.0, np.where(tau < self.rise_time, rising, decaying))
+        if self.kind == "table":
+            times = np.asarray(self.times)
+            inside = (t >= times[0]) & (t <= times[-1])
+            return np.where(inside, np.interp(t, times, np.asarray(self.values)), 0.0)
+        distance = 0.0 if x is None else np.linalg.norm(np.asarray(x, dtype=np.float64) - self.source, axis=-1)
+        tau = t - (self.start + distance / self.front_speed)
+        s = tau / self.duration
+        return np.where(tau < 0.0, 0.0, self.peak * (1.0 - s) * np.exp(-self.decay_coefficient * s))
+
+    def device_load(self, table_first: int) -> kl.PressureLoad:
+        """The device-side parameters (``table_first``: where this load's table starts in the shared table)."""
+        p = kl.PressureLoad()
+        p.peak = self.peak
+        p.start = self.start
+        p.rise = self.rise_time
+        p.decay = self.decay_time if self.kind == "blast" else self.duration
+        p.shape = self.decay_coefficient
+        p.source = wp.vec3(*self.source)
+        p.slowness = 1.0 / self.front_speed
+        p.table_first = table_first
+        p.table_count = len(self.times)
+        return p
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# What a builder collects
+
+
+def node_indices(nodes: np.ndarray | Sequence[int], what: str) -> np.ndarray:
+    """Node ids from indices or a boolean mask, shape (K,), int64.
+
+    Raises:
+        ValueError: not a 1-D integer or boolean array, or a negative index.
+    """
+    a = np.asarray(nodes)
+    if a.dtype == bool:
+        return np.nonzero(a)[0]
+    if a.ndim != 1 or (len(a) and not np.issubdtype(a.dtype, np.integer)):
+        raise ValueError(f"{what}: node ids must be a 1-D integer array or a boolean mask, got {a.dtype} {a.shape}")
+    if len(a) and a.min() < 0:
+        raise ValueError(f"{what}: negative node id {int(a.min())}")
+    return a.astype(np.int64)
+
+
+def face_indices(faces: np.ndarray | Sequence[Sequence[int]], what: str) -> np.ndarray:
+    """Faces as node triples, shape (F, 3), int64.
+
+    Raises:
+        ValueError: not an (F, 3) integer array, a negative id, or a face with a repeated node.
+    """
+    f = np.asarray(faces)
+    if f.ndim != 2 or f.shape[1] != 3 or (len(f) and not np.issubdtype(f.dtype, np.integer)):
+        raise ValueError(f"{what}: faces must be an (F, 3) integer array of node ids, got {f.dtype} {f.shape}")
+    if len(f) == 0:
+        raise ValueError(f"{what}: no faces")
+    if f.min() < 0:
+        raise ValueError(f"{what}: negative node id {int(f.min())}")
+    s = np.sort(f, axis=1)
+    if np.any(s[:, 1:] == s[:, :-1]):
+        bad = int(np.nonzero(np.any(s[:, 1:] == s[:, :-1], axis=1))[0][0])
+        raise ValueError(f"{what}: face {bad} repeats a node: {f[bad].tolist()}")
+    return f.astype(np.int64)
+
+
+def axis_of(normal: Sequence[float], what: str) -> int:
+    """The coordinate axis (0, 1, 2) a normal is parallel to.
+
+    Raises:
+        ValueError: a normal that is zero, not finite or not axis-aligned.
+    """
+    n = np.asarray(normal, dtype=np.float64)
+    if n.shape != (3,) or not np.all(np.isfinite(n)) or not np.any(n != 0.0):
+        raise ValueError(f"{what}: normal must be a finite non-zero 3-vector, got {normal}")
+    axis = int(np.argmax(np.abs(n)))
+    if np.count_nonzero(n) != 1:
+        raise ValueError(f"{what}: a roller needs an axis-aligned normal (±x, ±y or ±z), got {normal}")
+    return axis
+
+
+@dataclass
+class LoadSpecs:
+    """The loads and boundaries a builder has been given, validated as they come (node ranges at finalize).
+
+    Attributes:
+        pressures: (faces (F, 3), history, name) per pressure load.
+        drivers: (nodes (K,), velocity [m/s] (3,), start [s], end [s]) per velocity driver.
+        boundaries: (kind, nodes (K,) or faces (F, 3), axis or None) per boundary.
+    """
+
+    pressures: list[tuple[np.ndarray, PressureHistory, str]] = field(default_factory=list)
+    drivers: list[tuple[np.ndarray, np.ndarray, float, float]] = field(default_factory=list)
+    boundaries: list[tuple[str, np.ndarray, int | None]] = field(default_factory=list)
+
+    def add_face_pressure(self, faces: np.ndarray, history: PressureHistory, name: str = "") -> None:
+        """See :meth:`warpdem.builder.ModelBuilder.add_face_pressure`."""
+        if not isinstance(history, PressureHistory):
+            raise ValueError(f"history must be a PressureHistory, got {type(history).__name__}")
+        name = name or f"{history.kind}{len(self.pressures)}"
+        self.pressures.append((face_indices(faces, f"pressure {name!r}"), history, name))
+
+    def add_node_velocity(
+        self, nodes: np.ndarray, velocity: Sequence[float], start: float = 0.0, end: float = math.inf
+    ) -> None:
+        """See :meth:`warpdem.builder.ModelBuilder.add_node_velocity`."""
+        what = f"node velocity {len(self.drivers)}"
+        ids = node_indices(nodes, what)
+        v = np.asarray(velocity, dtype=np.float64)
+        if v.shape != (3,) or not np.all(np.isfinite(v)):
+            raise ValueError(f"{what}: velocity must be a finite 3-vector [m/s], got {velocity}")
+        if not (math.isfinite(start) and end > start):
+            raise ValueError(f"{what}: need a finite start < end, got start = {start}, end = {end}")
+        self.drivers.append((ids, v, float(start), float(end)))
+
+    def add_boundary(self, faces_or_nodes: np.ndarray, kind: str, normal: Sequence[float] | None = None) -> None:
+        """See :meth:`warpdem.builder.ModelBuilder.add_boundary`."""
+        what = f"{kind} boundary {len(self.boundaries)}"
+        if kind not in BOUNDARY_KINDS:
+            raise ValueError(f"boundary kind {kind!r}; allowed: {', '.join(BOUNDARY_KINDS)}")
+        a = np.asarray(faces_or_nodes)
+        items = face_indices(a, what) if a.ndim == 2 else node_indices(a, what)
+        if len(items) == 0:
+            raise ValueError(f"{what}: no nodes")
+        axis = None
+        if kind == "non_reflecting":
+            if items.ndim != 2:
+                raise ValueError(f"{what}: a non-reflecting boundary needs faces (F, 3), got node ids")
+            if normal is not None:
+                raise ValueError(f"{what}: takes its normals from its faces; do not pass normal")
+        elif kind == "roller":
+            if normal is not None:
+                axis = axis_of(normal, what)
+            elif items.ndim != 2:
+                raise ValueError(f"{what}: a roller on nodes needs its normal")
+        elif normal is not None:
+            raise ValueError(f"{what}: a fixed boundary takes no normal")
+        self.boundaries.append((kind, items, axis))
+
+    def __bool__(self) -> bool:
+        return bool(self.pressures or self.drivers or self.boundaries)
+
+    # -- finalize --------------------------------------------------------------------------------------------
+    def check_nodes(self, num_nodes: int) -> None:
+        """Raise ValueError if a load or boundary names a node past the ``num_nodes`` of the meshes."""
+        named = [(f"pressure {name!r}", f) for f, _, name in self.pressures]
+        named += [(f"node velocity {k}", d[0]) for k, d in enumerate(self.drivers)]
+        named += [(f"{b[0]} boundary {k}", b[1]) for k, b in enumerate(self.boundaries)]
+        for what, ids in named:
+            if ids.size and ids.max() >= num_nodes:
+                raise ValueError(f"{what}: node id {int(ids.max())} but the tet meshes have {num_nodes} nodes")
+
+    def constrain(self, mesh: TetMeshData) -> TetMeshData:
+        """The mesh with the fixed and roller boundaries folded into its ``motion`` codes (held axes add up: a
+        node on two roller planes moves along their common line) and its initial velocity zeroed on held axes.
+
+        Raises:
+            ValueError: an id past the mesh, or a roller on faces that do not lie in one axis-aligned plane.
+        """
+        if not self.boundaries:
+            return mesh
+        self.check_nodes(len(mesh.points))
+        held = HELD_OF_MOTION[mesh.motion]
+        for kind, items, axis in self.boundaries:
+            if kind == "non_reflecting":
+                continue
+            nodes = np.unique(items)
+            if kind == "fixed":
+                held[nodes] |= 7
+                continue
+            if axis is None:
+                axis = roller_axis(mesh.points, items)
+            held[nodes] |= 1 << axis
+        bits = (held[:, None] >> np.arange(3)) & 1
+        return TetMeshData(
+            points=mesh.points,
+            velocity=np.where(bits == 1, 0.0, mesh.velocity),
+            motion=MOTION_OF_HELD[held],
+            tets=mesh.tets,
+            material=mesh.material,
+        )
+
+    def build(
+        self,
+        mesh: TetMeshData,
+        table: list[kt.TetMaterial],
+        node_capacity: int,
+        dt: float,
+        device: wp.context.Device,
+    ) -> LoadModel:
+        """The device-side :class:`LoadModel` (empty when nothing was given).
+
+        Args:
+            mesh: the constrained mesh (:meth:`constrain`). table: TetMaterial per material id.
+            node_capacity: node slots. dt: time step [s] (for the dashpot stability check). device: Warp device.
+
+        Raises:
+            ValueError: an id past the mesh, a face that is no boundary face of a tet, a node driven twice, or a
+                dashpot too stiff for dt.
+        """
+        self.check_nodes(len(mesh.points))
+        loads, faces, face_load, kinds, table_times, table_values = [], [], [], [], [], []
+        for k, (f, history, name) in enumerate(self.pressures):
+            oriented, _ = boundary_face_owners(mesh.tets, f, f"pressure {name!r}")
+            loads.append(history.device_load(sum(len(t) for t in table_times)))
+            table_times.append(np.asarray(history.times, dtype=np.float64))
+            table_values.append(np.asarray(history.values, dtype=np.float64))
+            faces.append(oriented)
+            face_load.append(np.full(len(oriented), k))
+            kinds.append(np.full(len(oriented), kl.PRESSURE_KINDS.index(history.kind)))
+        pressure: dict[str, FaceSet] = {}
+        if loads:
+            all_faces, all_load, all_kind = np.concatenate(faces), np.concatenate(face_load), np.concatenate(kinds)
+            for i, kind in enumerate(kl.PRESSURE_KINDS):
+                mine = all_kind == i
+                if np.any(mine):
+                    pressure[kind] = FaceSet.create(mesh.points, all_faces[mine], device, index=all_load[mine])
+        dashpots = self.build_dashpots(mesh, table, dt, device)
+        node_driver, drivers = self.build_drivers(len(mesh.points), node_capacity, device)
+        return LoadModel(
+            pressure=pressure,
+            pressure_loads=wp.array(loads, dtype=kl.PressureLoad, device=device) if loads else None,
+            pressure_names=[p[2] for p in self.pressures],
+            loaded_nodes=wp.array(np.unique(np.concatenate(faces)).astype(np.int32), dtype=int, device=device)
+            if faces
+            else None,
+            table_times=wp.array(np.concatenate([np.zeros(0), *table_times]), dtype=wp.float64, device=device),
+            table_values=wp.array(np.concatenate([np.zeros(0), *table_values]), dtype=float, device=device),
+            dashpots=dashpots,
+            node_driver=node_driver,
+            drivers=drivers,
+        )
+
+    def dashpot_faces(self, mesh: TetMeshData, table: list[kt.TetMaterial]) -> tuple[np.ndarray, np.ndarray] | None:
+        """The non-reflecting faces, oriented out of their tets, (F, 3), and the impedances (ρ c_p, ρ c_s) of those
+        tets [Pa s/m], (F, 2); None without any."""
+        faces, impedance = [], []
+        for k, (kind, items, _) in enumerate(self.boundaries):
+            if kind != "non_reflecting":
+                continue
+            oriented, owner = boundary_face_owners(mesh.tets, items, f"non_reflecting boundary {k}")
+            mats = [table[m] for m in mesh.material[owner]]
+            # Lysmer–Kuhlemeyer: ρ c_p and ρ c_s of the tet behind each face.
+            impedance.append([[m.density * m.c_p, math.sqrt(m.mu * m.density)] for m in mats])
+            faces.append(oriented)
+        if not faces:
+            return None
+        return np.concatenate(faces), np.asarray(np.concatenate(impedance), dtype=np.float64)
+
+    def critical_time_step(self, mesh: TetMeshData, table: list[kt.TetMaterial]) -> float:
+        """Stable step [s] of the nodes with dashpots (inf without any), before the safety factor.
+
+        A node of mass m under a dashpot C (Σ a third of each adjacent face's area times ρ c_p) and the stiffness of
+        its tets is a damped oscillator; the explicit dashpot (at the half-step velocity) is stable for
+        dt ≤ (2/ω)(sqrt(1 + ζ²) - ζ). ω is bounded by the largest element frequency of its tets (2/dt_e without
+        viscosity, warpdem.tets.tet_stable_time_steps), and ζ = C / (2 m ω) plus the largest viscous damping ratio
+        of those tets. On a Kuhn box mesh the corner nodes of the faces (mass ρ V_cell / 24) set the step; the
+        bound was found about 20 % below the step at which a dashpot column starts to blow up.
+        """
+        dashpots = self.dashpot_faces(mesh, table)
+        if dashpots is None or len(mesh.tets) == 0:
+            return math.inf
+        faces, impedance = dashpots
+        n = len(mesh.points)
+        x = mesh.points[faces]
+        third = np.linalg.norm(np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), axis=1) / 6.0
+        coefficient = np.bincount(faces.ravel(), weights=np.repeat(third * impedance.max(axis=1), 3), minlength=n)
+
+        def per_tet(attr: str) -> np.ndarray:
+            return np.array([getattr(m, attr) for m in table], dtype=np.float64)[mesh.material]
+
+        inv_ref, volume = reference_geometry(mesh.points, mesh.tets)
+        mu, lam, density = per_tet("mu"), per_tet("lam"), per_tet("density")
+        undamped = tet_stable_time_steps(inv_ref, mu, lam, density, np.zeros(len(mu)))
+        damped = tet_stable_time_steps(inv_ref, mu, lam, density, per_tet("c_lin"), per_tet("alpha"))
+        # Back from (2/ω)(sqrt(1 + ζ²) - ζ) = r (2/ω) to the element's damping ratio ζ = (1 - r²) / (2r).
+        r = damped / undamped
+        nodes = np.asarray(mesh.tets, dtype=np.int64).ravel()
+        omega, zeta_tets = np.zeros(n), np.zeros(n)
+        np.maximum.at(omega, nodes, np.repeat(2.0 / undamped, 4))
+        np.maximum.at(zeta_tets, nodes, np.repeat((1.0 - r**2) / (2.0 * r), 4))
+        mass, _ = lumped_node_masses(n, mesh.tets, volume, density, np.zeros(len(mu)))
+        held = (coefficient > 0.0) & (mass > 0.0) & (omega > 0.0)
+        w = omega[held]
+        zeta = coefficient[held] / (2.0 * mass[held] * w) + zeta_tets[held]
+        return float(np.min(2.0 / w * (np.sqrt(1.0 + zeta**2) - zeta)))
+
+    def build_dashpots(self, mesh: TetMeshData, table: list[kt.TetMaterial], dt: float, device) -> FaceSet | None:
+        dashpots = self.dashpot_faces(mesh, table)
+        if dashpots is None:
+            return None
+        limit = self.critical_time_step(mesh, table)
+        if dt > limit:
+            raise ValueError(
+                f"non-reflecting boundary: dt = {dt:.4g} s exceeds the stable step of its dashpots, {limit:.4g} s "
+                "(ModelBuilder.critical_time_step includes it when dt is left to the builder)"
+            )
+        faces, impedance = dashpots
+        return FaceSet.create(mesh.points, faces, device, impedance=impedance)
+
+    def build_drivers(self, num_nodes: int, node_capacity: int, device) -> tuple[wp.array | None, wp.array | None]:
+        if not self.drivers:
+            return None, None
+        node_driver = np.full(node_capacity, -1, dtype=np.int32)
+        drivers = []
+        for k, (ids, v, start, end) in enumerate(self.drivers):
+            taken = ids[node_driver[ids] >= 0]
+            if len(taken):
+                raise ValueError(
+                    f"node velocity {k}: node {int(taken[0])} already has node velocity {node_driver[taken[0]]}; "
+                    "a node takes one driver"
+                )
+            node_driver[ids] = k
+            d = kl.NodeDriver()
+            d.velocity = wp.vec3(*v)
+            d.start = start
+            d.end = end
+            drivers.append(d)
+        return (
+            wp.array(node_driver, dtype=int, device=device),
+            wp.array(drivers, dtype=kl.NodeDriver, device=device),
+        )
+
+
+def roller_axis(points: np.ndarray, faces: np.ndarray) -> int:
+    """The axis normal to a set of faces lying in one axis-aligned plane.
+
+    Raises:
+        ValueError: the faces do not share one axis-aligned normal.
+    """
+    x = points[faces]
+    n = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    axis = int(np.argmax(np.abs(n).sum(axis=0)))
+    if not np.allclose(np.abs(n[:, axis]), 1.0, atol=1e-9):
+        raise ValueError("roller boundary: its faces are not all normal to one axis; pass normal=")
+    return axis
+
+
+def boundary_face_owners(tets: np.ndarray, faces: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """The tet behind each face, and the face re-ordered so that its normal points out of that tet.
+
+    Args:
+        tets: positively oriented tets, (M, 4). faces: node triples, (F, 3).
+
+    Returns:
+        oriented faces (F, 3), int32; owner tet of each, (F,).
+
+    Raises:
+        ValueError: a face that belongs to no tet, or to two (an interior face).
+    """
+    tets = np.asarray(tets, dtype=np.int64)
+    all_faces = tets[:, TET_FACES].reshape(-1, 3)
+    keys = np.concatenate([np.sort(all_faces, axis=1), np.sort(faces, axis=1)])
+    _, inverse = np.unique(keys, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    of_tets, of_faces = inverse[: len(all_faces)], inverse[len(all_faces) :]
+    count = np.bincount(of_tets, minlength=inverse.max() + 1)
+    owner = np.full(len(count), -1, dtype=np.int64)
+    owner[of_tets] = np.arange(len(all_faces))
+    c = count[of_faces]
+    for bad, word in ((c == 0, "is no face of a tet"), (c > 1, "is an interior face (shared by two tets)")):
+        if np.any(bad):
+            k = int(np.nonzero(bad)[0][0])
+            raise ValueError(f"{what}: face {k} {faces[k].tolist()} {word}; a load or boundary needs boundary faces")
+    slot = owner[of_faces]
+    return all_faces[slot].astype(np.int32), slot // 4
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Device side
+
+
+@dataclass
+class FaceSet:
+    """Faces on the device.
+
+    Attributes:
+        nodes: node ids, outward order, shape (F,), vec3i.
+        edge_a, edge_b: reference edges X1 - X0 and X2 - X0 [m] (float64 on the host), shape (F,), vec3.
+        index: pressure load of each face (into LoadModel.pressure_loads), shape (F,), int32; or None.
+        impedance: (ρ c_p, ρ c_s) of the tet behind each dashpot face [Pa s/m], shape (F,), vec2; or None.
+    """
+
+    nodes: wp.array
+    edge_a: wp.array
+    edge_b: wp.array
+    index: wp.array | None = None
+    impedance: wp.array | None = None
+
+    @property
+    def count(self) -> int:
+        return self.nodes.shape[0]
+
+    @staticmethod
+    def create(
+        points: np.ndarray,
+        faces: np.ndarray,
+        device,
+        index: np.ndarray | None = None,
+        impedance: np.ndarray | None = None,
+    ) -> FaceSet:
+        x = np.asarray(points, dtype=np.float64)[faces]
+        return FaceSet(
+            nodes=wp.array(faces.astype(np.int32), dtype=wp.vec3i, device=device),
+            edge_a=wp.array((x[:, 1] - x[:, 0]).astype(np.float32), dtype=wp.vec3, device=device),
+            edge_b=wp.array((x[:, 2] - x[:, 0]).astype(np.float32), dtype=wp.vec3, device=device),
+            index=None if index is None else wp.array(index.astype(np.int32), dtype=int, device=device),
+            impedance=None
+            if impedance is None
+            else wp.array(impedance.astype(np.float32), dtype=wp.vec2, device=device),
+        )
+
+
+@dataclass
+class LoadModel:
+    """Loads and boundary dashpots of a model (static during a step).
+
+    Attributes:
+        pressure: loaded faces by history kind (one launch per kind).
+        pressure_loads: parameters of every pressure load, shape (L,), PressureLoad; None without loads.
+        pressure_names: name of each pressure load, index = load id.
+        loaded_nodes: the nodes of the loaded faces, each once, shape (K,), int32; None without loads.
+        table_times: times of all table histories, concatenated [s], float64.
+        table_values: their pressures [Pa], float32.
+        dashpots: the non-reflecting faces with their impedances, or None.
+        node_driver: velocity driver of each node or -1, shape (node_capacity,), int32; None without drivers.
+        drivers: the velocity drivers, shape (D,), NodeDriver; None without drivers.
+    """
+
+    pressure: dict[str, FaceSet]
+    pressure_loads: wp.array | None
+    pressure_names: list[str]
+    loaded_nodes: wp.array | None
+    table_times: wp.array
+    table_values: wp.array
+    dashpots: FaceSet | None
+    node_driver: wp.array | None
+    drivers: wp.array | None
+
+    @property
+    def num_drivers(self) -> int:
+        return 0 if self.drivers is None else self.drivers.shape[0]
+
+
+def eval_loads(model: Model, state: State, dt: float | None = None) -> None:
+    """Stage 8: add the pressure loads at the state's time and the non-reflecting dashpots at the half-step
+    velocity to ``node_f``, booking the load work and the dashpots' dissipation (launches only).
+
+    ``dt`` overrides the model step for the bookkeeping; 0 (the set-up evaluation) books nothing and leaves the
+    dashpots out, as the set-up leaves out the integrator's mass-proportional damping.
+    """
+    loads = model.loads
+    if loads is None:
+        return
+    m, s = model, state
+    dt = m.dt if dt is None else dt
+    if loads.pressure:
+        wp.launch(
+            kl.book_load_work_kernel,
+            dim=loads.loaded_nodes.shape[0],
+            inputs=[
+                # Model:
+                loads.loaded_nodes,
+                dt,
+                # State in:
+                s.node_qd,
+            ],
+            outputs=[s.node_f_load, s.node_energy_boundary_work],
+            device=m.device,
+        )
+    for kind, faces in loads.pressure.items():
+        wp.launch(
+            kl.make_face_pressure_kernel(kind),
+            dim=faces.count,
+            inputs=[
+                # Model:
+                faces.nodes,
+                faces.edge_a,
+                faces.edge_b,
+                faces.index,
+                loads.pressure_loads,
+                loads.table_times,
+                loads.table_values,
+                dt,
+                # State in:
+                s.time,
+                s.node_u,
+                s.node_q,
+                s.node_qd,
+            ],
+            outputs=[s.node_f, s.node_f_load, s.node_energy_boundary_work],
+            device=m.device,
+        )
+    if loads.dashpots is not None and dt > 0.0:
+        d = loads.dashpots
+        wp.launch(
+            kl.apply_dashpots_kernel,
+            dim=d.count,
+            inputs=[
+                # Model:
+                d.nodes,
+                d.edge_a,
+                d.edge_b,
+                d.impedance,
+                dt,
+                # State in:
+                s.node_u,
+                s.node_qd,
+            ],
+            outputs=[s.node_f, s.node_energy_damping],
+            device=m.device,
+        )
+
+
+def load_work(state: State) -> float:
+    """Work done on the FEM nodes by pressure loads and velocity drivers since the start [J] (reads back)."""
+    return float(state.node_energy_boundary_work.numpy().sum())
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Geostatic initial state
+
+
+def default_relaxation_damping(model: Model) -> float:
+    """Mass-proportional damping α [1/s] for dynamic relaxation: 2ω₁ (critical) for ω₁ = π c_s / (2 L), the
+    lowest shear mode of a body of the model's largest extent L [m] fixed at one end, c_s the slowest shear speed of
+    its tet materials."""
+    table = model.tet_material_table.numpy()
+    used = np.unique(model.tet_material.numpy()[: model.tet_capacity])
+    speeds = [math.sqrt(table[m]["mu"] / table[m]["density"]) for m in used if table[m]["density"] > 0.0]
+    x = model.node_ref_q.numpy()[: model.node_capacity]
+    extent = float(np.ptp(x, axis=0).max()) if len(x) else 0.0
+    if not speeds or extent <= 0.0:
+        raise ValueError("dynamic relaxation needs tets with a material and a body of non-zero extent")
+    return math.pi * min(speeds) / extent
+
+
+def relax_to_equilibrium(
+    sim,
+    *,
+    damping: float | None = None,
+    tolerance: float = 1.0e-6,
+    max_steps: int = 100_000,
+    check_every: int = 100,
+) -> int:
+    """Bring the FEM nodes to static equilibrium under gravity and their supports by damped dynamic relaxation, so
+    that dynamics starts from the geostatic stress.
+
+    The step runs with mass-proportional damping α on every node and without the loads of this stage (pressures,
+    velocity drivers, dashpots: they are time-dependent or would let the body sink), so the model needs its fixed or
+    roller supports. It stops when the nodes' kinetic energy has fallen below ``tolerance`` times the strain energy.
+    Then the model's damping and loads are restored, the node velocities zeroed, the dissipation booked meanwhile
+    forgotten, the clock set back and the forces evaluated afresh: the energy balance starts from the relaxed state.
+    The relaxation steps do not count as simulated time. Spheres, if any, step along undamped (this is a relaxation
+    of the continuum). Between steps only; reads back every ``check_every`` steps.
+
+    Args:
+        sim: the :class:`~warpdem.simulation.Simulation` to relax (its state changes in place).
+        damping: α [1/s]; default :func:`default_relaxation_damping`.
+        tolerance: kinetic / strain energy at which it stops [-].
+        max_steps: the most steps it runs.
+        check_every: steps between convergence checks.
+
+    Returns:
+        The number of relaxation steps run.
+
+    Raises:
+        RuntimeError: no convergence within ``max_steps``.
+    """
+    m, s = sim.model, sim.state
+    if m.node_capacity == 0:
+        return 0
+    alpha = default_relaxation_damping(m) if damping is None else float(damping)
+    saved_damping = wp.clone(m.node_damping)
+    saved_loads = m.loads
+    m.node_damping.fill_(alpha)
+    m.loads = None
+    steps = 0
+    mass = m.node_mass.numpy().astype(np.float64)
+    try:
+        while True:
+            # One by one, not through the captured graph: the graph holds the loads this relaxation leaves out.
+            for _ in range(check_every):
+                sim.step()
+            steps += check_every
+            v = s.node_qd.numpy().astype(np.float64)
+            kinetic = 0.5 * float(mass @ np.sum(v * v, axis=1))
+            strain = sim.energy().strain
+            if kinetic <= tolerance * strain:
+                break
+            if steps >= max_steps:
+                raise RuntimeError(
+                    f"dynamic relaxation did not converge in {steps} steps: kinetic / strain energy "
+                    f"{kinetic / max(strain, 1e-300):.3g} > {tolerance} (raise max_steps or damping = {alpha:.4g} 1/s)"
+                )
+    finally:
+        wp.copy(m.node_damping, saved_damping)
+        m.loads = saved_loads
+    s.node_qd.zero_()
+    s.node_energy_damping.zero_()
+    s.time.fill_(sim.time)
+    sim.evaluate_forces()
+    return steps
