@@ -273,6 +273,290 @@ BAD_SCENES = [
 ]
 
 
+# A continuum scene: materials with fracture properties, a box mesh, a load and a boundary (no particles).
+MESH_BASE = """\
+[run]
+end_time = 0.01
+
+[materials.rock]
+density = 2600.0
+youngs_modulus = 5e10
+poisson_ratio = 0.25
+
+[mesh]
+kind = "box"
+lo = [0.0, 0.0, 0.0]
+hi = [1.0, 1.0, 4.0]
+divisions = [2, 2, 8]
+material = "rock"
+
+[[loads]]
+kind = "pressure"
+faces = "z+"
+history = { kind = "blast", peak = 1e6, rise_time = 1e-5, decay_time = 1e-4 }
+
+[[boundaries]]
+faces = "z-"
+kind = "non_reflecting"
+"""
+
+GEOLOGY_BASE = """\
+[run]
+end_time = 0.01
+
+[materials.rock]
+density = 2600.0
+youngs_modulus = 5e10
+poisson_ratio = 0.25
+
+[mesh]
+kind = "geology"
+lo = [0.0, 0.0, 0.0]
+hi = [10.0, 10.0, 10.0]
+material = "rock"
+h = 2.0
+
+[[mesh.openings]]
+kind = "tunnel"
+axis = "y"
+center = [5.0, 4.0]
+radius = 1.5
+
+[[mesh.joint_sets]]
+dip = 60.0
+dip_direction = 90.0
+spacing = 3.0
+"""
+
+MESH_BAD_SCENES = [
+    (
+        "unknown_mesh_kind",
+        edit('kind = "box"', 'kind = "sphere"', base=MESH_BASE),
+        "mesh.kind",
+        "unknown value 'sphere'; allowed: 'box', 'geology', 'file'",
+    ),
+    (
+        "zero_division",
+        edit("divisions = [2, 2, 8]", "divisions = [2, 0, 8]", base=MESH_BASE),
+        "mesh.divisions[1]",
+        "greater than 0 (got 0)",
+    ),
+    (
+        "unknown_mesh_material",
+        edit('divisions = [2, 2, 8]\nmaterial = "rock"', 'divisions = [2, 2, 8]\nmaterial = "basalt"', base=MESH_BASE),
+        "mesh.material",
+        "unknown material 'basalt'; defined materials: 'rock'",
+    ),
+    (
+        "negative_fracture_energy",
+        edit("poisson_ratio = 0.25", "poisson_ratio = 0.25\nfracture_energy = -5.0", base=MESH_BASE),
+        "materials.rock.fracture_energy",
+        "greater than 0 (got -5.0)",
+    ),
+    (
+        "negative_mass_damping",
+        edit("poisson_ratio = 0.25", "poisson_ratio = 0.25\nmass_damping = -1", base=MESH_BASE),
+        "materials.rock.mass_damping",
+        "greater than or equal to 0 (got -1)",
+    ),
+    (
+        "unknown_face_set",
+        edit('faces = "z+"', 'faces = "top"', base=MESH_BASE),
+        "loads[0].faces",
+        "unknown face set 'top'; the box mesh has: 'x-', 'x+', 'y-', 'y+', 'z-', 'z+'",
+    ),
+    (
+        "opening_on_box_mesh",
+        edit('faces = "z-"', 'faces = "opening"', base=MESH_BASE),
+        "boundaries[0].faces",
+        "unknown face set 'opening'",
+    ),
+    (
+        "unknown_load_kind",
+        edit('kind = "pressure"', 'kind = "impulse"', base=MESH_BASE),
+        "loads[0].kind",
+        "unknown value 'impulse'; allowed: 'pressure', 'airblast', 'velocity'",
+    ),
+    (
+        "unknown_history_kind",
+        edit('history = { kind = "blast"', 'history = { kind = "sine"', base=MESH_BASE),
+        "loads[0].history.kind",
+        "unknown value 'sine'; allowed: 'blast', 'table', 'friedlander'",
+    ),
+    (
+        "blast_without_decay",
+        edit(", decay_time = 1e-4", "", base=MESH_BASE),
+        "loads[0].history.decay_time",
+        "required key is missing",
+    ),
+    (
+        "table_not_increasing",
+        edit(
+            'history = { kind = "blast", peak = 1e6, rise_time = 1e-5, decay_time = 1e-4 }',
+            'history = { kind = "table", times = [0.0, 2e-4, 1e-4], values = [0.0, 1e6, 0.0] }',
+            base=MESH_BASE,
+        ),
+        "loads[0].history.times",
+        "must be strictly increasing",
+    ),
+    (
+        "table_lengths_differ",
+        edit(
+            'history = { kind = "blast", peak = 1e6, rise_time = 1e-5, decay_time = 1e-4 }',
+            'history = { kind = "table", times = [0.0, 1e-4], values = [0.0, 1e6, 0.0] }',
+            base=MESH_BASE,
+        ),
+        "loads[0].history.values",
+        "needs one value per time (2)",
+    ),
+    (
+        "faces_and_region",
+        edit('faces = "z+"', 'faces = "z+"\nregion = { box = { lo = [0, 0, 0], hi = [1, 1, 1] } }', base=MESH_BASE),
+        "loads[0]",
+        "needs exactly one of 'faces' or 'region' (got both)",
+    ),
+    (
+        "velocity_end_before_start",
+        MESH_BASE + '\n[[loads]]\nkind = "velocity"\nfaces = "x-"\nvelocity = [1, 0, 0]\nstart = 0.002\nend = 0.001\n',
+        "loads[1].end",
+        "must be > start = 0.002 (got 0.001)",
+    ),
+    (
+        "unknown_boundary_kind",
+        edit('kind = "non_reflecting"', 'kind = "absorbing"', base=MESH_BASE),
+        "boundaries[0].kind",
+        "unknown value 'absorbing'; allowed: 'fixed', 'roller', 'non_reflecting'",
+    ),
+    (
+        "oblique_roller_normal",
+        edit('kind = "non_reflecting"', 'kind = "roller"\nnormal = [1.0, 1.0, 0.0]', base=MESH_BASE),
+        "boundaries[0].normal",
+        "must be a nonzero vector along x, y or z",
+    ),
+    (
+        "normal_on_fixed_boundary",
+        edit('kind = "non_reflecting"', 'kind = "fixed"\nnormal = [0.0, 0.0, 1.0]', base=MESH_BASE),
+        "boundaries[0]",
+        "'normal' is only used by kind 'roller', not 'fixed'",
+    ),
+    (
+        "loads_without_mesh",
+        MINIMAL + '\n[[boundaries]]\nfaces = "z-"\nkind = "fixed"\n',
+        "boundaries",
+        "needs a [mesh] to act on",
+    ),
+    (
+        "tunnel_without_radius",
+        edit("radius = 1.5", "width = 3.0", base=GEOLOGY_BASE),
+        "mesh.openings[0]",
+        "a circular tunnel needs 'radius'",
+    ),
+    (
+        "tunnel_bad_axis",
+        edit('axis = "y"', 'axis = "z"', base=GEOLOGY_BASE),
+        "mesh.openings[0].axis",
+        "unknown value 'z'; allowed: 'x', 'y'",
+    ),
+    (
+        "unknown_opening_kind",
+        edit('kind = "tunnel"', 'kind = "cave"', base=GEOLOGY_BASE),
+        "mesh.openings[0].kind",
+        "unknown value 'cave'; allowed: 'tunnel', 'shaft', 'room'",
+    ),
+    (
+        "dip_too_steep",
+        edit("dip = 60.0", "dip = 120.0", base=GEOLOGY_BASE),
+        "mesh.joint_sets[0].dip",
+        "less than or equal to 90 (got 120.0)",
+    ),
+    (
+        "unknown_persistence",
+        edit("spacing = 3.0", 'spacing = 3.0\npersistence = "partial"', base=GEOLOGY_BASE),
+        "mesh.joint_sets[0].persistence",
+        "unknown value 'partial'; allowed: 'persistent', 'disc', 'layers'",
+    ),
+    (
+        "disc_without_radius",
+        edit("spacing = 3.0", 'spacing = 3.0\npersistence = "disc"', base=GEOLOGY_BASE),
+        "mesh.joint_sets[0]",
+        "persistence 'disc' needs 'radius'",
+    ),
+    (
+        "layers_reference_itself",
+        edit("spacing = 3.0", 'spacing = 3.0\npersistence = "layers"\nreference = 0', base=GEOLOGY_BASE),
+        "mesh.joint_sets[0].reference",
+        "must be the index of another joint set, 0..0 except 0 (got 0)",
+    ),
+    (
+        "layers_reference_not_persistent",
+        GEOLOGY_BASE + '\n[[mesh.joint_sets]]\ndip = 10.0\ndip_direction = 0.0\nspacing = 2.0\npersistence = "layers"\n'
+        "reference = 2\n"
+        + '\n[[mesh.joint_sets]]\ndip = 10.0\ndip_direction = 0.0\nspacing = 2.0\npersistence = "disc"\n'
+        "radius = 1.0\n",
+        "mesh.joint_sets[1].reference",
+        "joint set 2 is not persistent",
+    ),
+    (
+        "bad_phase",
+        edit("spacing = 3.0", "spacing = 3.0\nphase = 2", base=GEOLOGY_BASE),
+        "mesh.joint_sets[0].phase",
+        "unknown value 2; allowed: 0, 1",
+    ),
+    (
+        "negative_joint_friction",
+        edit("spacing = 3.0", "spacing = 3.0\nfriction = -0.1", base=GEOLOGY_BASE),
+        "mesh.joint_sets[0].friction",
+        "greater than or equal to 0 (got -0.1)",
+    ),
+    (
+        "layers_out_of_order",
+        GEOLOGY_BASE.replace(
+            "h = 2.0\n",
+            'h = 2.0\nlayers = [{ z_top = 6.0, material = "rock" }, { z_top = 3.0, material = "rock" }]\n',
+        ),
+        "mesh.layers[1].z_top",
+        "must be > mesh.layers[0].z_top = 6.0 and <= the box top = 10.0 (got 3.0)",
+    ),
+    (
+        "layer_unknown_material",
+        GEOLOGY_BASE.replace("h = 2.0\n", 'h = 2.0\nlayers = [{ z_top = 6.0, material = "shale" }]\n'),
+        "mesh.layers[0].material",
+        "unknown material 'shale'",
+    ),
+    (
+        "geology_face_set_opening_ok_but_typo",
+        GEOLOGY_BASE + '\n[[boundaries]]\nfaces = "openings"\nkind = "fixed"\n',
+        "boundaries[0].faces",
+        "the geology mesh has: 'x-', 'x+', 'y-', 'y+', 'z-', 'z+', 'opening'",
+    ),
+    (
+        "missing_mesh_file",
+        MINIMAL + '\n[mesh]\nkind = "file"\npath = "rock.msh"\n',
+        "mesh.path",
+        "file not found",
+    ),
+    (
+        "file_material_and_map",
+        MINIMAL + '\n[mesh]\nkind = "file"\npath = "rock.msh"\nmaterial = "rock"\nmaterial_map = { 1 = "rock" }\n',
+        "mesh",
+        "give 'material' or 'material_map', not both",
+    ),
+    (
+        "negative_joint_default",
+        MESH_BASE + "\n[joints]\ncohesion = -1.0\n",
+        "joints.cohesion",
+        "greater than or equal to 0 (got -1.0)",
+    ),
+    (
+        "vtu_not_bool",
+        MESH_BASE + '\n[output]\nvtu = "yes"\n',
+        "output.vtu",
+        "valid boolean (got 'yes')",
+    ),
+]
+BAD_SCENES += MESH_BAD_SCENES
+
+
 @pytest.mark.parametrize(("text", "key_path", "phrase"), [c[1:] for c in BAD_SCENES], ids=[c[0] for c in BAD_SCENES])
 def test_bad_scene_reports_one_line(tmp_path: Path, text: str, key_path: str | None, phrase: str) -> None:
     path = write(tmp_path, text, "bad_scene.toml")
@@ -473,3 +757,76 @@ def test_import_does_not_load_warp() -> None:
     repo_root = Path(__file__).resolve().parents[1]
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=repo_root)
     assert result.stdout.strip() == "False"
+
+
+def test_continuum_scene_defaults_and_values(tmp_path: Path) -> None:
+    scene = load_scene(write(tmp_path, MESH_BASE, "column.toml"))
+    rock = scene.materials["rock"]
+    assert (rock.tensile_strength, rock.fracture_energy, rock.tresca_strength) == (None, None, None)
+    assert (rock.bulk_viscosity_linear, rock.bulk_viscosity_quadratic, rock.mass_damping) == (0.06, 1.2, 0.0)
+    mesh = scene.mesh
+    assert mesh is not None and mesh.kind == "box"
+    assert mesh.divisions == (2, 2, 8) and mesh.fixed is False and mesh.velocity == (0.0, 0.0, 0.0)
+    (load,) = scene.loads
+    assert load.kind == "pressure" and load.faces == "z+" and load.region is None
+    assert (load.history.kind, load.history.peak, load.history.start) == ("blast", 1e6, 0.0)
+    (boundary,) = scene.boundaries
+    assert (boundary.faces, boundary.kind, boundary.normal) == ("z-", "non_reflecting", None)
+    assert scene.face_set_names() == ["x-", "x+", "y-", "y+", "z-", "z+"]
+    assert scene.joints.friction == 0.6 and scene.joints.cohesion == 0.0
+    assert scene.output.vtu is False and scene.output.mesh_color_by == "stress"
+    assert scene.capacity.nodes is None and scene.capacity.tets is None
+    assert scene.particles == []
+
+
+def test_geology_scene_values(tmp_path: Path) -> None:
+    text = GEOLOGY_BASE.replace(
+        "h = 2.0\n", 'h = 2.0\nh_opening = 0.8\nlayers = [{ z_top = 4.0, material = "rock" }]\n'
+    )
+    text += '\n[[mesh.joint_sets]]\nname = "bedding"\ndip = 0.0\ndip_direction = 0.0\nspacing = 2.0\n'
+    text += 'persistence = "layers"\nreference = 0\nlayers = 2\nphase = 1\nfriction = 0.4\n'
+    text += '\n[[loads]]\nkind = "airblast"\nfaces = "z+"\npeak = 2e5\npositive_duration = 5e-3\n'
+    text += "source = [5.0, 5.0, 12.0]\nfront_speed = 500.0\n"
+    text += '\n[[loads]]\nkind = "velocity"\nregion = { box = { lo = [0, 0, 0], hi = [10, 10, 0.1] } }\n'
+    text += "velocity = [0.0, 0.0, 1.0]\nend = 0.001\n"
+    text += '\n[[boundaries]]\nfaces = "opening"\nkind = "fixed"\n'
+    text += '\n[[boundaries]]\nfaces = "x-"\nkind = "roller"\nnormal = [-1.0, 0.0, 0.0]\n'
+    scene = load_scene(write(tmp_path, text))
+    mesh = scene.mesh
+    assert mesh is not None and mesh.kind == "geology"
+    assert mesh.h_opening == 0.8 and mesh.layers[0].z_top == 4.0 and mesh.seed is None
+    tunnel = mesh.openings[0]
+    assert (tunnel.kind, tunnel.axis, tunnel.center, tunnel.shape, tunnel.radius) == (
+        "tunnel",
+        "y",
+        (5.0, 4.0),
+        "circular",
+        1.5,
+    )
+    first, bedding = mesh.joint_sets
+    assert first.name is None and first.persistence == "persistent" and first.friction is None
+    assert (bedding.name, bedding.reference, bedding.layers, bedding.phase, bedding.friction) == (
+        "bedding",
+        0,
+        2,
+        1,
+        0.4,
+    )
+    airblast, velocity = scene.loads
+    assert (airblast.kind, airblast.decay_coefficient, airblast.t0) == ("airblast", 1.0, 0.0)
+    assert velocity.kind == "velocity" and velocity.region is not None and velocity.end == 0.001
+    assert [b.kind for b in scene.boundaries] == ["fixed", "roller"]
+    assert scene.face_set_names() == ["x-", "x+", "y-", "y+", "z-", "z+", "opening"]
+
+
+def test_file_mesh_path_resolved_against_scene_directory(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    scene_dir = tmp_path / "scenes"
+    scene_dir.mkdir()
+    (scene_dir / "rock.msh").write_text("")
+    write(scene_dir, MINIMAL + '\n[mesh]\nkind = "file"\npath = "rock.msh"\nmaterial_map = { 1 = "rock" }\n')
+    monkeypatch.chdir(tmp_path)
+    scene = load_scene(Path("scenes") / "scene.toml")
+    assert scene.mesh is not None and scene.mesh.kind == "file"
+    assert scene.mesh.path == (scene_dir / "rock.msh").resolve()
+    assert scene.mesh.material_map == {"1": "rock"}
+    assert scene.face_set_names() is None  # a file's face sets are known when it is read

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
 
-from warpdem.usd import UsdWriter
+from warpdem.usd import SurfaceFrame, UsdWriter
 
 RTOL = 1e-6  # float32 storage
 FPS = 24.0
@@ -239,3 +239,108 @@ def test_first_frame_offsets_the_timeline(tmp_path: pathlib.Path) -> None:
     assert points.GetTimeSamples() == [7.0, 8.0]
     # Stored as float32 (Vec3f): equal to the input rounded to float32, bit for bit.
     np.testing.assert_array_equal(np.asarray(points.Get(8.0)), np.asarray(frames[1]["positions"], dtype=np.float32))
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Rock surface (/World/Rock)
+
+
+def make_surface(points: np.ndarray, faces: np.ndarray, seed: int, vertex_colors: bool = False) -> SurfaceFrame:
+    rng = np.random.default_rng(seed)
+    f, p = len(faces), len(points)
+    return SurfaceFrame(
+        points=points,
+        faces=faces,
+        velocities=rng.normal(size=(p, 3)),
+        von_mises=rng.uniform(0.0, 1e6, size=f),
+        max_principal=rng.normal(scale=1e6, size=f),
+        colors=rng.uniform(0.0, 1.0, size=(p if vertex_colors else f, 3)),
+        vertex_colors=vertex_colors,
+    )
+
+
+TETRA_POINTS = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [5.0, 5.0, 5.0]])
+TETRA_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])  # outward faces; point 4 is unused
+
+
+def test_rock_surface_time_samples_and_topology_only_on_change(tmp_path: pathlib.Path) -> None:
+    """Points, velocities, primvars and extent are sampled every frame; the topology only at frames 0 and 2, where it
+    changes; frame 3 repeats frame 2's topology and authors none."""
+    frames = make_frames()
+    frames.append(make_frames(seed=4)[2])
+    shift = np.array([0.0, 0.0, 0.5])
+    faces_per_frame = [TETRA_FACES, TETRA_FACES, TETRA_FACES[:3], TETRA_FACES[:3].copy()]
+    surfaces = [make_surface(TETRA_POINTS + k * shift, faces, seed=k) for k, faces in enumerate(faces_per_frame)]
+    path = tmp_path / "rock.usda"
+    with UsdWriter(path, FPS) as writer:
+        for frame, surface in zip(frames, surfaces, strict=True):
+            writer.write_frame(**frame, surface=surface)
+
+    stage = Usd.Stage.Open(str(path))
+    rock = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Rock"))
+    assert rock
+    assert rock.GetSubdivisionSchemeAttr().Get() == UsdGeom.Tokens.none
+    every = [0.0, 1.0, 2.0, 3.0]
+    assert rock.GetPointsAttr().GetTimeSamples() == every
+    assert rock.GetVelocitiesAttr().GetTimeSamples() == every
+    assert rock.GetExtentAttr().GetTimeSamples() == every
+    assert rock.GetFaceVertexIndicesAttr().GetTimeSamples() == [0.0, 2.0]
+    assert rock.GetFaceVertexCountsAttr().GetTimeSamples() == [0.0, 2.0]
+    primvars = UsdGeom.PrimvarsAPI(rock.GetPrim())
+    speed = primvars.GetPrimvar("speed")
+    von_mises = primvars.GetPrimvar("vonMisesStress")
+    max_principal = primvars.GetPrimvar("maxPrincipalStress")
+    color = rock.GetDisplayColorPrimvar()
+    assert speed.GetInterpolation() == UsdGeom.Tokens.vertex
+    assert von_mises.GetInterpolation() == UsdGeom.Tokens.uniform
+    assert max_principal.GetInterpolation() == UsdGeom.Tokens.uniform
+    assert color.GetInterpolation() == UsdGeom.Tokens.uniform
+    for name in ("speed", "vonMisesStress", "maxPrincipalStress", "displayColor"):
+        assert primvars.GetPrimvar(name).GetAttr().GetTimeSamples() == every, name
+
+    for code, (surface, faces) in enumerate(zip(surfaces, faces_per_frame, strict=True)):
+        np.testing.assert_allclose(np.asarray(rock.GetPointsAttr().Get(code)), surface.points, rtol=RTOL, atol=1e-7)
+        # Topology is held between authored samples: every frame reads back its own triangles.
+        np.testing.assert_array_equal(np.asarray(rock.GetFaceVertexIndicesAttr().Get(code)), faces.reshape(-1))
+        np.testing.assert_array_equal(np.asarray(rock.GetFaceVertexCountsAttr().Get(code)), np.full(len(faces), 3))
+        np.testing.assert_allclose(
+            np.asarray(speed.Get(code)), np.linalg.norm(surface.velocities, axis=1), rtol=RTOL, atol=1e-7
+        )
+        np.testing.assert_allclose(np.asarray(von_mises.Get(code)), surface.von_mises, rtol=RTOL)
+        np.testing.assert_allclose(np.asarray(max_principal.Get(code)), surface.max_principal, rtol=RTOL)
+        np.testing.assert_allclose(np.asarray(color.Get(code)), surface.colors, rtol=RTOL, atol=1e-7)
+        # The extent bounds the triangles' vertices only: the unused point 4 lies outside it.
+        extent = np.asarray(rock.GetExtentAttr().Get(code))
+        np.testing.assert_allclose(extent, [code * shift, code * shift + 1.0], rtol=RTOL, atol=1e-7)
+
+
+def test_rock_surface_vertex_colors_and_late_appearance(tmp_path: pathlib.Path) -> None:
+    """A surface first given at frame 1 reads back empty at frame 0; a frame without one authors an empty mesh."""
+    frames = make_frames()
+    path = tmp_path / "late_rock.usdc"
+    surface = make_surface(TETRA_POINTS, TETRA_FACES, seed=0, vertex_colors=True)
+    with UsdWriter(path, FPS) as writer:
+        writer.write_frame(**frames[0])
+        writer.write_frame(**frames[1], surface=surface)
+        writer.write_frame(**frames[2])
+    stage = Usd.Stage.Open(str(path))
+    rock = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Rock"))
+    assert rock.GetDisplayColorPrimvar().GetInterpolation() == UsdGeom.Tokens.vertex
+    counts = rock.GetFaceVertexCountsAttr()
+    assert [len(counts.Get(c)) for c in (0.0, 1.0, 2.0)] == [0, 4, 0]
+    np.testing.assert_allclose(np.asarray(rock.GetDisplayColorPrimvar().Get(1.0)), surface.colors, rtol=RTOL)
+
+
+def test_rock_surface_bad_inputs(tmp_path: pathlib.Path) -> None:
+    frame = make_frames()[0]
+    good = make_surface(TETRA_POINTS, TETRA_FACES, seed=0)
+    with UsdWriter(tmp_path / "bad.usda", FPS) as writer:
+        with pytest.raises(ValueError, match=r"surface\.faces"):
+            writer.write_frame(**frame, surface=make_surface(TETRA_POINTS, TETRA_FACES + 4, seed=0))
+        with pytest.raises(ValueError, match=r"surface\.faces"):
+            writer.write_frame(**frame, surface=make_surface(TETRA_POINTS, TETRA_FACES.astype(float), seed=0))
+        with pytest.raises(ValueError, match=r"surface\.von_mises"):
+            writer.write_frame(**frame, surface=SurfaceFrame(**{**vars(good), "von_mises": good.von_mises[:2]}))
+        with pytest.raises(ValueError, match=r"surface\.colors"):
+            writer.write_frame(**frame, surface=SurfaceFrame(**{**vars(good), "vertex_colors": True}))
+        assert writer.frame_count == 0

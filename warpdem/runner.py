@@ -14,7 +14,7 @@ import numpy as np
 import warp as wp
 
 from . import __version__
-from .builder import build_scene
+from .builder import finalize_scene, scene_builder
 from .checkpoint import CheckpointError, checkpoint_name, read_checkpoint, write_checkpoint
 from .model import Model, State
 from .scene import Scene, SceneError
@@ -31,6 +31,29 @@ MODEL_PARTICLE_FIELDS = (
     "particle_part",
     "particle_id",
 )
+
+MODEL_MESH_PREFIXES = ("node_", "tet_", "joint_")
+"""Model fields of the FEM nodes, tets and joint elements (saved with a checkpoint so a restart never depends on
+re-meshing or on the joint pre-split): every array whose name starts with one of these, except tables of structs,
+which the scene's materials give."""
+
+
+def mesh_model_fields(model: Model) -> list[str]:
+    """Names of the Model arrays of the mesh (:data:`MODEL_MESH_PREFIXES`) that a checkpoint holds."""
+    return [
+        name
+        for name, a in model.arrays().items()
+        if name.startswith(MODEL_MESH_PREFIXES) and not wp.types.type_is_struct(a.dtype)
+    ]
+
+
+def _capacities(model: Model) -> dict[str, int]:
+    """The mesh capacities of a model (``node_capacity``, ``tet_capacity``, ``joint_capacity`` where present)."""
+    return {
+        f.name: int(getattr(model, f.name))
+        for f in dataclasses.fields(model)
+        if f.name in ("node_capacity", "tet_capacity", "joint_capacity")
+    }
 
 
 @dataclass
@@ -56,7 +79,8 @@ class RunOptions:
 @dataclass
 class RunSummary:
     """What a run did: simulated time [s], steps, wall time [s], throughput [particle-steps/s], contacts now,
-    bonds broken, the energy balance at start and end, and the files written."""
+    bonds broken, the energy balance at start and end, and the files written; FEM nodes and live tets, throughput
+    [tet-steps/s] and the VTU collection where the scene has a mesh."""
 
     simulated_time: float
     steps: int
@@ -70,17 +94,38 @@ class RunSummary:
     energy_end: EnergyBalance
     usd_path: Path | None
     checkpoints: list[Path]
+    nodes: int = 0
+    tets: int = 0
+    tet_steps_per_second: float = 0.0
+    pvd_path: Path | None = None
 
     def format(self) -> str:
         e0, e1 = self.energy_start, self.energy_end
-        scale = max(abs(e0.total), e1.kinetic + e1.elastic + abs(e1.gravity_potential), 1e-300)
+        # Relative to the energy in play: stored now, or put in by walls and loads over the run.
+        stored = e1.kinetic + e1.elastic + e1.strain + abs(e1.gravity_potential)
+        scale = max(abs(e0.total), stored, abs(e1.boundary_work) + abs(e1.load_work), 1e-300)
         lines = [
             f"simulated time   {self.simulated_time:.6g} s in {self.steps} steps",
             f"wall time        {self.wall_time:.3f} s  ({self.particle_steps_per_second / 1e6:.3f} M particle-steps/s)",
             f"particles        {self.particles}   contacts {self.contacts}",
             f"bonds            {self.bonds_intact} intact, {self.bonds_broken} broken",
+        ]
+        if self.nodes:
+            rate = self.tet_steps_per_second / 1e6
+            lines.append(f"rock mesh        {self.nodes} nodes, {self.tets} tets  ({rate:.3f} M tet-steps/s)")
+        lines += [
             "energy [J]       start          end",
             f"  kinetic        {e0.kinetic:<14.6g} {e1.kinetic:.6g}",
+        ]
+        if self.nodes:
+            lines += [
+                f"    of nodes     {e0.kinetic_nodes:<14.6g} {e1.kinetic_nodes:.6g}",
+                f"  strain         {e0.strain:<14.6g} {e1.strain:.6g}",
+                f"  viscous diss.  {e0.dissipated_viscous:<14.6g} {e1.dissipated_viscous:.6g}",
+                f"  load work      {e0.load_work:<14.6g} {e1.load_work:.6g}",
+                f"  contact diss.  {e0.dissipated_fem_contact:<14.6g} {e1.dissipated_fem_contact:.6g}",
+            ]
+        lines += [
             f"  elastic        {e0.elastic:<14.6g} {e1.elastic:.6g}",
             f"  gravity pot.   {e0.gravity_potential:<14.6g} {e1.gravity_potential:.6g}",
             f"  damping diss.  {e0.dissipated_damping:<14.6g} {e1.dissipated_damping:.6g}",
@@ -91,6 +136,8 @@ class RunSummary:
         ]
         if self.usd_path is not None:
             lines.append(f"USD              {self.usd_path}")
+        if self.pvd_path is not None:
+            lines.append(f"VTU series       {self.pvd_path}")
         if self.checkpoints:
             lines.append(f"checkpoint       {self.checkpoints[-1]}")
         return "\n".join(lines)
@@ -108,9 +155,9 @@ PART_PALETTE = np.array(
 
 
 def save_checkpoint(path: Path, sim: Simulation, frame: int, extra: dict) -> Path:
-    """Write the complete state of a simulation (and the sphere part of its model) to an HDF5 checkpoint."""
+    """Write the complete state of a simulation (and the sphere and mesh parts of its model) to an HDF5 checkpoint."""
     arrays = {f"state/{name}": a.numpy() for name, a in sim.state.arrays().items()}
-    for name in MODEL_PARTICLE_FIELDS:
+    for name in [*MODEL_PARTICLE_FIELDS, *mesh_model_fields(sim.model)]:
         arrays[f"model/{name}"] = getattr(sim.model, name).numpy()
     attrs = {
         "step": sim.step_count,
@@ -121,6 +168,7 @@ def save_checkpoint(path: Path, sim: Simulation, frame: int, extra: dict) -> Pat
         "max_neighbors": sim.model.max_neighbors,
         "bond_capacity": sim.model.bond_capacity,
         "num_walls": sim.model.num_walls,
+        **_capacities(sim.model),
         "warpdem_version": __version__,
         **extra,
     }
@@ -140,7 +188,9 @@ def restore_checkpoint(path: Path, model: Model, template: State) -> tuple[Model
             raise CheckpointError(f"{path}: {key} is {attrs.get(key)} but the scene builds {expected}; wrong scene?")
     missing = [
         k
-        for k in [f"model/{n}" for n in MODEL_PARTICLE_FIELDS] + [f"state/{n}" for n in template.arrays()]
+        for k in [f"model/{n}" for n in [*MODEL_PARTICLE_FIELDS, *mesh_model_fields(model)]]
+        + [f"state/{n}" for n in template.arrays()]
+        + [f"attrs/{n}" for n in _capacities(model) if n not in attrs]
         if k not in arrays
     ]
     if missing:
@@ -155,7 +205,11 @@ def restore_checkpoint(path: Path, model: Model, template: State) -> tuple[Model
         particle_capacity=int(attrs["particle_capacity"]),
         max_neighbors=int(attrs["max_neighbors"]),
         dt=float(attrs["dt"]),
-        **{name: load(f"model/{name}", getattr(model, name)) for name in MODEL_PARTICLE_FIELDS},
+        **{name: int(attrs[name]) for name in _capacities(model)},
+        **{
+            name: load(f"model/{name}", getattr(model, name))
+            for name in [*MODEL_PARTICLE_FIELDS, *mesh_model_fields(model)]
+        },
     )
     state = State(**{name: load(f"state/{name}", a) for name, a in template.arrays().items()})
     return model, state, attrs
@@ -176,7 +230,11 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     except (ValueError, RuntimeError) as exc:
         where = "--device" if options.device else f"{scene.name}: run.device"
         raise SceneError(f"{where}: device {device_name!r} is not available here ({exc})") from None
-    model, state = build_scene(scene, device)
+    builder = scene_builder(scene)
+    if not options.quiet:
+        for quality in builder.mesh_qualities:
+            print(f"mesh: {quality.format()}")
+    model, state = finalize_scene(scene, builder, device)
 
     fps = run.output_rate
     frame_period = 1.0 / fps
@@ -201,6 +259,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
 
     out_dir = Path(options.out_dir) if options.out_dir is not None else Path(scene.output.directory)
     usd_path = Path(options.usd) if options.usd is not None else out_dir / scene.output.usd
+    output_stem = usd_path.stem  # VTU files are named like the stage; a restart's collection gets its own name
     if options.restart is not None and options.usd is None:
         # A restart gets its own stage, on the original timeline, instead of replacing the first run's stage.
         usd_path = usd_path.with_name(f"{usd_path.stem}_from{first_frame:06d}{usd_path.suffix}")
@@ -211,12 +270,16 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     frames_per_checkpoint = max(1, round(checkpoint_every / frame_period)) if checkpoint_every > 0 else 0
     ckpt_extra = {"scene": scene.name, "substeps": substeps, "seed": run.seed}
 
+    from .output import RockFrames, VtuSeries
     from .usd import UsdWriter
 
     speed_scale = [1e-12]
     checkpoints: list[Path] = []
+    vtu = VtuSeries(out_dir, output_stem, first_frame) if scene.output.vtu and model.node_capacity else None
+    rock = RockFrames(scene.output.mesh_color_by, vtu)
 
-    def write_frame(writer: UsdWriter) -> None:
+    def write_frame(writer: UsdWriter, frame: int) -> None:
+        rock.write_vtu(frame, sim.time, sim.model, sim.state)
         n = sim.particle_count
         q = sim.state.particle_q.numpy()[:n]
         v = sim.state.particle_qd.numpy()[:n]
@@ -239,6 +302,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
             ids=sim.model.particle_id.numpy()[:n].astype(np.int64),
             colors=colors,
             bonds=bonds,
+            surface=rock.surface(sim.model, sim.state),
         )
 
     energy_start = sim.energy()
@@ -253,11 +317,11 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     steps0 = sim.step_count
     comment = f"warpdem {__version__}: {scene.name}"
     with UsdWriter(usd_path, 1.0 / frame_period, comment=comment, first_frame=first_frame) as writer:
-        write_frame(writer)
+        write_frame(writer, first_frame)
         for k in range(frames_left):
             sim.advance(substeps)
             frame = first_frame + k + 1
-            write_frame(writer)
+            write_frame(writer, frame)
             if progress is not None:
                 progress.update(round(frame_period, 9))
             if frames_per_checkpoint and frame % frames_per_checkpoint == 0 and k < frames_left - 1:
@@ -274,6 +338,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         progress.close()
     steps = sim.step_count - steps0
     n = sim.particle_count
+    tets = int(np.count_nonzero(sim.state.tet_active.numpy()[: int(sim.state.tet_count.numpy()[0])]))
     energy_end = sim.energy()
     return RunSummary(
         simulated_time=sim.time,
@@ -288,6 +353,10 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         energy_end=energy_end,
         usd_path=writer.path if hasattr(writer, "path") else usd_path,
         checkpoints=checkpoints,
+        nodes=sim.node_count,
+        tets=tets,
+        tet_steps_per_second=tets * steps / wall if wall > 0 else 0.0,
+        pvd_path=vtu.pvd_path if vtu is not None else None,
     )
 
 
@@ -296,4 +365,5 @@ def summary_json(summary: RunSummary) -> str:
     d = dataclasses.asdict(summary)
     d["usd_path"] = str(summary.usd_path) if summary.usd_path else None
     d["checkpoints"] = [str(p) for p in summary.checkpoints]
+    d["pvd_path"] = str(summary.pvd_path) if summary.pvd_path else None
     return json.dumps(d, indent=1)

@@ -19,6 +19,7 @@ This module is pure host code: it must not import warp, so ``warpdem --help`` an
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import re
@@ -44,32 +45,53 @@ from pydantic import (
     model_validator,
 )
 
+from .geology import BOX_FACE_NAMES, OPENING_FACE_NAME
+
 __all__ = [
     "RESERVED_SECTIONS",
     "SCHEMA_VERSION",
+    "AirblastLoad",
+    "BlastHistory",
     "BondRegion",
+    "Boundary",
     "Box",
+    "BoxMesh",
     "BoxWall",
     "Capacity",
     "ContactSettings",
     "Cylinder",
+    "FileMesh",
     "FileSource",
+    "FriedlanderHistory",
+    "GeologyMeshSpec",
     "Gravity",
     "InteractionPair",
     "InteractionProps",
     "Interactions",
+    "JointDefaults",
+    "JointSetSpec",
+    "Layer",
+    "Load",
     "Material",
+    "Mesh",
+    "Opening",
     "Output",
     "PackingSource",
     "Part",
     "ParticleSource",
     "PlaneWall",
+    "PressureLoad",
     "Region",
+    "RoomOpening",
     "Run",
     "Scene",
     "SceneError",
+    "ShaftOpening",
     "SphereSource",
+    "TableHistory",
+    "TunnelOpening",
     "Vec3",
+    "VelocityLoad",
     "Wall",
     "default_scene_path",
     "load_scene",
@@ -79,7 +101,7 @@ __all__ = [
 SCHEMA_VERSION = 1
 """The only scene schema version this release reads."""
 
-RESERVED_SECTIONS = ("tets", "mesh", "joints", "loads", "fracture", "conversion", "boundaries")
+RESERVED_SECTIONS = ("tets", "fracture", "conversion")
 """Top-level sections planned for later schema versions; named explicitly so users are not told 'unknown key'."""
 
 _NAME_PATTERN = re.compile(r"[A-Za-z_][A-Za-z0-9_-]*")
@@ -226,6 +248,24 @@ class Material(_Model):
     youngs_modulus: Float = Field(gt=0, description="Young's modulus [Pa].")
     poisson_ratio: Annotated[Float, AfterValidator(_check_poisson)] = Field(
         description="Poisson's ratio (-1, 0.5) [-]."
+    )
+    tensile_strength: Float | None = Field(
+        default=None, gt=0, description="Tensile strength T_f of the continuum (nodal fracture, LDEC §2.2) [Pa]."
+    )
+    fracture_energy: Float | None = Field(
+        default=None, gt=0, description="Fracture energy Γ of new cracks (cohesive elements, LDEC eq. 10) [J/m^2]."
+    )
+    tresca_strength: Float | None = Field(
+        default=None, gt=0, description="Tresca (shear) strength for the FEM-to-DEM conversion (CIMNE §5) [Pa]."
+    )
+    bulk_viscosity_linear: Float = Field(
+        default=0.06, ge=0, description="Linear bulk-viscosity coefficient c_lin of the tets (shock capture) [-]."
+    )
+    bulk_viscosity_quadratic: Float = Field(
+        default=1.2, ge=0, description="Quadratic bulk-viscosity coefficient c_quad of the tets (shock capture) [-]."
+    )
+    mass_damping: Float = Field(
+        default=0.0, ge=0, description="Mass-proportional (Rayleigh alpha) damping of the tets' nodes [1/s]."
     )
 
     @property
@@ -535,6 +575,394 @@ Wall = Annotated[PlaneWall | BoxWall, Field(discriminator="kind")]
 
 
 # ----------------------------------------------------------------------------------------------------------------------
+# Continuum: the rock mesh, its joints, loads and boundaries
+# ----------------------------------------------------------------------------------------------------------------------
+
+PositiveInt = Annotated[Int, Field(gt=0)]
+Vec2 = Annotated[tuple[Float, Float], BeforeValidator(_array_to_list)]
+"""Two finite floats."""
+
+
+def _fixed_field() -> Any:
+    return Field(default=False, description="Hold every node of the mesh in place (an immobile rock body).")
+
+
+def _velocity_field() -> Any:
+    return Field(default=(0.0, 0.0, 0.0), description="Initial velocity of every node [m/s].")
+
+
+class BoxMesh(_Model):
+    """A structured tet mesh of an axis-aligned box (each cell split into 6 Kuhn tets)."""
+
+    kind: Literal["box"] = Field(description="Mesh kind.")
+    lo: Vec3 = Field(description="Lower corner [m].")
+    hi: Vec3 = Field(description="Upper corner [m]; greater than lo in every component.")
+    divisions: tuple[PositiveInt, PositiveInt, PositiveInt] = Field(description="Cells along x, y and z [-].")
+    material: Str = Field(description="Name of a material defined in [materials].")
+    fixed: Bool = _fixed_field()
+    velocity: Vec3 = _velocity_field()
+
+    @field_validator("hi")
+    @classmethod
+    def _check_hi(cls, value: tuple[float, float, float], info: ValidationInfo) -> tuple[float, float, float]:
+        return _hi_above_lo(value, info)
+
+
+class Layer(_Model):
+    """A horizontal material layer of a geology mesh, from the previous layer top (or the box bottom) up."""
+
+    z_top: Float = Field(description="Height of the top of the layer [m]; increasing from the bottom layer up.")
+    material: Str = Field(description="Name of a material defined in [materials].")
+
+
+class TunnelOpening(_Model):
+    """A horizontal tunnel along x or y."""
+
+    kind: Literal["tunnel"] = Field(description="Opening kind.")
+    axis: Literal["x", "y"] = Field(description="Direction of the tunnel axis.")
+    center: Vec2 = Field(
+        description="Centre of the cross-section's bounding rectangle [m]: (x, z) for axis 'y', (y, z) for axis 'x'."
+    )
+    shape: Literal["circular", "horseshoe", "rectangular"] = Field(default="circular", description="Cross-section.")
+    radius: Float | None = Field(default=None, gt=0, description="Radius of a circular tunnel [m].")
+    width: Float | None = Field(default=None, gt=0, description="Span of a rectangular or horseshoe tunnel [m].")
+    height: Float | None = Field(
+        default=None, gt=0, description="Floor-to-crown height of a rectangular or horseshoe tunnel [m]."
+    )
+    span: Vec2 | None = Field(
+        default=None, description="(start, end) along the axis [m]; omitted: through the whole model."
+    )
+
+    @model_validator(mode="after")
+    def _check_shape(self) -> TunnelOpening:
+        if self.shape == "circular":
+            if self.radius is None:
+                raise ValueError("a circular tunnel needs 'radius'")
+            if self.width is not None or self.height is not None:
+                raise ValueError("'width' and 'height' are only used by rectangular and horseshoe tunnels")
+        else:
+            if self.width is None or self.height is None:
+                raise ValueError(f"a {self.shape} tunnel needs 'width' and 'height'")
+            if self.radius is not None:
+                raise ValueError("'radius' is only used by circular tunnels")
+            if self.shape == "horseshoe" and not self.height > 0.5 * self.width:
+                raise ValueError(f"a horseshoe tunnel needs height > width / 2 (got {self.height} <= {self.width}/2)")
+        if self.span is not None and not self.span[1] > self.span[0]:
+            raise ValueError(f"span: end must exceed start (got {list(self.span)})")
+        return self
+
+
+class ShaftOpening(_Model):
+    """A vertical cylindrical shaft."""
+
+    kind: Literal["shaft"] = Field(description="Opening kind.")
+    center: Vec2 = Field(description="(x, y) of the shaft axis [m].")
+    radius: Float = Field(gt=0, description="Shaft radius [m].")
+    bottom: Float | None = Field(default=None, description="Height of the floor [m]; omitted: through the bottom.")
+    top: Float | None = Field(default=None, description="Height of the top [m]; omitted: open to the surface.")
+
+    @field_validator("top")
+    @classmethod
+    def _check_top(cls, value: float | None, info: ValidationInfo) -> float | None:
+        bottom = info.data.get("bottom")
+        if value is not None and bottom is not None and not value > bottom:
+            raise ValueError(f"must be > bottom = {bottom}")
+        return value
+
+
+class RoomOpening(_Model):
+    """An axis-aligned box-shaped excavation."""
+
+    kind: Literal["room"] = Field(description="Opening kind.")
+    lo: Vec3 = Field(description="Lower corner [m].")
+    hi: Vec3 = Field(description="Upper corner [m]; greater than lo in every component.")
+
+    @field_validator("hi")
+    @classmethod
+    def _check_hi(cls, value: tuple[float, float, float], info: ValidationInfo) -> tuple[float, float, float]:
+        return _hi_above_lo(value, info)
+
+
+Opening = Annotated[TunnelOpening | ShaftOpening | RoomOpening, Field(discriminator="kind")]
+"""One ``[[mesh.openings]]`` entry, selected by ``kind``."""
+
+
+class JointSetSpec(_Model):
+    """A set of parallel joints (geological dip / dip direction), and the properties of its joints."""
+
+    name: Name | None = Field(default=None, description="Name of the set; default 'joint<index>'.")
+    dip: Float = Field(ge=0, le=90, description="Dip: angle of the planes below the horizontal, [0, 90] [deg].")
+    dip_direction: Float = Field(
+        description="Dip direction: azimuth of steepest descent, clockwise from north (+y) [deg]."
+    )
+    spacing: Float = Field(gt=0, description="Distance between neighbouring planes along their normal [m].")
+    offset: Float = Field(default=0.0, description="Signed distance of plane 0 from the origin along the normal [m].")
+    persistence: Literal["persistent", "disc", "layers"] = Field(
+        default="persistent",
+        description="'persistent' (through the model), 'disc' (circular joints) or 'layers' (planes persisting "
+        "through 'layers' slabs between the planes of the persistent set 'reference', alternately).",
+    )
+    radius: Float | None = Field(default=None, gt=0, description="Disc radius [m] (persistence 'disc').")
+    disc_spacing: Float | None = Field(
+        default=None, gt=0, description="Disc centre pitch within a plane [m] (persistence 'disc'); default 2.5 radius."
+    )
+    reference: Int | None = Field(
+        default=None, ge=0, description="Index of the persistent joint set bounding the slabs (persistence 'layers')."
+    )
+    layers: Int = Field(default=1, ge=1, description="Slabs a plane persists through (persistence 'layers') [-].")
+    phase: Literal[0, 1] = Field(default=0, description="Which alternation of slab groups holds joints (0 or 1).")
+    jitter_position: Float = Field(default=0.0, ge=0, description="Uniform random shift of each plane [m].")
+    jitter_angle: Float = Field(default=0.0, ge=0, description="Uniform random tilt of each plane's normal [deg].")
+    friction: Float | None = Field(default=None, ge=0, description="Joint friction coefficient; default [joints].")
+    cohesion: Float | None = Field(default=None, ge=0, description="Joint cohesion [Pa]; default [joints].")
+    tensile_strength: Float | None = Field(
+        default=None, ge=0, description="Joint tensile strength [Pa]; default [joints]."
+    )
+
+    @model_validator(mode="after")
+    def _check_persistence(self) -> JointSetSpec:
+        if self.persistence == "disc" and self.radius is None:
+            raise ValueError("persistence 'disc' needs 'radius'")
+        if self.persistence == "layers" and self.reference is None:
+            raise ValueError("persistence 'layers' needs 'reference' (the index of a persistent joint set)")
+        unused = [
+            key
+            for key, wanted in (("radius", "disc"), ("disc_spacing", "disc"), ("reference", "layers"))
+            if getattr(self, key) is not None and self.persistence != wanted
+        ]
+        if unused:
+            raise ValueError(f"{', '.join(repr(k) for k in unused)} not used with persistence {self.persistence!r}")
+        return self
+
+
+class GeologyMeshSpec(_Model):
+    """A jointed, layered rock box with openings, meshed with Gmsh so that the tets conform to the joints."""
+
+    kind: Literal["geology"] = Field(description="Mesh kind.")
+    lo: Vec3 = Field(description="Lower corner of the rock box [m].")
+    hi: Vec3 = Field(description="Upper corner of the rock box [m]; greater than lo in every component.")
+    material: Str = Field(description="Material above the highest layer top (the whole box without layers).")
+    layers: list[Layer] = Field(default_factory=list, description="Horizontal material layers, bottom up.")
+    openings: list[Opening] = Field(default_factory=list, description="Tunnels, shafts and rooms.")
+    joint_sets: list[JointSetSpec] = Field(default_factory=list, description="Joint sets.")
+    h: Float = Field(gt=0, description="Target tet edge length [m].")
+    h_opening: Float | None = Field(default=None, gt=0, description="Edge length on the opening walls [m]; default h.")
+    refine_distance: Float | None = Field(
+        default=None, gt=0, description="Distance over which the size grows from h_opening to h [m]; default 4 h."
+    )
+    seed: Int | None = Field(default=None, ge=0, description="Seed of the joint jitter; default run.seed.")
+    fixed: Bool = _fixed_field()
+    velocity: Vec3 = _velocity_field()
+
+    @field_validator("hi")
+    @classmethod
+    def _check_hi(cls, value: tuple[float, float, float], info: ValidationInfo) -> tuple[float, float, float]:
+        return _hi_above_lo(value, info)
+
+
+class FileMesh(_Model):
+    """A ready tetrahedral mesh file (Gmsh .msh, VTU or legacy VTK) read through meshio."""
+
+    kind: Literal["file"] = Field(description="Mesh kind.")
+    path: Path = Field(description="Mesh file, relative to the scene file; absolute after loading.")
+    material_map: dict[Str, Str] = Field(
+        default_factory=dict,
+        description="Tet physical group (name or number) -> material; omitted: the group names are material names.",
+    )
+    material: Str | None = Field(
+        default=None, description="One material for every tet, whatever the groups (instead of material_map)."
+    )
+    joint_groups: list[Str] | None = Field(
+        default=None, description="Triangle groups that are joints; default: names starting with 'joint'."
+    )
+    fixed: Bool = _fixed_field()
+    velocity: Vec3 = _velocity_field()
+
+    @model_validator(mode="after")
+    def _one_material_source(self) -> FileMesh:
+        if self.material is not None and self.material_map:
+            raise ValueError("give 'material' or 'material_map', not both")
+        return self
+
+
+Mesh = Annotated[BoxMesh | GeologyMeshSpec | FileMesh, Field(discriminator="kind")]
+"""The ``[mesh]`` section, selected by ``kind``."""
+
+
+class JointDefaults(_Model):
+    """Properties of joints that their joint set does not set."""
+
+    friction: Float = Field(default=0.6, ge=0, description="Coulomb friction coefficient of the joints [-].")
+    cohesion: Float = Field(default=0.0, ge=0, description="Cohesion of the joints [Pa].")
+    tensile_strength: Float = Field(default=0.0, ge=0, description="Tensile strength of the joints [Pa].")
+    stiffness_factor: Float = Field(
+        default=1.0, gt=0, description="Joint contact stiffness relative to the rock's (E / h) [-]."
+    )
+    restitution: Float = Field(
+        default=0.5, gt=0, le=1, description="Coefficient of restitution (0, 1] of the joints' normal dashpot [-]."
+    )
+    shear_stiffness_ratio: Float = Field(
+        default=0.5, gt=0, description="Tangential to normal stiffness ratio k_t / k_n of the joints [-]."
+    )
+
+
+def _faces_field() -> Any:
+    return Field(
+        default=None,
+        description="Face set name: 'x-', 'x+', 'y-', 'y+', 'z-', 'z+', 'opening' or a triangle group of a mesh file.",
+    )
+
+
+def _region_field(what: str = "Boundary faces") -> Any:
+    return Field(default=None, description=f"{what} inside this region (instead of 'faces').")
+
+
+def _check_selection(model: Any) -> None:
+    if (model.faces is None) == (model.region is None):
+        given = "both" if model.faces is not None else "neither"
+        raise ValueError(f"needs exactly one of 'faces' or 'region' (got {given})")
+
+
+class BlastHistory(_Model):
+    """Explosive pressure pulse: linear rise to the peak, then exponential decay."""
+
+    kind: Literal["blast"] = Field(description="History kind.")
+    peak: Float = Field(gt=0, description="Peak pressure [Pa].")
+    rise_time: Float = Field(default=0.0, ge=0, description="Time from the start to the peak [s].")
+    decay_time: Float = Field(gt=0, description="Exponential decay time after the peak [s].")
+    start: Float = Field(default=0.0, ge=0, description="Arrival time [s].")
+
+
+class TableHistory(_Model):
+    """Pressure interpolated linearly in a table (0 before the first time and after the last)."""
+
+    kind: Literal["table"] = Field(description="History kind.")
+    times: list[Float] = Field(min_length=2, description="Times [s], strictly increasing.")
+    values: list[Float] = Field(description="Pressures at those times [Pa].")
+
+    @field_validator("times")
+    @classmethod
+    def _increasing(cls, value: list[float]) -> list[float]:
+        if any(b <= a for a, b in itertools.pairwise(value)):
+            raise ValueError("must be strictly increasing")
+        return value
+
+    @field_validator("values")
+    @classmethod
+    def _same_length(cls, value: list[float], info: ValidationInfo) -> list[float]:
+        times = info.data.get("times")
+        if times is not None and len(value) != len(times):
+            raise ValueError(f"needs one value per time ({len(times)})")
+        return value
+
+
+class FriedlanderHistory(_Model):
+    """Friedlander blast wave p(t) = peak (1 - τ) exp(-b τ), τ = (t - start) / positive_duration."""
+
+    kind: Literal["friedlander"] = Field(description="History kind.")
+    peak: Float = Field(gt=0, description="Peak overpressure [Pa].")
+    positive_duration: Float = Field(gt=0, description="Duration of the positive phase [s].")
+    decay_coefficient: Float = Field(default=1.0, gt=0, description="Decay coefficient b [-].")
+    start: Float = Field(default=0.0, ge=0, description="Arrival time [s].")
+
+
+PressureHistorySpec = Annotated[BlastHistory | TableHistory | FriedlanderHistory, Field(discriminator="kind")]
+"""A pressure history, selected by ``kind``."""
+
+
+class PressureLoad(_Model):
+    """A pressure history on boundary faces (pushing along their inward normal)."""
+
+    kind: Literal["pressure"] = Field(description="Load kind.")
+    faces: Str | None = _faces_field()
+    region: Region | None = _region_field()
+    history: PressureHistorySpec = Field(description="Pressure history.")
+
+    @model_validator(mode="after")
+    def _selection(self) -> PressureLoad:
+        _check_selection(self)
+        return self
+
+
+class AirblastLoad(_Model):
+    """A surface airblast: Friedlander pulses arriving at each face when a front from ``source`` reaches it."""
+
+    kind: Literal["airblast"] = Field(description="Load kind.")
+    faces: Str | None = _faces_field()
+    region: Region | None = _region_field()
+    peak: Float = Field(gt=0, description="Peak overpressure [Pa].")
+    positive_duration: Float = Field(gt=0, description="Duration of the positive phase [s].")
+    decay_coefficient: Float = Field(default=1.0, gt=0, description="Friedlander decay coefficient b [-].")
+    source: Vec3 = Field(description="Point the front starts from [m].")
+    front_speed: Float = Field(gt=0, description="Speed of the front [m/s].")
+    t0: Float = Field(default=0.0, ge=0, description="Time the front leaves the source [s].")
+
+    @model_validator(mode="after")
+    def _selection(self) -> AirblastLoad:
+        _check_selection(self)
+        return self
+
+
+class VelocityLoad(_Model):
+    """Prescribed velocity of nodes (of the named faces, or every node inside a region) between two times."""
+
+    kind: Literal["velocity"] = Field(description="Load kind.")
+    faces: Str | None = _faces_field()
+    region: Region | None = _region_field("Nodes")
+    velocity: Vec3 = Field(description="Prescribed velocity [m/s].")
+    start: Float = Field(default=0.0, ge=0, description="Start time [s].")
+    end: Float | None = Field(default=None, description="End time [s]; omitted: until the end of the run.")
+
+    @field_validator("end")
+    @classmethod
+    def _after_start(cls, value: float | None, info: ValidationInfo) -> float | None:
+        start = info.data.get("start")
+        if value is not None and start is not None and not value > start:
+            raise ValueError(f"must be > start = {start}")
+        return value
+
+    @model_validator(mode="after")
+    def _selection(self) -> VelocityLoad:
+        _check_selection(self)
+        return self
+
+
+Load = Annotated[PressureLoad | AirblastLoad | VelocityLoad, Field(discriminator="kind")]
+"""One ``[[loads]]`` entry, selected by ``kind``."""
+
+
+class Boundary(_Model):
+    """A boundary condition on mesh faces."""
+
+    faces: Str | None = _faces_field()
+    region: Region | None = _region_field()
+    kind: Literal["fixed", "roller", "non_reflecting"] = Field(
+        description="'fixed' (held), 'roller' (no motion along the normal) or 'non_reflecting' (viscous dashpots "
+        "that absorb waves leaving the model)."
+    )
+    normal: Vec3 | None = Field(
+        default=None,
+        description="Roller normal along x, y or z (e.g. [1, 0, 0]) [-]; omitted: the axis the faces' plane is "
+        "normal to.",
+    )
+
+    @field_validator("normal")
+    @classmethod
+    def _axis_aligned(cls, value: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
+        # A roller holds one velocity component of its nodes (node_motion codes): only the coordinate axes exist.
+        if value is not None and sum(1 for c in value if c != 0.0) != 1:
+            raise ValueError("must be a nonzero vector along x, y or z")
+        return value
+
+    @model_validator(mode="after")
+    def _selection(self) -> Boundary:
+        _check_selection(self)
+        if self.normal is not None and self.kind != "roller":
+            raise ValueError(f"'normal' is only used by kind 'roller', not {self.kind!r}")
+        return self
+
+
+# ----------------------------------------------------------------------------------------------------------------------
 # Output and capacity
 # ----------------------------------------------------------------------------------------------------------------------
 
@@ -552,6 +980,14 @@ class Output(_Model):
         default=0.0, ge=0, description="Checkpoint interval in simulated time [s]; 0 = only at the end."
     )
     checkpoint_dir: Str = Field(default="checkpoints", description="Checkpoint directory, relative to directory.")
+    mesh_color_by: Literal["stress", "speed", "material"] = Field(
+        default="stress", description="Colouring of the rock surface /World/Rock in the USD file."
+    )
+    vtu: Bool = Field(
+        default=False,
+        description="Also write the tet mesh of every frame as VTU (<stem>_vtu/ in directory, <stem> that of the USD "
+        "file) with a <stem>.pvd collection for ParaView.",
+    )
 
     @field_validator("usd")
     @classmethod
@@ -566,6 +1002,8 @@ class Capacity(_Model):
 
     particles: Int | None = Field(default=None, gt=0, description="Particle slots; default chosen by the builder.")
     neighbors_per_particle: Int = Field(default=8, gt=0, description="Contact candidate slots per particle.")
+    nodes: Int | None = Field(default=None, gt=0, description="FEM node slots; default: the mesh's node count.")
+    tets: Int | None = Field(default=None, gt=0, description="Tet slots; default: the mesh's tet count.")
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -613,6 +1051,12 @@ class Scene(_Model):
     particles: list[ParticleSource] = Field(default_factory=list, description="Particle sources.")
     bonds: list[BondRegion] = Field(default_factory=list, description="Bonded regions.")
     walls: list[Wall] = Field(default_factory=list, description="Rigid walls.")
+    mesh: Mesh | None = Field(default=None, description="The rock mass as a tet mesh (continuum).")
+    joints: JointDefaults = Field(
+        default_factory=JointDefaults, description="Joint properties that a joint set does not set."
+    )
+    loads: list[Load] = Field(default_factory=list, description="Loads on the mesh.")
+    boundaries: list[Boundary] = Field(default_factory=list, description="Boundary conditions of the mesh.")
     output: Output = Field(default_factory=Output, description="Output settings.")
     capacity: Capacity = Field(default_factory=Capacity, description="Initial buffer capacities.")
 
@@ -714,6 +1158,88 @@ class Scene(_Model):
                 check(f"bonds[{i}].material", bond.material, materials, "material")
         for i, wall in enumerate(self.walls):
             check(f"walls[{i}].material", wall.material, materials, "material")
+        problems += self._mesh_problems(check)
+        return problems
+
+    def face_set_names(self) -> list[str] | None:
+        """Face set names the mesh is known to have before it is built (None for a mesh file: read at build)."""
+        mesh = self.mesh
+        if mesh is None or mesh.kind == "file":
+            return None
+        names = list(BOX_FACE_NAMES)
+        if mesh.kind == "geology" and mesh.openings:
+            names.append(OPENING_FACE_NAME)
+        return names
+
+    def _mesh_problems(self, check: Any) -> list[tuple[str, str]]:
+        problems: list[tuple[str, str]] = []
+        mesh = self.mesh
+        if mesh is None:
+            for section, entries in (("loads", self.loads), ("boundaries", self.boundaries)):
+                if entries:
+                    problems.append((section, "needs a [mesh] to act on"))
+            return problems
+        materials = self.material_names()
+        if mesh.kind in ("box", "geology"):
+            check("mesh.material", mesh.material, materials, "material")
+        if mesh.kind == "file":
+            if mesh.material is not None:
+                check("mesh.material", mesh.material, materials, "material")
+            for group, name in mesh.material_map.items():
+                check(f"mesh.material_map.{_format_key(group)}", name, materials, "material")
+        if mesh.kind == "geology":
+            lo_z, hi_z = mesh.lo[2], mesh.hi[2]
+            previous = lo_z
+            for i, layer in enumerate(mesh.layers):
+                check(f"mesh.layers[{i}].material", layer.material, materials, "material")
+                if not previous < layer.z_top <= hi_z:
+                    bound = "the box bottom" if i == 0 else f"mesh.layers[{i - 1}].z_top"
+                    problems.append(
+                        (
+                            f"mesh.layers[{i}].z_top",
+                            f"must be > {bound} = {previous} and <= the box top = {hi_z} (got {layer.z_top})",
+                        )
+                    )
+                previous = max(previous, layer.z_top)
+            names: dict[str, int] = {}
+            for i, js in enumerate(mesh.joint_sets):
+                if js.name is not None:
+                    if js.name in names:
+                        problems.append(
+                            (
+                                f"mesh.joint_sets[{i}].name",
+                                f"duplicate name; already used by joint_sets[{names[js.name]}]",
+                            )
+                        )
+                    names.setdefault(js.name, i)
+                if js.persistence != "layers":
+                    continue
+                ref = js.reference
+                count = len(mesh.joint_sets)
+                if ref is not None and (ref >= count or ref == i):
+                    problems.append(
+                        (
+                            f"mesh.joint_sets[{i}].reference",
+                            f"must be the index of another joint set, 0..{count - 1} except {i} (got {ref})",
+                        )
+                    )
+                elif ref is not None and mesh.joint_sets[ref].persistence != "persistent":
+                    problems.append(
+                        (f"mesh.joint_sets[{i}].reference", f"joint set {ref} is not persistent (got {ref})")
+                    )
+        known = self.face_set_names()
+        if known is not None:
+            entries = [("loads", i, e) for i, e in enumerate(self.loads)]
+            entries += [("boundaries", i, e) for i, e in enumerate(self.boundaries)]
+            for section, i, entry in entries:
+                if entry.faces is not None and entry.faces not in known:
+                    allowed = ", ".join(repr(n) for n in known)
+                    problems.append(
+                        (
+                            f"{section}[{i}].faces",
+                            f"unknown face set {entry.faces!r}; the {mesh.kind} mesh has: {allowed}",
+                        )
+                    )
         return problems
 
 
@@ -794,6 +1320,15 @@ def _parse(data: Any, source: str, base_dir: Path | None, default_name: str) -> 
 
 def _resolve_files(scene: Scene, source: str, base_dir: Path) -> list[str]:
     problems = []
+    if scene.mesh is not None and scene.mesh.kind == "file":
+        resolved = scene.mesh.path.expanduser()
+        if not resolved.is_absolute():
+            resolved = base_dir / resolved
+        if not resolved.exists():
+            problems.append(f"{source}: mesh.path: file not found: {resolved}")
+        elif not resolved.is_file():
+            problems.append(f"{source}: mesh.path: not a regular file: {resolved}")
+        scene.mesh.path = resolved
     for i, particle_source in enumerate(scene.particles):
         if not isinstance(particle_source, FileSource):
             continue

@@ -1,4 +1,4 @@
-"""Animated USD stage output for DEM particles and bonds.
+"""Animated USD stage output for DEM particles and bonds and the FEM rock surface.
 
 The writer authors one time sample per recorded frame. Time codes are integer frame numbers counted by the
 writer (0, 1, 2, ...), so any frame rate plays back at the same speed in every USD viewer; the simulated time
@@ -10,6 +10,11 @@ Stage layout::
     /World/Particles    Points: points [m], widths (diameters) [m], velocities [m/s], ids,
                         primvars:displayColor (vertex), primvars:speed [m/s] (vertex), extent [m]
     /World/Bonds        BasisCurves, linear, one 2-vertex curve per bond (only when bonds are given)
+    /World/Rock         Mesh of triangles (only when a frame carries a :class:`SurfaceFrame`): points [m] and
+                        velocities [m/s] every frame, faceVertexCounts / faceVertexIndices only on the frames where
+                        the topology changes, primvars:speed [m/s] (vertex), primvars:vonMisesStress and
+                        primvars:maxPrincipalStress [Pa] (uniform: one per triangle), primvars:displayColor (uniform
+                        or vertex), extent [m] of the triangles' vertices
 
 The stage is authored into ``<stem>.partial<suffix>`` next to the final file and moved over the final name
 with ``os.replace`` at :meth:`UsdWriter.close`, so a crashed run never leaves a half-written file under the
@@ -21,17 +26,42 @@ from __future__ import annotations
 import math
 import os
 import pathlib
+from dataclasses import dataclass
 from types import TracebackType
 from typing import Any
 
 import numpy as np
 
-__all__ = ["UsdWriter"]
+__all__ = ["SurfaceFrame", "UsdWriter"]
 
 _SUFFIXES = (".usd", ".usdc", ".usda")
 
 # Radius-to-width ratio of the bond curves: thin enough to leave the spheres visible, thick enough to see.
 _BOND_WIDTH_PER_MEAN_RADIUS = 0.5
+
+
+@dataclass
+class SurfaceFrame:
+    """One frame of a triangulated surface (the boundary of the FEM rock, crack faces included).
+
+    Attributes:
+        points: vertex positions [m], shape (P, 3); may hold vertices no triangle uses.
+        faces: triangles as vertex indices, shape (F, 3), integer, right-handed (normal out of the rock).
+        velocities: vertex velocities [m/s], shape (P, 3).
+        von_mises: von Mises stress of each triangle's tet [Pa], shape (F,).
+        max_principal: largest principal stress (tension positive) of each triangle's tet [Pa], shape (F,).
+        colors: display colours, linear RGB in [0, 1], shape (F, 3) (one per triangle) or (P, 3) (one per vertex,
+            when ``vertex_colors``).
+        vertex_colors: whether ``colors`` holds one colour per vertex instead of one per triangle.
+    """
+
+    points: np.ndarray
+    faces: np.ndarray
+    velocities: np.ndarray
+    von_mises: np.ndarray
+    max_principal: np.ndarray
+    colors: np.ndarray
+    vertex_colors: bool = False
 
 
 class UsdWriter:
@@ -134,6 +164,10 @@ class UsdWriter:
         self._layer: Any = layer
         self._stage: Any = stage
         self._bonds: Any = None  # UsdGeom.BasisCurves, defined on the first frame that carries bonds
+        self._rock: Any = None  # UsdGeom.Mesh, defined on the first frame that carries a surface
+        self._rock_attrs: dict[str, Any] = {}
+        self._rock_vertex_colors = False
+        self._last_faces: np.ndarray | None = None
         self._last_ids: np.ndarray | None = None
         self._frame_count = 0
         self._first_frame = int(first_frame)
@@ -164,8 +198,9 @@ class UsdWriter:
         ids: np.ndarray,
         colors: np.ndarray,
         bonds: np.ndarray | None = None,
+        surface: SurfaceFrame | None = None,
     ) -> int:
-        """Authors one frame of particle (and optionally bond) data.
+        """Authors one frame of particle (and optionally bond and rock surface) data.
 
         Args:
             time: Simulated time of the frame [s], stored in ``/World.warpdem:time``.
@@ -178,6 +213,9 @@ class UsdWriter:
             bonds: Optional bonded pairs as indices into this frame's arrays, shape (M, 2), integer. Once any
                 frame has carried bonds, a later frame without them authors an empty bond set so stale bonds
                 are not drawn.
+            surface: Optional rock surface, written to ``/World/Rock``. Its topology is authored only where it
+                differs from the last authored one (USD holds it in between); once any frame has carried a surface,
+                a later frame without one authors an empty mesh.
 
         Returns:
             The time code (frame number) of the frame just written.
@@ -210,6 +248,7 @@ class UsdWriter:
                 )
             if bond_arr.size and (bond_arr.min() < 0 or bond_arr.max() >= n):
                 raise ValueError(f"bonds: indices must lie in [0, {n}), got range [{bond_arr.min()}, {bond_arr.max()}]")
+        checked_surface = _check_surface(surface) if surface is not None else None
 
         code = float(self._first_frame + self._frame_count)
         widths = Vt.FloatArray.FromNumpy(2.0 * rad)
@@ -231,6 +270,11 @@ class UsdWriter:
             self._write_bonds(code, pos, rad, bond_arr)
         elif self._bonds is not None:
             self._write_bonds(code, pos, rad, np.zeros((0, 2), dtype=np.int64))
+
+        if checked_surface is not None:
+            self._write_surface(code, *checked_surface)
+        elif self._rock is not None:
+            self._write_surface(code, *_empty_surface(), self._rock_vertex_colors)
 
         self._frame_count += 1
         if self._crate and self.save_interval_frames > 0 and self._frame_count % self.save_interval_frames == 0:
@@ -340,6 +384,66 @@ class UsdWriter:
             hi = -lo
         self._bonds.GetExtentAttr().Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]), code)
 
+    def _write_surface(
+        self,
+        code: float,
+        points: np.ndarray,
+        faces: np.ndarray,
+        velocities: np.ndarray,
+        von_mises: np.ndarray,
+        max_principal: np.ndarray,
+        colors: np.ndarray,
+        vertex_colors: bool,
+    ) -> None:
+        """Authors the rock surface of one frame (arguments as :class:`SurfaceFrame`, checked and converted)."""
+        from pxr import Gf, Sdf, UsdGeom, Vt
+
+        if self._rock is None:
+            mesh = UsdGeom.Mesh.Define(self._stage, "/World/Rock")
+            # Flat triangles of a FEM surface: a subdivision surface would round off the cracks.
+            mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+            primvars = UsdGeom.PrimvarsAPI(mesh.GetPrim())
+            self._rock = mesh
+            self._rock_vertex_colors = vertex_colors
+            self._rock_attrs = {
+                "points": mesh.CreatePointsAttr(),
+                "velocities": mesh.CreateVelocitiesAttr(),
+                "counts": mesh.CreateFaceVertexCountsAttr(),
+                "indices": mesh.CreateFaceVertexIndicesAttr(),
+                "extent": mesh.CreateExtentAttr(),
+                "color": mesh.CreateDisplayColorPrimvar(
+                    UsdGeom.Tokens.vertex if vertex_colors else UsdGeom.Tokens.uniform
+                ),
+                "speed": primvars.CreatePrimvar("speed", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex),
+                "von_mises": primvars.CreatePrimvar(
+                    "vonMisesStress", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.uniform
+                ),
+                "max_principal": primvars.CreatePrimvar(
+                    "maxPrincipalStress", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.uniform
+                ),
+            }
+            if code > float(self._first_frame):
+                # USD holds the first sample backwards in time: frames before the surface existed draw nothing.
+                self._write_surface(code - 1.0, *_empty_surface(), vertex_colors)
+        a = self._rock_attrs
+        if self._last_faces is None or not np.array_equal(self._last_faces, faces):
+            a["counts"].Set(Vt.IntArray.FromNumpy(np.full(len(faces), 3, dtype=np.int32)), code)
+            a["indices"].Set(Vt.IntArray.FromNumpy(np.ascontiguousarray(faces.reshape(-1))), code)
+            self._last_faces = faces.copy()
+        a["points"].Set(Vt.Vec3fArray.FromNumpy(points), code)
+        a["velocities"].Set(Vt.Vec3fArray.FromNumpy(velocities), code)
+        a["speed"].Set(Vt.FloatArray.FromNumpy(np.linalg.norm(velocities, axis=1).astype(np.float32)), code)
+        a["von_mises"].Set(Vt.FloatArray.FromNumpy(von_mises), code)
+        a["max_principal"].Set(Vt.FloatArray.FromNumpy(max_principal), code)
+        a["color"].Set(Vt.Vec3fArray.FromNumpy(colors), code)
+        if faces.size:
+            used = points[faces.reshape(-1)]
+            lo, hi = used.min(axis=0), used.max(axis=0)
+        else:
+            lo = np.full(3, np.finfo(np.float32).max)
+            hi = -lo
+        a["extent"].Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]), code)
+
     def _check_open(self) -> None:
         if self._closed:
             raise RuntimeError(f"USD output {str(self._final_path)!r}: writer is already closed")
@@ -350,7 +454,8 @@ class UsdWriter:
         self._time_attr = self._points_attr = self._widths_attr = None
         self._velocities_attr = self._ids_attr = self._extent_attr = None
         self._color_primvar = self._speed_primvar = None
-        self._points = self._bonds = None
+        self._points = self._bonds = self._rock = None
+        self._rock_attrs = {}
         self._stage = None
         self._layer = None
 
@@ -374,3 +479,32 @@ def _as_float32(values: np.ndarray, name: str, shape: tuple[int, ...]) -> np.nda
         expected = "(" + ", ".join("N" if s == -1 else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
         raise ValueError(f"{name}: expected shape {expected}, got {arr.shape}")
     return np.ascontiguousarray(arr, dtype=np.float32)
+
+
+def _check_surface(surface: SurfaceFrame) -> tuple:
+    """Checks a surface frame's shapes and converts its arrays for USD (float32, int32 indices).
+
+    Raises:
+        ValueError: If shapes disagree, the faces are not integers, or an index is out of range.
+    """
+    pts = _as_float32(surface.points, "surface.points", (-1, 3))
+    p = pts.shape[0]
+    faces = np.asarray(surface.faces)
+    if faces.ndim != 2 or faces.shape[1] != 3 or not (np.issubdtype(faces.dtype, np.integer) or faces.size == 0):
+        raise ValueError(f"surface.faces: expected integer array of shape (F, 3), got {faces.dtype} {faces.shape}")
+    if faces.size and (faces.min() < 0 or faces.max() >= p):
+        raise ValueError(f"surface.faces: indices must lie in [0, {p}), got range [{faces.min()}, {faces.max()}]")
+    f = faces.shape[0]
+    vel = _as_float32(surface.velocities, "surface.velocities", (p, 3))
+    von_mises = _as_float32(surface.von_mises, "surface.von_mises", (f,))
+    max_principal = _as_float32(surface.max_principal, "surface.max_principal", (f,))
+    colors = _as_float32(surface.colors, "surface.colors", (p if surface.vertex_colors else f, 3))
+    faces = np.ascontiguousarray(faces, dtype=np.int32)
+    return pts, faces, vel, von_mises, max_principal, colors, bool(surface.vertex_colors)
+
+
+def _empty_surface() -> tuple:
+    """The arrays of a surface without triangles (authored where the rock is gone or not there yet)."""
+    z3 = np.zeros((0, 3), np.float32)
+    z = np.zeros(0, np.float32)
+    return z3, np.zeros((0, 3), np.int32), z3, z, z, z3

@@ -1,0 +1,307 @@
+"""FEM rock output (warpdem/output.py and the runner): boundary surface, stress measures, VTU/pvd series, checkpoints
+of the mesh, and a box-mesh scene run end to end.
+
+Oracles:
+- surface: the faces used once by active tets, against :func:`warpdem.mesh.boundary_faces` of the active tets
+  (exact); split faces hidden while closed and drawn once open, by construction;
+- stress measures: hand values (uniaxial σ → von Mises |σ|, pure shear τ → √3 τ, hydrostatic → 0), to float64
+  round-off (``STRESS_RTOL``);
+- VTU/pvd: read back with meshio and ElementTree, equal to what was written (VTU stores float64 exactly);
+- run: the last USD sample of /World/Rock equals the final checkpoint's node positions (both float32, exact), the
+  triangle count of a box of nx·ny·nz Kuhn cells is 4 (nx ny + ny nz + nz nx); a restart from a middle checkpoint
+  reproduces the uninterrupted run bit for bit on the CPU.
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import meshio
+import numpy as np
+import pytest
+from pxr import Usd, UsdGeom
+
+from warpdem.checkpoint import read_checkpoint
+from warpdem.mesh import boundary_faces, box_mesh
+from warpdem.output import VtuSeries, max_principal_stress, surface_faces, von_mises_stress
+from warpdem.runner import RunOptions, run_scene
+from warpdem.scene import parse_scene
+
+STRESS_RTOL = 1e-12
+
+DIVISIONS = (2, 2, 4)
+BOX_SCENE = {
+    "name": "column",
+    "run": {"end_time": 1.0, "output_rate": 2000.0},
+    "gravity": {"vector": [0.0, 0.0, -9.81]},
+    "materials": {
+        "granite": {
+            "density": 2650.0,
+            "youngs_modulus": 5.0e9,
+            "poisson_ratio": 0.25,
+            "tensile_strength": 1.0e7,
+            "fracture_energy": 50.0,
+            "mass_damping": 5.0,
+        }
+    },
+    "mesh": {
+        "kind": "box",
+        "lo": [0.0, 0.0, 0.0],
+        "hi": [1.0, 1.0, 2.0],
+        "divisions": list(DIVISIONS),
+        "material": "granite",
+        "velocity": [0.0, 0.0, -0.5],
+    },
+    "boundaries": [{"faces": "z-", "kind": "fixed"}],
+    "output": {"vtu": True},
+}
+
+# A block on a horizontal joint at z = 1 m; the upper half is pulled up at 1 m/s, the joint has no strength.
+JOINT_Z = 1.0
+PULL = 1.0  # [m/s]
+JOINTED_SCENE = {
+    "name": "pulled",
+    "run": {"end_time": 1.0, "output_rate": 1000.0},
+    "gravity": {"vector": [0.0, 0.0, 0.0]},
+    "materials": {"rock": {"density": 2650.0, "youngs_modulus": 5.0e9, "poisson_ratio": 0.25}},
+    "joints": {"friction": 0.5},
+    "mesh": {
+        "kind": "geology",
+        "lo": [0.0, 0.0, 0.0],
+        "hi": [1.0, 1.0, 2.0],
+        "material": "rock",
+        "h": 0.4,
+        "joint_sets": [{"name": "bed", "dip": 0.0, "dip_direction": 0.0, "spacing": 10.0, "offset": JOINT_Z}],
+    },
+    "loads": [
+        {
+            "kind": "velocity",
+            "region": {"box": {"lo": [-1.0, -1.0, JOINT_Z + 1e-6], "hi": [2.0, 2.0, 3.0]}},
+            "velocity": [0.0, 0.0, PULL],
+        }
+    ],
+    "boundaries": [{"faces": "z-", "kind": "fixed"}],
+}
+
+
+def sorted_rows(faces: np.ndarray) -> np.ndarray:
+    """Faces as sorted node triples in lexicographic order (orientation-free set comparison)."""
+    f = np.sort(np.asarray(faces), axis=1)
+    return f[np.lexsort(f.T[::-1])]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Surface
+
+
+def test_surface_of_box_equals_boundary_faces_and_follows_active_tets():
+    _, tets = box_mesh((0, 0, 0), (1, 1, 1), (2, 2, 2))
+    active = np.ones(len(tets), dtype=bool)
+    faces, owner = surface_faces(tets, active)
+    np.testing.assert_array_equal(faces, boundary_faces(tets))  # same faces, same order and orientation
+    assert len(faces) == 6 * 4 * 2  # 6 box faces of 2 × 2 cell faces, each cut into 2 triangles
+    # Each face belongs to its owner tet: its three nodes are three of the owner's four.
+    for face, t in zip(faces, owner, strict=True):
+        assert set(face) <= set(tets[t])
+    # A converted tet exposes the faces of its neighbours.
+    active[7] = False
+    faces, _ = surface_faces(tets, active)
+    np.testing.assert_array_equal(sorted_rows(faces), sorted_rows(boundary_faces(tets[active])))
+
+
+def test_split_faces_drawn_only_once_open():
+    # Two tets sharing face (1, 2, 3); the second tet got its own copies 5, 6, 7 of those nodes (a joint).
+    points = np.array(
+        [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 1.0, 1.0]], dtype=np.float64
+    )
+    q = np.concatenate([points, points[1:4]])
+    root = np.array([0, 1, 2, 3, 4, 1, 2, 3])
+    tets = np.array([[0, 1, 2, 3], [4, 7, 6, 5]])
+    active = np.ones(2, dtype=bool)
+    faces, _ = surface_faces(tets, active, node_root=root, node_q=q, closed_gap=1e-6)
+    assert len(faces) == 6  # the split face is closed: only the outer faces
+    opened = q.copy()
+    opened[5:] += 1e-3 * np.array([1.0, 1.0, 1.0])  # the joint opens
+    faces, owner = surface_faces(tets, active, node_root=root, node_q=opened, closed_gap=1e-6)
+    assert len(faces) == 8
+    np.testing.assert_array_equal(np.bincount(owner), [4, 4])
+    unsplit, _ = surface_faces(tets, active)  # without node roots every face of a split node is drawn
+    assert len(unsplit) == 8
+
+
+def test_stress_measures_hand_values():
+    sigma, tau, p = 3.0e6, 2.0e6, -5.0e6
+    uniaxial = np.diag([sigma, 0.0, 0.0])
+    shear = np.array([[0.0, tau, 0.0], [tau, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    hydro = p * np.eye(3)
+    stresses = np.stack([uniaxial, shear, hydro, -uniaxial])
+    np.testing.assert_allclose(
+        von_mises_stress(stresses), [sigma, np.sqrt(3.0) * tau, 0.0, sigma], rtol=STRESS_RTOL, atol=STRESS_RTOL * sigma
+    )
+    np.testing.assert_allclose(
+        max_principal_stress(stresses), [sigma, tau, p, 0.0], rtol=STRESS_RTOL, atol=STRESS_RTOL * sigma
+    )
+    assert max_principal_stress(np.zeros((0, 3, 3))).shape == (0,)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# VTU series
+
+
+def test_vtu_series_round_trip(tmp_path: Path):
+    points, tets = box_mesh((0, 0, 0), (1, 1, 1), (1, 1, 1))
+    series = VtuSeries(tmp_path / "out", "rock")
+    rng = np.random.default_rng(0)
+    written = []
+    for frame, time in enumerate((0.0, 2.5e-4)):
+        u = rng.normal(size=points.shape)
+        stress = rng.normal(size=(len(tets), 3, 3))
+        series.write(
+            frame,
+            time,
+            points + u,
+            tets,
+            point_data={"displacement": u},
+            cell_data={"stress": stress, "von_mises": von_mises_stress(stress)},
+        )
+        written.append((u, stress))
+    assert series.pvd_path == tmp_path / "out" / "rock.pvd"
+    assert [p.name for p in series.files] == ["rock_000000.vtu", "rock_000001.vtu"]
+    leftovers = [p for p in (tmp_path / "out").rglob("*") if "partial" in p.name]
+    assert leftovers == []
+
+    root = ET.parse(series.pvd_path).getroot()
+    assert root.get("type") == "Collection"
+    datasets = root.find("Collection").findall("DataSet")
+    assert [float(d.get("timestep")) for d in datasets] == [0.0, 2.5e-4]
+    for d, (u, stress) in zip(datasets, written, strict=True):
+        mesh = meshio.read(tmp_path / "out" / d.get("file"))
+        np.testing.assert_array_equal(mesh.points, points + u)
+        np.testing.assert_array_equal(mesh.cells_dict["tetra"], tets)
+        np.testing.assert_array_equal(mesh.point_data["displacement"], u)
+        np.testing.assert_array_equal(mesh.cell_data["stress"][0], stress.reshape(-1, 9))
+
+    restarted = VtuSeries(tmp_path / "out", "rock", first_frame=1)
+    assert restarted.pvd_path.name == "rock_from000001.pvd"
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Runs
+
+
+def test_box_scene_writes_rock_surface_vtu_and_mesh_checkpoint(device, tmp_path, capsys):
+    frames = 2
+    scene = parse_scene(BOX_SCENE)
+    summary = run_scene(scene, RunOptions(device=device, frames=frames, out_dir=tmp_path))
+    out = capsys.readouterr().out
+    assert out.startswith("mesh: 96 tets, volume 2 m³")  # 6 Kuhn tets per cell, 2 × 2 × 4 cells
+
+    arrays, attrs = read_checkpoint(summary.checkpoints[-1])
+    nn = int(arrays["state/node_count"][0])
+    assert nn == summary.nodes == 3 * 3 * 5
+    assert summary.tets == 96
+    for name in ("node_ref_q", "node_mass", "node_inv_mass", "node_motion", "tet_nodes", "tet_inv_ref", "tet_volume"):
+        assert f"model/{name}" in arrays, name
+    assert attrs["node_capacity"] == nn and attrs["tet_capacity"] == 96
+    node_q = arrays["state/node_q"][:nn]
+    assert np.all(np.isfinite(node_q))
+
+    stage = Usd.Stage.Open(str(summary.usd_path))
+    rock = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Rock"))
+    assert rock.GetPointsAttr().GetTimeSamples() == [float(c) for c in range(frames + 1)]
+    assert rock.GetFaceVertexIndicesAttr().GetTimeSamples() == [0.0]  # no topology change
+    nx, ny, nz = DIVISIONS
+    assert len(rock.GetFaceVertexCountsAttr().Get(0.0)) == 4 * (nx * ny + ny * nz + nz * nx)
+    np.testing.assert_array_equal(np.asarray(rock.GetPointsAttr().Get(float(frames))), node_q)
+    nt = int(arrays["state/tet_count"][0])
+    _, owner = surface_faces(arrays["model/tet_nodes"][:nt], arrays["state/tet_active"][:nt] == 1)
+    expected = von_mises_stress(arrays["state/tet_stress"][owner].astype(np.float64))
+    assert expected.max() > 0.0  # gravity and the initial velocity against the fixed base strain the rock
+    stress = UsdGeom.PrimvarsAPI(rock.GetPrim()).GetPrimvar("vonMisesStress")
+    np.testing.assert_allclose(np.asarray(stress.Get(float(frames))), expected, rtol=1e-6, atol=1e-6 * expected.max())
+
+    assert summary.pvd_path == tmp_path / "column.pvd"
+    datasets = ET.parse(summary.pvd_path).getroot().find("Collection").findall("DataSet")
+    assert len(datasets) == frames + 1
+    last = meshio.read(tmp_path / datasets[-1].get("file"))
+    np.testing.assert_allclose(last.points, node_q, rtol=0, atol=0)
+    assert len(last.cells_dict["tetra"]) == 96
+    assert "strain" in summary.format() and "rock mesh        45 nodes, 96 tets" in summary.format()
+
+
+def test_quiet_run_prints_no_mesh_quality(device, tmp_path, capsys):
+    run_scene(
+        parse_scene({**BOX_SCENE, "output": {}}), RunOptions(device=device, frames=1, out_dir=tmp_path, quiet=True)
+    )
+    assert capsys.readouterr().out == ""
+    assert not list(tmp_path.glob("*.pvd"))
+
+
+@pytest.mark.parametrize("data", [BOX_SCENE, JOINTED_SCENE], ids=["box", "jointed"])
+def test_mesh_restart_from_middle_checkpoint_is_bit_identical(device, tmp_path, data):
+    if device != "cpu":
+        pytest.skip("bitwise restart identity is a CPU property (float atomics reorder on GPUs)")
+    data = {**data, "output": {"vtu": True}}
+    scene = parse_scene(data)
+    frames, every = 4, 2
+    period = every / scene.run.output_rate
+    full = run_scene(
+        scene, RunOptions(device=device, frames=frames, out_dir=tmp_path / "full", checkpoint_every=period, quiet=True)
+    )
+    middle, end = full.checkpoints
+    again = run_scene(
+        parse_scene(data),
+        RunOptions(device=device, frames=frames, out_dir=tmp_path / "restart", restart=middle, quiet=True),
+    )
+    a, a_attrs = read_checkpoint(end)
+    b, b_attrs = read_checkpoint(again.checkpoints[-1])
+    assert sorted(a) == sorted(b)
+    assert float(np.abs(a["state/node_u"]).max()) > 0.0
+    for key in sorted(a):
+        np.testing.assert_array_equal(b[key], a[key], err_msg=key)
+    for key in ("step", "time", "frame", "dt", "node_capacity", "tet_capacity"):
+        assert b_attrs[key] == a_attrs[key], key
+    # The restart's VTU collection lists its own frames, the first run's collection stays whole.
+    name = scene.name
+    assert (tmp_path / "restart" / f"{name}_from000002.pvd").is_file()
+    assert len(ET.parse(tmp_path / "full" / f"{name}.pvd").getroot().find("Collection").findall("DataSet")) == 5
+
+
+def test_opened_joint_appears_in_the_rock_surface(device, tmp_path):
+    """Frame 0: the joint is closed and only the outer surface is drawn; once the upper block has been pulled
+    PULL / output_rate = 1 mm away, both sides of every joint face are drawn, and the triangles are re-authored
+    at that frame only."""
+    from warpdem.scene_mesh import rock_mesh
+
+    scene = parse_scene(JOINTED_SCENE)
+    geology = rock_mesh(scene)
+    joint_faces = len(geology.joint_faces)
+    assert joint_faces > 0
+    outer = sum(len(f) for f in geology.boundary_faces.values())
+    summary = run_scene(scene, RunOptions(device=device, frames=2, out_dir=tmp_path, quiet=True))
+    stage = Usd.Stage.Open(str(summary.usd_path))
+    rock = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Rock"))
+    counts = [len(rock.GetFaceVertexCountsAttr().Get(float(c))) for c in range(3)]
+    assert counts == [outer, outer + 2 * joint_faces, outer + 2 * joint_faces]
+    assert rock.GetFaceVertexIndicesAttr().GetTimeSamples() == [0.0, 1.0]
+    # Checkpoints hold the split topology and the joint elements, so a restart needs no pre-split.
+    arrays, _ = read_checkpoint(summary.checkpoints[-1])
+    assert int(arrays["state/node_count"][0]) > len(geology.points)
+    assert any(key.startswith("model/joint_") or key == "model/tet_face_joint" for key in arrays)
+
+
+def test_cli_reports_an_unusable_mesh_file(tmp_path, capsys):
+    from warpdem.cli import main
+
+    (tmp_path / "rock.msh").write_text("not a mesh\n")
+    scene = tmp_path / "bad_mesh.toml"
+    scene.write_text(
+        "[run]\nend_time = 0.01\n[materials.rock]\ndensity = 2600.0\nyoungs_modulus = 5e10\npoisson_ratio = 0.25\n"
+        '[mesh]\nkind = "file"\npath = "rock.msh"\nmaterial = "rock"\n'
+    )
+    status = main([str(scene), "--out", str(tmp_path / "out"), "--frames", "1", "--quiet"])
+    err = capsys.readouterr().err
+    assert status == 2
+    assert err.startswith("error: bad_mesh: mesh.path: ") and "cannot read as gmsh" in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists() or not list((tmp_path / "out").rglob("*.usd*"))

@@ -1,0 +1,324 @@
+"""Frame output of the FEM rock: its boundary surface, stress measures and colours, and ParaView VTU series.
+
+The surface of the rock is every face used by exactly one active tet, so the faces of a converted (inactive) tet's
+neighbours, and both faces of a crack or joint whose nodes have been split, appear by themselves. A split face
+whose two sides have not separated yet (every pair of daughter nodes closer than a gap) is hidden, so a closed joint
+does not draw inside the rock. Host code (numpy), run between steps.
+
+VTU series: one ``.vtu`` file per frame (the active tets, with displacement and velocity per node and the stress
+per tet) plus a ``.pvd`` collection that ParaView opens as one time series. Every file is written under a temporary
+name and moved over the final one with ``os.replace``, and the collection is rewritten after every frame, so a run
+that stops part way leaves a valid series of the frames it finished.
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+from typing import TYPE_CHECKING
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+from .mesh import TET_FACES
+from .usd import SurfaceFrame
+
+if TYPE_CHECKING:
+    from .model import Model, State
+
+__all__ = [
+    "MATERIAL_PALETTE",
+    "RockFrames",
+    "VtuSeries",
+    "max_principal_stress",
+    "open_faces",
+    "ramp_colors",
+    "split_face_pairs",
+    "surface_faces",
+    "von_mises_stress",
+]
+
+MATERIAL_PALETTE = np.array(
+    [[0.62, 0.6, 0.56], [0.75, 0.5, 0.3], [0.45, 0.55, 0.7], [0.5, 0.65, 0.4], [0.7, 0.45, 0.55], [0.8, 0.75, 0.45]]
+)
+"""Display colours of material ids (cycled), linear RGB."""
+
+CLOSED_GAP = 1e-3
+"""A split face counts as closed while its daughter nodes are closer than this times the mesh size (the cube root
+of the mean tet volume): well above the elastic overlap of a loaded joint (~σ h / E) and well below what shows."""
+
+
+def ramp_colors(values: np.ndarray, scale: float) -> np.ndarray:
+    """Blue (0) → red (``scale`` and above), linear RGB, shape (N, 3)."""
+    t = np.clip(np.asarray(values, dtype=np.float64) / max(scale, 1e-300), 0.0, 1.0)[:, None]
+    return (1.0 - t) * np.array([0.15, 0.3, 0.85]) + t * np.array([0.95, 0.25, 0.1])
+
+
+def von_mises_stress(stress: np.ndarray) -> np.ndarray:
+    """von Mises stress sqrt(3/2 s:s) of symmetric stress tensors [Pa], s the deviator; shape (M, 3, 3) → (M,)."""
+    sigma = np.asarray(stress, dtype=np.float64).reshape(-1, 3, 3)
+    s = sigma - np.trace(sigma, axis1=1, axis2=2)[:, None, None] * np.eye(3) / 3.0
+    return np.sqrt(1.5 * np.einsum("mij,mij->m", s, s))
+
+
+def max_principal_stress(stress: np.ndarray) -> np.ndarray:
+    """Largest principal stress σ1 (tension positive) [Pa]; shape (M, 3, 3) → (M,)."""
+    sigma = np.asarray(stress, dtype=np.float64).reshape(-1, 3, 3)
+    if len(sigma) == 0:
+        return np.zeros(0)
+    return np.linalg.eigvalsh(0.5 * (sigma + np.transpose(sigma, (0, 2, 1))))[:, -1]
+
+
+def surface_faces(
+    tet_nodes: np.ndarray,
+    active: np.ndarray,
+    *,
+    node_root: np.ndarray | None = None,
+    node_q: np.ndarray | None = None,
+    closed_gap: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The boundary triangles of the active tets, outward oriented, and the tet each belongs to.
+
+    Args:
+        tet_nodes: positively oriented tets, shape (M, 4).
+        active: which tets are active, shape (M,), bool.
+        node_root: for split nodes, the node each one was split from (the original mesh node; itself for a node
+            never split), shape (N,). Two faces whose nodes share their roots are the two sides of a split face;
+            they are drawn only once they have opened. None: no node was split.
+        node_q: node positions [m], shape (N, 3), needed with ``node_root``; displacements do as well (only
+            differences between daughters of one node, which share their reference position, are used).
+        closed_gap: the two sides of a split face count as closed while every pair of daughter nodes is closer
+            than this [m].
+
+    Returns:
+        faces: shape (F, 3), int32, right-handed with the normal out of the tet; owner: the tet of each face,
+        shape (F,), int64. Faces come in the order of their tets.
+    """
+    faces, owner = _single_faces(tet_nodes, active)
+    if node_root is None or len(faces) == 0:
+        return faces, owner
+    pairs, side_a, side_b = split_face_pairs(faces, node_root)
+    keep = open_faces(len(faces), pairs, side_a, side_b, node_q, closed_gap)
+    return faces[keep], owner[keep]
+
+
+def _single_faces(tet_nodes: np.ndarray, active: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Faces used by exactly one active tet (int32, outward) and their tets (int64), in tet order."""
+    tet_nodes = np.asarray(tet_nodes, dtype=np.int64).reshape(-1, 4)
+    owner_tets = np.nonzero(np.asarray(active, dtype=bool))[0]
+    faces = tet_nodes[owner_tets][:, TET_FACES].reshape(-1, 3)
+    owner = np.repeat(owner_tets, 4)
+    if len(faces) == 0:
+        return np.zeros((0, 3), np.int32), np.zeros(0, np.int64)
+    _, inverse, counts = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True)
+    single = counts[inverse.reshape(-1)] == 1
+    return faces[single].astype(np.int32), owner[single]
+
+
+def split_face_pairs(faces: np.ndarray, node_root: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The two sides of every split face among boundary faces: faces whose nodes have the same roots.
+
+    Args:
+        faces: boundary triangles, shape (F, 3). node_root: the node each node was split from, shape (N,).
+
+    Returns:
+        pairs: indices into ``faces`` of the two sides, shape (P, 2); side_a, side_b: their nodes matched by root
+        (side_a[p, k] and side_b[p, k] are daughters of one node), shape (P, 3) each.
+    """
+    roots = np.asarray(node_root, dtype=np.int64)[faces]
+    order = np.argsort(roots, axis=1)
+    sorted_roots = np.take_along_axis(roots, order, axis=1)
+    sorted_nodes = np.take_along_axis(np.asarray(faces, dtype=np.int64), order, axis=1)
+    if len(faces) == 0:
+        empty = np.zeros((0, 3), np.int64)
+        return np.zeros((0, 2), np.int64), empty, empty
+    _, group, group_size = np.unique(sorted_roots, axis=0, return_inverse=True, return_counts=True)
+    group = group.reshape(-1)
+    twins = np.nonzero(group_size[group] == 2)[0]
+    pairs = twins[np.argsort(group[twins], kind="stable")].reshape(-1, 2)
+    return pairs, sorted_nodes[pairs[:, 0]], sorted_nodes[pairs[:, 1]]
+
+
+def open_faces(
+    count: int, pairs: np.ndarray, side_a: np.ndarray, side_b: np.ndarray, node_q: np.ndarray, closed_gap: float
+) -> np.ndarray:
+    """Which of ``count`` boundary faces to draw: all but both sides of each split face whose daughter nodes are all
+    closer than ``closed_gap`` [m] (positions or displacements ``node_q``, shape (N, 3)). Boolean, shape (count,)."""
+    keep = np.ones(count, dtype=bool)
+    if len(pairs):
+        q = np.asarray(node_q, dtype=np.float64)
+        gap = np.linalg.norm(q[side_a] - q[side_b], axis=2).max(axis=1)
+        keep[pairs[gap < closed_gap].reshape(-1)] = False
+    return keep
+
+
+class VtuSeries:
+    """Per-frame VTU files of a tet mesh and the ``.pvd`` collection that lists them.
+
+    Files: ``<directory>/<name>_vtu/<name>_<frame:06d>.vtu`` and ``<directory>/<name>.pvd`` (a restarted run, with
+    ``first_frame`` > 0, writes ``<name>_from<first_frame:06d>.pvd`` listing its own frames, as its USD stage).
+
+    Args:
+        directory: output directory (created). name: base name of the files. first_frame: frame number of the
+            first frame this series writes.
+    """
+
+    def __init__(self, directory: str | os.PathLike, name: str, first_frame: int = 0) -> None:
+        self.directory = pathlib.Path(directory)
+        self.name = name
+        self.frame_dir = self.directory / f"{name}_vtu"
+        suffix = f"_from{first_frame:06d}" if first_frame > 0 else ""
+        self.pvd_path = self.directory / f"{name}{suffix}.pvd"
+        self._entries: list[tuple[float, str]] = []
+
+    @property
+    def files(self) -> list[pathlib.Path]:
+        """The VTU files written so far, in frame order."""
+        return [self.directory / rel for _, rel in self._entries]
+
+    def write(
+        self,
+        frame: int,
+        time: float,
+        points: np.ndarray,
+        tets: np.ndarray,
+        point_data: dict[str, np.ndarray],
+        cell_data: dict[str, np.ndarray],
+    ) -> pathlib.Path:
+        """Writes one frame and rewrites the collection.
+
+        Args:
+            frame: frame number (names the file). time: simulated time [s] (the collection's timestep).
+            points: node positions [m], shape (N, 3). tets: node indices, shape (M, 4).
+            point_data: name → array with N rows. cell_data: name → array with M rows (tensors are flattened to
+                M × 9 components, as ParaView reads them).
+
+        Returns:
+            The VTU file.
+        """
+        import meshio
+
+        self.frame_dir.mkdir(parents=True, exist_ok=True)
+        path = self.frame_dir / f"{self.name}_{frame:06d}.vtu"
+        cells = {}
+        for name, a in cell_data.items():
+            flat = np.asarray(a).reshape(len(tets), -1)
+            cells[name] = flat[:, 0] if flat.shape[1] == 1 else flat
+        mesh = meshio.Mesh(
+            np.asarray(points, dtype=np.float64),
+            [("tetra", np.asarray(tets, dtype=np.int64).reshape(-1, 4))],
+            point_data={name: np.asarray(a) for name, a in point_data.items()},
+            cell_data={name: [a] for name, a in cells.items()},
+        )
+        tmp = path.with_name(f"{path.stem}.partial.vtu")
+        try:
+            meshio.write(tmp, mesh, file_format="vtu")
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        rel = path.relative_to(self.directory).as_posix()
+        self._entries = [e for e in self._entries if e[1] != rel] + [(float(time), rel)]
+        self._write_collection()
+        return path
+
+    def _write_collection(self) -> None:
+        lines = ['<?xml version="1.0"?>', '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">']
+        lines.append("  <Collection>")
+        for time, rel in self._entries:
+            lines.append(f'    <DataSet timestep="{time!r}" group="" part="0" file={quoteattr(rel)}/>')
+        lines += ["  </Collection>", "</VTKFile>", ""]
+        self.directory.mkdir(parents=True, exist_ok=True)
+        tmp = self.pvd_path.with_name(f"{self.pvd_path.name}.partial")
+        tmp.write_text("\n".join(lines))
+        os.replace(tmp, self.pvd_path)
+
+
+class RockFrames:
+    """Per-frame output of the FEM rock of a simulation: the USD surface and, optionally, a VTU series.
+
+    The surface is recomputed only when the live tets or their nodes change (a topology pass ran), and every frame
+    once nodes have been split (joints, cracks): daughters of one node share their reference position, which
+    identifies the two sides of a split face, drawn once their daughters are more than :data:`CLOSED_GAP` of the
+    mesh size apart. Colours scale with the largest value seen so far in the run, so a colour means the same in
+    every later frame.
+
+    Args:
+        color_by: ``"stress"`` (von Mises, per triangle), ``"speed"`` (per vertex) or ``"material"`` (per triangle).
+        vtu: the VTU series to write, or None.
+    """
+
+    def __init__(self, color_by: str = "stress", vtu: VtuSeries | None = None) -> None:
+        if color_by not in ("stress", "speed", "material"):
+            raise ValueError(f"color_by: expected 'stress', 'speed' or 'material', got {color_by!r}")
+        self.color_by = color_by
+        self.vtu = vtu
+        self._key: tuple[np.ndarray, np.ndarray, int] | None = None
+        self._pairs: tuple[np.ndarray, np.ndarray, np.ndarray] = split_face_pairs(np.zeros((0, 3), np.int64), [])
+        self._gap = 0.0
+        self._faces = np.zeros((0, 3), np.int32)
+        self._owner = np.zeros(0, np.int64)
+        self._scale = 0.0
+
+    def _live(self, model: Model, state: State) -> tuple[int, np.ndarray, np.ndarray]:
+        nn = int(state.node_count.numpy()[0])
+        nt = int(state.tet_count.numpy()[0])
+        return nn, model.tet_nodes.numpy()[:nt], state.tet_active.numpy()[:nt] == 1
+
+    def surface(self, model: Model, state: State) -> SurfaceFrame | None:
+        """The rock surface now (reads back; call between steps), or None for a model without tets."""
+        nn, tet_nodes, active = self._live(model, state)
+        if nn == 0:
+            return None
+        key = self._key
+        if key is None or not (key[2] == nn and np.array_equal(key[0], tet_nodes) and np.array_equal(key[1], active)):
+            # Topology changed: the boundary faces and the pairs of split faces are found again (the slow part).
+            self._faces, self._owner = _single_faces(tet_nodes, active)
+            _, root = np.unique(model.node_ref_q.numpy()[:nn], axis=0, return_inverse=True)
+            self._pairs = split_face_pairs(self._faces, root.reshape(-1))
+            volume = model.tet_volume.numpy()[: len(active)][active]
+            self._gap = CLOSED_GAP * float(np.cbrt(volume.mean())) if len(volume) else 0.0
+            self._key = (tet_nodes.copy(), active.copy(), nn)
+        # Every frame: which split faces are open (daughters share X, so displacements give the gaps).
+        keep = open_faces(len(self._faces), *self._pairs, state.node_u.numpy()[:nn], self._gap)
+        faces, owner = self._faces[keep], self._owner[keep]
+        stress = state.tet_stress.numpy()[owner]
+        von_mises = von_mises_stress(stress)
+        q = state.node_q.numpy()[:nn]
+        v = state.node_qd.numpy()[:nn]
+        vertex_colors = self.color_by == "speed"
+        if self.color_by == "material":
+            colors = MATERIAL_PALETTE[model.tet_material.numpy()[owner] % len(MATERIAL_PALETTE)]
+        else:
+            values = np.linalg.norm(v, axis=1) if vertex_colors else von_mises
+            self._scale = max(self._scale, float(values.max(initial=0.0)))
+            colors = ramp_colors(values, self._scale)
+        return SurfaceFrame(
+            points=q,
+            faces=faces,
+            velocities=v,
+            von_mises=von_mises,
+            max_principal=max_principal_stress(stress),
+            colors=colors,
+            vertex_colors=vertex_colors,
+        )
+
+    def write_vtu(self, frame: int, time: float, model: Model, state: State) -> pathlib.Path | None:
+        """Writes the active tets of this frame to the VTU series (if any); returns the file."""
+        nn, tet_nodes, active = self._live(model, state)
+        if self.vtu is None or nn == 0:
+            return None
+        stress = state.tet_stress.numpy()[: len(active)][active].astype(np.float64)
+        return self.vtu.write(
+            frame,
+            time,
+            state.node_q.numpy()[:nn],
+            tet_nodes[active],
+            point_data={"displacement": state.node_u.numpy()[:nn], "velocity": state.node_qd.numpy()[:nn]},
+            cell_data={
+                "stress": stress.reshape(-1, 9),
+                "von_mises": von_mises_stress(stress),
+                "max_principal": max_principal_stress(stress),
+                "material": model.tet_material.numpy()[: len(active)][active],
+            },
+        )

@@ -1,0 +1,321 @@
+"""The rock mesh of a scene's ``[mesh]`` section, and the face and node sets its loads and boundaries name.
+
+Every mesh kind becomes a :class:`warpdem.geology.GeologyMesh`: ``"box"`` through the Kuhn box mesher
+(:func:`warpdem.mesh.box_mesh`) with the six box faces picked by their outward normals, ``"geology"`` through Gmsh
+(:func:`warpdem.geology.mesh_geology`), ``"file"`` through meshio (:func:`warpdem.geology.read_mesh`). Loads and
+boundaries select faces by name (``boundary_faces`` of the mesh) or by a region (the outer faces whose three nodes
+lie inside it), and velocity loads select nodes the same way. Problems are :class:`warpdem.scene.SceneError` lines
+naming the scene and the key path.
+
+Host code, run once before the model is built.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .geology import (
+    BOX_FACE_NAMES,
+    Geology,
+    GeologyMesh,
+    JointSet,
+    MeshImportError,
+    RockMass,
+    Room,
+    Shaft,
+    Tunnel,
+    mesh_geology,
+    read_mesh,
+)
+from .mesh import MeshError, boundary_faces, box_mesh
+from .scene import BoxMesh, FileMesh, GeologyMeshSpec, Region, Scene, SceneError
+from .tets import TetProps
+
+if TYPE_CHECKING:
+    from .builder import ModelBuilder
+
+__all__ = ["add_scene_mesh", "box_face_sets", "face_normals", "nodes_of_selection", "rock_mesh", "select_faces"]
+
+# A box mesh face lies on box face ±axis when its unit normal is within this of ±e_axis (Kuhn faces are exact).
+_AXIS_COSINE = 1.0 - 1e-6
+
+
+def face_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area vectors of triangles [m²]: half the cross product, along the right-hand normal, shape (F, 3)."""
+    p = np.asarray(points, dtype=np.float64)[np.asarray(faces, dtype=np.int64)]
+    return 0.5 * np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+
+
+def box_face_sets(points: np.ndarray, tets: np.ndarray) -> dict[str, np.ndarray]:
+    """The outer faces of a box mesh sorted onto the six box faces by their outward normals.
+
+    Args:
+        points: node positions [m], shape (N, 3). tets: positively oriented tets, shape (M, 4).
+
+    Returns:
+        :data:`warpdem.geology.BOX_FACE_NAMES` → outward-oriented triangles, shape (F, 3), int64.
+    """
+    faces = boundary_faces(tets).astype(np.int64)
+    n = face_normals(points, faces)
+    unit = n / np.linalg.norm(n, axis=1, keepdims=True)
+    sets = {}
+    for name in BOX_FACE_NAMES:
+        axis = "xyz".index(name[0])
+        sign = -1.0 if name[1] == "-" else 1.0
+        sets[name] = faces[sign * unit[:, axis] >= _AXIS_COSINE]
+    return sets
+
+
+def _geology(spec: GeologyMeshSpec, seed: int) -> Geology:
+    openings = []
+    for o in spec.openings:
+        if o.kind == "tunnel":
+            openings.append(Tunnel(o.axis, o.center, o.shape, o.radius, o.width, o.height, o.span))
+        elif o.kind == "shaft":
+            openings.append(Shaft(o.center, o.radius, o.bottom, o.top))
+        else:
+            openings.append(Room(o.lo, o.hi))
+    joint_sets = [
+        JointSet(
+            dip=js.dip,
+            dip_direction=js.dip_direction,
+            spacing=js.spacing,
+            offset=js.offset,
+            persistence=js.persistence,
+            radius=js.radius,
+            disc_spacing=js.disc_spacing,
+            reference=js.reference,
+            layers=js.layers,
+            phase=js.phase,
+            jitter_position=js.jitter_position,
+            jitter_angle=js.jitter_angle,
+            name=js.name,
+        )
+        for js in spec.joint_sets
+    ]
+    rock = RockMass(spec.lo, spec.hi, [(layer.z_top, layer.material) for layer in spec.layers], spec.material)
+    return Geology(rock, openings, joint_sets, spec.h, spec.h_opening, spec.refine_distance, seed)
+
+
+def _box(spec: BoxMesh) -> GeologyMesh:
+    points, tets = box_mesh(spec.lo, spec.hi, spec.divisions)
+    tets = tets.astype(np.int64)
+    return GeologyMesh(
+        points=points,
+        tets=tets,
+        tet_block=np.zeros(len(tets), np.int64),
+        tet_material=np.zeros(len(tets), np.int64),
+        material_names=[spec.material],
+        joint_faces=np.zeros((0, 3), np.int64),
+        joint_face_set=np.zeros(0, np.int64),
+        joint_set_names=[],
+        boundary_faces=box_face_sets(points, tets),
+        num_blocks=1,
+    )
+
+
+def _file(spec: FileMesh, scene: Scene) -> GeologyMesh:
+    source = scene.name
+    # TOML keys are strings; a key of digits names a physical group by its number.
+    material_map = {int(k) if k.isdigit() else k: v for k, v in spec.material_map.items()} or None
+    try:
+        mesh = read_mesh(spec.path, material_map=material_map, joint_groups=spec.joint_groups)
+    except MeshImportError as exc:
+        raise SceneError(f"{source}: mesh.path: {exc}") from None
+    if spec.material is not None:
+        mesh.tet_material = np.zeros(len(mesh.tets), np.int64)
+        mesh.material_names = [spec.material]
+        return mesh
+    defined = scene.material_names()
+    unknown = [name for name in mesh.material_names if name not in defined]
+    if unknown:
+        raise SceneError(
+            f"{source}: mesh.material_map: tet group(s) {', '.join(repr(n) for n in unknown)} of {spec.path} are not "
+            f"materials; map them in material_map or give one 'material' (defined materials: "
+            f"{', '.join(repr(n) for n in defined)})"
+        )
+    return mesh
+
+
+def rock_mesh(scene: Scene) -> GeologyMesh:
+    """The tet mesh a scene's ``[mesh]`` describes, with its materials, joint faces and named face sets.
+
+    Raises:
+        SceneError: the scene has no mesh, Gmsh fails, or the mesh file cannot be used.
+    """
+    spec = scene.mesh
+    source = scene.name
+    if spec is None:
+        raise SceneError(f"{source}: mesh: the scene has no [mesh]")
+    try:
+        if spec.kind == "box":
+            return _box(spec)
+        if spec.kind == "geology":
+            seed = spec.seed if spec.seed is not None else scene.run.seed
+            return mesh_geology(_geology(spec, seed))
+        return _file(spec, scene)
+    except (ValueError, RuntimeError, MeshError) as exc:
+        if isinstance(exc, SceneError):
+            raise
+        raise SceneError(f"{source}: mesh: {' '.join(str(exc).split())}") from None
+
+
+def select_faces(mesh: GeologyMesh, faces: str | None, region: Region | None, where: str) -> np.ndarray:
+    """Outer faces named by ``faces`` (a face set of the mesh) or lying inside ``region`` (all three nodes).
+
+    Args:
+        mesh: the rock mesh. faces: a face set name, or None. region: a region, or None (exactly one is given).
+        where: ``"<scene>: <key path>"`` of the entry, for the error message.
+
+    Returns:
+        Outward-oriented triangles, node indices into ``mesh.points``, shape (F, 3), int64.
+
+    Raises:
+        SceneError: an unknown face set name, or a selection with no face.
+    """
+    if faces is not None:
+        if faces not in mesh.boundary_faces:
+            allowed = ", ".join(repr(n) for n in mesh.boundary_faces) or "(none)"
+            raise SceneError(f"{where}.faces: unknown face set {faces!r}; the mesh has: {allowed}")
+        selected = np.asarray(mesh.boundary_faces[faces], dtype=np.int64).reshape(-1, 3)
+        if len(selected) == 0:
+            raise SceneError(f"{where}.faces: face set {faces!r} of the mesh is empty")
+        return selected
+    assert region is not None  # guaranteed by the scene schema
+    outer = boundary_faces(mesh.tets).astype(np.int64)
+    inside = region.contains(mesh.points)
+    selected = outer[np.all(inside[outer], axis=1)]
+    if len(selected) == 0:
+        raise SceneError(f"{where}.region: contains no outer face of the mesh (all three nodes inside)")
+    return selected
+
+
+def nodes_of_selection(mesh: GeologyMesh, faces: str | None, region: Region | None, where: str) -> np.ndarray:
+    """Nodes of the named face set, or every node inside ``region``, sorted, shape (K,), int64.
+
+    Raises:
+        SceneError: an unknown face set name, or a selection with no node.
+    """
+    if faces is not None:
+        return np.unique(select_faces(mesh, faces, None, where))
+    assert region is not None
+    nodes = np.nonzero(region.contains(mesh.points))[0].astype(np.int64)
+    if len(nodes) == 0:
+        raise SceneError(f"{where}.region: contains no node of the mesh")
+    return nodes
+
+
+def add_scene_mesh(builder: ModelBuilder, scene: Scene) -> tuple[GeologyMesh, np.ndarray]:
+    """Adds a scene's rock mesh, its joints, loads and boundaries to a builder.
+
+    Each material's continuum properties (bulk viscosity, mass damping) go to
+    :meth:`~warpdem.builder.ModelBuilder.set_tet_properties`; the mesh, with one material per tet, to
+    :meth:`~warpdem.builder.ModelBuilder.add_tet_mesh`.
+
+    Returns:
+        The mesh and the builder's node id of each of its nodes, shape (N,).
+
+    Raises:
+        SceneError: the mesh cannot be built, a selection is empty or unknown, or the scene uses a stage this
+            build does not have yet.
+    """
+    spec = scene.mesh
+    assert spec is not None
+    mesh = rock_mesh(scene)
+    for name in mesh.material_names:
+        m = scene.materials[name]
+        builder.set_tet_properties(name, TetProps(m.bulk_viscosity_linear, m.bulk_viscosity_quadratic, m.mass_damping))
+    per_tet = np.asarray(mesh.material_names)[mesh.tet_material]
+    fixed = np.ones(len(mesh.points), dtype=bool) if spec.fixed else None
+    joints = {}
+    if len(mesh.joint_faces):
+        set_ids = np.asarray(_add_joint_sets(builder, scene, mesh), dtype=np.int64)
+        joints = {"joint_faces": mesh.joint_faces, "joint_set": set_ids[mesh.joint_face_set]}
+    nodes = builder.add_tet_mesh(mesh.points, mesh.tets, per_tet, fixed_nodes=fixed, velocity=spec.velocity, **joints)
+    _add_loads(builder, scene, mesh, nodes)
+    return mesh, nodes
+
+
+def _add_joint_sets(builder: ModelBuilder, scene: Scene, mesh: GeologyMesh) -> list[int]:
+    """Adds the mesh's joint sets to the builder with their properties (the set's own, else ``[joints]``); returns
+    the builder's id of each."""
+    from .joints import JointProps
+
+    defaults = scene.joints
+    specs = scene.mesh.joint_sets if scene.mesh is not None and scene.mesh.kind == "geology" else []
+    ids = []
+    for k, name in enumerate(mesh.joint_set_names):
+        spec = specs[k] if k < len(specs) else None
+
+        def value(key: str, spec: object = spec) -> float:
+            own = getattr(spec, key, None)
+            return own if own is not None else getattr(defaults, key)
+
+        props = JointProps(
+            friction=value("friction"),
+            cohesion=value("cohesion"),
+            tensile_strength=value("tensile_strength"),
+            stiffness_factor=defaults.stiffness_factor,
+            restitution=defaults.restitution,
+            shear_stiffness_ratio=defaults.shear_stiffness_ratio,
+        )
+        ids.append(builder.add_joint_set(props, name=name))
+    return ids
+
+
+def _add_loads(builder: ModelBuilder, scene: Scene, mesh: GeologyMesh, nodes: np.ndarray) -> None:
+    """Maps ``[[loads]]`` and ``[[boundaries]]`` onto the builder's loads (:mod:`warpdem.loads`)."""
+    source = scene.name
+    if (scene.loads or scene.boundaries) and not hasattr(builder, "add_face_pressure"):
+        section = "loads" if scene.loads else "boundaries"
+        raise SceneError(f"{source}: {section}: not supported by this build yet (warpdem.loads)")
+    if not (scene.loads or scene.boundaries):
+        return
+    from .loads import PressureHistory, roller_axis
+
+    for i, load in enumerate(scene.loads):
+        where = f"{source}: loads[{i}]"
+        try:
+            if load.kind == "velocity":
+                ids = nodes[nodes_of_selection(mesh, load.faces, load.region, where)]
+                end = load.end if load.end is not None else float("inf")
+                builder.add_node_velocity(ids, load.velocity, start=load.start, end=end)
+                continue
+            faces = nodes[select_faces(mesh, load.faces, load.region, where)]
+            if load.kind == "airblast":
+                history = PressureHistory.friedlander(
+                    load.peak,
+                    load.positive_duration,
+                    load.decay_coefficient,
+                    load.source,
+                    front_speed=load.front_speed,
+                    start=load.t0,
+                )
+            else:
+                h = load.history
+                if h.kind == "blast":
+                    history = PressureHistory.blast(h.peak, h.rise_time, h.decay_time, start=h.start)
+                elif h.kind == "table":
+                    history = PressureHistory.table(h.times, h.values)
+                else:
+                    history = PressureHistory.friedlander(
+                        h.peak, h.positive_duration, h.decay_coefficient, (0.0, 0.0, 0.0), start=h.start
+                    )
+            builder.add_face_pressure(faces, history, name=f"loads[{i}]")
+        except ValueError as exc:
+            if isinstance(exc, SceneError):
+                raise
+            raise SceneError(f"{where}: {exc}") from None
+    for i, boundary in enumerate(scene.boundaries):
+        where = f"{source}: boundaries[{i}]"
+        local = select_faces(mesh, boundary.faces, boundary.region, where)
+        try:
+            if boundary.kind == "roller" and boundary.normal is None:
+                # Checked here rather than at finalize, so the message names the entry.
+                roller_axis(mesh.points, local)
+            builder.add_boundary(nodes[local], boundary.kind, normal=boundary.normal)
+        except ValueError as exc:
+            key = "faces" if boundary.faces is not None else "region"
+            raise SceneError(f"{where}.{key}: {exc}") from None
