@@ -809,10 +809,13 @@ def node_face_target(
     face_nodes: wp.array(dtype=wp.vec3i),
     face_depth: wp.array(dtype=float),
     node_q: wp.array(dtype=wp.vec3),
+    keep: int,
 ):
     """The face node v (at x, its own surface's outward normal ``normal``) is pushed out of: of the candidate faces
     that face it (n_f · normal < 0) and that it lies behind (less deep than face_depth) and projects into, the
-    shallowest; an interior contact before an edge or vertex one, then the lowest face index.
+    shallowest; an interior contact before an edge or vertex one, then the lowest face index. The face ``keep``
+    (the node's target at the last evaluation, -1 for none) is kept while it stays one of those faces: the shallowest
+    face jumps where two face planes meet, and a target held until it no longer holds the node switches less often.
 
     The facing test keeps a node on a convex edge of one body, which sits exactly on the edge of the body it rests
     on, from being pushed out through that body's side face (where it is "behind" the side plane by a rounding
@@ -827,6 +830,7 @@ def node_face_target(
     best_f = int(-1)
     best_w = wp.vec3(0.0)
     best_n = wp.vec3(0.0)
+    kept = int(0)
     for s in range(wp.min(node_face_count[v], max_node_faces)):
         f = node_face_index[v * max_node_faces + s]
         fn = face_nodes[f]
@@ -845,13 +849,37 @@ def node_face_target(
         if wmin < -BARY_EPS:
             continue
         inside = int(wmin > BARY_EPS)
-        if nearer(depth, inside, f, best_d, best_interior, best_f, tol + TIE_EPS * depth):
+        if kept != 0:
+            continue
+        if f == keep or nearer(depth, inside, f, best_d, best_interior, best_f, tol + TIE_EPS * depth):
+            kept = int(f == keep)
             best_d = depth
             best_interior = inside
             best_f = f
             best_w = w
             best_n = nf
     return best_f, best_d, best_w, best_n
+
+
+@wp.func
+def plane_depth(x: wp.vec3, f: int, face_nodes: wp.array(dtype=wp.vec3i), node_q: wp.array(dtype=wp.vec3)) -> float:
+    """Depth of x behind the plane of face f [m] (negative in front of it); 0 for a face index past the arrays."""
+    if f < 0 or f >= face_nodes.shape[0]:
+        return 0.0
+    fn = face_nodes[f]
+    a = node_q[fn[0]]
+    return -wp.dot(x - a, wp.normalize(wp.cross(node_q[fn[1]] - a, node_q[fn[2]] - a)))
+
+
+@wp.func
+def spring_depth(
+    x: wp.vec3, f: int, offset: float, face_nodes: wp.array(dtype=wp.vec3i), node_q: wp.array(dtype=wp.vec3)
+):
+    """Compression of a node's face spring [m]: its depth behind the target face f less the offset it carries
+    (non-negative; 0 with no target)."""
+    if f < 0:
+        return 0.0
+    return wp.max(plane_depth(x, f, face_nodes, node_q) - offset, 0.0)
 
 
 @wp.func
@@ -924,6 +952,8 @@ def make_node_contact_kernel(track_energy: bool):
         node_face_index: wp.array(dtype=int),
         wall_point: wp.array(dtype=wp.vec3),
         # State out:
+        node_face_spring: wp.array(dtype=int),
+        node_face_offset: wp.array(dtype=float),
         node_face_shear: wp.array(dtype=wp.vec3),
         node_wall_shear: wp.array(dtype=wp.vec3),
         node_f: wp.array(dtype=wp.vec3),
@@ -944,14 +974,39 @@ def make_node_contact_kernel(track_energy: bool):
         best_d = float(0.0)
         best_w = wp.vec3(0.0)
         best_n = wp.vec3(0.0)
+        old_f = node_face_spring[v]
         if node_face_count[v] > 0:
             normal = node_surface_normal(v, tet_nodes, tet_face_nbr, star_offset, star_count, star_tets, node_q)
             best_f, best_d, best_w, best_n = node_face_target(
-                v, x, normal, max_node_faces, node_face_count, node_face_index, face_nodes, face_depth, node_q
+                v, x, normal, max_node_faces, node_face_count, node_face_index, face_nodes, face_depth, node_q, old_f
             )
         f_v = wp.vec3(0.0)
         e_v = float(0.0)
+        # The spring is continuous across a change of target: the new face takes over the old spring's compression
+        # at the current positions (at most its own depth: the excess is dissipated), and carries the rest of its
+        # depth as an offset, so that ½ k δ² never jumps up without work. A spring left with no target is
+        # dissipated with its tangential part.
+        old_delta = spring_depth(x, old_f, node_face_offset[v], face_nodes, node_q)
+        offset = node_face_offset[v]
+        delta = float(0.0)
+        if best_f != old_f:
+            offset = float(0.0)
+            delta = best_d
+            if old_f >= 0:
+                delta = wp.min(best_d, old_delta)
+                offset = best_d - delta
+                e_v += 0.5 * kn * (old_delta * old_delta - delta * delta)
+        elif best_f >= 0:
+            delta = wp.max(best_d - offset, 0.0)
+        node_face_spring[v] = best_f
+        node_face_offset[v] = offset
         if best_f < 0:
+            if old_f >= 0 and old_f < face_nodes.shape[0]:
+                p_old = fem_pair_table[mat_v * num_materials + tet_material[face_tet[old_f]]]
+                if face_joint[old_f] >= 0:
+                    p_old = joint_material_table[face_joint[old_f]].contact
+                sh = node_face_shear[v]
+                e_v += 0.5 * p_old.kt_ratio * kn * wp.dot(sh, sh)
             node_face_shear[v] = wp.vec3(0.0)  # history lives only as long as the node touches
         else:
             fn = face_nodes[best_f]
@@ -967,7 +1022,7 @@ def make_node_contact_kernel(track_energy: bool):
                 if js >= 0:
                     p = joint_material_table[js].contact
                 v_face = w[0] * node_qd[fn[0]] + w[1] * node_qd[fn[1]] + w[2] * node_qd[fn[2]]
-                out = penalty_contact(best_n, best_d, kn, 1.0 / inv_sum, xv - v_face, node_face_shear[v], p, dt)
+                out = penalty_contact(best_n, delta, kn, 1.0 / inv_sum, xv - v_face, node_face_shear[v], p, dt)
                 force = out[0]
                 node_face_shear[v] = out[1]
                 f_v += force
@@ -1023,8 +1078,8 @@ def fem_contact_energy_kernel(
     # State in:
     node_count: wp.array(dtype=int),
     node_q: wp.array(dtype=wp.vec3),
-    node_face_count: wp.array(dtype=int),
-    node_face_index: wp.array(dtype=int),
+    node_face_spring: wp.array(dtype=int),
+    node_face_offset: wp.array(dtype=float),
     node_face_shear: wp.array(dtype=wp.vec3),
     node_wall_shear: wp.array(dtype=wp.vec3),
     wall_point: wp.array(dtype=wp.vec3),
@@ -1040,12 +1095,10 @@ def fem_contact_energy_kernel(
         return
     x = node_q[v]
     mat_v = node_contact_material[v]
-    normal = node_surface_normal(v, tet_nodes, tet_face_nbr, star_offset, star_count, star_tets, node_q)
-    best_f, best_d, _best_w, _best_n = node_face_target(
-        v, x, normal, max_node_faces, node_face_count, node_face_index, face_nodes, face_depth, node_q
-    )
+    best_f = node_face_spring[v]  # the target of the last force evaluation
+    best_d = spring_depth(x, best_f, node_face_offset[v], face_nodes, node_q)
     e = float(0.0)
-    if best_f >= 0:
+    if best_f >= 0 and best_f < face_nodes.shape[0]:
         p = fem_pair_table[mat_v * num_materials + tet_material[face_tet[best_f]]]
         if face_joint[best_f] >= 0:
             p = joint_material_table[face_joint[best_f]].contact

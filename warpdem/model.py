@@ -254,6 +254,10 @@ class State:
         node_face_needed: the most candidate faces a node had at a build (overflow when > max_node_faces), shape
             (1,); node_face_count: candidate faces of each node, shape (node_capacity,); node_face_index: candidate
             face of each slot, shape (node_capacity * max_node_faces,), int32.
+        node_face_spring: the face each node's contact spring acts across, -1 for none (kept while it still holds
+            the node), shape (node_capacity,), int32.
+        node_face_offset: depth behind its target face at which each node's spring is relaxed [m] (what a change of
+            target carried over without work), shape (node_capacity,), float32.
         node_face_shear: tangential spring of each node's face contact [m] (a node touches one face at a time; the
             spring follows it from face to face), shape (node_capacity,), vec3.
         node_wall_shear: tangential spring of each node–wall pair [m], shape (node_capacity * num_walls,), vec3.
@@ -322,6 +326,8 @@ class State:
     node_face_needed: wp.array
     node_face_count: wp.array
     node_face_index: wp.array
+    node_face_spring: wp.array
+    node_face_offset: wp.array
     node_face_shear: wp.array
     node_wall_shear: wp.array
     node_energy_contact: wp.array
