@@ -21,8 +21,6 @@ import meshio
 import numpy as np
 import pytest
 
-pytest.importorskip("gmsh")
-
 from warpdem.geology import (
     Geology,
     GeologyMesh,

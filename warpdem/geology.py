@@ -36,6 +36,9 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from .mesh import TET_FACES
+from .mesh import boundary_faces as outer_faces
+
 __all__ = [
     "BOX_FACE_NAMES",
     "Geology",
@@ -70,7 +73,6 @@ _GMSH_TET = 4  # Gmsh element type: 4-node tetrahedron
 _GMSH_TRIANGLE = 2  # Gmsh element type: 3-node triangle
 
 # Outward faces of a positively oriented tetrahedron (0, 1, 2, 3): face i is opposite vertex i.
-_TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]], dtype=np.int64)
 
 _READ_SUFFIXES = {".msh": "gmsh", ".vtu": "vtu", ".vtk": "vtk"}
 _LINEAR_VOLUME_CELLS = {"tetra"}
@@ -860,7 +862,7 @@ def _face_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
 def _tet_face_table(tets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """All tet faces, outward oriented, shape (4M, 3) (row 4t + i is face i of tet t), with the unique sorted
     node triples, the index of each face's triple among them and how many tets share each triple."""
-    faces = tets[:, _TET_FACES].reshape(-1, 3)
+    faces = tets[:, TET_FACES].reshape(-1, 3)
     keys, inverse, counts = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True)
     return faces, keys, inverse.reshape(-1), counts
 
@@ -869,8 +871,7 @@ def _classify_boundary(
     points: np.ndarray, tets: np.ndarray, lo: np.ndarray, hi: np.ndarray, tol: float
 ) -> dict[str, np.ndarray]:
     """Faces of exactly one tet, outward oriented, sorted onto the six box faces and the opening walls."""
-    faces, _, inverse, counts = _tet_face_table(tets)
-    outer = faces[counts[inverse] == 1]
+    outer = outer_faces(tets).astype(np.int64)
     p = points[outer]
     remaining = np.ones(len(outer), dtype=bool)
     result: dict[str, np.ndarray] = {}
@@ -1061,7 +1062,7 @@ def read_mesh(
         raise _import_error(path, f"has {points.shape[1]}-dimensional points; a tet mesh needs 3")
     tets = _orient_tets(points, renumber[tets])
 
-    face_keys = np.unique(np.sort(tets[:, _TET_FACES].reshape(-1, 3), axis=1), axis=0)
+    face_keys = np.unique(np.sort(tets[:, TET_FACES].reshape(-1, 3), axis=1), axis=0)
     for name, faces in [*zip(joint_set_names, joint_parts, strict=True), *boundary_parts.items()]:
         mapped = renumber[faces]
         if np.any(mapped < 0) or np.any(_row_lookup(face_keys, np.sort(mapped, axis=1)) < 0):
