@@ -745,10 +745,7 @@ def test_default_scene_path() -> None:
 
 
 def test_default_scene_loads() -> None:
-    path = default_scene_path()
-    if not path.exists():
-        pytest.skip("warpdem/data/default.toml not written yet")
-    assert isinstance(load_scene(path), Scene)
+    assert isinstance(load_scene(default_scene_path()), Scene)
 
 
 def test_import_does_not_load_warp() -> None:

@@ -147,7 +147,6 @@ class Model:
     tet_material_table: wp.array
     walls_move: bool = False
     bond_capacity: int = 0
-    extra: dict = field(default_factory=dict)
     loads: LoadModel | None = None
     face_capacity: int = 0
     max_sphere_faces: int = 8
