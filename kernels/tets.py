@@ -164,35 +164,20 @@ def neo_hookean_energy_density(f: wp.mat33d, mat: TetMaterial) -> wp.float64:
 
 
 @wp.func
-def characteristic_length(inv_ref: wp.mat33) -> float:
-    """Reference length of a tet, ℓ = 2 / sqrt(Σ_a |∇N_a|²) [m] (the height of a regular tet, 0.82 of the cell edge
-    for a Kuhn tet), from the shape-function gradients: the rows of D⁻¹ and minus their sum.
-
-    Unlike V^{1/3} it shrinks with the smallest height of a flat tet, so a bulk viscosity built on it damps the
-    element's fastest mode by the same ratio whatever its shape (warpdem.tets.tet_stable_time_steps).
-    """
-    r0 = inv_ref[0]
-    r1 = inv_ref[1]
-    r2 = inv_ref[2]
-    s = r0 + r1 + r2
-    return 2.0 / wp.sqrt(wp.dot(r0, r0) + wp.dot(r1, r1) + wp.dot(r2, r2) + wp.dot(s, s))
-
-
-@wp.func
-def bulk_viscosity_pressure(volume_rate: float, inv_ref: wp.mat33, mat: TetMaterial) -> float:
+def bulk_viscosity_pressure(volume_rate: float, length: float, mat: TetMaterial) -> float:
     """Artificial bulk-viscosity pressure q ≥ 0 [Pa] (von Neumann–Richtmyer quadratic + Landshoff linear terms).
 
     q = ρ₀ ℓ (c_quad ℓ ε̇_v² - c_lin c_p ε̇_v) for ε̇_v < 0 (compression), 0 otherwise. Density and length are those
-    of the reference configuration (a Lagrangian viscosity; rock stays within a few percent of J = 1), ℓ the
-    characteristic length of the tet.
+    of the reference configuration (a Lagrangian viscosity; rock stays within a few percent of J = 1).
 
     Args:
         volume_rate: volumetric strain rate ε̇_v = J̇/J [1/s].
-        inv_ref: D⁻¹ [1/m].
+        length: the tet's characteristic length ℓ = 2 / sqrt(Σ_a |∇N_a|²) [m] (warpdem.tets.characteristic_lengths),
+            stored per tet: it shrinks with the smallest height of a flat tet, so the viscosity damps the element's
+            fastest mode by the same ratio whatever its shape.
     """
     if volume_rate >= 0.0:
         return 0.0
-    length = characteristic_length(inv_ref)
     return mat.density * length * (mat.c_quad * length * volume_rate * volume_rate - mat.c_lin * mat.c_p * volume_rate)
 
 
@@ -206,6 +191,7 @@ def eval_tet_forces_kernel(
     tet_nodes: wp.array(dtype=wp.vec4i),
     tet_inv_ref: wp.array(dtype=wp.mat33),
     tet_volume: wp.array(dtype=float),
+    tet_length: wp.array(dtype=float),
     tet_material: wp.array(dtype=int),
     tet_material_table: wp.array(dtype=TetMaterial),
     dt: float,
@@ -215,7 +201,6 @@ def eval_tet_forces_kernel(
     node_u: wp.array(dtype=wp.vec3),
     node_qd: wp.array(dtype=wp.vec3),
     # State out:
-    tet_stress: wp.array(dtype=wp.mat33),
     node_f: wp.array(dtype=wp.vec3),
     node_energy_damping: wp.array(dtype=wp.float64),
 ):
@@ -232,13 +217,13 @@ def eval_tet_forces_kernel(
     cof = cofactor(f)
     j = wp.determinant(f)
     g = volumetric_stress(j, mat.mu, mat.lam)
-    # The stored stress is the elastic one: the bulk viscosity is a numerical device, not a rock stress.
-    tet_stress[t] = cauchy_stress(f, j, g, mat.mu)
+    # The Cauchy stress is not stored here (eval_tet_stress_kernel, between steps): its 36-byte store per tet would
+    # be a third of the kernel's memory traffic, for a value no stage of the step reads.
     # A = D⁻¹ cof Fᵀ: row i is ∂J/∂d_i, so J̇ = Σ_i A_i · (v_i - v_0) (= cof F : Ḟ) and ε̇_v = J̇ / J.
     a = inv_ref * wp.transpose(cof)
     v0 = node_qd[n[0]]
     j_rate = wp.dot(a[0], node_qd[n[1]] - v0) + wp.dot(a[1], node_qd[n[2]] - v0) + wp.dot(a[2], node_qd[n[3]] - v0)
-    q = bulk_viscosity_pressure(j_rate / wp.max(j, J_MIN), inv_ref, mat)
+    q = bulk_viscosity_pressure(j_rate / wp.max(j, J_MIN), tet_length[t], mat)
     # P = μ F + (g - q) cof F: the elastic law plus the viscous pressure q as -q J F⁻ᵀ. Nodal forces -V₀ P D⁻ᵀ e_i
     # are the rows of -V₀ D⁻¹ Pᵀ = -V₀ (μ D⁻¹ Fᵀ + (g - q) A) on nodes 1..3, minus their sum on node 0.
     h = -volume0 * (mat.mu * (inv_ref * wp.transpose(f)) + (g - q) * a)
@@ -250,12 +235,37 @@ def eval_tet_forces_kernel(
     wp.atomic_add(node_f, n[2], f2)
     wp.atomic_add(node_f, n[3], f3)
     if q > 0.0:
-        # Work of the viscous pressure, q (-J̇) V₀ dt ≥ 0, shared by the four nodes.
-        quarter = wp.float64(-0.25 * q * j_rate * volume0 * dt)
-        wp.atomic_add(node_energy_damping, n[0], quarter)
-        wp.atomic_add(node_energy_damping, n[1], quarter)
-        wp.atomic_add(node_energy_damping, n[2], quarter)
-        wp.atomic_add(node_energy_damping, n[3], quarter)
+        # Work of the viscous pressure, q (-J̇) V₀ dt ≥ 0, booked on the tet's first node (only the sum over nodes is
+        # read: one float64 update instead of four).
+        wp.atomic_add(node_energy_damping, n[0], wp.float64(-q * j_rate * volume0 * dt))
+
+
+@wp.kernel
+def eval_tet_stress_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    tet_inv_ref: wp.array(dtype=wp.mat33),
+    tet_material: wp.array(dtype=int),
+    tet_material_table: wp.array(dtype=TetMaterial),
+    # State in:
+    tet_count: wp.array(dtype=int),
+    tet_active: wp.array(dtype=int),
+    node_u: wp.array(dtype=wp.vec3),
+    # State out:
+    tet_stress: wp.array(dtype=wp.mat33),
+):
+    t = wp.tid()  # one thread per tet slot
+    if t >= tet_count[0]:
+        return
+    if tet_active[t] != TET_ACTIVE:
+        tet_stress[t] = wp.mat33(0.0)
+        return
+    n = tet_nodes[t]
+    mat = tet_material_table[tet_material[t]]
+    f = deformation_gradient(node_u[n[0]], node_u[n[1]], node_u[n[2]], node_u[n[3]], tet_inv_ref[t])
+    j = wp.determinant(f)
+    # The elastic stress: the bulk viscosity is a numerical device, not a rock stress.
+    tet_stress[t] = cauchy_stress(f, j, volumetric_stress(j, mat.mu, mat.lam), mat.mu)
 
 
 @wp.kernel

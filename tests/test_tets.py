@@ -23,7 +23,7 @@ import warp as wp
 from warpdem.builder import ModelBuilder
 from warpdem.mesh import box_mesh, smallest_heights
 from warpdem.simulation import Simulation
-from warpdem.tets import TetProps, eval_tets, lame_parameters, set_node_displacements, tet_energy
+from warpdem.tets import TetProps, eval_tet_stresses, eval_tets, lame_parameters, set_node_displacements, tet_energy
 
 YOUNG = 50.0e9  # [Pa] granite-like
 POISSON = 0.25  # [-]
@@ -82,6 +82,7 @@ def forces_at(model, state, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     set_node_displacements(model, state, x - reference_points(model))
     state.node_f.zero_()
     eval_tets(model, state, dt=0.0)
+    eval_tet_stresses(model, state)
     return state.node_f.numpy().astype(np.float64), state.tet_stress.numpy().astype(np.float64)
 
 

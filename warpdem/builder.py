@@ -25,7 +25,14 @@ from .mesh import MeshQuality, check_tets
 from .model import BondData, Model, ParticleData, State, TetMeshData, WallData, pair_table_array
 from .restitution import hertz_damping_coefficient, linear_damping_ratio
 from .scene import Scene, SceneError
-from .tets import TetProps, lumped_node_masses, reference_geometry, tet_material, tet_stable_time_steps
+from .tets import (
+    TetProps,
+    characteristic_lengths,
+    lumped_node_masses,
+    reference_geometry,
+    tet_material,
+    tet_stable_time_steps,
+)
 
 MOTIONS = {"free": 0, "fixed": 1, "prescribed": 2}
 NODE_MOTIONS = {"free": 0, "fixed": 1, "z_only": 2}
@@ -714,6 +721,7 @@ class ModelBuilder:
             "tet_nodes": padded(mesh.tets, tcap, wp.vec4i, np.int32),
             "tet_inv_ref": padded(inv_ref, tcap, wp.mat33, np.float32),
             "tet_volume": padded(volume, tcap, float, np.float32),
+            "tet_length": padded(characteristic_lengths(inv_ref), tcap, float, np.float32),
             "tet_material": padded(mesh.material, tcap, int, np.int32),
             "tet_material_table": wp.array(table, dtype=TetMaterial, device=device),
         }

@@ -69,6 +69,8 @@ class Model:
         tet_nodes: node indices, positively oriented, shape (tet_capacity,), vec4i.
         tet_inv_ref: [D1 D2 D3]⁻¹ of the reference directors D_i = X_i - X_0 [1/m], shape (tet_capacity,), mat33.
         tet_volume: reference volume V₀ [m³], shape (tet_capacity,), float32.
+        tet_length: characteristic length ℓ = 2 / sqrt(Σ_a |∇N_a|²) of the bulk viscosity (warpdem.tets
+            .characteristic_lengths) [m], shape (tet_capacity,), float32.
         tet_material: material id, shape (tet_capacity,), int32.
         tet_material_table: continuum properties per material id, shape (num_materials,), TetMaterial.
         loads: pressure loads, non-reflecting dashpots and node velocity drivers (warpdem.loads.LoadModel), or None.
@@ -143,6 +145,7 @@ class Model:
     tet_nodes: wp.array
     tet_inv_ref: wp.array
     tet_volume: wp.array
+    tet_length: wp.array
     tet_material: wp.array
     tet_material_table: wp.array
     walls_move: bool = False
@@ -232,8 +235,9 @@ class State:
         node_energy_damping: energy dissipated by bulk viscosity, mass-proportional damping and non-reflecting
             dashpots [J], per node, shape (node_capacity,), float64.
         tet_active: 1 for a tet that carries forces, 0 for one taken out (converted), shape (tet_capacity,), int32.
-        tet_stress: Cauchy stress of the last force evaluation (elastic, without bulk viscosity) [Pa], tension
-            positive, shape (tet_capacity,), mat33.
+        tet_stress: Cauchy stress at the current displacements (elastic, without bulk viscosity; 0 for inactive
+            tets) [Pa], tension positive, shape (tet_capacity,), mat33. Refreshed between steps (after every
+            ``Simulation.advance`` and at set-up), not inside the step.
         time: simulated time [s], advanced on the device every step (time-dependent loads read it), shape (1,),
             float64.
         node_f_load: the pressure-load part of node_f [N] (for the trapezoidal booking of its work), shape

@@ -4,7 +4,7 @@ A step (DESIGN.md, stages in order):
 
 1. integrate, first half — kick by dt/2, drift by dt, clear forces, flag a neighbour rebuild if needed (spheres
    and FEM nodes);
-2. tetrahedra — Cosserat point element forces, bulk viscosity and Cauchy stresses;
+2. tetrahedra — Cosserat point element forces and bulk viscosity (their Cauchy stresses are refreshed between steps);
 3. contact search — rebuild the skinned neighbour list from the hash grid when flagged (conditional node);
 4. contact — sphere–sphere and sphere–wall forces with tangential history; FEM contact (its lists rebuilt in a
    conditional node when a node moved half the FEM skin or the sphere list was rebuilt): sphere–face, node–face
@@ -36,7 +36,7 @@ from .fem_contact import FemContact, fem_contact_energy, fem_contact_growth, reg
 from .integrate import integrate_first_half, integrate_second_half
 from .loads import eval_loads, relax_to_equilibrium
 from .model import NEIGHBOR_FIELDS, Model, State
-from .tets import eval_tets, tet_energy
+from .tets import eval_tet_stresses, eval_tets, tet_energy
 
 
 @dataclass
@@ -185,11 +185,14 @@ class Simulation:
             self.fem_contact.eval(self.track_energy, dt=0.0)
         eval_bonds(m, s, dt=0.0)
         eval_loads(m, s, dt=0.0)
+        eval_tet_stresses(m, s)
 
     def relax_to_equilibrium(self, **kwargs) -> int:
         """Damped dynamic relaxation of the FEM nodes to the geostatic state before dynamics starts (keyword
         arguments and return value: :func:`warpdem.loads.relax_to_equilibrium`)."""
-        return relax_to_equilibrium(self, **kwargs)
+        steps = relax_to_equilibrium(self, **kwargs)
+        eval_tet_stresses(self.model, self.state)
+        return steps
 
     def _run(self, n_steps: int) -> None:
         if not self.use_graph or n_steps < 2:
@@ -230,6 +233,8 @@ class Simulation:
         # a restart from a checkpoint continues on the same clock.
         self.time = float(self.state.time.numpy()[0])
         self.remove_broken_bonds()
+        # No stage of the step reads the tet stresses; they are brought up to date for whoever reads the state now.
+        eval_tet_stresses(self.model, self.state)
 
     def _grow_if_overflowed(self, restore_from: State) -> bool:
         """If the last neighbour build (or FEM contact build) needed more slots than there are, grow ×2 until they

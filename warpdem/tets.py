@@ -90,6 +90,19 @@ def shape_gradients(inv_ref: np.ndarray) -> np.ndarray:
     return g
 
 
+def characteristic_lengths(inv_ref: np.ndarray) -> np.ndarray:
+    """Reference length of each tet, ℓ = 2 / sqrt(Σ_a |∇N_a|²) = 2 / sqrt(tr Q) [m], shape (M,): the height of a
+    regular tet, 0.82 of the cell edge for a Kuhn tet. Unlike V^{1/3} it shrinks with the smallest height of a flat
+    tet, so the bulk viscosity built on it (kernels/tets.py) damps the element's fastest mode by the same ratio
+    whatever its shape (:func:`tet_stable_time_steps`).
+
+    Args:
+        inv_ref: D⁻¹ [1/m], shape (M, 3, 3).
+    """
+    g = shape_gradients(inv_ref)
+    return 2.0 / np.sqrt(np.einsum("mai,mai->m", g, g))
+
+
 def tet_stable_time_steps(
     inv_ref: np.ndarray,
     mu: np.ndarray,
@@ -109,7 +122,7 @@ def tet_stable_time_steps(
     popular h_min/c_p at ν = 0.25: h_min/c_p is not a stable step for tets (tests/test_tets.py checks both).
 
     The linear bulk viscosity is a dashpot η = ρ ℓ c_lin c_p on the volumetric mode, ℓ = 2 / sqrt(tr Q) the
-    element's characteristic length (kernels/tets.py); its damping ratio is at most
+    element's characteristic length (:func:`characteristic_lengths`); its damping ratio is at most
     ζ = (4/ρ) η tr Q / (2ω) = 4 c_lin c_p sqrt(tr Q) / ω; mass-proportional damping adds α / (2ω). A damped
     oscillator is stable for dt ≤ (2/ω)(sqrt(1 + ζ²) - ζ).
 
@@ -167,7 +180,8 @@ def set_node_displacements(model: Model, state: State, displacement: np.ndarray)
 
 
 def eval_tets(model: Model, state: State, dt: float | None = None) -> None:
-    """Accumulate the forces of the live tets into ``state.node_f`` and store their Cauchy stresses.
+    """Accumulate the forces of the live tets into ``state.node_f`` (the step's tet stage; the Cauchy stresses are
+    :func:`eval_tet_stresses`'s).
 
     ``dt`` overrides the model step for the dissipation bookkeeping; 0 evaluates forces without booking any.
     """
@@ -182,6 +196,7 @@ def eval_tets(model: Model, state: State, dt: float | None = None) -> None:
             m.tet_nodes,
             m.tet_inv_ref,
             m.tet_volume,
+            m.tet_length,
             m.tet_material,
             m.tet_material_table,
             m.dt if dt is None else dt,
@@ -191,7 +206,32 @@ def eval_tets(model: Model, state: State, dt: float | None = None) -> None:
             s.node_u,
             s.node_qd,
         ],
-        outputs=[s.tet_stress, s.node_f, s.node_energy_damping],
+        outputs=[s.node_f, s.node_energy_damping],
+        device=m.device,
+    )
+
+
+def eval_tet_stresses(model: Model, state: State) -> None:
+    """Store the elastic Cauchy stress of every live tet at the current displacements in ``state.tet_stress`` [Pa]
+    (zero for inactive tets). Launches only; :class:`warpdem.simulation.Simulation` calls it after every advance."""
+    if model.tet_capacity == 0:
+        return
+    m, s = model, state
+    wp.launch(
+        kt.eval_tet_stress_kernel,
+        dim=m.tet_capacity,
+        inputs=[
+            # Model:
+            m.tet_nodes,
+            m.tet_inv_ref,
+            m.tet_material,
+            m.tet_material_table,
+            # State in:
+            s.tet_count,
+            s.tet_active,
+            s.node_u,
+        ],
+        outputs=[s.tet_stress],
         device=m.device,
     )
 
