@@ -7,6 +7,11 @@ v ← v + dt/2 a_{n+1}. Rotation of spheres is isotropic (I = 2/5 m r²), so ω 
 u ← u + dt v, and x = X + u follows. Their held components (fixed, rollers) stay zero, and a node with a velocity
 driver (warpdem.loads) holds its velocity while the driver does, the driver's work booked. The state's time advances
 last, after the second half kick.
+
+Between two steps of one run nothing happens but the clock: the second half kick of step n and the first of step n+1
+use the same forces, so the ``kick_drift_*`` kernels do both in one pass over the arrays (the body of a run of steps,
+warpdem.simulation), with the arithmetic of the two separate halves in the same order, bit for bit. Each half is a
+function below, shared by the separate and the fused kernels.
 """
 
 from __future__ import annotations
@@ -18,6 +23,159 @@ from .loads import NodeDriver, drive_first_half, drive_second_half
 from .tets import node_free_directions
 
 wp.set_module_options({"enable_backward": False})
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# One half of a step for one sphere or node.
+
+
+@wp.func
+def kick_particle(
+    i: int,
+    dt: float,
+    gravity: wp.vec3,
+    particle_inv_mass: wp.array(dtype=float),
+    particle_inv_inertia: wp.array(dtype=float),
+    particle_f: wp.array(dtype=wp.vec3),
+    particle_t: wp.array(dtype=wp.vec3),
+    v: wp.vec3,
+    omega: wp.vec3,
+):
+    """Half kick of a free sphere: v + dt/2 (f/m + g) [m/s] and ω + dt/2 t/I [rad/s]."""
+    return (
+        v + 0.5 * dt * (particle_f[i] * particle_inv_mass[i] + gravity),
+        omega + 0.5 * dt * particle_inv_inertia[i] * particle_t[i],
+    )
+
+
+@wp.func
+def drift_particle(
+    i: int,
+    dt: float,
+    half_skin: float,
+    v: wp.vec3,
+    particle_q_at_build: wp.array(dtype=wp.vec3),
+    particle_q: wp.array(dtype=wp.vec3),
+    particle_f: wp.array(dtype=wp.vec3),
+    particle_t: wp.array(dtype=wp.vec3),
+    rebuild_flag: wp.array(dtype=int),
+):
+    """Drift by dt with v, clear the force and torque accumulators, flag a rebuild when the sphere moved half the
+    skin since the neighbour list was built (the Verlet-skin criterion)."""
+    x = particle_q[i] + dt * v
+    particle_q[i] = x
+    particle_f[i] = wp.vec3(0.0)
+    particle_t[i] = wp.vec3(0.0)
+    moved = x - particle_q_at_build[i]
+    if wp.dot(moved, moved) > half_skin * half_skin:
+        rebuild_flag[0] = 1
+
+
+@wp.func
+def held_particle_work(
+    i: int,
+    dt: float,
+    particle_f: wp.array(dtype=wp.vec3),
+    particle_t: wp.array(dtype=wp.vec3),
+    v: wp.vec3,
+    omega: wp.vec3,
+) -> wp.float64:
+    """Work [J] of whatever holds a fixed or prescribed sphere on its path against the contact forces over a half
+    step, -(f·v + t·ω) dt (zero for a fixed sphere)."""
+    return wp.float64(-(wp.dot(particle_f[i], v) + wp.dot(particle_t[i], omega)) * dt)
+
+
+@wp.func
+def node_first_half_velocity(
+    i: int,
+    dt: float,
+    gravity: wp.vec3,
+    t_step: wp.float64,
+    free: wp.vec3,
+    v_old: wp.vec3,
+    node_mass: wp.array(dtype=float),
+    node_inv_mass: wp.array(dtype=float),
+    node_driver: wp.array(dtype=int),
+    drivers: wp.array(dtype=NodeDriver),
+    num_drivers: int,
+    node_f: wp.array(dtype=wp.vec3),
+):
+    """v_{n+1/2} of a node from v_n = ``v_old`` [m/s] and the driver's work [J] over the half step starting at t_step.
+
+    Held velocity components stay zero (fixed nodes, rollers), so the constraints do no work. A driven node holds the
+    driver's velocity over steps whose midpoint it covers (kernels/loads.py); the driver works against gravity only
+    where the node's weight counts in the potential (inv_mass > 0).
+    """
+    v = wp.cw_mul(free, v_old + 0.5 * dt * (node_f[i] * node_inv_mass[i] + gravity))
+    work = float(0.0)
+    if num_drivers > 0:
+        d = node_driver[i]
+        if d >= 0:
+            weight = node_mass[i] * gravity * wp.where(node_inv_mass[i] > 0.0, 1.0, 0.0)
+            t_mid = t_step + wp.float64(0.5 * dt)
+            v, work = drive_first_half(drivers[d], t_mid, dt, free, v_old, v, node_f[i] + weight, node_mass[i])
+    return v, work
+
+
+@wp.func
+def node_second_half_velocity(
+    i: int,
+    dt: float,
+    gravity: wp.vec3,
+    t_step: wp.float64,
+    free: wp.vec3,
+    v_half: wp.vec3,
+    node_mass: wp.array(dtype=float),
+    node_inv_mass: wp.array(dtype=float),
+    node_driver: wp.array(dtype=int),
+    drivers: wp.array(dtype=NodeDriver),
+    num_drivers: int,
+    node_f: wp.array(dtype=wp.vec3),
+):
+    """v_{n+1} of a node from v_{n+1/2} [m/s] and the driver's work [J] (the step started at t_step: the driver is
+    judged at the same midpoint as in the first half, so both halves agree bit for bit)."""
+    v = wp.cw_mul(free, v_half + 0.5 * dt * (node_f[i] * node_inv_mass[i] + gravity))
+    work = float(0.0)
+    if num_drivers > 0:
+        d = node_driver[i]
+        if d >= 0:
+            weight = node_mass[i] * gravity * wp.where(node_inv_mass[i] > 0.0, 1.0, 0.0)
+            v, work = drive_second_half(drivers[d], t_step + wp.float64(0.5 * dt), dt, v, node_f[i] + weight)
+    return v, work
+
+
+@wp.func
+def drift_node(
+    i: int,
+    dt: float,
+    v: wp.vec3,
+    node_ref_q: wp.array(dtype=wp.vec3),
+    node_mass: wp.array(dtype=float),
+    node_damping: wp.array(dtype=float),
+    node_u: wp.array(dtype=wp.vec3),
+    node_q: wp.array(dtype=wp.vec3),
+    node_f: wp.array(dtype=wp.vec3),
+    node_energy_damping: wp.array(dtype=wp.float64),
+):
+    """Drift a node by dt with v_{n+1/2} and start its force accumulator.
+
+    The drift goes into the displacement, small next to the coordinates, so float32 keeps the increment. The force
+    accumulator starts from the mass-proportional damping force -α m v at the half-step velocity (the
+    central-difference choice), which then acts in both half kicks around the new forces.
+    """
+    u = node_u[i] + dt * v
+    node_u[i] = u
+    node_q[i] = node_ref_q[i] + u
+    alpha = node_damping[i]
+    f0 = wp.vec3(0.0)
+    if alpha > 0.0:
+        f0 = -alpha * node_mass[i] * v
+        node_energy_damping[i] = node_energy_damping[i] + wp.float64(alpha * node_mass[i] * wp.dot(v, v) * dt)
+    node_f[i] = f0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Kernels: the first and the second half of a step, and the two fused across a step boundary.
 
 
 @wp.kernel
@@ -45,18 +203,13 @@ def integrate_first_half_kernel(
         return
     v = particle_qd[i]
     if particle_motion[i] == MOTION_FREE:
-        v = v + 0.5 * dt * (particle_f[i] * particle_inv_mass[i] + gravity)
+        v, omega = kick_particle(
+            i, dt, gravity, particle_inv_mass, particle_inv_inertia, particle_f, particle_t, v, particle_omega[i]
+        )
         particle_qd[i] = v
-        particle_omega[i] = particle_omega[i] + 0.5 * dt * particle_inv_inertia[i] * particle_t[i]
+        particle_omega[i] = omega
     # Fixed spheres have v = 0; prescribed ones keep their velocity and spin.
-    x = particle_q[i] + dt * v
-    particle_q[i] = x
-    particle_f[i] = wp.vec3(0.0)
-    particle_t[i] = wp.vec3(0.0)
-    # Verlet skin: the neighbour list stays valid while no sphere has moved half the skin since it was built.
-    moved = x - particle_q_at_build[i]
-    if wp.dot(moved, moved) > half_skin * half_skin:
-        rebuild_flag[0] = 1
+    drift_particle(i, dt, half_skin, v, particle_q_at_build, particle_q, particle_f, particle_t, rebuild_flag)
 
 
 @wp.kernel
@@ -80,13 +233,65 @@ def integrate_second_half_kernel(
     if i >= particle_count[0]:
         return
     if particle_motion[i] == MOTION_FREE:
-        particle_qd[i] = particle_qd[i] + 0.5 * dt * (particle_f[i] * particle_inv_mass[i] + gravity)
-        particle_omega[i] = particle_omega[i] + 0.5 * dt * particle_inv_inertia[i] * particle_t[i]
+        v, omega = kick_particle(
+            i,
+            dt,
+            gravity,
+            particle_inv_mass,
+            particle_inv_inertia,
+            particle_f,
+            particle_t,
+            particle_qd[i],
+            particle_omega[i],
+        )
+        particle_qd[i] = v
+        particle_omega[i] = omega
     else:
-        # A driven sphere is held on its path by whatever drives it, which does the work -F.v against the
-        # contact forces (zero for a fixed sphere).
-        w = -(wp.dot(particle_f[i], particle_qd[i]) + wp.dot(particle_t[i], particle_omega[i])) * dt
-        energy_boundary_work[i] = energy_boundary_work[i] + wp.float64(w)
+        # A driven sphere is held on its path by whatever drives it.
+        w = held_particle_work(i, dt, particle_f, particle_t, particle_qd[i], particle_omega[i])
+        energy_boundary_work[i] = energy_boundary_work[i] + w
+
+
+@wp.kernel
+def kick_drift_particles_kernel(
+    # Model:
+    particle_inv_mass: wp.array(dtype=float),
+    particle_inv_inertia: wp.array(dtype=float),
+    particle_motion: wp.array(dtype=int),
+    gravity: wp.vec3,
+    dt: float,
+    half_skin: float,
+    # State in:
+    particle_count: wp.array(dtype=int),
+    particle_q_at_build: wp.array(dtype=wp.vec3),
+    # State out:
+    particle_q: wp.array(dtype=wp.vec3),
+    particle_qd: wp.array(dtype=wp.vec3),
+    particle_omega: wp.array(dtype=wp.vec3),
+    particle_f: wp.array(dtype=wp.vec3),
+    particle_t: wp.array(dtype=wp.vec3),
+    rebuild_flag: wp.array(dtype=int),
+    energy_boundary_work: wp.array(dtype=wp.float64),
+):
+    i = wp.tid()  # one thread per particle slot
+    if i >= particle_count[0]:
+        return
+    # Second half of step n, then first half of step n + 1, with the same forces f_{n+1}.
+    v = particle_qd[i]
+    if particle_motion[i] == MOTION_FREE:
+        omega = particle_omega[i]
+        v, omega = kick_particle(
+            i, dt, gravity, particle_inv_mass, particle_inv_inertia, particle_f, particle_t, v, omega
+        )
+        v, omega = kick_particle(
+            i, dt, gravity, particle_inv_mass, particle_inv_inertia, particle_f, particle_t, v, omega
+        )
+        particle_qd[i] = v
+        particle_omega[i] = omega
+    else:
+        w = held_particle_work(i, dt, particle_f, particle_t, v, particle_omega[i])
+        energy_boundary_work[i] = energy_boundary_work[i] + w
+    drift_particle(i, dt, half_skin, v, particle_q_at_build, particle_q, particle_f, particle_t, rebuild_flag)
 
 
 @wp.kernel
@@ -116,30 +321,14 @@ def integrate_nodes_first_half_kernel(
     i = wp.tid()  # one thread per FEM node slot
     if i >= node_count[0]:
         return
-    # Held velocity components stay zero (fixed nodes, rollers), so the constraints do no work.
     free = node_free_directions(node_motion[i])
-    v_old = node_qd[i]
-    v = wp.cw_mul(free, v_old + 0.5 * dt * (node_f[i] * node_inv_mass[i] + gravity))
-    if num_drivers > 0:
-        d = node_driver[i]
-        if d >= 0:
-            # A driven node holds the driver's velocity over steps whose midpoint it covers (kernels/loads.py); the
-            # driver works against gravity only where the node's weight counts in the potential (inv_mass > 0).
-            weight = node_mass[i] * gravity * wp.where(node_inv_mass[i] > 0.0, 1.0, 0.0)
-            t_mid = time[0] + wp.float64(0.5 * dt)
-            v, work = drive_first_half(drivers[d], t_mid, dt, free, v_old, v, node_f[i] + weight, node_mass[i])
-            node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(work)
+    v, work = node_first_half_velocity(
+        i, dt, gravity, time[0], free, node_qd[i], node_mass, node_inv_mass, node_driver, drivers, num_drivers, node_f
+    )
+    if work != 0.0:
+        node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(work)
     node_qd[i] = v
-    # The drift goes into the displacement, small next to the coordinates, so float32 keeps the increment.
-    u = node_u[i] + dt * v
-    node_u[i] = u
-    node_q[i] = node_ref_q[i] + u
-    # The force accumulator starts from the mass-proportional damping force -α m v at the half-step velocity (the
-    # central-difference choice), which then acts in both half kicks around the new forces.
-    alpha = node_damping[i]
-    node_f[i] = -alpha * node_mass[i] * v
-    if alpha > 0.0:
-        node_energy_damping[i] = node_energy_damping[i] + wp.float64(alpha * node_mass[i] * wp.dot(v, v) * dt)
+    drift_node(i, dt, v, node_ref_q, node_mass, node_damping, node_u, node_q, node_f, node_energy_damping)
 
 
 @wp.kernel
@@ -165,16 +354,56 @@ def integrate_nodes_second_half_kernel(
     if i >= node_count[0]:
         return
     free = node_free_directions(node_motion[i])
-    v = wp.cw_mul(free, node_qd[i] + 0.5 * dt * (node_f[i] * node_inv_mass[i] + gravity))
-    if num_drivers > 0:
-        d = node_driver[i]
-        if d >= 0:
-            weight = node_mass[i] * gravity * wp.where(node_inv_mass[i] > 0.0, 1.0, 0.0)
-            # The same midpoint as the first half (time still holds t_n), so both halves agree bit for bit.
-            t_mid = time[0] + wp.float64(0.5 * dt)
-            v, work = drive_second_half(drivers[d], t_mid, dt, v, node_f[i] + weight)
-            node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(work)
+    v, work = node_second_half_velocity(
+        i, dt, gravity, time[0], free, node_qd[i], node_mass, node_inv_mass, node_driver, drivers, num_drivers, node_f
+    )
+    if work != 0.0:
+        node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(work)
     node_qd[i] = v
+
+
+@wp.kernel
+def kick_drift_nodes_kernel(
+    # Model:
+    node_ref_q: wp.array(dtype=wp.vec3),
+    node_mass: wp.array(dtype=float),
+    node_inv_mass: wp.array(dtype=float),
+    node_motion: wp.array(dtype=int),
+    node_damping: wp.array(dtype=float),
+    node_driver: wp.array(dtype=int),
+    drivers: wp.array(dtype=NodeDriver),
+    num_drivers: int,
+    gravity: wp.vec3,
+    dt: float,
+    dt64: wp.float64,
+    # State in:
+    node_count: wp.array(dtype=int),
+    time: wp.array(dtype=wp.float64),
+    # State out:
+    node_u: wp.array(dtype=wp.vec3),
+    node_q: wp.array(dtype=wp.vec3),
+    node_qd: wp.array(dtype=wp.vec3),
+    node_f: wp.array(dtype=wp.vec3),
+    node_energy_damping: wp.array(dtype=wp.float64),
+    node_energy_boundary_work: wp.array(dtype=wp.float64),
+):
+    i = wp.tid()  # one thread per FEM node slot
+    if i >= node_count[0]:
+        return
+    # Second half of step n (started at t_n = time), then first half of step n + 1 (t_n + dt: the clock's own sum,
+    # advanced after this kernel), with the same forces f_{n+1}.
+    free = node_free_directions(node_motion[i])
+    t_n = time[0]
+    v, work = node_second_half_velocity(
+        i, dt, gravity, t_n, free, node_qd[i], node_mass, node_inv_mass, node_driver, drivers, num_drivers, node_f
+    )
+    v, work_next = node_first_half_velocity(
+        i, dt, gravity, t_n + dt64, free, v, node_mass, node_inv_mass, node_driver, drivers, num_drivers, node_f
+    )
+    if work != 0.0 or work_next != 0.0:
+        node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(work) + wp.float64(work_next)
+    node_qd[i] = v
+    drift_node(i, dt, v, node_ref_q, node_mass, node_damping, node_u, node_q, node_f, node_energy_damping)
 
 
 @wp.kernel

@@ -425,7 +425,7 @@ def test_time_advances_on_the_device_in_a_captured_graph(device):
     np.testing.assert_array_equal(state.time.numpy(), [0.0])
     sim = Simulation(model, state)
     sim.advance(37)
-    assert sim._graph is not None or not sim.use_graph
+    assert sim._graphs is not None or not sim.use_graph
     np.testing.assert_allclose(state.time.numpy()[0], 37 * model.dt, rtol=1e-14)
     np.testing.assert_allclose(sim.time, state.time.numpy()[0], rtol=1e-14)
     # A simulation made on that state reads its clock; one given a time sets it.

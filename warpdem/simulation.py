@@ -33,7 +33,7 @@ from .bonds import bond_energy, compact_bonds, eval_bonds
 from .compaction import Compactor
 from .contact import NeighborList, contact_energy, eval_contacts
 from .fem_contact import FemContact, fem_contact_energy, fem_contact_growth, regrow_fem_contacts
-from .integrate import integrate_first_half, integrate_second_half
+from .integrate import integrate_first_half, integrate_second_half, kick_drift
 from .loads import eval_loads, relax_to_equilibrium
 from .model import NEIGHBOR_FIELDS, Model, State
 from .tets import eval_tet_stresses, eval_tets, tet_energy
@@ -152,13 +152,18 @@ class Simulation:
         self.fem_contact = FemContact(self.model, self.state, self.has_spheres) if self.model.face_capacity else None
         self.bond_compactor = Compactor(self.model.bond_capacity, self.model.device)
         self._snapshot: State | None = None
-        self._graph = None
+        self._graphs: tuple | None = None
 
     # ------------------------------------------------------------------------------------------------------------
     def step(self) -> None:
         """One time step, the stages in the order of the physics (launches only)."""
+        integrate_first_half(self.model, self.state)
+        self._forces()
+        integrate_second_half(self.model, self.state)
+
+    def _forces(self) -> None:
+        """Stages 2–6 of a step: every force at the drifted positions (launches only)."""
         m, s = self.model, self.state
-        integrate_first_half(m, s)
         eval_tets(m, s)
         if self.has_spheres:
             self.neighbors.rebuild_if_needed()
@@ -167,7 +172,20 @@ class Simulation:
             self.fem_contact.eval(self.track_energy)
         eval_bonds(m, s)
         eval_loads(m, s)
-        integrate_second_half(m, s)
+
+    def _head(self) -> None:
+        """First half of the first step of a run, and its forces."""
+        integrate_first_half(self.model, self.state)
+        self._forces()
+
+    def _body(self) -> None:
+        """Second half of a step, first half of the next (one pass: warpdem.integrate.kick_drift), its forces."""
+        kick_drift(self.model, self.state)
+        self._forces()
+
+    def _tail(self) -> None:
+        """Second half of the last step of a run."""
+        integrate_second_half(self.model, self.state)
 
     def evaluate_forces(self) -> None:
         """Forces at the current positions without advancing time or history (the set-up evaluation)."""
@@ -195,26 +213,33 @@ class Simulation:
         return steps
 
     def _run(self, n_steps: int) -> None:
-        if not self.use_graph or n_steps < 2:
-            for _ in range(n_steps):
-                self.step()
+        """n steps as head, n - 1 bodies, tail: bit for bit n calls of :meth:`step`, with one pass over the sphere and
+        node arrays fewer per step. Under a graph each of the three parts is a captured graph, replayed."""
+        if n_steps <= 0:
             return
-        if self._graph is None:
-            # The first step compiles the kernels outside the capture; the rest replay the recorded step.
-            self.step()
-            n_steps -= 1
+        parts = (self._head, self._body, self._tail)
+        sequence = [0] + [1] * (n_steps - 1) + [2]
+        if self.use_graph and self._graphs is None:
+            # The first head runs eagerly, compiling every kernel of the step outside a capture; the three parts are
+            # then recorded (not run) for replay.
+            self._head()
+            sequence = sequence[1:]
             try:
-                with wp.ScopedCapture(device=self.model.device) as capture:
-                    self.step()
+                graphs = []
+                for part in parts:
+                    with wp.ScopedCapture(device=self.model.device) as capture:
+                        part()
+                    graphs.append(capture.graph)
+                self._graphs = tuple(graphs)
             except RuntimeError as exc:
                 # Conditional graph nodes need CUDA 12.4+; without them the same launches run one by one.
                 warnings.warn(f"graph capture unavailable ({exc}); running steps without a graph", stacklevel=2)
                 self.use_graph = False
-                self._run(n_steps)
-                return
-            self._graph = capture.graph
-        for _ in range(n_steps):
-            wp.capture_launch(self._graph)
+        for index in sequence:
+            if self.use_graph:
+                wp.capture_launch(self._graphs[index])
+            else:
+                parts[index]()
 
     def advance(self, n_steps: int) -> None:
         """Run ``n_steps`` steps, then the between-step work: overflow check (grow and redo), bond compaction."""
