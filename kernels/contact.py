@@ -16,6 +16,8 @@ import functools
 
 import warp as wp
 
+from .neighbors import ListSpec, make_list_kernels
+
 wp.set_module_options({"enable_backward": False})
 
 # Motion kinds of a particle (``particle_motion``).
@@ -325,7 +327,7 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
     pair_interaction = laws.pair_interaction
     pair_dissipation = laws.pair_dissipation
 
-    @wp.kernel(module="unique")
+    @wp.kernel(enable_backward=False, module="unique")
     def eval_contacts_kernel(
         # Model:
         particle_radius: wp.array(dtype=float),
@@ -454,7 +456,7 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
             energy_friction[i] = energy_friction[i] + wp.float64(d_fric)
             energy_wall_work[i] = energy_wall_work[i] + wp.float64(w_wall)
 
-    @wp.kernel(module="unique")
+    @wp.kernel(enable_backward=False, module="unique")
     def contact_energy_kernel(
         # Model:
         particle_radius: wp.array(dtype=float),
@@ -543,99 +545,64 @@ def find_bond(bond_key: wp.array(dtype=wp.int64), bond_count: int, key: wp.int64
     return -1
 
 
-@wp.kernel
-def build_neighbors_kernel(
-    # Model:
-    particle_radius: wp.array(dtype=float),
-    max_neighbors: int,
-    skin: float,
-    search_radius: float,
-    # State in:
-    grid: wp.uint64,
-    particle_count: wp.array(dtype=int),
-    particle_q: wp.array(dtype=wp.vec3),
-    nbr_count: wp.array(dtype=int),
-    nbr_index: wp.array(dtype=int),
-    nbr_shear: wp.array(dtype=wp.vec3),
-    nbr_bond: wp.array(dtype=int),
-    bond_count: wp.array(dtype=int),
-    bond_key: wp.array(dtype=wp.int64),
-    # Out:
-    new_count: wp.array(dtype=int),
-    new_index: wp.array(dtype=int),
-    new_shear: wp.array(dtype=wp.vec3),
-    new_bond: wp.array(dtype=int),
-    particle_q_at_build: wp.array(dtype=wp.vec3),
-    nbr_needed: wp.array(dtype=int),
-):
-    i = wp.tid()  # one thread per particle slot
-    n_live = particle_count[0]
-    if i >= n_live:
-        return
-    xi = particle_q[i]
-    ri = particle_radius[i]
-    old_n = wp.min(nbr_count[i], max_neighbors)
-    n_bonds = bond_count[0]
-    count = int(0)
-    query = wp.hash_grid_query(grid, xi, search_radius)
-    for j in query:
-        if j <= i or j >= n_live:
-            continue
-        cutoff = ri + particle_radius[j] + skin
-        d = xi - particle_q[j]
-        if wp.dot(d, d) >= cutoff * cutoff:
-            continue
-        if count < max_neighbors:
-            slot = i * max_neighbors + count
-            new_index[slot] = j
-            # Carry the pair's history over from the previous list; a pair that is new starts untouched.
-            shear = wp.vec3(0.0)
-            bond = int(-1)
-            found = int(0)
-            for s in range(old_n):
-                if nbr_index[i * max_neighbors + s] == j:
-                    shear = nbr_shear[i * max_neighbors + s]
-                    bond = nbr_bond[i * max_neighbors + s]
-                    found = 1
-                    break
-            if found == 0:
-                bond = find_bond(bond_key, n_bonds, wp.int64(i) * wp.int64(particle_q.shape[0]) + wp.int64(j))
-            new_shear[slot] = shear
-            new_bond[slot] = bond
-        count += 1
-    new_count[i] = count
-    particle_q_at_build[i] = xi
-    wp.atomic_max(nbr_needed, 0, count)
+@wp.struct
+class NeighborInputs:
+    """What the sphere–sphere candidate test and the bond look-up read (kernels/neighbors.py ``ListSpec.inputs``):
+    the Model/State arrays of those names, the skin [m] and the query radius 2 r_max + skin [m]."""
+
+    particle_radius: wp.array(dtype=float)
+    particle_q: wp.array(dtype=wp.vec3)
+    skin: float
+    search_radius: float
+    bond_count: wp.array(dtype=int)
+    bond_key: wp.array(dtype=wp.int64)
 
 
-@wp.kernel
-def commit_neighbors_kernel(
-    # Model:
-    max_neighbors: int,
-    # In:
-    particle_count: wp.array(dtype=int),
-    new_count: wp.array(dtype=int),
-    new_index: wp.array(dtype=int),
-    new_shear: wp.array(dtype=wp.vec3),
-    new_bond: wp.array(dtype=int),
-    # State out:
-    nbr_count: wp.array(dtype=int),
-    nbr_index: wp.array(dtype=int),
-    nbr_shear: wp.array(dtype=wp.vec3),
-    nbr_bond: wp.array(dtype=int),
-    rebuild_flag: wp.array(dtype=int),
-    rebuild_total: wp.array(dtype=int),
-):
-    i = wp.tid()  # one thread per particle slot
-    if i == 0:
-        rebuild_flag[0] = 0
-        rebuild_total[0] = rebuild_total[0] + 1
-    if i >= particle_count[0]:
-        return
-    n = wp.min(new_count[i], max_neighbors)
-    nbr_count[i] = new_count[i]
-    for s in range(n):
-        slot = i * max_neighbors + s
-        nbr_index[slot] = new_index[slot]
-        nbr_shear[slot] = new_shear[slot]
-        nbr_bond[slot] = new_bond[slot]
+@wp.struct
+class NeighborHistory:
+    """Per-slot history of the sphere–sphere list: ``nbr_shear`` and ``nbr_bond`` (or their scratch copies)."""
+
+    shear: wp.array(dtype=wp.vec3)
+    bond: wp.array(dtype=int)
+
+
+@wp.func
+def neighbor_search_radius(inputs: NeighborInputs, i: int) -> float:
+    return inputs.search_radius
+
+
+@wp.func
+def is_neighbor_candidate(inputs: NeighborInputs, i: int, xi: wp.vec3, j: int) -> bool:
+    """Half list: j > i, within r_i + r_j + skin."""
+    if j <= i:
+        return False
+    cutoff = inputs.particle_radius[i] + inputs.particle_radius[j] + inputs.skin
+    d = xi - inputs.particle_q[j]
+    return not (wp.dot(d, d) >= cutoff * cutoff)  # not ≥ rather than <: a NaN distance keeps the pair
+
+
+@wp.func
+def copy_neighbor_history(src: NeighborHistory, src_slot: int, dst: NeighborHistory, dst_slot: int):
+    dst.shear[dst_slot] = src.shear[src_slot]
+    dst.bond[dst_slot] = src.bond[src_slot]
+
+
+@wp.func
+def fresh_neighbor_history(inputs: NeighborInputs, history: NeighborHistory, slot: int, i: int, j: int):
+    """A pair new to the list starts untouched, with its bond if it has one."""
+    history.shear[slot] = wp.vec3(0.0)
+    key = wp.int64(i) * wp.int64(inputs.particle_q.shape[0]) + wp.int64(j)
+    history.bond[slot] = find_bond(inputs.bond_key, inputs.bond_count[0], key)
+
+
+NEIGHBOR_LIST = make_list_kernels(
+    ListSpec(
+        inputs=NeighborInputs,
+        radius=neighbor_search_radius,
+        accept=is_neighbor_candidate,
+        history=NeighborHistory,
+        copy=copy_neighbor_history,
+        fresh=fresh_neighbor_history,
+    )
+)
+"""Build and commit kernels of the sphere–sphere half list."""

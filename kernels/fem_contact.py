@@ -47,6 +47,7 @@ from .contact import (
     rotate_into_plane,
 )
 from .joints import JointMaterial, local_index, tet_face, triangle_area_vector, youngs_modulus
+from .neighbors import ListSpec, make_list_kernels
 from .tets import TetMaterial
 
 wp.set_module_options({"enable_backward": False})
@@ -333,14 +334,15 @@ def flag_fem_rebuild_kernel(
     node_q: wp.array(dtype=wp.vec3),
     node_q_at_fem_build: wp.array(dtype=wp.vec3),
     rebuild_total: wp.array(dtype=int),
-    fem_sphere_builds_seen: wp.array(dtype=int),
     # State out:
+    fem_sphere_builds_seen: wp.array(dtype=int),
     fem_rebuild_flag: wp.array(dtype=int),
 ):
     v = wp.tid()  # one thread per node slot
     if v == 0:
         if rebuild_total[0] != fem_sphere_builds_seen[0]:
             fem_rebuild_flag[0] = 1
+            fem_sphere_builds_seen[0] = rebuild_total[0]  # the rebuild this flag triggers sees the new sphere list
     if v >= node_count[0]:
         return
     if node_contact_stiffness[v] == 0.0:
@@ -368,179 +370,135 @@ def face_centers_kernel(
     face_center[f] = (node_q[n[0]] + node_q[n[1]] + node_q[n[2]]) / 3.0
 
 
-@wp.kernel
-def build_sphere_faces_kernel(
-    # Model:
-    particle_radius: wp.array(dtype=float),
-    face_nodes: wp.array(dtype=wp.vec3i),
-    max_sphere_faces: int,
-    margin: float,
-    face_radius: float,
-    # State in:
-    grid: wp.uint64,
-    particle_count: wp.array(dtype=int),
-    particle_q: wp.array(dtype=wp.vec3),
-    face_count: wp.array(dtype=int),
-    node_q: wp.array(dtype=wp.vec3),
-    sphere_face_count: wp.array(dtype=int),
-    sphere_face_index: wp.array(dtype=int),
-    sphere_face_shear: wp.array(dtype=wp.vec3),
-    # Out:
-    new_count: wp.array(dtype=int),
-    new_index: wp.array(dtype=int),
-    new_shear: wp.array(dtype=wp.vec3),
-    sphere_face_needed: wp.array(dtype=int),
-):
-    i = wp.tid()  # one thread per particle slot
-    if i >= particle_count[0]:
-        return
-    x = particle_q[i]
-    cutoff = particle_radius[i] + margin
-    n_faces = face_count[0]
-    old_n = wp.min(sphere_face_count[i], max_sphere_faces)
-    count = int(0)
-    query = wp.hash_grid_query(grid, x, cutoff + face_radius)
-    for f in query:
-        if f >= n_faces:
-            continue
-        fn = face_nodes[f]
-        a = node_q[fn[0]]
-        b = node_q[fn[1]]
-        c = node_q[fn[2]]
-        w = closest_point_barycentric(x, a, b, c)
-        d = x - (w[0] * a + w[1] * b + w[2] * c)
-        if wp.dot(d, d) >= cutoff * cutoff:
-            continue
-        if count < max_sphere_faces:
-            slot = i * max_sphere_faces + count
-            new_index[slot] = f
-            # Carry the pair's spring over from the previous list; a new pair starts untouched.
-            shear = wp.vec3(0.0)
-            for s in range(old_n):
-                if sphere_face_index[i * max_sphere_faces + s] == f:
-                    shear = sphere_face_shear[i * max_sphere_faces + s]
-                    break
-            new_shear[slot] = shear
-        count += 1
-    new_count[i] = count
-    wp.atomic_max(sphere_face_needed, 0, count)
+@wp.struct
+class SphereFaceInputs:
+    """What the sphere–face candidate test reads (kernels/neighbors.py ``ListSpec.inputs``): the Model/State arrays
+    of those names; ``margin``, how far beyond its radius a sphere keeps a face (sphere skin + fem_skin / 2) [m]; and
+    ``face_radius``, the largest centroid–vertex distance of a face [m] (the grid holds the faces' centroids)."""
+
+    particle_radius: wp.array(dtype=float)
+    face_nodes: wp.array(dtype=wp.vec3i)
+    node_q: wp.array(dtype=wp.vec3)
+    margin: float
+    face_radius: float
 
 
-@wp.kernel
-def commit_sphere_faces_kernel(
-    # Model:
-    max_sphere_faces: int,
-    # In:
-    particle_count: wp.array(dtype=int),
-    new_count: wp.array(dtype=int),
-    new_index: wp.array(dtype=int),
-    new_shear: wp.array(dtype=wp.vec3),
-    # State out:
-    sphere_face_count: wp.array(dtype=int),
-    sphere_face_index: wp.array(dtype=int),
-    sphere_face_shear: wp.array(dtype=wp.vec3),
-):
-    i = wp.tid()  # one thread per particle slot
-    if i >= particle_count[0]:
-        return
-    sphere_face_count[i] = new_count[i]
-    for s in range(wp.min(new_count[i], max_sphere_faces)):
-        slot = i * max_sphere_faces + s
-        sphere_face_index[slot] = new_index[slot]
-        sphere_face_shear[slot] = new_shear[slot]
+@wp.struct
+class SphereFaceHistory:
+    """Per-slot history of the sphere–face list: ``sphere_face_shear`` (or its scratch copy)."""
+
+    shear: wp.array(dtype=wp.vec3)
 
 
-@wp.kernel
-def build_node_faces_kernel(
-    # Model:
-    node_contact_stiffness: wp.array(dtype=float),
-    tet_nodes: wp.array(dtype=wp.vec4i),
-    star_offset: wp.array(dtype=int),
-    star_count: wp.array(dtype=int),
-    star_tets: wp.array(dtype=int),
-    face_nodes: wp.array(dtype=wp.vec3i),
-    face_depth: wp.array(dtype=float),
-    joint_a: wp.array(dtype=int),
-    joint_b: wp.array(dtype=int),
-    max_node_faces: int,
-    fem_skin: float,
-    search_radius: float,
-    # State in:
-    grid: wp.uint64,
-    node_count: wp.array(dtype=int),
-    node_q: wp.array(dtype=wp.vec3),
-    face_count: wp.array(dtype=int),
-    joint_count: wp.array(dtype=int),
-    joint_broken: wp.array(dtype=int),
-    # State out:
-    node_face_count: wp.array(dtype=int),
-    node_face_index: wp.array(dtype=int),
-    node_face_needed: wp.array(dtype=int),
-):
-    v = wp.tid()  # one thread per node slot; it writes its own list (node history is per node, nothing to carry)
-    if v >= node_count[0]:
-        return
-    if node_contact_stiffness[v] == 0.0:
-        node_face_count[v] = 0
-        return
-    x = node_q[v]
-    n_faces = face_count[0]
-    n_joints = joint_count[0]
-    count = int(0)
-    query = wp.hash_grid_query(grid, x, search_radius)
-    for f in query:
-        if f >= n_faces:
-            continue
-        fn = face_nodes[f]
-        excluded = int(0)
-        for k in range(3):
-            u = fn[k]
-            if in_one_ring(v, u, tet_nodes, star_offset, star_count, star_tets) or held_by_joint(
-                v, u, joint_a, joint_b, n_joints, joint_broken
-            ):
-                excluded = 1
-        if excluded != 0:
-            continue
-        a = node_q[fn[0]]
-        b = node_q[fn[1]]
-        c = node_q[fn[2]]
-        w = closest_point_barycentric(x, a, b, c)
-        d = x - (w[0] * a + w[1] * b + w[2] * c)
-        near = wp.dot(d, d) < fem_skin * fem_skin
-        if not near:
-            # Already deeper than the skin behind the face (a build during a contact) still counts.
-            area2 = wp.cross(b - a, c - a)
-            s = wp.dot(x - a, wp.normalize(area2))
-            if s < 0.0 and -s < face_depth[f]:
-                near = min3(projection_barycentric(x, a, b, c, area2)) >= -BARY_EPS
-        if not near:
-            continue
-        if count < max_node_faces:
-            node_face_index[v * max_node_faces + count] = f
-        count += 1
-    node_face_count[v] = count
-    wp.atomic_max(node_face_needed, 0, count)
+@wp.func
+def sphere_face_search_radius(inputs: SphereFaceInputs, i: int) -> float:
+    return inputs.particle_radius[i] + inputs.margin + inputs.face_radius
 
 
-@wp.kernel
-def finish_fem_rebuild_kernel(
-    # State in:
-    node_count: wp.array(dtype=int),
-    node_q: wp.array(dtype=wp.vec3),
-    rebuild_total: wp.array(dtype=int),
-    # State out:
-    node_q_at_fem_build: wp.array(dtype=wp.vec3),
-    fem_rebuild_flag: wp.array(dtype=int),
-    fem_rebuild_total: wp.array(dtype=int),
-    fem_sphere_builds_seen: wp.array(dtype=int),
-):
-    v = wp.tid()  # one thread per node slot (at least one thread)
-    if v == 0:
-        fem_rebuild_flag[0] = 0
-        fem_rebuild_total[0] = fem_rebuild_total[0] + 1
-        fem_sphere_builds_seen[0] = rebuild_total[0]
-    if v < node_count[0]:
-        node_q_at_fem_build[v] = node_q[v]
+@wp.func
+def is_sphere_face_candidate(inputs: SphereFaceInputs, i: int, x: wp.vec3, f: int) -> bool:
+    """The face's closest point within r + margin of the sphere centre."""
+    cutoff = inputs.particle_radius[i] + inputs.margin
+    fn = inputs.face_nodes[f]
+    a = inputs.node_q[fn[0]]
+    b = inputs.node_q[fn[1]]
+    c = inputs.node_q[fn[2]]
+    w = closest_point_barycentric(x, a, b, c)
+    d = x - (w[0] * a + w[1] * b + w[2] * c)
+    return not (wp.dot(d, d) >= cutoff * cutoff)  # not ≥ rather than <: a NaN distance keeps the pair
+
+
+@wp.func
+def copy_sphere_face_history(src: SphereFaceHistory, src_slot: int, dst: SphereFaceHistory, dst_slot: int):
+    dst.shear[dst_slot] = src.shear[src_slot]
+
+
+@wp.func
+def fresh_sphere_face_history(inputs: SphereFaceInputs, history: SphereFaceHistory, slot: int, i: int, f: int):
+    """A pair new to the list starts untouched."""
+    history.shear[slot] = wp.vec3(0.0)
+
+
+SPHERE_FACE_LIST = make_list_kernels(
+    ListSpec(
+        inputs=SphereFaceInputs,
+        radius=sphere_face_search_radius,
+        accept=is_sphere_face_candidate,
+        history=SphereFaceHistory,
+        copy=copy_sphere_face_history,
+        fresh=fresh_sphere_face_history,
+    )
+)
+"""Build and commit kernels of the sphere–face lists."""
+
+
+@wp.struct
+class NodeFaceInputs:
+    """What the node–face candidate test reads (kernels/neighbors.py ``ListSpec.inputs``): the Model/State arrays of
+    those names, ``fem_skin`` [m] and the query radius face_radius + max(fem_skin, largest face_depth) [m]."""
+
+    node_contact_stiffness: wp.array(dtype=float)
+    tet_nodes: wp.array(dtype=wp.vec4i)
+    star_offset: wp.array(dtype=int)
+    star_count: wp.array(dtype=int)
+    star_tets: wp.array(dtype=int)
+    face_nodes: wp.array(dtype=wp.vec3i)
+    face_depth: wp.array(dtype=float)
+    joint_a: wp.array(dtype=int)
+    joint_b: wp.array(dtype=int)
+    node_q: wp.array(dtype=wp.vec3)
+    joint_count: wp.array(dtype=int)
+    joint_broken: wp.array(dtype=int)
+    fem_skin: float
+    search_radius: float
+
+
+@wp.func
+def node_face_search_radius(inputs: NodeFaceInputs, v: int) -> float:
+    return inputs.search_radius
+
+
+@wp.func
+def on_surface(inputs: NodeFaceInputs, v: int) -> bool:
+    """A node inside the rock is no contact point."""
+    return inputs.node_contact_stiffness[v] != 0.0
+
+
+@wp.func
+def is_node_face_candidate(inputs: NodeFaceInputs, v: int, x: wp.vec3, f: int) -> bool:
+    """No vertex of the face in the node's 1-ring or held to it by an intact joint element; the face's closest point
+    within fem_skin, or the node already behind the face (a build during a contact)."""
+    fn = inputs.face_nodes[f]
+    n_joints = inputs.joint_count[0]
+    for k in range(3):
+        u = fn[k]
+        if in_one_ring(v, u, inputs.tet_nodes, inputs.star_offset, inputs.star_count, inputs.star_tets):
+            return False
+        if held_by_joint(v, u, inputs.joint_a, inputs.joint_b, n_joints, inputs.joint_broken):
+            return False
+    a = inputs.node_q[fn[0]]
+    b = inputs.node_q[fn[1]]
+    c = inputs.node_q[fn[2]]
+    w = closest_point_barycentric(x, a, b, c)
+    d = x - (w[0] * a + w[1] * b + w[2] * c)
+    near = wp.dot(d, d) < inputs.fem_skin * inputs.fem_skin
+    if not near:
+        area2 = wp.cross(b - a, c - a)
+        s = wp.dot(x - a, wp.normalize(area2))
+        if s < 0.0 and -s < inputs.face_depth[f]:
+            near = min3(projection_barycentric(x, a, b, c, area2)) >= -BARY_EPS
+    return near
+
+
+NODE_FACE_LIST = make_list_kernels(
+    ListSpec(
+        inputs=NodeFaceInputs,
+        radius=node_face_search_radius,
+        accept=is_node_face_candidate,
+        active=on_surface,
+    )
+)
+"""Build kernel of the node–face lists (no history: a node's spring follows the node, kernels below)."""
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -609,7 +567,7 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
                     best_f = f
         return best_f
 
-    @wp.kernel(module="unique")
+    @wp.kernel(enable_backward=False, module="unique")
     def eval_sphere_faces_kernel(
         # Model:
         particle_radius: wp.array(dtype=float),
@@ -716,7 +674,7 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
             energy_damping[i] = energy_damping[i] + wp.float64(d_damp)
             energy_friction[i] = energy_friction[i] + wp.float64(d_fric)
 
-    @wp.kernel(module="unique")
+    @wp.kernel(enable_backward=False, module="unique")
     def sphere_face_energy_kernel(
         # Model:
         particle_radius: wp.array(dtype=float),
@@ -919,7 +877,7 @@ def penalty_contact(
 def make_node_contact_kernel(track_energy: bool):
     """The node–face and node–wall force kernel."""
 
-    @wp.kernel(module="unique")
+    @wp.kernel(enable_backward=False, module="unique")
     def eval_node_contacts_kernel(
         # Model:
         node_inv_mass: wp.array(dtype=float),

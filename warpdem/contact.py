@@ -2,7 +2,8 @@
 
 The neighbour list is rebuilt only when some sphere has moved more than half the skin since the last build (the
 integrator raises ``State.rebuild_flag`` on the device). The rebuild is a conditional branch
-(``wp.capture_if``), so the step stays one graph on CPU and CUDA and never reads the flag back to the host.
+(``wp.capture_if``), so the step stays one graph on CPU and CUDA and never reads the flag back to the host. The
+builder is the generic skinned-list builder of :mod:`warpdem.neighbors`.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import warp as wp
 
 from .kernels import contact as kc
 from .model import Model, State
+from .neighbors import SkinnedList, SlotArrays, finish_rebuild, make_struct
 
 
 def hash_grid_dims(n: int) -> int:
@@ -34,57 +36,33 @@ class NeighborList:
         self.state = state
         device = model.device
         cap = model.particle_capacity
-        k = model.max_neighbors
         self.grid = wp.HashGrid(*(hash_grid_dims(cap),) * 3, device=device)
         # Reserve for every slot now, so that a rebuild inside a captured graph never allocates.
         self.grid.reserve(cap)
         self.cell = 2.0 * model.max_radius + model.skin
-        self.new_count = wp.zeros(cap, dtype=int, device=device)
-        self.new_index = wp.zeros(cap * k, dtype=int, device=device)
-        self.new_shear = wp.zeros(cap * k, dtype=wp.vec3, device=device)
-        self.new_bond = wp.zeros(cap * k, dtype=int, device=device)
+        history = {"shear": wp.vec3, "bond": int}
+        self.list = SkinnedList(kc.NEIGHBOR_LIST, cap, model.max_neighbors, device, history)
+        # The scratch list, by name (the benchmark counts its memory).
+        self.new_count, self.new_index = self.list.new.count, self.list.new.index
+        self.new_shear, self.new_bond = self.list.new.history.shear, self.list.new.history.bond
 
     def rebuild(self) -> None:
         """Rebuild the list now (launches only: usable inside a graph capture)."""
         m, s = self.model, self.state
         self.grid.build(s.particle_q, self.cell)
-        wp.launch(
-            kc.build_neighbors_kernel,
-            dim=m.particle_capacity,
-            inputs=[
-                # Model:
-                m.particle_radius,
-                m.max_neighbors,
-                m.skin,
-                self.cell,
-                # State in:
-                self.grid.id,
-                s.particle_count,
-                s.particle_q,
-                s.nbr_count,
-                s.nbr_index,
-                s.nbr_shear,
-                s.nbr_bond,
-                s.bond_count,
-                s.bond_key,
-            ],
-            outputs=[
-                self.new_count,
-                self.new_index,
-                self.new_shear,
-                self.new_bond,
-                s.particle_q_at_build,
-                s.nbr_needed,
-            ],
-            device=m.device,
+        inputs = make_struct(
+            kc.NeighborInputs,
+            particle_radius=m.particle_radius,
+            particle_q=s.particle_q,
+            skin=m.skin,
+            search_radius=self.cell,
+            bond_count=s.bond_count,
+            bond_key=s.bond_key,
         )
-        wp.launch(
-            kc.commit_neighbors_kernel,
-            dim=m.particle_capacity,
-            inputs=[m.max_neighbors, s.particle_count, self.new_count, self.new_index, self.new_shear, self.new_bond],
-            outputs=[s.nbr_count, s.nbr_index, s.nbr_shear, s.nbr_bond, s.rebuild_flag, s.rebuild_total],
-            device=m.device,
-        )
+        history = make_struct(kc.NeighborHistory, shear=s.nbr_shear, bond=s.nbr_bond)
+        lists = SlotArrays(s.nbr_count, s.nbr_index, history)
+        self.list.rebuild(inputs, self.grid, s.particle_count, s.particle_q, s.particle_count, lists, s.nbr_needed)
+        finish_rebuild(s.particle_count, s.particle_q, s.particle_q_at_build, s.rebuild_flag, s.rebuild_total, m.device)
 
     def rebuild_if_needed(self) -> None:
         """Rebuild when the device flag says so: a conditional graph node under capture, a branch otherwise."""

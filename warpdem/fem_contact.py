@@ -11,8 +11,9 @@ back, so it is captured in the step's graph.
 Grid. The faces get their own ``wp.HashGrid`` over their centroids rather than a share of the sphere grid: a
 face's extent (the tet size h) is unrelated to the sphere radii that size the sphere grid's cells, the FEM lists
 are rebuilt on node motion rather than sphere motion, and a model of tets alone has no sphere grid at all. The
-mechanism is the sphere list's: skinned lists with capacities, an overflow counter (the largest count seen),
-growth ×2 between steps with the step redone, and tangential history carried across rebuilds by matching pairs.
+mechanism is the sphere list's, and so is the builder (:mod:`warpdem.neighbors`): skinned lists with capacities, an
+overflow counter (the largest count seen), growth ×2 between steps with the step redone, and tangential history
+carried across rebuilds by matching pairs.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from .kernels import fem_contact as kf
 from .kernels.contact import ContactPair
 from .mesh import TET_FACES
 from .model import Model, State
+from .neighbors import SkinnedList, SlotArrays, finish_rebuild, make_struct
 
 DEFAULT_SKIN_FRACTION = 0.25
 """Default ``fem_skin`` as a fraction of the smallest tet height over a boundary face [-]."""
@@ -269,11 +271,12 @@ class FemContact:
         self.node_search = model.face_radius + max(model.fem_skin, model.face_depth_max)
         self.sphere_search = model.face_radius + (model.max_radius + self.sphere_margin if has_spheres else 0.0)
         self.cell = max(self.node_search, self.sphere_search, 1.0e-6)
-        k = model.max_sphere_faces
-        pcap = model.particle_capacity if has_spheres else 0
-        self.new_count = wp.zeros(pcap, dtype=int, device=d)
-        self.new_index = wp.zeros(pcap * k, dtype=int, device=d)
-        self.new_shear = wp.zeros(pcap * k, dtype=wp.vec3, device=d)
+        self.sphere_faces = None
+        if has_spheres:
+            self.sphere_faces = SkinnedList(
+                kf.SPHERE_FACE_LIST, model.particle_capacity, model.max_sphere_faces, d, {"shear": wp.vec3}
+            )
+        self.node_faces = SkinnedList(kf.NODE_FACE_LIST, model.node_capacity, model.max_node_faces, d)
         self.node_dim = max(model.node_capacity, 1)
 
     def rebuild(self) -> None:
@@ -287,74 +290,41 @@ class FemContact:
             device=d,
         )
         self.grid.build(self.face_center, self.cell)
-        if self.has_spheres:
-            k = m.max_sphere_faces
-            wp.launch(
-                kf.build_sphere_faces_kernel,
-                dim=m.particle_capacity,
-                inputs=[
-                    # Model:
-                    m.particle_radius,
-                    m.face_nodes,
-                    k,
-                    self.sphere_margin,
-                    m.face_radius,
-                    # State in:
-                    self.grid.id,
-                    s.particle_count,
-                    s.particle_q,
-                    s.face_count,
-                    s.node_q,
-                    s.sphere_face_count,
-                    s.sphere_face_index,
-                    s.sphere_face_shear,
-                ],
-                outputs=[self.new_count, self.new_index, self.new_shear, s.sphere_face_needed],
-                device=d,
+        if self.sphere_faces is not None:
+            inputs = make_struct(
+                kf.SphereFaceInputs,
+                particle_radius=m.particle_radius,
+                face_nodes=m.face_nodes,
+                node_q=s.node_q,
+                margin=self.sphere_margin,
+                face_radius=m.face_radius,
             )
-            wp.launch(
-                kf.commit_sphere_faces_kernel,
-                dim=m.particle_capacity,
-                inputs=[k, s.particle_count, self.new_count, self.new_index, self.new_shear],
-                outputs=[s.sphere_face_count, s.sphere_face_index, s.sphere_face_shear],
-                device=d,
+            history = make_struct(kf.SphereFaceHistory, shear=s.sphere_face_shear)
+            lists = SlotArrays(s.sphere_face_count, s.sphere_face_index, history)
+            self.sphere_faces.rebuild(
+                inputs, self.grid, s.particle_count, s.particle_q, s.face_count, lists, s.sphere_face_needed
             )
         if m.node_capacity:
-            wp.launch(
-                kf.build_node_faces_kernel,
-                dim=m.node_capacity,
-                inputs=[
-                    # Model:
-                    m.node_contact_stiffness,
-                    m.tet_nodes,
-                    m.star_offset,
-                    m.star_count,
-                    m.star_tets,
-                    m.face_nodes,
-                    m.face_depth,
-                    m.joint_a,
-                    m.joint_b,
-                    m.max_node_faces,
-                    m.fem_skin,
-                    self.node_search,
-                    # State in:
-                    self.grid.id,
-                    s.node_count,
-                    s.node_q,
-                    s.face_count,
-                    s.joint_count,
-                    s.joint_broken,
-                ],
-                outputs=[s.node_face_count, s.node_face_index, s.node_face_needed],
-                device=d,
+            inputs = make_struct(
+                kf.NodeFaceInputs,
+                node_contact_stiffness=m.node_contact_stiffness,
+                tet_nodes=m.tet_nodes,
+                star_offset=m.star_offset,
+                star_count=m.star_count,
+                star_tets=m.star_tets,
+                face_nodes=m.face_nodes,
+                face_depth=m.face_depth,
+                joint_a=m.joint_a,
+                joint_b=m.joint_b,
+                node_q=s.node_q,
+                joint_count=s.joint_count,
+                joint_broken=s.joint_broken,
+                fem_skin=m.fem_skin,
+                search_radius=self.node_search,
             )
-        wp.launch(
-            kf.finish_fem_rebuild_kernel,
-            dim=self.node_dim,
-            inputs=[s.node_count, s.node_q, s.rebuild_total],
-            outputs=[s.node_q_at_fem_build, s.fem_rebuild_flag, s.fem_rebuild_total, s.fem_sphere_builds_seen],
-            device=d,
-        )
+            lists = SlotArrays(s.node_face_count, s.node_face_index)
+            self.node_faces.rebuild(inputs, self.grid, s.node_count, s.node_q, s.face_count, lists, s.node_face_needed)
+        finish_rebuild(s.node_count, s.node_q, s.node_q_at_fem_build, s.fem_rebuild_flag, s.fem_rebuild_total, d)
 
     def rebuild_if_needed(self) -> None:
         """Rebuild when a node moved half the skin or the sphere list was rebuilt (conditional node under capture)."""
@@ -369,9 +339,8 @@ class FemContact:
                 s.node_q,
                 s.node_q_at_fem_build,
                 s.rebuild_total,
-                s.fem_sphere_builds_seen,
             ],
-            outputs=[s.fem_rebuild_flag],
+            outputs=[s.fem_sphere_builds_seen, s.fem_rebuild_flag],
             device=m.device,
         )
         wp.capture_if(s.fem_rebuild_flag, on_true=self.rebuild)
