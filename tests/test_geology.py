@@ -10,10 +10,16 @@ Tolerances:
   circle of radius R lies inside it by at most the sagitta R (1 − cos(θ/2)), θ = 2 asin(c / 2R); the volume
   error is then between 0 and (curved wall area) × sagitta. ``CHORD_FACTOR`` bounds the wall edges relative to
   the requested size (checked in the tests, so the bound rests on measured edges, not on faith in the mesher).
+- Mesh quality (tunnel in a jointed box, Gmsh optimiser on): ``RADIUS_RATIO_MIN`` is half the smallest radius ratio
+  3 r_in / r_circ (1 for a regular tet) measured with Gmsh 4.15 (0.20), so a change of Gmsh version keeps passing;
+  with the optimiser off the same geometry measures 0.009. The stable step of each tet then has a guaranteed floor
+  ``DT_FLOOR`` × (the step of a regular tet with the tet's longest edge), derived in
+  :func:`test_tunnel_mesh_quality_and_stable_step`.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 import pathlib
 
@@ -39,6 +45,7 @@ from warpdem.geology import (
 REL_FLAT = 1e-9
 NORMAL_TOL = 1e-9
 CHORD_FACTOR = 1.6
+RADIUS_RATIO_MIN = 0.1
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -97,6 +104,19 @@ def assert_valid(mesh: GeologyMesh) -> None:
     assert mesh.joint_faces.shape == (len(mesh.joint_face_set), 3)
     for faces in [mesh.joint_faces, *mesh.boundary_faces.values()]:
         assert faces.size == 0 or (faces.min() >= 0 and faces.max() < n)
+
+
+def radius_ratios(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """3 r_in / r_circ of each tet (1 for a regular tet): r_in = 3V / (face areas), r_circ = |x_c - x_0| with the
+    circumcentre x_c solving 2 (x_k - x_0) · x_c = |x_k|² - |x_0|² for k = 1, 2, 3."""
+    p = points[tets]
+    volume = np.abs(tet_volumes(points, tets))
+    areas = sum(face_areas(points, tets[:, [a, b, c]]) for a, b, c in [(1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2)])
+    lhs = 2.0 * (p[:, 1:] - p[:, :1])
+    rhs = np.sum(p[:, 1:] ** 2, axis=2) - np.sum(p[:, :1] ** 2, axis=2)
+    centre = np.linalg.solve(lhs, rhs[..., None])[..., 0]
+    r_circ = np.linalg.norm(centre - p[:, 0], axis=1)
+    return 3.0 * (3.0 * volume / areas) / r_circ
 
 
 def sagitta(radius: float, chord: float) -> float:
@@ -541,6 +561,97 @@ def test_caller_gmsh_session_is_left_as_found() -> None:
         np.testing.assert_allclose(tet_volumes(mesh.points, mesh.tets).sum(), 1.0, rtol=REL_FLAT)
     finally:
         gmsh.finalize()
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Mesh quality
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def tunnel_in_jointed_box() -> Geology:
+    """A circular tunnel in a 12 × 4 × 10 m box cut by two persistent sets (dipping 60° east and 45° west, 3 m
+    apart), refined to 0.75 m at the wall. The offsets keep joint traces apart near the box edges: the shortest mesh
+    edge is 0.23 m, so no geometric feature forces a sliver."""
+    return Geology(
+        RockMass((0, 0, 0), (12.0, 4.0, 10.0)),
+        openings=[Tunnel("y", (6.0, 5.0), radius=1.5)],
+        joint_sets=[JointSet(60.0, 90.0, 3.0, offset=1.0), JointSet(45.0, 270.0, 3.0, offset=2.0)],
+        h=1.5,
+        h_opening=0.75,
+        refine_distance=2.0,
+    )
+
+
+def test_tunnel_mesh_quality_and_stable_step() -> None:
+    """Gmsh's optimiser leaves no sliver, and every tet's stable step has the floor its radius ratio guarantees.
+
+    Floor: :func:`warpdem.tets.tet_stable_time_steps` gives dt = 2/ω, ω² = (4/ρ) λ_max(2μ diag q + λ √q √qᵀ), q the
+    eigenvalues of Q = Σ_a ∇N_a ∇N_aᵀ. That λ_max ≤ (λ + 2μ) tr Q, and tr Q = Σ_a 1/h_a² ≤ 4/h_min² (h_a the
+    altitudes), so dt ≥ h_min / (2 c_p). A face is at most the sum of the other three (they project onto it), so
+    h_min = 3V/A_max ≥ 6V/ΣA = 2 r_in; the circumsphere holds the longest edge L, r_circ ≥ L/2, so with the radius
+    ratio ρ = 3 r_in / r_circ: r_in ≥ ρ L / 6 and dt ≥ ρ L / (6 c_p). A regular tet of edge L has
+    dt_reg = (L √(2/3) / c_p) √(3(λ+2μ) / (4(3λ+2μ))), so dt ≥ DT_FLOOR · dt_reg(L) with
+    DT_FLOOR = ρ_min / (6 √(2/3) √(3(λ+2μ) / (4(3λ+2μ)))) — 0.030 for ρ_min = 0.1 at ν = 0.25. Measured: 0.16
+    with the optimiser, 0.006 without.
+    """
+    from warpdem.tets import lame_parameters, reference_geometry, tet_stable_time_steps
+
+    mesh = mesh_geology(tunnel_in_jointed_box())
+    assert_valid(mesh)
+    assert_conforming(mesh)
+    ratio = radius_ratios(mesh.points, mesh.tets)
+    worst = int(np.argmin(ratio))
+    assert ratio[worst] >= RADIUS_RATIO_MIN, (
+        f"tet {worst} has radius ratio {ratio[worst]:.4f} < {RADIUS_RATIO_MIN} at {mesh.points[mesh.tets[worst]]}"
+    )
+
+    density, young, poisson = 2650.0, 5.0e10, 0.25
+    lam, mu = lame_parameters(young, poisson)
+    c_p = math.sqrt((lam + 2.0 * mu) / density)
+    regular = math.sqrt(2.0 / 3.0) / c_p * math.sqrt(3.0 * (lam + 2.0 * mu) / (4.0 * (3.0 * lam + 2.0 * mu)))
+    dt_floor = RADIUS_RATIO_MIN / (6.0 * c_p * regular)
+    inv_ref, _ = reference_geometry(mesh.points, mesh.tets)
+    m = len(mesh.tets)
+    dt = tet_stable_time_steps(inv_ref, np.full(m, mu), np.full(m, lam), np.full(m, density), np.zeros(m))
+    p = mesh.points[mesh.tets]
+    longest = np.max(
+        [np.linalg.norm(p[:, i] - p[:, j], axis=1) for i, j in itertools.combinations(range(4), 2)], axis=0
+    )
+    relative = dt / (regular * longest)
+    worst = int(np.argmin(relative))
+    assert relative[worst] >= dt_floor, (
+        f"tet {worst}: stable step {dt[worst]:.3e} s is {relative[worst]:.4f} of a regular tet's with its longest "
+        f"edge {longest[worst]:.3f} m, below the floor {dt_floor:.4f}"
+    )
+
+
+def test_caller_gmsh_settings_do_not_change_the_mesh() -> None:
+    """The optimiser and every other setting the mesh depends on are pinned: a caller's session that turned the
+    optimiser off (and picked other algorithms) gets the same mesh as a fresh one, with no sliver."""
+    import gmsh
+
+    fresh = mesh_geology(tunnel_in_jointed_box())
+    gmsh.initialize(readConfigFiles=False, interruptible=False)
+    try:
+        caller = {
+            "General.Terminal": 0,
+            "Mesh.Optimize": 0,
+            "Mesh.OptimizeThreshold": 0.1,
+            "Mesh.OptimizeNetgen": 1,
+            "Mesh.Algorithm": 5,
+            "Mesh.Smoothing": 0,
+        }
+        for name, value in caller.items():
+            gmsh.option.setNumber(name, value)
+        mesh = mesh_geology(tunnel_in_jointed_box())
+        for name, value in caller.items():
+            assert gmsh.option.getNumber(name) == value, name
+    finally:
+        gmsh.finalize()
+    np.testing.assert_array_equal(mesh.points, fresh.points)
+    np.testing.assert_array_equal(mesh.tets, fresh.tets)
+    np.testing.assert_array_equal(mesh.joint_faces, fresh.joint_faces)
+    assert radius_ratios(mesh.points, mesh.tets).min() >= RADIUS_RATIO_MIN
 
 
 def assert_one_line_error(excinfo: pytest.ExceptionInfo, path: pathlib.Path, *words: str) -> None:

@@ -542,6 +542,36 @@ MESH_BAD_SCENES = [
         "give 'material' or 'material_map', not both",
     ),
     (
+        "file_joint_group_negative_friction",
+        MINIMAL + '\n[mesh]\nkind = "file"\npath = "rock.msh"\n[mesh.joint_groups.bedding]\nfriction = -0.2\n',
+        "mesh.joint_groups.bedding.friction",
+        "greater than or equal to 0 (got -0.2)",
+    ),
+    (
+        "file_joint_group_geology_key",
+        MINIMAL + '\n[mesh]\nkind = "file"\npath = "rock.msh"\n[mesh.joint_groups.bedding]\ndip = 30.0\n',
+        "mesh.joint_groups.bedding.dip",
+        "unknown key; allowed keys: friction, cohesion, tensile_strength, stiffness_factor",
+    ),
+    (
+        "file_joint_groups_not_array_or_table",
+        MINIMAL + '\n[mesh]\nkind = "file"\npath = "rock.msh"\njoint_groups = "bedding"\n',
+        "mesh.joint_groups",
+        "must be an array of triangle group names or a table of group name -> joint properties",
+    ),
+    (
+        "file_joint_groups_listed_twice",
+        MINIMAL + '\n[mesh]\nkind = "file"\npath = "rock.msh"\njoint_groups = ["bedding", "bedding"]\n',
+        "mesh.joint_groups",
+        "group 'bedding' is listed twice",
+    ),
+    (
+        "geology_joint_set_restitution_zero",
+        edit("spacing = 3.0", "spacing = 3.0\nrestitution = 0.0", base=GEOLOGY_BASE),
+        "mesh.joint_sets[0].restitution",
+        "greater than 0 (got 0.0)",
+    ),
+    (
         "negative_joint_default",
         MESH_BASE + "\n[joints]\ncohesion = -1.0\n",
         "joints.cohesion",

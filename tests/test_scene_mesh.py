@@ -4,7 +4,9 @@ builder.
 Oracles: box face sets against the analytic box (4 n_a n_b triangles per face, all nodes on the plane, outward unit
 normals exactly ±e_axis); region selections against the named sets they coincide with; the builder's continuum
 properties against the scene's material values; a mesh file written by warpdem.geology.write_mesh and read back
-through a scene gives the same tets; layer materials by tet centroid height.
+through a scene gives the same tets; layer materials by tet centroid height; per-group joint properties of a mesh
+file on the device, each joint face identified by the plane it lies on (not by its set id) and checked against the
+scene's value for that plane's group, or the [joints] default it does not set.
 """
 
 from __future__ import annotations
@@ -14,9 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from warpdem.builder import NODE_MOTIONS, scene_builder
-from warpdem.geology import write_mesh
-from warpdem.mesh import boundary_faces
+from warpdem.builder import NODE_MOTIONS, finalize_scene, scene_builder
+from warpdem.geology import GeologyMesh, write_mesh
+from warpdem.mesh import TET_FACES, boundary_faces
 from warpdem.scene import Material, Region, SceneError, parse_scene
 from warpdem.scene_mesh import box_face_sets, face_normals, nodes_of_selection, rock_mesh, select_faces
 from warpdem.tets import TetProps
@@ -124,6 +126,20 @@ def test_layered_geology_materials_by_height():
     np.testing.assert_allclose(volume, 32.0, rtol=1e-9)
 
 
+def test_geology_joint_sets_get_their_own_properties():
+    """Each geology joint set's own values, the [joints] defaults for the rest, on the builder's joint sets."""
+    sets = [
+        {"name": "bedding", "dip": 0.0, "dip_direction": 0.0, "spacing": 5.0, "offset": 1.0, "stiffness_factor": 2.0},
+        {"dip": 90.0, "dip_direction": 90.0, "spacing": 5.0, "offset": 1.0, "friction": 0.3, "restitution": 0.8},
+    ]
+    mesh = {"kind": "geology", "lo": [0.0, 0.0, 0.0], "hi": [2.0, 2.0, 2.0], "material": "rock", "h": 1.0}
+    b = scene_builder(parse_scene(scene_with({**mesh, "joint_sets": sets}, joints={"friction": 0.7})))
+    assert b.joint_set_names == ["bedding", "joint1"]
+    bedding, steep = b.joint_sets
+    assert (bedding.friction, bedding.stiffness_factor, bedding.restitution) == (0.7, 2.0, 0.5)
+    assert (steep.friction, steep.stiffness_factor, steep.restitution) == (0.3, 1.0, 0.8)
+
+
 def test_file_mesh_through_a_scene(tmp_path: Path):
     box = rock_mesh(parse_scene(scene_with(BOX)))
     box.material_names = ["granite"]
@@ -148,6 +164,102 @@ def test_file_mesh_through_a_scene(tmp_path: Path):
     broken.write_text("not a mesh\n")
     with pytest.raises(SceneError, match=r"^t: mesh.path: .*broken.msh: cannot read as gmsh"):
         rock_mesh(parse_scene(scene_with({"kind": "file", "path": str(broken), "material": "rock"})))
+
+
+CUBE = {"kind": "box", "lo": [0.0, 0.0, 0.0], "hi": [1.0, 1.0, 1.0], "divisions": [2, 2, 2], "material": "rock"}
+# Joint groups of the mesh file: each is the plane {axis = 0.5} of the unit cube.
+PLANES = {"bedding": 2, "fault": 0}
+
+
+def two_joint_group_file(tmp_path: Path) -> Path:
+    """A unit-cube mesh file whose triangle groups 'bedding' (z = 0.5) and 'fault' (x = 0.5) are the interior tet
+    faces on those planes, with the six box faces as further groups."""
+    cube = rock_mesh(parse_scene(scene_with(CUBE)))
+    faces = np.unique(np.sort(cube.tets[:, TET_FACES].reshape(-1, 3), axis=1), axis=0)
+    on = [np.all(cube.points[faces][:, :, axis] == 0.5, axis=1) for axis in PLANES.values()]
+    mesh = GeologyMesh(
+        points=cube.points,
+        tets=cube.tets,
+        tet_block=cube.tet_block,
+        tet_material=cube.tet_material,
+        material_names=["granite"],
+        joint_faces=np.concatenate([faces[m] for m in on]),
+        joint_face_set=np.concatenate([np.full(int(m.sum()), k) for k, m in enumerate(on)]),
+        joint_set_names=list(PLANES),
+        boundary_faces=cube.boundary_faces,
+        num_blocks=1,
+    )
+    path = tmp_path / "jointed.msh"
+    write_mesh(path, mesh)
+    return path
+
+
+def test_file_joint_groups_get_their_own_properties(tmp_path: Path):
+    from warpdem.restitution import restitution_linear
+
+    path = two_joint_group_file(tmp_path)
+    defaults = {"friction": 0.6, "cohesion": 0.0, "tensile_strength": 0.0, "stiffness_factor": 1.0}
+    defaults |= {"restitution": 0.5, "shear_stiffness_ratio": 0.5}
+    groups = {
+        "bedding": {"friction": 0.2, "cohesion": 1.0e5, "tensile_strength": 2.0e5, "restitution": 0.9},
+        "fault": {"friction": 0.9, "stiffness_factor": 2.0, "shear_stiffness_ratio": 0.3},
+    }
+    mesh = {"kind": "file", "path": str(path), "material": "rock", "joint_groups": groups}
+    scene = parse_scene(scene_with(mesh, joints=defaults))
+    model, state = finalize_scene(scene, scene_builder(scene), "cpu")
+
+    # Every joint face on the device: the plane it lies on names its group; its set's properties are that group's.
+    count = int(state.face_count.numpy()[0])
+    face_set = model.face_joint.numpy()[:count]
+    nodes = model.face_nodes.numpy()[:count][face_set >= 0]
+    x = model.node_ref_q.numpy()[nodes]  # (F, 3 nodes, 3)
+    table = model.joint_material_table.numpy()
+    seen = set()
+    for corners, k in zip(x, face_set[face_set >= 0], strict=True):
+        group = [name for name, axis in PLANES.items() if np.all(corners[:, axis] == 0.5)]
+        assert len(group) == 1, f"joint face at {corners.tolist()} is on no joint plane"
+        want = defaults | groups[group[0]]
+        got = table[k]
+        np.testing.assert_allclose(got["contact"]["friction"], want["friction"], rtol=1e-6)
+        np.testing.assert_allclose(got["contact"]["kt_ratio"], want["shear_stiffness_ratio"], rtol=1e-6)
+        np.testing.assert_allclose(restitution_linear(float(got["contact"]["damp_n"])), want["restitution"], rtol=1e-5)
+        np.testing.assert_allclose(got["cohesion"], want["cohesion"], rtol=1e-6)
+        np.testing.assert_allclose(got["tensile_strength"], want["tensile_strength"], rtol=1e-6)
+        np.testing.assert_allclose(got["stiffness_factor"], want["stiffness_factor"], rtol=1e-6)
+        assert got["bonded"] == int(want["cohesion"] > 0 or want["tensile_strength"] > 0)
+        seen.add(group[0])
+    assert seen == set(PLANES)  # both sides of both joints are surface faces after the pre-split
+
+    # Only the bonded bedding joint has interface elements: every one joins two copies of a node on z = 0.5.
+    assert model.joint_capacity > 0
+    a, b = model.joint_a.numpy(), model.joint_b.numpy()
+    ref = model.node_ref_q.numpy()
+    np.testing.assert_array_equal(ref[a][:, 2], 0.5)
+    np.testing.assert_array_equal(ref[a], ref[b])
+    for k in np.unique(model.joint_set.numpy()):
+        np.testing.assert_allclose(table[k]["cohesion"], groups["bedding"]["cohesion"], rtol=1e-6)
+
+
+def test_file_joint_group_selection_and_errors(tmp_path: Path):
+    path = two_joint_group_file(tmp_path)
+
+    def mesh(**extra) -> dict:
+        return {"kind": "file", "path": str(path), "material": "rock", **extra}
+
+    # The array form still selects groups (properties from [joints]); unlisted groups are face sets.
+    listed = rock_mesh(parse_scene(scene_with(mesh(joint_groups=["fault"]))))
+    assert listed.joint_set_names == ["fault"] and "bedding" in listed.boundary_faces
+    np.testing.assert_array_equal(listed.points[listed.joint_faces][:, :, 0], 0.5)
+    # Without joint_groups only names starting with 'joint' are joints: none here.
+    assert rock_mesh(parse_scene(scene_with(mesh()))).joint_set_names == []
+
+    with pytest.raises(SceneError) as excinfo:
+        rock_mesh(parse_scene(scene_with(mesh(joint_groups={"bedding": {}, "faults": {"friction": 0.1}}))))
+    message = str(excinfo.value)
+    assert message.startswith("t: mesh.joint_groups: ") and str(path) in message, message
+    assert "no triangle group 'faults'" in message and "'bedding', 'fault'" in message and "'z+'" in message, message
+    with pytest.raises(SceneError, match=r"mesh.joint_groups.fault.friction: .*greater than or equal to 0"):
+        parse_scene(scene_with(mesh(joint_groups={"fault": {"friction": -0.1}})))
 
 
 def test_scene_without_spheres_or_mesh_is_refused():

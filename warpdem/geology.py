@@ -65,6 +65,11 @@ OPENING_FACE_NAME = "opening"
 # every boolean intersection with the box faces is transversal rather than coincident.
 _MARGIN = 0.05
 
+OPTIMIZE_THRESHOLD = 0.5
+"""Gmsh optimises the tets whose quality gamma (inradius over longest edge, 1 for a regular tet) is below this.
+Gmsh's default is 0.3; 0.5 raises the tets' stable time step of the non-persistent tunnel scene by 21 % and the
+smallest dihedral angle of the slope scene from 13° to 18°."""
+
 # Points closer than this fraction of the box diagonal count as coincident (plane on a box face, polygon
 # vertices merged after clipping, mesh nodes on a box face).
 _REL_TOL = 1e-9
@@ -80,7 +85,16 @@ _SURFACE_CELLS = {"triangle"}
 
 
 class MeshImportError(ValueError):
-    """A mesh file cannot be used as a geology mesh; the message is one line naming the file and the problem."""
+    """A mesh file cannot be used as a geology mesh; the message is one line naming the file and the problem.
+
+    Attributes:
+        argument: The :func:`read_mesh` argument the problem is about (``"material_map"``, ``"joint_groups"``), or
+            None for a problem of the file itself.
+    """
+
+    def __init__(self, message: str, argument: str | None = None) -> None:
+        super().__init__(message)
+        self.argument = argument
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -655,7 +669,13 @@ def mesh_geology(geology: Geology) -> GeologyMesh:
 
     The Gmsh OCC model is the box minus the openings, fragmented by the layer tops and by every joint surface;
     joint pieces outside the box or inside an opening are removed. Each resulting volume is one rock block.
-    Meshing is single-threaded Delaunay, so equal inputs give identical meshes.
+    Meshing is single-threaded Delaunay, so equal inputs give identical meshes. Gmsh's tetrahedral optimiser then
+    improves every tet whose quality is below :data:`OPTIMIZE_THRESHOLD` by edge and face swaps and node
+    relocation; nodes on joints, layers and walls stay on their surfaces, so the mesh still conforms. Without it,
+    Delaunay leaves slivers (radius ratio down to 3e-4) that cut the tets' stable time step 20 to 240 times on the
+    repository's jointed scenes. The worst tets that remain sit in geometric features smaller than ``h`` (joints
+    crossing each other or a box face within a fraction of ``h`` of an edge), which no optimiser can remove: there
+    the step is set by the feature's size.
 
     Args:
         geology: The rock mass, openings, joint sets, mesh size and seed.
@@ -687,6 +707,12 @@ def mesh_geology(geology: Geology) -> GeologyMesh:
         "Mesh.MeshSizeFromCurvature": 0,
         "Mesh.MeshSizeExtendFromBoundary": 0 if refine else 1,
         "Mesh.MeshSizeFromPoints": 0 if refine else 1,
+        "Mesh.Algorithm": 6,  # Frontal-Delaunay surfaces
+        "Mesh.Smoothing": 1,
+        "Mesh.QualityType": 2,  # gamma (inradius / longest edge): the quality the optimiser works on
+        "Mesh.Optimize": 1,
+        "Mesh.OptimizeThreshold": OPTIMIZE_THRESHOLD,
+        "Mesh.OptimizeNetgen": 0,  # adds ~70 % tets and lowers the stable step on jointed models
     }
 
     started = not gmsh.isInitialized()
@@ -929,8 +955,8 @@ def _row_lookup(table: np.ndarray, rows: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------------------------
 
 
-def _import_error(path: pathlib.Path, problem: str) -> MeshImportError:
-    return MeshImportError(f"{path}: {' '.join(problem.split())}")
+def _import_error(path: pathlib.Path, problem: str, argument: str | None = None) -> MeshImportError:
+    return MeshImportError(f"{path}: {' '.join(problem.split())}", argument)
 
 
 def read_mesh(
@@ -956,7 +982,7 @@ def read_mesh(
         path: Mesh file.
         material_map: Group tag or group name → material name. When given, every tet group must appear in it.
         material_array: Name of the tet cell-data array holding the material groups.
-        joint_groups: Names of the triangle groups that are joints.
+        joint_groups: Names of the triangle groups that are joints; each must be a triangle group of the file.
 
     Returns:
         The mesh, with unused nodes dropped and tets positively oriented.
@@ -964,7 +990,7 @@ def read_mesh(
     Raises:
         MeshImportError: If the file is missing, of unknown format or unreadable, has no tetrahedra, has other
             volume cells (hexahedra, wedges, pyramids, quadratic tets), has triangles that are not tet faces,
-            or has a tet group missing from ``material_map``.
+            has a tet group missing from ``material_map``, or lacks a group named in ``joint_groups``.
     """
     import meshio
 
@@ -1031,6 +1057,7 @@ def read_mesh(
                     raise _import_error(
                         path,
                         f"tet physical group {label} is not in material_map (keys: {sorted(map(str, material_map))})",
+                        "material_map",
                     )
                 resolved.append(material_map[key])
         material_names = list(dict.fromkeys(resolved))
@@ -1039,20 +1066,30 @@ def read_mesh(
 
     joint_parts, joint_set_parts, boundary_parts = [], [], {}
     joint_set_names: list[str] = []
+    tris = np.zeros((0, 3), np.int64)
+    tri_groups = np.zeros(0, np.int64)
     if tri_blocks:
         tris = np.concatenate([np.asarray(raw.cells[i].data, dtype=np.int64) for i in tri_blocks])
         tri_groups = cell_array("gmsh:physical", tri_blocks)
         tri_groups = np.zeros(len(tris), np.int64) if tri_groups is None else tri_groups.astype(np.int64)
-        for t in np.unique(tri_groups):
-            name = names_by_dim[2].get(int(t), str(int(t)))
-            faces = tris[tri_groups == t]
-            is_joint = name in joint_groups if joint_groups is not None else name.lower().startswith("joint")
-            if is_joint:
-                joint_parts.append(faces)
-                joint_set_parts.append(np.full(len(faces), len(joint_set_names), dtype=np.int64))
-                joint_set_names.append(name)
-            else:
-                boundary_parts[name] = faces
+    tri_names = [names_by_dim[2].get(int(t), str(int(t))) for t in np.unique(tri_groups)]
+    missing = [name for name in joint_groups or [] if name not in tri_names]
+    if missing:
+        raise _import_error(
+            path,
+            f"has no triangle group {', '.join(repr(n) for n in missing)} named in joint_groups "
+            f"(its triangle groups: {', '.join(repr(n) for n in tri_names) or 'none'})",
+            "joint_groups",
+        )
+    for t, name in zip(np.unique(tri_groups), tri_names, strict=True):
+        faces = tris[tri_groups == t]
+        is_joint = name in joint_groups if joint_groups is not None else name.lower().startswith("joint")
+        if is_joint:
+            joint_parts.append(faces)
+            joint_set_parts.append(np.full(len(faces), len(joint_set_names), dtype=np.int64))
+            joint_set_names.append(name)
+        else:
+            boundary_parts[name] = faces
 
     used = np.unique(tets)
     renumber = np.full(len(raw.points), -1, dtype=np.int64)

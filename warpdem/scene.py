@@ -687,7 +687,27 @@ Opening = Annotated[TunnelOpening | ShaftOpening | RoomOpening, Field(discrimina
 """One ``[[mesh.openings]]`` entry, selected by ``kind``."""
 
 
-class JointSetSpec(_Model):
+class JointProperties(_Model):
+    """Properties of the joints of one joint set (geology) or joint group (mesh file); omitted ones come from
+    ``[joints]``."""
+
+    friction: Float | None = Field(default=None, ge=0, description="Joint friction coefficient; default [joints].")
+    cohesion: Float | None = Field(default=None, ge=0, description="Joint cohesion [Pa]; default [joints].")
+    tensile_strength: Float | None = Field(
+        default=None, ge=0, description="Joint tensile strength [Pa]; default [joints]."
+    )
+    stiffness_factor: Float | None = Field(
+        default=None, gt=0, description="Joint penalty stiffness relative to the rock's (E / h) [-]; default [joints]."
+    )
+    restitution: Float | None = Field(
+        default=None, gt=0, le=1, description="Restitution (0, 1] of the joint's normal dashpot [-]; default [joints]."
+    )
+    shear_stiffness_ratio: Float | None = Field(
+        default=None, gt=0, description="Tangential to normal stiffness ratio k_t / k_n [-]; default [joints]."
+    )
+
+
+class JointSetSpec(JointProperties):
     """A set of parallel joints (geological dip / dip direction), and the properties of its joints."""
 
     name: Name | None = Field(default=None, description="Name of the set; default 'joint<index>'.")
@@ -713,11 +733,6 @@ class JointSetSpec(_Model):
     phase: Literal[0, 1] = Field(default=0, description="Which alternation of slab groups holds joints (0 or 1).")
     jitter_position: Float = Field(default=0.0, ge=0, description="Uniform random shift of each plane [m].")
     jitter_angle: Float = Field(default=0.0, ge=0, description="Uniform random tilt of each plane's normal [deg].")
-    friction: Float | None = Field(default=None, ge=0, description="Joint friction coefficient; default [joints].")
-    cohesion: Float | None = Field(default=None, ge=0, description="Joint cohesion [Pa]; default [joints].")
-    tensile_strength: Float | None = Field(
-        default=None, ge=0, description="Joint tensile strength [Pa]; default [joints]."
-    )
 
     @model_validator(mode="after")
     def _check_persistence(self) -> JointSetSpec:
@@ -760,6 +775,21 @@ class GeologyMeshSpec(_Model):
         return _hi_above_lo(value, info)
 
 
+def _joint_group_table(value: Any) -> Any:
+    # The array form predates per-group properties; it stays valid and means "these groups, [joints] properties".
+    if value is None or isinstance(value, Mapping):
+        return value
+    if isinstance(value, list | tuple):
+        bad = [i for i, name in enumerate(value) if not isinstance(name, str)]
+        if bad:
+            raise ValueError(f"item {bad[0]} must be a group name (a string)")
+        repeated = sorted({name for name in value if value.count(name) > 1})
+        if repeated:
+            raise ValueError(f"group {repeated[0]!r} is listed twice")
+        return {name: {} for name in value}
+    raise ValueError("must be an array of triangle group names or a table of group name -> joint properties")
+
+
 class FileMesh(_Model):
     """A ready tetrahedral mesh file (Gmsh .msh, VTU or legacy VTK) read through meshio."""
 
@@ -772,8 +802,10 @@ class FileMesh(_Model):
     material: Str | None = Field(
         default=None, description="One material for every tet, whatever the groups (instead of material_map)."
     )
-    joint_groups: list[Str] | None = Field(
-        default=None, description="Triangle groups that are joints; default: names starting with 'joint'."
+    joint_groups: Annotated[dict[Str, JointProperties] | None, BeforeValidator(_joint_group_table)] = Field(
+        default=None,
+        description="Triangle groups that are joints: an array of group names (properties from [joints]) or a table "
+        "group name -> joint properties; omitted: the groups whose names start with 'joint'.",
     )
     fixed: Bool = _fixed_field()
     velocity: Vec3 = _velocity_field()

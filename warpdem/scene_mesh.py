@@ -30,13 +30,22 @@ from .geology import (
     read_mesh,
 )
 from .mesh import MeshError, boundary_faces, box_mesh
-from .scene import BoxMesh, FileMesh, GeologyMeshSpec, Region, Scene, SceneError
+from .scene import BoxMesh, FileMesh, GeologyMeshSpec, JointProperties, Region, Scene, SceneError
 from .tets import TetProps
 
 if TYPE_CHECKING:
     from .builder import ModelBuilder
+    from .joints import JointProps
 
-__all__ = ["add_scene_mesh", "box_face_sets", "face_normals", "nodes_of_selection", "rock_mesh", "select_faces"]
+__all__ = [
+    "add_scene_mesh",
+    "box_face_sets",
+    "face_normals",
+    "joint_set_properties",
+    "nodes_of_selection",
+    "rock_mesh",
+    "select_faces",
+]
 
 # A box mesh face lies on box face ±axis when its unit normal is within this of ±e_axis (Kuhn faces are exact).
 _AXIS_COSINE = 1.0 - 1e-6
@@ -120,10 +129,11 @@ def _file(spec: FileMesh, scene: Scene) -> GeologyMesh:
     source = scene.name
     # TOML keys are strings; a key of digits names a physical group by its number.
     material_map = {int(k) if k.isdigit() else k: v for k, v in spec.material_map.items()} or None
+    joint_groups = None if spec.joint_groups is None else list(spec.joint_groups)
     try:
-        mesh = read_mesh(spec.path, material_map=material_map, joint_groups=spec.joint_groups)
+        mesh = read_mesh(spec.path, material_map=material_map, joint_groups=joint_groups)
     except MeshImportError as exc:
-        raise SceneError(f"{source}: mesh.path: {exc}") from None
+        raise SceneError(f"{source}: mesh.{exc.argument or 'path'}: {exc}") from None
     if spec.material is not None:
         mesh.tet_material = np.zeros(len(mesh.tets), np.int64)
         mesh.material_names = [spec.material]
@@ -238,31 +248,37 @@ def add_scene_mesh(builder: ModelBuilder, scene: Scene) -> tuple[GeologyMesh, np
     return mesh, nodes
 
 
-def _add_joint_sets(builder: ModelBuilder, scene: Scene, mesh: GeologyMesh) -> list[int]:
-    """Adds the mesh's joint sets to the builder with their properties (the set's own, else ``[joints]``); returns
-    the builder's id of each."""
+def joint_set_properties(scene: Scene, mesh: GeologyMesh) -> list[JointProps]:
+    """The properties of each joint set of the scene's mesh, in ``mesh.joint_set_names`` order.
+
+    A geology joint set takes its own values from ``mesh.joint_sets[k]``, a joint group of a mesh file from
+    ``mesh.joint_groups.<name>``; every value a set does not give comes from ``[joints]``.
+    """
     from .joints import JointProps
 
+    spec = scene.mesh
+    own: list[JointProperties | None]
+    if spec is not None and spec.kind == "geology":
+        own = list(spec.joint_sets)  # mesh_geology names every set, in order
+    elif spec is not None and spec.kind == "file" and spec.joint_groups is not None:
+        own = [spec.joint_groups.get(name) for name in mesh.joint_set_names]
+    else:
+        own = [None] * len(mesh.joint_set_names)
     defaults = scene.joints
-    specs = scene.mesh.joint_sets if scene.mesh is not None and scene.mesh.kind == "geology" else []
-    ids = []
-    for k, name in enumerate(mesh.joint_set_names):
-        spec = specs[k] if k < len(specs) else None
-
-        def value(key: str, spec: object = spec) -> float:
-            own = getattr(spec, key, None)
-            return own if own is not None else getattr(defaults, key)
-
-        props = JointProps(
-            friction=value("friction"),
-            cohesion=value("cohesion"),
-            tensile_strength=value("tensile_strength"),
-            stiffness_factor=defaults.stiffness_factor,
-            restitution=defaults.restitution,
-            shear_stiffness_ratio=defaults.shear_stiffness_ratio,
+    props = []
+    for entry in own:
+        given = entry.model_dump(exclude_none=True) if entry is not None else {}
+        props.append(
+            JointProps(**{key: given.get(key, getattr(defaults, key)) for key in JointProperties.model_fields})
         )
-        ids.append(builder.add_joint_set(props, name=name))
-    return ids
+    return props
+
+
+def _add_joint_sets(builder: ModelBuilder, scene: Scene, mesh: GeologyMesh) -> list[int]:
+    """Adds the mesh's joint sets to the builder with their properties (:func:`joint_set_properties`); returns the
+    builder's id of each."""
+    props = joint_set_properties(scene, mesh)
+    return [builder.add_joint_set(p, name=name) for p, name in zip(props, mesh.joint_set_names, strict=True)]
 
 
 def _add_loads(builder: ModelBuilder, scene: Scene, mesh: GeologyMesh, nodes: np.ndarray) -> None:
