@@ -20,6 +20,12 @@ face, and it projects inside the triangle. Of the faces it penetrates it is push
 shortest way out; a vertex shared by coplanar faces goes to the lowest face index), by a linear spring–dashpot k δ
 with k its penalty stiffness and ζ from the restitution (the laws linear_normal_force and coulomb_tangential of
 kernels/contact.py). One spring of tangential history per node follows it from face to face.
+The spring never gains energy that no force worked for (½ k δ² jumping up at an event is energy created; a jump down
+is booked as dissipated): a node keeps its target while it still penetrates it (its projection may then stray
+KEEP_EPS outside the triangle: a node on the rim of a joint sits on the edge of the face opposite); on a change of
+target the new spring starts at no more than the old one's compression; a new contact starts at the depth gained in
+the step, the depth the node already had behind the plane at the last positions (it slid in past an edge) carried as
+an offset; the offset follows a node that backs out.
 Candidates exclude every face with a vertex in the node's 1-ring (the node itself or a node it shares a tet with):
 a node never touches a face of a tet holding it, nor a face that holds it, and near a crack tip the rock is still
 continuous. An intact joint element's pair is excluded too (the element carries it).
@@ -55,6 +61,11 @@ wp.set_module_options({"enable_backward": False})
 BARY_EPS = wp.constant(1.0e-5)
 """A barycentric weight above this is inside the triangle; a contact point with all three above it is in the
 face's interior, otherwise on an edge or vertex [-]."""
+
+KEEP_EPS = wp.constant(1.0e-3)
+"""A node keeps its target face while its projection lies within this barycentric margin outside the triangle
+(new targets need -BARY_EPS): a node on the rim of a joint sits on the edge of the face opposite, and float32 rounding
+or a little shear would otherwise drop and restart its contact step after step [-]."""
 
 TIE_EPS = wp.constant(4.0e-6)
 """Relative tolerance (about 32 float32 ulps of the lengths involved) within which two contacts are equally near:
@@ -804,7 +815,7 @@ def node_face_target(
             continue
         w = projection_barycentric(x, a, b, c, area2)
         wmin = min3(w)
-        if wmin < -BARY_EPS:
+        if wmin < -BARY_EPS and (f != keep or wmin < -KEEP_EPS):
             continue
         inside = int(wmin > BARY_EPS)
         if kept != 0:
@@ -827,6 +838,17 @@ def plane_depth(x: wp.vec3, f: int, face_nodes: wp.array(dtype=wp.vec3i), node_q
     fn = face_nodes[f]
     a = node_q[fn[0]]
     return -wp.dot(x - a, wp.normalize(wp.cross(node_q[fn[1]] - a, node_q[fn[2]] - a)))
+
+
+@wp.func
+def moved_plane_depth(
+    x: wp.vec3, fn: wp.vec3i, node_q: wp.array(dtype=wp.vec3), node_qd: wp.array(dtype=wp.vec3), dt: float
+) -> float:
+    """Depth of x behind the plane of the face with nodes fn at the last step's positions x_k - dt v_k [m]."""
+    a = node_q[fn[0]] - dt * node_qd[fn[0]]
+    b = node_q[fn[1]] - dt * node_qd[fn[1]]
+    c = node_q[fn[2]] - dt * node_qd[fn[2]]
+    return -wp.dot(x - a, wp.normalize(wp.cross(b - a, c - a)))
 
 
 @wp.func
@@ -954,8 +976,17 @@ def make_node_contact_kernel(track_energy: bool):
                 delta = wp.min(best_d, old_delta)
                 offset = best_d - delta
                 e_v += 0.5 * kn * (old_delta * old_delta - delta * delta)
+            elif dt > 0.0:
+                # A new spring takes only the depth gained in this step: a node that was already behind the face's
+                # plane at the last positions x - dt v (it slid in past an edge, or the face turned towards it)
+                # carries that depth as an offset instead of starting at ½ k δ² that no force worked for.
+                before = moved_plane_depth(x - dt * xv, face_nodes[best_f], node_q, node_qd, dt)
+                offset = wp.min(wp.max(before, 0.0), best_d)
+                delta = best_d - offset
         elif best_f >= 0:
-            delta = wp.max(best_d - offset, 0.0)
+            # The relaxed depth follows a node that backs out (no work: the spring is slack meanwhile).
+            offset = wp.min(offset, best_d)
+            delta = best_d - offset
         node_face_spring[v] = best_f
         node_face_offset[v] = offset
         if best_f < 0:

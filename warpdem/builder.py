@@ -798,7 +798,6 @@ def new_state(
         tet_active=arr(np.ones(nt), int, model.tet_capacity),
         tet_stress=wp.zeros(model.tet_capacity, dtype=wp.mat33, device=device),
         time=wp.zeros(1, dtype=wp.float64, device=device),
-        node_f_load=vec(None, model.node_capacity),
         node_energy_boundary_work=wp.zeros(model.node_capacity, dtype=wp.float64, device=device),
         **fem_contact_state(model),
     )

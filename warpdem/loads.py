@@ -383,9 +383,6 @@ class LoadSpecs:
             pressure=pressure,
             pressure_loads=wp.array(loads, dtype=kl.PressureLoad, device=device) if loads else None,
             pressure_names=[p[2] for p in self.pressures],
-            loaded_nodes=wp.array(np.unique(np.concatenate(faces)).astype(np.int32), dtype=int, device=device)
-            if faces
-            else None,
             table_times=wp.array(np.concatenate([np.zeros(0), *table_times]), dtype=wp.float64, device=device),
             table_values=wp.array(np.concatenate([np.zeros(0), *table_values]), dtype=float, device=device),
             dashpots=dashpots,
@@ -582,7 +579,6 @@ class LoadModel:
         pressure: loaded faces by history kind (one launch per kind).
         pressure_loads: parameters of every pressure load, shape (L,), PressureLoad; None without loads.
         pressure_names: name of each pressure load, index = load id.
-        loaded_nodes: the nodes of the loaded faces, each once, shape (K,), int32; None without loads.
         table_times: times of all table histories, concatenated [s], float64.
         table_values: their pressures [Pa], float32.
         dashpots: the non-reflecting faces with their impedances, or None.
@@ -593,7 +589,6 @@ class LoadModel:
     pressure: dict[str, FaceSet]
     pressure_loads: wp.array | None
     pressure_names: list[str]
-    loaded_nodes: wp.array | None
     table_times: wp.array
     table_values: wp.array
     dashpots: FaceSet | None
@@ -617,20 +612,6 @@ def eval_loads(model: Model, state: State, dt: float | None = None) -> None:
         return
     m, s = model, state
     dt = m.dt if dt is None else dt
-    if loads.pressure:
-        wp.launch(
-            kl.book_load_work_kernel,
-            dim=loads.loaded_nodes.shape[0],
-            inputs=[
-                # Model:
-                loads.loaded_nodes,
-                dt,
-                # State in:
-                s.node_qd,
-            ],
-            outputs=[s.node_f_load, s.node_energy_boundary_work],
-            device=m.device,
-        )
     for kind, faces in loads.pressure.items():
         wp.launch(
             kl.make_face_pressure_kernel(kind),
@@ -651,7 +632,7 @@ def eval_loads(model: Model, state: State, dt: float | None = None) -> None:
                 s.node_q,
                 s.node_qd,
             ],
-            outputs=[s.node_f, s.node_f_load, s.node_energy_boundary_work],
+            outputs=[s.node_f, s.node_energy_boundary_work],
             device=m.device,
         )
     if loads.dashpots is not None and dt > 0.0:

@@ -240,8 +240,6 @@ class State:
             ``Simulation.advance`` and at set-up), not inside the step.
         time: simulated time [s], advanced on the device every step (time-dependent loads read it), shape (1,),
             float64.
-        node_f_load: the pressure-load part of node_f [N] (for the trapezoidal booking of its work), shape
-            (node_capacity,), vec3.
         node_energy_boundary_work: work done on the nodes by pressure loads and velocity drivers [J], shape
             (node_capacity,), float64.
         face_count: live boundary faces, shape (1,), int32.
@@ -315,7 +313,6 @@ class State:
     tet_active: wp.array
     tet_stress: wp.array
     time: wp.array
-    node_f_load: wp.array
     node_energy_boundary_work: wp.array
     face_count: wp.array
     fem_rebuild_flag: wp.array
