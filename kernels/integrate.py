@@ -148,16 +148,22 @@ def node_second_half_velocity(
 def drift_node(
     i: int,
     dt: float,
+    half_fem_skin: float,
     v: wp.vec3,
     node_ref_q: wp.array(dtype=wp.vec3),
     node_mass: wp.array(dtype=float),
     node_damping: wp.array(dtype=float),
+    node_contact_stiffness: wp.array(dtype=float),
+    node_q_at_fem_build: wp.array(dtype=wp.vec3),
     node_u: wp.array(dtype=wp.vec3),
     node_q: wp.array(dtype=wp.vec3),
     node_f: wp.array(dtype=wp.vec3),
     node_energy_damping: wp.array(dtype=wp.float64),
+    fem_rebuild_flag: wp.array(dtype=int),
 ):
-    """Drift a node by dt with v_{n+1/2} and start its force accumulator.
+    """Drift a node by dt with v_{n+1/2}, start its force accumulator, and flag an FEM contact-list rebuild when a
+    contact node (one on the surface) has moved half the FEM skin since the lists were built (the Verlet-skin
+    criterion, as spheres do; ``half_fem_skin`` < 0: the model has no FEM contact).
 
     The drift goes into the displacement, small next to the coordinates, so float32 keeps the increment. The force
     accumulator starts from the mass-proportional damping force -α m v at the half-step velocity (the
@@ -165,7 +171,13 @@ def drift_node(
     """
     u = node_u[i] + dt * v
     node_u[i] = u
-    node_q[i] = node_ref_q[i] + u
+    x = node_ref_q[i] + u
+    node_q[i] = x
+    if half_fem_skin >= 0.0:
+        if node_contact_stiffness[i] != 0.0:
+            moved = x - node_q_at_fem_build[i]
+            if wp.dot(moved, moved) > half_fem_skin * half_fem_skin:
+                fem_rebuild_flag[0] = 1
     alpha = node_damping[i]
     f0 = wp.vec3(0.0)
     if alpha > 0.0:
@@ -305,11 +317,14 @@ def integrate_nodes_first_half_kernel(
     node_driver: wp.array(dtype=int),
     drivers: wp.array(dtype=NodeDriver),
     num_drivers: int,
+    node_contact_stiffness: wp.array(dtype=float),
     gravity: wp.vec3,
     dt: float,
+    half_fem_skin: float,
     # State in:
     node_count: wp.array(dtype=int),
     time: wp.array(dtype=wp.float64),
+    node_q_at_fem_build: wp.array(dtype=wp.vec3),
     # State out:
     node_u: wp.array(dtype=wp.vec3),
     node_q: wp.array(dtype=wp.vec3),
@@ -317,6 +332,7 @@ def integrate_nodes_first_half_kernel(
     node_f: wp.array(dtype=wp.vec3),
     node_energy_damping: wp.array(dtype=wp.float64),
     node_energy_boundary_work: wp.array(dtype=wp.float64),
+    fem_rebuild_flag: wp.array(dtype=int),
 ):
     i = wp.tid()  # one thread per FEM node slot
     if i >= node_count[0]:
@@ -328,7 +344,22 @@ def integrate_nodes_first_half_kernel(
     if work != 0.0:
         node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(work)
     node_qd[i] = v
-    drift_node(i, dt, v, node_ref_q, node_mass, node_damping, node_u, node_q, node_f, node_energy_damping)
+    drift_node(
+        i,
+        dt,
+        half_fem_skin,
+        v,
+        node_ref_q,
+        node_mass,
+        node_damping,
+        node_contact_stiffness,
+        node_q_at_fem_build,
+        node_u,
+        node_q,
+        node_f,
+        node_energy_damping,
+        fem_rebuild_flag,
+    )
 
 
 @wp.kernel
@@ -373,12 +404,15 @@ def kick_drift_nodes_kernel(
     node_driver: wp.array(dtype=int),
     drivers: wp.array(dtype=NodeDriver),
     num_drivers: int,
+    node_contact_stiffness: wp.array(dtype=float),
     gravity: wp.vec3,
     dt: float,
+    half_fem_skin: float,
     dt64: wp.float64,
     # State in:
     node_count: wp.array(dtype=int),
     time: wp.array(dtype=wp.float64),
+    node_q_at_fem_build: wp.array(dtype=wp.vec3),
     # State out:
     node_u: wp.array(dtype=wp.vec3),
     node_q: wp.array(dtype=wp.vec3),
@@ -386,6 +420,7 @@ def kick_drift_nodes_kernel(
     node_f: wp.array(dtype=wp.vec3),
     node_energy_damping: wp.array(dtype=wp.float64),
     node_energy_boundary_work: wp.array(dtype=wp.float64),
+    fem_rebuild_flag: wp.array(dtype=int),
 ):
     i = wp.tid()  # one thread per FEM node slot
     if i >= node_count[0]:
@@ -403,7 +438,22 @@ def kick_drift_nodes_kernel(
     if work != 0.0 or work_next != 0.0:
         node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(work) + wp.float64(work_next)
     node_qd[i] = v
-    drift_node(i, dt, v, node_ref_q, node_mass, node_damping, node_u, node_q, node_f, node_energy_damping)
+    drift_node(
+        i,
+        dt,
+        half_fem_skin,
+        v,
+        node_ref_q,
+        node_mass,
+        node_damping,
+        node_contact_stiffness,
+        node_q_at_fem_build,
+        node_u,
+        node_q,
+        node_f,
+        node_energy_damping,
+        fem_rebuild_flag,
+    )
 
 
 @wp.kernel

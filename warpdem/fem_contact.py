@@ -3,7 +3,8 @@ hash-grid candidate lists with a Verlet skin, sphere–face, node–face and nod
 energy they store, and the stable time step they allow.
 
 The laws and the geometric rules are in :mod:`warpdem.kernels.fem_contact`. The stage runs after the sphere
-contacts in Simulation.step: flag a rebuild (a node moved half ``fem_skin``, or the sphere list was rebuilt) →
+contacts in Simulation.step: flag a rebuild (a node moved half ``fem_skin``, flagged by its drift in
+warpdem.integrate, or the sphere list was rebuilt) →
 rebuild the lists in a conditional graph node (``wp.capture_if``) → sphere–face forces → node–face and node–wall
 forces → joint interface elements (:func:`warpdem.joints.eval_joints`). It allocates nothing and reads nothing
 back, so it is captured in the step's graph.
@@ -331,15 +332,8 @@ class FemContact:
         m, s = self.model, self.state
         wp.launch(
             kf.flag_fem_rebuild_kernel,
-            dim=self.node_dim,
-            inputs=[
-                m.node_contact_stiffness,
-                0.5 * m.fem_skin,
-                s.node_count,
-                s.node_q,
-                s.node_q_at_fem_build,
-                s.rebuild_total,
-            ],
+            dim=1,
+            inputs=[s.rebuild_total],
             outputs=[s.fem_sphere_builds_seen, s.fem_rebuild_flag],
             device=m.device,
         )

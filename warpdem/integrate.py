@@ -16,8 +16,8 @@ from .model import Model, State
 
 def integrate_first_half(model: Model, state: State) -> None:
     """Kick by dt/2 with the forces of the last evaluation, drift by dt, clear the force accumulators (FEM nodes:
-    start them at the mass-proportional damping force) and raise the rebuild flag if a sphere has moved half the
-    skin."""
+    start them at the mass-proportional damping force) and raise the rebuild flags if a sphere has moved half the
+    skin or a surface node half the FEM skin."""
     m, s = model, state
     wp.launch(
         ki.integrate_first_half_kernel,
@@ -30,7 +30,7 @@ def integrate_first_half(model: Model, state: State) -> None:
         wp.launch(
             ki.integrate_nodes_first_half_kernel,
             dim=m.node_capacity,
-            inputs=[*_node_drift_model(m), s.node_count, s.time],
+            inputs=[*_node_drift_model(m), s.node_count, s.time, s.node_q_at_fem_build],
             outputs=_node_drift_outputs(s),
             device=m.device,
         )
@@ -109,7 +109,7 @@ def kick_drift(model: Model, state: State) -> None:
         wp.launch(
             ki.kick_drift_nodes_kernel,
             dim=m.node_capacity,
-            inputs=[*_node_drift_model(m), wp.float64(m.dt), s.node_count, s.time],
+            inputs=[*_node_drift_model(m), wp.float64(m.dt), s.node_count, s.time, s.node_q_at_fem_build],
             outputs=_node_drift_outputs(s),
             device=m.device,
         )
@@ -147,14 +147,25 @@ def _node_drift_model(m: Model) -> list:
         node_driver,
         drivers,
         num_drivers,
+        m.node_contact_stiffness,
         wp.vec3(*m.gravity),
         m.dt,
+        # A node on the surface flags an FEM contact-list rebuild when it has moved half the FEM skin.
+        0.5 * m.fem_skin if m.face_capacity else -1.0,
     ]
 
 
 def _node_drift_outputs(s: State) -> list:
     """Outputs of the node kernels that end in a drift."""
-    return [s.node_u, s.node_q, s.node_qd, s.node_f, s.node_energy_damping, s.node_energy_boundary_work]
+    return [
+        s.node_u,
+        s.node_q,
+        s.node_qd,
+        s.node_f,
+        s.node_energy_damping,
+        s.node_energy_boundary_work,
+        s.fem_rebuild_flag,
+    ]
 
 
 def _advance_walls(m: Model, s: State) -> None:
