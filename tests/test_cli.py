@@ -12,6 +12,7 @@ Oracles:
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from collections.abc import Callable
@@ -274,3 +275,14 @@ def test_bench_help():
     )
     assert result.returncode == 0, result.stderr
     assert "usage" in result.stdout and "Traceback" not in result.stderr
+
+
+def test_tet_bench_runs_the_kuhn_block(tmp_path):
+    """``bench tets`` times a Kuhn-tet cube of about the requested size: n = round((600 / 6)^(1/3)) = 5 cells a side,
+    6 n³ = 750 tets on (n + 1)³ = 216 nodes, and the vibrating block's energy stays finite. (Speed is not asserted:
+    it belongs to the benchmark's own report.)"""
+    out = tmp_path / "tets.json"
+    assert main(["bench", "tets", "--sizes", "600", "--steps", "5", "--repeat", "1", "--json", str(out)]) == 0
+    (row,) = json.loads(out.read_text())
+    assert (row["tets"], row["nodes"], row["steps"]) == (750, 216, 5)
+    assert row["finite"] and row["tet_steps_per_second"] > 0.0 and row["bytes_per_tet"] > 0.0

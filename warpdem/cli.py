@@ -39,7 +39,8 @@ def run_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m warpdem",
         description="Run a warpdem scene (TOML). Without SCENE, runs the embedded default scene. "
-        "'python -m warpdem bench' prints the benchmark table.",
+        "'python -m warpdem bench' prints the settling benchmark table, 'python -m warpdem bench tets' the "
+        "tetrahedra one.",
     )
     p.add_argument("scene", nargs="?", help="scene file (.toml); default: the embedded default scene")
     p.add_argument("--device", help="Warp device: cpu or cuda:N (default: the scene's run.device)")
@@ -65,6 +66,18 @@ def bench_parser() -> argparse.ArgumentParser:
     return p
 
 
+def tet_bench_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m warpdem bench tets", description="Tetrahedra benchmark: a vibrating Kuhn-tet block."
+    )
+    p.add_argument("--sizes", type=_positive_int, nargs="+", default=[200_000, 1_000_000], help="tets wanted")
+    p.add_argument("--steps", type=_positive_int, default=100, help="time steps per timed run")
+    p.add_argument("--device", default="cpu", help="Warp device")
+    p.add_argument("--json", type=Path, help="also write the results as JSON")
+    p.add_argument("--repeat", type=_positive_int, default=3, help="timed runs per size; the fastest counts")
+    return p
+
+
 def _fail(lines: list[str] | str) -> int:
     for line in [lines] if isinstance(lines, str) else lines:
         print(f"error: {line}", file=sys.stderr)
@@ -74,6 +87,11 @@ def _fail(lines: list[str] | str) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit status."""
     argv = sys.argv[1:] if argv is None else argv
+    if argv[:2] == ["bench", "tets"]:
+        from .bench import run_tet_bench
+
+        args = tet_bench_parser().parse_args(argv[2:])
+        return run_tet_bench(args.sizes, args.steps, args.device, args.json, args.repeat)
     if argv[:1] == ["bench"]:
         from .bench import run_bench
 
