@@ -11,7 +11,7 @@ last, after the second half kick.
 Between two steps of one run nothing happens but the clock: the second half kick of step n and the first of step n+1
 use the same forces, so the ``kick_drift_*`` kernels do both in one pass over the arrays (the body of a run of steps,
 warpdem.simulation), with the arithmetic of the two separate halves in the same order, bit for bit. Each half is a
-function below, shared by the separate and the fused kernels.
+function below; the first-half and kick-drift kernels come from one factory each.
 """
 
 from __future__ import annotations
@@ -190,38 +190,60 @@ def drift_node(
 # Kernels: the first and the second half of a step, and the two fused across a step boundary.
 
 
-@wp.kernel
-def integrate_first_half_kernel(
-    # Model:
-    particle_inv_mass: wp.array(dtype=float),
-    particle_inv_inertia: wp.array(dtype=float),
-    particle_motion: wp.array(dtype=int),
-    gravity: wp.vec3,
-    dt: float,
-    half_skin: float,
-    # State in:
-    particle_count: wp.array(dtype=int),
-    particle_q_at_build: wp.array(dtype=wp.vec3),
-    # State out:
-    particle_q: wp.array(dtype=wp.vec3),
-    particle_qd: wp.array(dtype=wp.vec3),
-    particle_omega: wp.array(dtype=wp.vec3),
-    particle_f: wp.array(dtype=wp.vec3),
-    particle_t: wp.array(dtype=wp.vec3),
-    rebuild_flag: wp.array(dtype=int),
-):
-    i = wp.tid()  # one thread per particle slot
-    if i >= particle_count[0]:
-        return
-    v = particle_qd[i]
-    if particle_motion[i] == MOTION_FREE:
-        v, omega = kick_particle(
-            i, dt, gravity, particle_inv_mass, particle_inv_inertia, particle_f, particle_t, v, particle_omega[i]
-        )
-        particle_qd[i] = v
-        particle_omega[i] = omega
-    # Fixed spheres have v = 0; prescribed ones keep their velocity and spin.
-    drift_particle(i, dt, half_skin, v, particle_q_at_build, particle_q, particle_f, particle_t, rebuild_flag)
+def make_particle_drift_kernel(after_second_half: bool) -> wp.Kernel:
+    """The sphere kernel that ends a half step in a drift: the first half (kick, drift, clear, flag), or with
+    ``after_second_half`` the second half of step n before it (kick-drift: the same forces f_{n+1} twice, the work of
+    driven spheres booked), the choice made at code generation."""
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def drift_particles_kernel(
+        # Model:
+        particle_inv_mass: wp.array(dtype=float),
+        particle_inv_inertia: wp.array(dtype=float),
+        particle_motion: wp.array(dtype=int),
+        gravity: wp.vec3,
+        dt: float,
+        half_skin: float,
+        # State in:
+        particle_count: wp.array(dtype=int),
+        particle_q_at_build: wp.array(dtype=wp.vec3),
+        # State out:
+        particle_q: wp.array(dtype=wp.vec3),
+        particle_qd: wp.array(dtype=wp.vec3),
+        particle_omega: wp.array(dtype=wp.vec3),
+        particle_f: wp.array(dtype=wp.vec3),
+        particle_t: wp.array(dtype=wp.vec3),
+        rebuild_flag: wp.array(dtype=int),
+        energy_boundary_work: wp.array(dtype=wp.float64),
+    ):
+        i = wp.tid()  # one thread per particle slot
+        if i >= particle_count[0]:
+            return
+        v = particle_qd[i]
+        if particle_motion[i] == MOTION_FREE:
+            omega = particle_omega[i]
+            if wp.static(after_second_half):
+                v, omega = kick_particle(
+                    i, dt, gravity, particle_inv_mass, particle_inv_inertia, particle_f, particle_t, v, omega
+                )
+            v, omega = kick_particle(
+                i, dt, gravity, particle_inv_mass, particle_inv_inertia, particle_f, particle_t, v, omega
+            )
+            particle_qd[i] = v
+            particle_omega[i] = omega
+        else:
+            if wp.static(after_second_half):
+                # A driven sphere is held on its path by whatever drives it.
+                w = held_particle_work(i, dt, particle_f, particle_t, v, particle_omega[i])
+                energy_boundary_work[i] = energy_boundary_work[i] + w
+        # Fixed spheres have v = 0; prescribed ones keep their velocity and spin.
+        drift_particle(i, dt, half_skin, v, particle_q_at_build, particle_q, particle_f, particle_t, rebuild_flag)
+
+    return drift_particles_kernel
+
+
+integrate_first_half_kernel = make_particle_drift_kernel(after_second_half=False)
+kick_drift_particles_kernel = make_particle_drift_kernel(after_second_half=True)
 
 
 @wp.kernel
@@ -264,102 +286,81 @@ def integrate_second_half_kernel(
         energy_boundary_work[i] = energy_boundary_work[i] + w
 
 
-@wp.kernel
-def kick_drift_particles_kernel(
-    # Model:
-    particle_inv_mass: wp.array(dtype=float),
-    particle_inv_inertia: wp.array(dtype=float),
-    particle_motion: wp.array(dtype=int),
-    gravity: wp.vec3,
-    dt: float,
-    half_skin: float,
-    # State in:
-    particle_count: wp.array(dtype=int),
-    particle_q_at_build: wp.array(dtype=wp.vec3),
-    # State out:
-    particle_q: wp.array(dtype=wp.vec3),
-    particle_qd: wp.array(dtype=wp.vec3),
-    particle_omega: wp.array(dtype=wp.vec3),
-    particle_f: wp.array(dtype=wp.vec3),
-    particle_t: wp.array(dtype=wp.vec3),
-    rebuild_flag: wp.array(dtype=int),
-    energy_boundary_work: wp.array(dtype=wp.float64),
-):
-    i = wp.tid()  # one thread per particle slot
-    if i >= particle_count[0]:
-        return
-    # Second half of step n, then first half of step n + 1, with the same forces f_{n+1}.
-    v = particle_qd[i]
-    if particle_motion[i] == MOTION_FREE:
-        omega = particle_omega[i]
-        v, omega = kick_particle(
-            i, dt, gravity, particle_inv_mass, particle_inv_inertia, particle_f, particle_t, v, omega
+def make_node_drift_kernel(after_second_half: bool) -> wp.Kernel:
+    """The FEM node kernel that ends a half step in a drift: the first half, or with ``after_second_half`` the second
+    half of step n before it (kick-drift), the choice made at code generation. The second half judges drivers at
+    t_n + dt/2 (``time`` holds t_n), the first at t + dt/2 with t = t_n + dt (the clock's own sum, as it will read
+    after this kernel) in a kick-drift and t = t_n otherwise."""
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def drift_nodes_kernel(
+        # Model:
+        node_ref_q: wp.array(dtype=wp.vec3),
+        node_mass: wp.array(dtype=float),
+        node_inv_mass: wp.array(dtype=float),
+        node_motion: wp.array(dtype=int),
+        node_damping: wp.array(dtype=float),
+        node_driver: wp.array(dtype=int),
+        drivers: wp.array(dtype=NodeDriver),
+        num_drivers: int,
+        node_contact_stiffness: wp.array(dtype=float),
+        gravity: wp.vec3,
+        dt: float,
+        half_fem_skin: float,
+        dt64: wp.float64,
+        # State in:
+        node_count: wp.array(dtype=int),
+        time: wp.array(dtype=wp.float64),
+        node_q_at_fem_build: wp.array(dtype=wp.vec3),
+        # State out:
+        node_u: wp.array(dtype=wp.vec3),
+        node_q: wp.array(dtype=wp.vec3),
+        node_qd: wp.array(dtype=wp.vec3),
+        node_f: wp.array(dtype=wp.vec3),
+        node_energy_damping: wp.array(dtype=wp.float64),
+        node_energy_boundary_work: wp.array(dtype=wp.float64),
+        fem_rebuild_flag: wp.array(dtype=int),
+    ):
+        i = wp.tid()  # one thread per FEM node slot
+        if i >= node_count[0]:
+            return
+        free = node_free_directions(node_motion[i])
+        v = node_qd[i]
+        t_step = time[0]
+        work = float(0.0)
+        if wp.static(after_second_half):
+            v, work = node_second_half_velocity(
+                i, dt, gravity, t_step, free, v, node_mass, node_inv_mass, node_driver, drivers, num_drivers, node_f
+            )
+            t_step = t_step + dt64
+        v, work_next = node_first_half_velocity(
+            i, dt, gravity, t_step, free, v, node_mass, node_inv_mass, node_driver, drivers, num_drivers, node_f
         )
-        v, omega = kick_particle(
-            i, dt, gravity, particle_inv_mass, particle_inv_inertia, particle_f, particle_t, v, omega
+        if work != 0.0 or work_next != 0.0:
+            node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(work) + wp.float64(work_next)
+        node_qd[i] = v
+        drift_node(
+            i,
+            dt,
+            half_fem_skin,
+            v,
+            node_ref_q,
+            node_mass,
+            node_damping,
+            node_contact_stiffness,
+            node_q_at_fem_build,
+            node_u,
+            node_q,
+            node_f,
+            node_energy_damping,
+            fem_rebuild_flag,
         )
-        particle_qd[i] = v
-        particle_omega[i] = omega
-    else:
-        w = held_particle_work(i, dt, particle_f, particle_t, v, particle_omega[i])
-        energy_boundary_work[i] = energy_boundary_work[i] + w
-    drift_particle(i, dt, half_skin, v, particle_q_at_build, particle_q, particle_f, particle_t, rebuild_flag)
+
+    return drift_nodes_kernel
 
 
-@wp.kernel
-def integrate_nodes_first_half_kernel(
-    # Model:
-    node_ref_q: wp.array(dtype=wp.vec3),
-    node_mass: wp.array(dtype=float),
-    node_inv_mass: wp.array(dtype=float),
-    node_motion: wp.array(dtype=int),
-    node_damping: wp.array(dtype=float),
-    node_driver: wp.array(dtype=int),
-    drivers: wp.array(dtype=NodeDriver),
-    num_drivers: int,
-    node_contact_stiffness: wp.array(dtype=float),
-    gravity: wp.vec3,
-    dt: float,
-    half_fem_skin: float,
-    # State in:
-    node_count: wp.array(dtype=int),
-    time: wp.array(dtype=wp.float64),
-    node_q_at_fem_build: wp.array(dtype=wp.vec3),
-    # State out:
-    node_u: wp.array(dtype=wp.vec3),
-    node_q: wp.array(dtype=wp.vec3),
-    node_qd: wp.array(dtype=wp.vec3),
-    node_f: wp.array(dtype=wp.vec3),
-    node_energy_damping: wp.array(dtype=wp.float64),
-    node_energy_boundary_work: wp.array(dtype=wp.float64),
-    fem_rebuild_flag: wp.array(dtype=int),
-):
-    i = wp.tid()  # one thread per FEM node slot
-    if i >= node_count[0]:
-        return
-    free = node_free_directions(node_motion[i])
-    v, work = node_first_half_velocity(
-        i, dt, gravity, time[0], free, node_qd[i], node_mass, node_inv_mass, node_driver, drivers, num_drivers, node_f
-    )
-    if work != 0.0:
-        node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(work)
-    node_qd[i] = v
-    drift_node(
-        i,
-        dt,
-        half_fem_skin,
-        v,
-        node_ref_q,
-        node_mass,
-        node_damping,
-        node_contact_stiffness,
-        node_q_at_fem_build,
-        node_u,
-        node_q,
-        node_f,
-        node_energy_damping,
-        fem_rebuild_flag,
-    )
+integrate_nodes_first_half_kernel = make_node_drift_kernel(after_second_half=False)
+kick_drift_nodes_kernel = make_node_drift_kernel(after_second_half=True)
 
 
 @wp.kernel
@@ -391,69 +392,6 @@ def integrate_nodes_second_half_kernel(
     if work != 0.0:
         node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(work)
     node_qd[i] = v
-
-
-@wp.kernel
-def kick_drift_nodes_kernel(
-    # Model:
-    node_ref_q: wp.array(dtype=wp.vec3),
-    node_mass: wp.array(dtype=float),
-    node_inv_mass: wp.array(dtype=float),
-    node_motion: wp.array(dtype=int),
-    node_damping: wp.array(dtype=float),
-    node_driver: wp.array(dtype=int),
-    drivers: wp.array(dtype=NodeDriver),
-    num_drivers: int,
-    node_contact_stiffness: wp.array(dtype=float),
-    gravity: wp.vec3,
-    dt: float,
-    half_fem_skin: float,
-    dt64: wp.float64,
-    # State in:
-    node_count: wp.array(dtype=int),
-    time: wp.array(dtype=wp.float64),
-    node_q_at_fem_build: wp.array(dtype=wp.vec3),
-    # State out:
-    node_u: wp.array(dtype=wp.vec3),
-    node_q: wp.array(dtype=wp.vec3),
-    node_qd: wp.array(dtype=wp.vec3),
-    node_f: wp.array(dtype=wp.vec3),
-    node_energy_damping: wp.array(dtype=wp.float64),
-    node_energy_boundary_work: wp.array(dtype=wp.float64),
-    fem_rebuild_flag: wp.array(dtype=int),
-):
-    i = wp.tid()  # one thread per FEM node slot
-    if i >= node_count[0]:
-        return
-    # Second half of step n (started at t_n = time), then first half of step n + 1 (t_n + dt: the clock's own sum,
-    # advanced after this kernel), with the same forces f_{n+1}.
-    free = node_free_directions(node_motion[i])
-    t_n = time[0]
-    v, work = node_second_half_velocity(
-        i, dt, gravity, t_n, free, node_qd[i], node_mass, node_inv_mass, node_driver, drivers, num_drivers, node_f
-    )
-    v, work_next = node_first_half_velocity(
-        i, dt, gravity, t_n + dt64, free, v, node_mass, node_inv_mass, node_driver, drivers, num_drivers, node_f
-    )
-    if work != 0.0 or work_next != 0.0:
-        node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(work) + wp.float64(work_next)
-    node_qd[i] = v
-    drift_node(
-        i,
-        dt,
-        half_fem_skin,
-        v,
-        node_ref_q,
-        node_mass,
-        node_damping,
-        node_contact_stiffness,
-        node_q_at_fem_build,
-        node_u,
-        node_q,
-        node_f,
-        node_energy_damping,
-        fem_rebuild_flag,
-    )
 
 
 @wp.kernel

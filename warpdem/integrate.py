@@ -23,7 +23,7 @@ def integrate_first_half(model: Model, state: State) -> None:
         ki.integrate_first_half_kernel,
         dim=m.particle_capacity,
         inputs=_particle_drift_inputs(m, s),
-        outputs=[s.particle_q, s.particle_qd, s.particle_omega, s.particle_f, s.particle_t, s.rebuild_flag],
+        outputs=_particle_drift_outputs(s),
         device=m.device,
     )
     if m.node_capacity:
@@ -94,22 +94,14 @@ def kick_drift(model: Model, state: State) -> None:
         ki.kick_drift_particles_kernel,
         dim=m.particle_capacity,
         inputs=_particle_drift_inputs(m, s),
-        outputs=[
-            s.particle_q,
-            s.particle_qd,
-            s.particle_omega,
-            s.particle_f,
-            s.particle_t,
-            s.rebuild_flag,
-            s.energy_boundary_work,
-        ],
+        outputs=_particle_drift_outputs(s),
         device=m.device,
     )
     if m.node_capacity:
         wp.launch(
             ki.kick_drift_nodes_kernel,
             dim=m.node_capacity,
-            inputs=[*_node_drift_model(m), wp.float64(m.dt), s.node_count, s.time, s.node_q_at_fem_build],
+            inputs=[*_node_drift_model(m), s.node_count, s.time, s.node_q_at_fem_build],
             outputs=_node_drift_outputs(s),
             device=m.device,
         )
@@ -135,6 +127,19 @@ def _particle_drift_inputs(m: Model, s: State) -> list:
     ]
 
 
+def _particle_drift_outputs(s: State) -> list:
+    """Outputs of the sphere kernels that end in a drift."""
+    return [
+        s.particle_q,
+        s.particle_qd,
+        s.particle_omega,
+        s.particle_f,
+        s.particle_t,
+        s.rebuild_flag,
+        s.energy_boundary_work,
+    ]
+
+
 def _node_drift_model(m: Model) -> list:
     """Model inputs of the node kernels that end in a drift (first half and kick-drift)."""
     node_driver, drivers, num_drivers = _node_drivers(m)
@@ -152,6 +157,7 @@ def _node_drift_model(m: Model) -> list:
         m.dt,
         # A node on the surface flags an FEM contact-list rebuild when it has moved half the FEM skin.
         0.5 * m.fem_skin if m.face_capacity else -1.0,
+        wp.float64(m.dt),  # the clock's increment, for the driver times of a kick-drift
     ]
 
 
