@@ -758,17 +758,22 @@ def node_surface_normal(
 def node_face_target(
     v: int,
     x: wp.vec3,
-    normal: wp.vec3,
     max_node_faces: int,
     node_face_count: wp.array(dtype=int),
     node_face_index: wp.array(dtype=int),
     face_nodes: wp.array(dtype=wp.vec3i),
     face_depth: wp.array(dtype=float),
+    face_normal: wp.array(dtype=wp.vec3),
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    tet_face_nbr: wp.array(dtype=int),
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
     node_q: wp.array(dtype=wp.vec3),
     keep: int,
 ):
-    """The face node v (at x, its own surface's outward normal ``normal``) is pushed out of: of the candidate faces
-    that face it (n_f · normal < 0) and that it lies behind (less deep than face_depth) and projects into, the
+    """The face node v (at x, its own surface's outward normal n_v) is pushed out of: of the candidate faces
+    that face it (n_f · n_v < 0) and that it lies behind (less deep than face_depth) and projects into, the
     shallowest; an interior contact before an edge or vertex one, then the lowest face index. The face ``keep``
     (the node's target at the last evaluation, -1 for none) is kept while it stays one of those faces: the shallowest
     face jumps where two face planes meet, and a target held until it no longer holds the node switches less often.
@@ -776,6 +781,11 @@ def node_face_target(
     The facing test keeps a node on a convex edge of one body, which sits exactly on the edge of the body it rests
     on, from being pushed out through that body's side face (where it is "behind" the side plane by a rounding
     error): the side face's normal points along the node's own, the face it rests on against it.
+
+    The tests run cheapest first and give the same decisions in any order: the depth test reads the face's unit
+    normal from ``face_normal`` (face_normals_kernel, this step's positions), n_v is summed only for a node with a
+    candidate it lies behind, and the projection only for a face that passes both; once the kept face is found no
+    later candidate can replace it.
 
     Returns:
         (face or -1, depth δ [m], barycentric weights of the projection, the face's unit normal).
@@ -786,35 +796,57 @@ def node_face_target(
     best_f = int(-1)
     best_w = wp.vec3(0.0)
     best_n = wp.vec3(0.0)
-    kept = int(0)
+    normal = wp.vec3(0.0)
+    has_normal = int(0)
     for s in range(wp.min(node_face_count[v], max_node_faces)):
         f = node_face_index[v * max_node_faces + s]
         fn = face_nodes[f]
         a = node_q[fn[0]]
-        b = node_q[fn[1]]
-        c = node_q[fn[2]]
-        area2 = wp.cross(b - a, c - a)
-        nf = wp.normalize(area2)
-        if wp.dot(nf, normal) >= 0.0:
-            continue
+        nf = face_normal[f]
         depth = -wp.dot(x - a, nf)
         if depth <= 0.0 or depth >= face_depth[f]:
             continue
-        w = projection_barycentric(x, a, b, c, area2)
+        if has_normal == 0:
+            normal = node_surface_normal(v, tet_nodes, tet_face_nbr, star_offset, star_count, star_tets, node_q)
+            has_normal = 1
+        if wp.dot(nf, normal) >= 0.0:
+            continue
+        b = node_q[fn[1]]
+        c = node_q[fn[2]]
+        w = projection_barycentric(x, a, b, c, wp.cross(b - a, c - a))
         wmin = min3(w)
         if wmin < -BARY_EPS and (f != keep or wmin < -KEEP_EPS):
             continue
         inside = int(wmin > BARY_EPS)
-        if kept != 0:
-            continue
         if f == keep or nearer(depth, inside, f, best_d, best_interior, best_f, tol + TIE_EPS * depth):
-            kept = int(f == keep)
             best_d = depth
             best_interior = inside
             best_f = f
             best_w = w
             best_n = nf
+            if f == keep:
+                break
     return best_f, best_d, best_w, best_n
+
+
+@wp.kernel
+def face_normals_kernel(
+    # Model:
+    face_nodes: wp.array(dtype=wp.vec3i),
+    # State in:
+    face_count: wp.array(dtype=int),
+    node_q: wp.array(dtype=wp.vec3),
+    # Out:
+    face_normal: wp.array(dtype=wp.vec3),
+):
+    f = wp.tid()  # one thread per face slot: the unit normal n_f at the current positions, once for all its nodes
+    if f >= face_count[0]:
+        return
+    fn = face_nodes[f]
+    a = node_q[fn[0]]
+    b = node_q[fn[1]]
+    c = node_q[fn[2]]
+    face_normal[f] = wp.normalize(wp.cross(b - a, c - a))
 
 
 @wp.func
@@ -918,6 +950,8 @@ def make_node_contact_kernel(track_energy: bool):
         node_face_count: wp.array(dtype=int),
         node_face_index: wp.array(dtype=int),
         wall_point: wp.array(dtype=wp.vec3),
+        # In:
+        face_normal: wp.array(dtype=wp.vec3),
         # State out:
         node_face_spring: wp.array(dtype=int),
         node_face_offset: wp.array(dtype=float),
@@ -943,9 +977,22 @@ def make_node_contact_kernel(track_energy: bool):
         best_n = wp.vec3(0.0)
         old_f = node_face_spring[v]
         if node_face_count[v] > 0:
-            normal = node_surface_normal(v, tet_nodes, tet_face_nbr, star_offset, star_count, star_tets, node_q)
             best_f, best_d, best_w, best_n = node_face_target(
-                v, x, normal, max_node_faces, node_face_count, node_face_index, face_nodes, face_depth, node_q, old_f
+                v,
+                x,
+                max_node_faces,
+                node_face_count,
+                node_face_index,
+                face_nodes,
+                face_depth,
+                face_normal,
+                tet_nodes,
+                tet_face_nbr,
+                star_offset,
+                star_count,
+                star_tets,
+                node_q,
+                old_f,
             )
         f_v = wp.vec3(0.0)
         e_v = float(0.0)

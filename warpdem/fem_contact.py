@@ -267,6 +267,7 @@ class FemContact:
         self.grid = wp.HashGrid(*(hash_grid_dims(fcap),) * 3, device=d)
         self.grid.reserve(fcap)  # so that a rebuild inside a captured graph never allocates
         self.face_center = wp.zeros(fcap, dtype=wp.vec3, device=d)
+        self.face_normal = wp.zeros(fcap, dtype=wp.vec3, device=d)
         # A sphere moves at most its whole skin between FEM builds (kernels/fem_contact.py, "Skins"), a face half ours.
         self.sphere_margin = model.skin + 0.5 * model.fem_skin
         self.node_search = model.face_radius + max(model.fem_skin, model.face_depth_max)
@@ -345,12 +346,24 @@ class FemContact:
         ``dt`` overrides the model step for the history increments; 0 evaluates forces without advancing any.
         """
         self.rebuild_if_needed()
-        eval_fem_contacts(self.model, self.state, track_energy, self.has_spheres, dt)
+        eval_fem_contacts(self.model, self.state, track_energy, self.has_spheres, dt, self.face_normal)
         eval_joints(self.model, self.state, dt)
 
 
-def eval_fem_contacts(model: Model, state: State, track_energy: bool, has_spheres: bool, dt: float | None) -> None:
-    """Sphere–face, node–face and node–wall forces into ``particle_f/t`` and ``node_f`` (launches only)."""
+def eval_fem_contacts(
+    model: Model,
+    state: State,
+    track_energy: bool,
+    has_spheres: bool,
+    dt: float | None,
+    face_normal: wp.array,
+) -> None:
+    """Sphere–face, node–face and node–wall forces into ``particle_f/t`` and ``node_f`` (launches only).
+
+    Args:
+        face_normal: scratch for the faces' unit normals of this evaluation, shape (face_capacity,), vec3
+            (``FemContact`` holds one).
+    """
     m, s = model, state
     step = m.dt if dt is None else dt
     if has_spheres and m.face_capacity:
@@ -393,6 +406,13 @@ def eval_fem_contacts(model: Model, state: State, track_energy: bool, has_sphere
         )
     if m.node_capacity:
         wp.launch(
+            kf.face_normals_kernel,
+            dim=m.face_capacity,
+            inputs=[m.face_nodes, s.face_count, s.node_q],
+            outputs=[face_normal],
+            device=m.device,
+        )
+        wp.launch(
             kf.make_node_contact_kernel(track_energy),
             dim=m.node_capacity,
             inputs=[
@@ -426,6 +446,8 @@ def eval_fem_contacts(model: Model, state: State, track_energy: bool, has_sphere
                 s.node_face_count,
                 s.node_face_index,
                 s.wall_point,
+                # In:
+                face_normal,
             ],
             outputs=[
                 s.node_face_spring,
