@@ -18,23 +18,8 @@ def integrate_first_half(model: Model, state: State) -> None:
     """Kick by dt/2 with the forces of the last evaluation, drift by dt, clear the force accumulators (FEM nodes:
     start them at the mass-proportional damping force) and raise the rebuild flags if a sphere has moved half the
     skin or a surface node half the FEM skin."""
-    m, s = model, state
-    wp.launch(
-        ki.integrate_first_half_kernel,
-        dim=m.particle_capacity,
-        inputs=_particle_drift_inputs(m, s),
-        outputs=_particle_drift_outputs(s),
-        device=m.device,
-    )
-    if m.node_capacity:
-        wp.launch(
-            ki.integrate_nodes_first_half_kernel,
-            dim=m.node_capacity,
-            inputs=[*_node_drift_model(m), s.node_count, s.time, s.node_q_at_fem_build],
-            outputs=_node_drift_outputs(s),
-            device=m.device,
-        )
-    _advance_walls(m, s)
+    _drift(model, state, ki.integrate_first_half_kernel, ki.integrate_nodes_first_half_kernel)
+    _advance_walls(model, state)
 
 
 def integrate_second_half(model: Model, state: State) -> None:
@@ -89,9 +74,17 @@ def kick_drift(model: Model, state: State) -> None:
     """The second half of step n and the first half of step n + 1 in one pass (:func:`integrate_second_half` then
     :func:`integrate_first_half`, bit for bit): kick by dt/2 twice with the forces f_{n+1}, book the work of driven
     spheres and nodes, drift, clear the accumulators, flag a rebuild; the clock advances in between."""
-    m, s = model, state
+    _drift(model, state, ki.kick_drift_particles_kernel, ki.kick_drift_nodes_kernel)
+    # The nodes judged their drivers at t_n + dt/2 and t_n + 3dt/2 from the clock as it was; it moves on now, before
+    # the walls and the forces of step n + 1, as between two separate steps.
+    _advance_time(model, state)
+    _advance_walls(model, state)
+
+
+def _drift(m: Model, s: State, particle_kernel: wp.Kernel, node_kernel: wp.Kernel) -> None:
+    """Launch the sphere and node kernels that end a half step in a drift (first half, or kick-drift)."""
     wp.launch(
-        ki.kick_drift_particles_kernel,
+        particle_kernel,
         dim=m.particle_capacity,
         inputs=_particle_drift_inputs(m, s),
         outputs=_particle_drift_outputs(s),
@@ -99,16 +92,12 @@ def kick_drift(model: Model, state: State) -> None:
     )
     if m.node_capacity:
         wp.launch(
-            ki.kick_drift_nodes_kernel,
+            node_kernel,
             dim=m.node_capacity,
             inputs=[*_node_drift_model(m), s.node_count, s.time, s.node_q_at_fem_build],
             outputs=_node_drift_outputs(s),
             device=m.device,
         )
-    # The nodes judged their drivers at t_n + dt/2 and t_n + 3dt/2 from the clock as it was; it moves on now, before
-    # the walls and the forces of step n + 1, as between two separate steps.
-    _advance_time(m, s)
-    _advance_walls(m, s)
 
 
 def _particle_drift_inputs(m: Model, s: State) -> list:
