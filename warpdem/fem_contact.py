@@ -279,7 +279,6 @@ class FemContact:
                 kf.SPHERE_FACE_LIST, model.particle_capacity, model.max_sphere_faces, d, {"shear": wp.vec3}
             )
         self.node_faces = SkinnedList(kf.NODE_FACE_LIST, model.node_capacity, model.max_node_faces, d)
-        self.node_dim = max(model.node_capacity, 1)
 
     def rebuild(self) -> None:
         """Rebuild the candidate lists now (launches only: usable inside a graph capture)."""

@@ -156,10 +156,9 @@ class Simulation:
 
     # ------------------------------------------------------------------------------------------------------------
     def step(self) -> None:
-        """One time step, the stages in the order of the physics (launches only)."""
-        integrate_first_half(self.model, self.state)
-        self._forces()
-        integrate_second_half(self.model, self.state)
+        """One time step, the stages in the order of the physics (launches only): a run of one step."""
+        self._head()
+        self._tail()
 
     def _forces(self) -> None:
         """Stages 2–6 of a step: every force at the drifted positions (launches only)."""
