@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import logging
-
 import pytest
 import warp as wp
 
-wp.config.log_level = logging.WARNING  # no init banner; warnings still show
-wp.init()
+from warpdem.cli import init_warp
+
+init_warp()  # no banner, no "no CUDA driver" line on a CPU-only machine; warnings still show
 
 DEVICES = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
 

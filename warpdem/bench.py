@@ -2,8 +2,8 @@
 
 Settling, the case other DEM codes are measured on (issue "Foundation", §7): N spheres (r = 0.01 m,
 ρ = 2500 kg/m³, E = 1e7 Pa, ν = 0.3, μ = 0.5, e = 0.5, Hertz–Mindlin with history) start at rest from the centres
-in ``benchmarks/data/init_N*.txt`` inside a box (floor z = 0, side walls x = 0, Lx, y = 0, Ly) under gravity
-9.81 m/s²; dt = 5e-5 s; 2000 steps; nothing is written inside the timed part.
+in ``warpdem/data/bench/init_N*.txt.gz`` (shipped with the package) inside a box (floor z = 0, side walls x = 0,
+Lx, y = 0, Ly) under gravity 9.81 m/s²; dt = 5e-5 s; 2000 steps; nothing is written inside the timed part.
 
 Tetrahedra (issue "Cosserat point tetrahedra", §9): a granite block (E = 50 GPa, ν = 0.25, ρ = 2700 kg/m³, default
 bulk viscosity) meshed by the Kuhn box mesher into about the requested number of tets, vibrating from a smooth
@@ -15,7 +15,6 @@ integration, tets, the surface's FEM contact), after compilation and capture.
 from __future__ import annotations
 
 import json
-import logging
 import resource
 import sys
 import time
@@ -24,10 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-DATA_DIRS = (
-    Path(__file__).resolve().parent.parent / "benchmarks" / "data",
-    Path.cwd() / "benchmarks" / "data",
-)
+DATA_DIR = Path(__file__).resolve().parent / "data" / "bench"
+"""The settling cases shipped with the package: ``init_N<N>.txt.gz`` (centres [m], one ``x y z`` line per sphere,
+gzip-compressed text, so the numbers read back are exactly those of the original case files) and ``box_N<N>.json``
+(box, radius, density)."""
 
 
 @dataclass
@@ -52,13 +51,19 @@ class BenchResult:
 
 
 def find_case(n: int, data_dir: Path | None = None) -> tuple[np.ndarray, dict]:
-    """Initial centres (N, 3) and box description of the N-sphere case."""
-    for d in (data_dir,) if data_dir is not None else DATA_DIRS:
-        txt, box = d / f"init_N{n}.txt", d / f"box_N{n}.json"
+    """Initial centres [m], shape (N, 3), and box description of the N-sphere case, from ``data_dir`` (default: the
+    package's :data:`DATA_DIR`); the centres file may be plain (``init_N<N>.txt``) or gzip-compressed (``.txt.gz``).
+    """
+    folder = DATA_DIR if data_dir is None else data_dir
+    box = folder / f"box_N{n}.json"
+    for txt in (folder / f"init_N{n}.txt.gz", folder / f"init_N{n}.txt"):
         if txt.is_file() and box.is_file():
             return np.loadtxt(txt, dtype=np.float64).reshape(-1, 3), json.loads(box.read_text())
-    looked = data_dir if data_dir is not None else ", ".join(map(str, DATA_DIRS))
-    raise FileNotFoundError(f"no benchmark case for N = {n} (looked for init_N{n}.txt in {looked})")
+    shipped = sorted(int(p.name[len("box_N") : -len(".json")]) for p in folder.glob("box_N*.json"))
+    raise FileNotFoundError(
+        f"no benchmark case for N = {n}: {folder} needs init_N{n}.txt(.gz) and box_N{n}.json"
+        + (f" (it has N = {', '.join(map(str, shipped))})" if shipped else "")
+    )
 
 
 def settling_case(n: int, device: str, track_energy: bool = False, data_dir: Path | None = None):
@@ -153,9 +158,6 @@ def run_bench(
     repeat: int = 3,
 ) -> int:
     """``python -m warpdem bench``: print the table; returns the exit status."""
-    import warp as wp
-
-    wp.config.log_level = logging.WARNING  # no init banner; warnings still show
     rows = []
     for n in sizes:
         try:
@@ -265,9 +267,6 @@ def format_tet_row(r: TetBenchResult, header: bool) -> str:
 
 def run_tet_bench(sizes: list[int], steps: int, device: str, json_path: Path | None = None, repeat: int = 3) -> int:
     """``python -m warpdem bench tets``: print the table; returns the exit status."""
-    import warp as wp
-
-    wp.config.log_level = logging.WARNING
     rows = []
     for n in sizes:
         rows.append(bench_tets(n, steps, device, repeat))

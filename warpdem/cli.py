@@ -8,10 +8,48 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
+import tempfile
 from pathlib import Path
 
 EXIT_USAGE = 2
+
+CUDA_DRIVER_MISSING = "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver"
+"""Start of the line Warp's native library prints on stderr when it finds no CUDA driver (a CPU-only machine)."""
+
+
+def init_warp(quiet: bool = False) -> None:
+    """Initialise Warp without its start-up chatter: no banner, and no warning that a CPU-only machine has no CUDA
+    driver (the CPU is a supported device, not a fault; asking for ``--device cuda:0`` there still fails with a
+    message). Everything else Warp writes to stderr while it starts is passed on, so real errors still show.
+
+    Warp's native library prints the driver warning with C ``fprintf``, beyond Python's ``sys.stderr``, so the
+    start is run with file descriptor 2 pointed at a temporary file that is replayed, less that one line, afterwards.
+
+    Args:
+        quiet: also drop Warp's info and warning messages after the start (log level ERROR): ``--quiet`` prints
+            nothing but errors.
+    """
+    import warp as wp
+
+    wp.config.log_level = logging.ERROR if quiet else logging.WARNING  # no init banner
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as captured:
+        os.dup2(captured.fileno(), 2)
+        try:
+            wp.init()  # returns at once when Warp has started already (and then prints nothing)
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+        captured.seek(0)
+        text = captured.read().decode(errors="replace")
+    kept = [line for line in text.splitlines(keepends=True) if not line.startswith(CUDA_DRIVER_MISSING)]
+    if kept:
+        sys.stderr.write("".join(kept))
+        sys.stderr.flush()
 
 
 def _positive_float(text: str) -> float:
@@ -56,12 +94,21 @@ def run_parser() -> argparse.ArgumentParser:
 
 
 def bench_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m warpdem bench", description="Settling benchmark (see benchmarks/).")
+    p = argparse.ArgumentParser(
+        prog="python -m warpdem bench",
+        description="Settling benchmark: N spheres dropped into a box (see benchmarks/README.md). "
+        "'python -m warpdem bench tets' runs the tetrahedra benchmark instead (see 'python -m warpdem bench tets "
+        "--help').",
+    )
     p.add_argument("--sizes", type=_positive_int, nargs="+", default=[10000, 100000], help="sphere counts")
     p.add_argument("--steps", type=_positive_int, default=2000, help="time steps to time")
     p.add_argument("--device", default="cpu", help="Warp device")
     p.add_argument("--json", type=Path, help="also write the results as JSON")
-    p.add_argument("--data", type=Path, help="folder with init_N*.txt and box_N*.json (default: benchmarks/data)")
+    p.add_argument(
+        "--data",
+        type=Path,
+        help="folder with init_N*.txt(.gz) and box_N*.json (default: the cases shipped in warpdem/data/bench)",
+    )
     p.add_argument("--repeat", type=_positive_int, default=3, help="runs per size; the fastest counts")
     return p
 
@@ -91,11 +138,13 @@ def main(argv: list[str] | None = None) -> int:
         from .bench import run_tet_bench
 
         args = tet_bench_parser().parse_args(argv[2:])
+        init_warp()
         return run_tet_bench(args.sizes, args.steps, args.device, args.json, args.repeat)
     if argv[:1] == ["bench"]:
         from .bench import run_bench
 
         args = bench_parser().parse_args(argv[1:])
+        init_warp()
         return run_bench(args.sizes, args.steps, args.device, args.json, args.data, args.repeat)
     args = run_parser().parse_args(argv)
 
@@ -106,9 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     except SceneError as exc:
         return _fail(exc.problems)
 
-    import warp as wp
-
-    wp.config.log_level = logging.WARNING  # no init banner; warnings still show
+    init_warp(quiet=args.quiet)
     from .checkpoint import CheckpointError
     from .runner import RunOptions, run_scene, summary_json
 
