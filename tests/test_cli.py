@@ -148,6 +148,13 @@ BAD_INPUTS = [
         ),
         ["bonds[0].region", "contains 0 sphere"],
     ),
+    (
+        "initial_overlap",  # a 4th sphere half a radius deep in the first (r = 0.01 m, centres 0.015 m apart)
+        scene_text(
+            GOOD_SCENE + '[[particles]]\nkind = "sphere"\npart = "grains"\ncenter = [0.015, 0.0, 0.05]\nradius = 0.01\n'
+        ),
+        ["scene.toml: run.allow_initial_overlap", "1 sphere pair(s) overlap, the worst by 50 %"],
+    ),
     ("usd_suffix", good_scene_with("--usd", "run.txt"), ["--usd", "allowed suffixes"]),
     ("restart_missing", good_scene_with("--restart", "absent.h5"), ["--restart", "file not found"]),
     ("restart_not_hdf5", restart_from_text_file, ["notes.txt", "not an HDF5 file"]),
@@ -269,12 +276,30 @@ def test_good_scene_writes_usd_and_checkpoint(device, folders, capsys):
     assert np.all(end[:, 2] < start[:, 2])  # they fell under gravity
 
 
+def test_quiet_run_prints_nothing(folders):
+    """``--quiet``: a good run prints nothing at all, on stdout or stderr (no Warp banner, no "no CUDA driver" line
+    on a CPU-only machine, no progress bar, no summary)."""
+    inputs, out, cwd = folders
+    scene = scene_file(inputs, GOOD_SCENE)
+    result = subprocess.run(
+        [sys.executable, "-m", "warpdem", str(scene), "--out", str(out), "--frames", "1", "--quiet"],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stderr
+    assert (result.stdout, result.stderr) == ("", "")
+    assert (out / "tiny.usdc").is_file()
+
+
 def test_bench_help():
     result = subprocess.run(
         [sys.executable, "-m", "warpdem", "bench", "--help"], capture_output=True, text=True, timeout=120
     )
     assert result.returncode == 0, result.stderr
     assert "usage" in result.stdout and "Traceback" not in result.stderr
+    assert "bench tets" in result.stdout
 
 
 def test_tet_bench_runs_the_kuhn_block(tmp_path):

@@ -23,6 +23,7 @@ from .kernels.tets import TetMaterial
 from .loads import LoadModel, LoadSpecs, PressureHistory
 from .mesh import MeshQuality, check_tets
 from .model import BondData, Model, ParticleData, State, TetMeshData, WallData, pair_table_array
+from .overlap import OVERLAP_TOLERANCE, InitialOverlap, initial_overlap
 from .restitution import hertz_damping_coefficient, linear_damping_ratio
 from .scene import Scene, SceneError
 from .tets import (
@@ -131,6 +132,7 @@ class ModelBuilder:
     _joint_faces: list[tuple] = field(default_factory=list)
     contact_stiffness_factor: float = 1.0
     load_specs: LoadSpecs = field(default_factory=LoadSpecs)
+    overlap: InitialOverlap | None = None
 
     # -- materials and interactions ---------------------------------------------------------------------------
     def add_material(self, name: str, density: float, youngs_modulus: float, poisson_ratio: float) -> int:
@@ -449,6 +451,15 @@ class ModelBuilder:
         return self.load_specs.build(mesh, self.tet_material_table(), tet_arrays["node_capacity"], dt, device)
 
     # -- finalize ----------------------------------------------------------------------------------------------
+    def measure_initial_overlap(self, device: wp.context.DeviceLike = None) -> InitialOverlap:
+        """Spheres that start overlapping each other or the rock (:func:`warpdem.overlap.initial_overlap`), sphere ids
+        in creation order; also kept as ``overlap``. :meth:`finalize` does not refuse overlaps (tests and scripts
+        start contacts pre-loaded on purpose); scenes do (:func:`finalize_scene`)."""
+        particles, mesh = self.particle_data(), self.tet_mesh_data()
+        free = particles.motion == MOTIONS["free"]
+        self.overlap = initial_overlap(particles.q, particles.radius, free, mesh.points, mesh.tets, device)
+        return self.overlap
+
     def particle_data(self) -> ParticleData:
         if not self._spheres:
             z = np.zeros((0, 3))
@@ -921,14 +932,25 @@ def build_scene(scene: Scene, device: wp.context.DeviceLike = None) -> tuple[Mod
 def finalize_scene(scene: Scene, b: ModelBuilder, device: wp.context.DeviceLike = None) -> tuple[Model, State]:
     """Model and initial state from the builder of a scene (:func:`scene_builder`), with the scene's run settings.
 
+    The initial overlaps are measured first (``b.overlap``, :meth:`ModelBuilder.measure_initial_overlap`).
+
     Raises:
-        SceneError: the scene creates neither a sphere nor a tet, or a mesh file's joint faces are not interior faces.
+        SceneError: the scene creates neither a sphere nor a tet, a mesh file's joint faces are not interior faces, or
+            spheres start overlapping each other or the rock beyond OVERLAP_TOLERANCE (or with a centre inside the
+            rock) and ``run.allow_initial_overlap`` is off.
     """
     from .joints import JointFaceError
 
     if b.sphere_count == 0 and b.node_count == 0:
         raise SceneError(f"{scene.name}: particles: the scene creates no sphere (and has no [mesh])")
     run = scene.run
+    overlap = b.measure_initial_overlap(device if device is not None else run.device)
+    if overlap.exceeds(OVERLAP_TOLERANCE) and not run.allow_initial_overlap:
+        raise SceneError(
+            f"{scene.name}: run.allow_initial_overlap: spheres start overlapping beyond the tolerance "
+            f"({100.0 * OVERLAP_TOLERANCE:g} % of a radius, no centre in the rock): {overlap.format()}; move them "
+            "apart (or out of the rock), or set allow_initial_overlap = true in [run] to start from this state anyway"
+        )
     skin = None if scene.contact.skin == "auto" else float(scene.contact.skin)
     try:
         return b.finalize(

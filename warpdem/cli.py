@@ -131,6 +131,13 @@ def _fail(lines: list[str] | str) -> int:
     return EXIT_USAGE
 
 
+def _naming_file(line: str, scene_name: str, path: Path) -> str:
+    """A build-time problem names the scene by its name (a scene may come from Python, without a file); on the
+    command line, name the file instead."""
+    prefix = f"{scene_name}: "
+    return f"{path}: {line[len(prefix) :]}" if line.startswith(prefix) else line
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit status."""
     argv = sys.argv[1:] if argv is None else argv
@@ -150,8 +157,9 @@ def main(argv: list[str] | None = None) -> int:
 
     from .scene import SceneError, default_scene_path, load_scene
 
+    scene_path = Path(args.scene) if args.scene is not None else default_scene_path()
     try:
-        scene = load_scene(args.scene if args.scene is not None else default_scene_path())
+        scene = load_scene(scene_path)
     except SceneError as exc:
         return _fail(exc.problems)
 
@@ -176,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         summary = run_scene(scene, options)
     except (SceneError, CheckpointError) as exc:
-        return _fail(str(exc).splitlines())
+        return _fail([_naming_file(line, scene.name, scene_path) for line in str(exc).splitlines()])
     except KeyboardInterrupt:
         print("interrupted: the USD stage was not published; resume from the last checkpoint", file=sys.stderr)
         return 130

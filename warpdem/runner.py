@@ -235,6 +235,8 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         for quality in builder.mesh_qualities:
             print(f"mesh: {quality.format()}")
     model, state = finalize_scene(scene, builder, device)
+    if not options.quiet and builder.overlap is not None and builder.overlap.any:
+        print(f"initial overlap: {builder.overlap.format()}")
 
     fps = run.output_rate
     frame_period = 1.0 / fps

@@ -219,6 +219,11 @@ class Run(_Model):
     output_rate: Float = Field(default=50.0, gt=0, description="Output frames per simulated second [Hz].")
     seed: Int = Field(default=0, ge=0, description="Seed of the random number generator (random packings) [-].")
     device: Str = Field(default="cpu", description="Warp device: 'cpu', 'cuda' or 'cuda:<index>'.")
+    allow_initial_overlap: Bool = Field(
+        default=False,
+        description="Run even when spheres start overlapping each other or the rock by more than 5 % of a radius, "
+        "or with a centre inside the rock (warpdem.overlap); otherwise such a scene is refused at build time.",
+    )
 
     @field_validator("device")
     @classmethod

@@ -1,0 +1,200 @@
+"""Initial overlaps (warpdem/overlap.py, kernels/overlap.py): spheres deep in each other or in the rock at build time.
+
+Oracles:
+- sphere pairs: the O(N²) brute-force set of pairs with δ = r_i + r_j − |x_i − x_j| > ROUNDOFF · min(r_i, r_j), exact
+  equality of the pair sets, δ to float64 round-off; the same pairs with the cloud moved 1 km from the origin;
+- spheres and rock, against a Kuhn-tet cube [0, 1]³ (the rock is the cube): a centre inside the cube is in a tet and
+  one outside is in none (points kept 1e-4 m from the faces, far beyond float32 rounding); outside, the depth is
+  r − (distance to the cube) = r − |x − clamp(x, 0, 1)|, to float32 rounding of unit coordinates (DEPTH_ATOL);
+- CUDA: the kernel module (which no shipped scene runs) generates CUDA source and compiles for sm_80 and sm_90 with
+  Warp's NVRTC (as tests/test_cuda_codegen.py does for the scenes' kernels), on machines without a GPU too;
+- scenes: a sphere placed inside a tet block, or two spheres overlapping by half a radius, are refused with a line
+  naming run.allow_initial_overlap, the count and the worst overlap (δ / r = 0.5 exactly); the key lets them build;
+  an overlap under the tolerance builds and is reported; every shipped scene with spheres starts clean.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import warp as wp
+from warp._src import context
+from warpdem.kernels import overlap as ko
+
+from warpdem.builder import build_scene, finalize_scene, scene_builder
+from warpdem.mesh import box_mesh
+from warpdem.overlap import OVERLAP_TOLERANCE, ROUNDOFF, initial_overlap, sphere_pair_overlaps, sphere_rock_penetration
+from warpdem.scene import SceneError, default_scene_path, load_scene, parse_scene
+
+DEPTH_ATOL = 1e-6  # [m] float32 positions of order 1 m: ~1e-7 each, a few roundings
+MARGIN = 1e-4  # [m] distance kept from the cube's faces by the inside/outside test points
+SCENES = [*sorted((Path(__file__).resolve().parent.parent / "scenes").glob("*.toml")), default_scene_path()]
+SPHERE_SCENES = [p for p in SCENES if "[[particles]]" in p.read_text()]
+
+
+def brute_force_pairs(q: np.ndarray, r: np.ndarray) -> dict[tuple[int, int], float]:
+    """Every pair (i < j) overlapping by more than ROUNDOFF of the smaller radius, with its overlap δ [m]."""
+    found = {}
+    for i in range(len(q)):
+        for j in range(i + 1, len(q)):
+            delta = r[i] + r[j] - float(np.linalg.norm(q[i] - q[j]))
+            if delta > ROUNDOFF * min(r[i], r[j]):
+                found[(i, j)] = delta
+    return found
+
+
+def test_sphere_pairs_equal_brute_force_anywhere(device):
+    rng = np.random.default_rng(7)
+    n = 300
+    q = rng.uniform(0.0, 0.3, size=(n, 3))
+    r = rng.uniform(0.005, 0.02, size=n)
+    expected = brute_force_pairs(q, r)
+    assert len(expected) > 50  # a dense cloud: many overlaps of every depth
+    for offset in (np.zeros(3), np.array([1000.0, -2000.0, 500.0])):
+        pairs, delta = sphere_pair_overlaps(q + offset, r, device)
+        assert {tuple(p) for p in pairs.tolist()} == set(expected)
+        # δ from coordinates of magnitude 2e3 m: float64 rounding ~2e3 · 1e-16 per coordinate.
+        want = np.array([expected[tuple(p)] for p in pairs.tolist()])
+        np.testing.assert_allclose(delta, want, rtol=0, atol=1e-11)
+
+
+def test_touching_lattice_has_no_overlap(device):
+    # Spheres of radius 0.5 on a unit cubic lattice touch exactly: δ = 0 up to float64 rounding, not an overlap.
+    g = np.arange(6, dtype=np.float64)
+    q = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3) + 0.1
+    pairs, _ = sphere_pair_overlaps(q, np.full(len(q), 0.5), device)
+    assert len(pairs) == 0
+
+
+def test_sphere_rock_depth_against_the_cube(device):
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (3, 3, 3))
+    rng = np.random.default_rng(3)
+    q = rng.uniform(-0.3, 1.3, size=(400, 3))
+    clearance = np.minimum(np.abs(q), np.abs(q - 1.0)).min(axis=1)
+    q = q[clearance > MARGIN]
+    r = rng.uniform(0.05, 0.25, size=len(q))
+    depth, tet = sphere_rock_penetration(q, r, points, tets, device)
+
+    inside = np.all((q > 0.0) & (q < 1.0), axis=1)
+    assert 0 < inside.sum() < len(q)
+    np.testing.assert_array_equal(tet >= 0, inside)
+    # The tet named holds the centre: its barycentric coordinates are all ≥ 0 (to float64 rounding).
+    corners = points[tets[tet[inside]]]
+    m = np.stack([corners[:, k] - corners[:, 0] for k in (1, 2, 3)], axis=2)
+    lam = np.linalg.solve(m, (q[inside] - corners[:, 0])[..., None])[..., 0]
+    assert np.all(lam >= -1e-12) and np.all(lam.sum(axis=1) <= 1.0 + 1e-12)
+    np.testing.assert_allclose(depth[inside], r[inside], rtol=0, atol=DEPTH_ATOL)
+
+    distance = np.linalg.norm(q - np.clip(q, 0.0, 1.0), axis=1)
+    outside = ~inside
+    want = r[outside] - np.minimum(distance[outside], r[outside])  # the kernel caps the search at r
+    np.testing.assert_allclose(depth[outside], want, rtol=0, atol=DEPTH_ATOL)
+    assert np.any(want > 0.0) and np.any(want == 0.0)
+
+
+@pytest.mark.skipif(
+    not context.runtime.is_cuda_enabled, reason="this Warp build has no CUDA compiler (CPU-only platform build)"
+)
+def test_rock_kernel_compiles_for_cuda(tmp_path):
+    files = wp.compile_aot_module(
+        ko.sphere_rock_penetration_kernel.module, arch=(80, 90), use_ptx=True, module_dir=tmp_path
+    )
+    assert sorted(p.suffixes[-2] for p in map(Path, files) if p.suffix == ".ptx") == [".sm80", ".sm90"]
+
+
+def test_report_counts_the_worst_and_skips_held_pairs(device):
+    r = 0.01
+    # 0-1 overlap by 0.3 r (free), 2-3 by 0.6 r (both fixed: skipped), 4 alone; sphere 5 reaches 0.2 r into the cube
+    # [0, 1]³ through its top face, sphere 6 sits in it.
+    q = np.array(
+        [
+            [2.0, 0.0, 0.0],
+            [2.0 + 2 * r - 0.3 * r, 0.0, 0.0],
+            [3.0, 0.0, 0.0],
+            [3.0 + 2 * r - 0.6 * r, 0.0, 0.0],
+            [4.0, 0.0, 0.0],
+            [0.5, 0.5, 1.0 + 0.8 * r],
+            [0.5, 0.5, 0.5],
+        ]
+    )
+    free = np.array([True, True, False, False, True, True, True])
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (2, 2, 2))
+    report = initial_overlap(q, np.full(len(q), r), free, points, tets, device)
+    assert (report.pairs, report.worst_pair) == (1, (0, 1))
+    np.testing.assert_allclose(report.worst_pair_overlap, 0.3, rtol=1e-9)
+    np.testing.assert_allclose(report.worst_pair_point, [2.0 + r - 0.15 * r, 0.0, 0.0], rtol=0, atol=1e-15)
+    assert (report.inside, report.inside_sphere) == (1, 6)
+    assert (report.penetrating, report.worst_penetrating) == (1, 5)
+    np.testing.assert_allclose(report.worst_penetration, 0.2, rtol=0, atol=DEPTH_ATOL / r)
+    assert report.exceeds(OVERLAP_TOLERANCE)
+    line = report.format()
+    assert "1 sphere pair(s) overlap, the worst by 30 %" in line and "spheres 0 and 1" in line
+    assert "1 sphere(s) start with the centre inside the rock (sphere 6" in line
+    assert "1 sphere(s) reach into the rock, the worst by 20 %" in line
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Scenes
+
+ROCK = {"density": 2600.0, "youngs_modulus": 5.0e7, "poisson_ratio": 0.25}
+BLOCK = {"kind": "box", "lo": [0.0, 0.0, 0.0], "hi": [1.0, 1.0, 1.0], "divisions": [2, 2, 2], "material": "rock"}
+
+
+def sphere(center: list[float], radius: float = 0.05) -> dict:
+    return {"kind": "sphere", "part": "grains", "center": center, "radius": radius}
+
+
+def scene(spheres: list[dict], mesh: dict | None = None, allow: bool | None = None) -> dict:
+    run = {"end_time": 0.01} | ({} if allow is None else {"allow_initial_overlap": allow})
+    data = {
+        "name": "overlapping",
+        "run": run,
+        "materials": {"rock": dict(ROCK)},
+        "parts": {"grains": {"material": "rock"}},
+        "particles": spheres,
+    }
+    return data | ({"mesh": mesh} if mesh is not None else {})
+
+
+def test_sphere_inside_a_tet_block_is_refused_unless_allowed(device):
+    data = scene([sphere([0.5, 0.5, 0.5]), sphere([0.5, 0.5, 1.5])], mesh=BLOCK)
+    with pytest.raises(SceneError) as info:
+        build_scene(parse_scene(data), device)
+    (line,) = info.value.problems
+    assert line.startswith("overlapping: run.allow_initial_overlap: ")
+    assert "1 sphere(s) start with the centre inside the rock (sphere 0 at (0.5, 0.5, 0.5) m" in line
+
+    model, _ = build_scene(parse_scene(scene(data["particles"], mesh=BLOCK, allow=True)), device)
+    assert model.particle_capacity == 2 and model.tet_capacity == 6 * 8
+
+
+def test_deeply_overlapping_spheres_are_refused_unless_allowed(device):
+    r = 0.05
+    spheres = [sphere([0.0, 0.0, 1.0], r), sphere([2 * r - 0.5 * r, 0.0, 1.0], r)]  # δ = 0.5 r
+    with pytest.raises(SceneError, match=r"1 sphere pair\(s\) overlap, the worst by 50 % of the smaller radius"):
+        build_scene(parse_scene(scene(spheres)), device)
+    build_scene(parse_scene(scene(spheres, allow=True)), device)
+
+
+def test_slight_overlap_builds_and_is_reported(device):
+    r = 0.05
+    spheres = [sphere([0.0, 0.0, 1.0], r), sphere([2 * r - 0.01 * r, 0.0, 1.0], r)]  # δ = 0.01 r < tolerance
+    parsed = parse_scene(scene(spheres))
+    b = scene_builder(parsed)
+    finalize_scene(parsed, b, device)
+    assert b.overlap.pairs == 1 and not b.overlap.exceeds(OVERLAP_TOLERANCE)
+    np.testing.assert_allclose(b.overlap.worst_pair_overlap, 0.01, rtol=1e-9)
+
+
+@pytest.mark.parametrize("path", SPHERE_SCENES, ids=[p.stem for p in SPHERE_SCENES])
+def test_shipped_scenes_start_clean(path):
+    # The scenes without spheres (a mesh only) have nothing to measure; every scene builds through finalize_scene,
+    # which refuses overlaps, in test_scenes.py.
+    report = scene_builder(load_scene(path)).measure_initial_overlap("cpu")
+    assert not report.any, report.format()
+
+
+def test_sphere_scenes_are_found():
+    assert len(SPHERE_SCENES) >= 3  # granular_pour, bonded_slab_impact, the default
