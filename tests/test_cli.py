@@ -293,6 +293,27 @@ def test_quiet_run_prints_nothing(folders):
     assert (out / "tiny.usdc").is_file()
 
 
+def test_warp_start_drops_only_the_missing_driver_line(monkeypatch, capfd):
+    """The start-up filter drops the native library's "no CUDA driver" line and passes on everything else it writes
+    to file descriptor 2 (a real error must still show)."""
+    import os
+
+    import warp as wp
+
+    from warpdem.cli import CUDA_DRIVER_MISSING, init_warp
+
+    real_error = "Warp CUDA error: Failed to get function cuGetProcAddress\n"
+
+    def start_without_driver() -> None:  # what the native wp_init writes on a CPU-only machine, plus an error
+        os.write(2, f"{CUDA_DRIVER_MISSING}. GPU execution will not be available.\n".encode())
+        os.write(2, real_error.encode())
+
+    monkeypatch.setattr(wp.config, "log_level", wp.config.log_level)  # restored after the test
+    monkeypatch.setattr(wp, "init", start_without_driver)
+    init_warp()
+    assert capfd.readouterr().err == real_error
+
+
 def test_bench_help():
     result = subprocess.run(
         [sys.executable, "-m", "warpdem", "bench", "--help"], capture_output=True, text=True, timeout=120

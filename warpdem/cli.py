@@ -35,7 +35,11 @@ def init_warp(quiet: bool = False) -> None:
 
     wp.config.log_level = logging.ERROR if quiet else logging.WARNING  # no init banner
     sys.stderr.flush()
-    saved = os.dup(2)
+    try:
+        saved = os.dup(2)
+    except OSError:  # no file descriptor 2 (an embedding host): nothing to redirect, nothing to show either
+        wp.init()
+        return
     with tempfile.TemporaryFile() as captured:
         os.dup2(captured.fileno(), 2)
         try:
