@@ -1,7 +1,8 @@
 """Command line: ``python -m warpdem [SCENE] [options]`` runs a scene; ``python -m warpdem bench`` benchmarks.
 
 Bad input (scene, restart file, device) ends with one readable line per problem on stderr and exit status 2,
-before any output file is opened.
+before any output file is opened. A run that blows up ends with one line on stderr and exit status 3, its good
+frames published.
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ import sys
 from pathlib import Path
 
 EXIT_USAGE = 2
+EXIT_UNSTABLE = 3
+"""Exit status of a run stopped by the stability guard (warpdem.guard): non-finite or run-away state."""
 
 
 def _positive_float(text: str) -> float:
@@ -110,6 +113,7 @@ def main(argv: list[str] | None = None) -> int:
 
     wp.config.log_level = logging.WARNING  # no init banner; warnings still show
     from .checkpoint import CheckpointError
+    from .guard import UnstableRunError
     from .runner import RunOptions, run_scene, summary_json
 
     options = RunOptions(
@@ -130,6 +134,9 @@ def main(argv: list[str] | None = None) -> int:
         summary = run_scene(scene, options)
     except (SceneError, CheckpointError) as exc:
         return _fail(str(exc).splitlines())
+    except UnstableRunError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_UNSTABLE
     except KeyboardInterrupt:
         print("interrupted: the USD stage was not published; resume from the last checkpoint", file=sys.stderr)
         return 130

@@ -38,6 +38,7 @@ from pydantic import (
     BeforeValidator,
     ConfigDict,
     Field,
+    PrivateAttr,
     Strict,
     ValidationError,
     ValidationInfo,
@@ -219,6 +220,11 @@ class Run(_Model):
     output_rate: Float = Field(default=50.0, gt=0, description="Output frames per simulated second [Hz].")
     seed: Int = Field(default=0, ge=0, description="Seed of the random number generator (random packings) [-].")
     device: Str = Field(default="cpu", description="Warp device: 'cpu', 'cuda' or 'cuda:<index>'.")
+    allow_unstable_dt: Bool = Field(
+        default=False,
+        description="Run an explicit dt above the critical time step (refused otherwise); the run-time guard still "
+        "stops a run that blows up.",
+    )
 
     @field_validator("device")
     @classmethod
@@ -1091,6 +1097,12 @@ class Scene(_Model):
     boundaries: list[Boundary] = Field(default_factory=list, description="Boundary conditions of the mesh.")
     output: Output = Field(default_factory=Output, description="Output settings.")
     capacity: Capacity = Field(default_factory=Capacity, description="Initial buffer capacities.")
+    _source: str = PrivateAttr(default="")
+
+    @property
+    def source(self) -> str:
+        """The scene file it was loaded from (the name given to :func:`parse_scene`), for error messages."""
+        return self._source or self.name
 
     @model_validator(mode="before")
     @classmethod
@@ -1343,6 +1355,7 @@ def _parse(data: Any, source: str, base_dir: Path | None, default_name: str) -> 
         scene = Scene.model_validate(data, context={"default_name": default_name})
     except ValidationError as err:
         raise SceneError(_format_validation_error(err, source)) from None
+    scene._source = source
     problems = [f"{source}: {path}: {message}" for path, message in scene.reference_problems()]
     problems += _resolve_files(scene, source, base_dir if base_dir is not None else Path.cwd())
     if problems:
