@@ -606,22 +606,24 @@ class ModelBuilder:
 
     def run_away_speed(self, particles: ParticleData, bonds: BondData, mesh: TetMeshData, walls: WallData) -> float:
         """The guard's run-away speed bound at t = 0 [m/s] (:func:`warpdem.guard.run_away_speed`): from the P-wave
-        speeds of the materials (a penalty spring f E / h carries waves sqrt(f) times faster), of the bond chains
-        (L_0 sqrt(k_n / m)), and the initial, wall and driver speeds."""
-        factors = [1.0, self.contact_stiffness_factor, *(j.stiffness_factor for j in self.joint_sets)]
-        waves = [
-            p_wave_speed(m.density, m.youngs_modulus, m.poisson_ratio) * math.sqrt(max(factors))
-            for m in self.materials.values()
-        ]
+        speeds of the materials and of the bond chains (L_0 sqrt(k_n / m)), and the initial, wall and driver
+        speeds and the particle velocity of the strongest pressure load."""
+        waves = [p_wave_speed(m.density, m.youngs_modulus, m.poisson_ratio) for m in self.materials.values()]
         if len(bonds):
             mass = sphere_masses(particles, self.materials)
             m = np.minimum(mass[bonds.pairs[:, 0]], mass[bonds.pairs[:, 1]])
             waves.append(float(np.max(bonds.rest_length * np.sqrt(bonds.kn / m))))
+        velocities = (particles.qd, mesh.velocity, walls.velocity, *(d[1] for d in self.load_specs.drivers))
         speeds = [
-            np.linalg.norm(np.asarray(v, dtype=np.float64).reshape(-1, 3), axis=1)
-            for v in (particles.qd, mesh.velocity, walls.velocity, *(d[1] for d in self.load_specs.drivers))
+            float(np.linalg.norm(np.asarray(v, dtype=np.float64).reshape(-1, 3), axis=1).max(initial=0.0))
+            for v in velocities
         ]
-        return run_away_speed(waves, [float(v.max(initial=0.0)) for v in speeds])
+        if self.load_specs.pressures and len(mesh.tets):
+            # A pressure p launches the rock at p / (ρ c_p), twice that where the pulse reflects from a free face.
+            impedance = min(m.density * m.c_p for m in self.tet_material_table() if m.density > 0.0)
+            peak = max(max(abs(h.peak), *(abs(v) for v in h.values)) for _, h, _ in self.load_specs.pressures)
+            speeds.append(2.0 * peak / impedance)
+        return run_away_speed(waves, speeds)
 
     def finalize(
         self,

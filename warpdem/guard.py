@@ -10,9 +10,13 @@ stable and is the user's call, while one above the bound is not stable by the es
 
 Run time: :class:`StabilityGuard` launches one check over the spheres and one over the FEM nodes after each run of
 steps (``kernels/guard.py``; no read-back inside the step): a non-finite position, velocity or spin, or a speed above
-the run-away bound ``Model.speed_limit + |g| t``. The bound (:func:`run_away_speed`) is ``SPEED_LIMIT_FACTOR`` times
-the fastest P-wave speed of the materials, bond chains and penalty springs, or the fastest initial or prescribed
-speed if higher: no material point of a solid outruns its fastest wave tenfold, and gravity adds at most |g| t.
+the run-away bound ``Model.speed_limit + |g| t`` (:func:`run_away_speed`): the fastest P-wave speed c_p of the
+materials and bond chains, or SPEED_LIMIT_FACTOR times the fastest initial, wall or driver speed, or particle
+velocity 2 p / (ρ c_p) of a pressure load, if that is higher.
+A material point moving at c_p would be at 100 % strain (v = ε c), a sphere can gain no more than its launch speeds
+from collisions, and gravity adds at most |g| t: what passes the bound is a blow-up. A blow-up that saturates below
+it (an unconfined bonded cluster whose bonds all break flies apart at about c_p) is not caught here; the energy
+balance of the summary shows it.
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ from .kernels import guard as kg
 from .model import Model, State
 
 SPEED_LIMIT_FACTOR = 10.0
-"""Run-away speed bound relative to the fastest wave or initial speed of the scene [-]."""
+"""Run-away speed bound relative to the fastest launch speed of the scene (initial, wall, driver, load) [-]."""
 
 PROBLEMS = {
     kg.PROBLEM_POSITION: "non-finite position",
@@ -75,11 +79,12 @@ def p_wave_speed(density: float, young: float, poisson: float) -> float:
     return math.sqrt(young * (1.0 - poisson) / ((1.0 + poisson) * (1.0 - 2.0 * poisson) * density))
 
 
-def run_away_speed(wave_speeds: list[float], initial_speeds: list[float]) -> float:
-    """The run-away bound ``Model.speed_limit`` [m/s]: SPEED_LIMIT_FACTOR × the fastest of the scene's wave speeds
-    and initial or prescribed speeds (inf when there is none, so that only non-finite values are caught)."""
-    fastest = max([*wave_speeds, *initial_speeds], default=0.0)
-    return SPEED_LIMIT_FACTOR * fastest if fastest > 0.0 else math.inf
+def run_away_speed(wave_speeds: list[float], launch_speeds: list[float]) -> float:
+    """The run-away bound ``Model.speed_limit`` [m/s]: the fastest wave speed, or SPEED_LIMIT_FACTOR × the fastest
+    launch speed (initial, wall, driver, pressure load) if higher (inf when there is none: only non-finite values
+    are caught)."""
+    fastest = max(max(wave_speeds, default=0.0), SPEED_LIMIT_FACTOR * max(launch_speeds, default=0.0))
+    return fastest if fastest > 0.0 else math.inf
 
 
 class UnstableRunError(RuntimeError):
