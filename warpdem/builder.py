@@ -16,7 +16,7 @@ import warp as wp
 from . import packing
 from .bonds import find_bond_pairs
 from .contact import critical_time_step_hertz
-from .fem_contact import attach_fem_contact, contact_critical_time_step, fem_contact_state
+from .fem_contact import attach_fem_contact, contact_critical_step_at, fem_contact_state
 from .guard import CriticalStep, check_time_step, p_wave_speed, run_away_speed
 from .joints import JointData, JointProps, count_split_nodes
 from .kernels.contact import ContactPair
@@ -305,20 +305,24 @@ class ModelBuilder:
         )
 
     def contact_critical_time_step(self, mesh: TetMeshData) -> float:
+        """Stable step of the FEM contacts and joints [s] before the safety factor (:meth:`contact_critical_step`)."""
+        return self.contact_critical_step(mesh).value
+
+    def contact_critical_step(self, mesh: TetMeshData) -> CriticalStep:
         """Stable step of the FEM contacts and joints [s] before the safety factor
-        (:func:`warpdem.fem_contact.contact_critical_time_step`). inf where no FEM contact can engage at the start:
-        no tets, or one tet body without joints, walls or spheres (a crack opened at run time brings its own
-        contacts, and the fracture stage its own step)."""
+        (:func:`warpdem.fem_contact.contact_critical_step_at`), and the node that sets it. inf where no FEM contact
+        can engage at the start: no tets, or one tet body without joints, walls or spheres (a crack opened at run
+        time brings its own contacts, and the fracture stage its own step)."""
         joints = self.joint_data()
         if len(mesh.tets) == 0 or not (len(joints) or self._walls or self._spheres or len(self._tet_meshes) > 1):
-            return math.inf
+            return CriticalStep(math.inf, "no FEM contact")
         table = self.tet_material_table()
         young = np.array([m.mu * (3.0 * m.lam + 2.0 * m.mu) / max(m.lam + m.mu, 1e-30) for m in table])
         density = np.array([m.density for m in table], dtype=np.float64)
         zeta = [p.damping_ratio for p in self.joint_sets]
         names = list(self.materials)
         zeta += [linear_damping_ratio(self.interaction(a, b).restitution) for a in names for b in names]
-        return contact_critical_time_step(
+        step, node, joint_set = contact_critical_step_at(
             mesh.points,
             mesh.tets,
             young[mesh.material],
@@ -328,6 +332,8 @@ class ModelBuilder:
             self.contact_stiffness_factor,
             max(zeta),
         )
+        where = f"joint set {self.joint_set_names[joint_set]}" if joint_set >= 0 else "the rock surface"
+        return CriticalStep(step, f"the contact penalty springs of {where} at mesh node {node}")
 
     def tet_mesh_data(self) -> TetMeshData:
         """All tet meshes added so far, concatenated (node indices offset accordingly)."""
@@ -578,7 +584,7 @@ class ModelBuilder:
         steps = [
             self.tet_critical_step(mesh),
             CriticalStep(dashpots, "the non-reflecting boundary dashpots"),
-            CriticalStep(self.contact_critical_time_step(mesh), "the penalty springs of the FEM contacts and joints"),
+            self.contact_critical_step(mesh),
         ]
         if np.any(free) or len(bonds):
             for mid in np.unique(particles.material):
@@ -621,7 +627,7 @@ class ModelBuilder:
         if self.load_specs.pressures and len(mesh.tets):
             # A pressure p launches the rock at p / (ρ c_p), twice that where the pulse reflects from a free face.
             impedance = min(m.density * m.c_p for m in self.tet_material_table() if m.density > 0.0)
-            peak = max(max(abs(h.peak), *(abs(v) for v in h.values)) for _, h, _ in self.load_specs.pressures)
+            peak = max(max([abs(h.peak), *map(abs, h.values)]) for _, h, _ in self.load_specs.pressures)
             speeds.append(2.0 * peak / impedance)
         return run_away_speed(waves, speeds)
 

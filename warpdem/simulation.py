@@ -274,7 +274,8 @@ class Simulation:
     def _first_bad_step(self, report: GuardReport, n_steps: int) -> UnstableRunError:
         """The error for a run of ``n_steps`` that ended in a bad state: the run is replayed from its snapshot one
         step at a time (bit for bit the same steps, warpdem.simulation._run) up to the first step the guard refuses,
-        so that the error names where the blow-up began, not where the run ended."""
+        so that the error names where the blow-up began, not where the run ended (where the replay differs, as atomics
+        may on a GPU, and stays good, the run's own end)."""
         step = self.step_count
         if n_steps > 1:
             self.state.assign(self._snapshot)
