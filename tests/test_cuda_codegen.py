@@ -42,7 +42,18 @@ def test_every_scene_kernel_compiles_for_cuda(tmp_path):
     modules = warpdem_modules()
     defined_in = {k.func.__module__ for m in modules for k in m.kernels.values()}
     # Every kernel file of the step is reached by some scene family.
-    stages = ("integrate", "contact", "neighbors", "bonds", "tets", "joints", "fem_contact", "loads", "compaction")
+    stages = (
+        "integrate",
+        "contact",
+        "neighbors",
+        "bonds",
+        "tets",
+        "joints",
+        "fem_contact",
+        "loads",
+        "compaction",
+        "guard",
+    )
     assert {f"warpdem.kernels.{stage}" for stage in stages} <= defined_in
     failures, compiled = [], 0
     for module in modules:

@@ -16,7 +16,8 @@ import warp as wp
 from . import packing
 from .bonds import find_bond_pairs
 from .contact import critical_time_step_hertz
-from .fem_contact import attach_fem_contact, contact_critical_time_step, fem_contact_state
+from .fem_contact import attach_fem_contact, contact_critical_step_at, fem_contact_state
+from .guard import CriticalStep, check_time_step, p_wave_speed, run_away_speed
 from .joints import JointData, JointProps, count_split_nodes
 from .kernels.contact import ContactPair
 from .kernels.tets import TetMaterial
@@ -78,8 +79,16 @@ def morton_order(q: np.ndarray, cell: float) -> np.ndarray:
     return np.argsort(code, kind="stable")
 
 
-def bond_critical_time_step(particles: ParticleData, bonds: BondData, materials: dict[str, MaterialProps]) -> float:
-    """Stable step [s] of the bonded spheres, from the stiffest mode each sphere can have.
+def sphere_masses(particles: ParticleData, materials: dict[str, MaterialProps]) -> np.ndarray:
+    """Mass of each sphere, ρ (4/3) π r³ [kg], shape (N,)."""
+    density = np.array([m.density for m in materials.values()])[particles.material]
+    return density * 4.0 / 3.0 * math.pi * particles.radius**3
+
+
+def bond_critical_step(
+    particles: ParticleData, bonds: BondData, materials: dict[str, MaterialProps], part_names: Sequence[str] = ()
+) -> CriticalStep:
+    """Stable step [s] of the bonded spheres, from the stiffest mode each sphere can have, and the bond that sets it.
 
     A sphere with Z bonds, mass m and I = (2/5) m r² has a translational mode ω² = Z k_n / m and a rotational one
     ω² = Z (k_s r²)·2 / I = 5 Z k_s / m (neighbours counter-rotating). Explicit central differences are stable for
@@ -87,19 +96,32 @@ def bond_critical_time_step(particles: ParticleData, bonds: BondData, materials:
     gives ζ/√2 in translation and sqrt(5/2) ζ ≈ 1.58 ζ in rotation, where the small moment of inertia makes the
     same dashpot relatively much stronger.
     """
-    names = list(materials)
-    density = np.array([materials[names[m]].density for m in particles.material])
-    mass = density * 4.0 / 3.0 * math.pi * particles.radius**3
+    mass = sphere_masses(particles, materials)
     z = np.bincount(bonds.pairs.ravel(), minlength=len(mass)).astype(np.float64)
     i, j = bonds.pairs[:, 0], bonds.pairs[:, 1]
     m = np.minimum(mass[i], mass[j])
     zmax = np.maximum(z[i], z[j])
     zeta = np.asarray(bonds.damping, dtype=np.float64)
 
-    def step(omega2: np.ndarray, damping_ratio: np.ndarray) -> float:
-        return float(np.min(2.0 / np.sqrt(omega2) * (np.sqrt(1.0 + damping_ratio**2) - damping_ratio)))
+    def step(omega2: np.ndarray, damping_ratio: np.ndarray) -> np.ndarray:
+        return 2.0 / np.sqrt(omega2) * (np.sqrt(1.0 + damping_ratio**2) - damping_ratio)
 
-    return min(step(zmax * bonds.kn / m, zeta / math.sqrt(2.0)), step(5.0 * zmax * bonds.ks / m, 1.58 * zeta))
+    modes = {
+        "translational": step(zmax * bonds.kn / m, zeta / math.sqrt(2.0)),
+        "rotational": step(5.0 * zmax * bonds.ks / m, 1.58 * zeta),
+    }
+    mode, steps = min(modes.items(), key=lambda item: float(item[1].min()))
+    k = int(np.argmin(steps))
+    part = int(particles.part[i[k]])
+    name = f" of part {part_names[part]}" if part < len(part_names) else ""
+    return CriticalStep(
+        float(steps[k]), f"the bond between spheres{name} ({mode} mode, {int(zmax[k])} bonds on a sphere)"
+    )
+
+
+def bond_critical_time_step(particles: ParticleData, bonds: BondData, materials: dict[str, MaterialProps]) -> float:
+    """Stable step [s] of the bonded spheres (:func:`bond_critical_step`)."""
+    return bond_critical_step(particles, bonds, materials).value
 
 
 @dataclass
@@ -285,20 +307,24 @@ class ModelBuilder:
         )
 
     def contact_critical_time_step(self, mesh: TetMeshData) -> float:
+        """Stable step of the FEM contacts and joints [s] before the safety factor (:meth:`contact_critical_step`)."""
+        return self.contact_critical_step(mesh).value
+
+    def contact_critical_step(self, mesh: TetMeshData) -> CriticalStep:
         """Stable step of the FEM contacts and joints [s] before the safety factor
-        (:func:`warpdem.fem_contact.contact_critical_time_step`). inf where no FEM contact can engage at the start:
-        no tets, or one tet body without joints, walls or spheres (a crack opened at run time brings its own
-        contacts, and the fracture stage its own step)."""
+        (:func:`warpdem.fem_contact.contact_critical_step_at`), and the node that sets it. inf where no FEM contact
+        can engage at the start: no tets, or one tet body without joints, walls or spheres (a crack opened at run
+        time brings its own contacts, and the fracture stage its own step)."""
         joints = self.joint_data()
         if len(mesh.tets) == 0 or not (len(joints) or self._walls or self._spheres or len(self._tet_meshes) > 1):
-            return math.inf
+            return CriticalStep(math.inf, "no FEM contact")
         table = self.tet_material_table()
         young = np.array([m.mu * (3.0 * m.lam + 2.0 * m.mu) / max(m.lam + m.mu, 1e-30) for m in table])
         density = np.array([m.density for m in table], dtype=np.float64)
         zeta = [p.damping_ratio for p in self.joint_sets]
         names = list(self.materials)
         zeta += [linear_damping_ratio(self.interaction(a, b).restitution) for a in names for b in names]
-        return contact_critical_time_step(
+        step, node, joint_set = contact_critical_step_at(
             mesh.points,
             mesh.tets,
             young[mesh.material],
@@ -308,6 +334,8 @@ class ModelBuilder:
             self.contact_stiffness_factor,
             max(zeta),
         )
+        where = f"joint set {self.joint_set_names[joint_set]}" if joint_set >= 0 else "the rock surface"
+        return CriticalStep(step, f"the contact penalty springs of {where} at mesh node {node}")
 
     def tet_mesh_data(self) -> TetMeshData:
         """All tet meshes added so far, concatenated (node indices offset accordingly)."""
@@ -338,10 +366,14 @@ class ModelBuilder:
         ]
 
     def tet_critical_time_step(self, mesh: TetMeshData) -> float:
+        """Critical time step of the tets [s] before the safety factor (:meth:`tet_critical_step`)."""
+        return self.tet_critical_step(mesh).value
+
+    def tet_critical_step(self, mesh: TetMeshData) -> CriticalStep:
         """Critical time step of the tets [s] before the safety factor (:func:`warpdem.tets.tet_stable_time_steps`;
-        inf without tets)."""
+        inf without tets), and the tet that sets it."""
         if len(mesh.tets) == 0:
-            return math.inf
+            return CriticalStep(math.inf, "no tet")
         table = self.tet_material_table()
         inv_ref, _ = reference_geometry(mesh.points, mesh.tets)
 
@@ -351,7 +383,8 @@ class ModelBuilder:
         steps = tet_stable_time_steps(
             inv_ref, per_tet("mu"), per_tet("lam"), per_tet("density"), per_tet("c_lin"), per_tet("alpha")
         )
-        return float(steps.min())
+        k = int(np.argmin(steps))
+        return CriticalStep(float(steps[k]), f"tet {k} of material {list(self.materials)[mesh.material[k]]}")
 
     def add_plane_wall(
         self, point: Sequence[float], normal: Sequence[float], material: str, velocity: Sequence[float] = (0, 0, 0)
@@ -544,37 +577,70 @@ class ModelBuilder:
         return BondData(*(np.concatenate([getattr(p, f) for p in parts]) for f in BondData.__dataclass_fields__))
 
     def critical_time_step(self, particles: ParticleData, bonds: BondData, mesh: TetMeshData | None = None) -> float:
-        """Critical time step [s] before the safety factor: the smallest of the Rayleigh step (Hertz) or
-        2 sqrt(m*/k_n) (linear) of every sphere size and material, the Hertz contact time at the fastest initial
-        approach / 10, the bond step (:func:`bond_critical_time_step`), the tet step
-        (:meth:`tet_critical_time_step`, of ``mesh`` or of the meshes added), the step of the nodes under
-        non-reflecting dashpots (:meth:`warpdem.loads.LoadSpecs.critical_time_step`) and the step of the FEM contact
-        and joint penalty springs (:meth:`contact_critical_time_step`)."""
+        """Critical time step [s] before the safety factor (:meth:`critical_step`)."""
+        return self.critical_step(particles, bonds, mesh).value
+
+    def critical_step(self, particles: ParticleData, bonds: BondData, mesh: TetMeshData | None = None) -> CriticalStep:
+        """Critical time step [s] before the safety factor, and what sets it: the smallest of the Rayleigh step
+        (Hertz) or 2 sqrt(m*/k_n) (linear) of every sphere size and material, the Hertz contact time at the fastest
+        initial approach / 10, the bond step (:func:`bond_critical_step`), the tet step (:meth:`tet_critical_step`,
+        of ``mesh`` or of the meshes added), the step of the nodes under non-reflecting dashpots
+        (:meth:`warpdem.loads.LoadSpecs.critical_time_step`) and the step of the FEM contact and joint penalty
+        springs (:meth:`contact_critical_time_step`)."""
         names = list(self.materials)
         free = particles.motion == 0
         mesh = mesh if mesh is not None else self.tet_mesh_data()
         # Non-reflecting dashpots on light boundary nodes can be stiffer than the tets themselves (warpdem.loads).
-        dashpot_step = self.load_specs.critical_time_step(mesh, self.tet_material_table())
-        tet_step = min(self.tet_critical_time_step(mesh), dashpot_step, self.contact_critical_time_step(mesh))
-        if not np.any(free) and not len(bonds):
-            return tet_step
-        steps = []
-        for mid in np.unique(particles.material):
-            mat = self.materials[names[mid]]
-            r = float(particles.radius[particles.material == mid].min())
-            mass = mat.density * 4.0 / 3.0 * math.pi * r**3
-            if self.normal == "hertz":
-                steps.append(critical_time_step_hertz(r, mat.density, mat.youngs_modulus, mat.poisson_ratio))
-                speed = 2.0 * float(np.linalg.norm(particles.qd, axis=1).max(initial=0.0))
-                if speed > 0.0:
-                    estar, _ = effective_moduli(mat, mat)
-                    mstar, rstar = 0.5 * mass, 0.5 * r
-                    steps.append(0.1 * 2.87 * (mstar**2 / (rstar * estar**2 * speed)) ** 0.2)
-            else:
-                steps.append(2.0 * math.sqrt(0.5 * mass / (mat.youngs_modulus * r)))
+        dashpots = self.load_specs.critical_time_step(mesh, self.tet_material_table())
+        steps = [
+            self.tet_critical_step(mesh),
+            CriticalStep(dashpots, "the non-reflecting boundary dashpots"),
+            self.contact_critical_step(mesh),
+        ]
+        if np.any(free) or len(bonds):
+            for mid in np.unique(particles.material):
+                mat = self.materials[names[mid]]
+                mine = np.nonzero(particles.material == mid)[0]
+                smallest = mine[np.argmin(particles.radius[mine])]
+                r = float(particles.radius[smallest])
+                what = f"spheres of material {names[mid]} (r = {r:.3g} m, part {self.parts[particles.part[smallest]]})"
+                mass = mat.density * 4.0 / 3.0 * math.pi * r**3
+                if self.normal == "hertz":
+                    rayleigh = critical_time_step_hertz(r, mat.density, mat.youngs_modulus, mat.poisson_ratio)
+                    steps.append(CriticalStep(rayleigh, f"the Rayleigh step of the smallest {what}"))
+                    speed = 2.0 * float(np.linalg.norm(particles.qd, axis=1).max(initial=0.0))
+                    if speed > 0.0:
+                        estar, _ = effective_moduli(mat, mat)
+                        mstar, rstar = 0.5 * mass, 0.5 * r
+                        impact = 0.1 * 2.87 * (mstar**2 / (rstar * estar**2 * speed)) ** 0.2
+                        steps.append(CriticalStep(impact, f"a tenth of the Hertz contact of {what} at {speed:.3g} m/s"))
+                else:
+                    linear = 2.0 * math.sqrt(0.5 * mass / (mat.youngs_modulus * r))
+                    steps.append(CriticalStep(linear, f"the linear contact of the smallest {what}"))
+            if len(bonds):
+                steps.append(bond_critical_step(particles, bonds, self.materials, self.parts))
+        return min(steps, key=lambda c: c.value)
+
+    def run_away_speed(self, particles: ParticleData, bonds: BondData, mesh: TetMeshData, walls: WallData) -> float:
+        """The guard's run-away speed bound at t = 0 [m/s] (:func:`warpdem.guard.run_away_speed`): from the P-wave
+        speeds of the materials and of the bond chains (L_0 sqrt(k_n / m)), and the initial, wall and driver
+        speeds and the particle velocity of the strongest pressure load."""
+        waves = [p_wave_speed(m.density, m.youngs_modulus, m.poisson_ratio) for m in self.materials.values()]
         if len(bonds):
-            steps.append(bond_critical_time_step(particles, bonds, self.materials))
-        return min(*steps, tet_step)
+            mass = sphere_masses(particles, self.materials)
+            m = np.minimum(mass[bonds.pairs[:, 0]], mass[bonds.pairs[:, 1]])
+            waves.append(float(np.max(bonds.rest_length * np.sqrt(bonds.kn / m))))
+        velocities = (particles.qd, mesh.velocity, walls.velocity, *(d[1] for d in self.load_specs.drivers))
+        speeds = [
+            float(np.linalg.norm(np.asarray(v, dtype=np.float64).reshape(-1, 3), axis=1).max(initial=0.0))
+            for v in velocities
+        ]
+        if self.load_specs.pressures and len(mesh.tets):
+            # A pressure p launches the rock at p / (ρ c_p), twice that where the pulse reflects from a free face.
+            impedance = min(m.density * m.c_p for m in self.tet_material_table() if m.density > 0.0)
+            peak = max(max([abs(h.peak), *map(abs, h.values)]) for _, h, _ in self.load_specs.pressures)
+            speeds.append(2.0 * peak / impedance)
+        return run_away_speed(waves, speeds)
 
     def finalize(
         self,
@@ -591,6 +657,7 @@ class ModelBuilder:
         fem_skin: float | None = None,
         max_sphere_faces: int = 8,
         max_node_faces: int = 8,
+        allow_unstable_dt: bool = False,
     ) -> tuple[Model, State]:
         """Allocate the model and initial state; pre-split the joints and build the FEM contact surface.
 
@@ -607,6 +674,12 @@ class ModelBuilder:
             fem_skin: Verlet skin of the FEM contact lists [m] (default: warpdem.fem_contact.attach_fem_contact).
             max_sphere_faces, max_node_faces: initial FEM contact candidates per sphere and per node (grown on
                 overflow).
+            allow_unstable_dt: accept an explicit dt above the critical time step (the run-time guard still stops a
+                run that blows up, warpdem.guard).
+
+        Raises:
+            warpdem.guard.UnstableTimeStepError: an explicit dt above the critical time step (:meth:`critical_step`)
+                and not allow_unstable_dt.
         """
         device = wp.get_device(device)
         particles = self.particle_data()
@@ -626,17 +699,19 @@ class ModelBuilder:
         else:
             ids = np.arange(n)
         mesh = self.tet_mesh_data()
+        critical = self.critical_step(particles, bonds, mesh)
         if dt is None:
-            dt = safety_factor * self.critical_time_step(particles, bonds, mesh)
+            dt = safety_factor * critical.value
             if not math.isfinite(dt):
                 dt = 1.0e-4
+        else:
+            check_time_step(float(dt), critical, allow_unstable_dt)
         if skin is None:
             skin = 0.4 * float(particles.radius.min()) if n else 0.0
         walls = self.wall_data()
         cap = max(particle_capacity or n, n, 1)
         names = list(self.materials)
-        density = np.array([self.materials[names[m]].density for m in particles.material])
-        mass = density * 4.0 / 3.0 * math.pi * particles.radius**3
+        mass = sphere_masses(particles, self.materials)
         free = particles.motion == 0
         inv_mass = np.where(free, 1.0 / np.where(mass > 0, mass, 1.0), 0.0)
         inertia = 0.4 * mass * particles.radius**2
@@ -687,6 +762,9 @@ class ModelBuilder:
             bond_capacity=len(bonds),
             **tet_arrays,
             loads=self.load_model(mesh, tet_arrays, float(dt), device),
+            critical_dt=critical.value,
+            critical_dt_source=critical.source,
+            speed_limit=self.run_away_speed(particles, bonds, mesh, walls),
         )
         state = new_state(model, particles, walls, bonds, mesh)
         model, state = attach_fem_contact(
@@ -937,8 +1015,10 @@ def finalize_scene(scene: Scene, b: ModelBuilder, device: wp.context.DeviceLike 
     Raises:
         SceneError: the scene creates neither a sphere nor a tet, a mesh file's joint faces are not interior faces, or
             spheres start overlapping each other or the rock beyond OVERLAP_TOLERANCE (or with a centre inside the
-            rock) and ``run.allow_initial_overlap`` is off.
+            rock) and ``run.allow_initial_overlap`` is off,
+            or an explicit run.dt exceeds the critical time step and run.allow_unstable_dt is off.
     """
+    from .guard import UnstableTimeStepError
     from .joints import JointFaceError
 
     if b.sphere_count == 0 and b.node_count == 0:
@@ -962,6 +1042,12 @@ def finalize_scene(scene: Scene, b: ModelBuilder, device: wp.context.DeviceLike 
             particle_capacity=scene.capacity.particles,
             node_capacity=scene.capacity.nodes,
             tet_capacity=scene.capacity.tets,
+            allow_unstable_dt=run.allow_unstable_dt,
         )
     except JointFaceError as exc:
         raise SceneError(f"{scene.name}: mesh: {exc}") from None
+    except UnstableTimeStepError as exc:
+        raise SceneError(
+            f"{scene.source}: run.dt: {exc}; allowed: dt <= {exc.critical.value:.4g} s, dt = 'auto' "
+            f"(run.safety_factor x the critical step), or run.allow_unstable_dt = true to run it anyway"
+        ) from None

@@ -1,7 +1,8 @@
 """Command line: ``python -m warpdem [SCENE] [options]`` runs a scene; ``python -m warpdem bench`` benchmarks.
 
 Bad input (scene, restart file, device) ends with one readable line per problem on stderr and exit status 2,
-before any output file is opened.
+before any output file is opened. A run that blows up ends with one line on stderr and exit status 3, its good
+frames published.
 """
 
 from __future__ import annotations
@@ -14,6 +15,8 @@ import tempfile
 from pathlib import Path
 
 EXIT_USAGE = 2
+EXIT_UNSTABLE = 3
+"""Exit status of a run stopped by the stability guard (warpdem.guard): non-finite or run-away state."""
 
 CUDA_DRIVER_MISSING = "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver"
 """Start of the line Warp's native library prints on stderr when it finds no CUDA driver (a CPU-only machine)."""
@@ -169,6 +172,7 @@ def main(argv: list[str] | None = None) -> int:
 
     init_warp(quiet=args.quiet)
     from .checkpoint import CheckpointError
+    from .guard import UnstableRunError
     from .runner import RunOptions, run_scene, summary_json
 
     options = RunOptions(
@@ -189,6 +193,9 @@ def main(argv: list[str] | None = None) -> int:
         summary = run_scene(scene, options)
     except (SceneError, CheckpointError) as exc:
         return _fail([_naming_file(line, scene.name, scene_path) for line in str(exc).splitlines()])
+    except UnstableRunError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_UNSTABLE
     except KeyboardInterrupt:
         print("interrupted: the USD stage was not published; resume from the last checkpoint", file=sys.stderr)
         return 130

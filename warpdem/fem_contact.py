@@ -575,7 +575,7 @@ def fem_contact_energy(model: Model, state: State) -> tuple[float, float]:
     return elastic, dissipated
 
 
-def contact_critical_time_step(
+def contact_critical_step_at(
     points: np.ndarray,
     tets: np.ndarray,
     young: np.ndarray,
@@ -584,8 +584,9 @@ def contact_critical_time_step(
     joint_props: list[JointProps],
     stiffness_factor: float,
     damping_ratio: float,
-) -> float:
-    """Stable step of the FEM contacts and joint elements [s] (before the safety factor), from the unsplit mesh.
+) -> tuple[float, int, int]:
+    """Stable step of the FEM contacts and joint elements [s] (before the safety factor), from the unsplit mesh, and
+    the node that sets it with its joint set (-1 off the joints).
 
     A node on a surface (boundary faces and both sides of every joint) has the penalty stiffness
     k = Σ f E A / (3 h) over its surface faces (h = 3 V₀ / A) and mass m = Σ ρ V₀ / 4 over the tets on its side. Off
@@ -602,11 +603,11 @@ def contact_critical_time_step(
         damping_ratio: the largest ζ of the contact dashpots [-].
 
     Returns:
-        The step [s]; inf without tets.
+        The step [s] (inf without tets), the node of the mesh that sets it (-1 for none), its joint set (-1 for none).
     """
     tets = np.asarray(tets, dtype=np.int64)
     if len(tets) == 0:
-        return math.inf
+        return math.inf, -1, -1
     x = np.asarray(points, dtype=np.float64)
     faces = tets[:, TET_FACES]  # (M, 4, 3)
     key = np.sort(faces, axis=2).reshape(-1, 3)
@@ -636,14 +637,15 @@ def contact_critical_time_step(
     k_node = np.bincount(tets.ravel(), weights=share.ravel(), minlength=n)
     m_node = np.bincount(tets.ravel(), weights=np.repeat(quarter, 4), minlength=n)
     ratio = np.divide(k_node, m_node, out=np.zeros(n), where=m_node > 0)
+    joint_of = np.full(n, -1, dtype=np.int64)
     if len(joints):
-        on_joint = np.zeros(n, dtype=bool)
-        on_joint[np.asarray(joints.faces, dtype=np.int64).ravel()] = True
+        joint_of[np.asarray(joints.faces, dtype=np.int64).ravel()] = np.repeat(joints.face_set, 3)
         bound = np.zeros(n)
         np.maximum.at(bound, tets.ravel(), (share / quarter[:, None]).ravel())
-        ratio = np.where(on_joint, bound, ratio)
-    k_over_m = float(ratio.max())
+        ratio = np.where(joint_of >= 0, bound, ratio)
+    node = int(np.argmax(ratio))
+    k_over_m = float(ratio[node])
     if k_over_m <= 0.0:
-        return math.inf
+        return math.inf, -1, -1
     omega = math.sqrt(4.0 * k_over_m)
-    return 2.0 / omega * (math.sqrt(1.0 + damping_ratio**2) - damping_ratio)
+    return 2.0 / omega * (math.sqrt(1.0 + damping_ratio**2) - damping_ratio), node, int(joint_of[node])

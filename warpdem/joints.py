@@ -56,7 +56,7 @@ class JointProps:
             face is a normal spring of f E / h per unit area, so the interface (both faces) is f (E_A/h_A + E_B/h_B),
             2 f E / h for equal sides. The default 1 makes the joint about as stiff as the elements behind it: the
             contact's stable step is then h / (2 c_bar sqrt(f)) with c_bar = sqrt(E/ρ), close to the tets' own
-            (:func:`warpdem.fem_contact.contact_critical_time_step`); a stiffer joint shortens the step by sqrt(f).
+            (:func:`warpdem.fem_contact.contact_critical_step_at`); a stiffer joint shortens the step by sqrt(f).
         restitution: coefficient of restitution (0, 1] of the joint's normal dashpot, as InteractionProps [-].
         shear_stiffness_ratio: tangential / normal stiffness k_t / k_n of the joint [-].
     """

@@ -11,6 +11,7 @@ in a model without tets.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -74,6 +75,10 @@ class Model:
         tet_material: material id, shape (tet_capacity,), int32.
         tet_material_table: continuum properties per material id, shape (num_materials,), TetMaterial.
         loads: pressure loads, non-reflecting dashpots and node velocity drivers (warpdem.loads.LoadModel), or None.
+        critical_dt: the builder's estimate of the critical time step [s] (inf when nothing bounds it), and
+            critical_dt_source: what sets it, in words (warpdem.guard.CriticalStep).
+        speed_limit: run-away bound on the speed of a sphere or node at t = 0 [m/s]; the guard adds |g| t
+            (warpdem.guard.run_away_speed; inf: only non-finite values are caught).
 
     FEM contact and joints (warpdem.fem_contact, warpdem.joints; the surface topology is rebuilt on the device after
     every topology pass):
@@ -151,6 +156,9 @@ class Model:
     walls_move: bool = False
     bond_capacity: int = 0
     loads: LoadModel | None = None
+    critical_dt: float = math.inf
+    critical_dt_source: str = ""
+    speed_limit: float = math.inf
     face_capacity: int = 0
     max_sphere_faces: int = 8
     max_node_faces: int = 8

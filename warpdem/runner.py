@@ -16,6 +16,7 @@ import warp as wp
 from . import __version__
 from .builder import finalize_scene, scene_builder
 from .checkpoint import CheckpointError, checkpoint_name, read_checkpoint, write_checkpoint
+from .guard import UnstableRunError
 from .model import Model, State
 from .scene import Scene, SceneError
 from .simulation import EnergyBalance, Simulation
@@ -221,6 +222,8 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     Raises:
         SceneError: the scene cannot be built (for example a particle file that cannot be read).
         CheckpointError: the restart file cannot be used.
+        UnstableRunError: the run blew up (warpdem.guard); the stage holds the good frames and is published, the
+            checkpoints written before stay, none is written of the bad state.
     """
     options = options or RunOptions()
     run = scene.run
@@ -318,10 +321,16 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     wall0 = time.perf_counter()
     steps0 = sim.step_count
     comment = f"warpdem {__version__}: {scene.name}"
+    unstable: UnstableRunError | None = None
     with UsdWriter(usd_path, 1.0 / frame_period, comment=comment, first_frame=first_frame) as writer:
         write_frame(writer, first_frame)
         for k in range(frames_left):
-            sim.advance(substeps)
+            try:
+                sim.advance(substeps)
+            except UnstableRunError as exc:
+                # The bad state is neither written nor checkpointed; the good frames are published below.
+                unstable = exc
+                break
             frame = first_frame + k + 1
             write_frame(writer, frame)
             if progress is not None:
@@ -331,13 +340,18 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
                     save_checkpoint(checkpoint_dir / checkpoint_name(sim.step_count), sim, frame, ckpt_extra)
                 )
         wall = time.perf_counter() - wall0
-        checkpoints.append(
-            save_checkpoint(
-                checkpoint_dir / checkpoint_name(sim.step_count), sim, first_frame + frames_left, ckpt_extra
+        if unstable is None:
+            checkpoints.append(
+                save_checkpoint(
+                    checkpoint_dir / checkpoint_name(sim.step_count), sim, first_frame + frames_left, ckpt_extra
+                )
             )
-        )
     if progress is not None:
         progress.close()
+    if unstable is not None:
+        last = f"last good checkpoint {checkpoints[-1]}" if checkpoints else "no checkpoint written"
+        unstable.outputs = f"{writer.frame_count} good frames published in {writer.path}; {last}"
+        raise unstable
     steps = sim.step_count - steps0
     n = sim.particle_count
     tets = int(np.count_nonzero(sim.state.tet_active.numpy()[: int(sim.state.tet_count.numpy()[0])]))

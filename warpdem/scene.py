@@ -38,6 +38,7 @@ from pydantic import (
     BeforeValidator,
     ConfigDict,
     Field,
+    PrivateAttr,
     Strict,
     ValidationError,
     ValidationInfo,
@@ -223,6 +224,10 @@ class Run(_Model):
         default=False,
         description="Run even when spheres start overlapping each other or the rock by more than 5 % of a radius, "
         "or with a centre inside the rock (warpdem.overlap); otherwise such a scene is refused at build time.",
+    allow_unstable_dt: Bool = Field(
+        default=False,
+        description="Run an explicit dt above the critical time step (refused otherwise); the run-time guard still "
+        "stops a run that blows up.",
     )
 
     @field_validator("device")
@@ -1096,6 +1101,12 @@ class Scene(_Model):
     boundaries: list[Boundary] = Field(default_factory=list, description="Boundary conditions of the mesh.")
     output: Output = Field(default_factory=Output, description="Output settings.")
     capacity: Capacity = Field(default_factory=Capacity, description="Initial buffer capacities.")
+    _source: str = PrivateAttr(default="")
+
+    @property
+    def source(self) -> str:
+        """The scene file it was loaded from (the name given to :func:`parse_scene`), for error messages."""
+        return self._source or self.name
 
     @model_validator(mode="before")
     @classmethod
@@ -1348,6 +1359,7 @@ def _parse(data: Any, source: str, base_dir: Path | None, default_name: str) -> 
         scene = Scene.model_validate(data, context={"default_name": default_name})
     except ValidationError as err:
         raise SceneError(_format_validation_error(err, source)) from None
+    scene._source = source
     problems = [f"{source}: {path}: {message}" for path, message in scene.reference_problems()]
     problems += _resolve_files(scene, source, base_dir if base_dir is not None else Path.cwd())
     if problems:

@@ -33,6 +33,7 @@ from .bonds import bond_energy, compact_bonds, eval_bonds
 from .compaction import Compactor
 from .contact import NeighborList, contact_energy, eval_contacts
 from .fem_contact import FemContact, fem_contact_energy, fem_contact_growth, regrow_fem_contacts
+from .guard import GuardReport, StabilityGuard, UnstableRunError
 from .integrate import integrate_first_half, integrate_second_half, kick_drift
 from .loads import eval_loads, relax_to_equilibrium
 from .model import NEIGHBOR_FIELDS, Model, State
@@ -137,6 +138,7 @@ class Simulation:
             state.time.fill_(time)
         self.time = time
         self.growths = 0
+        self.guard = StabilityGuard(model.device)
         self._setup()
         if not primed:
             self.evaluate_forces()
@@ -241,7 +243,13 @@ class Simulation:
                 parts[index]()
 
     def advance(self, n_steps: int) -> None:
-        """Run ``n_steps`` steps, then the between-step work: overflow check (grow and redo), bond compaction."""
+        """Run ``n_steps`` steps, then the between-step work: overflow check (grow and redo), stability guard, bond
+        compaction.
+
+        Raises:
+            warpdem.guard.UnstableRunError: the state went non-finite or ran away (warpdem.guard); the simulation is
+                left at the first bad step.
+        """
         if self._snapshot is None:
             self._snapshot = self.state.clone()
         else:
@@ -256,9 +264,30 @@ class Simulation:
         # The device clock is the reference (time-dependent loads read it); the host copy follows it bit for bit, so
         # a restart from a checkpoint continues on the same clock.
         self.time = float(self.state.time.numpy()[0])
+        report = self.guard.check(self.model, self.state)
+        if report is not None:
+            raise self._first_bad_step(report, n_steps)
         self.remove_broken_bonds()
         # No stage of the step reads the tet stresses; they are brought up to date for whoever reads the state now.
         eval_tet_stresses(self.model, self.state)
+
+    def _first_bad_step(self, report: GuardReport, n_steps: int) -> UnstableRunError:
+        """The error for a run of ``n_steps`` that ended in a bad state: the run is replayed from its snapshot one
+        step at a time (bit for bit the same steps, warpdem.simulation._run) up to the first step the guard refuses,
+        so that the error names where the blow-up began, not where the run ended (where the replay differs, as atomics
+        may on a GPU, and stays good, the run's own end)."""
+        step = self.step_count
+        if n_steps > 1:
+            self.state.assign(self._snapshot)
+            for k in range(1, n_steps + 1):
+                self._run(1)
+                found = self.guard.check(self.model, self.state)
+                if found is not None:
+                    report, step = found, step - n_steps + k
+                    break
+        self.step_count = step
+        self.time = float(self.state.time.numpy()[0])
+        return self.guard.error(self.model, self.state, report, step, self.time)
 
     def _grow_if_overflowed(self, restore_from: State) -> bool:
         """If the last neighbour build (or FEM contact build) needed more slots than there are, grow ×2 until they

@@ -1,0 +1,323 @@
+"""Stability guard (warpdem/guard.py, kernels/guard.py): an explicit dt above the critical time step is refused at
+set-up, and a run that goes non-finite or runs away stops with exit status 3, its good frames published.
+
+Oracles:
+- set-up: the critical step of three spheres at rest is their Rayleigh step π r sqrt(ρ/G) / (0.1631 ν + 0.8766) of
+  the smallest radius (closed form); of a tet box, the smallest per-tet step (warpdem.tets.tet_stable_time_steps,
+  itself checked against closed forms in tests/test_tets.py), and the tet the refusal names has that step. The
+  threshold is the estimate itself: dt = (1 ± REFUSAL_MARGIN) × estimate is accepted / refused;
+- run-away bound: the P-wave speed sqrt(E (1 - ν) / ((1 + ν)(1 - 2ν) ρ)) of the only material (spheres at rest, no
+  bonds): a sphere at (1 ± REFUSAL_MARGIN) × that speed passes / is stopped; a launch speed v raises it to
+  SPEED_LIMIT_FACTOR v;
+- injected NaN: isolated spheres (no contact) cannot spread it, so the first bad sphere is the poisoned one, found at
+  the first step of the next advance, t = (steps + 1) dt on the device's float64 clock (TIME_RTOL);
+- an unstable run (dt = UNSTABLE_FACTOR × estimate, allowed): exit status 3, one line on stderr naming time, step,
+  sphere and cause, no traceback; the published stage holds the frames before the failing step, 1 + (step - 1) //
+  substeps, all finite; no checkpoint of the bad state; a restart from the last good checkpoint replays the same
+  steps bit for bit (CPU) and so stops with the same line.
+The guard never fires on the shipped scenes: tests/test_scenes.py runs each of them.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pxr import Usd, UsdGeom
+
+from warpdem.builder import ModelBuilder, build_scene, scene_builder
+from warpdem.checkpoint import read_checkpoint
+from warpdem.cli import EXIT_UNSTABLE, main
+from warpdem.guard import SPEED_LIMIT_FACTOR, UnstableRunError
+from warpdem.scene import SceneError, load_scene
+from warpdem.simulation import Simulation
+from warpdem.tets import reference_geometry, tet_stable_time_steps
+
+REFUSAL_MARGIN = 1e-3  # relative; far above float64 rounding of dt and of the estimate (~1e-15)
+TIME_RTOL = 1e-12  # the device clock sums dt in float64 a few times
+UNSTABLE_FACTOR = 5.0  # dt / critical step of the unstable run: the stiffest bond mode grows ~(ω dt)² per step
+
+DENSITY, YOUNG, POISSON = 2500.0, 1.0e7, 0.3  # [kg/m³], [Pa], [-] of the sphere scenes' rock
+YOUNG_G = 6.0e10  # [Pa] of the tet scene's granite (ρ = 2650 kg/m³, ν = 0.25, c_lin = 0.06 by default)
+
+SPHERES = """\
+schema_version = 1
+name = "three_spheres"
+[run]
+end_time = 1.0
+dt = {dt}
+output_rate = 100.0
+{run_extra}
+[materials.rock]
+density = 2500.0
+youngs_modulus = 1.0e7
+poisson_ratio = 0.3
+[parts.grains]
+material = "rock"
+[[particles]]
+kind = "sphere"
+part = "grains"
+center = [0.0, 0.0, 0.05]
+radius = 0.01
+[[particles]]
+kind = "sphere"
+part = "grains"
+center = [0.05, 0.0, 0.05]
+radius = 0.008
+[[particles]]
+kind = "sphere"
+part = "grains"
+center = [0.0, 0.05, 0.08]
+radius = 0.012
+[[walls]]
+kind = "plane"
+point = [0.0, 0.0, 0.0]
+normal = [0.0, 0.0, 1.0]
+material = "rock"
+"""
+
+TETS = """\
+schema_version = 1
+name = "tet_block"
+[run]
+end_time = 1.0e-3
+dt = {dt}
+output_rate = 1.0e4
+{run_extra}
+[gravity]
+vector = [0.0, 0.0, 0.0]
+[materials.granite]
+density = 2650.0
+youngs_modulus = 6.0e10
+poisson_ratio = 0.25
+[mesh]
+kind = "box"
+lo = [0.0, 0.0, 0.0]
+hi = [1.0, 1.0, 2.0]
+divisions = [1, 1, 3]
+material = "granite"
+"""
+
+# A small bonded slab resting on the ground: gravity presses it into the wall, which excites the bond modes. The bonds
+# cannot break, so an unstable mode grows without bound (breakable ones would all break and the spheres fly apart at
+# about c_p, below the run-away bound: warpdem.guard).
+SLAB = """\
+schema_version = 1
+name = "slab"
+[run]
+end_time = 1.0
+dt = {dt}
+output_rate = {output_rate}
+{run_extra}
+[materials.rock]
+density = 2600.0
+youngs_modulus = 5.0e7
+poisson_ratio = 0.25
+[parts.slab]
+material = "rock"
+[[particles]]
+kind = "packing"
+part = "slab"
+region = {{ box = {{ lo = [0.0, 0.0, 0.0], hi = [0.04, 0.03, 0.02] }} }}
+radius = 0.005
+arrangement = "hcp"
+[[bonds]]
+region = {{ box = {{ lo = [-0.01, -0.01, -0.01], hi = [0.05, 0.04, 0.03] }} }}
+material = "rock"
+tensile_strength = 1.0e12
+shear_strength = 1.0e12
+[[walls]]
+kind = "plane"
+point = [0.0, 0.0, 0.0]
+normal = [0.0, 0.0, 1.0]
+material = "rock"
+"""
+
+
+def scene_file(folder: Path, template: str, dt: float | str, run_extra: str = "", **fields) -> Path:
+    """A scene file from a template, dt [s] written exactly (repr) or "auto"."""
+    path = folder / "scene.toml"
+    value = '"auto"' if dt == "auto" else repr(float(dt))
+    path.write_text(template.format(dt=value, run_extra=run_extra, **fields))
+    return path
+
+
+def rayleigh_step(radius: float) -> float:
+    """Rayleigh time step π r sqrt(ρ/G) / (0.1631 ν + 0.8766) [s] of a sphere of the test material."""
+    shear = YOUNG / (2.0 * (1.0 + POISSON))
+    return math.pi * radius * math.sqrt(DENSITY / shear) / (0.1631 * POISSON + 0.8766)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Set-up
+
+
+def test_sphere_scene_refuses_dt_above_the_rayleigh_step(tmp_path):
+    critical = rayleigh_step(0.008)  # the smallest sphere sets it
+    model, _ = build_scene(load_scene(scene_file(tmp_path, SPHERES, (1.0 - REFUSAL_MARGIN) * critical)), "cpu")
+    np.testing.assert_allclose(model.critical_dt, critical, rtol=1e-12)
+    assert model.dt == (1.0 - REFUSAL_MARGIN) * critical
+    for factor in (1.0 + REFUSAL_MARGIN, 10.0):
+        path = scene_file(tmp_path, SPHERES, factor * critical)
+        with pytest.raises(SceneError) as info:
+            build_scene(load_scene(path), "cpu")
+        (line,) = info.value.problems
+        assert line.startswith(f"{path}: run.dt: dt = {factor * critical:.4g} s exceeds the critical time step ")
+        assert f"{critical:.4g} s, set by the Rayleigh step of the smallest spheres of material rock" in line
+        assert "r = 0.008 m" in line and "run.allow_unstable_dt = true" in line
+    path = scene_file(tmp_path, SPHERES, 10.0 * critical, "allow_unstable_dt = true")
+    model, _ = build_scene(load_scene(path), "cpu")
+    assert model.dt == 10.0 * critical
+
+
+def test_tet_scene_refuses_dt_above_the_smallest_tet_step(tmp_path):
+    scene = load_scene(scene_file(tmp_path, TETS, "auto"))
+    mesh = scene_builder(scene).tet_mesh_data()
+    inv_ref, _ = reference_geometry(mesh.points, mesh.tets)
+    mu = YOUNG_G / (2.0 * 1.25)
+    lam = YOUNG_G * 0.25 / (1.25 * 0.5)
+    steps = tet_stable_time_steps(inv_ref, *(np.full(len(inv_ref), v) for v in (mu, lam, 2650.0, 0.06)))
+    critical = float(steps.min())
+    path = scene_file(tmp_path, TETS, 1.0e-3)
+    with pytest.raises(SceneError) as info:
+        build_scene(load_scene(path), "cpu")
+    (line,) = info.value.problems
+    named = re.search(r"set by tet (\d+) of material granite;", line)
+    assert named is not None, line
+    assert steps[int(named.group(1))] == critical
+    assert line.startswith(f"{path}: run.dt: dt = 0.001 s exceeds the critical time step {critical:.4g} s")
+    build_scene(load_scene(scene_file(tmp_path, TETS, (1.0 - REFUSAL_MARGIN) * critical)), "cpu")
+    with pytest.raises(SceneError):
+        build_scene(load_scene(scene_file(tmp_path, TETS, (1.0 + REFUSAL_MARGIN) * critical)), "cpu")
+    model, _ = build_scene(load_scene(scene_file(tmp_path, TETS, 1.0e-3, "allow_unstable_dt = true")), "cpu")
+    assert model.dt == 1.0e-3
+
+
+def test_cli_refusal_is_one_line_exit_2_and_writes_nothing(tmp_path, capsys):
+    path = scene_file(tmp_path, SPHERES, 1.0e-2)
+    out = tmp_path / "out"
+    assert main([str(path), "--out", str(out), "--quiet", "--frames", "2"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "run.dt" in err and "Traceback" not in err
+    assert not out.exists()
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Run time, Python API
+
+
+def isolated_spheres(device: str) -> tuple[ModelBuilder, Simulation]:
+    """Four spheres far apart in zero gravity: nothing they do reaches another."""
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    centers = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    b.add_spheres(centers, 0.01, "rock", velocity=(0.0, 0.0, 0.0))
+    model, state = b.finalize(device)
+    return b, Simulation(model, state)
+
+
+def poison(array, slot: int, value: np.ndarray) -> None:
+    host = array.numpy()
+    host[slot] = value
+    array.assign(host)
+
+
+@pytest.mark.parametrize("field", ["particle_qd", "particle_q", "particle_omega"])
+def test_injected_nan_is_caught_on_the_next_advance(device, field):
+    _, sim = isolated_spheres(device)
+    sim.advance(3)
+    slot = 2
+    sphere_id = int(sim.model.particle_id.numpy()[slot])
+    poison(getattr(sim.state, field), slot, np.array([0.0, np.nan, 0.0]))
+    with pytest.raises(UnstableRunError) as info:
+        sim.advance(5)
+    err = info.value
+    assert err.step == 4 and sim.step_count == 4
+    np.testing.assert_allclose(err.time, 4 * sim.model.dt, rtol=TIME_RTOL)
+    assert err.entity == f"sphere {sphere_id} (part default)"
+    # A NaN position or velocity leaves the position NaN after the step's drift; a NaN spin stays in the spin.
+    expected = "non-finite angular velocity" if field == "particle_omega" else "non-finite position"
+    assert err.problem.startswith(expected) and "(1 spheres and 0 FEM nodes bad)" in err.problem
+    assert "\n" not in str(err)
+
+
+def test_speed_bound_is_the_p_wave_speed_or_ten_launch_speeds(device):
+    # c_p = sqrt(E (1 - ν) / ((1 + ν)(1 - 2ν) ρ)): a material point that fast would be at 100 % strain.
+    c_p = math.sqrt(YOUNG * (1.0 - POISSON) / ((1.0 + POISSON) * (1.0 - 2.0 * POISSON) * DENSITY))
+    b, sim = isolated_spheres(device)
+    np.testing.assert_allclose(sim.model.speed_limit, c_p, rtol=1e-12)
+    poison(sim.state.particle_qd, 1, np.array([(1.0 - REFUSAL_MARGIN) * c_p, 0.0, 0.0]))
+    sim.advance(2)
+    poison(sim.state.particle_qd, 3, np.array([0.0, (1.0 + REFUSAL_MARGIN) * c_p, 0.0]))
+    with pytest.raises(UnstableRunError) as info:
+        sim.advance(2)
+    assert info.value.entity == f"sphere {int(sim.model.particle_id.numpy()[3])} (part default)"
+    assert info.value.problem.startswith("speed ") and "above the run-away bound" in info.value.problem
+    assert info.value.step == 3
+    # A sphere launched at a tenth of c_p or faster raises the bound to SPEED_LIMIT_FACTOR times its speed.
+    launch = 0.2 * c_p
+    b.add_sphere((5.0, 5.0, 5.0), 0.01, "rock", velocity=(launch, 0.0, 0.0))
+    model, _ = b.finalize(device)
+    np.testing.assert_allclose(model.speed_limit, SPEED_LIMIT_FACTOR * launch, rtol=1e-12)
+
+
+def test_injected_nan_in_a_node_is_caught(device, tmp_path):
+    model, state = build_scene(load_scene(scene_file(tmp_path, TETS, "auto")), device)
+    sim = Simulation(model, state)
+    sim.advance(2)
+    poison(sim.state.node_u, 0, np.array([np.inf, 0.0, 0.0]))
+    with pytest.raises(UnstableRunError) as info:
+        sim.advance(4)
+    assert info.value.step == 3
+    assert info.value.entity.startswith("FEM node 0 (of tet ") and info.value.entity.endswith("material granite)")
+    assert info.value.problem.startswith("non-finite position")
+    assert "dt = " in info.value.cause and "within the critical time step" in info.value.cause
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Run time, command line
+
+
+def stage_frames(path: Path) -> np.ndarray:
+    """Sphere positions of every frame of a published stage, shape (frames, N, 3)."""
+    stage = Usd.Stage.Open(str(path))
+    attr = UsdGeom.Points(stage.GetPrimAtPath("/World/Particles")).GetPointsAttr()
+    return np.array([np.asarray(attr.Get(t)) for t in attr.GetTimeSamples()])
+
+
+def test_unstable_run_stops_with_exit_3_and_keeps_the_good_output(tmp_path, capsys):
+    critical = build_scene(load_scene(scene_file(tmp_path, SLAB, "auto", output_rate=100.0)), "cpu")[0].critical_dt
+    dt = UNSTABLE_FACTOR * critical
+    substeps = 2
+    path = scene_file(tmp_path, SLAB, dt, "allow_unstable_dt = true", output_rate=repr(1.0 / (substeps * dt)))
+    out = tmp_path / "out"
+    argv = [str(path), "--out", str(out), "--quiet", "--frames", "50", "--checkpoint-every", repr(substeps * dt)]
+    assert main(argv) == EXIT_UNSTABLE
+    (line,) = capsys.readouterr().err.splitlines()
+    found = re.fullmatch(
+        r"error: unstable run stopped at t = (\S+) s \(step (\d+)\): sphere \d+ \(part slab\): (.*); likely cause: "
+        r"time step too large: dt = (\S+) s is (\S+) x the critical time step (\S+) s set by the bond between "
+        r"spheres of part slab .*; (\d+) good frames published in (\S+); last good checkpoint (\S+)",
+        line,
+    )
+    assert found is not None, line
+    step, frames = int(found.group(2)), int(found.group(7))
+    np.testing.assert_allclose(float(found.group(1)), step * dt, rtol=1e-5)  # printed to 6 digits
+    assert float(found.group(5)) == pytest.approx(UNSTABLE_FACTOR, rel=1e-3)
+    assert frames == 1 + (step - 1) // substeps and frames >= 2  # some good frames before the blow-up
+    positions = stage_frames(Path(found.group(8)))
+    assert len(positions) == frames and np.all(np.isfinite(positions))
+    assert not list(out.glob("*.partial.*"))
+    checkpoints = sorted((out / "checkpoints").glob("*.h5"))
+    steps = [int(read_checkpoint(p)[1]["step"]) for p in checkpoints]
+    assert Path(found.group(9)) == checkpoints[-1].resolve() or Path(found.group(9)) == checkpoints[-1]
+    assert steps == [substeps * f for f in range(1, frames)]  # one per good frame after the first, none of the bad
+    arrays, _ = read_checkpoint(checkpoints[-1])
+    assert all(np.all(np.isfinite(a)) for k, a in arrays.items() if a.dtype.kind == "f")
+    # The last good checkpoint is whole: a restart from it runs the same steps and stops with the same line.
+    assert main([*argv, "--restart", str(checkpoints[-1])]) == EXIT_UNSTABLE
+    again = capsys.readouterr().err.splitlines()[0]
+    assert again.split("; ")[:-2] == line.split("; ")[:-2]
