@@ -8,10 +8,13 @@ from __future__ import annotations
 
 import argparse
 import logging
+import shlex
 import sys
 from pathlib import Path
 
 EXIT_USAGE = 2
+EXIT_SIGNAL_BASE = 128
+"""A run stopped by a signal exits with 128 + its number, as a shell reports it: 130 for SIGINT, 143 for SIGTERM."""
 
 
 def _positive_float(text: str) -> float:
@@ -110,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
 
     wp.config.log_level = logging.WARNING  # no init banner; warnings still show
     from .checkpoint import CheckpointError
-    from .runner import RunOptions, run_scene, summary_json
+    from .runner import NothingToDo, RunOptions, run_scene, summary_json
 
     options = RunOptions(
         device=args.device,
@@ -130,12 +133,36 @@ def main(argv: list[str] | None = None) -> int:
         summary = run_scene(scene, options)
     except (SceneError, CheckpointError) as exc:
         return _fail(str(exc).splitlines())
+    except NothingToDo as exc:
+        print(exc)
+        return 0
     except KeyboardInterrupt:
+        # A second signal while a frame ran: nothing of this run was published.
         print("interrupted: the USD stage was not published; resume from the last checkpoint", file=sys.stderr)
-        return 130
+        return EXIT_SIGNAL_BASE + 2
     if not args.quiet:
         print(summary.format())
     if args.summary_json is not None:
         args.summary_json.parent.mkdir(parents=True, exist_ok=True)
         args.summary_json.write_text(summary_json(summary))
+    if summary.interrupted_by is not None:
+        print(
+            f"interrupted at t = {summary.simulated_time:.9g} s, frame {summary.frame}; resume with: "
+            f"{resume_command(argv, summary.checkpoints[-1])}",
+            file=sys.stderr,
+        )
+        return EXIT_SIGNAL_BASE + summary.interrupted_by
     return 0
+
+
+def resume_command(argv: list[str], checkpoint: Path) -> str:
+    """The command line that continues a run: the same arguments, ``--restart`` the given checkpoint."""
+    args, skip = [], False
+    for arg in argv:
+        if skip:
+            skip = False
+        elif arg == "--restart":
+            skip = True
+        elif not arg.startswith("--restart="):
+            args.append(arg)
+    return shlex.join(["python", "-m", "warpdem", *args, "--restart", str(checkpoint)])

@@ -260,6 +260,16 @@ class RockFrames:
         self._owner = np.zeros(0, np.int64)
         self._scale = 0.0
 
+    @property
+    def color_scale(self) -> float:
+        """The largest colour value seen so far in the run [Pa or m/s]; checkpoints keep it, so that a restarted run
+        colours its frames as the uninterrupted one."""
+        return self._scale
+
+    @color_scale.setter
+    def color_scale(self, value: float) -> None:
+        self._scale = float(value)
+
     def _live(self, model: Model, state: State) -> tuple[int, np.ndarray, np.ndarray]:
         nn = int(state.node_count.numpy()[0])
         nt = int(state.tet_count.numpy()[0])
