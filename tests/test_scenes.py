@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
+from stage_compare import assert_stages_equal
 
 from warpdem.builder import ModelBuilder
 from warpdem.checkpoint import read_checkpoint
@@ -48,26 +49,6 @@ def small_lists(monkeypatch):
         return finalize(self, *args, **kwargs)
 
     monkeypatch.setattr(ModelBuilder, "finalize", finalize_small)
-
-
-def assert_stages_equal(actual: Usd.Stage, expected: Usd.Stage) -> None:
-    """Same prims, attributes, time samples and values at every sample (and the same timeline)."""
-    assert actual.GetStartTimeCode() == expected.GetStartTimeCode()
-    assert actual.GetEndTimeCode() == expected.GetEndTimeCode()
-    assert actual.GetTimeCodesPerSecond() == expected.GetTimeCodesPerSecond()
-    assert [p.GetPath() for p in actual.Traverse()] == [p.GetPath() for p in expected.Traverse()]
-    for prim in expected.Traverse():
-        other = actual.GetPrimAtPath(prim.GetPath())
-        assert sorted(a.GetName() for a in other.GetAttributes()) == sorted(a.GetName() for a in prim.GetAttributes())
-        for attr in prim.GetAttributes():
-            mine = other.GetAttribute(attr.GetName())
-            assert mine.GetTimeSamples() == attr.GetTimeSamples(), attr.GetPath()
-            for t in attr.GetTimeSamples():
-                a, b = mine.Get(t), attr.Get(t)
-                if hasattr(b, "__len__") and not isinstance(b, str):
-                    np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=f"{attr.GetPath()} at {t}")
-                else:
-                    assert a == b, f"{attr.GetPath()} at {t}"
 
 
 @pytest.mark.parametrize("path", SCENES, ids=[p.stem for p in SCENES])

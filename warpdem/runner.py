@@ -41,7 +41,7 @@ def model_scalars(model: Model) -> dict[str, int | float]:
     }
 
 
-SCENE_FIXED_SCALARS = ("num_materials", "num_walls", "bond_capacity")
+SCENE_FIXED_SCALARS = ("bond_capacity", "num_walls", "num_materials")
 """Model scalars that no run changes: a checkpoint whose values differ was taken of another scene."""
 
 
