@@ -346,6 +346,26 @@ def test_restart_from_the_final_checkpoint_has_nothing_to_do_and_a_longer_end_co
     assert sorted(p.name for p in out.glob("*.usd*")) == ["tiny.usdc"]
 
 
+def test_restart_refuses_to_extend_the_stage_of_another_run(tmp_path, capsys):
+    """The stage at the restart's path was written by another run (same name and timing, one sphere 1 cm higher):
+    exit 2 naming it, and the stage is left as it was."""
+    out = tmp_path / "out"
+    assert tiny_run(out, "--frames", "2", "--checkpoint-every", "0.01") == 0
+    middle = min((out / "checkpoints").glob("*.h5"))
+    other = edit("center = [0.0, 0.0, 0.05]", "center = [0.0, 0.0, 0.06]")
+    stage = out / "tiny.usdc"
+    other_run = ["--frames", "2", "--usd", str(stage)]
+    assert tiny_run(tmp_path / "other", *other_run, scene=other, inputs=tmp_path / "in_other") == 0
+    before = stage.read_bytes()
+    capsys.readouterr()
+    assert tiny_run(out, "--frames", "2", "--restart", str(middle)) == 2
+    err = capsys.readouterr().err
+    assert f"error: --restart: {stage} is not the stage of this checkpoint's run" in err
+    assert "other sphere positions" in err
+    assert stage.read_bytes() == before
+    assert not list(out.glob("*.partial*"))
+
+
 def test_two_scenes_share_an_output_folder(tmp_path):
     out = tmp_path / "out"
     assert tiny_run(out, "--frames", "1") == 0

@@ -323,9 +323,9 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
 
     out_dir = Path(options.out_dir) if options.out_dir is not None else Path(scene.output.directory)
     usd_path = Path(options.usd) if options.usd is not None else out_dir / scene.output.usd
-    output_stem = usd_path.stem  # VTU files are named like the stage; a restart's collection gets its own name
+    output_stem = usd_path.stem  # VTU files are named like the stage; a restart continues both
     if options.restart is not None:
-        _check_stage_continues(usd_path, 1.0 / frame_period, first_frame, sim_time, options.quiet)
+        _check_stage_continues(usd_path, 1.0 / frame_period, first_frame, sim, options.quiet)
     checkpoint_every = (
         options.checkpoint_every if options.checkpoint_every is not None else scene.output.checkpoint_every
     )
@@ -393,7 +393,12 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     comment = f"warpdem {__version__}: {scene.name}"
     frame = first_frame
     stop = _StopRequest(options.quiet)
-    with stop, UsdWriter(usd_path, 1.0 / frame_period, comment=comment, first_frame=first_frame, append=True) as writer:
+    # A restart extends the stage of the run it continues (checked above); a new run replaces whatever was there.
+    restart = options.restart is not None
+    with (
+        stop,
+        UsdWriter(usd_path, 1.0 / frame_period, comment=comment, first_frame=first_frame, append=restart) as writer,
+    ):
         write_frame(writer, frame)
         while frame < total_frames and stop.signum is None:
             steps_before = sim.step_count
@@ -435,29 +440,34 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     )
 
 
-def _check_stage_continues(usd_path: Path, fps: float, frame: int, sim_time: float, quiet: bool) -> None:
-    """Before a restart writes anything: the stage it extends must hold the checkpoint's frame at the checkpoint's
-    time and frame rate (the same run), so that frames before the restart are the run's own. Without a stage, a new
-    one starts at the restart frame.
+def _check_stage_continues(usd_path: Path, fps: float, frame: int, sim: Simulation, quiet: bool) -> None:
+    """Before a restart writes anything: the stage it extends must hold the checkpoint's frame, at the checkpoint's
+    time and frame rate and with its sphere centres (float32, as the stage stores them), so that the frames it keeps
+    are this run's own. Without a stage, a new one starts at the restart frame.
 
     Raises:
         SceneError: the stage at ``usd_path`` belongs to another run (nothing is written).
     """
-    from .usd import stage_frame_times
+    from .usd import stage_frame
 
     if not usd_path.exists():
         if not quiet:
             print(f"restart: {usd_path} is not there; writing a new stage whose timeline starts at frame {frame}")
         return
     try:
-        rate, times = stage_frame_times(usd_path)
+        rate, held_time, held_points = stage_frame(usd_path, frame)
     except ValueError as exc:
         raise SceneError(f"--restart: cannot extend {exc}") from None
-    if rate != fps or times.get(frame) != sim_time:
-        held = f"frame {frame} at t = {times[frame]:.9g} s" if frame in times else f"no frame {frame}"
+    n = sim.particle_count
+    points = sim.state.particle_q.numpy()[:n].astype(np.float32) if n else None
+    same_points = (held_points is None) == (points is None) and (points is None or np.array_equal(held_points, points))
+    if rate != fps or held_time != sim.time or not same_points:
+        held = f"frame {frame} at t = {held_time:.9g} s" if held_time is not None else f"no frame {frame}"
+        why = "" if same_points else ", other sphere positions"
         raise SceneError(
-            f"--restart: {usd_path} does not continue into this checkpoint (it holds {held}, {rate:g} frames/s; the "
-            f"checkpoint is frame {frame} at t = {sim_time:.9g} s, {fps:g} frames/s); move it away or pass --usd"
+            f"--restart: {usd_path} is not the stage of this checkpoint's run (it holds {held}{why}, {rate:g} "
+            f"frames/s; the checkpoint is frame {frame} at t = {sim.time:.9g} s, {fps:g} frames/s); move it away or "
+            "pass --usd"
         )
 
 

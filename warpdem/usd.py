@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["SurfaceFrame", "UsdWriter", "stage_frame_times"]
+__all__ = ["SurfaceFrame", "UsdWriter", "stage_frame"]
 
 _SUFFIXES = (".usd", ".usdc", ".usda")
 
@@ -619,9 +619,10 @@ def _drop_samples_from(stage: Any, code: float) -> None:
             stage.RemovePrim(path)
 
 
-def stage_frame_times(path: str | os.PathLike) -> tuple[float, dict[int, float]]:
-    """Frame rate [frames/s] of a stage written by :class:`UsdWriter` and the simulated time [s] of each of its
-    frames (``/World.warpdem:time`` by time code); no times for a stage without that attribute.
+def stage_frame(path: str | os.PathLike, code: int) -> tuple[float, float | None, np.ndarray | None]:
+    """What a stage written by :class:`UsdWriter` holds at one frame: its frame rate [frames/s], the simulated time
+    [s] of the frame (``/World.warpdem:time``; None where there is no such sample) and the sphere centres [m]
+    (float32, shape (N, 3); None without spheres at that frame).
 
     Raises:
         ValueError: If the file cannot be opened as a USD stage.
@@ -635,6 +636,11 @@ def stage_frame_times(path: str | os.PathLike) -> tuple[float, dict[int, float]]
     if stage is None:
         raise ValueError(f"{path}: not a USD stage")
     world = stage.GetPrimAtPath("/World")
-    attr = world.GetAttribute("warpdem:time") if world else None
-    times = {int(t): float(attr.Get(t)) for t in attr.GetTimeSamples()} if attr else {}
-    return stage.GetTimeCodesPerSecond(), times
+    time_attr = world.GetAttribute("warpdem:time") if world else None
+    time = float(time_attr.Get(code)) if time_attr and code in time_attr.GetTimeSamples() else None
+    particles = stage.GetPrimAtPath("/World/Particles")
+    points_attr = particles.GetAttribute("points") if particles else None
+    points = None
+    if points_attr and points_attr.GetNumTimeSamples():
+        points = np.asarray(points_attr.Get(code), dtype=np.float32).reshape(-1, 3)
+    return stage.GetTimeCodesPerSecond(), time, points
