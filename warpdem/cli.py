@@ -137,8 +137,12 @@ def main(argv: list[str] | None = None) -> int:
         print(exc)
         return 0
     except KeyboardInterrupt:
-        # A second signal while a frame ran: nothing of this run was published.
-        print("interrupted: the USD stage was not published; resume from the last checkpoint", file=sys.stderr)
+        # A second signal while a frame ran (or one before the run started): nothing of this frame was kept.
+        print(
+            "interrupted at once: the USD stage was not published and the frame in progress was not checkpointed; "
+            "a restart can continue from the last checkpoint written, if any",
+            file=sys.stderr,
+        )
         return EXIT_SIGNAL_BASE + 2
     if not args.quiet:
         print(summary.format())
