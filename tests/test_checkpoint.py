@@ -225,6 +225,11 @@ def test_checkpoint_name() -> None:
     for bad in (-1, True, 1.5):
         with pytest.raises(ValueError):
             checkpoint_name(bad)  # type: ignore[arg-type]
+    # A scene prefix keeps two scenes that share an output folder apart.
+    assert checkpoint_name(7, "slab") == "slab_checkpoint_0000000007.h5"
+    for bad_scene in ("", "a/b", "a\\b"):
+        with pytest.raises(ValueError):
+            checkpoint_name(7, bad_scene)
 
 
 def test_latest_checkpoint(tmp_path: pathlib.Path) -> None:
@@ -241,3 +246,15 @@ def test_latest_checkpoint(tmp_path: pathlib.Path) -> None:
     latest = latest_checkpoint(tmp_path)
     assert latest == tmp_path / "checkpoint_12000000000.h5"
     assert read_checkpoint(latest)[1]["step"] == 12_000_000_000
+
+
+def test_latest_checkpoint_of_a_scene(tmp_path: pathlib.Path) -> None:
+    # Two scenes in one folder: each finds its own newest checkpoint, whatever the other's step numbers.
+    for scene, steps in (("slab", (10, 30)), ("slab_b", (20, 40)), ("pour", (50,))):
+        for step in steps:
+            write_checkpoint(tmp_path / checkpoint_name(step, scene), {"x": np.ones(1)}, {"step": step})
+    assert latest_checkpoint(tmp_path, "slab") == tmp_path / "slab_checkpoint_0000000030.h5"
+    assert latest_checkpoint(tmp_path, "slab_b") == tmp_path / "slab_b_checkpoint_0000000040.h5"
+    assert latest_checkpoint(tmp_path, "pour") == tmp_path / "pour_checkpoint_0000000050.h5"
+    assert latest_checkpoint(tmp_path, "other") is None
+    assert latest_checkpoint(tmp_path) == tmp_path / "pour_checkpoint_0000000050.h5"

@@ -13,14 +13,18 @@ Oracles:
 from __future__ import annotations
 
 import json
+import shlex
+import signal
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
+from stage_compare import assert_stages_equal
 
 from warpdem.checkpoint import read_checkpoint, write_checkpoint
 from warpdem.cli import main
@@ -104,6 +108,13 @@ def restart_from_foreign_checkpoint(inputs: Path) -> list[str]:
     return [str(scene_file(inputs, GOOD_SCENE)), "--restart", str(path)]
 
 
+def restart_from_checkpoint_of_another_scene(inputs: Path) -> list[str]:
+    # A checkpoint that names its scene ("slab"): refused, naming both, before anything else is looked at.
+    arrays = {"state/particle_q": np.zeros((3, 3), np.float32)}
+    path = write_checkpoint(inputs / "slab.h5", arrays, {"scene": "slab", "bond_capacity": 0, "num_walls": 1})
+    return [str(scene_file(inputs, GOOD_SCENE)), "--restart", str(path)]
+
+
 def restart_from_text_file(inputs: Path) -> list[str]:
     (inputs / "notes.txt").write_text("not a checkpoint\n")
     return [str(scene_file(inputs, GOOD_SCENE)), "--restart", str(inputs / "notes.txt")]
@@ -159,6 +170,7 @@ BAD_INPUTS = [
     ("restart_missing", good_scene_with("--restart", "absent.h5"), ["--restart", "file not found"]),
     ("restart_not_hdf5", restart_from_text_file, ["notes.txt", "not an HDF5 file"]),
     ("restart_other_scene", restart_from_foreign_checkpoint, ["bond_capacity", "wrong scene"]),
+    ("restart_named_scene", restart_from_checkpoint_of_another_scene, ["belongs to scene 'slab', not 'tiny'"]),
     ("device_absent", good_scene_with("--device", "cuda:7"), ["cuda:7", "not available"]),
     ("frames_zero", good_scene_with("--frames", "0"), ["--frames", "must be a positive integer"]),
 ]
@@ -251,11 +263,12 @@ def test_good_scene_writes_usd_and_checkpoint(device, folders, capsys):
     stage = Usd.Stage.Open(str(usd_path))
     assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z
     assert UsdGeom.GetStageMetersPerUnit(stage) == 1.0
-    checkpoints = sorted((out / "checkpoints").glob("checkpoint_*.h5"))
+    checkpoints = sorted((out / "checkpoints").glob("*.h5"))
     assert len(checkpoints) == 1
     arrays, attrs = read_checkpoint(checkpoints[0])
     substeps, dt = int(attrs["substeps"]), float(attrs["dt"])
     assert attrs["frame"] == frames and attrs["step"] == frames * substeps
+    assert checkpoints[0].name == f"tiny_checkpoint_{frames * substeps:010d}.h5"  # named by scene and step
     np.testing.assert_allclose(stage.GetTimeCodesPerSecond(), 1.0 / (substeps * dt), rtol=FPS_RTOL)
     np.testing.assert_allclose(stage.GetTimeCodesPerSecond(), OUTPUT_RATE, rtol=FPS_RTOL)
     assert stage.GetFramesPerSecond() == stage.GetTimeCodesPerSecond()
@@ -332,3 +345,141 @@ def test_tet_bench_runs_the_kuhn_block(tmp_path):
     (row,) = json.loads(out.read_text())
     assert (row["tets"], row["nodes"], row["steps"]) == (750, 216, 5)
     assert row["finite"] and row["tet_steps_per_second"] > 0.0 and row["bytes_per_tet"] > 0.0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Restart, interruption, end time (oracle: the uninterrupted run, bit for bit on the CPU; the stage sample by sample)
+
+
+def tiny_run(out: Path, *options: str, scene: str = GOOD_SCENE, inputs: Path | None = None) -> int:
+    """Runs the good scene (or ``scene``) into ``out``; returns the exit status."""
+    inputs = inputs if inputs is not None else out.parent / "in"
+    inputs.mkdir(exist_ok=True)
+    return main([str(scene_file(inputs, scene)), "--out", str(out), "--quiet", "--device", "cpu", *options])
+
+
+def final_checkpoint(out: Path) -> Path:
+    return max((out / "checkpoints").glob("*.h5"))
+
+
+def assert_same_run(out: Path, reference: Path) -> None:
+    """The final checkpoint and the stage under ``out`` equal those of the uninterrupted run under ``reference``."""
+    a, a_attrs = read_checkpoint(final_checkpoint(out))
+    b, b_attrs = read_checkpoint(final_checkpoint(reference))
+    assert sorted(a) == sorted(b)
+    for key in sorted(a):
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    assert (a_attrs["step"], a_attrs["time"], a_attrs["frame"]) == (b_attrs["step"], b_attrs["time"], b_attrs["frame"])
+    assert_stages_equal(Usd.Stage.Open(str(out / "tiny.usdc")), Usd.Stage.Open(str(reference / "tiny.usdc")))
+
+
+def test_restart_from_the_final_checkpoint_has_nothing_to_do_and_a_longer_end_continues(tmp_path, capsys):
+    out, reference = tmp_path / "out", tmp_path / "reference"
+    assert tiny_run(out, "--frames", "2") == 0
+    assert tiny_run(reference, "--frames", "4") == 0
+    final = final_checkpoint(out)
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    capsys.readouterr()
+
+    assert tiny_run(out, "--frames", "2", "--restart", str(final)) == 0
+    said = capsys.readouterr().out
+    assert said.startswith("nothing to do: the checkpoint is at t = 0.02 s (frame 2), the run ends at t = 0.02 s")
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before  # nothing written or touched
+
+    # A later end continues the same run and the same stage: frames 0..4 in one file, as if never stopped.
+    assert tiny_run(out, "--frames", "4", "--restart", str(final)) == 0
+    assert_same_run(out, reference)
+    assert sorted(p.name for p in out.glob("*.usd*")) == ["tiny.usdc"]
+
+
+def test_restart_refuses_to_extend_the_stage_of_another_run(tmp_path, capsys):
+    """The stage at the restart's path was written by another run (same name and timing, one sphere 1 cm higher):
+    exit 2 naming it, and the stage is left as it was."""
+    out = tmp_path / "out"
+    assert tiny_run(out, "--frames", "2", "--checkpoint-every", "0.01") == 0
+    middle = min((out / "checkpoints").glob("*.h5"))
+    other = edit("center = [0.0, 0.0, 0.05]", "center = [0.0, 0.0, 0.06]")
+    stage = out / "tiny.usdc"
+    other_run = ["--frames", "2", "--usd", str(stage)]
+    assert tiny_run(tmp_path / "other", *other_run, scene=other, inputs=tmp_path / "in_other") == 0
+    before = stage.read_bytes()
+    capsys.readouterr()
+    assert tiny_run(out, "--frames", "2", "--restart", str(middle)) == 2
+    err = capsys.readouterr().err
+    assert f"error: --restart: {stage} is not the stage of this checkpoint's run" in err
+    assert "other sphere positions" in err
+    assert stage.read_bytes() == before
+    assert not list(out.glob("*.partial*"))
+
+
+def test_two_scenes_share_an_output_folder(tmp_path):
+    out = tmp_path / "out"
+    assert tiny_run(out, "--frames", "1") == 0
+    assert tiny_run(out, "--frames", "1", scene=edit('name = "tiny"', 'name = "tiny2"'), inputs=tmp_path / "in2") == 0
+    names = sorted(p.name.split("_checkpoint_")[0] for p in (out / "checkpoints").glob("*.h5"))
+    assert names == ["tiny", "tiny2"]  # same step numbers, two files
+    for path in (out / "checkpoints").glob("*.h5"):
+        assert read_checkpoint(path)[1]["scene"] == path.name.split("_checkpoint_")[0]
+
+
+def test_end_time_between_frames_ends_with_a_short_frame(tmp_path, capsys):
+    """2.5 frames of 1/100 s: frames 1 and 2 are whole, frame 3 is the half frame that ends at the time asked (to
+    the nearest step: within dt/2, plus float64 round-off of the clock)."""
+    out = tmp_path / "out"
+    end_time = 0.025
+    status = main(
+        [str(scene_file(tmp_path, GOOD_SCENE)), "--out", str(out), "--device", "cpu", "--end-time", str(end_time)]
+    )
+    said = capsys.readouterr().out
+    assert status == 0
+    assert "end time 0.025 s is not a whole number of frames of 1/100 s: the last frame (3) will be short" in said
+    _, attrs = read_checkpoint(final_checkpoint(out))
+    substeps, dt = int(attrs["substeps"]), float(attrs["dt"])
+    assert attrs["frame"] == 3 and attrs["step"] == round(end_time / dt)
+    assert abs(attrs["time"] - end_time) <= 0.5 * dt + 1e-12
+    assert 2 * substeps < attrs["step"] < 3 * substeps
+    stage = Usd.Stage.Open(str(out / "tiny.usdc"))
+    assert stage.GetEndTimeCode() == 3.0
+    assert stage.GetPrimAtPath("/World").GetAttribute("warpdem:time").Get(3.0) == attrs["time"]
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_signal_checkpoints_publishes_and_the_resume_command_continues(tmp_path, signum):
+    """A signal after the first frame: the run stops at a frame boundary with a checkpoint of that frame and the
+    stage so far published, exits 128 + signal, and the printed command resumes it into the uninterrupted run."""
+    inputs, out, reference = tmp_path / "in", tmp_path / "out", tmp_path / "reference"
+    inputs.mkdir()
+    scene = scene_file(inputs, GOOD_SCENE)
+    # Far more frames than run before the signal lands; a checkpoint every frame shows when frame 1 is done.
+    argv = [str(scene), "--out", str(out), "--device", "cpu", "--frames", "100000", "--checkpoint-every", "0.01"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "warpdem", *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        deadline = time.monotonic() + 300.0
+        while not list((out / "checkpoints").glob("tiny_checkpoint_*.h5")) and proc.poll() is None:
+            assert time.monotonic() < deadline, "no frame was written within 300 s"
+            time.sleep(0.05)
+        proc.send_signal(signum)
+        _, err = proc.communicate(timeout=300)
+    finally:
+        proc.kill()
+    assert proc.returncode == 128 + signum, err
+    line = next(line for line in err.splitlines() if line.startswith("interrupted at t = "))
+    frame = int(line.split(", frame ")[1].split(";")[0])
+    command = shlex.split(line.split("resume with: ")[1])
+    assert command[:3] == ["python", "-m", "warpdem"] and "Traceback" not in err
+    checkpoint = Path(command[command.index("--restart") + 1])
+    assert read_checkpoint(checkpoint)[1]["frame"] == frame >= 1
+    stage = Usd.Stage.Open(str(out / "tiny.usdc"))  # published: frames 0..frame
+    assert stage.GetPrimAtPath("/World/Particles").GetAttribute("points").GetTimeSamples() == [
+        float(c) for c in range(frame + 1)
+    ]
+    del stage
+
+    # Resume (to two frames past the interruption, not 100000), and compare with a run never interrupted.
+    resume = command[3:]
+    resume[resume.index("--frames") + 1] = str(frame + 2)
+    assert main([*resume, "--quiet"]) == 0
+    assert main([str(scene), "--out", str(reference), "--device", "cpu", "--frames", str(frame + 2), "--quiet"]) == 0
+    assert_same_run(out, reference)

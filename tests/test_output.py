@@ -14,6 +14,7 @@ Oracles:
 
 from __future__ import annotations
 
+import shutil
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -182,8 +183,15 @@ def test_vtu_series_round_trip(tmp_path: Path):
         np.testing.assert_array_equal(mesh.point_data["displacement"], u)
         np.testing.assert_array_equal(mesh.cell_data["stress"][0], stress.reshape(-1, 9))
 
+    # A restart from frame 1 continues the collection: frame 0's entry stays, frame 1 is rewritten.
     restarted = VtuSeries(tmp_path / "out", "rock", first_frame=1)
-    assert restarted.pvd_path.name == "rock_from000001.pvd"
+    assert restarted.pvd_path == series.pvd_path
+    restarted.write(1, 7.5e-4, points, tets, point_data={}, cell_data={})
+    datasets = ET.parse(series.pvd_path).getroot().find("Collection").findall("DataSet")
+    assert [(float(d.get("timestep")), d.get("file")) for d in datasets] == [
+        (0.0, "rock_vtu/rock_000000.vtu"),
+        (7.5e-4, "rock_vtu/rock_000001.vtu"),
+    ]
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -250,6 +258,7 @@ def test_mesh_restart_from_middle_checkpoint_is_bit_identical(device, tmp_path, 
         scene, RunOptions(device=device, frames=frames, out_dir=tmp_path / "full", checkpoint_every=period, quiet=True)
     )
     middle, end = full.checkpoints
+    shutil.copytree(tmp_path / "full", tmp_path / "restart")  # the restart continues the first run's outputs
     again = run_scene(
         parse_scene(data),
         RunOptions(device=device, frames=frames, out_dir=tmp_path / "restart", restart=middle, quiet=True),
@@ -262,10 +271,15 @@ def test_mesh_restart_from_middle_checkpoint_is_bit_identical(device, tmp_path, 
         np.testing.assert_array_equal(b[key], a[key], err_msg=key)
     for key in ("step", "time", "frame", "dt", "node_capacity", "tet_capacity"):
         assert b_attrs[key] == a_attrs[key], key
-    # The restart's VTU collection lists its own frames, the first run's collection stays whole.
+    # The restart continues the VTU collection it finds (a copy of the first run's here): one series of frames 0..4,
+    # the same files at the same times.
     name = scene.name
-    assert (tmp_path / "restart" / f"{name}_from000002.pvd").is_file()
-    assert len(ET.parse(tmp_path / "full" / f"{name}.pvd").getroot().find("Collection").findall("DataSet")) == 5
+    full_sets = ET.parse(tmp_path / "full" / f"{name}.pvd").getroot().find("Collection").findall("DataSet")
+    again_sets = ET.parse(tmp_path / "restart" / f"{name}.pvd").getroot().find("Collection").findall("DataSet")
+    assert [(d.get("timestep"), d.get("file")) for d in again_sets] == [
+        (d.get("timestep"), d.get("file")) for d in full_sets
+    ]
+    assert len(full_sets) == frames + 1
 
 
 def test_opened_joint_appears_in_the_rock_surface(device, tmp_path):

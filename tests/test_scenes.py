@@ -1,19 +1,29 @@
-"""Every shipped scene (scenes/*.toml and the embedded default) is a 2-frame smoke test.
+"""Every shipped scene (scenes/*.toml and the embedded default) is a 2-frame smoke test and a restart test.
 
-Oracle: the scene loads, builds and runs 2 frames (run_scene, frames=2); the final checkpoint holds only finite
-positions and velocities of the live spheres and FEM nodes, at frame 2 after 2 × substeps steps; the USD stage has
-exactly the time samples 0, 1, 2 of the particle positions, one point per live sphere, and for a scene with a mesh
-the same samples of the /World/Rock points, the last equal to the checkpoint's node positions.
+Oracles:
+- smoke: the scene loads, builds and runs 2 frames (run_scene, frames=2); the final checkpoint holds only finite
+  positions and velocities of the live spheres and FEM nodes, at frame 2 after 2 × substeps steps; the USD stage
+  has exactly the time samples 0, 1, 2 of the particle positions, one point per live sphere (and no /World/Particles
+  prim at all in a scene of rock alone), and for a scene with a mesh the same samples of the /World/Rock points, the
+  last equal to the checkpoint's node positions.
+- restart: a run restarted from the checkpoint of frame 1 ends, on the CPU, in a final checkpoint equal to the
+  uninterrupted run's array by array, bit for bit (same kernels, same order of float operations, every capacity as
+  grown), and extends the uninterrupted run's stage into one equal to it sample by sample. The initial neighbour
+  and FEM contact slots are cut to 1 so that every list with contacts grows before the checkpoint: the restart
+  must rebuild the model with the grown capacities, not the scene's.
 """
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
+from stage_compare import assert_stages_equal
 
+from warpdem.builder import ModelBuilder
 from warpdem.checkpoint import read_checkpoint
 from warpdem.runner import RunOptions, run_scene
 from warpdem.scene import default_scene_path, load_scene
@@ -21,6 +31,7 @@ from warpdem.scene import default_scene_path, load_scene
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 SCENES = [*sorted(SCENES_DIR.glob("*.toml")), default_scene_path()]
 FRAMES = 2
+INITIAL_SLOTS = 1  # neighbour and FEM contact slots per sphere / node before any growth
 
 
 def test_scenes_are_found():
@@ -28,16 +39,34 @@ def test_scenes_are_found():
     assert default_scene_path().is_file()
 
 
-@pytest.mark.parametrize("path", SCENES, ids=[p.stem for p in SCENES])
-def test_scene_runs_two_frames(device, tmp_path, path):
-    scene = load_scene(path)
-    summary = run_scene(scene, RunOptions(device=device, frames=FRAMES, out_dir=tmp_path, quiet=True))
+@pytest.fixture
+def small_lists(monkeypatch):
+    """Every scene starts with INITIAL_SLOTS neighbour and FEM contact slots, so its lists grow at the first build."""
+    finalize = ModelBuilder.finalize
 
-    arrays, attrs = read_checkpoint(summary.checkpoints[-1])
+    def finalize_small(self, *args, **kwargs):
+        kwargs.update(max_neighbors=INITIAL_SLOTS, max_sphere_faces=INITIAL_SLOTS, max_node_faces=INITIAL_SLOTS)
+        return finalize(self, *args, **kwargs)
+
+    monkeypatch.setattr(ModelBuilder, "finalize", finalize_small)
+
+
+@pytest.mark.parametrize("path", SCENES, ids=[p.stem for p in SCENES])
+def test_scene_runs_two_frames_and_restarts_bit_for_bit(device, tmp_path, path, small_lists):
+    scene = load_scene(path)
+    period = 1.0 / scene.run.output_rate  # a checkpoint every frame: frames 1 and 2
+    summary = run_scene(
+        scene, RunOptions(device=device, frames=FRAMES, out_dir=tmp_path / "full", checkpoint_every=period, quiet=True)
+    )
+
+    middle, end = summary.checkpoints
+    assert middle.name.startswith(f"{scene.name}_checkpoint_")
+    arrays, attrs = read_checkpoint(end)
     n = int(arrays["state/particle_count"][0])
     nn = int(arrays["state/node_count"][0])
     assert n == summary.particles and nn == summary.nodes and n + nn > 0
     assert attrs["frame"] == FRAMES and attrs["step"] == FRAMES * int(attrs["substeps"])
+    assert attrs["scene"] == scene.name
     for name in ("particle_q", "particle_qd", "particle_omega"):
         values = arrays[f"state/{name}"][:n]
         bad = np.nonzero(~np.isfinite(values).all(axis=1))[0]
@@ -48,14 +77,49 @@ def test_scene_runs_two_frames(device, tmp_path, path):
         assert bad.size == 0, f"{path.name}: {name} non-finite for {bad.size} nodes (first {bad[:5]})"
 
     stage = Usd.Stage.Open(str(summary.usd_path))
-    points = UsdGeom.Points(stage.GetPrimAtPath("/World/Particles")).GetPointsAttr()
-    assert points.GetTimeSamples() == [float(frame) for frame in range(FRAMES + 1)]
-    for frame in range(FRAMES + 1):
-        assert len(points.Get(float(frame))) == n
-    np.testing.assert_array_equal(np.asarray(points.Get(float(FRAMES))).reshape(-1, 3), arrays["state/particle_q"][:n])
+    particles = stage.GetPrimAtPath("/World/Particles")
+    assert bool(particles) == (n > 0)  # a scene of rock alone has no empty Points prim (inverted extent)
+    if n:
+        points = UsdGeom.Points(particles).GetPointsAttr()
+        assert points.GetTimeSamples() == [float(frame) for frame in range(FRAMES + 1)]
+        for frame in range(FRAMES + 1):
+            assert len(points.Get(float(frame))) == n
+        np.testing.assert_array_equal(
+            np.asarray(points.Get(float(FRAMES))).reshape(-1, 3), arrays["state/particle_q"][:n]
+        )
     rock = stage.GetPrimAtPath("/World/Rock")
     assert bool(rock) == (nn > 0)
     if nn:
         rock_points = UsdGeom.Mesh(rock).GetPointsAttr()
         assert rock_points.GetTimeSamples() == [float(frame) for frame in range(FRAMES + 1)]
         np.testing.assert_array_equal(np.asarray(rock_points.Get(float(FRAMES))), arrays["state/node_q"][:nn])
+
+    # Every list that holds contacts has grown past its initial slots before the middle checkpoint, and the checkpoint
+    # holds the grown capacities (the restart below must rebuild the model with them).
+    mid_arrays, mid_attrs = read_checkpoint(middle)
+    for key, needed in (
+        ("max_neighbors", mid_arrays["state/nbr_needed"][0]),
+        ("max_sphere_faces", mid_arrays["state/sphere_face_needed"][0]),
+        ("max_node_faces", mid_arrays["state/node_face_needed"][0]),
+    ):
+        assert mid_attrs[key] >= max(int(needed), INITIAL_SLOTS), key
+
+    if device != "cpu":
+        return  # bitwise restart identity is a CPU property (float atomics reorder on GPUs)
+    # The restart extends the stage of the run it continues: a copy of it in the restart's folder.
+    restart_dir = tmp_path / "restart"
+    restart_dir.mkdir()
+    shutil.copy(summary.usd_path, restart_dir / summary.usd_path.name)
+    again = run_scene(
+        load_scene(path), RunOptions(device=device, frames=FRAMES, out_dir=restart_dir, restart=middle, quiet=True)
+    )
+    b_arrays, b_attrs = read_checkpoint(again.checkpoints[-1])
+    assert sorted(b_arrays) == sorted(arrays)
+    for key in sorted(arrays):
+        assert b_arrays[key].dtype == arrays[key].dtype, key
+        np.testing.assert_array_equal(b_arrays[key], arrays[key], err_msg=f"{path.name}: {key}")
+    assert {k: v for k, v in b_attrs.items() if k != "warpdem_version"} == {
+        k: v for k, v in attrs.items() if k != "warpdem_version"
+    }
+    assert again.usd_path == summary.usd_path.parent.parent / "restart" / summary.usd_path.name
+    assert_stages_equal(Usd.Stage.Open(str(again.usd_path)), stage)

@@ -344,3 +344,86 @@ def test_rock_surface_bad_inputs(tmp_path: pathlib.Path) -> None:
         with pytest.raises(ValueError, match=r"surface\.colors"):
             writer.write_frame(**frame, surface=SurfaceFrame(**{**vars(good), "vertex_colors": True}))
         assert writer.frame_count == 0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# A restart extends the stage (append=True): oracle, the stage written in one go, sample by sample
+
+
+def story() -> list[dict]:
+    """Six frames in which everything a frame can change changes: no spheres at first (frames 0–1), spheres from
+    frame 2 with ids changing at 4, bonds from 3, a rock surface from 1 whose triangles change at 3 and vanish at 5."""
+    base = make_frames() + make_frames(seed=2)
+    none = {
+        "positions": np.zeros((0, 3)),
+        "radii": np.zeros(0),
+        "velocities": np.zeros((0, 3)),
+        "ids": np.zeros(0, np.int64),
+        "colors": np.zeros((0, 3)),
+    }
+    frames = []
+    for k in range(6):
+        frame = {**base[k], **(none if k < 2 else {}), "time": 0.01 * k}
+        if k >= 3:
+            frame["bonds"] = np.array([[0, 1]])
+        if 1 <= k < 5:
+            faces = TETRA_FACES if k < 3 else TETRA_FACES[:2]
+            frame["surface"] = make_surface(TETRA_POINTS + 0.1 * k, faces, seed=k)
+        frames.append(frame)
+    return frames
+
+
+@pytest.mark.parametrize("restart_frame", range(6))
+@pytest.mark.parametrize("suffix", [".usdc", ".usda"])
+def test_append_continues_the_animation(tmp_path: pathlib.Path, restart_frame: int, suffix: str) -> None:
+    """Frames 0..5 in one go, and a stage of frames 0..5 rewritten from ``restart_frame`` on by a second writer: equal
+    stages, sample by sample (what a restart from that frame's checkpoint does to the published stage)."""
+    from stage_compare import assert_stages_equal
+
+    frames = story()
+    whole, pieces = tmp_path / f"whole{suffix}", tmp_path / f"pieces{suffix}"
+    with UsdWriter(whole, FPS) as writer:
+        for frame in frames:
+            writer.write_frame(**frame)
+    with UsdWriter(pieces, FPS) as writer:
+        # The first run: its frames from restart_frame on differ (moved by 1 m), and must all be replaced.
+        for k, frame in enumerate(frames):
+            writer.write_frame(**{**frame, "positions": frame["positions"] + (k >= restart_frame)})
+    with UsdWriter(pieces, FPS, first_frame=restart_frame, append=True) as writer:
+        assert writer.extended
+        for frame in frames[restart_frame:]:
+            writer.write_frame(**frame)
+    assert_stages_equal(Usd.Stage.Open(str(pieces)), Usd.Stage.Open(str(whole)))
+    assert not list(tmp_path.glob("*.partial*"))
+
+
+def test_append_without_a_stage_starts_at_the_restart_frame(tmp_path: pathlib.Path) -> None:
+    path = tmp_path / "new.usdc"
+    with UsdWriter(path, FPS, first_frame=4, append=True) as writer:
+        assert not writer.extended
+        writer.write_frame(**make_frames()[0])
+    stage = Usd.Stage.Open(str(path))
+    assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (4.0, 4.0)
+
+
+def test_append_at_another_frame_rate_is_refused_and_keeps_the_stage(tmp_path: pathlib.Path) -> None:
+    path = tmp_path / "run.usdc"
+    with UsdWriter(path, FPS) as writer:
+        writer.write_frame(**make_frames()[0])
+    before = path.read_bytes()
+    with pytest.raises(ValueError, match="frame rate is 24 frames/s, this run's 25"):
+        UsdWriter(path, 25.0, first_frame=1, append=True)
+    assert path.read_bytes() == before
+    assert not list(tmp_path.glob("*.partial*"))
+
+
+def test_rock_alone_writes_no_particles_prim(tmp_path: pathlib.Path) -> None:
+    """No spheres in any frame: no /World/Particles (an empty Points prim would carry an inverted ±FLT_MAX extent)."""
+    path = tmp_path / "rock_only.usda"
+    with UsdWriter(path, FPS) as writer:
+        for k, frame in enumerate(story()[:2]):
+            writer.write_frame(**frame)
+            assert k == 0 or frame["surface"] is not None
+    stage = Usd.Stage.Open(str(path))
+    assert not stage.GetPrimAtPath("/World/Particles")
+    assert stage.GetPrimAtPath("/World/Rock")

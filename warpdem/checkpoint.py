@@ -44,7 +44,7 @@ FORMAT_VERSION = 1
 _FORMAT_NAME_ATTR = "warpdem_format"
 _FORMAT_VERSION_ATTR = "warpdem_format_version"
 _JSON_PREFIX = "__json__:"
-_NAME_PATTERN = re.compile(r"checkpoint_(\d+)\.h5")
+_NAME_PATTERN = re.compile(r"(?:(.+)_)?checkpoint_(\d+)\.h5")
 
 # Numpy kinds that HDF5 stores natively and h5py reads back with the same dtype: bool, signed, unsigned,
 # floating, complex.
@@ -55,30 +55,38 @@ class CheckpointError(Exception):
     """A checkpoint file cannot be read: missing, not HDF5, corrupt, or not a supported warpdem checkpoint."""
 
 
-def checkpoint_name(step: int) -> str:
+def checkpoint_name(step: int, scene: str | None = None) -> str:
     """File name of the checkpoint taken at a step.
 
     Args:
         step: Simulation step number, >= 0.
+        scene: Scene name, the file's prefix, so that scenes sharing an output folder never overwrite each other's
+            checkpoints; None for no prefix.
 
     Returns:
-        ``checkpoint_<step:010d>.h5``; zero padding makes names sort in step order.
+        ``<scene>_checkpoint_<step:010d>.h5`` (``checkpoint_<step:010d>.h5`` without a scene); zero padding makes
+        names sort in step order.
 
     Raises:
-        ValueError: If ``step`` is negative or not an integer.
+        ValueError: If ``step`` is negative or not an integer, or ``scene`` is empty or holds a path separator.
     """
     if isinstance(step, bool) or not isinstance(step, int | np.integer) or step < 0:
         raise ValueError(f"checkpoint step must be a non-negative integer, got {step!r}")
-    return f"checkpoint_{int(step):010d}.h5"
+    if scene is None:
+        return f"checkpoint_{int(step):010d}.h5"
+    if not scene or "/" in scene or "\\" in scene:
+        raise ValueError(f"checkpoint scene name must be non-empty without path separators, got {scene!r}")
+    return f"{scene}_checkpoint_{int(step):010d}.h5"
 
 
-def latest_checkpoint(directory: str | os.PathLike) -> pathlib.Path | None:
+def latest_checkpoint(directory: str | os.PathLike, scene: str | None = None) -> pathlib.Path | None:
     """Finds the checkpoint with the highest step number in a directory.
 
     Only files named like :func:`checkpoint_name` count; temporary files of an interrupted write do not.
 
     Args:
         directory: Directory to search (not recursive).
+        scene: Only this scene's checkpoints (``<scene>_checkpoint_<step>.h5``); None: any checkpoint.
 
     Returns:
         Path of the newest checkpoint, or ``None`` if the directory is missing or holds none.
@@ -89,9 +97,9 @@ def latest_checkpoint(directory: str | os.PathLike) -> pathlib.Path | None:
     best: tuple[int, pathlib.Path] | None = None
     for entry in root.iterdir():
         match = _NAME_PATTERN.fullmatch(entry.name)
-        if match is None or not entry.is_file():
+        if match is None or not entry.is_file() or (scene is not None and match.group(1) != scene):
             continue
-        step = int(match.group(1))
+        step = int(match.group(2))
         if best is None or step > best[0]:
             best = (step, entry)
     return None if best is None else best[1]

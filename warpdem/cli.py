@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import shlex
 import sys
 import tempfile
 from pathlib import Path
@@ -57,6 +58,9 @@ def init_warp(quiet: bool = False) -> None:
     if kept:
         sys.stderr.write("".join(kept))
         sys.stderr.flush()
+
+EXIT_SIGNAL_BASE = 128
+"""A run stopped by a signal exits with 128 + its number, as a shell reports it: 130 for SIGINT, 143 for SIGTERM."""
 
 
 def _positive_float(text: str) -> float:
@@ -173,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     init_warp(quiet=args.quiet)
     from .checkpoint import CheckpointError
     from .guard import UnstableRunError
-    from .runner import RunOptions, run_scene, summary_json
+    from .runner import NothingToDo, RunOptions, run_scene, summary_json
 
     options = RunOptions(
         device=args.device,
@@ -196,12 +200,40 @@ def main(argv: list[str] | None = None) -> int:
     except UnstableRunError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_UNSTABLE
+    except NothingToDo as exc:
+        print(exc)
+        return 0
     except KeyboardInterrupt:
-        print("interrupted: the USD stage was not published; resume from the last checkpoint", file=sys.stderr)
-        return 130
+        # A second signal while a frame ran (or one before the run started): nothing of this frame was kept.
+        print(
+            "interrupted at once: the USD stage was not published and the frame in progress was not checkpointed; "
+            "a restart can continue from the last checkpoint written, if any",
+            file=sys.stderr,
+        )
+        return EXIT_SIGNAL_BASE + 2
     if not args.quiet:
         print(summary.format())
     if args.summary_json is not None:
         args.summary_json.parent.mkdir(parents=True, exist_ok=True)
         args.summary_json.write_text(summary_json(summary))
+    if summary.interrupted_by is not None:
+        print(
+            f"interrupted at t = {summary.simulated_time:.9g} s, frame {summary.frame}; resume with: "
+            f"{resume_command(argv, summary.checkpoints[-1])}",
+            file=sys.stderr,
+        )
+        return EXIT_SIGNAL_BASE + summary.interrupted_by
     return 0
+
+
+def resume_command(argv: list[str], checkpoint: Path) -> str:
+    """The command line that continues a run: the same arguments, ``--restart`` the given checkpoint."""
+    args, skip = [], False
+    for arg in argv:
+        if skip:
+            skip = False
+        elif arg == "--restart":
+            skip = True
+        elif not arg.startswith("--restart="):
+            args.append(arg)
+    return shlex.join(["python", "-m", "warpdem", *args, "--restart", str(checkpoint)])

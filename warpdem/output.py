@@ -155,8 +155,9 @@ def open_faces(
 class VtuSeries:
     """Per-frame VTU files of a tet mesh and the ``.pvd`` collection that lists them.
 
-    Files: ``<directory>/<name>_vtu/<name>_<frame:06d>.vtu`` and ``<directory>/<name>.pvd`` (a restarted run, with
-    ``first_frame`` > 0, writes ``<name>_from<first_frame:06d>.pvd`` listing its own frames, as its USD stage).
+    Files: ``<directory>/<name>_vtu/<name>_<frame:06d>.vtu`` and ``<directory>/<name>.pvd``. A restarted run (with
+    ``first_frame`` > 0) continues the collection, as it continues its USD stage: the entries of the frames before
+    ``first_frame`` stay, the later ones are replaced by the frames it writes.
 
     Args:
         directory: output directory (created). name: base name of the files. first_frame: frame number of the
@@ -167,9 +168,21 @@ class VtuSeries:
         self.directory = pathlib.Path(directory)
         self.name = name
         self.frame_dir = self.directory / f"{name}_vtu"
-        suffix = f"_from{first_frame:06d}" if first_frame > 0 else ""
-        self.pvd_path = self.directory / f"{name}{suffix}.pvd"
-        self._entries: list[tuple[float, str]] = []
+        self.pvd_path = self.directory / f"{name}.pvd"
+        self._entries: list[tuple[float, str]] = self._entries_before(first_frame) if first_frame > 0 else []
+
+    def _entries_before(self, first_frame: int) -> list[tuple[float, str]]:
+        """(time, file) of the collection's frames before ``first_frame`` (none without a readable collection)."""
+        import xml.etree.ElementTree as ET
+
+        try:
+            datasets = ET.parse(self.pvd_path).getroot().iter("DataSet")
+            entries = [(float(d.get("timestep")), d.get("file")) for d in datasets]
+            return [
+                (t, rel) for t, rel in entries if int(pathlib.PurePosixPath(rel).stem.rsplit("_", 1)[1]) < first_frame
+            ]
+        except (OSError, ET.ParseError, TypeError, ValueError, IndexError):
+            return []
 
     @property
     def files(self) -> list[pathlib.Path]:
@@ -259,6 +272,16 @@ class RockFrames:
         self._faces = np.zeros((0, 3), np.int32)
         self._owner = np.zeros(0, np.int64)
         self._scale = 0.0
+
+    @property
+    def color_scale(self) -> float:
+        """The largest colour value seen so far in the run [Pa or m/s]; checkpoints keep it, so that a restarted run
+        colours its frames as the uninterrupted one."""
+        return self._scale
+
+    @color_scale.setter
+    def color_scale(self, value: float) -> None:
+        self._scale = float(value)
 
     def _live(self, model: Model, state: State) -> tuple[int, np.ndarray, np.ndarray]:
         nn = int(state.node_count.numpy()[0])

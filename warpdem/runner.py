@@ -5,7 +5,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import signal
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,40 +23,31 @@ from .model import Model, State
 from .scene import Scene, SceneError
 from .simulation import EnergyBalance, Simulation
 
-# Model fields that describe spheres (saved with a checkpoint so a restart never depends on rebuilding them).
-MODEL_PARTICLE_FIELDS = (
-    "particle_radius",
-    "particle_mass",
-    "particle_inv_mass",
-    "particle_inv_inertia",
-    "particle_material",
-    "particle_motion",
-    "particle_part",
-    "particle_id",
-)
 
-MODEL_MESH_PREFIXES = ("node_", "tet_", "joint_")
-"""Model fields of the FEM nodes, tets and joint elements (saved with a checkpoint so a restart never depends on
-re-meshing or on the joint pre-split): every array whose name starts with one of these, except tables of structs,
-which the scene's materials give."""
+def model_checkpoint_arrays(model: Model) -> list[str]:
+    """Names of the Model arrays a checkpoint holds: every one but the tables of structs, which the scene's materials
+    give. Sphere, mesh (after the joint pre-split), joint, surface and wall arrays all come from the checkpoint, so a
+    restart never depends on re-meshing or on rebuilding what a run grew."""
+    return [name for name, a in model.arrays().items() if not wp.types.type_is_struct(a.dtype)]
 
 
-def mesh_model_fields(model: Model) -> list[str]:
-    """Names of the Model arrays of the mesh (:data:`MODEL_MESH_PREFIXES`) that a checkpoint holds."""
-    return [
-        name
-        for name, a in model.arrays().items()
-        if name.startswith(MODEL_MESH_PREFIXES) and not wp.types.type_is_struct(a.dtype)
-    ]
-
-
-def _capacities(model: Model) -> dict[str, int]:
-    """The mesh capacities of a model (``node_capacity``, ``tet_capacity``, ``joint_capacity`` where present)."""
+def model_scalars(model: Model) -> dict[str, int | float]:
+    """The int and float fields of a model: capacities (particles, neighbour slots, nodes, tets, faces, FEM contact
+    slots per sphere and per node, joints, bonds), the time step and the lengths its surface build measured. A
+    checkpoint holds them all, grown as they were when it was taken."""
     return {
-        f.name: int(getattr(model, f.name))
+        f.name: value
         for f in dataclasses.fields(model)
-        if f.name in ("node_capacity", "tet_capacity", "joint_capacity")
+        if type(value := getattr(model, f.name)) in (int, float)  # not bool: flags come from the scene
     }
+
+
+SCENE_FIXED_SCALARS = ("bond_capacity", "num_walls", "num_materials")
+"""Model scalars that no run changes: a checkpoint whose values differ was taken of another scene."""
+
+
+class NothingToDo(Exception):
+    """A restart from a checkpoint at or past the end of the run: nothing is simulated and nothing is written."""
 
 
 @dataclass
@@ -99,6 +92,9 @@ class RunSummary:
     tets: int = 0
     tet_steps_per_second: float = 0.0
     pvd_path: Path | None = None
+    frame: int = 0
+    interrupted_by: int | None = None
+    """The signal (SIGINT, SIGTERM) that stopped the run at ``frame``, after its checkpoint and stage were written."""
 
     def format(self) -> str:
         e0, e1 = self.energy_start, self.energy_end
@@ -156,46 +152,47 @@ PART_PALETTE = np.array(
 
 
 def save_checkpoint(path: Path, sim: Simulation, frame: int, extra: dict) -> Path:
-    """Write the complete state of a simulation (and the sphere and mesh parts of its model) to an HDF5 checkpoint."""
+    """Write the complete state of a simulation, its model's arrays (:func:`model_checkpoint_arrays`) and scalars
+    (:func:`model_scalars`) to an HDF5 checkpoint."""
     arrays = {f"state/{name}": a.numpy() for name, a in sim.state.arrays().items()}
-    for name in [*MODEL_PARTICLE_FIELDS, *mesh_model_fields(sim.model)]:
+    for name in model_checkpoint_arrays(sim.model):
         arrays[f"model/{name}"] = getattr(sim.model, name).numpy()
     attrs = {
+        **model_scalars(sim.model),
         "step": sim.step_count,
         "time": sim.time,
         "frame": frame,
-        "dt": sim.model.dt,
-        "particle_capacity": sim.model.particle_capacity,
-        "max_neighbors": sim.model.max_neighbors,
-        "bond_capacity": sim.model.bond_capacity,
-        "num_walls": sim.model.num_walls,
-        **_capacities(sim.model),
         "warpdem_version": __version__,
         **extra,
     }
     return write_checkpoint(path, arrays, attrs)
 
 
-def restore_checkpoint(path: Path, model: Model, template: State) -> tuple[Model, State, dict]:
+def restore_checkpoint(
+    path: Path, model: Model, template: State, scene: str | None = None
+) -> tuple[Model, State, dict]:
     """Model and state of a checkpoint, on the device of ``model`` (built from the same scene; ``template`` is its
-    initial state and gives each array's type).
+    initial state and gives each array's type). Every model array but the struct tables and every model scalar
+    (:func:`model_scalars`: capacities as grown by the run) come from the checkpoint.
 
     Raises:
-        CheckpointError: unreadable file, or one that does not belong to this scene.
+        CheckpointError: unreadable file, or one that belongs to another scene (``scene``: this scene's name).
     """
     arrays, attrs = read_checkpoint(path)
-    for key, expected in (("bond_capacity", model.bond_capacity), ("num_walls", model.num_walls)):
+    if scene is not None and "scene" in attrs and attrs["scene"] != scene:
+        raise CheckpointError(f"checkpoint {path} belongs to scene {attrs['scene']!r}, not {scene!r}")
+    for key in SCENE_FIXED_SCALARS:
+        expected = getattr(model, key)
         if int(attrs.get(key, -1)) != expected:
             raise CheckpointError(f"{path}: {key} is {attrs.get(key)} but the scene builds {expected}; wrong scene?")
+    scalars = model_scalars(model)
     missing = [
         k
-        for k in [f"model/{n}" for n in [*MODEL_PARTICLE_FIELDS, *mesh_model_fields(model)]]
-        + [f"state/{n}" for n in template.arrays()]
-        + [f"attrs/{n}" for n in _capacities(model) if n not in attrs]
+        for k in [f"model/{n}" for n in model_checkpoint_arrays(model)] + [f"state/{n}" for n in template.arrays()]
         if k not in arrays
-    ]
+    ] + [f"attribute {n}" for n in scalars if n not in attrs]
     if missing:
-        raise CheckpointError(f"{path}: missing arrays {', '.join(missing)}")
+        raise CheckpointError(f"{path}: missing {', '.join(missing)} (written by an older warpdem?)")
     device = model.device
 
     def load(key: str, like: wp.array) -> wp.array:
@@ -203,17 +200,75 @@ def restore_checkpoint(path: Path, model: Model, template: State) -> tuple[Model
 
     model = dataclasses.replace(
         model,
-        particle_capacity=int(attrs["particle_capacity"]),
-        max_neighbors=int(attrs["max_neighbors"]),
-        dt=float(attrs["dt"]),
-        **{name: int(attrs[name]) for name in _capacities(model)},
-        **{
-            name: load(f"model/{name}", getattr(model, name))
-            for name in [*MODEL_PARTICLE_FIELDS, *mesh_model_fields(model)]
-        },
+        **{name: type(value)(attrs[name]) for name, value in scalars.items()},
+        **{name: load(f"model/{name}", getattr(model, name)) for name in model_checkpoint_arrays(model)},
     )
     state = State(**{name: load(f"state/{name}", a) for name, a in template.arrays().items()})
     return model, state, attrs
+
+
+class _StopRequest:
+    """SIGINT and SIGTERM during a run: the first is remembered and acted on at the next frame boundary (the frame's
+    checkpoint is written and the stage published); a second stops at once (KeyboardInterrupt, nothing published).
+    Handlers are installed only in the main thread, and the previous ones put back on exit."""
+
+    def __init__(self, quiet: bool) -> None:
+        self.signum: int | None = None
+        self._quiet = quiet
+        self._previous: dict[int, object] = {}
+
+    def __enter__(self) -> _StopRequest:
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+    def _handle(self, signum: int, _frame: object) -> None:
+        if self.signum is not None:
+            raise KeyboardInterrupt
+        self.signum = signum
+        if not self._quiet:
+            print(
+                f"\n{signal.Signals(signum).name}: stopping after this frame (again to stop at once, without a "
+                "checkpoint)",
+                file=sys.stderr,
+            )
+
+
+def end_step(end_time: float, dt: float) -> int:
+    """The step a run to ``end_time`` [s] ends at: the nearest one (at least 1), so it ends within dt/2 of the time
+    asked, never a frame beyond."""
+    return max(1, round(end_time / dt))
+
+
+def end_time_note(end_time: float, fps: float, dt: float, substeps: int, last: int) -> str | None:
+    """What a run to ``end_time`` does when that is not a whole number of frames (or of steps), or None.
+
+    Args:
+        end_time: time asked [s]; fps: output rate [frames/s]; dt: time step [s]; substeps: steps per frame;
+        last: the run's end step (:func:`end_step`).
+    """
+    short = last % substeps
+    ends = last * dt
+    off_step = abs(ends - end_time) > 1e-9 * end_time
+    if not short and not off_step:
+        return None
+    note = f"end time {end_time:g} s"
+    if short:
+        frame = -(-last // substeps)
+        note += (
+            f" is not a whole number of frames of 1/{fps:g} s: the last frame ({frame}) will be short, "
+            f"{short} of {substeps} steps ({short * dt:.6g} s)"
+        )
+    else:
+        note += f" is not a whole number of steps of {dt:.6g} s"
+    if off_step:
+        note += f"; the run ends at the step nearest to it, t = {ends:.9g} s"
+    return note
 
 
 def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
@@ -248,40 +303,60 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         model = dataclasses.replace(model, dt=frame_period / substeps)
     else:
         substeps = max(1, round(frame_period / model.dt))
+
+    step, sim_time, first_frame, primed, attrs = 0, 0.0, 0, False, {}
+    if options.restart is not None:
+        model, state, attrs = restore_checkpoint(Path(options.restart), model, state, scene.name)
+        step, sim_time, first_frame, primed = int(attrs["step"]), float(attrs["time"]), int(attrs["frame"]), True
+        # Frame k ends at step k × substeps on the original run's grid, whatever the scene says now.
+        substeps = int(attrs.get("substeps", substeps))
     frame_period = substeps * model.dt
 
-    step, sim_time, first_frame, primed = 0, 0.0, 0, False
-    if options.restart is not None:
-        model, state, attrs = restore_checkpoint(Path(options.restart), model, state)
-        step, sim_time, first_frame, primed = int(attrs["step"]), float(attrs["time"]), int(attrs["frame"]), True
-        if abs(model.dt * substeps - frame_period) > 1e-12 * frame_period:
-            substeps = max(1, round(frame_period / model.dt))
-    sim = Simulation(model, state, primed=primed, step=step, time=sim_time)
-
+    # Frame k ends at step k × substeps; the run ends at last_step (a short last frame when that is not a multiple).
     end_time = options.end_time if options.end_time is not None else run.end_time
-    total_frames = options.frames if options.frames is not None else max(1, math.ceil(end_time / frame_period - 1e-9))
-    frames_left = max(0, total_frames - first_frame)
+    last_step = options.frames * substeps if options.frames is not None else end_step(end_time, model.dt)
+    total_frames = -(-last_step // substeps)
+    if step >= last_step:
+        raise NothingToDo(
+            f"nothing to do: the checkpoint is at t = {sim_time:.9g} s (frame {first_frame}), the run ends at "
+            f"t = {last_step * model.dt:.9g} s (frame {total_frames})"
+        )
+    note = end_time_note(end_time, fps, model.dt, substeps, last_step) if options.frames is None else None
+    if note is not None and not options.quiet:
+        print(note)
+    sim = Simulation(model, state, primed=primed, step=step, time=sim_time)
 
     out_dir = Path(options.out_dir) if options.out_dir is not None else Path(scene.output.directory)
     usd_path = Path(options.usd) if options.usd is not None else out_dir / scene.output.usd
-    output_stem = usd_path.stem  # VTU files are named like the stage; a restart's collection gets its own name
-    if options.restart is not None and options.usd is None:
-        # A restart gets its own stage, on the original timeline, instead of replacing the first run's stage.
-        usd_path = usd_path.with_name(f"{usd_path.stem}_from{first_frame:06d}{usd_path.suffix}")
+    output_stem = usd_path.stem  # VTU files are named like the stage; a restart continues both
+    if options.restart is not None:
+        _check_stage_continues(usd_path, 1.0 / frame_period, first_frame, sim, options.quiet)
     checkpoint_every = (
         options.checkpoint_every if options.checkpoint_every is not None else scene.output.checkpoint_every
     )
     checkpoint_dir = out_dir / scene.output.checkpoint_dir
     frames_per_checkpoint = max(1, round(checkpoint_every / frame_period)) if checkpoint_every > 0 else 0
-    ckpt_extra = {"scene": scene.name, "substeps": substeps, "seed": run.seed}
 
     from .output import RockFrames, VtuSeries
     from .usd import UsdWriter
 
-    speed_scale = [1e-12]
+    # Colour scales are the largest values seen so far in the run: a restart continues them from its checkpoint.
+    speed_scale = [float(attrs.get("speed_scale", 1e-12))]
     checkpoints: list[Path] = []
     vtu = VtuSeries(out_dir, output_stem, first_frame) if scene.output.vtu and model.node_capacity else None
     rock = RockFrames(scene.output.mesh_color_by, vtu)
+    rock.color_scale = float(attrs.get("rock_color_scale", 0.0))
+
+    def checkpoint(frame: int) -> None:
+        extra = {
+            "scene": scene.name,
+            "substeps": substeps,
+            "seed": run.seed,
+            "speed_scale": speed_scale[0],
+            "rock_color_scale": rock.color_scale,
+        }
+        path = checkpoint_dir / checkpoint_name(sim.step_count, scene.name)
+        checkpoints.append(save_checkpoint(path, sim, frame, extra))
 
     def write_frame(writer: UsdWriter, frame: int) -> None:
         rock.write_vtu(frame, sim.time, sim.model, sim.state)
@@ -316,36 +391,40 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         from tqdm import tqdm
 
         progress = tqdm(
-            total=round(frames_left * frame_period, 9), unit="s", unit_scale=False, desc=scene.name, file=sys.stderr
+            total=round((last_step - step) * model.dt, 9), unit="s", unit_scale=False, desc=scene.name, file=sys.stderr
         )
     wall0 = time.perf_counter()
     steps0 = sim.step_count
     comment = f"warpdem {__version__}: {scene.name}"
     unstable: UnstableRunError | None = None
-    with UsdWriter(usd_path, 1.0 / frame_period, comment=comment, first_frame=first_frame) as writer:
-        write_frame(writer, first_frame)
-        for k in range(frames_left):
+    frame = first_frame
+    stop = _StopRequest(options.quiet)
+    # A restart extends the stage of the run it continues (checked above); a new run replaces whatever was there.
+    restart = options.restart is not None
+    with (
+        stop,
+        UsdWriter(usd_path, 1.0 / frame_period, comment=comment, first_frame=first_frame, append=restart) as writer,
+    ):
+        write_frame(writer, frame)
+        while frame < total_frames and stop.signum is None:
+            steps_before = sim.step_count
             try:
-                sim.advance(substeps)
+                sim.advance(min((frame + 1) * substeps, last_step) - steps_before)
             except UnstableRunError as exc:
                 # The bad state is neither written nor checkpointed; the good frames are published below.
                 unstable = exc
                 break
-            frame = first_frame + k + 1
+            frame += 1
             write_frame(writer, frame)
             if progress is not None:
-                progress.update(round(frame_period, 9))
-            if frames_per_checkpoint and frame % frames_per_checkpoint == 0 and k < frames_left - 1:
-                checkpoints.append(
-                    save_checkpoint(checkpoint_dir / checkpoint_name(sim.step_count), sim, frame, ckpt_extra)
-                )
+                progress.update(round((sim.step_count - steps_before) * model.dt, 9))
+            if frames_per_checkpoint and frame % frames_per_checkpoint == 0 and frame < total_frames:
+                checkpoint(frame)
         wall = time.perf_counter() - wall0
-        if unstable is None:
-            checkpoints.append(
-                save_checkpoint(
-                    checkpoint_dir / checkpoint_name(sim.step_count), sim, first_frame + frames_left, ckpt_extra
-                )
-            )
+        if unstable is None and (
+            not checkpoints or checkpoints[-1] != checkpoint_dir / checkpoint_name(sim.step_count, scene.name)
+        ):
+            checkpoint(frame)
     if progress is not None:
         progress.close()
     if unstable is not None:
@@ -373,7 +452,40 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         tets=tets,
         tet_steps_per_second=tets * steps / wall if wall > 0 else 0.0,
         pvd_path=vtu.pvd_path if vtu is not None else None,
+        frame=frame,
+        interrupted_by=stop.signum,
     )
+
+
+def _check_stage_continues(usd_path: Path, fps: float, frame: int, sim: Simulation, quiet: bool) -> None:
+    """Before a restart writes anything: the stage it extends must hold the checkpoint's frame, at the checkpoint's
+    time and frame rate and with its sphere centres (float32, as the stage stores them), so that the frames it keeps
+    are this run's own. Without a stage, a new one starts at the restart frame.
+
+    Raises:
+        SceneError: the stage at ``usd_path`` belongs to another run (nothing is written).
+    """
+    from .usd import stage_frame
+
+    if not usd_path.exists():
+        if not quiet:
+            print(f"restart: {usd_path} is not there; writing a new stage whose timeline starts at frame {frame}")
+        return
+    try:
+        rate, held_time, held_points = stage_frame(usd_path, frame)
+    except ValueError as exc:
+        raise SceneError(f"--restart: cannot extend {exc}") from None
+    n = sim.particle_count
+    points = sim.state.particle_q.numpy()[:n].astype(np.float32) if n else None
+    same_points = (held_points is None) == (points is None) and (points is None or np.array_equal(held_points, points))
+    if rate != fps or held_time != sim.time or not same_points:
+        held = f"frame {frame} at t = {held_time:.9g} s" if held_time is not None else f"no frame {frame}"
+        why = "" if same_points else ", other sphere positions"
+        raise SceneError(
+            f"--restart: {usd_path} is not the stage of this checkpoint's run (it holds {held}{why}, {rate:g} "
+            f"frames/s; the checkpoint is frame {frame} at t = {sim.time:.9g} s, {fps:g} frames/s); move it away or "
+            "pass --usd"
+        )
 
 
 def summary_json(summary: RunSummary) -> str:

@@ -7,8 +7,8 @@ of each frame is stored alongside in the time-sampled attribute ``/World.warpdem
 Stage layout::
 
     /World              Xform, default prim; custom double ``warpdem:time`` [s], one sample per frame
-    /World/Particles    Points: points [m], widths (diameters) [m], velocities [m/s], ids,
-                        primvars:displayColor (vertex), primvars:speed [m/s] (vertex), extent [m]
+    /World/Particles    Points (only once a frame has spheres): points [m], widths (diameters) [m],
+                        velocities [m/s], ids, primvars:displayColor (vertex), primvars:speed [m/s] (vertex), extent [m]
     /World/Bonds        BasisCurves, linear, one 2-vertex curve per bond (only when bonds are given)
     /World/Rock         Mesh of triangles (only when a frame carries a :class:`SurfaceFrame`): points [m] and
                         velocities [m/s] every frame, faceVertexCounts / faceVertexIndices only on the frames where
@@ -19,6 +19,11 @@ Stage layout::
 The stage is authored into ``<stem>.partial<suffix>`` next to the final file and moved over the final name
 with ``os.replace`` at :meth:`UsdWriter.close`, so a crashed run never leaves a half-written file under the
 name a viewer or a later pipeline step would pick up.
+
+A restarted run continues the same animation (``append=True``): the published stage is copied to the partial
+name, its time samples from the restart frame on are dropped, and the new frames are authored after the kept ones,
+so one file holds the whole timeline (a sublayer cannot do that: a stronger layer's samples hide a weaker one's
+completely). The original stays as it was until the extended stage is renamed over it.
 """
 
 from __future__ import annotations
@@ -26,15 +31,19 @@ from __future__ import annotations
 import math
 import os
 import pathlib
+import shutil
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any
 
 import numpy as np
 
-__all__ = ["SurfaceFrame", "UsdWriter"]
+__all__ = ["SurfaceFrame", "UsdWriter", "stage_frame"]
 
 _SUFFIXES = (".usd", ".usdc", ".usda")
+
+# The prims a frame defines only once it carries their data; a restart drops them again where no sample is left.
+_LAZY_PRIMS = ("/World/Particles", "/World/Bonds", "/World/Rock")
 
 # Radius-to-width ratio of the bond curves: thin enough to leave the spheres visible, thick enough to see.
 _BOND_WIDTH_PER_MEAN_RADIUS = 0.5
@@ -86,9 +95,15 @@ class UsdWriter:
     save_interval_frames: int = 50
 
     def __init__(
-        self, path: str | os.PathLike, frames_per_second: float, *, comment: str | None = None, first_frame: int = 0
+        self,
+        path: str | os.PathLike,
+        frames_per_second: float,
+        *,
+        comment: str | None = None,
+        first_frame: int = 0,
+        append: bool = False,
     ) -> None:
-        """Creates the partial stage and authors the stage metadata.
+        """Creates the partial stage and authors the stage metadata (or copies the stage a restart extends).
 
         Args:
             path: Final file name; the suffix picks the format: ``.usdc`` or ``.usd`` (binary crate) or
@@ -97,10 +112,13 @@ class UsdWriter:
                 ``framesPerSecond`` since one time code is one frame.
             comment: Optional free text stored as the layer comment (e.g. the scene file and command line).
             first_frame: Time code of the first frame written (a restarted run continues the original timeline).
+            append: If the final file exists, continue it: keep its samples before ``first_frame``, drop the rest,
+                and author from ``first_frame`` on (its timeline start stays). Without the file, a new stage starts
+                at ``first_frame``.
 
         Raises:
-            ValueError: If the suffix is not one of ``.usd``, ``.usdc``, ``.usda``, or the frame rate is not a
-                positive finite number.
+            ValueError: If the suffix is not one of ``.usd``, ``.usdc``, ``.usda``, the frame rate is not a
+                positive finite number, or the stage to append to has another frame rate or cannot be opened.
             RuntimeError: If another writer in this process is already authoring the same file.
         """
         from pxr import Sdf, Usd, UsdGeom
@@ -125,44 +143,54 @@ class UsdWriter:
         # A partial file on disk is the leftover of a crashed run: nothing can resume it.
         partial_path.unlink(missing_ok=True)
 
-        # ".usd" may be either encoding; the brief for this format is crate, whatever USD_DEFAULT_FILE_FORMAT says.
-        layer_args = {"format": "usdc"} if suffix == ".usd" else {}
-        layer = Sdf.Layer.CreateNew(str(partial_path), args=layer_args)
-        if layer is None:
-            raise RuntimeError(f"USD output {str(final_path)!r}: could not create {str(partial_path)!r}")
+        existing = append and final_path.exists()
+        if existing:
+            shutil.copyfile(final_path, partial_path)
+            layer = Sdf.Layer.FindOrOpen(str(partial_path))
+            if layer is None:
+                partial_path.unlink(missing_ok=True)
+                raise ValueError(f"USD output {str(final_path)!r}: cannot open the stage to extend")
+        else:
+            # ".usd" may be either encoding; the brief for this format is crate, whatever USD_DEFAULT_FILE_FORMAT says.
+            layer_args = {"format": "usdc"} if suffix == ".usd" else {}
+            layer = Sdf.Layer.CreateNew(str(partial_path), args=layer_args)
+            if layer is None:
+                raise RuntimeError(f"USD output {str(final_path)!r}: could not create {str(partial_path)!r}")
         if comment is not None:
             layer.comment = comment
         stage = Usd.Stage.Open(layer)
 
-        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
-        UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-        stage.SetTimeCodesPerSecond(fps)
-        stage.SetFramesPerSecond(fps)
-        stage.SetStartTimeCode(0.0)
-        stage.SetEndTimeCode(0.0)
+        if existing:
+            rate = stage.GetTimeCodesPerSecond()
+            if rate != fps:
+                layer = stage = None
+                partial_path.unlink(missing_ok=True)
+                raise ValueError(
+                    f"USD output {str(final_path)!r}: its frame rate is {rate:g} frames/s, this run's {fps:g}; "
+                    "cannot continue its timeline"
+                )
+            start = min(stage.GetStartTimeCode(), float(first_frame))
+            _drop_samples_from(stage, float(first_frame))
+        else:
+            UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+            UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+            stage.SetTimeCodesPerSecond(fps)
+            stage.SetFramesPerSecond(fps)
+            start = float(first_frame)
+        stage.SetStartTimeCode(start)
+        stage.SetEndTimeCode(start)
 
         world = UsdGeom.Xform.Define(stage, "/World")
         stage.SetDefaultPrim(world.GetPrim())
         self._time_attr = world.GetPrim().CreateAttribute("warpdem:time", Sdf.ValueTypeNames.Double, custom=True)
-
-        points = UsdGeom.Points.Define(stage, "/World/Particles")
-        self._points = points
-        self._points_attr = points.CreatePointsAttr()
-        self._widths_attr = points.CreateWidthsAttr()
-        points.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
-        self._velocities_attr = points.CreateVelocitiesAttr()
-        self._ids_attr = points.CreateIdsAttr()
-        self._extent_attr = points.CreateExtentAttr()
-        self._color_primvar = points.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex)
-        self._speed_primvar = UsdGeom.PrimvarsAPI(points.GetPrim()).CreatePrimvar(
-            "speed", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex
-        )
 
         self._final_path = final_path
         self._partial_path = partial_path
         self._crate = suffix in (".usd", ".usdc")
         self._layer: Any = layer
         self._stage: Any = stage
+        self._points: Any = None  # UsdGeom.Points, defined on the first frame that carries spheres
+        self._particle_attrs: dict[str, Any] = {}
         self._bonds: Any = None  # UsdGeom.BasisCurves, defined on the first frame that carries bonds
         self._rock: Any = None  # UsdGeom.Mesh, defined on the first frame that carries a surface
         self._rock_attrs: dict[str, Any] = {}
@@ -171,11 +199,56 @@ class UsdWriter:
         self._last_ids: np.ndarray | None = None
         self._frame_count = 0
         self._first_frame = int(first_frame)
+        self._start = start  # time code of the stage's first frame (before first_frame in an extended stage)
         self._closed = False
+        self.extended = existing
+        """Whether this writer continues an existing stage (``append`` and the file was there)."""
+        if existing:
+            self._attach(float(first_frame) - 1.0)
+
+    def _attach(self, code: float) -> None:
+        """Takes over the prims of an extended stage, and the ids and triangles it holds at ``code`` (the frame
+        before the first one this writer authors), so that the next frames author exactly what an uninterrupted
+        writer would have."""
+        from pxr import UsdGeom
+
+        if self._stage.GetPrimAtPath("/World/Particles"):
+            self._define_particles()
+            ids = self._particle_attrs["ids"]
+            if ids.GetNumTimeSamples():
+                self._last_ids = np.asarray(ids.Get(code), dtype=np.int64)
+        if self._stage.GetPrimAtPath("/World/Bonds"):
+            self._define_bonds()
+        rock = self._stage.GetPrimAtPath("/World/Rock")
+        if rock:
+            color = UsdGeom.Mesh(rock).GetDisplayColorPrimvar()
+            self._define_rock(color.GetInterpolation() == UsdGeom.Tokens.vertex)
+            indices = self._rock_attrs["indices"]
+            if indices.GetNumTimeSamples():
+                self._last_faces = np.asarray(indices.Get(code), dtype=np.int32).reshape(-1, 3)
+
+    def _define_particles(self) -> None:
+        """Defines /World/Particles and its attributes (or takes over those of an extended stage)."""
+        from pxr import Sdf, UsdGeom
+
+        points = UsdGeom.Points.Define(self._stage, "/World/Particles")
+        points.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
+        self._points = points
+        self._particle_attrs = {
+            "points": points.CreatePointsAttr(),
+            "widths": points.CreateWidthsAttr(),
+            "velocities": points.CreateVelocitiesAttr(),
+            "ids": points.CreateIdsAttr(),
+            "extent": points.CreateExtentAttr(),
+            "color": points.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex),
+            "speed": UsdGeom.PrimvarsAPI(points.GetPrim()).CreatePrimvar(
+                "speed", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex
+            ),
+        }
 
     @property
     def frame_count(self) -> int:
-        """Number of frames written so far; also the time code the next frame gets."""
+        """Number of frames written so far (the next frame's time code is ``first_frame`` + this)."""
         return self._frame_count
 
     @property
@@ -251,20 +324,20 @@ class UsdWriter:
         checked_surface = _check_surface(surface) if surface is not None else None
 
         code = float(self._first_frame + self._frame_count)
-        widths = Vt.FloatArray.FromNumpy(2.0 * rad)
-        points = Vt.Vec3fArray.FromNumpy(pos)
         self._time_attr.Set(t, code)
-        self._points_attr.Set(points, code)
-        self._widths_attr.Set(widths, code)
-        self._velocities_attr.Set(Vt.Vec3fArray.FromNumpy(vel), code)
-        self._color_primvar.Set(Vt.Vec3fArray.FromNumpy(col), code)
-        speed = np.linalg.norm(vel, axis=1).astype(np.float32)
-        self._speed_primvar.Set(Vt.FloatArray.FromNumpy(speed), code)
-        self._extent_attr.Set(self._points.ComputeExtent(points, widths), code)
-        # ids are only needed where the particle set changes; held samples keep the file small.
-        if self._last_ids is None or not np.array_equal(self._last_ids, ids_arr):
-            self._ids_attr.Set(Vt.Int64Array.FromNumpy(ids_arr), code)
-            self._last_ids = ids_arr.copy()
+        # A scene of rock alone has no /World/Particles (an empty Points prim would carry an inverted extent).
+        if n and self._points is None:
+            self._define_particles()
+            if code > self._start:
+                # USD holds the first sample backwards in time: frames before the spheres existed draw none.
+                none3 = np.zeros((0, 3), np.float32)
+                self._set_particles(code - 1.0, none3, none3, np.zeros(0, np.float32), none3)
+        if self._points is not None:
+            self._set_particles(code, pos, vel, rad, col)
+            # ids are only needed where the particle set changes; held samples keep the file small.
+            if self._last_ids is None or not np.array_equal(self._last_ids, ids_arr):
+                self._particle_attrs["ids"].Set(Vt.Int64Array.FromNumpy(ids_arr), code)
+                self._last_ids = ids_arr.copy()
 
         if bond_arr is not None:
             self._write_bonds(code, pos, rad, bond_arr)
@@ -278,9 +351,23 @@ class UsdWriter:
 
         self._frame_count += 1
         if self._crate and self.save_interval_frames > 0 and self._frame_count % self.save_interval_frames == 0:
-            self._stage.SetEndTimeCode(float(self._first_frame + self._frame_count - 1))
+            self._stage.SetEndTimeCode(code)
             self._layer.Save()
         return int(code)
+
+    def _set_particles(self, code: float, pos: np.ndarray, vel: np.ndarray, rad: np.ndarray, col: np.ndarray) -> None:
+        """Sets the sphere attributes but ids at one time code (float32 arrays, as :meth:`write_frame` checked)."""
+        from pxr import Vt
+
+        a = self._particle_attrs
+        widths = Vt.FloatArray.FromNumpy(2.0 * rad)
+        points = Vt.Vec3fArray.FromNumpy(pos)
+        a["points"].Set(points, code)
+        a["widths"].Set(widths, code)
+        a["velocities"].Set(Vt.Vec3fArray.FromNumpy(vel), code)
+        a["color"].Set(Vt.Vec3fArray.FromNumpy(col), code)
+        a["speed"].Set(Vt.FloatArray.FromNumpy(np.linalg.norm(vel, axis=1).astype(np.float32)), code)
+        a["extent"].Set(self._points.ComputeExtent(points, widths), code)
 
     def close(self) -> pathlib.Path:
         """Saves the stage and atomically moves it to the final path.
@@ -293,8 +380,8 @@ class UsdWriter:
         """
         self._check_open()
         try:
-            self._stage.SetStartTimeCode(float(self._first_frame))
-            self._stage.SetEndTimeCode(float(self._first_frame + max(self._frame_count - 1, 0)))
+            self._stage.SetStartTimeCode(self._start)
+            self._stage.SetEndTimeCode(max(self._start, float(self._first_frame + self._frame_count - 1)))
             if not self._layer.Save():
                 raise RuntimeError(f"USD output {str(self._final_path)!r}: saving {str(self._partial_path)!r} failed")
         except BaseException:
@@ -343,13 +430,8 @@ class UsdWriter:
             rad: Particle radii [m], shape (N,), float32.
             bonds: Bonded pairs, shape (M, 2), integer indices into ``pos``.
         """
-        from pxr import UsdGeom
-
         if self._bonds is None:
-            self._bonds = UsdGeom.BasisCurves.Define(self._stage, "/World/Bonds")
-            self._bonds.CreateTypeAttr(UsdGeom.Tokens.linear)
-            self._bonds.CreateWidthsAttr()
-            self._bonds.SetWidthsInterpolation(UsdGeom.Tokens.constant)
+            self._define_bonds()
             if code > 0.0:
                 # USD holds the first sample backwards in time; an empty sample before it keeps earlier frames
                 # from drawing bonds that did not exist yet.
@@ -359,6 +441,15 @@ class UsdWriter:
         width = _BOND_WIDTH_PER_MEAN_RADIUS * float(rad.mean()) if rad.size else 0.0
         counts = np.full(bonds.shape[0], 2, dtype=np.int32)
         self._set_bonds(code, endpoints, counts, width)
+
+    def _define_bonds(self) -> None:
+        """Defines /World/Bonds (or takes over that of an extended stage)."""
+        from pxr import UsdGeom
+
+        self._bonds = UsdGeom.BasisCurves.Define(self._stage, "/World/Bonds")
+        self._bonds.CreateTypeAttr(UsdGeom.Tokens.linear)
+        self._bonds.CreateWidthsAttr()
+        self._bonds.SetWidthsInterpolation(UsdGeom.Tokens.constant)
 
     def _set_bonds(self, code: float, endpoints: np.ndarray, counts: np.ndarray, width: float) -> None:
         """Sets the bond curve attributes at one time code.
@@ -396,33 +487,11 @@ class UsdWriter:
         vertex_colors: bool,
     ) -> None:
         """Authors the rock surface of one frame (arguments as :class:`SurfaceFrame`, checked and converted)."""
-        from pxr import Gf, Sdf, UsdGeom, Vt
+        from pxr import Gf, Vt
 
         if self._rock is None:
-            mesh = UsdGeom.Mesh.Define(self._stage, "/World/Rock")
-            # Flat triangles of a FEM surface: a subdivision surface would round off the cracks.
-            mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-            primvars = UsdGeom.PrimvarsAPI(mesh.GetPrim())
-            self._rock = mesh
-            self._rock_vertex_colors = vertex_colors
-            self._rock_attrs = {
-                "points": mesh.CreatePointsAttr(),
-                "velocities": mesh.CreateVelocitiesAttr(),
-                "counts": mesh.CreateFaceVertexCountsAttr(),
-                "indices": mesh.CreateFaceVertexIndicesAttr(),
-                "extent": mesh.CreateExtentAttr(),
-                "color": mesh.CreateDisplayColorPrimvar(
-                    UsdGeom.Tokens.vertex if vertex_colors else UsdGeom.Tokens.uniform
-                ),
-                "speed": primvars.CreatePrimvar("speed", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex),
-                "von_mises": primvars.CreatePrimvar(
-                    "vonMisesStress", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.uniform
-                ),
-                "max_principal": primvars.CreatePrimvar(
-                    "maxPrincipalStress", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.uniform
-                ),
-            }
-            if code > float(self._first_frame):
+            self._define_rock(vertex_colors)
+            if code > self._start:
                 # USD holds the first sample backwards in time: frames before the surface existed draw nothing.
                 self._write_surface(code - 1.0, *_empty_surface(), vertex_colors)
         a = self._rock_attrs
@@ -444,6 +513,32 @@ class UsdWriter:
             hi = -lo
         a["extent"].Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]), code)
 
+    def _define_rock(self, vertex_colors: bool) -> None:
+        """Defines /World/Rock and its attributes (or takes over those of an extended stage)."""
+        from pxr import Sdf, UsdGeom
+
+        mesh = UsdGeom.Mesh.Define(self._stage, "/World/Rock")
+        # Flat triangles of a FEM surface: a subdivision surface would round off the cracks.
+        mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        primvars = UsdGeom.PrimvarsAPI(mesh.GetPrim())
+        self._rock = mesh
+        self._rock_vertex_colors = vertex_colors
+        self._rock_attrs = {
+            "points": mesh.CreatePointsAttr(),
+            "velocities": mesh.CreateVelocitiesAttr(),
+            "counts": mesh.CreateFaceVertexCountsAttr(),
+            "indices": mesh.CreateFaceVertexIndicesAttr(),
+            "extent": mesh.CreateExtentAttr(),
+            "color": mesh.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex if vertex_colors else UsdGeom.Tokens.uniform),
+            "speed": primvars.CreatePrimvar("speed", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex),
+            "von_mises": primvars.CreatePrimvar(
+                "vonMisesStress", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.uniform
+            ),
+            "max_principal": primvars.CreatePrimvar(
+                "maxPrincipalStress", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.uniform
+            ),
+        }
+
     def _check_open(self) -> None:
         if self._closed:
             raise RuntimeError(f"USD output {str(self._final_path)!r}: writer is already closed")
@@ -451,10 +546,9 @@ class UsdWriter:
     def _release(self) -> None:
         """Drops every handle on the stage so USD releases the layer."""
         self._closed = True
-        self._time_attr = self._points_attr = self._widths_attr = None
-        self._velocities_attr = self._ids_attr = self._extent_attr = None
-        self._color_primvar = self._speed_primvar = None
+        self._time_attr = None
         self._points = self._bonds = self._rock = None
+        self._particle_attrs = {}
         self._rock_attrs = {}
         self._stage = None
         self._layer = None
@@ -508,3 +602,45 @@ def _empty_surface() -> tuple:
     z3 = np.zeros((0, 3), np.float32)
     z = np.zeros(0, np.float32)
     return z3, np.zeros((0, 3), np.int32), z3, z, z, z3
+
+
+def _drop_samples_from(stage: Any, code: float) -> None:
+    """Clears every time sample at or after ``code`` on every attribute of a stage, and removes the prims a frame
+    defines (:data:`_LAZY_PRIMS`) that are left without any sample: the stage then reads as if it had been written
+    up to ``code`` - 1 only."""
+    for prim in stage.Traverse():
+        for attr in prim.GetAttributes():
+            for t in attr.GetTimeSamples():
+                if t >= code:
+                    attr.ClearAtTime(t)
+    for path in _LAZY_PRIMS:
+        prim = stage.GetPrimAtPath(path)
+        if prim and not any(attr.GetNumTimeSamples() for attr in prim.GetAttributes()):
+            stage.RemovePrim(path)
+
+
+def stage_frame(path: str | os.PathLike, code: int) -> tuple[float, float | None, np.ndarray | None]:
+    """What a stage written by :class:`UsdWriter` holds at one frame: its frame rate [frames/s], the simulated time
+    [s] of the frame (``/World.warpdem:time``; None where there is no such sample) and the sphere centres [m]
+    (float32, shape (N, 3); None without spheres at that frame).
+
+    Raises:
+        ValueError: If the file cannot be opened as a USD stage.
+    """
+    from pxr import Tf, Usd
+
+    try:
+        stage = Usd.Stage.Open(str(path))
+    except Tf.ErrorException as exc:
+        raise ValueError(f"{path}: not a USD stage ({' '.join(str(exc).split())})") from None
+    if stage is None:
+        raise ValueError(f"{path}: not a USD stage")
+    world = stage.GetPrimAtPath("/World")
+    time_attr = world.GetAttribute("warpdem:time") if world else None
+    time = float(time_attr.Get(code)) if time_attr and code in time_attr.GetTimeSamples() else None
+    particles = stage.GetPrimAtPath("/World/Particles")
+    points_attr = particles.GetAttribute("points") if particles else None
+    points = None
+    if points_attr and points_attr.GetNumTimeSamples():
+        points = np.asarray(points_attr.Get(code), dtype=np.float32).reshape(-1, 3)
+    return stage.GetTimeCodesPerSecond(), time, points
