@@ -50,6 +50,10 @@ HELD_OF_MOTION = np.argsort(MOTION_OF_HELD).astype(np.int32)
 # Pressure histories
 
 
+class UnstableTimeStepError(ValueError):
+    """A time step given explicitly exceeds the stable step of the non-reflecting dashpots."""
+
+
 @dataclass(frozen=True)
 class PressureHistory:
     """A pressure history p(t, x) [Pa] (positive pushes into the solid). Build one with :meth:`blast`,
@@ -450,7 +454,7 @@ class LoadSpecs:
             return None
         limit = self.critical_time_step(mesh, table)
         if dt > limit:
-            raise ValueError(
+            raise UnstableTimeStepError(
                 f"non-reflecting boundary: dt = {dt:.4g} s exceeds the stable step of its dashpots, {limit:.4g} s "
                 "(ModelBuilder.critical_time_step includes it when dt is left to the builder)"
             )

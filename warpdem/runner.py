@@ -16,6 +16,7 @@ import warp as wp
 from . import __version__
 from .builder import finalize_scene, scene_builder
 from .checkpoint import CheckpointError, checkpoint_name, read_checkpoint, write_checkpoint
+from .limits import MAX_ELEMENTS, MAX_STEPS
 from .model import Model, State
 from .scene import Scene, SceneError
 from .simulation import EnergyBalance, Simulation
@@ -64,6 +65,7 @@ class RunOptions:
         device: Warp device. end_time: simulated end time [s]. frames: number of output frames after the first
         (overrides end_time). out_dir: output directory. usd: USD file path. checkpoint_every: checkpoint period
         [s] (0 = at the end only). restart: checkpoint file to continue from. quiet: no progress bar or summary.
+        max_steps: most time steps the run may take; more is refused before the first step (SceneError).
     """
 
     device: str | None = None
@@ -74,6 +76,7 @@ class RunOptions:
     checkpoint_every: float | None = None
     restart: Path | None = None
     quiet: bool = False
+    max_steps: int = MAX_STEPS
 
 
 @dataclass
@@ -175,6 +178,39 @@ def save_checkpoint(path: Path, sim: Simulation, frame: int, extra: dict) -> Pat
     return write_checkpoint(path, arrays, attrs)
 
 
+# Attributes a checkpoint must hold for a restart: name -> (type, smallest allowed value, whether it must exceed it).
+_CHECKPOINT_ATTRS: dict[str, tuple[type, float, bool]] = {
+    "step": (int, 0, False),
+    "time": (float, 0.0, False),
+    "frame": (int, 0, False),
+    "dt": (float, 0.0, True),
+    "particle_capacity": (int, 0, False),
+    "max_neighbors": (int, 0, True),
+    "bond_capacity": (int, 0, False),
+    "num_walls": (int, 0, False),
+}
+
+
+def _check_attrs(path: Path, attrs: dict, capacities: list[str]) -> None:
+    """Raises CheckpointError naming the first attribute that is missing, of the wrong type or out of range."""
+    spec = {**_CHECKPOINT_ATTRS, **{name: (int, 0, False) for name in capacities}}
+    for name, (kind, low, strict) in spec.items():
+        value = attrs.get(name)
+        if value is None:
+            raise CheckpointError(f"{path}: attribute {name!r} is missing; not a checkpoint of a warpdem run?")
+        ok_type = isinstance(value, int) if kind is int else isinstance(value, int | float)
+        if isinstance(value, bool) or not ok_type:
+            raise CheckpointError(
+                f"{path}: attribute {name!r} is {value!r}; expected {'an integer' if kind is int else 'a number'}"
+            )
+        if not (math.isfinite(value) and (value > low if strict else value >= low)):
+            raise CheckpointError(
+                f"{path}: attribute {name!r} is {value!r}; expected a finite number {'>' if strict else '>='} {low}"
+            )
+    if attrs["max_neighbors"] > MAX_ELEMENTS or attrs["particle_capacity"] * attrs["max_neighbors"] > MAX_ELEMENTS:
+        raise CheckpointError(f"{path}: particle_capacity × max_neighbors exceeds {MAX_ELEMENTS} slots")
+
+
 def restore_checkpoint(path: Path, model: Model, template: State) -> tuple[Model, State, dict]:
     """Model and state of a checkpoint, on the device of ``model`` (built from the same scene; ``template`` is its
     initial state and gives each array's type).
@@ -184,8 +220,9 @@ def restore_checkpoint(path: Path, model: Model, template: State) -> tuple[Model
     """
     arrays, attrs = read_checkpoint(path)
     for key, expected in (("bond_capacity", model.bond_capacity), ("num_walls", model.num_walls)):
-        if int(attrs.get(key, -1)) != expected:
+        if key in attrs and attrs[key] != expected:
             raise CheckpointError(f"{path}: {key} is {attrs.get(key)} but the scene builds {expected}; wrong scene?")
+    _check_attrs(path, attrs, list(_capacities(model)))
     missing = [
         k
         for k in [f"model/{n}" for n in [*MODEL_PARTICLE_FIELDS, *mesh_model_fields(model)]]
@@ -196,9 +233,33 @@ def restore_checkpoint(path: Path, model: Model, template: State) -> tuple[Model
     if missing:
         raise CheckpointError(f"{path}: missing arrays {', '.join(missing)}")
     device = model.device
+    slots = {
+        "particle_capacity": int(attrs["particle_capacity"]),
+        "neighbor slots": int(attrs["particle_capacity"]) * int(attrs["max_neighbors"]),
+    }
 
     def load(key: str, like: wp.array) -> wp.array:
-        return wp.array(arrays[key], dtype=like.dtype, device=device)
+        data = arrays[key]
+        if data.dtype.kind in "fc" and not np.all(np.isfinite(data)):
+            bad = int(np.count_nonzero(~np.isfinite(data)))
+            raise CheckpointError(f"{path}: {key} holds {bad} non-finite value(s); the run it saved had already failed")
+        # Arrays sized by the particle capacity (or its neighbour slots) must agree with the attributes, or the
+        # kernels would index past their ends.
+        if like.shape and like.shape[0] == template.particle_q.shape[0] and key.startswith(("state/", "model/")):
+            expected = slots["particle_capacity"]
+        elif like.shape and like.shape[0] == template.nbr_index.shape[0] and key.startswith("state/nbr_"):
+            expected = slots["neighbor slots"]
+        else:
+            expected = None
+        if expected is not None and (data.ndim == 0 or len(data) != expected):
+            raise CheckpointError(f"{path}: {key} has shape {data.shape}, not {expected} items as its attributes say")
+        try:
+            return wp.array(data, dtype=like.dtype, device=device)
+        except (ValueError, TypeError, RuntimeError) as exc:
+            detail = " ".join(str(exc).split())
+            raise CheckpointError(
+                f"{path}: {key}: {data.dtype} {data.shape} is not a {like.dtype.__name__} array ({detail})"
+            ) from None
 
     model = dataclasses.replace(
         model,
@@ -215,6 +276,28 @@ def restore_checkpoint(path: Path, model: Model, template: State) -> tuple[Model
     return model, state, attrs
 
 
+def _output_error(where: str, path: Path, exc: BaseException) -> SceneError:
+    """A one-line SceneError for an output file that cannot be written (name too long, no permission, disk full)."""
+    reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else " ".join(str(exc).split())
+    return SceneError(f"{where}: cannot write {path}: {reason}")
+
+
+def _check_steps(scene: Scene, steps_per_frame: float, options: RunOptions, frames: int | None) -> None:
+    """Refuses a run of more than ``options.max_steps`` steps (``frames`` frames; None: one frame) before it starts.
+
+    Raises:
+        SceneError: naming run.dt, with the step count it would take.
+    """
+    steps = steps_per_frame * (1 if frames is None else frames)
+    if not steps <= options.max_steps:
+        what = f"{steps:.3g} time steps" + ("" if frames is None else f" ({frames} frames)")
+        raise SceneError(
+            f"{scene.source}: run.dt: the run would need {what}, more than the limit of {options.max_steps} "
+            "(--max-steps); raise dt, the output_rate or the material numbers that make the critical step small, "
+            "or shorten the run"
+        )
+
+
 def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     """Run a validated scene to its end time, writing USD frames and checkpoints.
 
@@ -228,7 +311,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     try:
         device = wp.get_device(device_name)
     except (ValueError, RuntimeError) as exc:
-        where = "--device" if options.device else f"{scene.name}: run.device"
+        where = "--device" if options.device else f"{scene.source}: run.device"
         raise SceneError(f"{where}: device {device_name!r} is not available here ({exc})") from None
     builder = scene_builder(scene)
     if not options.quiet:
@@ -238,6 +321,12 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
 
     fps = run.output_rate
     frame_period = 1.0 / fps
+    if not (math.isfinite(model.dt) and model.dt > 0.0):
+        raise SceneError(
+            f"{scene.source}: run.dt: the time step is {model.dt!r} s; the critical step of this scene is not a "
+            "positive number (coincident spheres, or material numbers out of proportion)"
+        )
+    _check_steps(scene, frame_period / model.dt, options, None)
     if run.dt == "auto":
         substeps = max(1, math.ceil(frame_period / model.dt))
         model = dataclasses.replace(model, dt=frame_period / substeps)
@@ -256,6 +345,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     end_time = options.end_time if options.end_time is not None else run.end_time
     total_frames = options.frames if options.frames is not None else max(1, math.ceil(end_time / frame_period - 1e-9))
     frames_left = max(0, total_frames - first_frame)
+    _check_steps(scene, float(substeps), options, frames_left)
 
     out_dir = Path(options.out_dir) if options.out_dir is not None else Path(scene.output.directory)
     usd_path = Path(options.usd) if options.usd is not None else out_dir / scene.output.usd
@@ -275,7 +365,10 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
 
     speed_scale = [1e-12]
     checkpoints: list[Path] = []
-    vtu = VtuSeries(out_dir, output_stem, first_frame) if scene.output.vtu and model.node_capacity else None
+    try:
+        vtu = VtuSeries(out_dir, output_stem, first_frame) if scene.output.vtu and model.node_capacity else None
+    except OSError as exc:
+        raise _output_error(f"{scene.source}: output.vtu", out_dir, exc) from None
     rock = RockFrames(scene.output.mesh_color_by, vtu)
 
     def write_frame(writer: UsdWriter, frame: int) -> None:
@@ -316,7 +409,23 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     wall0 = time.perf_counter()
     steps0 = sim.step_count
     comment = f"warpdem {__version__}: {scene.name}"
-    with UsdWriter(usd_path, 1.0 / frame_period, comment=comment, first_frame=first_frame) as writer:
+
+    def checkpoint(frame: int) -> None:
+        path = checkpoint_dir / checkpoint_name(sim.step_count)
+        try:
+            checkpoints.append(save_checkpoint(path, sim, frame, ckpt_extra))
+        except OSError as exc:
+            raise _output_error(f"{scene.source}: output.checkpoint_dir", path, exc) from None
+
+    try:
+        writer = UsdWriter(usd_path, 1.0 / frame_period, comment=comment, first_frame=first_frame)
+    except (OSError, RuntimeError) as exc:  # pxr reports a layer it cannot create as a RuntimeError
+        if options.usd is not None or options.out_dir is not None:
+            where = "--usd" if options.usd is not None else "--out"
+        else:
+            where = f"{scene.source}: output.directory / output.usd"
+        raise _output_error(where, usd_path, exc) from None
+    with writer:
         write_frame(writer, first_frame)
         for k in range(frames_left):
             sim.advance(substeps)
@@ -325,15 +434,9 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
             if progress is not None:
                 progress.update(round(frame_period, 9))
             if frames_per_checkpoint and frame % frames_per_checkpoint == 0 and k < frames_left - 1:
-                checkpoints.append(
-                    save_checkpoint(checkpoint_dir / checkpoint_name(sim.step_count), sim, frame, ckpt_extra)
-                )
+                checkpoint(frame)
         wall = time.perf_counter() - wall0
-        checkpoints.append(
-            save_checkpoint(
-                checkpoint_dir / checkpoint_name(sim.step_count), sim, first_frame + frames_left, ckpt_extra
-            )
-        )
+        checkpoint(first_frame + frames_left)
     if progress is not None:
         progress.close()
     steps = sim.step_count - steps0
