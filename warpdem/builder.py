@@ -20,8 +20,8 @@ from .fem_contact import attach_fem_contact, contact_critical_time_step, fem_con
 from .joints import JointData, JointProps, count_split_nodes
 from .kernels.contact import ContactPair
 from .kernels.tets import TetMaterial
-from .loads import LoadModel, LoadSpecs, PressureHistory
 from .limits import F32_MAX
+from .loads import LoadModel, LoadSpecs, PressureHistory
 from .mesh import MeshQuality, check_tets, tet_signed_volumes
 from .model import BondData, Model, ParticleData, State, TetMeshData, WallData, pair_table_array
 from .restitution import hertz_damping_coefficient, linear_damping_ratio
@@ -975,7 +975,7 @@ def _check_representable(scene: Scene, b: ModelBuilder) -> None:
         quantities += [(m, "tet node mass [kg]", node_mass[mesh.material == m]) for m in np.unique(mesh.material)]
     for m, what, values in quantities:
         lo, hi = float(values.min()), float(values.max())
-        if not (FLOAT32_TINY <= lo and hi <= F32_MAX):
+        if not (lo >= FLOAT32_TINY and hi <= F32_MAX):
             raise SceneError(
                 f"{scene.source}: materials.{names[m]}.density: gives a {what} from {lo:.3g} to {hi:.3g}, outside "
                 f"what the device's float32 holds ({FLOAT32_TINY:.3g} to {F32_MAX:g}); check the density and the sizes"

@@ -1092,8 +1092,9 @@ class Output(_Model):
     @field_validator("usd")
     @classmethod
     def _check_usd(cls, value: str | None) -> str | None:
-        if value is not None and not value.lower().endswith(_USD_SUFFIXES):
-            raise ValueError("must end with .usd, .usda or .usdc")
+        # Path's suffix, not the text's ending: ".usdc" alone is a hidden file without a suffix.
+        if value is not None and Path(value).suffix.lower() not in _USD_SUFFIXES:
+            raise ValueError("must be a file name ending with .usd, .usda or .usdc")
         return value
 
 
