@@ -163,6 +163,14 @@ def test_sizes_are_estimated_before_allocating(changes, key, what):
     assert re.search(r"\(~[0-9.e+]+ [kMGTPE]?B\)", line), line  # the memory it would take
 
 
+def test_joint_spacing_far_below_the_model_is_refused_before_meshing():
+    # 100 m across / 1e-3 m spacing ≈ 1.7e5 planes for Gmsh to fragment the box by: refused, Gmsh never starts.
+    mesh = {"kind": "geology", "lo": [0.0, 0.0, 0.0], "hi": [100.0, 100.0, 100.0], "h": 10.0, "material": "rock"}
+    mesh["joint_sets"] = [{"dip": 30.0, "dip_direction": 90.0, "spacing": 1e-3}]
+    problems = problems_of(with_changes(mesh=mesh))
+    assert any(p.startswith("s.toml: mesh.joint_sets[0].spacing: would cut the model with 1.73e+05") for p in problems)
+
+
 def test_packing_estimate_matches_the_builder():
     # Oracle of the estimate: N ≈ φ V / (4/3 π r³) with the hcp fraction φ = π/(3√2); the lattice in a finite box
     # loses the boundary layer (r from each face), so the count made lies within a factor of 2 below the estimate.

@@ -123,6 +123,9 @@ MAX_FILE_NAME_BYTES = 200
 """Longest file or folder name a scene may give (file systems allow 255 bytes; the writers add suffixes such as
 ``.partial.usdc``)."""
 MAX_GRAVITY = 1e6
+MAX_JOINT_SURFACES = 5000
+"""Most joint planes and discs a geology mesh may be fragmented by (Gmsh's boolean fragment grows faster than
+linearly in their number)."""
 _LATTICE_FRACTION = {"hcp": math.pi / (3.0 * math.sqrt(2.0)), "cubic": math.pi / 6.0}
 _BYTES_EACH = {
     "spheres": BYTES_PER_SPHERE,
@@ -1313,6 +1316,9 @@ class Scene(_Model):
             key = "mesh.h"
         if tets:
             contributions += [(key, "tets", tets), (key, "nodes", nodes)]
+        surfaces = self._joint_surface_problem()
+        if surfaces is not None:
+            return [surfaces]
         for name, kind in (("tets", "tets"), ("nodes", "nodes")):
             given = getattr(self.capacity, name)
             if given is not None:
@@ -1325,6 +1331,30 @@ class Scene(_Model):
             return []
         worst = max(contributions, key=lambda c: c[2] * _BYTES_EACH[c[1]])
         return [(worst[0], problem)]
+
+    def _joint_surface_problem(self) -> tuple[str, str] | None:
+        """Refuses joint sets that would hand Gmsh more than MAX_JOINT_SURFACES planes and discs to fragment the model
+        by (a spacing far below the model size): the count is the model's diagonal / spacing + 1 planes per set, times
+        (diagonal / disc pitch + 1)² discs per plane for disc joints."""
+        mesh = self.mesh
+        if not isinstance(mesh, GeologyMeshSpec):
+            return None
+        diagonal = math.dist(mesh.lo, mesh.hi)
+        total, worst, worst_count = 0.0, "", -1.0
+        for i, js in enumerate(mesh.joint_sets):
+            count = diagonal / js.spacing + 1.0
+            if js.persistence == "disc" and js.radius is not None:
+                pitch = js.disc_spacing or 2.5 * js.radius
+                count *= (diagonal / pitch + 1.0) ** 2
+            total += count
+            if count > worst_count:
+                worst, worst_count = f"mesh.joint_sets[{i}].spacing", count
+        if total <= MAX_JOINT_SURFACES:
+            return None
+        return worst, (
+            f"would cut the model with {total:.3g} joint surfaces (planes and discs); the limit is "
+            f"{MAX_JOINT_SURFACES}: make the spacing larger compared with the model ({diagonal:.3g} m across)"
+        )
 
     def face_set_names(self) -> list[str] | None:
         """Face set names the mesh is known to have before it is built (None for a mesh file: read at build)."""
