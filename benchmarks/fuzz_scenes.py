@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import collections
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -26,12 +27,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import scene_fuzz
 
 
+class TimeUp(Exception):
+    """The --minutes budget is spent."""
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--examples", type=int, default=200, help="scenes to generate and run")
     p.add_argument("--seed", type=int, default=0, help="Hypothesis seed")
     p.add_argument("--json", type=Path, help="write the counts as JSON")
     p.add_argument("--failures", type=Path, default=Path("fuzz_failures.txt"), help="failing scenes go here")
+    p.add_argument("--minutes", type=float, default=math.inf, help="stop after this long (counts so far are kept)")
     args = p.parse_args(argv)
 
     runner = scene_fuzz.Runner()
@@ -51,6 +57,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     @given(scene_fuzz.cases())
     def one(case: scene_fuzz.Case) -> None:
+        if time.perf_counter() - start > 60.0 * args.minutes:
+            raise TimeUp
         outcome = runner.run(case)
         status = "hang" if outcome.hang else str(outcome.status)
         statuses[status] += 1
@@ -67,6 +75,8 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         one()
+    except TimeUp:
+        pass
     finally:
         runner.close()
     elapsed = time.perf_counter() - start

@@ -269,6 +269,7 @@ def test_duplicated_velocity_load_names_the_second_entry():
         ("output__usd", "\x00.usdc", "output.usd", "control characters"),
         ("output__directory", "out/" + "y" * 256, "output.directory", "256 bytes long"),
         ("output__checkpoint_dir", "a\nb", "output.checkpoint_dir", "control characters"),
+        ("output__directory", "", "output.directory", "must not be empty"),
     ],
 )
 def test_output_names_the_system_cannot_take_are_refused(path, value, key, phrase):

@@ -43,12 +43,14 @@ MAX_STEPS = 10**9
 """Most time steps of one run by default (``--max-steps``): even at a microsecond a step, 10⁹ steps take 17 minutes,
 and a step count far beyond it means a time step or end time that was not meant."""
 
-# Memory of one item, host and device together, for the estimates (measured on the shipped scenes with
-# Model.arrays() / State.arrays() and rounded up for the host copies made while building).
+# Memory of one item, host and device together, for the estimates. Measured on the shipped scenes by summing the
+# Model and State arrays: 144-156 B a sphere slot, 36 B a neighbour slot, 136 B a tet and 176 B a node slot; the
+# figures below add the scratch neighbour list (a second 36 B), the host arrays the build holds meanwhile (float64
+# positions, radii, reference geometry) and what Gmsh holds while meshing, rounded up.
 BYTES_PER_SPHERE = 400
 """Bytes per sphere slot: positions, velocities, forces, history, energy books, the build's host arrays."""
 
-BYTES_PER_NEIGHBOR_SLOT = 40
+BYTES_PER_NEIGHBOR_SLOT = 80
 """Bytes per neighbour slot (candidate index, shear history, bond index; list and scratch list)."""
 
 BYTES_PER_NODE = 300

@@ -213,6 +213,8 @@ def _check_path_text(value: Any) -> Any:
     # as an OSError when the first output file is opened after minutes of set-up.
     if isinstance(value, str | Path):
         text = str(value)
+        if not text:
+            raise ValueError("must not be empty")
         if any(ord(c) < 32 or ord(c) == 127 for c in text):
             raise ValueError("must not contain control characters (NUL, newline, ...)")
         longest = max((len(part.encode("utf-8", "surrogateescape")) for part in re.split(r"[/\\]", text)), default=0)
