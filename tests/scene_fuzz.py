@@ -25,7 +25,6 @@ import io
 import json
 import math
 import multiprocessing
-import os
 import tempfile
 import tomllib
 import traceback
@@ -375,5 +374,3 @@ class Runner:
             self._pool.join()
             self._pool = None
 
-
-os.environ.setdefault("PYTHONFAULTHANDLER", "1")

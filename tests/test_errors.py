@@ -184,7 +184,7 @@ def test_packing_estimate_matches_the_builder():
 def test_step_count_is_refused_before_the_first_step(tmp_path):
     # dt = 1e-12 over 0.02 s is 2e10 steps: refused before any step (or list of steps) exists.
     scene = parse_scene(with_changes(run__dt=1e-12), source="s.toml")
-    with pytest.raises(SceneError, match=r"run\.dt: the run would need 1e\+10 time steps") as info:
+    with pytest.raises(SceneError, match=r"run\.dt: one frame would need 1e\+10 time steps") as info:
         run_scene(scene, RunOptions(out_dir=tmp_path, quiet=True))
     assert "\n" not in str(info.value)
     assert not list(tmp_path.rglob("*.usd*"))

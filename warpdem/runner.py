@@ -290,11 +290,11 @@ def _check_steps(scene: Scene, steps_per_frame: float, options: RunOptions, fram
     """
     steps = steps_per_frame * (1 if frames is None else frames)
     if not steps <= options.max_steps:
-        what = f"{steps:.3g} time steps" + ("" if frames is None else f" ({frames} frames)")
+        what = "one frame" if frames is None else f"the run ({frames} frames)"
         raise SceneError(
-            f"{scene.source}: run.dt: the run would need {what}, more than the limit of {options.max_steps} "
-            "(--max-steps); raise dt, the output_rate or the material numbers that make the critical step small, "
-            "or shorten the run"
+            f"{scene.source}: run.dt: {what} would need {steps:.3g} time steps, more than the limit of "
+            f"{options.max_steps} (--max-steps); raise dt, the output_rate or the material numbers that make the "
+            "critical step small, or shorten the run"
         )
 
 

@@ -1331,7 +1331,20 @@ class Scene(_Model):
         problem = size_problem(counts, _BYTES_EACH)
         if problem is None:
             return []
-        worst = max(contributions, key=lambda c: c[2] * _BYTES_EACH[c[1]])
+        # Blame the key that asks for the most memory: a sphere source with its share of neighbour slots (at the
+        # default count per sphere), or neighbors_per_particle for the slots it asks beyond that default.
+        k = self.capacity.neighbors_per_particle
+        default_k = Capacity.model_fields["neighbors_per_particle"].default
+        sphere_bytes = BYTES_PER_SPHERE + min(k, default_k) * BYTES_PER_NEIGHBOR_SLOT
+
+        def blame(c: tuple[str, str, float]) -> float:
+            if c[1] == "spheres":
+                return c[2] * sphere_bytes
+            if c[1] == "neighbor slots":
+                return spheres * max(k - default_k, 0) * BYTES_PER_NEIGHBOR_SLOT
+            return c[2] * _BYTES_EACH[c[1]]
+
+        worst = max(contributions, key=blame)
         return [(worst[0], problem)]
 
     def _joint_surface_problem(self) -> tuple[str, str] | None:
