@@ -37,6 +37,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0, help="Hypothesis seed")
     p.add_argument("--json", type=Path, help="write the counts as JSON")
     p.add_argument("--failures", type=Path, default=Path("fuzz_failures.txt"), help="failing scenes go here")
+    p.add_argument(
+        "--profile",
+        choices=("all", "runtime"),
+        default="all",
+        help="all mutations, or only rescaled numbers and duplicated entries (scenes that mostly run)",
+    )
     p.add_argument("--minutes", type=float, default=math.inf, help="stop after this long (counts so far are kept)")
     args = p.parse_args(argv)
 
@@ -55,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
         phases=[Phase.generate],
         suppress_health_check=list(HealthCheck),
     )
-    @given(scene_fuzz.cases())
+    @given(scene_fuzz.cases(profile=args.profile))
     def one(case: scene_fuzz.Case) -> None:
         if time.perf_counter() - start > 60.0 * args.minutes:
             raise TimeUp

@@ -57,6 +57,7 @@ BAD_NAMES = ("", "\x00", "a\x00b", "x" * 300, "../escape", "sub/dir", ".", " ")
 BAD_USD_NAMES = ("\x00.usdc", "x" * 300 + ".usdc", ".usdc", "sub/dir/x.usda", "a\nb.usd")
 EXPLICIT_DT = (0, -1e-6, 1e-300, 1e-12, 1e-7, 1e-3, 1e300, math.nan)
 SCALES = (0.5, 2.0, -1.0)
+RUNTIME_SCALES = (0.5, 0.9, 1.1, 2.0, -1.0)  # within a factor 2: sizes grow at most 8-fold
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -178,17 +179,33 @@ def _key(path: tuple) -> str:
 
 
 @st.composite
-def cases(draw: Any) -> Case:
-    """A mutated scene (Hypothesis strategy)."""
+def cases(draw: Any, profile: str = "all") -> Case:
+    """A mutated scene (Hypothesis strategy).
+
+    Args:
+        profile: ``"all"``: every kind of mutation (most scenes are then refused at validation); ``"runtime"``:
+            only numbers rescaled within a factor 2 (or negated) and entries duplicated, so that most scenes validate
+            and run, which is where NaN and hangs live.
+    """
     base = draw(st.sampled_from(sorted(BASES)))
     case = Case(base, copy.deepcopy(BASES[base]))
     if base == "file_inputs":
         case.mesh_points, case.mesh_tets = _unit_cube_mesh()
         case.spheres = SPHERES.copy()
+    kinds = ("replace",) * 5 + ("drop", "duplicate", "duplicate", "dt", "usd", "files")
+    if profile == "runtime":
+        kinds = ("rescale",) * 4 + ("duplicate", "duplicate")
     for _ in range(draw(st.integers(1, 3))):
-        kind = draw(st.sampled_from(("replace",) * 5 + ("drop", "duplicate", "duplicate", "dt", "usd", "files")))
+        kind = draw(st.sampled_from(kinds))
         paths = _paths(case.scene)
-        if kind == "replace":
+        if kind == "rescale":
+            numbers = [p for p in paths if type(_get(case.scene, p)) in (int, float) and p[-1] != "schema_version"]
+            path = draw(st.sampled_from(numbers))
+            factor = draw(st.sampled_from(RUNTIME_SCALES))
+            old = _get(case.scene, path)
+            _set(case.scene, path, type(old)(old * factor) if isinstance(old, float) else max(1, round(old * factor)))
+            case.mutations.append(f"{_key(path)} = {_get(case.scene, path)!r}")
+        elif kind == "replace":
             path = draw(st.sampled_from(paths))
             value, text = _leaf_value(draw, path, _get(case.scene, path))
             _set(case.scene, path, value)
@@ -373,4 +390,3 @@ class Runner:
             self._pool.terminate()
             self._pool.join()
             self._pool = None
-
