@@ -393,7 +393,10 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
             if inv_sum == 0.0:
                 continue  # two immovable bodies exchange no force
             dist = wp.sqrt(dist2)
-            n = d / dist
+            # Coincident centres have no normal; +z (i up, j down) keeps the force finite and equal and opposite.
+            n = wp.vec3(0.0, 0.0, 1.0)
+            if dist > 0.0:
+                n = d / dist
             delta = rsum - dist
             ci = ri - 0.5 * delta  # lever arms to the contact point
             cj = rj - 0.5 * delta

@@ -173,6 +173,59 @@ BAD_INPUTS = [
     ("restart_named_scene", restart_from_checkpoint_of_another_scene, ["belongs to scene 'slab', not 'tiny'"]),
     ("device_absent", good_scene_with("--device", "cuda:7"), ["cuda:7", "not available"]),
     ("frames_zero", good_scene_with("--frames", "0"), ["--frames", "must be a positive integer"]),
+    # Numbers valid in float64 that the device's float32 turns into inf or 0 (warpdem.limits).
+    (
+        "modulus_beyond_float32",
+        scene_text(edit("youngs_modulus = 1.0e7", "youngs_modulus = 1.0e39")),
+        ["materials.rock.youngs_modulus", "float32"],
+    ),
+    (
+        "density_1e300",
+        scene_text(edit("density = 2500.0", "density = 1.0e300")),
+        ["materials.rock.density", "float32"],
+    ),
+    (
+        "density_1e-300",
+        scene_text(edit("density = 2500.0", "density = 1.0e-300")),
+        ["materials.rock.density", "float32"],
+    ),
+    (
+        "gravity_huge",
+        scene_text(GOOD_SCENE + "[gravity]\nvector = [0.0, 0.0, -1.0e7]\n"),
+        ["gravity.vector", "<= 1e+06"],
+    ),
+    # Sizes estimated before anything is packed or allocated.
+    (
+        "packing_exabytes",
+        scene_text(
+            GOOD_SCENE + '[[particles]]\nkind = "packing"\npart = "grains"\nradius = 1.0e-9\n'
+            "region = { box = { lo = [0.0, 0.0, 0.0], hi = [1.0, 1.0, 1.0] } }\n"
+        ),
+        ["particles[3].radius", "would need", "spheres"],
+    ),
+    (
+        "capacity_2_pow_40",
+        scene_text(GOOD_SCENE + "[capacity]\nparticles = 1099511627776\n"),
+        ["capacity.particles", "would need"],
+    ),
+    # dt = 1e-12 asks for 1e12 steps: refused before the first step instead of building a list of step indices.
+    ("dt_1e-12", scene_text(edit("end_time = 1.0", "end_time = 1.0\ndt = 1.0e-12")), ["run.dt", "would need"]),
+    ("name_with_nul", scene_text('name = "a\\u0000b"\n' + edit('name = "tiny"\n', "")), ["name", "control characters"]),
+    (
+        "usd_name_too_long",
+        scene_text(GOOD_SCENE + f'[output]\nusd = "{"x" * 300}.usdc"\n'),
+        ["output.usd", "305 bytes long"],
+    ),
+    # A sphere source given twice: coincident bonded spheres would have an infinite bond stiffness and dt = 0.
+    (
+        "coincident_bonded_spheres",
+        scene_text(
+            GOOD_SCENE + '[[particles]]\nkind = "sphere"\npart = "grains"\ncenter = [0.0, 0.0, 0.05]\nradius = 0.01\n'
+            '[[bonds]]\nregion = { box = { lo = [-0.1, -0.1, 0.0], hi = [0.1, 0.1, 0.1] } }\nmaterial = "rock"\n'
+            "tensile_strength = 1.0e5\nshear_strength = 1.0e5\n"
+        ),
+        ["bonds[0].region", "same centre"],
+    ),
 ]
 # These run as `python -m warpdem` subprocesses (real exit status and stderr); the rest call main() in-process.
 SUBPROCESS_CASES = {"malformed_toml", "negative_density", "particle_file_two_columns", "usd_suffix"}

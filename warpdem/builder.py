@@ -21,8 +21,9 @@ from .guard import CriticalStep, check_time_step, p_wave_speed, run_away_speed
 from .joints import JointData, JointProps, count_split_nodes
 from .kernels.contact import ContactPair
 from .kernels.tets import TetMaterial
+from .limits import F32_MAX
 from .loads import LoadModel, LoadSpecs, PressureHistory
-from .mesh import MeshQuality, check_tets
+from .mesh import MeshQuality, check_tets, tet_signed_volumes
 from .model import BondData, Model, ParticleData, State, TetMeshData, WallData, pair_table_array
 from .overlap import OVERLAP_TOLERANCE, InitialOverlap, initial_overlap
 from .restitution import hertz_damping_coefficient, linear_damping_ratio
@@ -38,6 +39,26 @@ from .tets import (
 
 MOTIONS = {"free": 0, "fixed": 1, "prescribed": 2}
 NODE_MOTIONS = {"free": 0, "fixed": 1, "z_only": 2}
+
+
+COINCIDENT = 1e-6
+"""Two bonded spheres whose centres are closer than this times the sum of their radii coincide: their bond has no
+direction and an infinite stiffness E A / L0."""
+
+
+class CoincidentSpheresError(ValueError):
+    """Two spheres of a bonded group have the same centre (a particle source given twice, usually).
+
+    Attributes:
+        group: index of the bonded group (the scene's ``bonds[group]``). i, j: sphere ids (creation order).
+    """
+
+    def __init__(self, group: int, i: int, j: int, center: np.ndarray) -> None:
+        super().__init__(
+            f"spheres {i} and {j} have the same centre {np.round(center, 9).tolist()} m; a bond needs two distinct "
+            "centres (is a particle source given twice?)"
+        )
+        self.group, self.i, self.j = group, i, j
 
 
 @dataclass
@@ -557,6 +578,10 @@ class ModelBuilder:
                 continue
             i, j = pairs[:, 0], pairs[:, 1]
             length = np.linalg.norm(particles.q[i] - particles.q[j], axis=1)
+            coincident = np.nonzero(length <= COINCIDENT * (particles.radius[i] + particles.radius[j]))[0]
+            if len(coincident):
+                a, b = int(i[coincident[0]]), int(j[coincident[0]])
+                raise CoincidentSpheresError(k, a, b, particles.q[a])
             area = math.pi * (lam * np.minimum(particles.radius[i], particles.radius[j])) ** 2
             kn = e_b * area / length
             m = len(pairs)
@@ -914,8 +939,8 @@ def read_particle_file(path: Path, radius: float | None, where: str) -> tuple[np
         raise SceneError(f"{where}.path: particle file {path} has no spheres")
     if data.shape[1] not in (3, 4):
         raise SceneError(f"{where}.path: {path} has {data.shape[1]} columns; allowed: 3 (x y z) or 4 (x y z r)")
-    if not np.all(np.isfinite(data)):
-        raise SceneError(f"{where}.path: {path} contains non-finite numbers")
+    if not np.all(np.isfinite(data) & (np.abs(data) <= F32_MAX)):
+        raise SceneError(f"{where}.path: {path} contains non-finite numbers or numbers beyond {F32_MAX:g}")
     if data.shape[1] == 4:
         if np.any(data[:, 3] <= 0):
             raise SceneError(f"{where}.path: {path} has radii <= 0")
@@ -931,7 +956,7 @@ def scene_builder(scene: Scene) -> ModelBuilder:
     Raises:
         SceneError: a particle file cannot be read, or a region holds no sphere.
     """
-    source = scene.name
+    source = scene.source
     c = scene.contact
     b = ModelBuilder(normal=c.normal, tangential=c.tangential, rolling=c.rolling, gravity=tuple(scene.gravity.vector))
     for name, mat in scene.materials.items():
@@ -1007,6 +1032,45 @@ def build_scene(scene: Scene, device: wp.context.DeviceLike = None) -> tuple[Mod
     return finalize_scene(scene, scene_builder(scene), device)
 
 
+FLOAT32_TINY = float(np.finfo(np.float32).tiny)
+"""Smallest normal float32 [-]: a mass or moment of inertia below it has no finite inverse on the device."""
+
+
+def _check_representable(scene: Scene, b: ModelBuilder) -> None:
+    """Refuses sphere masses and moments of inertia (ρ 4/3 π r³, 2/5 m r²) and tet node masses (ρ V / 4) that the
+    device's float32 cannot hold with a finite inverse: each scene number is in range (warpdem.limits), but their
+    products need not be.
+
+    Raises:
+        SceneError: naming the material's density, with the range of the offending quantity.
+    """
+    names = list(b.materials)
+    quantities: list[tuple[int, str, np.ndarray]] = []
+    if b.sphere_count:
+        particles = b.particle_data()
+        mass = np.array([b.materials[names[m]].density for m in particles.material]) * (
+            4.0 / 3.0 * math.pi * particles.radius**3
+        )
+        quantities += [(m, "sphere mass [kg]", mass[particles.material == m]) for m in np.unique(particles.material)]
+        inertia = 0.4 * mass * particles.radius**2
+        quantities += [
+            (m, "sphere moment of inertia [kg m²]", inertia[particles.material == m])
+            for m in np.unique(particles.material)
+        ]
+    if b.node_count:
+        mesh = b.tet_mesh_data()
+        density = np.array([b.materials[n].density for n in names])[mesh.material]
+        node_mass = density * np.abs(tet_signed_volumes(mesh.points, mesh.tets)) / 4.0
+        quantities += [(m, "tet node mass [kg]", node_mass[mesh.material == m]) for m in np.unique(mesh.material)]
+    for m, what, values in quantities:
+        lo, hi = float(values.min()), float(values.max())
+        if not (lo >= FLOAT32_TINY and hi <= F32_MAX):
+            raise SceneError(
+                f"{scene.source}: materials.{names[m]}.density: gives a {what} from {lo:.3g} to {hi:.3g}, outside "
+                f"what the device's float32 holds ({FLOAT32_TINY:.3g} to {F32_MAX:g}); check the density and the sizes"
+            )
+
+
 def finalize_scene(scene: Scene, b: ModelBuilder, device: wp.context.DeviceLike = None) -> tuple[Model, State]:
     """Model and initial state from the builder of a scene (:func:`scene_builder`), with the scene's run settings.
 
@@ -1022,12 +1086,13 @@ def finalize_scene(scene: Scene, b: ModelBuilder, device: wp.context.DeviceLike 
     from .joints import JointFaceError
 
     if b.sphere_count == 0 and b.node_count == 0:
-        raise SceneError(f"{scene.name}: particles: the scene creates no sphere (and has no [mesh])")
+        raise SceneError(f"{scene.source}: particles: the scene creates no sphere (and has no [mesh])")
+    _check_representable(scene, b)
     run = scene.run
     overlap = b.measure_initial_overlap(device if device is not None else run.device)
     if overlap.exceeds(OVERLAP_TOLERANCE) and not run.allow_initial_overlap:
         raise SceneError(
-            f"{scene.name}: run.allow_initial_overlap: spheres start overlapping beyond the tolerance "
+            f"{scene.source}: run.allow_initial_overlap: spheres start overlapping beyond the tolerance "
             f"({100.0 * OVERLAP_TOLERANCE:g} % of a radius, no centre in the rock): {overlap.format()}; move them "
             "apart (or out of the rock), or set allow_initial_overlap = true in [run] to start from this state anyway"
         )
@@ -1045,7 +1110,9 @@ def finalize_scene(scene: Scene, b: ModelBuilder, device: wp.context.DeviceLike 
             allow_unstable_dt=run.allow_unstable_dt,
         )
     except JointFaceError as exc:
-        raise SceneError(f"{scene.name}: mesh: {exc}") from None
+        raise SceneError(f"{scene.source}: mesh: {exc}") from None
+    except CoincidentSpheresError as exc:
+        raise SceneError(f"{scene.source}: bonds[{exc.group}].region: {exc}") from None
     except UnstableTimeStepError as exc:
         raise SceneError(
             f"{scene.source}: run.dt: {exc}; allowed: dt <= {exc.critical.value:.4g} s, dt = 'auto' "

@@ -32,6 +32,7 @@ __all__ = [
     "checkpoint_name",
     "latest_checkpoint",
     "read_checkpoint",
+    "remove_stale_temporaries",
     "write_checkpoint",
 ]
 
@@ -45,6 +46,7 @@ _FORMAT_NAME_ATTR = "warpdem_format"
 _FORMAT_VERSION_ATTR = "warpdem_format_version"
 _JSON_PREFIX = "__json__:"
 _NAME_PATTERN = re.compile(r"(?:(.+)_)?checkpoint_(\d+)\.h5")
+_TEMP_PATTERN = re.compile(r".+\.h5\.tmp-(\d+)")
 
 # Numpy kinds that HDF5 stores natively and h5py reads back with the same dtype: bool, signed, unsigned,
 # floating, complex.
@@ -135,6 +137,7 @@ def write_checkpoint(
     encoded_attrs = _encode_attrs(attrs)
 
     final_path.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(final_path.parent)
     tmp_path = final_path.with_name(f"{final_path.name}.tmp-{os.getpid()}")
     try:
         with h5py.File(tmp_path, "w") as f:
@@ -154,6 +157,48 @@ def write_checkpoint(
         raise
     _fsync_directory(final_path.parent)
     return final_path
+
+
+def remove_stale_temporaries(directory: str | os.PathLike) -> list[pathlib.Path]:
+    """Deletes the temporary files (``<name>.h5.tmp-<pid>``) that writers killed mid-write left in a directory.
+
+    A temporary file belongs to its writer while that process lives; only files of processes that no longer exist
+    are removed (POSIX; elsewhere nothing is removed, as liveness cannot be asked without side effects).
+
+    Args:
+        directory: Checkpoint directory (not searched recursively).
+
+    Returns:
+        The files removed.
+    """
+    root = pathlib.Path(directory)
+    if os.name != "posix" or not root.is_dir():
+        return []
+    removed = []
+    for entry in root.iterdir():
+        match = _TEMP_PATTERN.fullmatch(entry.name)
+        if match is None or not entry.is_file():
+            continue
+        pid = int(match.group(1))
+        if pid == os.getpid() or _process_alive(pid):
+            continue
+        try:
+            entry.unlink()
+        except OSError:
+            continue  # removed meanwhile, or not ours to remove
+        removed.append(entry)
+    return removed
+
+
+def _process_alive(pid: int) -> bool:
+    """Whether a process of this id exists (POSIX: signal 0 checks without sending anything)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError, OSError):
+        return True  # someone else's process, or an id the system cannot check: keep the file
+    return True
 
 
 def read_checkpoint(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, Any]]:

@@ -15,6 +15,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from .limits import MAX_STEPS
+
 EXIT_USAGE = 2
 EXIT_UNSTABLE = 3
 """Exit status of a run stopped by the stability guard (warpdem.guard): non-finite or run-away state."""
@@ -62,6 +64,9 @@ def init_warp(quiet: bool = False) -> None:
 EXIT_SIGNAL_BASE = 128
 """A run stopped by a signal exits with 128 + its number, as a shell reports it: 130 for SIGINT, 143 for SIGTERM."""
 
+EXIT_INTERNAL = 1
+"""Exit status of an unexpected internal error (a bug), reported in one line."""
+
 
 def _positive_float(text: str) -> float:
     value = float(text)
@@ -101,6 +106,11 @@ def run_parser() -> argparse.ArgumentParser:
     p.add_argument("--restart", type=Path, help="continue from this HDF5 checkpoint")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     p.add_argument("--summary-json", type=Path, help="also write the summary as JSON to this file")
+    p.add_argument(
+        "--max-steps",
+        type=_positive_int,
+        help=f"refuse (exit 2) a run that would need more time steps than this (default {MAX_STEPS:.0e})",
+    )
     return p
 
 
@@ -188,6 +198,7 @@ def main(argv: list[str] | None = None) -> int:
         checkpoint_every=args.checkpoint_every,
         restart=args.restart,
         quiet=args.quiet,
+        max_steps=args.max_steps if args.max_steps is not None else MAX_STEPS,
     )
     if args.usd is not None and args.usd.suffix not in (".usd", ".usda", ".usdc"):
         return _fail(f"--usd: {args.usd}: allowed suffixes: .usd, .usda, .usdc")
@@ -211,11 +222,26 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return EXIT_SIGNAL_BASE + 2
+    except Exception as exc:
+        # Every error about the user's input is a SceneError or CheckpointError raised where the key is known; what
+        # reaches here is a bug. One line and exit 1 rather than a traceback, which WARPDEM_TRACEBACK=1 brings back.
+        if os.environ.get("WARPDEM_TRACEBACK"):
+            raise
+        detail = " ".join(str(exc).split())[:300]
+        print(
+            f"internal error: {type(exc).__name__}: {detail} (please report it with the scene; WARPDEM_TRACEBACK=1 "
+            "shows the traceback)",
+            file=sys.stderr,
+        )
+        return EXIT_INTERNAL
     if not args.quiet:
         print(summary.format())
     if args.summary_json is not None:
-        args.summary_json.parent.mkdir(parents=True, exist_ok=True)
-        args.summary_json.write_text(summary_json(summary))
+        try:
+            args.summary_json.parent.mkdir(parents=True, exist_ok=True)
+            args.summary_json.write_text(summary_json(summary))
+        except OSError as exc:
+            return _fail(f"--summary-json: cannot write {args.summary_json}: {exc.strerror or exc}")
     if summary.interrupted_by is not None:
         print(
             f"interrupted at t = {summary.simulated_time:.9g} s, frame {summary.frame}; resume with: "

@@ -36,6 +36,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from .limits import F32_MAX
 from .mesh import TET_FACES
 from .mesh import boundary_faces as outer_faces
 
@@ -959,6 +960,17 @@ def _import_error(path: pathlib.Path, problem: str, argument: str | None = None)
     return MeshImportError(f"{path}: {' '.join(problem.split())}", argument)
 
 
+def _check_cells(path: pathlib.Path, cells: np.ndarray, num_points: int, what: str) -> None:
+    """Raises MeshImportError naming the first cell with a node index outside 0 .. num_points - 1 (numpy would wrap a
+    negative one silently, and fail on a large one without naming the file)."""
+    bad = np.nonzero(np.any((cells < 0) | (cells >= num_points), axis=1))[0]
+    if len(bad):
+        k = int(bad[0])
+        raise _import_error(
+            path, f"{what} {k} has node indices {cells[k].tolist()} outside 0..{num_points - 1} (the file's nodes)"
+        )
+
+
 def read_mesh(
     path: str | os.PathLike,
     *,
@@ -1032,6 +1044,7 @@ def read_mesh(
             names_by_dim[int(value[1])][int(value[0])] = str(name)
 
     tets = np.concatenate([np.asarray(raw.cells[i].data, dtype=np.int64) for i in tet_blocks])
+    _check_cells(path, tets, len(raw.points), "tet")
     candidates = (
         [material_array] if material_array else ["gmsh:physical", "material", "MaterialIds", "gmsh:geometrical"]
     )
@@ -1070,6 +1083,7 @@ def read_mesh(
     tri_groups = np.zeros(0, np.int64)
     if tri_blocks:
         tris = np.concatenate([np.asarray(raw.cells[i].data, dtype=np.int64) for i in tri_blocks])
+        _check_cells(path, tris, len(raw.points), "triangle")
         tri_groups = cell_array("gmsh:physical", tri_blocks)
         tri_groups = np.zeros(len(tris), np.int64) if tri_groups is None else tri_groups.astype(np.int64)
     tri_names = [names_by_dim[2].get(int(t), str(int(t))) for t in np.unique(tri_groups)]
@@ -1097,6 +1111,13 @@ def read_mesh(
     points = np.ascontiguousarray(np.asarray(raw.points, dtype=np.float64)[used])
     if points.shape[1] != 3:
         raise _import_error(path, f"has {points.shape[1]}-dimensional points; a tet mesh needs 3")
+    # The device holds positions in float32: a coordinate it cannot represent is refused with the node that has it.
+    bad = np.nonzero(~np.all(np.isfinite(points) & (np.abs(points) <= F32_MAX), axis=1))[0]
+    if len(bad):
+        node = int(used[bad[0]])
+        raise _import_error(
+            path, f"node {node} has coordinates {raw.points[node].tolist()}; allowed: finite, at most {F32_MAX:g} m"
+        )
     tets = _orient_tets(points, renumber[tets])
 
     face_keys = np.unique(np.sort(tets[:, TET_FACES].reshape(-1, 3), axis=1), axis=0)

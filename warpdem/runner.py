@@ -19,6 +19,7 @@ from . import __version__
 from .builder import finalize_scene, scene_builder
 from .checkpoint import CheckpointError, checkpoint_name, read_checkpoint, write_checkpoint
 from .guard import UnstableRunError
+from .limits import MAX_ELEMENTS, MAX_STEPS
 from .model import Model, State
 from .scene import Scene, SceneError
 from .simulation import EnergyBalance, Simulation
@@ -58,6 +59,7 @@ class RunOptions:
         device: Warp device. end_time: simulated end time [s]. frames: number of output frames after the first
         (overrides end_time). out_dir: output directory. usd: USD file path. checkpoint_every: checkpoint period
         [s] (0 = at the end only). restart: checkpoint file to continue from. quiet: no progress bar or summary.
+        max_steps: most time steps the run may take; more is refused before the first step (SceneError).
     """
 
     device: str | None = None
@@ -68,6 +70,7 @@ class RunOptions:
     checkpoint_every: float | None = None
     restart: Path | None = None
     quiet: bool = False
+    max_steps: int = MAX_STEPS
 
 
 @dataclass
@@ -168,6 +171,39 @@ def save_checkpoint(path: Path, sim: Simulation, frame: int, extra: dict) -> Pat
     return write_checkpoint(path, arrays, attrs)
 
 
+# Attributes a checkpoint must hold for a restart: name -> (type, smallest allowed value, whether it must exceed it).
+_CHECKPOINT_ATTRS: dict[str, tuple[type, float, bool]] = {
+    "step": (int, 0, False),
+    "time": (float, 0.0, False),
+    "frame": (int, 0, False),
+    "dt": (float, 0.0, True),
+    "particle_capacity": (int, 0, False),
+    "max_neighbors": (int, 0, True),
+    "bond_capacity": (int, 0, False),
+    "num_walls": (int, 0, False),
+}
+
+
+def _check_attrs(path: Path, attrs: dict, capacities: list[str]) -> None:
+    """Raises CheckpointError naming the first attribute that is missing, of the wrong type or out of range."""
+    spec = {**_CHECKPOINT_ATTRS, **{name: (int, 0, False) for name in capacities}}
+    for name, (kind, low, strict) in spec.items():
+        value = attrs.get(name)
+        if value is None:
+            raise CheckpointError(f"{path}: attribute {name!r} is missing; not a checkpoint of a warpdem run?")
+        ok_type = isinstance(value, int) if kind is int else isinstance(value, int | float)
+        if isinstance(value, bool) or not ok_type:
+            raise CheckpointError(
+                f"{path}: attribute {name!r} is {value!r}; expected {'an integer' if kind is int else 'a number'}"
+            )
+        if not (math.isfinite(value) and (value > low if strict else value >= low)):
+            raise CheckpointError(
+                f"{path}: attribute {name!r} is {value!r}; expected a finite number {'>' if strict else '>='} {low}"
+            )
+    if attrs["max_neighbors"] > MAX_ELEMENTS or attrs["particle_capacity"] * attrs["max_neighbors"] > MAX_ELEMENTS:
+        raise CheckpointError(f"{path}: particle_capacity × max_neighbors exceeds {MAX_ELEMENTS} slots")
+
+
 def restore_checkpoint(
     path: Path, model: Model, template: State, scene: str | None = None
 ) -> tuple[Model, State, dict]:
@@ -181,11 +217,12 @@ def restore_checkpoint(
     arrays, attrs = read_checkpoint(path)
     if scene is not None and "scene" in attrs and attrs["scene"] != scene:
         raise CheckpointError(f"checkpoint {path} belongs to scene {attrs['scene']!r}, not {scene!r}")
+    scalars = model_scalars(model)
+    _check_attrs(path, attrs, [name for name, value in scalars.items() if isinstance(value, int)])
     for key in SCENE_FIXED_SCALARS:
         expected = getattr(model, key)
-        if int(attrs.get(key, -1)) != expected:
+        if attrs.get(key, -1) != expected:
             raise CheckpointError(f"{path}: {key} is {attrs.get(key)} but the scene builds {expected}; wrong scene?")
-    scalars = model_scalars(model)
     missing = [
         k
         for k in [f"model/{n}" for n in model_checkpoint_arrays(model)] + [f"state/{n}" for n in template.arrays()]
@@ -194,9 +231,33 @@ def restore_checkpoint(
     if missing:
         raise CheckpointError(f"{path}: missing {', '.join(missing)} (written by an older warpdem?)")
     device = model.device
+    slots = {
+        "particle_capacity": int(attrs["particle_capacity"]),
+        "neighbor slots": int(attrs["particle_capacity"]) * int(attrs["max_neighbors"]),
+    }
 
     def load(key: str, like: wp.array) -> wp.array:
-        return wp.array(arrays[key], dtype=like.dtype, device=device)
+        data = arrays[key]
+        if data.dtype.kind in "fc" and not np.all(np.isfinite(data)):
+            bad = int(np.count_nonzero(~np.isfinite(data)))
+            raise CheckpointError(f"{path}: {key} holds {bad} non-finite value(s); the run it saved had already failed")
+        # Arrays sized by the particle capacity (or its neighbour slots) must agree with the attributes, or the
+        # kernels would index past their ends.
+        if like.shape and like.shape[0] == template.particle_q.shape[0] and key.startswith(("state/", "model/")):
+            expected = slots["particle_capacity"]
+        elif like.shape and like.shape[0] == template.nbr_index.shape[0] and key.startswith("state/nbr_"):
+            expected = slots["neighbor slots"]
+        else:
+            expected = None
+        if expected is not None and (data.ndim == 0 or len(data) != expected):
+            raise CheckpointError(f"{path}: {key} has shape {data.shape}, not {expected} items as its attributes say")
+        try:
+            return wp.array(data, dtype=like.dtype, device=device)
+        except (ValueError, TypeError, RuntimeError) as exc:
+            detail = " ".join(str(exc).split())
+            raise CheckpointError(
+                f"{path}: {key}: {data.dtype} {data.shape} is not a {like.dtype.__name__} array ({detail})"
+            ) from None
 
     model = dataclasses.replace(
         model,
@@ -271,6 +332,28 @@ def end_time_note(end_time: float, fps: float, dt: float, substeps: int, last: i
     return note
 
 
+def _output_error(where: str, path: Path, exc: BaseException) -> SceneError:
+    """A one-line SceneError for an output file that cannot be written (name too long, no permission, disk full)."""
+    reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else " ".join(str(exc).split())
+    return SceneError(f"{where}: cannot write {path}: {reason}")
+
+
+def _check_steps(scene: Scene, steps_per_frame: float, options: RunOptions, frames: int | None) -> None:
+    """Refuses a run of more than ``options.max_steps`` steps (``frames`` frames; None: one frame) before it starts.
+
+    Raises:
+        SceneError: naming run.dt, with the step count it would take.
+    """
+    steps = steps_per_frame * (1 if frames is None else frames)
+    if not steps <= options.max_steps:
+        what = "one frame" if frames is None else f"the run ({frames} frames)"
+        raise SceneError(
+            f"{scene.source}: run.dt: {what} would need {steps:.3g} time steps, more than the limit of "
+            f"{options.max_steps} (--max-steps); raise dt, the output_rate or the material numbers that make the "
+            "critical step small, or shorten the run"
+        )
+
+
 def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     """Run a validated scene to its end time, writing USD frames and checkpoints.
 
@@ -286,7 +369,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     try:
         device = wp.get_device(device_name)
     except (ValueError, RuntimeError) as exc:
-        where = "--device" if options.device else f"{scene.name}: run.device"
+        where = "--device" if options.device else f"{scene.source}: run.device"
         raise SceneError(f"{where}: device {device_name!r} is not available here ({exc})") from None
     builder = scene_builder(scene)
     if not options.quiet:
@@ -298,6 +381,12 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
 
     fps = run.output_rate
     frame_period = 1.0 / fps
+    if not (math.isfinite(model.dt) and model.dt > 0.0):
+        raise SceneError(
+            f"{scene.source}: run.dt: the time step is {model.dt!r} s; the critical step of this scene is not a "
+            "positive number (coincident spheres, or material numbers out of proportion)"
+        )
+    _check_steps(scene, frame_period / model.dt, options, None)
     if run.dt == "auto":
         substeps = max(1, math.ceil(frame_period / model.dt))
         model = dataclasses.replace(model, dt=frame_period / substeps)
@@ -325,6 +414,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     if note is not None and not options.quiet:
         print(note)
     sim = Simulation(model, state, primed=primed, step=step, time=sim_time)
+    _check_steps(scene, float(substeps), options, total_frames - first_frame)
 
     out_dir = Path(options.out_dir) if options.out_dir is not None else Path(scene.output.directory)
     usd_path = Path(options.usd) if options.usd is not None else out_dir / scene.output.usd
@@ -343,7 +433,10 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     # Colour scales are the largest values seen so far in the run: a restart continues them from its checkpoint.
     speed_scale = [float(attrs.get("speed_scale", 1e-12))]
     checkpoints: list[Path] = []
-    vtu = VtuSeries(out_dir, output_stem, first_frame) if scene.output.vtu and model.node_capacity else None
+    try:
+        vtu = VtuSeries(out_dir, output_stem, first_frame) if scene.output.vtu and model.node_capacity else None
+    except OSError as exc:
+        raise _output_error(f"{scene.source}: output.vtu", out_dir, exc) from None
     rock = RockFrames(scene.output.mesh_color_by, vtu)
     rock.color_scale = float(attrs.get("rock_color_scale", 0.0))
 
@@ -356,7 +449,10 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
             "rock_color_scale": rock.color_scale,
         }
         path = checkpoint_dir / checkpoint_name(sim.step_count, scene.name)
-        checkpoints.append(save_checkpoint(path, sim, frame, extra))
+        try:
+            checkpoints.append(save_checkpoint(path, sim, frame, extra))
+        except OSError as exc:
+            raise _output_error(f"{scene.source}: output.checkpoint_dir", path, exc) from None
 
     def write_frame(writer: UsdWriter, frame: int) -> None:
         rock.write_vtu(frame, sim.time, sim.model, sim.state)
@@ -401,10 +497,16 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     stop = _StopRequest(options.quiet)
     # A restart extends the stage of the run it continues (checked above); a new run replaces whatever was there.
     restart = options.restart is not None
-    with (
-        stop,
-        UsdWriter(usd_path, 1.0 / frame_period, comment=comment, first_frame=first_frame, append=restart) as writer,
-    ):
+
+    try:
+        writer = UsdWriter(usd_path, 1.0 / frame_period, comment=comment, first_frame=first_frame, append=restart)
+    except (OSError, RuntimeError) as exc:  # pxr reports a layer it cannot create as a RuntimeError
+        if options.usd is not None or options.out_dir is not None:
+            where = "--usd" if options.usd is not None else "--out"
+        else:
+            where = f"{scene.source}: output.directory / output.usd"
+        raise _output_error(where, usd_path, exc) from None
+    with stop, writer:
         write_frame(writer, frame)
         while frame < total_frames and stop.signum is None:
             steps_before = sim.step_count

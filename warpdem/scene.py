@@ -47,6 +47,15 @@ from pydantic import (
 )
 
 from .geology import BOX_FACE_NAMES, OPENING_FACE_NAME
+from .limits import (
+    BYTES_PER_NEIGHBOR_SLOT,
+    BYTES_PER_NODE,
+    BYTES_PER_SPHERE,
+    BYTES_PER_TET,
+    F32_MAX,
+    F32_MIN,
+    size_problem,
+)
 
 __all__ = [
     "RESERVED_SECTIONS",
@@ -110,6 +119,28 @@ _BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
 _DEVICE_PATTERN = re.compile(r"cpu|cuda(:\d+)?")
 _USD_SUFFIXES = (".usd", ".usda", ".usdc")
 _MAX_GOT_CHARS = 80
+MAX_FILE_NAME_BYTES = 200
+"""Longest file or folder name a scene may give (file systems allow 255 bytes; the writers add suffixes such as
+``.partial.usdc``)."""
+MAX_GRAVITY = 1e6
+MAX_JOINT_SURFACES = 5000
+"""Most joint planes and discs a geology mesh may be fragmented by (Gmsh's boolean fragment grows faster than
+linearly in their number)."""
+_LATTICE_FRACTION = {"hcp": math.pi / (3.0 * math.sqrt(2.0)), "cubic": math.pi / 6.0}
+_BYTES_EACH = {
+    "spheres": BYTES_PER_SPHERE,
+    "neighbor slots": BYTES_PER_NEIGHBOR_SLOT,
+    "nodes": BYTES_PER_NODE,
+    "tets": BYTES_PER_TET,
+}
+
+
+def _regular_tet_volume(edge: float) -> float:
+    """Volume of a regular tetrahedron of edge ``edge`` [m³]: edge³ / (6√2)."""
+    return edge**3 / (6.0 * math.sqrt(2.0))
+
+
+"""Largest gravity magnitude a scene may give [m/s²] (about 1e5 g)."""
 
 # pydantic messages that speak Python where the user wrote TOML.
 _PLAIN_MESSAGES = {
@@ -140,9 +171,21 @@ class SceneError(Exception):
 # Scalar and vector types
 # ----------------------------------------------------------------------------------------------------------------------
 
+
+def _check_float32(value: float) -> float:
+    # The device computes in float32: a number it would turn into inf or 0 is refused here, naming the key, rather
+    # than becoming NaN in the first frame (warpdem.limits).
+    if value != 0.0 and not F32_MIN <= abs(value) <= F32_MAX:
+        raise ValueError(
+            f"must be 0 or between {F32_MIN:g} and {F32_MAX:g} in magnitude (the device computes in float32)"
+        )
+    return value
+
+
 # Strict so that a quoted number ("1.0") or a boolean is reported instead of being silently converted;
-# ints are still accepted for floats because TOML writers often drop the ".0".
-Float = Annotated[float, Strict(), AllowInfNan(False)]
+# ints are still accepted for floats because TOML writers often drop the ".0". Every float of a scene lies in the
+# range float32 represents (warpdem.limits.F32_MIN .. F32_MAX).
+Float = Annotated[float, Strict(), AllowInfNan(False), AfterValidator(_check_float32)]
 Int = Annotated[int, Strict()]
 Bool = Annotated[bool, Strict()]
 Str = Annotated[str, Strict()]
@@ -165,6 +208,27 @@ def _check_name(value: str) -> str:
     return value
 
 
+def _check_path_text(value: Any) -> Any:
+    # A file or folder name the operating system cannot take is refused here, naming the key, rather than failing
+    # as an OSError when the first output file is opened after minutes of set-up.
+    if isinstance(value, str | Path):
+        text = str(value)
+        if not text:
+            raise ValueError("must not be empty")
+        if any(ord(c) < 32 or ord(c) == 127 for c in text):
+            raise ValueError("must not contain control characters (NUL, newline, ...)")
+        longest = max((len(part.encode("utf-8", "surrogateescape")) for part in re.split(r"[/\\]", text)), default=0)
+        if longest > MAX_FILE_NAME_BYTES:
+            raise ValueError(f"a file or folder name is {longest} bytes long; allowed: at most {MAX_FILE_NAME_BYTES}")
+    return value
+
+
+PathText = Annotated[str, Strict(), AfterValidator(_check_path_text)]
+"""A string that names a file or folder: no control characters, no name longer than MAX_FILE_NAME_BYTES."""
+
+FilePath = Annotated[Path, BeforeValidator(_check_path_text)]
+"""A path to an input file, checked like :data:`PathText`."""
+
 Name = Annotated[str, Strict(), AfterValidator(_check_name)]
 """A material or part name: ``[A-Za-z_][A-Za-z0-9_-]*``."""
 
@@ -179,7 +243,7 @@ def _auto_or_positive(value: Any) -> Literal["auto"] | float:
     if value == "auto":
         return "auto"
     if _is_number(value) and value > 0:
-        return float(value)
+        return _check_float32(float(value))
     raise ValueError("must be 'auto' or a number > 0")
 
 
@@ -187,7 +251,7 @@ def _auto_or_non_negative(value: Any) -> Literal["auto"] | float:
     if value == "auto":
         return "auto"
     if _is_number(value) and value >= 0:
-        return float(value)
+        return _check_float32(float(value))
     raise ValueError("must be 'auto' or a number >= 0")
 
 
@@ -242,6 +306,14 @@ class Gravity(_Model):
     """Uniform body acceleration."""
 
     vector: Vec3 = Field(default=(0.0, 0.0, -9.81), description="Gravitational acceleration [m/s^2].")
+
+    @field_validator("vector")
+    @classmethod
+    def _bounded(cls, value: tuple[float, float, float]) -> tuple[float, float, float]:
+        # Beyond 1e5 g a frame's drift leaves any model (and float32 positions lose the step); no rock problem needs it.
+        if not math.hypot(*value) <= MAX_GRAVITY:
+            raise ValueError(f"magnitude must be <= {MAX_GRAVITY:g} m/s^2")
+        return value
 
 
 def _check_poisson(value: float) -> float:
@@ -503,7 +575,7 @@ class FileSource(_Model):
 
     kind: Literal["file"] = Field(description="Source kind.")
     part: Str = Field(description="Name of a part defined in [parts].")
-    path: Path = Field(
+    path: FilePath = Field(
         description="Text file, relative to the scene file; absolute after loading. Lines 'x y z' or 'x y z r' [m]."
     )
     radius: Float | None = Field(default=None, gt=0, description="Radius for 3-column files [m].")
@@ -804,7 +876,7 @@ class FileMesh(_Model):
     """A ready tetrahedral mesh file (Gmsh .msh, VTU or legacy VTK) read through meshio."""
 
     kind: Literal["file"] = Field(description="Mesh kind.")
-    path: Path = Field(description="Mesh file, relative to the scene file; absolute after loading.")
+    path: FilePath = Field(description="Mesh file, relative to the scene file; absolute after loading.")
     material_map: dict[Str, Str] = Field(
         default_factory=dict,
         description="Tet physical group (name or number) -> material; omitted: the group names are material names.",
@@ -1012,8 +1084,8 @@ class Boundary(_Model):
 class Output(_Model):
     """What is written and where."""
 
-    directory: Str = Field(default="out", description="Output directory.")
-    usd: Str | None = Field(
+    directory: PathText = Field(default="out", description="Output directory.")
+    usd: PathText | None = Field(
         default=None, description="USD file inside directory (.usd, .usda or .usdc); '<name>.usdc' after loading."
     )
     color_by: Literal["speed", "part"] = Field(default="speed", description="Particle colouring in the USD file.")
@@ -1021,7 +1093,7 @@ class Output(_Model):
     checkpoint_every: Float = Field(
         default=0.0, ge=0, description="Checkpoint interval in simulated time [s]; 0 = only at the end."
     )
-    checkpoint_dir: Str = Field(default="checkpoints", description="Checkpoint directory, relative to directory.")
+    checkpoint_dir: PathText = Field(default="checkpoints", description="Checkpoint directory, relative to directory.")
     mesh_color_by: Literal["stress", "speed", "material"] = Field(
         default="stress", description="Colouring of the rock surface /World/Rock in the USD file."
     )
@@ -1034,8 +1106,9 @@ class Output(_Model):
     @field_validator("usd")
     @classmethod
     def _check_usd(cls, value: str | None) -> str | None:
-        if value is not None and not value.lower().endswith(_USD_SUFFIXES):
-            raise ValueError("must end with .usd, .usda or .usdc")
+        # Path's suffix, not the text's ending: ".usdc" alone is a hidden file without a suffix.
+        if value is not None and Path(value).suffix.lower() not in _USD_SUFFIXES:
+            raise ValueError("must be a file name ending with .usd, .usda or .usdc")
         return value
 
 
@@ -1063,7 +1136,7 @@ def _check_scene_name(value: str) -> str:
     # The name becomes the default USD file name.
     if not value or "/" in value or "\\" in value:
         raise ValueError("must be a non-empty name without path separators")
-    return value
+    return _check_path_text(value)
 
 
 def _check_materials(value: dict[str, Material]) -> dict[str, Material]:
@@ -1101,12 +1174,12 @@ class Scene(_Model):
     boundaries: list[Boundary] = Field(default_factory=list, description="Boundary conditions of the mesh.")
     output: Output = Field(default_factory=Output, description="Output settings.")
     capacity: Capacity = Field(default_factory=Capacity, description="Initial buffer capacities.")
-    _source: str = PrivateAttr(default="")
+    _source: str | None = PrivateAttr(default=None)
 
     @property
     def source(self) -> str:
-        """The scene file it was loaded from (the name given to :func:`parse_scene`), for error messages."""
-        return self._source or self.name
+        """What error messages name the scene by: the file it was loaded from, else its name."""
+        return self._source if self._source is not None else self.name
 
     @model_validator(mode="before")
     @classmethod
@@ -1208,6 +1281,104 @@ class Scene(_Model):
             check(f"walls[{i}].material", wall.material, materials, "material")
         problems += self._mesh_problems(check)
         return problems
+
+    def size_problems(self) -> list[tuple[str, str]]:
+        """Sizes this scene would allocate, estimated before anything is packed, meshed or allocated.
+
+        Spheres of a packing: region volume × solid fraction / sphere volume (hcp π/(3√2), cubic π/6, random its
+        target), capped by ``count``; tets of a box mesh: 6 per cell, of a geology mesh: model volume / the volume of
+        a regular tet of edge h, h³/(6√2) (and of edge h_opening, as if the refinement filled the model: an upper
+        bound), a node per 4 tets; neighbour slots: sphere slots × neighbors_per_particle; explicit capacities as
+        given. Spheres of files are counted when read (the builder).
+
+        Returns:
+            ``(key path, message)`` when the estimate exceeds :data:`warpdem.limits.MAX_ELEMENTS` of a kind or the
+            memory of this machine (the key is that of the largest contributor); else an empty list.
+        """
+        contributions: list[tuple[str, str, float]] = []  # (key, kind, count)
+        for i, src in enumerate(self.particles):
+            if isinstance(src, PackingSource):
+                fraction = _LATTICE_FRACTION.get(src.arrangement, src.target_volume_fraction)
+                count = fraction * src.region.volume() / (4.0 / 3.0 * math.pi * src.radius**3)
+                if src.count is not None:
+                    count = min(count, src.count)
+                contributions.append((f"particles[{i}].radius", "spheres", count))
+            elif isinstance(src, SphereSource):
+                contributions.append((f"particles[{i}]", "spheres", 1.0))
+        spheres = sum(n for _, kind, n in contributions if kind == "spheres")
+        if self.capacity.particles is not None and self.capacity.particles > spheres:
+            contributions.append(("capacity.particles", "spheres", self.capacity.particles - spheres))
+            spheres = float(self.capacity.particles)
+        contributions.append(
+            ("capacity.neighbors_per_particle", "neighbor slots", spheres * self.capacity.neighbors_per_particle)
+        )
+        mesh = self.mesh
+        tets = nodes = 0.0
+        if isinstance(mesh, BoxMesh):
+            cells = math.prod(float(d) for d in mesh.divisions)
+            tets, nodes = 6.0 * cells, math.prod(float(d) + 1.0 for d in mesh.divisions)
+            key = "mesh.divisions"
+        elif isinstance(mesh, GeologyMeshSpec):
+            volume = math.prod(h - l for h, l in zip(mesh.hi, mesh.lo, strict=True))
+            tets = volume / _regular_tet_volume(mesh.h)
+            if mesh.openings and mesh.h_opening is not None and mesh.h_opening < mesh.h:
+                tets += volume / _regular_tet_volume(mesh.h_opening)
+            nodes = tets / 4.0
+            key = "mesh.h"
+        if tets:
+            contributions += [(key, "tets", tets), (key, "nodes", nodes)]
+        surfaces = self._joint_surface_problem()
+        if surfaces is not None:
+            return [surfaces]
+        for name, kind in (("tets", "tets"), ("nodes", "nodes")):
+            given = getattr(self.capacity, name)
+            if given is not None:
+                contributions.append((f"capacity.{name}", kind, float(given)))
+        counts: dict[str, float] = {}
+        for _, kind, n in contributions:
+            counts[kind] = counts.get(kind, 0.0) + n
+        problem = size_problem(counts, _BYTES_EACH)
+        if problem is None:
+            return []
+        # Blame the key that asks for the most memory: a sphere source with its share of neighbour slots (at the
+        # default count per sphere), or neighbors_per_particle for the slots it asks beyond that default.
+        k = self.capacity.neighbors_per_particle
+        default_k = Capacity.model_fields["neighbors_per_particle"].default
+        sphere_bytes = BYTES_PER_SPHERE + min(k, default_k) * BYTES_PER_NEIGHBOR_SLOT
+
+        def blame(c: tuple[str, str, float]) -> float:
+            if c[1] == "spheres":
+                return c[2] * sphere_bytes
+            if c[1] == "neighbor slots":
+                return spheres * max(k - default_k, 0) * BYTES_PER_NEIGHBOR_SLOT
+            return c[2] * _BYTES_EACH[c[1]]
+
+        worst = max(contributions, key=blame)
+        return [(worst[0], problem)]
+
+    def _joint_surface_problem(self) -> tuple[str, str] | None:
+        """Refuses joint sets that would hand Gmsh more than MAX_JOINT_SURFACES planes and discs to fragment the model
+        by (a spacing far below the model size): the count is the model's diagonal / spacing + 1 planes per set, times
+        (diagonal / disc pitch + 1)² discs per plane for disc joints."""
+        mesh = self.mesh
+        if not isinstance(mesh, GeologyMeshSpec):
+            return None
+        diagonal = math.dist(mesh.lo, mesh.hi)
+        total, worst, worst_count = 0.0, "", -1.0
+        for i, js in enumerate(mesh.joint_sets):
+            count = diagonal / js.spacing + 1.0
+            if js.persistence == "disc" and js.radius is not None:
+                pitch = js.disc_spacing or 2.5 * js.radius
+                count *= (diagonal / pitch + 1.0) ** 2
+            total += count
+            if count > worst_count:
+                worst, worst_count = f"mesh.joint_sets[{i}].spacing", count
+        if total <= MAX_JOINT_SURFACES:
+            return None
+        return worst, (
+            f"would cut the model with {total:.3g} joint surfaces (planes and discs); the limit is "
+            f"{MAX_JOINT_SURFACES}: make the spacing larger compared with the model ({diagonal:.3g} m across)"
+        )
 
     def face_set_names(self) -> list[str] | None:
         """Face set names the mesh is known to have before it is built (None for a mesh file: read at build)."""
@@ -1359,8 +1530,12 @@ def _parse(data: Any, source: str, base_dir: Path | None, default_name: str) -> 
         scene = Scene.model_validate(data, context={"default_name": default_name})
     except ValidationError as err:
         raise SceneError(_format_validation_error(err, source)) from None
-    scene._source = source
+    if not source.startswith("<"):
+        scene._source = source
     problems = [f"{source}: {path}: {message}" for path, message in scene.reference_problems()]
+    if not problems:
+        # Sizes only of a scene whose references hold: the estimate reads the sources' parts and materials.
+        problems = [f"{source}: {path}: {message}" for path, message in scene.size_problems()]
     problems += _resolve_files(scene, source, base_dir if base_dir is not None else Path.cwd())
     if problems:
         raise SceneError(problems)

@@ -126,7 +126,7 @@ def _box(spec: BoxMesh) -> GeologyMesh:
 
 
 def _file(spec: FileMesh, scene: Scene) -> GeologyMesh:
-    source = scene.name
+    source = scene.source
     # TOML keys are strings; a key of digits names a physical group by its number.
     material_map = {int(k) if k.isdigit() else k: v for k, v in spec.material_map.items()} or None
     joint_groups = None if spec.joint_groups is None else list(spec.joint_groups)
@@ -156,7 +156,7 @@ def rock_mesh(scene: Scene) -> GeologyMesh:
         SceneError: the scene has no mesh, Gmsh fails, or the mesh file cannot be used.
     """
     spec = scene.mesh
-    source = scene.name
+    source = scene.source
     if spec is None:
         raise SceneError(f"{source}: mesh: the scene has no [mesh]")
     try:
@@ -243,7 +243,14 @@ def add_scene_mesh(builder: ModelBuilder, scene: Scene) -> tuple[GeologyMesh, np
     if len(mesh.joint_faces):
         set_ids = np.asarray(_add_joint_sets(builder, scene, mesh), dtype=np.int64)
         joints = {"joint_faces": mesh.joint_faces, "joint_set": set_ids[mesh.joint_face_set]}
-    nodes = builder.add_tet_mesh(mesh.points, mesh.tets, per_tet, fixed_nodes=fixed, velocity=spec.velocity, **joints)
+    try:
+        nodes = builder.add_tet_mesh(
+            mesh.points, mesh.tets, per_tet, fixed_nodes=fixed, velocity=spec.velocity, **joints
+        )
+    except MeshError as exc:
+        # A degenerate tet of a mesh file is the file's fault; of a box or Gmsh mesh, that of the sizes that made it.
+        where = f"mesh.path: {spec.path}" if spec.kind == "file" else "mesh"
+        raise SceneError(f"{scene.source}: {where}: {exc}") from None
     _add_loads(builder, scene, mesh, nodes)
     return mesh, nodes
 
@@ -283,7 +290,7 @@ def _add_joint_sets(builder: ModelBuilder, scene: Scene, mesh: GeologyMesh) -> l
 
 def _add_loads(builder: ModelBuilder, scene: Scene, mesh: GeologyMesh, nodes: np.ndarray) -> None:
     """Maps ``[[loads]]`` and ``[[boundaries]]`` onto the builder's loads (:mod:`warpdem.loads`)."""
-    source = scene.name
+    source = scene.source
     if (scene.loads or scene.boundaries) and not hasattr(builder, "add_face_pressure"):
         section = "loads" if scene.loads else "boundaries"
         raise SceneError(f"{source}: {section}: not supported by this build yet (warpdem.loads)")
@@ -291,11 +298,21 @@ def _add_loads(builder: ModelBuilder, scene: Scene, mesh: GeologyMesh, nodes: np
         return
     from .loads import PressureHistory, roller_axis
 
+    driven = np.full(len(mesh.points), -1, dtype=np.int64)  # the velocity load that drives each node
     for i, load in enumerate(scene.loads):
         where = f"{source}: loads[{i}]"
         try:
             if load.kind == "velocity":
-                ids = nodes[nodes_of_selection(mesh, load.faces, load.region, where)]
+                local = nodes_of_selection(mesh, load.faces, load.region, where)
+                taken = local[driven[local] >= 0]
+                if len(taken):
+                    key = "faces" if load.faces is not None else "region"
+                    raise SceneError(
+                        f"{where}.{key}: selects nodes that loads[{driven[taken[0]]}] already drives (node "
+                        f"{int(taken[0])}); a node takes one velocity load"
+                    )
+                driven[local] = i
+                ids = nodes[local]
                 end = load.end if load.end is not None else float("inf")
                 builder.add_node_velocity(ids, load.velocity, start=load.start, end=end)
                 continue

@@ -219,7 +219,8 @@ class Simulation:
         if n_steps <= 0:
             return
         parts = (self._head, self._body, self._tail)
-        sequence = [0] + [1] * (n_steps - 1) + [2]
+        # The parts to run: head, n - 1 bodies, tail, as (part, repeats), so memory does not grow with n.
+        sequence = [(0, 1), (1, n_steps - 1), (2, 1)]
         if self.use_graph and self._graphs is None:
             # The first head runs eagerly, compiling every kernel of the step outside a capture; the three parts are
             # then recorded (not run) for replay.
@@ -236,11 +237,12 @@ class Simulation:
                 # Conditional graph nodes need CUDA 12.4+; without them the same launches run one by one.
                 warnings.warn(f"graph capture unavailable ({exc}); running steps without a graph", stacklevel=2)
                 self.use_graph = False
-        for index in sequence:
-            if self.use_graph:
-                wp.capture_launch(self._graphs[index])
-            else:
-                parts[index]()
+        for index, repeats in sequence:
+            for _ in range(repeats):
+                if self.use_graph:
+                    wp.capture_launch(self._graphs[index])
+                else:
+                    parts[index]()
 
     def advance(self, n_steps: int) -> None:
         """Run ``n_steps`` steps, then the between-step work: overflow check (grow and redo), stability guard, bond
