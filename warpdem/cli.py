@@ -61,6 +61,7 @@ def init_warp(quiet: bool = False) -> None:
         sys.stderr.write("".join(kept))
         sys.stderr.flush()
 
+
 EXIT_SIGNAL_BASE = 128
 """A run stopped by a signal exits with 128 + its number, as a shell reports it: 130 for SIGINT, 143 for SIGTERM."""
 

@@ -288,6 +288,7 @@ class Run(_Model):
         default=False,
         description="Run even when spheres start overlapping each other or the rock by more than 5 % of a radius, "
         "or with a centre inside the rock (warpdem.overlap); otherwise such a scene is refused at build time.",
+    )
     allow_unstable_dt: Bool = Field(
         default=False,
         description="Run an explicit dt above the critical time step (refused otherwise); the run-time guard still "
