@@ -149,6 +149,17 @@ def _bounds(frames: list[StageFrame], cam: np.ndarray) -> tuple[float, float, fl
     return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])
 
 
+def _fit(window: tuple[float, float, float, float], aspect: float) -> tuple[float, float, float, float]:
+    """The window widened in one direction, about its centre, to the picture's aspect (width / height)."""
+    u0, u1, v0, v1 = window
+    du, dv = u1 - u0, v1 - v0
+    if du / dv < aspect:
+        grow = 0.5 * (dv * aspect - du)
+        return u0 - grow, u1 + grow, v0, v1
+    grow = 0.5 * (du / aspect - dv)
+    return u0, u1, v0 - grow, v1 + grow
+
+
 def draw_frame(ax, frame: StageFrame, cam: np.ndarray, max_spheres: int) -> str | None:
     """Draw one frame into a matplotlib axes. Returns the note on subsampling, or None."""
     from matplotlib.collections import EllipseCollection, PolyCollection
@@ -249,21 +260,20 @@ def render(
     codes = pick_frames(stage_frames(stage), frames, gif)
     data = [read_frame(stage, code) for code in codes]
     cam = camera(view)
-    u0, u1, v0, v1 = _bounds(data, cam)
+    width, height = size
+    u0, u1, v0, v1 = _fit(_bounds(data, cam), width / height)
     out = pathlib.Path(out_dir) if out_dir is not None else stage_path.parent
     out.mkdir(parents=True, exist_ok=True)
     stem = stage_path.stem
     written, images = [], []
-    width, height = size
     for frame in data:
         fig = plt.figure(figsize=(width / 100.0, height / 100.0), dpi=100)
         ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
         ax.set_facecolor((0.97, 0.97, 0.98))
         note = draw_frame(ax, frame, cam, max_spheres)
-        # Equal scale on both screen axes, the window centred on the bodies.
+        # The axes fill the picture and the window has its aspect: one metre is as long across as up.
         ax.set_xlim(u0, u1)
         ax.set_ylim(v0, v1)
-        ax.set_aspect("equal", adjustable="datalim")
         ax.set_xticks([])
         ax.set_yticks([])
         label = f"{stem}   frame {frame.code}   t = {frame.time:.4g} s   view {view}"
@@ -299,6 +309,6 @@ def _scale_bar(ax, u0: float, u1: float, v0: float) -> None:
     k = math.floor(math.log10(target))
     length = max(m * 10.0**k for m in (1, 2, 5) if m * 10.0**k <= target)
     x1 = u1 - 0.03 * span
-    y = v0 + 0.04 * (ax.get_ylim()[1] - ax.get_ylim()[0])
+    y = v0 + 0.03 * (ax.get_ylim()[1] - v0)
     ax.plot([x1 - length, x1], [y, y], color="0.15", lw=2, zorder=3)
     ax.text(x1 - 0.5 * length, y, f"{length:g} m", ha="center", va="bottom", fontsize=8, color="0.15", zorder=3)
