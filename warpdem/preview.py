@@ -27,7 +27,7 @@ class PreviewError(Exception):
 @dataclass
 class StageFrame:
     """What one time code of a stage holds: sphere centres [m] (N, 3), radii [m] (N,), colours (N, 3); rock
-    vertices [m] (P, 3), triangles (F, 3), colours (F, 3) or (P, 3); the simulated time [s]."""
+    vertices [m] (P, 3), triangles (F, 3), colours (F, 3), one per triangle; the simulated time [s]."""
 
     code: int
     time: float
@@ -99,8 +99,11 @@ def read_frame(stage, code: int) -> StageFrame:
         mesh = UsdGeom.Mesh(prim)
         rock_points = arr(mesh.GetPointsAttr(), (0, 3))
         faces = arr(mesh.GetFaceVertexIndicesAttr(), (0, 3), np.int64)
-        rock_colors = arr(mesh.GetDisplayColorPrimvar().GetAttr(), (0, 3))
-        if len(rock_colors) not in (len(faces), len(rock_points)) or not len(rock_colors):
+        primvar = mesh.GetDisplayColorPrimvar()
+        rock_colors = arr(primvar.GetAttr(), (0, 3))
+        if primvar.GetInterpolation() == UsdGeom.Tokens.vertex and len(rock_colors) == len(rock_points):
+            rock_colors = rock_colors[faces].mean(axis=1)  # per-vertex colours: each triangle gets their mean
+        if len(rock_colors) != len(faces):
             rock_colors = np.tile([0.6, 0.6, 0.65], (len(faces), 1))
     return StageFrame(code, time, centers, radii, colors, rock_points, faces, rock_colors)
 
@@ -173,8 +176,6 @@ def draw_frame(ax, frame: StageFrame, cam: np.ndarray, max_spheres: int) -> str 
         # Faces point out of the rock: those turned away from the viewer are hidden behind the front ones.
         front = (normal @ toward > 0.0) & (length > 0.0)
         colors = frame.rock_colors
-        if len(colors) == len(p) and len(colors) != len(frame.rock_faces):
-            colors = colors[frame.rock_faces].mean(axis=1)  # per-vertex colours: each triangle gets their mean
         light = toward + 0.6 * cam[1] - 0.3 * cam[0]
         light /= np.linalg.norm(light)
         shade = 0.35 + 0.65 * np.clip((normal[front] / length[front, None]) @ light, 0.0, 1.0)
