@@ -80,7 +80,8 @@ class RunOptions:
 class RunSummary:
     """What a run did: simulated time [s], steps, wall time [s], throughput [particle-steps/s], contacts now,
     bonds broken, the energy balance at start and end, and the files written; FEM nodes and live tets, throughput
-    [tet-steps/s] and the VTU collection where the scene has a mesh."""
+    [tet-steps/s] and the VTU collection where the scene has a mesh (or writes its spheres as VTU); the time series
+    CSV (warpdem.timeseries)."""
 
     simulated_time: float
     steps: int
