@@ -155,10 +155,14 @@ def test_large_stage_is_subsampled_and_says_so(tmp_path):
 
 
 def test_bad_input_exits_with_status_2(tmp_path, capsys):
+    (tmp_path / "text.usda").write_text("not usd\n")
     assert main(["preview", str(tmp_path / "absent.usdc")]) == 2
+    assert main(["preview", str(tmp_path / "text.usda")]) == 2
     assert main(["plot", str(tmp_path)]) == 2
     err = capsys.readouterr().err.splitlines()
     assert err == [
         f"error: {tmp_path / 'absent.usdc'}: file not found",
+        f"error: {tmp_path / 'text.usda'}: USD cannot open it (not a USD file, or a damaged one)",
         f"error: {tmp_path}: no *_series.csv here (the time series a run writes next to its USD stage)",
     ]
+    assert not list(tmp_path.glob("*.png"))

@@ -59,10 +59,12 @@ def open_stage(path: str | os.PathLike):
 
     if not pathlib.Path(path).is_file():
         raise PreviewError(f"{path}: file not found")
+    if pathlib.Path(path).suffix.lower() not in (".usd", ".usda", ".usdc"):
+        raise PreviewError(f"{path}: allowed suffixes: .usd, .usda, .usdc")
     try:
         stage = Usd.Stage.Open(str(path))
-    except Exception as exc:  # pxr raises Tf.ErrorException, which has no stable import path
-        raise PreviewError(f"{path}: not a USD stage ({str(exc).strip().splitlines()[-1]})") from None
+    except Exception:  # pxr raises Tf.ErrorException, which has no stable import path; its text is C++ detail
+        raise PreviewError(f"{path}: USD cannot open it (not a USD file, or a damaged one)") from None
     if stage is None:
         raise PreviewError(f"{path}: not a USD stage")
     return stage

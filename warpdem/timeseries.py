@@ -169,7 +169,8 @@ class TimeSeries:
     Args:
         directory: output directory (created). name: stem of the files. first_frame: the frame this run starts at;
             above 0 (a restart), the rows of an existing series before it are kept, and the energy of its frame 0
-            stays the error's reference.
+            stays the error's reference (without that file, the restart's first frame is the reference, as in the
+            restart's own summary).
     """
 
     def __init__(self, directory: str | os.PathLike, name: str, first_frame: int = 0) -> None:
