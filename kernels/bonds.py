@@ -55,6 +55,7 @@ def eval_bonds_kernel(
     particle_t: wp.array(dtype=wp.vec3),
     energy_damping: wp.array(dtype=wp.float64),
     energy_bond_broken: wp.array(dtype=wp.float64),
+    particle_bonds_broken: wp.array(dtype=int),
 ):
     b = wp.tid()  # one thread per bond slot
     if b >= bond_count[0]:
@@ -89,6 +90,9 @@ def eval_bonds_kernel(
     if mode != BOND_INTACT:
         bond_broken[b] = mode
         wp.atomic_add(bonds_broken_total, 0, 1)
+        # Damage of each sphere (bonds lost so far), for output: the break path runs once per bond, so it is cheap.
+        wp.atomic_add(particle_bonds_broken, i, 1)
+        wp.atomic_add(particle_bonds_broken, j, 1)
         # The springs' energy is released with the bond.
         released = 0.5 * kn * stretch * stretch + 0.5 * ks * wp.dot(us, us)
         wp.atomic_add(energy_bond_broken, i, wp.float64(released))

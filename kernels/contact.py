@@ -527,6 +527,64 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
     return eval_contacts_kernel, contact_energy_kernel
 
 
+@functools.cache
+def make_wall_force_kernel(normal: str, tangential: str, rolling: str) -> wp.Kernel:
+    """The kernel that sums the sphere–wall contact forces on each wall, for output between frames.
+
+    It evaluates the same pair law as the step (``pair_interaction`` of :func:`make_pair_laws`) with dt = 0, which
+    leaves the tangential springs as they are: the force on wall w is -Σ_i F_iw at the current positions,
+    velocities and springs. Run between steps only, so the atomic sums onto a handful of walls cost the step nothing.
+    """
+    pair_interaction = make_pair_laws(normal, tangential, rolling).pair_interaction
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def sum_wall_forces_kernel(
+        # Model:
+        particle_radius: wp.array(dtype=float),
+        particle_inv_mass: wp.array(dtype=float),
+        particle_material: wp.array(dtype=int),
+        pair_table: wp.array(dtype=ContactPair),
+        num_materials: int,
+        wall_normal: wp.array(dtype=wp.vec3),
+        wall_velocity: wp.array(dtype=wp.vec3),
+        wall_material: wp.array(dtype=int),
+        num_walls: int,
+        # State in:
+        particle_count: wp.array(dtype=int),
+        particle_q: wp.array(dtype=wp.vec3),
+        particle_qd: wp.array(dtype=wp.vec3),
+        particle_omega: wp.array(dtype=wp.vec3),
+        wall_point: wp.array(dtype=wp.vec3),
+        wall_shear: wp.array(dtype=wp.vec3),
+        # Out:
+        wall_force: wp.array(dtype=wp.vec3d),
+    ):
+        i = wp.tid()  # one thread per particle slot
+        if i >= particle_count[0]:
+            return
+        inv_mi = particle_inv_mass[i]
+        if inv_mi == 0.0:
+            return  # the step applies no wall force to an immovable sphere
+        xi = particle_q[i]
+        ri = particle_radius[i]
+        wi = particle_omega[i]
+        for w in range(num_walls):
+            nw = wall_normal[w]
+            delta = ri - wp.dot(xi - wall_point[w], nw)
+            if delta <= 0.0:
+                continue
+            # As eval_contacts_kernel: a wall is a sphere of infinite radius, R* = r_i, m* = m_i.
+            v_rel = (particle_qd[i] - (ri - delta) * wp.cross(wi, nw)) - wall_velocity[w]
+            p = pair_table[particle_material[i] * num_materials + wall_material[w]]
+            out = pair_interaction(
+                nw, delta, ri, ri, ri, 1.0 / inv_mi, v_rel, wi, wall_shear[i * num_walls + w], p, 0.0
+            )
+            f = out[0]
+            wp.atomic_sub(wall_force, w, wp.vec3d(wp.float64(f[0]), wp.float64(f[1]), wp.float64(f[2])))
+
+    return sum_wall_forces_kernel
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # Neighbour list with a Verlet skin.
 

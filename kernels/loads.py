@@ -256,6 +256,41 @@ def make_face_pressure_kernel(kind: str) -> wp.Kernel:
     return apply_face_pressure_kernel
 
 
+@functools.cache
+def make_load_force_kernel(kind: str) -> wp.Kernel:
+    """The kernel that sums the force of each pressure load of one history kind, -p a over its faces [N], at the
+    state's own time and positions (the force :func:`make_face_pressure_kernel` applies with dt = 0), for output
+    between frames."""
+    history = HISTORIES[kind]
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def sum_load_forces_kernel(
+        # Model:
+        face_nodes: wp.array(dtype=wp.vec3i),
+        face_edge_a: wp.array(dtype=wp.vec3),
+        face_edge_b: wp.array(dtype=wp.vec3),
+        face_load: wp.array(dtype=int),
+        loads: wp.array(dtype=PressureLoad),
+        table_times: wp.array(dtype=wp.float64),
+        table_values: wp.array(dtype=float),
+        # State in:
+        time: wp.array(dtype=wp.float64),
+        node_u: wp.array(dtype=wp.vec3),
+        node_q: wp.array(dtype=wp.vec3),
+        # Out:
+        load_force: wp.array(dtype=wp.vec3d),
+    ):
+        f = wp.tid()  # one thread per loaded face
+        n = face_nodes[f]
+        index = face_load[f]
+        centroid = (node_q[n[0]] + node_q[n[1]] + node_q[n[2]]) / 3.0
+        p = history(loads[index], time[0], centroid, table_times, table_values)
+        force = -p * area_vector(face_edge_a[f], face_edge_b[f], node_u[n[0]], node_u[n[1]], node_u[n[2]])
+        wp.atomic_add(load_force, index, wp.vec3d(wp.float64(force[0]), wp.float64(force[1]), wp.float64(force[2])))
+
+    return sum_load_forces_kernel
+
+
 @wp.kernel
 def apply_dashpots_kernel(
     # Model:

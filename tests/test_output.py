@@ -194,6 +194,29 @@ def test_vtu_series_round_trip(tmp_path: Path):
     ]
 
 
+def test_one_collection_lists_mesh_and_spheres_of_every_frame(tmp_path: Path):
+    """The mesh is part 0 and the spheres part 1 of each timestep; the spheres read back as vertex cells."""
+    points, tets = box_mesh((0, 0, 0), (1, 1, 1), (1, 1, 1))
+    series = VtuSeries(tmp_path, "mixed")
+    rng = np.random.default_rng(1)
+    spheres = []
+    for frame, time in enumerate((0.0, 1e-3, 2e-3)):
+        series.write(frame, time, points, tets, point_data={}, cell_data={})
+        centers, radius = rng.random((5 + frame, 3)), rng.random(5 + frame)
+        series.write_particles(frame, time, centers, {"radius": radius, "velocity": rng.normal(size=(5 + frame, 3))})
+        spheres.append((centers, radius))
+    datasets = ET.parse(series.pvd_path).getroot().find("Collection").findall("DataSet")
+    assert [(float(d.get("timestep")), d.get("part")) for d in datasets] == [
+        (t, part) for t in (0.0, 1e-3, 2e-3) for part in ("0", "1")
+    ]
+    assert [p.name for p in series.particle_files] == [f"mixed_{k:06d}.vtu" for k in range(3)]
+    for d, (centers, radius) in zip(datasets[1::2], spheres, strict=True):
+        mesh = meshio.read(tmp_path / d.get("file"))
+        np.testing.assert_array_equal(mesh.points, centers)
+        np.testing.assert_array_equal(mesh.cells_dict["vertex"].reshape(-1), np.arange(len(centers)))
+        np.testing.assert_array_equal(mesh.point_data["radius"], radius)
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # Runs
 

@@ -48,6 +48,7 @@ def eval_bonds(model: Model, state: State, dt: float | None = None) -> None:
             s.particle_t,
             s.energy_damping,
             s.energy_bond_broken,
+            s.particle_bonds_broken,
         ],
         device=m.device,
     )

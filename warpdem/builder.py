@@ -898,6 +898,7 @@ def new_state(
         bond_shear=vec(None, nb),
         bond_broken=arr(np.zeros(nb), int, nb),
         bonds_broken_total=scalar(0),
+        particle_bonds_broken=wp.zeros(cap, dtype=int, device=device),
         energy_damping=wp.zeros(cap, dtype=wp.float64, device=device),
         energy_friction=wp.zeros(cap, dtype=wp.float64, device=device),
         energy_boundary_work=wp.zeros(cap, dtype=wp.float64, device=device),

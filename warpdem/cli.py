@@ -1,4 +1,5 @@
-"""Command line: ``python -m warpdem [SCENE] [options]`` runs a scene; ``python -m warpdem bench`` benchmarks.
+"""Command line: ``python -m warpdem [SCENE] [options]`` runs a scene; ``python -m warpdem bench`` benchmarks;
+``python -m warpdem plot RUN_DIR`` plots a run's time series; ``python -m warpdem preview STAGE`` renders a stage.
 
 Bad input (scene, restart file, device) ends with one readable line per problem on stderr and exit status 2,
 before any output file is opened. A run that blows up ends with one line on stderr and exit status 3, its good
@@ -95,7 +96,8 @@ def run_parser() -> argparse.ArgumentParser:
         prog="python -m warpdem",
         description="Run a warpdem scene (TOML). Without SCENE, runs the embedded default scene. "
         "'python -m warpdem bench' prints the settling benchmark table, 'python -m warpdem bench tets' the "
-        "tetrahedra one.",
+        "tetrahedra one; 'python -m warpdem plot RUN_DIR' plots a run's time series, 'python -m warpdem preview "
+        "STAGE' renders frames of its USD stage to PNG.",
     )
     p.add_argument("scene", nargs="?", help="scene file (.toml); default: the embedded default scene")
     p.add_argument("--device", help="Warp device: cpu or cuda:N (default: the scene's run.device)")
@@ -147,6 +149,49 @@ def tet_bench_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _size(text: str) -> tuple[int, int]:
+    from .preview import PreviewError, parse_size
+
+    try:
+        return parse_size(text)
+    except PreviewError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("--size: ")) from None
+
+
+def plot_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m warpdem plot",
+        description="PNG plots of a run's time series (<name>_series.csv in RUN_DIR): energy balance, counts, wall "
+        "and load forces.",
+    )
+    p.add_argument("run_dir", type=Path, help="output folder of a run (the scene's output.directory or --out)")
+    p.add_argument("--out", type=Path, help="folder for the PNG files (default: RUN_DIR)")
+    p.add_argument("--size", type=_size, default=(800, 600), help="picture size WIDTHxHEIGHT in pixels [800x600]")
+    return p
+
+
+def preview_parser() -> argparse.ArgumentParser:
+    from .preview import DEFAULT_MAX_SPHERES, VIEWS
+
+    p = argparse.ArgumentParser(
+        prog="python -m warpdem preview",
+        description="Render frames of a warpdem USD stage to PNG (spheres as discs of their radius, the rock "
+        "surface as shaded triangles, in the stage's colours), optionally an animated GIF; no USD viewer needed.",
+    )
+    p.add_argument("stage", type=Path, help="USD stage written by a run (.usdc, .usda, .usd)")
+    p.add_argument(
+        "--frames", type=int, nargs="+", help="frames (time codes) to draw; negative counts from the end [last]"
+    )
+    p.add_argument("--gif", action="store_true", help="also write an animated GIF (of all frames without --frames)")
+    p.add_argument("--view", choices=VIEWS, default="3d", help="projection: xz front, xy top, yz side, 3d [3d]")
+    p.add_argument("--size", type=_size, default=(640, 480), help="picture size WIDTHxHEIGHT in pixels [640x480]")
+    p.add_argument("--out", type=Path, help="folder for the pictures (default: the stage's folder)")
+    p.add_argument(
+        "--max-spheres", type=_positive_int, default=DEFAULT_MAX_SPHERES, help="draw at most this many spheres"
+    )
+    return p
+
+
 def _fail(lines: list[str] | str) -> int:
     for line in [lines] if isinstance(lines, str) else lines:
         print(f"error: {line}", file=sys.stderr)
@@ -175,6 +220,26 @@ def main(argv: list[str] | None = None) -> int:
         args = bench_parser().parse_args(argv[1:])
         init_warp()
         return run_bench(args.sizes, args.steps, args.device, args.json, args.data, args.repeat)
+    if argv[:1] == ["plot"]:
+        from .plot import PlotError, plot_run
+
+        args = plot_parser().parse_args(argv[1:])
+        try:
+            files = plot_run(args.run_dir, args.out, args.size)
+        except PlotError as exc:
+            return _fail(str(exc))
+        print("\n".join(str(f) for f in files))
+        return 0
+    if argv[:1] == ["preview"]:
+        from .preview import PreviewError, render
+
+        args = preview_parser().parse_args(argv[1:])
+        try:
+            files = render(args.stage, args.out, args.frames, args.view, args.size, args.gif, args.max_spheres)
+        except PreviewError as exc:
+            return _fail(str(exc))
+        print("\n".join(str(f) for f in files))
+        return 0
     args = run_parser().parse_args(argv)
 
     from .scene import SceneError, default_scene_path, load_scene

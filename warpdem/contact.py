@@ -153,6 +153,41 @@ def contact_energy(model: Model, state: State) -> tuple[float, int]:
     return float(energy.numpy().sum()), int(count.numpy()[0])
 
 
+def wall_forces(model: Model, state: State) -> np.ndarray:
+    """Force of the spheres on each wall now [N], shape (num_walls, 3), float64: minus the sum of the sphere–wall
+    contact forces, the step's law evaluated without advancing the springs. Allocates and reads back: call between
+    steps."""
+    out = wp.zeros(model.num_walls, dtype=wp.vec3d, device=model.device)
+    if model.num_walls and model.max_radius > 0.0:
+        m, s = model, state
+        wp.launch(
+            kc.make_wall_force_kernel(m.normal_model, m.tangential_model, m.rolling_model),
+            dim=m.particle_capacity,
+            inputs=[
+                # Model:
+                m.particle_radius,
+                m.particle_inv_mass,
+                m.particle_material,
+                m.pair_table,
+                m.num_materials,
+                m.wall_normal,
+                m.wall_velocity,
+                m.wall_material,
+                m.num_walls,
+                # State in:
+                s.particle_count,
+                s.particle_q,
+                s.particle_qd,
+                s.particle_omega,
+                s.wall_point,
+                s.wall_shear,
+            ],
+            outputs=[out],
+            device=m.device,
+        )
+    return out.numpy().reshape(model.num_walls, 3).astype(np.float64)
+
+
 def neighbor_pairs(model: Model, state: State) -> np.ndarray:
     """The (i, j) pairs, i < j, held in the neighbour list, shape (P, 2), sorted (for tests and bond building)."""
     cap, k = model.particle_capacity, model.max_neighbors

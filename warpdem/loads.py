@@ -652,6 +652,37 @@ def eval_loads(model: Model, state: State, dt: float | None = None) -> None:
         )
 
 
+def load_forces(model: Model, state: State) -> tuple[list[str], np.ndarray]:
+    """Names and total forces of the pressure loads now [N], shape (L, 3), float64: -p a summed over each load's
+    faces at the state's time and positions. Allocates and reads back: call between steps."""
+    loads = model.loads
+    if loads is None or loads.pressure_loads is None:
+        return [], np.zeros((0, 3))
+    out = wp.zeros(len(loads.pressure_names), dtype=wp.vec3d, device=model.device)
+    for kind, faces in loads.pressure.items():
+        wp.launch(
+            kl.make_load_force_kernel(kind),
+            dim=faces.count,
+            inputs=[
+                # Model:
+                faces.nodes,
+                faces.edge_a,
+                faces.edge_b,
+                faces.index,
+                loads.pressure_loads,
+                loads.table_times,
+                loads.table_values,
+                # State in:
+                state.time,
+                state.node_u,
+                state.node_q,
+            ],
+            outputs=[out],
+            device=model.device,
+        )
+    return list(loads.pressure_names), out.numpy().reshape(-1, 3).astype(np.float64)
+
+
 def load_work(state: State) -> float:
     """Work done on the FEM nodes by pressure loads and velocity drivers since the start [J] (reads back)."""
     return float(state.node_energy_boundary_work.numpy().sum())

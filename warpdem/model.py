@@ -227,6 +227,8 @@ class State:
         bond_tensile_strength, bond_shear_strength: [Pa]; bond_damping: damping ratio ζ [-];
         bond_shear: shear spring [m] (vec3); bond_broken: 0 intact, 1 broke in tension, 2 in shear.
         bonds_broken_total: bonds broken since the start, shape (1,).
+        particle_bonds_broken: bonds each sphere has lost since the start (a damage measure for output), shape
+            (particle_capacity,), int32.
         energy_damping, energy_friction, energy_boundary_work, energy_bond_broken: per-particle accumulators
             [J], shape (particle_capacity,), float64: dissipated by dashpots, by friction (and tangential
             dashpots), work done on the spheres by moving walls and driven spheres, and spring energy released
@@ -307,6 +309,7 @@ class State:
     bond_shear: wp.array
     bond_broken: wp.array
     bonds_broken_total: wp.array
+    particle_bonds_broken: wp.array
     energy_damping: wp.array
     energy_friction: wp.array
     energy_boundary_work: wp.array

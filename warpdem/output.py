@@ -54,6 +54,45 @@ def ramp_colors(values: np.ndarray, scale: float) -> np.ndarray:
     return (1.0 - t) * np.array([0.15, 0.3, 0.85]) + t * np.array([0.95, 0.25, 0.1])
 
 
+def sphere_damage(model: Model, state: State) -> tuple[np.ndarray, np.ndarray]:
+    """Damage of the live spheres (reads back; call between steps): the bonds each has lost so far, shape (N,),
+    int, and the fraction of its bonds that broke, shape (N,), in [0, 1] (0 for a sphere that never had a bond).
+    A sphere's bonds are those it lost plus its intact ones now."""
+    n = int(state.particle_count.numpy()[0])
+    broken = state.particle_bonds_broken.numpy()[:n].astype(np.int64)
+    nb = int(state.bond_count.numpy()[0]) if model.bond_capacity else 0
+    intact = state.bond_broken.numpy()[:nb] == 0
+    ends = np.concatenate([state.bond_i.numpy()[:nb][intact], state.bond_j.numpy()[:nb][intact]])
+    total = broken + np.bincount(ends, minlength=n)[:n]
+    return broken, np.where(total > 0, broken / np.maximum(total, 1), 0.0)
+
+
+def damage_colors(fraction: np.ndarray) -> np.ndarray:
+    """Light grey (no bond broken) → orange → dark red (every bond broken), linear RGB, shape (N, 3)."""
+    stops = np.array([[0.72, 0.72, 0.75], [0.95, 0.55, 0.1], [0.6, 0.05, 0.05]])
+    t = np.clip(np.asarray(fraction, dtype=np.float64), 0.0, 1.0) * 2.0
+    k = np.minimum(t.astype(int), 1)
+    w = (t - k)[:, None]
+    return (1.0 - w) * stops[k] + w * stops[k + 1]
+
+
+def sphere_point_data(model: Model, state: State) -> dict[str, np.ndarray]:
+    """Per-sphere fields for the ParaView series (reads back): radius [m], velocity [m/s], spin [rad/s], id, part,
+    material, bonds_broken (bonds lost so far) and damage (their fraction of the sphere's bonds)."""
+    n = int(state.particle_count.numpy()[0])
+    broken, fraction = sphere_damage(model, state)
+    return {
+        "radius": model.particle_radius.numpy()[:n].astype(np.float64),
+        "velocity": state.particle_qd.numpy()[:n].astype(np.float64),
+        "spin": state.particle_omega.numpy()[:n].astype(np.float64),
+        "id": model.particle_id.numpy()[:n].astype(np.int64),
+        "part": model.particle_part.numpy()[:n].astype(np.int32),
+        "material": model.particle_material.numpy()[:n].astype(np.int32),
+        "bonds_broken": broken.astype(np.int32),
+        "damage": fraction,
+    }
+
+
 def von_mises_stress(stress: np.ndarray) -> np.ndarray:
     """von Mises stress sqrt(3/2 s:s) of symmetric stress tensors [Pa], s the deviator; shape (M, 3, 3) → (M,)."""
     sigma = np.asarray(stress, dtype=np.float64).reshape(-1, 3, 3)
@@ -153,11 +192,14 @@ def open_faces(
 
 
 class VtuSeries:
-    """Per-frame VTU files of a tet mesh and the ``.pvd`` collection that lists them.
+    """Per-frame VTU files of a tet mesh and of the spheres, and the one ``.pvd`` collection that lists both.
 
-    Files: ``<directory>/<name>_vtu/<name>_<frame:06d>.vtu`` and ``<directory>/<name>.pvd``. A restarted run (with
-    ``first_frame`` > 0) continues the collection, as it continues its USD stage: the entries of the frames before
-    ``first_frame`` stay, the later ones are replaced by the frames it writes.
+    Files: ``<directory>/<name>_vtu/<name>_<frame:06d>.vtu`` (the mesh, part 0 of the collection),
+    ``<directory>/<name>_particles/<name>_<frame:06d>.vtu`` (the spheres as vertex cells, part 1; VTK's PolyData
+    files would hold the same, but meshio neither writes nor reads them) and ``<directory>/<name>.pvd``. A restarted
+    run (with ``first_frame`` > 0) continues the collection, as it continues its USD stage: the entries of the frames
+    before ``first_frame`` stay, the later ones are replaced by the frames it writes. ParaView opens the collection
+    as one time series of both; draw the spheres with the Point Gaussian representation scaled by ``radius``.
 
     Args:
         directory: output directory (created). name: base name of the files. first_frame: frame number of the
@@ -169,25 +211,34 @@ class VtuSeries:
         self.name = name
         self.frame_dir = self.directory / f"{name}_vtu"
         self.pvd_path = self.directory / f"{name}.pvd"
-        self._entries: list[tuple[float, str]] = self._entries_before(first_frame) if first_frame > 0 else []
+        self.particle_dir = self.directory / f"{name}_particles"
+        self._entries: list[tuple[float, int, str]] = self._entries_before(first_frame) if first_frame > 0 else []
 
-    def _entries_before(self, first_frame: int) -> list[tuple[float, str]]:
-        """(time, file) of the collection's frames before ``first_frame`` (none without a readable collection)."""
+    def _entries_before(self, first_frame: int) -> list[tuple[float, int, str]]:
+        """(time, part, file) of the collection's frames before ``first_frame`` (none without a readable
+        collection)."""
         import xml.etree.ElementTree as ET
 
         try:
             datasets = ET.parse(self.pvd_path).getroot().iter("DataSet")
-            entries = [(float(d.get("timestep")), d.get("file")) for d in datasets]
+            entries = [(float(d.get("timestep")), int(d.get("part", "0")), d.get("file")) for d in datasets]
             return [
-                (t, rel) for t, rel in entries if int(pathlib.PurePosixPath(rel).stem.rsplit("_", 1)[1]) < first_frame
+                (t, part, rel)
+                for t, part, rel in entries
+                if int(pathlib.PurePosixPath(rel).stem.rsplit("_", 1)[1]) < first_frame
             ]
         except (OSError, ET.ParseError, TypeError, ValueError, IndexError):
             return []
 
     @property
     def files(self) -> list[pathlib.Path]:
-        """The VTU files written so far, in frame order."""
-        return [self.directory / rel for _, rel in self._entries]
+        """The mesh VTU files written so far, in frame order."""
+        return [self.directory / rel for _, part, rel in self._entries if part == 0]
+
+    @property
+    def particle_files(self) -> list[pathlib.Path]:
+        """The sphere VTU files written so far, in frame order."""
+        return [self.directory / rel for _, part, rel in self._entries if part == 1]
 
     def write(
         self,
@@ -209,19 +260,53 @@ class VtuSeries:
         Returns:
             The VTU file.
         """
+        return self._write(
+            0, frame, time, points, "tetra", np.asarray(tets, dtype=np.int64).reshape(-1, 4), point_data, cell_data
+        )
+
+    def write_particles(
+        self, frame: int, time: float, centers: np.ndarray, point_data: dict[str, np.ndarray]
+    ) -> pathlib.Path:
+        """Writes the spheres of one frame (one vertex cell each) and rewrites the collection.
+
+        Args:
+            frame: frame number. time: simulated time [s]. centers: sphere centres [m], shape (N, 3).
+            point_data: name → array with N rows (radius, velocity, ...).
+
+        Returns:
+            The VTU file.
+        """
+        n = len(centers)
+        return self._write(
+            1, frame, time, centers, "vertex", np.arange(n, dtype=np.int64).reshape(n, 1), point_data, {}
+        )
+
+    def _write(
+        self,
+        part: int,
+        frame: int,
+        time: float,
+        points: np.ndarray,
+        cell_type: str,
+        cells: np.ndarray,
+        point_data: dict[str, np.ndarray],
+        cell_data: dict[str, np.ndarray],
+    ) -> pathlib.Path:
+        """Writes one file of collection part ``part`` (0 mesh, 1 spheres) and rewrites the collection."""
         import meshio
 
-        self.frame_dir.mkdir(parents=True, exist_ok=True)
-        path = self.frame_dir / f"{self.name}_{frame:06d}.vtu"
-        cells = {}
+        folder = self.frame_dir if part == 0 else self.particle_dir
+        folder.mkdir(parents=True, exist_ok=True)
+        path = folder / f"{self.name}_{frame:06d}.vtu"
+        flat_cells = {}
         for name, a in cell_data.items():
-            flat = np.asarray(a).reshape(len(tets), -1)
-            cells[name] = flat[:, 0] if flat.shape[1] == 1 else flat
+            flat = np.asarray(a).reshape(len(cells), -1)
+            flat_cells[name] = flat[:, 0] if flat.shape[1] == 1 else flat
         mesh = meshio.Mesh(
             np.asarray(points, dtype=np.float64),
-            [("tetra", np.asarray(tets, dtype=np.int64).reshape(-1, 4))],
+            [(cell_type, cells)],
             point_data={name: np.asarray(a) for name, a in point_data.items()},
-            cell_data={name: [a] for name, a in cells.items()},
+            cell_data={name: [a] for name, a in flat_cells.items()},
         )
         tmp = path.with_name(f"{path.stem}.partial.vtu")
         try:
@@ -231,15 +316,15 @@ class VtuSeries:
             tmp.unlink(missing_ok=True)
             raise
         rel = path.relative_to(self.directory).as_posix()
-        self._entries = [e for e in self._entries if e[1] != rel] + [(float(time), rel)]
+        self._entries = [e for e in self._entries if e[2] != rel] + [(float(time), part, rel)]
         self._write_collection()
         return path
 
     def _write_collection(self) -> None:
         lines = ['<?xml version="1.0"?>', '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">']
         lines.append("  <Collection>")
-        for time, rel in self._entries:
-            lines.append(f'    <DataSet timestep="{time!r}" group="" part="0" file={quoteattr(rel)}/>')
+        for time, part, rel in sorted(self._entries):
+            lines.append(f'    <DataSet timestep="{time!r}" group="" part="{part}" file={quoteattr(rel)}/>')
         lines += ["  </Collection>", "</VTKFile>", ""]
         self.directory.mkdir(parents=True, exist_ok=True)
         tmp = self.pvd_path.with_name(f"{self.pvd_path.name}.partial")

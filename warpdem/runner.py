@@ -22,7 +22,7 @@ from .guard import UnstableRunError
 from .limits import MAX_ELEMENTS, MAX_STEPS
 from .model import Model, State
 from .scene import Scene, SceneError
-from .simulation import EnergyBalance, Simulation
+from .simulation import EnergyBalance, Simulation, balance_error
 
 
 def model_checkpoint_arrays(model: Model) -> list[str]:
@@ -77,7 +77,8 @@ class RunOptions:
 class RunSummary:
     """What a run did: simulated time [s], steps, wall time [s], throughput [particle-steps/s], contacts now,
     bonds broken, the energy balance at start and end, and the files written; FEM nodes and live tets, throughput
-    [tet-steps/s] and the VTU collection where the scene has a mesh."""
+    [tet-steps/s] and the VTU collection where the scene has a mesh (or writes its spheres as VTU); the time series
+    CSV (warpdem.timeseries)."""
 
     simulated_time: float
     steps: int
@@ -98,12 +99,10 @@ class RunSummary:
     frame: int = 0
     interrupted_by: int | None = None
     """The signal (SIGINT, SIGTERM) that stopped the run at ``frame``, after its checkpoint and stage were written."""
+    series_path: Path | None = None
 
     def format(self) -> str:
         e0, e1 = self.energy_start, self.energy_end
-        # Relative to the energy in play: stored now, or put in by walls and loads over the run.
-        stored = e1.kinetic + e1.elastic + e1.strain + abs(e1.gravity_potential)
-        scale = max(abs(e0.total), stored, abs(e1.boundary_work) + abs(e1.load_work), 1e-300)
         lines = [
             f"simulated time   {self.simulated_time:.6g} s in {self.steps} steps",
             f"wall time        {self.wall_time:.3f} s  ({self.particle_steps_per_second / 1e6:.3f} M particle-steps/s)",
@@ -132,12 +131,14 @@ class RunSummary:
             f"  friction diss. {e0.dissipated_friction:<14.6g} {e1.dissipated_friction:.6g}",
             f"  bond breakage  {e0.released_by_bond_breakage:<14.6g} {e1.released_by_bond_breakage:.6g}",
             f"  wall work      {e0.boundary_work:<14.6g} {e1.boundary_work:.6g}",
-            f"  balance        {e0.total:<14.6g} {e1.total:.6g}   (error {(e1.total - e0.total) / scale:+.2e})",
+            f"  balance        {e0.total:<14.6g} {e1.total:.6g}   (error {balance_error(e0, e1):+.2e})",
         ]
         if self.usd_path is not None:
             lines.append(f"USD              {self.usd_path}")
         if self.pvd_path is not None:
             lines.append(f"VTU series       {self.pvd_path}")
+        if self.series_path is not None:
+            lines.append(f"time series      {self.series_path}")
         if self.checkpoints:
             lines.append(f"checkpoint       {self.checkpoints[-1]}")
         return "\n".join(lines)
@@ -427,17 +428,20 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     checkpoint_dir = out_dir / scene.output.checkpoint_dir
     frames_per_checkpoint = max(1, round(checkpoint_every / frame_period)) if checkpoint_every > 0 else 0
 
-    from .output import RockFrames, VtuSeries
+    from .output import RockFrames, VtuSeries, damage_colors, sphere_damage, sphere_point_data
+    from .timeseries import TimeSeries
     from .usd import UsdWriter
 
     # Colour scales are the largest values seen so far in the run: a restart continues them from its checkpoint.
     speed_scale = [float(attrs.get("speed_scale", 1e-12))]
     checkpoints: list[Path] = []
+    mesh_vtu = scene.output.vtu and model.node_capacity > 0
     try:
-        vtu = VtuSeries(out_dir, output_stem, first_frame) if scene.output.vtu and model.node_capacity else None
+        vtu = VtuSeries(out_dir, output_stem, first_frame) if mesh_vtu or scene.output.particles_vtu else None
+        series = TimeSeries(out_dir, output_stem, first_frame)
     except OSError as exc:
-        raise _output_error(f"{scene.source}: output.vtu", out_dir, exc) from None
-    rock = RockFrames(scene.output.mesh_color_by, vtu)
+        raise _output_error(f"{scene.source}: output.directory", out_dir, exc) from None
+    rock = RockFrames(scene.output.mesh_color_by, vtu if mesh_vtu else None)
     rock.color_scale = float(attrs.get("rock_color_scale", 0.0))
 
     def checkpoint(frame: int) -> None:
@@ -459,9 +463,15 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         n = sim.particle_count
         q = sim.state.particle_q.numpy()[:n]
         v = sim.state.particle_qd.numpy()[:n]
+        if scene.output.particles_vtu and n:
+            vtu.write_particles(frame, sim.time, q, sphere_point_data(sim.model, sim.state))
+        series.record(sim, frame)
         speed = np.linalg.norm(v, axis=1)
+        broken, damage = sphere_damage(sim.model, sim.state)
         if scene.output.color_by == "part":
             colors = PART_PALETTE[sim.model.particle_part.numpy()[:n] % len(PART_PALETTE)]
+        elif scene.output.color_by == "damage":
+            colors = damage_colors(damage)
         else:
             speed_scale[0] = max(speed_scale[0], float(speed.max(initial=0.0)))
             colors = speed_colors(speed, speed_scale[0])
@@ -479,6 +489,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
             colors=colors,
             bonds=bonds,
             surface=rock.surface(sim.model, sim.state),
+            bonds_broken=broken if sim.model.bond_capacity else None,
         )
 
     energy_start = sim.energy()
@@ -556,6 +567,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         pvd_path=vtu.pvd_path if vtu is not None else None,
         frame=frame,
         interrupted_by=stop.signum,
+        series_path=series.csv_path,
     )
 
 
@@ -596,4 +608,5 @@ def summary_json(summary: RunSummary) -> str:
     d["usd_path"] = str(summary.usd_path) if summary.usd_path else None
     d["checkpoints"] = [str(p) for p in summary.checkpoints]
     d["pvd_path"] = str(summary.pvd_path) if summary.pvd_path else None
+    d["series_path"] = str(summary.series_path) if summary.series_path else None
     return json.dumps(d, indent=1)

@@ -1089,7 +1089,10 @@ class Output(_Model):
     usd: PathText | None = Field(
         default=None, description="USD file inside directory (.usd, .usda or .usdc); '<name>.usdc' after loading."
     )
-    color_by: Literal["speed", "part"] = Field(default="speed", description="Particle colouring in the USD file.")
+    color_by: Literal["speed", "part", "damage"] = Field(
+        default="speed",
+        description="Particle colouring in the USD file; damage = the fraction of each sphere's bonds broken so far.",
+    )
     bonds_as_curves: Bool = Field(default=False, description="Write intact bonds as USD curves.")
     checkpoint_every: Float = Field(
         default=0.0, ge=0, description="Checkpoint interval in simulated time [s]; 0 = only at the end."
@@ -1102,6 +1105,11 @@ class Output(_Model):
         default=False,
         description="Also write the tet mesh of every frame as VTU (<stem>_vtu/ in directory, <stem> that of the USD "
         "file) with a <stem>.pvd collection for ParaView.",
+    )
+    particles_vtu: Bool = Field(
+        default=False,
+        description="Also write the spheres of every frame as VTU vertex cells (<stem>_particles/ in directory) "
+        "listed in the same <stem>.pvd as the mesh.",
     )
 
     @field_validator("usd")

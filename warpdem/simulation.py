@@ -88,6 +88,15 @@ class EnergyBalance:
         )
 
 
+def balance_error(start: EnergyBalance, now: EnergyBalance) -> float:
+    """Relative error of the energy balance [-]: the drift of ``total`` since ``start``, relative to the energy in
+    play (stored now, or put in by walls and loads over the run), so that no arbitrary datum scales it. The summary
+    and the time series (warpdem.timeseries) both print this number."""
+    stored = now.kinetic + now.elastic + now.strain + abs(now.gravity_potential)
+    scale = max(abs(start.total), stored, abs(now.boundary_work) + abs(now.load_work), 1e-300)
+    return (now.total - start.total) / scale
+
+
 def regrow_neighbors(model: Model, state: State, max_neighbors: int) -> tuple[Model, State]:
     """Return a model and state with ``max_neighbors`` slots per particle, the existing slots copied over."""
     old_k = model.max_neighbors

@@ -8,7 +8,8 @@ Stage layout::
 
     /World              Xform, default prim; custom double ``warpdem:time`` [s], one sample per frame
     /World/Particles    Points (only once a frame has spheres): points [m], widths (diameters) [m],
-                        velocities [m/s], ids, primvars:displayColor (vertex), primvars:speed [m/s] (vertex), extent [m]
+                        velocities [m/s], ids, primvars:displayColor (vertex), primvars:speed [m/s] (vertex), extent [m],
+                        primvars:bondsBroken (vertex, int: bonds each sphere has lost so far; when given)
     /World/Bonds        BasisCurves, linear, one 2-vertex curve per bond (only when bonds are given)
     /World/Rock         Mesh of triangles (only when a frame carries a :class:`SurfaceFrame`): points [m] and
                         velocities [m/s] every frame, faceVertexCounts / faceVertexIndices only on the frames where
@@ -197,6 +198,7 @@ class UsdWriter:
         self._rock_vertex_colors = False
         self._last_faces: np.ndarray | None = None
         self._last_ids: np.ndarray | None = None
+        self._damage_primvar: Any = None  # primvars:bondsBroken, defined on the first frame that carries it
         self._frame_count = 0
         self._first_frame = int(first_frame)
         self._start = start  # time code of the stage's first frame (before first_frame in an extended stage)
@@ -272,6 +274,7 @@ class UsdWriter:
         colors: np.ndarray,
         bonds: np.ndarray | None = None,
         surface: SurfaceFrame | None = None,
+        bonds_broken: np.ndarray | None = None,
     ) -> int:
         """Authors one frame of particle (and optionally bond and rock surface) data.
 
@@ -289,6 +292,8 @@ class UsdWriter:
             surface: Optional rock surface, written to ``/World/Rock``. Its topology is authored only where it
                 differs from the last authored one (USD holds it in between); once any frame has carried a surface,
                 a later frame without one authors an empty mesh.
+            bonds_broken: Optional bonds each sphere has lost so far, shape (N,), integer (a damage measure),
+                written to ``primvars:bondsBroken``.
 
         Returns:
             The time code (frame number) of the frame just written.
@@ -338,6 +343,16 @@ class UsdWriter:
             if self._last_ids is None or not np.array_equal(self._last_ids, ids_arr):
                 self._particle_attrs["ids"].Set(Vt.Int64Array.FromNumpy(ids_arr), code)
                 self._last_ids = ids_arr.copy()
+
+        if bonds_broken is not None and self._points is not None:
+            damage = np.ascontiguousarray(np.asarray(bonds_broken).reshape(n), dtype=np.int32)
+            if self._damage_primvar is None:
+                from pxr import Sdf, UsdGeom
+
+                self._damage_primvar = UsdGeom.PrimvarsAPI(self._points.GetPrim()).CreatePrimvar(
+                    "bondsBroken", Sdf.ValueTypeNames.IntArray, UsdGeom.Tokens.vertex
+                )
+            self._damage_primvar.Set(Vt.IntArray.FromNumpy(damage), code)
 
         if bond_arr is not None:
             self._write_bonds(code, pos, rad, bond_arr)
@@ -546,7 +561,7 @@ class UsdWriter:
     def _release(self) -> None:
         """Drops every handle on the stage so USD releases the layer."""
         self._closed = True
-        self._time_attr = None
+        self._time_attr = self._damage_primvar = None
         self._points = self._bonds = self._rock = None
         self._particle_attrs = {}
         self._rock_attrs = {}

@@ -1,0 +1,217 @@
+"""Per-frame outputs of a run (warpdem/timeseries.py, the sphere VTU series, the damage primvar, wall and load forces).
+
+Oracles:
+- the CSV has one row per frame (0..F), its columns are the EnergyBalance fields, the counts, three components per
+  wall and load and the largest speed; its last row equals the run's summary exactly (the same state read twice,
+  written by repr); ``energy_total`` is the sum of the lines with the signs of ``EnergyBalance.total`` (to float64
+  round-off, ``SUM_RTOL``) and ``energy_error`` is the summary's error (the same function on the same numbers);
+- the HDF5 file holds the same numbers, with units;
+- a restarted run (from a middle checkpoint, after an interrupted run had written a row past it) leaves the CSV of
+  the uninterrupted run, byte for byte (CPU restarts are bit-identical);
+- the sphere VTU files read back with meshio: one point per sphere, the fields finite, and the per-sphere bonds
+  broken sum to twice the bonds broken (each broken bond is counted on both its spheres);
+- wall force = minus the sum of the wall contact forces on the spheres (Newton's third law; the same float32 law
+  evaluated twice, so to float32 round-off, ``F32_RTOL``); pressure load force = -p A n on a flat face of area A at
+  rest (float32 area, ``F32_RTOL``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import xml.etree.ElementTree as ET
+
+import h5py
+import meshio
+import numpy as np
+import pytest
+from pxr import Usd, UsdGeom
+
+from warpdem.builder import finalize_scene, scene_builder
+from warpdem.contact import wall_forces
+from warpdem.loads import load_forces
+from warpdem.runner import RunOptions, run_scene
+from warpdem.scene import parse_scene
+from warpdem.simulation import EnergyBalance, Simulation, balance_error
+from warpdem.timeseries import COUNT_COLUMNS, energy_lines, energy_signs, read_series, unit
+
+SUM_RTOL = 1e-12  # a sum of ~15 float64 terms of one magnitude
+F32_RTOL = 1e-5  # float32 forces and areas, a few roundings
+
+FRAMES = 4
+# A bonded bar resting on the ground, struck by a ball: bonds break within the first frames, the ground carries it.
+SPHERE_SCENE = {
+    "name": "struck_bar",
+    "run": {"end_time": 1.0, "output_rate": 200.0},
+    "materials": {"rock": {"density": 2600.0, "youngs_modulus": 5.0e7, "poisson_ratio": 0.25}},
+    "interactions": {"default": {"friction": 0.5, "restitution": 0.3}},
+    "parts": {"bar": {"material": "rock"}, "ball": {"material": "rock"}},
+    "particles": [
+        {
+            "kind": "packing",
+            "part": "bar",
+            "region": {"box": {"lo": [0.0, 0.0, 0.0], "hi": [0.1, 0.02, 0.02]}},
+            "radius": 0.005,
+            "arrangement": "hcp",
+        },
+        {"kind": "sphere", "part": "ball", "center": [0.05, 0.01, 0.045], "radius": 0.012, "velocity": [0, 0, -4.0]},
+    ],
+    "bonds": [
+        {
+            "region": {"box": {"lo": [-0.01, -0.01, -0.01], "hi": [0.11, 0.03, 0.03]}},
+            "material": "rock",
+            "tensile_strength": 2.0e4,
+            "shear_strength": 4.0e4,
+        }
+    ],
+    "walls": [{"kind": "plane", "point": [0.0, 0.0, -0.0001], "normal": [0.0, 0.0, 1.0], "material": "rock"}],
+    "output": {"color_by": "damage", "particles_vtu": True},
+}
+
+PRESSURE = 2.0e5  # [Pa]
+MESH_SCENE = {
+    "name": "pressed_block",
+    "run": {"end_time": 1.0, "output_rate": 4000.0},
+    "gravity": {"vector": [0.0, 0.0, 0.0]},
+    "materials": {"granite": {"density": 2650.0, "youngs_modulus": 5.0e9, "poisson_ratio": 0.25}},
+    "mesh": {
+        "kind": "box",
+        "lo": [0.0, 0.0, 0.0],
+        "hi": [1.0, 0.5, 1.0],
+        "divisions": [2, 1, 2],
+        "material": "granite",
+    },
+    "loads": [
+        {"kind": "pressure", "faces": "z+", "history": {"kind": "table", "times": [0.0, 1.0], "values": [PRESSURE] * 2}}
+    ],
+    "boundaries": [{"faces": "z-", "kind": "fixed"}],
+}
+
+
+@pytest.fixture(scope="module")
+def sphere_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("spheres")
+    summary = run_scene(parse_scene(SPHERE_SCENE), RunOptions(device="cpu", frames=FRAMES, out_dir=out, quiet=True))
+    return summary, out
+
+
+def energy_of(data: dict[str, np.ndarray], row: int) -> EnergyBalance:
+    return EnergyBalance(**{n: float(data[f"energy_{n}"][row]) for n in energy_lines()})
+
+
+def test_csv_rows_columns_and_the_summary(sphere_run):
+    summary, out = sphere_run
+    assert summary.series_path == out / "struck_bar_series.csv"
+    data = read_series(summary.series_path)
+    expected = ["frame", "time", *(f"energy_{n}" for n in energy_lines()), "energy_total", "energy_error"]
+    expected += [*COUNT_COLUMNS, "wall0_fx", "wall0_fy", "wall0_fz", "max_speed"]
+    assert list(data) == expected
+    np.testing.assert_array_equal(data["frame"], np.arange(FRAMES + 1))
+    assert data["time"][-1] == summary.simulated_time
+    # The last row is the summary's end state, the first its start.
+    for k, e in ((-1, summary.energy_end), (0, summary.energy_start)):
+        for name in energy_lines():
+            assert data[f"energy_{name}"][k] == getattr(e, name), name
+    assert data["spheres"][-1] == summary.particles
+    assert data["contacts"][-1] == summary.contacts
+    assert data["bonds_intact"][-1] == summary.bonds_intact and data["bonds_broken"][-1] == summary.bonds_broken
+    assert summary.bonds_broken > 0, "the ball should break bonds within the run"
+    # The balance: total = Σ sign · line, and the error is the summary's.
+    signs = energy_signs()
+    total = sum(signs[n] * data[f"energy_{n}"] for n in energy_lines())
+    np.testing.assert_allclose(data["energy_total"], total, rtol=SUM_RTOL)
+    assert data["energy_error"][-1] == balance_error(summary.energy_start, summary.energy_end)
+    assert data["energy_error"][-1] == balance_error(energy_of(data, 0), energy_of(data, -1))
+    assert data["energy_error"][0] == 0.0
+    # The ground carries the bar: the spheres push down on it.
+    assert np.all(data["wall0_fz"][1:] < 0.0)
+    assert np.all(np.isfinite(np.stack(list(data.values()))))
+
+    with h5py.File(out / "struck_bar_series.h5") as f:
+        assert list(f.attrs["columns"]) == expected
+        for name in expected:
+            np.testing.assert_array_equal(f[name][()], data[name], err_msg=name)
+            assert f[name].attrs["unit"] == unit(name)
+        assert f["time"].attrs["unit"] == "s" and f["energy_elastic"].attrs["unit"] == "J"
+        assert f["wall0_fz"].attrs["unit"] == "N" and f["max_speed"].attrs["unit"] == "m/s"
+
+
+def test_sphere_vtu_series_and_damage_primvar(sphere_run):
+    summary, out = sphere_run
+    root = ET.parse(summary.pvd_path).getroot()
+    datasets = root.find("Collection").findall("DataSet")
+    assert [int(d.get("part")) for d in datasets] == [1] * (FRAMES + 1)  # no mesh: the spheres alone
+    assert [d.get("file") for d in datasets] == [f"struck_bar_particles/struck_bar_{k:06d}.vtu" for k in range(5)]
+    last = meshio.read(out / datasets[-1].get("file"))
+    assert len(last.points) == summary.particles
+    assert len(last.cells_dict["vertex"]) == summary.particles
+    for name, width in (("radius", 1), ("velocity", 3), ("spin", 3), ("part", 1), ("material", 1), ("damage", 1)):
+        values = np.asarray(last.point_data[name])
+        assert values.reshape(summary.particles, -1).shape[1] == width, name
+        assert np.all(np.isfinite(values)), name
+    broken = np.asarray(last.point_data["bonds_broken"])
+    assert broken.sum() == 2 * summary.bonds_broken  # each broken bond counts on both of its spheres
+    assert np.all((last.point_data["damage"] >= 0.0) & (last.point_data["damage"] <= 1.0))
+
+    stage = Usd.Stage.Open(str(summary.usd_path))
+    points = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/World/Particles"))
+    np.testing.assert_array_equal(np.asarray(points.GetPrimvar("bondsBroken").Get(float(FRAMES))), broken)
+
+
+def test_restarted_run_leaves_the_uninterrupted_series(sphere_run, tmp_path):
+    summary, _ = sphere_run
+    scene = parse_scene(SPHERE_SCENE)
+    period = 2.0 / scene.run.output_rate
+    # An interrupted run: three frames, checkpoints at frames 2 and 3; the restart from frame 2 replaces row 3.
+    first = run_scene(scene, RunOptions(device="cpu", frames=3, out_dir=tmp_path, checkpoint_every=period, quiet=True))
+    assert len(read_series(first.series_path)["frame"]) == 4
+    again = run_scene(
+        parse_scene(SPHERE_SCENE),
+        RunOptions(device="cpu", frames=FRAMES, out_dir=tmp_path, restart=first.checkpoints[0], quiet=True),
+    )
+    assert again.series_path == first.series_path
+    assert again.series_path.read_text() == summary.series_path.read_text()
+
+
+def test_wall_force_is_minus_the_wall_contact_forces_on_the_spheres(device):
+    """Two spheres, each pressed into its own wall, moving and spinning (so damping and tangential forces act)."""
+    data = {
+        "name": "pressed",
+        "run": {"end_time": 1.0},
+        "gravity": {"vector": [0.0, 0.0, 0.0]},
+        "materials": {"rock": {"density": 2600.0, "youngs_modulus": 5.0e7, "poisson_ratio": 0.25}},
+        "parts": {"a": {"material": "rock"}},
+        "particles": [
+            {"kind": "sphere", "part": "a", "center": [0.5, 0.5, 0.0095], "radius": 0.01, "velocity": [0.1, 0, -0.2]},
+            {"kind": "sphere", "part": "a", "center": [0.0092, 0.5, 0.5], "radius": 0.01, "velocity": [-0.3, 0.2, 0]},
+        ],
+        "walls": [
+            {"kind": "plane", "point": [0, 0, 0], "normal": [0, 0, 1], "material": "rock"},
+            {"kind": "plane", "point": [0, 0, 0], "normal": [1, 0, 0], "material": "rock"},
+        ],
+    }
+    scene = parse_scene(data)
+    model, state = finalize_scene(scene, scene_builder(scene), device)
+    sim = Simulation(model, state)  # evaluates the forces at the start (dt = 0)
+    f = sim.state.particle_f.numpy()[:2].astype(np.float64)
+    forces = wall_forces(sim.model, sim.state)
+    assert forces[0, 2] < 0.0 and forces[1, 0] < 0.0  # pushed into each wall
+    np.testing.assert_allclose(forces, -f, rtol=F32_RTOL, atol=F32_RTOL * np.abs(f).max())
+
+
+def test_load_force_is_pressure_times_area(device):
+    scene = parse_scene(MESH_SCENE)
+    model, state = finalize_scene(scene, scene_builder(scene), device)
+    names, forces = load_forces(model, state)
+    assert names == ["loads[0]"]
+    # f = -p a, a the outward area vector of the z+ face: 1 m × 0.5 m, normal +z.
+    np.testing.assert_allclose(forces, [[0.0, 0.0, -PRESSURE * 0.5]], rtol=F32_RTOL, atol=F32_RTOL * PRESSURE)
+
+
+def test_mesh_run_series_has_nodes_tets_and_load_columns(tmp_path):
+    summary = run_scene(parse_scene(MESH_SCENE), RunOptions(device="cpu", frames=2, out_dir=tmp_path, quiet=True))
+    data = read_series(summary.series_path)
+    assert data["nodes"][-1] == summary.nodes and data["tets"][-1] == summary.tets == 4 * 6
+    assert data["spheres"][-1] == 0 and "wall0_fx" not in data
+    np.testing.assert_allclose(data["load0_fz"][0], -PRESSURE * 0.5, rtol=F32_RTOL)
+    assert data["energy_error"][-1] == balance_error(summary.energy_start, summary.energy_end)
+    assert dataclasses.asdict(summary.energy_end)["strain"] == data["energy_strain"][-1] > 0.0
