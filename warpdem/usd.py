@@ -8,8 +8,8 @@ Stage layout::
 
     /World              Xform, default prim; custom double ``warpdem:time`` [s], one sample per frame
     /World/Particles    Points (only once a frame has spheres): points [m], widths (diameters) [m],
-                        velocities [m/s], ids, primvars:displayColor (vertex), primvars:speed [m/s] (vertex), extent [m],
-                        primvars:bondsBroken (vertex, int: bonds each sphere has lost so far; when given)
+                        velocities [m/s], ids, primvars:displayColor (vertex), primvars:speed [m/s] (vertex),
+                        extent [m], primvars:bondsBroken (vertex, int: bonds each sphere has lost so far; when given)
     /World/Bonds        BasisCurves, linear, one 2-vertex curve per bond (only when bonds are given)
     /World/Rock         Mesh of triangles (only when a frame carries a :class:`SurfaceFrame`): points [m] and
                         velocities [m/s] every frame, faceVertexCounts / faceVertexIndices only on the frames where
