@@ -218,12 +218,12 @@ def restore_checkpoint(
     arrays, attrs = read_checkpoint(path)
     if scene is not None and "scene" in attrs and attrs["scene"] != scene:
         raise CheckpointError(f"checkpoint {path} belongs to scene {attrs['scene']!r}, not {scene!r}")
-    scalars = model_scalars(model)
-    _check_attrs(path, attrs, [name for name, value in scalars.items() if isinstance(value, int)])
     for key in SCENE_FIXED_SCALARS:
         expected = getattr(model, key)
-        if attrs.get(key, -1) != expected:
-            raise CheckpointError(f"{path}: {key} is {attrs.get(key)} but the scene builds {expected}; wrong scene?")
+        if key in attrs and attrs[key] != expected:
+            raise CheckpointError(f"{path}: {key} is {attrs[key]} but the scene builds {expected}; wrong scene?")
+    scalars = model_scalars(model)
+    _check_attrs(path, attrs, [name for name, value in scalars.items() if isinstance(value, int)])
     missing = [
         k
         for k in [f"model/{n}" for n in model_checkpoint_arrays(model)] + [f"state/{n}" for n in template.arrays()]
