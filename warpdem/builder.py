@@ -1091,15 +1091,10 @@ def finalize_scene(scene: Scene, b: ModelBuilder, device: wp.context.DeviceLike 
     _check_representable(scene, b)
     run = scene.run
     overlap = b.measure_initial_overlap(device if device is not None else run.device)
-    if overlap.exceeds(OVERLAP_TOLERANCE) and not run.allow_initial_overlap:
-        raise SceneError(
-            f"{scene.source}: run.allow_initial_overlap: spheres start overlapping beyond the tolerance "
-            f"({100.0 * OVERLAP_TOLERANCE:g} % of a radius, no centre in the rock): {overlap.format()}; move them "
-            "apart (or out of the rock), or set allow_initial_overlap = true in [run] to start from this state anyway"
-        )
+    overlapping = overlap.exceeds(OVERLAP_TOLERANCE) and not run.allow_initial_overlap
     skin = None if scene.contact.skin == "auto" else float(scene.contact.skin)
     try:
-        return b.finalize(
+        built = b.finalize(
             device if device is not None else run.device,
             dt=None if run.dt == "auto" else float(run.dt),
             safety_factor=run.safety_factor,
@@ -1115,7 +1110,22 @@ def finalize_scene(scene: Scene, b: ModelBuilder, device: wp.context.DeviceLike 
     except CoincidentSpheresError as exc:
         raise SceneError(f"{scene.source}: bonds[{exc.group}].region: {exc}") from None
     except UnstableTimeStepError as exc:
+        if overlapping:  # deep initial overlaps set the critical step: name the cause, not the symptom
+            raise _overlap_error(scene, overlap) from None
         raise SceneError(
             f"{scene.source}: run.dt: {exc}; allowed: dt <= {exc.critical.value:.4g} s, dt = 'auto' "
             f"(run.safety_factor x the critical step), or run.allow_unstable_dt = true to run it anyway"
         ) from None
+    # Coincident bonded spheres (the more specific error, naming the source) were refused by finalize first.
+    if overlapping:
+        raise _overlap_error(scene, overlap)
+    return built
+
+
+def _overlap_error(scene: Scene, overlap: InitialOverlap) -> SceneError:
+    """The refusal of spheres that start overlapping each other or the rock beyond :data:`OVERLAP_TOLERANCE`."""
+    return SceneError(
+        f"{scene.source}: run.allow_initial_overlap: spheres start overlapping beyond the tolerance "
+        f"({100.0 * OVERLAP_TOLERANCE:g} % of a radius, no centre in the rock): {overlap.format()}; move them "
+        "apart (or out of the rock), or set allow_initial_overlap = true in [run] to start from this state anyway"
+    )
