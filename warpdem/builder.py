@@ -17,7 +17,7 @@ from . import packing
 from .bonds import find_bond_pairs
 from .contact import critical_time_step_hertz
 from .fem_contact import attach_fem_contact, contact_critical_step_at, fem_contact_state
-from .guard import CriticalStep, check_time_step, p_wave_speed, run_away_speed
+from .guard import CriticalStep, UnstableTimeStepError, check_time_step, p_wave_speed, run_away_speed
 from .joints import JointData, JointProps, count_split_nodes
 from .kernels.contact import ContactPair
 from .kernels.tets import TetMaterial
@@ -138,11 +138,6 @@ def bond_critical_step(
     return CriticalStep(
         float(steps[k]), f"the bond between spheres{name} ({mode} mode, {int(zmax[k])} bonds on a sphere)"
     )
-
-
-def bond_critical_time_step(particles: ParticleData, bonds: BondData, materials: dict[str, MaterialProps]) -> float:
-    """Stable step [s] of the bonded spheres (:func:`bond_critical_step`)."""
-    return bond_critical_step(particles, bonds, materials).value
 
 
 @dataclass
@@ -497,12 +492,12 @@ class ModelBuilder:
         """
         self.load_specs.add_boundary(faces_or_nodes, kind, normal)
 
-    def load_model(self, mesh: TetMeshData, tet_arrays: dict, dt: float, device: wp.context.Device) -> LoadModel | None:
+    def load_model(self, mesh: TetMeshData, tet_arrays: dict, device: wp.context.Device) -> LoadModel | None:
         """The device-side loads and dashpots (None when none were added); ``tet_arrays`` from
         :meth:`tet_model_arrays`."""
         if not self.load_specs:
             return None
-        return self.load_specs.build(mesh, self.tet_material_table(), tet_arrays["node_capacity"], dt, device)
+        return self.load_specs.build(mesh, self.tet_material_table(), tet_arrays["node_capacity"], device)
 
     # -- finalize ----------------------------------------------------------------------------------------------
     def measure_initial_overlap(self, device: wp.context.DeviceLike = None) -> InitialOverlap:
@@ -611,7 +606,7 @@ class ModelBuilder:
         initial approach / 10, the bond step (:func:`bond_critical_step`), the tet step (:meth:`tet_critical_step`,
         of ``mesh`` or of the meshes added), the step of the nodes under non-reflecting dashpots
         (:meth:`warpdem.loads.LoadSpecs.critical_time_step`) and the step of the FEM contact and joint penalty
-        springs (:meth:`contact_critical_time_step`)."""
+        springs (:meth:`contact_critical_step`)."""
         names = list(self.materials)
         free = particles.motion == 0
         mesh = mesh if mesh is not None else self.tet_mesh_data()
@@ -786,7 +781,7 @@ class ModelBuilder:
             walls_move=bool(nw and np.any(walls.velocity != 0.0)),
             bond_capacity=len(bonds),
             **tet_arrays,
-            loads=self.load_model(mesh, tet_arrays, float(dt), device),
+            loads=self.load_model(mesh, tet_arrays, device),
             critical_dt=critical.value,
             critical_dt_source=critical.source,
             speed_limit=self.run_away_speed(particles, bonds, mesh, walls),
@@ -1083,7 +1078,6 @@ def finalize_scene(scene: Scene, b: ModelBuilder, device: wp.context.DeviceLike 
             rock) and ``run.allow_initial_overlap`` is off,
             or an explicit run.dt exceeds the critical time step and run.allow_unstable_dt is off.
     """
-    from .guard import UnstableTimeStepError
     from .joints import JointFaceError
 
     if b.sphere_count == 0 and b.node_count == 0:

@@ -347,18 +347,17 @@ class LoadSpecs:
         mesh: TetMeshData,
         table: list[kt.TetMaterial],
         node_capacity: int,
-        dt: float,
         device: wp.context.Device,
     ) -> LoadModel:
         """The device-side :class:`LoadModel` (empty when nothing was given).
 
         Args:
             mesh: the constrained mesh (:meth:`constrain`). table: TetMaterial per material id.
-            node_capacity: node slots. dt: time step [s] (for the dashpot stability check). device: Warp device.
+            node_capacity: node slots. device: Warp device.
 
         Raises:
-            ValueError: an id past the mesh, a face that is no boundary face of a tet, a node driven twice, or a
-                dashpot too stiff for dt.
+            ValueError: an id past the mesh, a face that is no boundary face of a tet, or a node driven twice (a
+                dashpot too stiff for dt is refused by ModelBuilder.finalize, warpdem.guard.check_time_step).
         """
         self.check_nodes(len(mesh.points))
         loads, faces, face_load, kinds, table_times, table_values = [], [], [], [], [], []
@@ -377,7 +376,7 @@ class LoadSpecs:
                 mine = all_kind == i
                 if np.any(mine):
                     pressure[kind] = FaceSet.create(mesh.points, all_faces[mine], device, index=all_load[mine])
-        dashpots = self.build_dashpots(mesh, table, dt, device)
+        dashpots = self.build_dashpots(mesh, table, device)
         node_driver, drivers = self.build_drivers(len(mesh.points), node_capacity, device)
         return LoadModel(
             pressure=pressure,
@@ -444,9 +443,7 @@ class LoadSpecs:
         zeta = coefficient[held] / (2.0 * mass[held] * w) + zeta_tets[held]
         return float(np.min(2.0 / w * (np.sqrt(1.0 + zeta**2) - zeta)))
 
-    def build_dashpots(self, mesh: TetMeshData, table: list[kt.TetMaterial], dt: float, device) -> FaceSet | None:
-        # A dt above the dashpots' stable step is refused by ModelBuilder.finalize with every other critical step
-        # (warpdem.guard.check_time_step), unless the caller allows an unstable dt.
+    def build_dashpots(self, mesh: TetMeshData, table: list[kt.TetMaterial], device) -> FaceSet | None:
         dashpots = self.dashpot_faces(mesh, table)
         if dashpots is None:
             return None

@@ -542,7 +542,8 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         progress.close()
     if unstable is not None:
         last = f"last good checkpoint {checkpoints[-1]}" if checkpoints else "no checkpoint written"
-        unstable.outputs = f"{writer.frame_count} good frames published in {writer.path}; {last}"
+        frames = f"{writer.frame_count} good frame{'s' if writer.frame_count != 1 else ''}"
+        unstable.outputs = f"{frames} published in {writer.path}; {last}"
         raise unstable
     steps = sim.step_count - steps0
     n = sim.particle_count
