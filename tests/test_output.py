@@ -303,5 +303,5 @@ def test_cli_reports_an_unusable_mesh_file(tmp_path, capsys):
     status = main([str(scene), "--out", str(tmp_path / "out"), "--frames", "1", "--quiet"])
     err = capsys.readouterr().err
     assert status == 2
-    assert err.startswith("error: bad_mesh: mesh.path: ") and "cannot read as gmsh" in err and "Traceback" not in err
+    assert err.startswith(f"error: {scene}: mesh.path: ") and "cannot read as gmsh" in err and "Traceback" not in err
     assert not (tmp_path / "out").exists() or not list((tmp_path / "out").rglob("*.usd*"))
