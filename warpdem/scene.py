@@ -5,13 +5,16 @@ loading is reported as one line ``<file>: <key.path>: <what is allowed> (got <va
 problems of a file are reported together in one :class:`SceneError`, so a user fixes a file in one
 pass instead of one error per run.
 
-Loading happens in three passes:
+Loading happens in four passes:
 
 1. TOML parsing (``tomllib``): syntax errors carry line and column.
 2. Field validation (pydantic): types, ranges, unknown keys, unknown ``kind`` values.
 3. Cross references and files: material / part names used before they are defined, duplicate
    interaction pairs, particle files that do not exist. These run only on a structurally valid scene,
    because they need the validated objects.
+4. Sizes (:meth:`Scene.size_problems`): spheres, neighbour slots, nodes, tets and joint surfaces estimated from the
+   scene and held against :mod:`warpdem.limits` before anything is packed, meshed or allocated. Every float is also
+   held to the range the device's float32 represents (``Float``), so no scene number becomes inf or 0 on the device.
 
 Python users build scenes without files through :func:`parse_scene`, which reports the same errors.
 This module is pure host code: it must not import warp, so ``warpdem --help`` and scene checks stay fast.
@@ -123,6 +126,7 @@ MAX_FILE_NAME_BYTES = 200
 """Longest file or folder name a scene may give (file systems allow 255 bytes; the writers add suffixes such as
 ``.partial.usdc``)."""
 MAX_GRAVITY = 1e6
+"""Largest gravity magnitude a scene may give [m/s²] (about 1e5 g)."""
 MAX_JOINT_SURFACES = 5000
 """Most joint planes and discs a geology mesh may be fragmented by (Gmsh's boolean fragment grows faster than
 linearly in their number)."""
@@ -139,8 +143,6 @@ def _regular_tet_volume(edge: float) -> float:
     """Volume of a regular tetrahedron of edge ``edge`` [m³]: edge³ / (6√2)."""
     return edge**3 / (6.0 * math.sqrt(2.0))
 
-
-"""Largest gravity magnitude a scene may give [m/s²] (about 1e5 g)."""
 
 # pydantic messages that speak Python where the user wrote TOML.
 _PLAIN_MESSAGES = {
