@@ -783,6 +783,7 @@ def new_state(
         bond_damping=arr(bonds.damping, float, nb),
         bond_shear=vec(None, nb),
         bond_broken=arr(np.zeros(nb), int, nb),
+        bond_energy_prev=wp.zeros(nb, dtype=wp.vec2, device=device),
         bonds_broken_total=scalar(0),
         energy_damping=wp.zeros(cap, dtype=wp.float64, device=device),
         energy_friction=wp.zeros(cap, dtype=wp.float64, device=device),

@@ -217,7 +217,8 @@ class State:
         bond_key: i * particle_capacity + j, sorted ascending, shape (bond_capacity,), int64.
         bond_rest_length: L_0 [m]; bond_kn, bond_ks: stiffnesses [N/m]; bond_area: cross-section [m²];
         bond_tensile_strength, bond_shear_strength: [Pa]; bond_damping: damping ratio ζ [-];
-        bond_shear: shear spring [m] (vec3); bond_broken: 0 intact, 1 broke in tension, 2 in shear.
+        bond_shear: shear spring [m] (vec3); bond_broken: 0 intact, 1 broke in tension, 2 in shear;
+        bond_energy_prev: (normal, shear) spring energy at the last evaluation [J] (vec2, for the energy books).
         bonds_broken_total: bonds broken since the start, shape (1,).
         energy_damping, energy_friction, energy_boundary_work, energy_bond_broken: per-particle accumulators
             [J], shape (particle_capacity,), float64: dissipated by dashpots, by friction (and tangential
@@ -309,6 +310,7 @@ class State:
     bond_damping: wp.array
     bond_shear: wp.array
     bond_broken: wp.array
+    bond_energy_prev: wp.array
     bonds_broken_total: wp.array
     energy_damping: wp.array
     energy_friction: wp.array
@@ -379,6 +381,7 @@ BOND_FIELDS = (
     "bond_damping",
     "bond_shear",
     "bond_broken",
+    "bond_energy_prev",
 )
 """State fields indexed by bond (compacted together)."""
 
