@@ -82,9 +82,9 @@ class RunSummary:
     bonds broken, the energy balance at start and end, and the files written; FEM nodes and live tets, throughput
     [tet-steps/s] and the VTU collection where the scene has a mesh.
 
-    ``energy_in_play`` [J] is the largest :attr:`EnergyBalance.in_play` (kinetic + elastic + strain + work put in so
-    far, no gravity potential) over the run's frames, and ``energy_error`` the balance's change over the run relative
-    to it: a scale with no arbitrary datum, so the error does not depend on where z = 0 is."""
+    ``energy_in_play`` [J] is the largest :attr:`EnergyBalance.in_play` (kinetic + elastic + strain, or the work put
+    in so far; no gravity potential) over the run's frames, and ``energy_error`` the balance's change over the run
+    relative to it: a scale with no arbitrary datum, so the error does not depend on where z = 0 is."""
 
     simulated_time: float
     steps: int
@@ -125,14 +125,12 @@ class RunSummary:
         def row(label: str, a: float, b: float) -> str:
             return f"  {label:<15}{a:<14.6g} {b:.6g}"
 
-        lines += [
-            "energy [J]       start          end",
-            row("kinetic", e0.kinetic, e1.kinetic),
-            row("Verlet shadow", e0.shadow, e1.shadow),
-        ]
+        lines += ["energy [J]       start          end", row("kinetic", e0.kinetic, e1.kinetic)]
+        if self.nodes:
+            lines.append(row("  of nodes", e0.kinetic_nodes, e1.kinetic_nodes))
+        lines.append(row("Verlet shadow", e0.shadow, e1.shadow))
         if self.nodes:
             lines += [
-                row("  of nodes", e0.kinetic_nodes, e1.kinetic_nodes),
                 row("strain", e0.strain, e1.strain),
                 row("viscous diss.", e0.dissipated_viscous, e1.dissipated_viscous),
                 row("non-refl. abs.", e0.absorbed_boundaries, e1.absorbed_boundaries),

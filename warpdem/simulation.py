@@ -84,10 +84,10 @@ class EnergyBalance:
 
     @property
     def in_play(self) -> float:
-        """Energy in play [J]: kinetic + elastic + strain + the work put in so far by walls, driven spheres and
-        loads. It holds no gravity potential, whose datum (where z = 0 is) is arbitrary: the balance's error is
-        scaled by its largest value over a run."""
-        return self.kinetic + self.elastic + self.strain + abs(self.boundary_work) + abs(self.load_work)
+        """Energy in play [J]: the larger of kinetic + elastic + strain and the work put in so far by walls, driven
+        spheres and loads. It holds no gravity potential, whose datum (where z = 0 is) is arbitrary: the balance's
+        error is scaled by its largest value over a run."""
+        return max(self.kinetic + self.elastic + self.strain, abs(self.boundary_work) + abs(self.load_work))
 
     @property
     def total(self) -> float:
