@@ -54,6 +54,8 @@ def eval_bonds_kernel(
     bond_tensile_strength: wp.array(dtype=float),
     bond_shear_strength: wp.array(dtype=float),
     bond_damping: wp.array(dtype=float),
+    # In:
+    track_energy: int,
     # State out:
     bond_shear: wp.array(dtype=wp.vec3),
     bond_broken: wp.array(dtype=int),
@@ -126,6 +128,8 @@ def eval_bonds_kernel(
     wp.atomic_add(particle_f, j, -force)
     wp.atomic_add(particle_t, i, wp.cross(-arms[0] * n, ft))
     wp.atomic_add(particle_t, j, wp.cross(arms[1] * n, -ft))
+    if track_energy == 0:
+        return
     book_contact_force(
         i, fn * n, ft, wp.cross(-arms[0] * n, ft), contact_f_normal, contact_f_tangential, contact_t_tangential
     )

@@ -233,6 +233,8 @@ def make_particle_drift_kernel(after_second_half: bool) -> wp.Kernel:
         # State in:
         particle_count: wp.array(dtype=int),
         particle_q_at_build: wp.array(dtype=wp.vec3),
+        # In:
+        track_energy: int,
         # State out:
         particle_q: wp.array(dtype=wp.vec3),
         particle_qd: wp.array(dtype=wp.vec3),
@@ -271,17 +273,18 @@ def make_particle_drift_kernel(after_second_half: bool) -> wp.Kernel:
             w = held_particle_work(i, held_dt, particle_f, particle_t, v, omega)
             energy_boundary_work[i] = energy_boundary_work[i] + w
         # Fixed spheres have v = 0; prescribed ones keep their velocity and spin.
-        book_contact_work_ahead(
-            i,
-            dt,
-            v,
-            omega,
-            contact_f_normal,
-            contact_f_tangential,
-            contact_t_tangential,
-            energy_damping,
-            energy_friction,
-        )
+        if track_energy != 0:  # else the sums stay zero: the contacts do not fill them
+            book_contact_work_ahead(
+                i,
+                dt,
+                v,
+                omega,
+                contact_f_normal,
+                contact_f_tangential,
+                contact_t_tangential,
+                energy_damping,
+                energy_friction,
+            )
         drift_particle(i, dt, half_skin, v, particle_q_at_build, particle_q, particle_f, particle_t, rebuild_flag)
 
     return drift_particles_kernel

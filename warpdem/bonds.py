@@ -12,8 +12,9 @@ from .kernels import bonds as kb
 from .model import BOND_FIELDS, Model, State
 
 
-def eval_bonds(model: Model, state: State, dt: float | None = None) -> None:
-    """Accumulate the forces of intact bonds and break those at their strength (``dt`` as in eval_contacts)."""
+def eval_bonds(model: Model, state: State, dt: float | None = None, track_energy: bool = True) -> None:
+    """Accumulate the forces of intact bonds and break those at their strength (``dt`` as in eval_contacts); with
+    ``track_energy`` book their dissipation (kernels/bonds.py)."""
     if model.bond_capacity == 0:
         return
     m, s = model, state
@@ -39,6 +40,8 @@ def eval_bonds(model: Model, state: State, dt: float | None = None) -> None:
             s.bond_tensile_strength,
             s.bond_shear_strength,
             s.bond_damping,
+            # In:
+            int(track_energy),
         ],
         outputs=[
             s.bond_shear,

@@ -197,17 +197,17 @@ class Simulation:
             eval_contacts(m, s, self.track_energy)
         if self.fem_contact is not None:
             self.fem_contact.eval(self.track_energy)
-        eval_bonds(m, s)
+        eval_bonds(m, s, track_energy=self.track_energy)
         eval_loads(m, s)
 
     def _head(self) -> None:
         """First half of the first step of a run, and its forces."""
-        integrate_first_half(self.model, self.state)
+        integrate_first_half(self.model, self.state, self.track_energy)
         self._forces()
 
     def _body(self) -> None:
         """Second half of a step, first half of the next (one pass: warpdem.integrate.kick_drift), its forces."""
-        kick_drift(self.model, self.state)
+        kick_drift(self.model, self.state, self.track_energy)
         self._forces()
 
     def _tail(self) -> None:
@@ -231,7 +231,7 @@ class Simulation:
         if self.fem_contact is not None:
             s.fem_rebuild_flag.fill_(1)
             self.fem_contact.eval(self.track_energy, dt=0.0)
-        eval_bonds(m, s, dt=0.0)
+        eval_bonds(m, s, dt=0.0, track_energy=self.track_energy)
         eval_loads(m, s, dt=0.0)
         eval_tet_stresses(m, s)
 
