@@ -435,12 +435,14 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
             rsum = ri + rj
             if dist2 >= rsum * rsum:
                 if wp.static(track_energy):
-                    # The pair parted: its tangential spring goes, ½ k_t(0) |ξ|² (zero where k_t(0) = 0).
+                    # The pair parted: its tangential spring goes, ½ k_t(0) |ξ|² to friction (zero where k_t(0) = 0;
+                    # the change from k_t(δ_n) to k_t(0) is the stiffness change).
                     sh = nbr_shear[slot]
                     if wp.dot(sh, sh) > 0.0:
                         p = pair_table[mat_i * num_materials + particle_material[j]]
-                        kt0 = stiffnesses(0.0, ri, rj, ri * rj / rsum, p)[1]
-                        a_t += 0.5 * kt0 * wp.dot(sh, sh)
+                        a = 0.5 * stiffnesses(0.0, ri, rj, ri * rj / rsum, p)[1] * wp.dot(sh, sh)
+                        a_t += a
+                        d_fric += a
                 nbr_shear[slot] = wp.vec3(0.0)  # history lives only as long as the pair touches
                 continue
             inv_mj = particle_inv_mass[j]
@@ -500,8 +502,9 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
                     sh = wall_shear[slot]
                     if wp.dot(sh, sh) > 0.0:
                         p = pair_table[mat_i * num_materials + wall_material[w]]
-                        kt0 = stiffnesses(0.0, ri, ri, ri, p)[1]
-                        a_t += 0.5 * kt0 * wp.dot(sh, sh)
+                        a = 0.5 * stiffnesses(0.0, ri, ri, ri, p)[1] * wp.dot(sh, sh)
+                        a_t += a
+                        d_fric += a
                 wall_shear[slot] = wp.vec3(0.0)
                 continue
             if inv_mi == 0.0:
