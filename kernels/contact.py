@@ -414,7 +414,7 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
         f_i = wp.vec3(0.0)
         t_i = wp.vec3(0.0)
         d_damp = float(0.0)  # minus the work behind (and the wall's share of the work ahead) [J]
-        d_fric = float(0.0)
+        d_fric = float(0.0)  # the same, tangential and rolling [J]
         w_wall = float(0.0)
         e_n = float(0.0)  # normal spring energy of the pairs i owns [J]
         e_t = float(0.0)  # tangential spring energy, ½ k_t(δ_{n+1}) |ξ_{n+1}|² [J]
@@ -436,13 +436,11 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
             if dist2 >= rsum * rsum:
                 if wp.static(track_energy):
                     # The pair parted: its tangential spring goes, ½ k_t(0) |ξ|² to friction (zero where k_t(0) = 0;
-                    # the change from k_t(δ_n) to k_t(0) is the stiffness change).
+                    # the change from k_t(δ_n) to k_t(0) is the stiffness change): it counts in a_t, not in e_t.
                     sh = nbr_shear[slot]
                     if wp.dot(sh, sh) > 0.0:
                         p = pair_table[mat_i * num_materials + particle_material[j]]
-                        a = 0.5 * stiffnesses(0.0, ri, rj, ri * rj / rsum, p)[1] * wp.dot(sh, sh)
-                        a_t += a
-                        d_fric += a
+                        a_t += 0.5 * stiffnesses(0.0, ri, rj, ri * rj / rsum, p)[1] * wp.dot(sh, sh)
                 nbr_shear[slot] = wp.vec3(0.0)  # history lives only as long as the pair touches
                 continue
             inv_mj = particle_inv_mass[j]
@@ -474,13 +472,11 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
             if wp.static(track_energy):
                 fn = wp.dot(force, n)
                 k = stiffnesses(delta, ri, rj, rstar, p)
-                a = 0.5 * k[1] * wp.dot(shear_old, shear_old)
-                b = 0.5 * k[1] * wp.dot(out[2], out[2])
                 e_n += elastic_energy(delta, k[0])
-                e_t += b
-                a_t += a
+                e_t += 0.5 * k[1] * wp.dot(out[2], out[2])
+                a_t += 0.5 * k[1] * wp.dot(shear_old, shear_old)
                 d_damp -= 0.5 * dt * fn * wp.dot(v_rel, n)
-                d_fric -= 0.5 * dt * (wp.dot(ft, v_rel) + wp.dot(roll, omega_rel)) + (b - a)
+                d_fric -= 0.5 * dt * (wp.dot(ft, v_rel) + wp.dot(roll, omega_rel))
                 fn_i += fn * n
                 ft_i += ft
                 tt_i += wp.cross(-ci * n, ft) + roll
@@ -502,9 +498,7 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
                     sh = wall_shear[slot]
                     if wp.dot(sh, sh) > 0.0:
                         p = pair_table[mat_i * num_materials + wall_material[w]]
-                        a = 0.5 * stiffnesses(0.0, ri, ri, ri, p)[1] * wp.dot(sh, sh)
-                        a_t += a
-                        d_fric += a
+                        a_t += 0.5 * stiffnesses(0.0, ri, ri, ri, p)[1] * wp.dot(sh, sh)
                 wall_shear[slot] = wp.vec3(0.0)
                 continue
             if inv_mi == 0.0:
@@ -530,13 +524,11 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
                 # constant), with the half behind against the relative velocity: -½ dt f·(v_rel - v_w) in all.
                 fn = wp.dot(force, nw)
                 k = stiffnesses(delta, ri, ri, ri, p)
-                a = 0.5 * k[1] * wp.dot(shear_old, shear_old)
-                b = 0.5 * k[1] * wp.dot(out[2], out[2])
                 e_n += elastic_energy(delta, k[0])
-                e_t += b
-                a_t += a
+                e_t += 0.5 * k[1] * wp.dot(out[2], out[2])
+                a_t += 0.5 * k[1] * wp.dot(shear_old, shear_old)
                 d_damp -= 0.5 * dt * fn * wp.dot(v_rel - vw, nw)
-                d_fric -= 0.5 * dt * (wp.dot(ft, v_rel - vw) + wp.dot(roll, wi)) + (b - a)
+                d_fric -= 0.5 * dt * (wp.dot(ft, v_rel - vw) + wp.dot(roll, wi))
                 fn_i += fn * nw
                 ft_i += ft
                 tt_i += wp.cross(-ci * nw, ft) + roll
@@ -548,10 +540,13 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
             prev = contact_energy_prev[i]
             contact_energy_prev[i] = wp.vec2(e_n, e_t)
             if dt > 0.0:  # the set-up evaluation (dt = 0) only records the springs' energies
-                # ΔU in float64 so that its sum over the steps telescopes to U_now - U_start exactly.
+                # ΔU in float64 so that its sum over the steps telescopes to U_now - U_start exactly. The tangential
+                # springs' change splits at the old springs under the new stiffness, a_t: ξ's change (friction: a
+                # parting pair's spring goes there) and k_t's (the stiffness change).
                 d_n = wp.float64(d_damp) - (wp.float64(e_n) - wp.float64(prev[0]))
+                d_t = wp.float64(d_fric) - (wp.float64(e_t) - wp.float64(a_t))
                 energy_damping[i] = energy_damping[i] + d_n
-                energy_friction[i] = energy_friction[i] + wp.float64(d_fric)
+                energy_friction[i] = energy_friction[i] + d_t
                 energy_stiffness_change[i] = energy_stiffness_change[i] + (wp.float64(a_t) - wp.float64(prev[1]))
                 energy_wall_work[i] = energy_wall_work[i] + wp.float64(w_wall)
 
