@@ -5,13 +5,20 @@ bond cross-section. It carries tension and compression. It breaks when its norma
 the tensile strength or its shear stress k_s |u_s| / A reaches the shear strength; a broken bond applies no force,
 and the pair is then an ordinary frictional contact (contact stage). Broken bonds are removed between steps by a
 compaction pass.
+
+Energy books, as velocity Verlet does the work (the same scheme as the sphere contacts, kernels/contact.py
+``make_contact_kernels``): a bond books the half of its work behind its evaluation, ½ dt f_{n+1}·v_rel, adds its
+forces to the spheres' sums for the half ahead, and books D = -W - ΔU with ΔU from the springs' energies at its last
+evaluation (``bond_energy_prev``): the normal spring and dashpot → ``energy_damping``, the shear spring and dashpot
+→ ``energy_friction`` (with the contacts' tangential dashpots). A bond that breaks hands its springs' energy at the
+new positions to ``energy_bond_broken``; what they changed over that last step goes to the same two lines.
 """
 
 from __future__ import annotations
 
 import warp as wp
 
-from .contact import rotate_into_plane
+from .contact import book_contact_force, rotate_into_plane
 
 wp.set_module_options({"enable_backward": False})
 
@@ -47,13 +54,20 @@ def eval_bonds_kernel(
     bond_tensile_strength: wp.array(dtype=float),
     bond_shear_strength: wp.array(dtype=float),
     bond_damping: wp.array(dtype=float),
+    # In:
+    track_energy: int,
     # State out:
     bond_shear: wp.array(dtype=wp.vec3),
     bond_broken: wp.array(dtype=int),
     bonds_broken_total: wp.array(dtype=int),
+    bond_energy_prev: wp.array(dtype=wp.vec2),
     particle_f: wp.array(dtype=wp.vec3),
     particle_t: wp.array(dtype=wp.vec3),
+    contact_f_normal: wp.array(dtype=wp.vec3),
+    contact_f_tangential: wp.array(dtype=wp.vec3),
+    contact_t_tangential: wp.array(dtype=wp.vec3),
     energy_damping: wp.array(dtype=wp.float64),
+    energy_friction: wp.array(dtype=wp.float64),
     energy_bond_broken: wp.array(dtype=wp.float64),
     particle_bonds_broken: wp.array(dtype=int),
 ):
@@ -87,17 +101,23 @@ def eval_bonds_kernel(
         mode = BOND_BROKEN_TENSION
     elif ks * wp.length(us) >= bond_shear_strength[b] * area:
         mode = BOND_BROKEN_SHEAR
+    e_n = 0.5 * kn * stretch * stretch
+    e_s = 0.5 * ks * wp.dot(us, us)
+    prev = bond_energy_prev[b]
     if mode != BOND_INTACT:
         bond_broken[b] = mode
         wp.atomic_add(bonds_broken_total, 0, 1)
         # Damage of each sphere (bonds lost so far), for output: the break path runs once per bond, so it is cheap.
         wp.atomic_add(particle_bonds_broken, i, 1)
         wp.atomic_add(particle_bonds_broken, j, 1)
-        # The springs' energy is released with the bond.
-        released = 0.5 * kn * stretch * stretch + 0.5 * ks * wp.dot(us, us)
-        wp.atomic_add(energy_bond_broken, i, wp.float64(released))
+        # The springs' energy is released with the bond; their change over this last step, which no force applied
+        # now works for, stays in the dissipation lines (the half of f_n's work ahead was booked by the integrator).
+        wp.atomic_add(energy_bond_broken, i, wp.float64(e_n) + wp.float64(e_s))
+        wp.atomic_add(energy_damping, i, wp.float64(prev[0]) - wp.float64(e_n))
+        wp.atomic_add(energy_friction, i, wp.float64(prev[1]) - wp.float64(e_s))
         return
     bond_shear[b] = us
+    bond_energy_prev[b] = wp.vec2(e_n, e_s)
     inv_sum = particle_inv_mass[i] + particle_inv_mass[j]
     mstar = float(0.0)
     if inv_sum > 0.0:
@@ -112,7 +132,20 @@ def eval_bonds_kernel(
     wp.atomic_add(particle_f, j, -force)
     wp.atomic_add(particle_t, i, wp.cross(-arms[0] * n, ft))
     wp.atomic_add(particle_t, j, wp.cross(arms[1] * n, -ft))
-    wp.atomic_add(energy_damping, i, wp.float64((gn * vn * vn + gs * wp.dot(vt, vt)) * dt))
+    if track_energy == 0:
+        return
+    book_contact_force(
+        i, fn * n, ft, wp.cross(-arms[0] * n, ft), contact_f_normal, contact_f_tangential, contact_t_tangential
+    )
+    book_contact_force(
+        j, -fn * n, -ft, wp.cross(arms[1] * n, -ft), contact_f_normal, contact_f_tangential, contact_t_tangential
+    )
+    if dt > 0.0:  # the set-up evaluation (dt = 0) only records the springs' energies
+        # The half of the work behind, ½ dt f·v_rel, and ΔU in float64 (its sum telescopes exactly).
+        d_n = wp.float64(-0.5 * dt * fn * vn) - (wp.float64(e_n) - wp.float64(prev[0]))
+        d_s = wp.float64(-0.5 * dt * wp.dot(ft, vt)) - (wp.float64(e_s) - wp.float64(prev[1]))
+        wp.atomic_add(energy_damping, i, d_n)
+        wp.atomic_add(energy_friction, i, d_s)
 
 
 @wp.kernel

@@ -188,6 +188,24 @@ def carried_by_bond(bond: int, bond_broken: wp.array(dtype=int)) -> bool:
     return False
 
 
+@wp.func
+def book_contact_force(
+    i: int,
+    fn_vec: wp.vec3,
+    ft: wp.vec3,
+    torque: wp.vec3,
+    contact_f_normal: wp.array(dtype=wp.vec3),
+    contact_f_tangential: wp.array(dtype=wp.vec3),
+    contact_t_tangential: wp.array(dtype=wp.vec3),
+):
+    """Add a contact's normal force, tangential force and tangential + rolling torque on sphere i [N, N, N m] to its
+    sums, which the integrator dots with v_{n+1/2} and ω_{n+1/2} for the half of the force's work that lies ahead
+    (kernels/integrate.py ``book_contact_work_ahead``)."""
+    wp.atomic_add(contact_f_normal, i, fn_vec)
+    wp.atomic_add(contact_f_tangential, i, ft)
+    wp.atomic_add(contact_t_tangential, i, torque)
+
+
 NORMAL_MODELS = ("hertz", "linear")
 TANGENTIAL_MODELS = ("mindlin", "linear")
 ROLLING_MODELS = ("none", "constant_torque")
@@ -201,6 +219,7 @@ class PairLaws:
         normal_force: (δ, v_n, r_a, r_b, R*, m*, p) → (F [N], F_el [N], k_n [N/m]).
         tangential_stiffness: (δ, R*, k_n, p) → k_t [N/m].
         elastic_energy: (δ, k_n) → normal spring energy [J].
+        stiffnesses: (δ, r_a, r_b, R*, p) → (k_n, k_t) [N/m] of the springs at overlap δ ≥ 0.
         pair_interaction: force and rolling torque on body a of a touching pair and its new tangential spring.
         pair_dissipation: energy a touching pair dissipated during the step (normal, tangential) [J].
     """
@@ -208,6 +227,7 @@ class PairLaws:
     normal_force: wp.Function
     tangential_stiffness: wp.Function
     elastic_energy: wp.Function
+    stiffnesses: wp.Function
     pair_interaction: wp.Function
     pair_dissipation: wp.Function
 
@@ -235,6 +255,11 @@ def make_pair_laws(normal: str, tangential: str, rolling: str) -> PairLaws:
             return hertz_normal_force(delta, vn, rstar, mstar, p)
         else:
             return linear_normal_force(delta, vn, linear_stiffness(ra, rb, p), mstar, p)
+
+    @wp.func
+    def stiffnesses(delta: float, ra: float, rb: float, rstar: float, p: ContactPair) -> wp.vec2:
+        kn = normal_force(delta, 0.0, ra, rb, rstar, 1.0, p)[2]
+        return wp.vec2(kn, tangential_stiffness(delta, rstar, kn, p))
 
     @wp.func
     def pair_interaction(
@@ -304,7 +329,7 @@ def make_pair_laws(normal: str, tangential: str, rolling: str) -> PairLaws:
         d_t = d_t - wp.dot(rolling_t, omega_rel) * dt
         return wp.vec2(d_n, d_t)
 
-    return PairLaws(normal_force, tangential_stiffness, elastic_energy, pair_interaction, pair_dissipation)
+    return PairLaws(normal_force, tangential_stiffness, elastic_energy, stiffnesses, pair_interaction, pair_dissipation)
 
 
 @functools.cache
@@ -315,7 +340,19 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
         normal: "hertz" or "linear".
         tangential: "mindlin" or "linear".
         rolling: "none" or "constant_torque".
-        track_energy: accumulate damping/friction dissipation and wall work per particle (float64).
+        track_energy: book damping/friction dissipation, the tangential springs' stiffness change and wall work
+            per particle (float64), as velocity Verlet does the work (below).
+
+    Energy books (``track_energy``). Velocity Verlet changes the kinetic energy over a step by the trapezoid
+    ΔKE = ½ dt Σ (f_n + f_{n+1})·v_{n+1/2} (plus the shadow term dt²/8 Δ(|f|²/m), which does not accumulate), and
+    v_{n+1/2} is the velocity during the evaluation of f_{n+1}. So each pair books here the half of its work that
+    lies behind, ½ dt f_{n+1}·v_rel (with the rolling torque's ½ dt M·ω_rel), and adds its forces and torques to
+    the sphere's sums, which the integrator dots with v_{n+3/2} once it is known (the half ahead). A pair's
+    dissipation is then D = -W - ΔU exactly, normal part → ``energy_damping``, tangential and rolling part →
+    ``energy_friction``; ΔU comes from the energies of the pairs each sphere owns (its half list and its walls),
+    kept from the last evaluation in ``contact_energy_prev``, so a pair that parts books what its springs held.
+    The tangential spring's ½ k_t |ξ|² also changes where k_t follows the overlap (Mindlin; a linear k_t on a
+    Hertz k_n) at fixed ξ: that change is no work and no dissipation, and goes to ``energy_stiffness_change``.
 
     Returns:
         (eval_contacts_kernel, contact_energy_kernel).
@@ -324,8 +361,8 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
     normal_force = laws.normal_force
     tangential_stiffness = laws.tangential_stiffness
     elastic_energy = laws.elastic_energy
+    stiffnesses = laws.stiffnesses
     pair_interaction = laws.pair_interaction
-    pair_dissipation = laws.pair_dissipation
 
     @wp.kernel(enable_backward=False, module="unique")
     def eval_contacts_kernel(
@@ -356,8 +393,13 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
         wall_shear: wp.array(dtype=wp.vec3),
         particle_f: wp.array(dtype=wp.vec3),
         particle_t: wp.array(dtype=wp.vec3),
+        contact_f_normal: wp.array(dtype=wp.vec3),
+        contact_f_tangential: wp.array(dtype=wp.vec3),
+        contact_t_tangential: wp.array(dtype=wp.vec3),
+        contact_energy_prev: wp.array(dtype=wp.vec2),
         energy_damping: wp.array(dtype=wp.float64),
         energy_friction: wp.array(dtype=wp.float64),
+        energy_stiffness_change: wp.array(dtype=wp.float64),
         energy_wall_work: wp.array(dtype=wp.float64),
     ):
         i = wp.tid()  # one thread per particle slot; it owns the pairs (i, j > i) of its half list
@@ -371,9 +413,15 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
         mat_i = particle_material[i]
         f_i = wp.vec3(0.0)
         t_i = wp.vec3(0.0)
-        d_damp = float(0.0)
-        d_fric = float(0.0)
+        d_damp = float(0.0)  # minus the work behind (and the wall's share of the work ahead) [J]
+        d_fric = float(0.0)  # the same, tangential and rolling [J]
         w_wall = float(0.0)
+        e_n = float(0.0)  # normal spring energy of the pairs i owns [J]
+        e_t = float(0.0)  # tangential spring energy, ½ k_t(δ_{n+1}) |ξ_{n+1}|² [J]
+        a_t = float(0.0)  # the same at the old springs, ½ k_t(δ_{n+1}) |ξ_n|² [J]
+        fn_i = wp.vec3(0.0)  # this thread's share of i's contact force sums
+        ft_i = wp.vec3(0.0)
+        tt_i = wp.vec3(0.0)
         count = wp.min(nbr_count[i], max_neighbors)
         for s in range(count):
             slot = i * max_neighbors + s
@@ -386,6 +434,13 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
             dist2 = wp.dot(d, d)
             rsum = ri + rj
             if dist2 >= rsum * rsum:
+                if wp.static(track_energy):
+                    # The pair parted: its tangential spring goes, ½ k_t(0) |ξ|² to friction (zero where k_t(0) = 0;
+                    # the change from k_t(δ_n) to k_t(0) is the stiffness change): it counts in a_t, not in e_t.
+                    sh = nbr_shear[slot]
+                    if wp.dot(sh, sh) > 0.0:
+                        p = pair_table[mat_i * num_materials + particle_material[j]]
+                        a_t += 0.5 * stiffnesses(0.0, ri, rj, ri * rj / rsum, p)[1] * wp.dot(sh, sh)
                 nbr_shear[slot] = wp.vec3(0.0)  # history lives only as long as the pair touches
                 continue
             inv_mj = particle_inv_mass[j]
@@ -418,16 +473,35 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
             wp.atomic_add(particle_f, j, -force)
             wp.atomic_add(particle_t, j, wp.cross(cj * n, -ft) - roll)
             if wp.static(track_energy):
-                dd = pair_dissipation(
-                    n, delta, ri, rj, rstar, mstar, v_rel, omega_rel, shear_old, out[2], force, roll, p, dt
+                fn = wp.dot(force, n)
+                k = stiffnesses(delta, ri, rj, rstar, p)
+                e_n += elastic_energy(delta, k[0])
+                e_t += 0.5 * k[1] * wp.dot(out[2], out[2])
+                a_t += 0.5 * k[1] * wp.dot(shear_old, shear_old)
+                d_damp -= 0.5 * dt * fn * wp.dot(v_rel, n)
+                d_fric -= 0.5 * dt * (wp.dot(ft, v_rel) + wp.dot(roll, omega_rel))
+                fn_i += fn * n
+                ft_i += ft
+                tt_i += wp.cross(-ci * n, ft) + roll
+                book_contact_force(
+                    j,
+                    -fn * n,
+                    -ft,
+                    wp.cross(cj * n, -ft) - roll,
+                    contact_f_normal,
+                    contact_f_tangential,
+                    contact_t_tangential,
                 )
-                d_damp += dd[0]
-                d_fric += dd[1]
         for w in range(num_walls):
             nw = wall_normal[w]
             gap = wp.dot(xi - wall_point[w], nw)
             slot = i * num_walls + w
             if gap >= ri:
+                if wp.static(track_energy):
+                    sh = wall_shear[slot]
+                    if wp.dot(sh, sh) > 0.0:
+                        p = pair_table[mat_i * num_materials + wall_material[w]]
+                        a_t += 0.5 * stiffnesses(0.0, ri, ri, ri, p)[1] * wp.dot(sh, sh)
                 wall_shear[slot] = wp.vec3(0.0)
                 continue
             if inv_mi == 0.0:
@@ -448,16 +522,36 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
             f_i += force
             t_i += wp.cross(-ci * nw, ft) + roll
             if wp.static(track_energy):
-                dd = pair_dissipation(nw, delta, ri, ri, ri, mstar, v_rel, wi, shear_old, out[2], force, roll, p, dt)
-                d_damp += dd[0]
-                d_fric += dd[1]
-                w_wall += wp.dot(force, vw) * dt  # work of the moving wall on the sphere
+                # The integrator books the half ahead against the sphere's own velocity, -½ dt f·v_{n+3/2}; against
+                # the wall's it is -½ dt f·(v_{n+3/2} - v_w): the wall's share, +½ dt f·v_w, is booked here (v_w is
+                # constant), with the half behind against the relative velocity: -½ dt f·(v_rel - v_w) in all.
+                fn = wp.dot(force, nw)
+                k = stiffnesses(delta, ri, ri, ri, p)
+                e_n += elastic_energy(delta, k[0])
+                e_t += 0.5 * k[1] * wp.dot(out[2], out[2])
+                a_t += 0.5 * k[1] * wp.dot(shear_old, shear_old)
+                d_damp -= 0.5 * dt * fn * wp.dot(v_rel - vw, nw)
+                d_fric -= 0.5 * dt * (wp.dot(ft, v_rel - vw) + wp.dot(roll, wi))
+                fn_i += fn * nw
+                ft_i += ft
+                tt_i += wp.cross(-ci * nw, ft) + roll
+                w_wall += wp.dot(force, vw) * dt  # work of the moving wall on the sphere over the step (both halves)
         wp.atomic_add(particle_f, i, f_i)
         wp.atomic_add(particle_t, i, t_i)
         if wp.static(track_energy):
-            energy_damping[i] = energy_damping[i] + wp.float64(d_damp)
-            energy_friction[i] = energy_friction[i] + wp.float64(d_fric)
-            energy_wall_work[i] = energy_wall_work[i] + wp.float64(w_wall)
+            book_contact_force(i, fn_i, ft_i, tt_i, contact_f_normal, contact_f_tangential, contact_t_tangential)
+            prev = contact_energy_prev[i]
+            contact_energy_prev[i] = wp.vec2(e_n, e_t)
+            if dt > 0.0:  # the set-up evaluation (dt = 0) only records the springs' energies
+                # ΔU in float64 so that its sum over the steps telescopes to U_now - U_start exactly. The tangential
+                # springs' change splits at the old springs under the new stiffness, a_t: ξ's change (friction: a
+                # parting pair's spring goes there) and k_t's (the stiffness change).
+                d_n = wp.float64(d_damp) - (wp.float64(e_n) - wp.float64(prev[0]))
+                d_t = wp.float64(d_fric) - (wp.float64(e_t) - wp.float64(a_t))
+                energy_damping[i] = energy_damping[i] + d_n
+                energy_friction[i] = energy_friction[i] + d_t
+                energy_stiffness_change[i] = energy_stiffness_change[i] + (wp.float64(a_t) - wp.float64(prev[1]))
+                energy_wall_work[i] = energy_wall_work[i] + wp.float64(w_wall)
 
     @wp.kernel(enable_backward=False, module="unique")
     def contact_energy_kernel(

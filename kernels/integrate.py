@@ -72,6 +72,32 @@ def drift_particle(
 
 
 @wp.func
+def book_contact_work_ahead(
+    i: int,
+    dt: float,
+    v: wp.vec3,
+    omega: wp.vec3,
+    contact_f_normal: wp.array(dtype=wp.vec3),
+    contact_f_tangential: wp.array(dtype=wp.vec3),
+    contact_t_tangential: wp.array(dtype=wp.vec3),
+    energy_damping: wp.array(dtype=wp.float64),
+    energy_friction: wp.array(dtype=wp.float64),
+):
+    """Book minus the half of the sphere contacts' work that lies ahead of their evaluation, -½ dt f_n·v_{n+1/2}
+    (normal → damping, tangential and rolling with ½ dt t_n·ω_{n+1/2} → friction) [J], now that v_{n+1/2} is known,
+    and clear the sums for the next evaluation (the other half: kernels/contact.py ``make_contact_kernels``)."""
+    w_n = 0.5 * dt * wp.dot(contact_f_normal[i], v)
+    w_t = 0.5 * dt * (wp.dot(contact_f_tangential[i], v) + wp.dot(contact_t_tangential[i], omega))
+    if w_n != 0.0:
+        energy_damping[i] = energy_damping[i] - wp.float64(w_n)
+    if w_t != 0.0:
+        energy_friction[i] = energy_friction[i] - wp.float64(w_t)
+    contact_f_normal[i] = wp.vec3(0.0)
+    contact_f_tangential[i] = wp.vec3(0.0)
+    contact_t_tangential[i] = wp.vec3(0.0)
+
+
+@wp.func
 def held_particle_work(
     i: int,
     dt: float,
@@ -207,6 +233,8 @@ def make_particle_drift_kernel(after_second_half: bool) -> wp.Kernel:
         # State in:
         particle_count: wp.array(dtype=int),
         particle_q_at_build: wp.array(dtype=wp.vec3),
+        # In:
+        track_energy: int,
         # State out:
         particle_q: wp.array(dtype=wp.vec3),
         particle_qd: wp.array(dtype=wp.vec3),
@@ -215,13 +243,18 @@ def make_particle_drift_kernel(after_second_half: bool) -> wp.Kernel:
         particle_t: wp.array(dtype=wp.vec3),
         rebuild_flag: wp.array(dtype=int),
         energy_boundary_work: wp.array(dtype=wp.float64),
+        contact_f_normal: wp.array(dtype=wp.vec3),
+        contact_f_tangential: wp.array(dtype=wp.vec3),
+        contact_t_tangential: wp.array(dtype=wp.vec3),
+        energy_damping: wp.array(dtype=wp.float64),
+        energy_friction: wp.array(dtype=wp.float64),
     ):
         i = wp.tid()  # one thread per particle slot
         if i >= particle_count[0]:
             return
         v = particle_qd[i]
+        omega = particle_omega[i]
         if particle_motion[i] == MOTION_FREE:
-            omega = particle_omega[i]
             if wp.static(after_second_half):
                 v, omega = kick_particle(
                     i, dt, gravity, particle_inv_mass, particle_inv_inertia, particle_f, particle_t, v, omega
@@ -232,11 +265,26 @@ def make_particle_drift_kernel(after_second_half: bool) -> wp.Kernel:
             particle_qd[i] = v
             particle_omega[i] = omega
         else:
+            # A driven sphere is held on its path by whatever drives it: ½ dt of the work of f_{n+1} in each half
+            # kick around it, as velocity Verlet does the work of every force.
+            held_dt = 0.5 * dt
             if wp.static(after_second_half):
-                # A driven sphere is held on its path by whatever drives it.
-                w = held_particle_work(i, dt, particle_f, particle_t, v, particle_omega[i])
-                energy_boundary_work[i] = energy_boundary_work[i] + w
+                held_dt = dt
+            w = held_particle_work(i, held_dt, particle_f, particle_t, v, omega)
+            energy_boundary_work[i] = energy_boundary_work[i] + w
         # Fixed spheres have v = 0; prescribed ones keep their velocity and spin.
+        if track_energy != 0:  # else the sums stay zero: the contacts do not fill them
+            book_contact_work_ahead(
+                i,
+                dt,
+                v,
+                omega,
+                contact_f_normal,
+                contact_f_tangential,
+                contact_t_tangential,
+                energy_damping,
+                energy_friction,
+            )
         drift_particle(i, dt, half_skin, v, particle_q_at_build, particle_q, particle_f, particle_t, rebuild_flag)
 
     return drift_particles_kernel
@@ -281,8 +329,8 @@ def integrate_second_half_kernel(
         particle_qd[i] = v
         particle_omega[i] = omega
     else:
-        # A driven sphere is held on its path by whatever drives it.
-        w = held_particle_work(i, dt, particle_f, particle_t, particle_qd[i], particle_omega[i])
+        # A driven sphere is held on its path by whatever drives it (the second half of the step's work).
+        w = held_particle_work(i, 0.5 * dt, particle_f, particle_t, particle_qd[i], particle_omega[i])
         energy_boundary_work[i] = energy_boundary_work[i] + w
 
 

@@ -304,7 +304,7 @@ def apply_dashpots_kernel(
     node_qd: wp.array(dtype=wp.vec3),
     # State out:
     node_f: wp.array(dtype=wp.vec3),
-    node_energy_damping: wp.array(dtype=wp.float64),
+    node_energy_absorbed: wp.array(dtype=wp.float64),
 ):
     f = wp.tid()  # one thread per non-reflecting face
     n = face_nodes[f]
@@ -319,8 +319,8 @@ def apply_dashpots_kernel(
         v = node_qd[node]
         force = third * lysmer_traction(v, normal, face_impedance[f])
         wp.atomic_add(node_f, node, force)
-        # Dissipated: -f · v dt ≥ 0, at the half-step velocity the force was made from.
-        wp.atomic_add(node_energy_damping, node, wp.float64(-wp.dot(force, v) * dt))
+        # Absorbed: -f · v dt ≥ 0, at the half-step velocity the force was made from.
+        wp.atomic_add(node_energy_absorbed, node, wp.float64(-wp.dot(force, v) * dt))
 
 
 @wp.func

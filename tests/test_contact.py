@@ -475,8 +475,12 @@ def test_elastic_frictionless_cloud_conserves_energy(device: str) -> None:
     collisions = cloud_run(sim)
     e1 = sim.energy()
     assert collisions >= MIN_COLLISIONS
-    assert e1.dissipated_damping == 0.0 and e1.dissipated_friction == 0.0
+    # No tangential force but the float32 rounding of f - (f·n) n, which the books follow as the spheres do.
+    assert abs(e1.dissipated_friction) <= EPS32 * (e0.kinetic + e0.elastic) and e1.stiffness_change == 0.0
     np.testing.assert_allclose(e1.kinetic + e1.elastic, e0.kinetic + e0.elastic, rtol=ENERGY_RTOL)
+    # The normal line books -W - ΔU with W Verlet's trapezoid of the Hertz force: what the scheme's work misses of
+    # the Hertz potential, O((ω dt)²) per collision, of either sign; no dashpot works.
+    assert abs(e1.dissipated_damping) <= ENERGY_RTOL * (e0.kinetic + e0.elastic)
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -12,8 +12,9 @@ from .kernels import bonds as kb
 from .model import BOND_FIELDS, Model, State
 
 
-def eval_bonds(model: Model, state: State, dt: float | None = None) -> None:
-    """Accumulate the forces of intact bonds and break those at their strength (``dt`` as in eval_contacts)."""
+def eval_bonds(model: Model, state: State, dt: float | None = None, track_energy: bool = True) -> None:
+    """Accumulate the forces of intact bonds and break those at their strength (``dt`` as in eval_contacts); with
+    ``track_energy`` book their dissipation (kernels/bonds.py)."""
     if model.bond_capacity == 0:
         return
     m, s = model, state
@@ -39,14 +40,21 @@ def eval_bonds(model: Model, state: State, dt: float | None = None) -> None:
             s.bond_tensile_strength,
             s.bond_shear_strength,
             s.bond_damping,
+            # In:
+            int(track_energy),
         ],
         outputs=[
             s.bond_shear,
             s.bond_broken,
             s.bonds_broken_total,
+            s.bond_energy_prev,
             s.particle_f,
             s.particle_t,
+            s.contact_f_normal,
+            s.contact_f_tangential,
+            s.contact_t_tangential,
             s.energy_damping,
+            s.energy_friction,
             s.energy_bond_broken,
             s.particle_bonds_broken,
         ],

@@ -14,11 +14,12 @@ from .kernels import integrate as ki
 from .model import Model, State
 
 
-def integrate_first_half(model: Model, state: State) -> None:
+def integrate_first_half(model: Model, state: State, track_energy: bool = True) -> None:
     """Kick by dt/2 with the forces of the last evaluation, drift by dt, clear the force accumulators (FEM nodes:
     start them at the mass-proportional damping force) and raise the rebuild flags if a sphere has moved half the
-    skin or a surface node half the FEM skin."""
-    _drift(model, state, ki.integrate_first_half_kernel, ki.integrate_nodes_first_half_kernel)
+    skin or a surface node half the FEM skin; with ``track_energy`` book the half of the sphere contacts' and bonds'
+    work that lies ahead of their evaluation (kernels/integrate.py ``book_contact_work_ahead``)."""
+    _drift(model, state, ki.integrate_first_half_kernel, ki.integrate_nodes_first_half_kernel, track_energy)
     _advance_walls(model, state)
 
 
@@ -70,23 +71,23 @@ def integrate_second_half(model: Model, state: State) -> None:
     _advance_time(m, s)
 
 
-def kick_drift(model: Model, state: State) -> None:
+def kick_drift(model: Model, state: State, track_energy: bool = True) -> None:
     """The second half of step n and the first half of step n + 1 in one pass (:func:`integrate_second_half` then
     :func:`integrate_first_half`, bit for bit): kick by dt/2 twice with the forces f_{n+1}, book the work of driven
     spheres and nodes, drift, clear the accumulators, flag a rebuild; the clock advances in between."""
-    _drift(model, state, ki.kick_drift_particles_kernel, ki.kick_drift_nodes_kernel)
+    _drift(model, state, ki.kick_drift_particles_kernel, ki.kick_drift_nodes_kernel, track_energy)
     # The nodes judged their drivers at t_n + dt/2 and t_n + 3dt/2 from the clock as it was; it moves on now, before
     # the walls and the forces of step n + 1, as between two separate steps.
     _advance_time(model, state)
     _advance_walls(model, state)
 
 
-def _drift(m: Model, s: State, particle_kernel: wp.Kernel, node_kernel: wp.Kernel) -> None:
+def _drift(m: Model, s: State, particle_kernel: wp.Kernel, node_kernel: wp.Kernel, track_energy: bool) -> None:
     """Launch the sphere and node kernels that end a half step in a drift (first half, or kick-drift)."""
     wp.launch(
         particle_kernel,
         dim=m.particle_capacity,
-        inputs=_particle_drift_inputs(m, s),
+        inputs=[*_particle_drift_inputs(m, s), int(track_energy)],
         outputs=_particle_drift_outputs(s),
         device=m.device,
     )
@@ -126,6 +127,11 @@ def _particle_drift_outputs(s: State) -> list:
         s.particle_t,
         s.rebuild_flag,
         s.energy_boundary_work,
+        s.contact_f_normal,
+        s.contact_f_tangential,
+        s.contact_t_tangential,
+        s.energy_damping,
+        s.energy_friction,
     ]
 
 

@@ -644,7 +644,7 @@ def eval_loads(model: Model, state: State, dt: float | None = None) -> None:
                 s.node_u,
                 s.node_qd,
             ],
-            outputs=[s.node_f, s.node_energy_damping],
+            outputs=[s.node_f, s.node_energy_absorbed],
             device=m.device,
         )
 
@@ -766,6 +766,7 @@ def relax_to_equilibrium(
         m.loads = saved_loads
     s.node_qd.zero_()
     s.node_energy_damping.zero_()
+    s.node_energy_absorbed.zero_()
     s.time.fill_(sim.time)
     sim.evaluate_forces()
     return steps

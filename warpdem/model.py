@@ -225,7 +225,8 @@ class State:
         bond_key: i * particle_capacity + j, sorted ascending, shape (bond_capacity,), int64.
         bond_rest_length: L_0 [m]; bond_kn, bond_ks: stiffnesses [N/m]; bond_area: cross-section [m²];
         bond_tensile_strength, bond_shear_strength: [Pa]; bond_damping: damping ratio ζ [-];
-        bond_shear: shear spring [m] (vec3); bond_broken: 0 intact, 1 broke in tension, 2 in shear.
+        bond_shear: shear spring [m] (vec3); bond_broken: 0 intact, 1 broke in tension, 2 in shear;
+        bond_energy_prev: (normal, shear) spring energy at the last evaluation [J] (vec2, for the energy books).
         bonds_broken_total: bonds broken since the start, shape (1,).
         particle_bonds_broken: bonds each sphere has lost since the start (a damage measure for output), shape
             (particle_capacity,), int32.
@@ -233,6 +234,15 @@ class State:
             [J], shape (particle_capacity,), float64: dissipated by dashpots, by friction (and tangential
             dashpots), work done on the spheres by moving walls and driven spheres, and spring energy released
             by breaking bonds.
+        energy_stiffness_change: energy the contacts' tangential springs gained without work because k_t follows
+            the overlap (Mindlin, or a linear k_t on a Hertz k_n) [J], per particle, shape (particle_capacity,),
+            float64.
+        contact_f_normal, contact_f_tangential, contact_t_tangential: sums of the sphere contacts' normal forces
+            [N], tangential forces [N] and tangential + rolling torques [N m] on each sphere at the last evaluation,
+            for the integrator's booking of the half of their work that lies ahead (kernels/contact.py), shape
+            (particle_capacity,), vec3.
+        contact_energy_prev: (normal, tangential) spring energy of the contacts each sphere owns (its half list and
+            its walls) at the last evaluation [J], shape (particle_capacity,), vec2.
         node_count: live FEM nodes, shape (1,), int32.
         tet_count: live tet slots (active or not), shape (1,), int32.
         node_u: node displacements x - X [m], shape (node_capacity,), vec3. The integrator advances u and the tets
@@ -242,8 +252,10 @@ class State:
         node_qd: node velocities [m/s], shape (node_capacity,), vec3.
         node_f: node forces [N] (gravity excluded; starts each step at the damping force -α m v), shape
             (node_capacity,), vec3.
-        node_energy_damping: energy dissipated by bulk viscosity, mass-proportional damping and non-reflecting
-            dashpots [J], per node, shape (node_capacity,), float64.
+        node_energy_damping: energy dissipated by bulk viscosity and mass-proportional damping [J], per node, shape
+            (node_capacity,), float64.
+        node_energy_absorbed: energy the non-reflecting boundaries' dashpots took out of the model [J], per node,
+            shape (node_capacity,), float64.
         tet_active: 1 for a tet that carries forces, 0 for one taken out (converted), shape (tet_capacity,), int32.
         tet_stress: Cauchy stress at the current displacements (elastic, without bulk viscosity; 0 for inactive
             tets) [Pa], tension positive, shape (tet_capacity,), mat33. Refreshed between steps (after every
@@ -308,12 +320,18 @@ class State:
     bond_damping: wp.array
     bond_shear: wp.array
     bond_broken: wp.array
+    bond_energy_prev: wp.array
     bonds_broken_total: wp.array
     particle_bonds_broken: wp.array
     energy_damping: wp.array
     energy_friction: wp.array
     energy_boundary_work: wp.array
     energy_bond_broken: wp.array
+    energy_stiffness_change: wp.array
+    contact_f_normal: wp.array
+    contact_f_tangential: wp.array
+    contact_t_tangential: wp.array
+    contact_energy_prev: wp.array
     node_count: wp.array
     tet_count: wp.array
     node_u: wp.array
@@ -321,6 +339,7 @@ class State:
     node_qd: wp.array
     node_f: wp.array
     node_energy_damping: wp.array
+    node_energy_absorbed: wp.array
     tet_active: wp.array
     tet_stress: wp.array
     time: wp.array
@@ -373,6 +392,7 @@ BOND_FIELDS = (
     "bond_damping",
     "bond_shear",
     "bond_broken",
+    "bond_energy_prev",
 )
 """State fields indexed by bond (compacted together)."""
 

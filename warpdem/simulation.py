@@ -44,13 +44,22 @@ from .tets import eval_tet_stresses, eval_tets, tet_energy
 class EnergyBalance:
     """Energy bookkeeping of a DEM/FEM system [J].
 
-    ``total`` = kinetic + elastic + strain + gravity potential + dissipated − boundary work; it stays at its initial
-    value up to time-discretisation error (and the known non-conservation of a Mindlin spring whose stiffness
-    changes with the overlap). Spheres and FEM nodes share the gravity potential; ``kinetic_nodes`` is the FEM
-    nodes' kinetic energy, ``strain`` the tets' strain energy, ``dissipated_viscous`` what bulk viscosity,
-    mass-proportional damping and non-reflecting dashpots took from the continuum, ``load_work`` the work of pressure
-    loads and velocity drivers on the FEM nodes. ``elastic`` includes the springs of the FEM contacts and intact joint
-    elements; ``dissipated_fem_contact`` is what their dashpots and friction took, and the springs of failed joints.
+    ``total`` = kinetic − shadow + elastic + strain + gravity potential + dissipated + absorbed − work put in.
+    Velocity Verlet changes a body's kinetic energy over a step by the trapezoid ½ dt (f_n + f_{n+1})·v_{n+1/2} plus
+    the change of its shadow term S = dt²/8 (|f|²/m + |t|²/I) (f the total force with gravity): ``shadow`` is S summed
+    over the moving spheres and nodes at the forces held now, so that kinetic − shadow = Σ ½ m v_{n-1/2}·v_{n+1/2},
+    the leapfrog kinetic energy, and where every force books the trapezoid the total is constant up to rounding. The
+    sphere
+    contacts book their dissipation as the scheme does their work (kernels/contact.py): ``dissipated_damping`` (normal
+    dashpots, bond dashpots), ``dissipated_friction`` (tangential springs and dashpots, rolling resistance) and
+    ``stiffness_change``, the energy their tangential springs gained without work because k_t follows the overlap
+    (Mindlin's k_t = 8 G* sqrt(R* δ); zero for linear laws), which enters the total like work put in. Spheres and FEM
+    nodes share the gravity potential; ``kinetic_nodes`` is the FEM nodes' kinetic energy, ``strain`` the tets'
+    strain energy, ``dissipated_viscous`` what bulk viscosity and mass-proportional damping took from the continuum,
+    ``absorbed_boundaries`` what the non-reflecting boundaries' dashpots took out of the model, ``load_work`` the work
+    of pressure loads and velocity drivers on the FEM nodes. ``elastic`` is the energy of the springs of the sphere
+    contacts, the bonds, the FEM contacts and intact joint elements; ``dissipated_fem_contact`` is what the FEM
+    contacts' dashpots and friction took, and the springs of failed joints.
     """
 
     kinetic_translational: float
@@ -66,15 +75,26 @@ class EnergyBalance:
     dissipated_viscous: float = 0.0
     load_work: float = 0.0
     dissipated_fem_contact: float = 0.0
+    absorbed_boundaries: float = 0.0
+    stiffness_change: float = 0.0
+    shadow: float = 0.0
 
     @property
     def kinetic(self) -> float:
         return self.kinetic_translational + self.kinetic_rotational + self.kinetic_nodes
 
     @property
+    def in_play(self) -> float:
+        """Energy in play [J]: the larger of kinetic + elastic + strain and the work put in so far by walls, driven
+        spheres and loads. It holds no gravity potential, whose datum (where z = 0 is) is arbitrary: the balance's
+        error is scaled by its largest value over a run."""
+        return max(self.kinetic + self.elastic + self.strain, abs(self.boundary_work) + abs(self.load_work))
+
+    @property
     def total(self) -> float:
         return (
             self.kinetic
+            - self.shadow
             + self.elastic
             + self.gravity_potential
             + self.dissipated_damping
@@ -85,16 +105,22 @@ class EnergyBalance:
             + self.dissipated_viscous
             - self.load_work
             + self.dissipated_fem_contact
+            + self.absorbed_boundaries
+            - self.stiffness_change
         )
 
 
-def balance_error(start: EnergyBalance, now: EnergyBalance) -> float:
-    """Relative error of the energy balance [-]: the drift of ``total`` since ``start``, relative to the energy in
-    play (stored now, or put in by walls and loads over the run), so that no arbitrary datum scales it. The summary
-    and the time series (warpdem.timeseries) both print this number."""
-    stored = now.kinetic + now.elastic + now.strain + abs(now.gravity_potential)
-    scale = max(abs(start.total), stored, abs(now.boundary_work) + abs(now.load_work), 1e-300)
-    return (now.total - start.total) / scale
+def balance_error(start: EnergyBalance, now: EnergyBalance, in_play: float) -> float:
+    """Relative error of the energy balance [-]: the drift of ``total`` since ``start``, relative to ``in_play``, the
+    largest :attr:`EnergyBalance.in_play` over the frames so far (no gravity potential, so no arbitrary datum scales
+    it). The summary and the time series (warpdem.timeseries) both print this number."""
+    return (now.total - start.total) / max(in_play, 1e-300)
+
+
+NODE_FREE_DIRECTIONS = np.array(
+    [[1, 1, 1], [0, 0, 0], [0, 0, 1], [0, 1, 1], [1, 0, 1], [1, 1, 0], [1, 0, 0], [0, 1, 0]], dtype=np.float64
+)
+"""Components of a node's velocity that move, by ``node_motion`` (kernels/tets.py ``node_free_directions``)."""
 
 
 def regrow_neighbors(model: Model, state: State, max_neighbors: int) -> tuple[Model, State]:
@@ -180,17 +206,17 @@ class Simulation:
             eval_contacts(m, s, self.track_energy)
         if self.fem_contact is not None:
             self.fem_contact.eval(self.track_energy)
-        eval_bonds(m, s)
+        eval_bonds(m, s, track_energy=self.track_energy)
         eval_loads(m, s)
 
     def _head(self) -> None:
         """First half of the first step of a run, and its forces."""
-        integrate_first_half(self.model, self.state)
+        integrate_first_half(self.model, self.state, self.track_energy)
         self._forces()
 
     def _body(self) -> None:
         """Second half of a step, first half of the next (one pass: warpdem.integrate.kick_drift), its forces."""
-        kick_drift(self.model, self.state)
+        kick_drift(self.model, self.state, self.track_energy)
         self._forces()
 
     def _tail(self) -> None:
@@ -202,6 +228,9 @@ class Simulation:
         m, s = self.model, self.state
         s.particle_f.zero_()
         s.particle_t.zero_()
+        s.contact_f_normal.zero_()
+        s.contact_f_tangential.zero_()
+        s.contact_t_tangential.zero_()
         s.node_f.zero_()
         eval_tets(m, s, dt=0.0)
         if self.has_spheres:
@@ -211,7 +240,7 @@ class Simulation:
         if self.fem_contact is not None:
             s.fem_rebuild_flag.fill_(1)
             self.fem_contact.eval(self.track_energy, dt=0.0)
-        eval_bonds(m, s, dt=0.0)
+        eval_bonds(m, s, dt=0.0, track_energy=self.track_energy)
         eval_loads(m, s, dt=0.0)
         eval_tet_stresses(m, s)
 
@@ -367,6 +396,7 @@ class Simulation:
         node_q = m.node_ref_q.numpy()[:nn].astype(np.float64) + s.node_u.numpy()[:nn].astype(np.float64)
         moving = m.node_inv_mass.numpy()[:nn] > 0.0
         return EnergyBalance(
+            shadow=self._shadow_term(mass, free, g),
             kinetic_translational=float(0.5 * np.sum(mass * np.sum(v * v, axis=1))),
             kinetic_rotational=float(0.5 * np.sum(inertia * np.sum(w * w, axis=1))),
             elastic=e_contact + e_bond + e_fem,
@@ -382,7 +412,30 @@ class Simulation:
             dissipated_viscous=float(s.node_energy_damping.numpy()[:nn].sum()),
             load_work=float(s.node_energy_boundary_work.numpy()[:nn].sum()),
             dissipated_fem_contact=d_fem,
+            absorbed_boundaries=float(s.node_energy_absorbed.numpy()[:nn].sum()),
+            stiffness_change=float(s.energy_stiffness_change.numpy()[:n].sum()),
         )
+
+    def _shadow_term(self, mass: np.ndarray, free: np.ndarray, g: np.ndarray) -> float:
+        """Verlet's shadow term dt²/8 Σ (|f + m g|²/m + |t|²/I) [J] of the free spheres and the kicked velocity
+        components of the FEM nodes (not those a velocity driver holds), at the forces held now; ``mass`` and
+        ``free`` of the live spheres, ``g`` the gravity [m/s²]."""
+        m, s = self.model, self.state
+        n, nn = self.particle_count, self.node_count
+        f = s.particle_f.numpy()[:n].astype(np.float64)[free] + mass[free, None] * g
+        t = s.particle_t.numpy()[:n].astype(np.float64)[free]
+        inv_inertia = m.particle_inv_inertia.numpy()[:n].astype(np.float64)[free]
+        total = np.sum(np.sum(f * f, axis=1) / mass[free]) + np.sum(inv_inertia * np.sum(t * t, axis=1))
+        if nn:
+            inv_mass = m.node_inv_mass.numpy()[:nn].astype(np.float64)
+            kicked = inv_mass > 0.0
+            if m.loads is not None and m.loads.num_drivers:
+                kicked &= m.loads.node_driver.numpy()[:nn] < 0
+            a = s.node_f.numpy()[:nn].astype(np.float64) * inv_mass[:, None] + g
+            a *= NODE_FREE_DIRECTIONS[m.node_motion.numpy()[:nn]]
+            node_mass = m.node_mass.numpy()[:nn].astype(np.float64)
+            total += np.sum((node_mass * np.sum(a * a, axis=1))[kicked])
+        return float(m.dt**2 / 8.0 * total)
 
     def contact_count(self) -> int:
         """Touching sphere–sphere pairs now (reads back)."""

@@ -11,7 +11,7 @@ Columns (units in :data:`UNITS` and the HDF5 attributes):
 - ``frame`` [-], ``time`` [s];
 - ``energy_<line>`` [J] for every field of :class:`warpdem.simulation.EnergyBalance` (taken from the dataclass, so a
   line added there appears here), ``energy_total`` [J] and ``energy_error`` [-] (:func:`balance_error` against
-  the first frame of the timeline, the number the summary prints);
+  the first frame of the timeline, relative to the largest energy in play so far: the number the summary prints);
 - counts [-]: ``spheres``, ``contacts`` (touching sphere pairs), ``bonds_intact``, ``bonds_broken``, ``nodes``,
   ``tets`` (active), ``joints_intact``, ``joints_failed``;
 - ``wall<w>_fx``, ``_fy``, ``_fz`` [N]: force of the spheres on wall w (in the order the scene makes walls);
@@ -106,12 +106,15 @@ def _load_index(name: str, k: int) -> int:
     return int(match.group(1)) if match else k
 
 
-def frame_values(sim: Simulation, frame: int, energy: EnergyBalance, start: EnergyBalance) -> dict[str, float]:
+def frame_values(
+    sim: Simulation, frame: int, energy: EnergyBalance, start: EnergyBalance, in_play: float
+) -> dict[str, float]:
     """One row of the series: column → value (reads back; call between steps).
 
     Args:
         sim: the simulation. frame: output frame number. energy: its energy balance now (``sim.energy()``).
-        start: the balance at the first frame of the timeline (the error's reference).
+        start: the balance at the first frame of the timeline (the error's reference). in_play: the largest
+            :attr:`~warpdem.simulation.EnergyBalance.in_play` of the timeline so far [J] (the error's scale).
     """
     from .contact import wall_forces
     from .loads import load_forces
@@ -121,7 +124,7 @@ def frame_values(sim: Simulation, frame: int, energy: EnergyBalance, start: Ener
     row: dict[str, float] = {"frame": frame, "time": sim.time}
     row |= {f"energy_{name}": getattr(energy, name) for name in energy_lines()}
     row["energy_total"] = energy.total
-    row["energy_error"] = balance_error(start, energy)
+    row["energy_error"] = balance_error(start, energy, in_play)
     n, nn = sim.particle_count, sim.node_count
     nt = int(s.tet_count.numpy()[0])
     nj = int(s.joint_count.numpy()[0]) if m.joint_capacity else 0
@@ -180,6 +183,8 @@ class TimeSeries:
         self.columns: list[str] = []
         self.rows: list[list[float]] = []
         self.energy_start: EnergyBalance | None = None
+        self.in_play = 0.0
+        """The largest energy in play over the rows so far [J] (the error's scale)."""
         if first_frame > 0 and self.csv_path.is_file():
             old = read_series(self.csv_path)
             if old and "frame" in old:
@@ -193,16 +198,22 @@ class TimeSeries:
                 if self.rows and old["frame"][keep][0] == 0:
                     from .simulation import EnergyBalance
 
-                    self.energy_start = EnergyBalance(
-                        **{n: float(old[f"energy_{n}"][0]) for n in energy_lines() if f"energy_{n}" in old}
-                    )
+                    kept = [
+                        EnergyBalance(
+                            **{n: float(old[f"energy_{n}"][r]) for n in energy_lines() if f"energy_{n}" in old}
+                        )
+                        for r in np.flatnonzero(keep)
+                    ]
+                    self.energy_start = kept[0]
+                    self.in_play = max(e.in_play for e in kept)
 
     def record(self, sim: Simulation, frame: int) -> dict[str, float]:
         """Appends the row of this frame (replacing a row of the same frame) and rewrites both files."""
         energy = sim.energy()
         if self.energy_start is None:
             self.energy_start = energy
-        row = frame_values(sim, frame, energy, self.energy_start)
+        self.in_play = max(self.in_play, self.energy_start.in_play, energy.in_play)
+        row = frame_values(sim, frame, energy, self.energy_start, self.in_play)
         if self.columns and list(row) != self.columns:
             self.rows = []  # a different scene wrote the old rows: they cannot share the table
         self.columns = list(row)
