@@ -8,7 +8,9 @@ each face, of area A on a tet of modulus E and height h over it, is a spring f E
 three nodes (f the face's stiffness factor: its joint set's, or the model's for other faces).
 
 Sphere–face: the closest point c of the triangle to the sphere centre x (barycentric weights w); touching when
-|x - c| < r with x in front of the face. The force is the sphere contact law of the model (kernels/contact.py,
+|x - c| < r with x in front of the face. The vertices are taken relative to the float64 centre (float64
+differences rounded once), so the sphere's side of the arithmetic does not depend on the offset; the nodes' float32
+positions do. The force is the sphere contact law of the model (kernels/contact.py,
 ``make_pair_laws``) with the face as a flat body (R* = r, as a wall), m* = 1 / (1/m_s + Σ w_i²/m_i), and the equal
 and opposite force goes to the face's nodes with the weights w_i. A sphere may touch several faces; a contact at a
 face's edge or vertex counts only if no other face is nearer (the same edge point seen from the two faces that share
