@@ -41,7 +41,7 @@ def eval_bonds_kernel(
     particle_inv_mass: wp.array(dtype=float),
     dt: float,
     # State in:
-    particle_q: wp.array(dtype=wp.vec3),
+    particle_q: wp.array(dtype=wp.vec3d),
     particle_qd: wp.array(dtype=wp.vec3),
     particle_omega: wp.array(dtype=wp.vec3),
     bond_count: wp.array(dtype=int),
@@ -80,7 +80,7 @@ def eval_bonds_kernel(
     j = bond_j[b]
     ri = particle_radius[i]
     rj = particle_radius[j]
-    d = particle_q[i] - particle_q[j]
+    d = wp.vec3(particle_q[i] - particle_q[j])  # float64 difference of the centres, then float32
     dist = wp.length(d)
     n = d / dist
     arms = bond_arms(ri, rj, dist)
@@ -151,7 +151,7 @@ def eval_bonds_kernel(
 @wp.kernel
 def bond_energy_kernel(
     # State in:
-    particle_q: wp.array(dtype=wp.vec3),
+    particle_q: wp.array(dtype=wp.vec3d),
     bond_count: wp.array(dtype=int),
     bond_i: wp.array(dtype=int),
     bond_j: wp.array(dtype=int),
@@ -169,7 +169,7 @@ def bond_energy_kernel(
         return
     if bond_broken[b] != BOND_INTACT:
         return
-    stretch = wp.length(particle_q[bond_i[b]] - particle_q[bond_j[b]]) - bond_rest_length[b]
+    stretch = wp.length(wp.vec3(particle_q[bond_i[b]] - particle_q[bond_j[b]])) - bond_rest_length[b]
     us = bond_shear[b]
     e = 0.5 * bond_kn[b] * stretch * stretch + 0.5 * bond_ks[b] * wp.dot(us, us)
     wp.atomic_add(energy, 0, wp.float64(e))
@@ -177,9 +177,9 @@ def bond_energy_kernel(
 
 
 @wp.func
-def within_bond_gap(xi: wp.vec3, ri: float, xj: wp.vec3, rj: float, gap_tolerance: float) -> bool:
+def within_bond_gap(xi: wp.vec3d, ri: float, xj: wp.vec3d, rj: float, gap_tolerance: float) -> bool:
     """Whether two spheres are close enough to bond: gap ≤ gap_tolerance (r_i + r_j)."""
-    return wp.length(xi - xj) <= (ri + rj) * (1.0 + gap_tolerance)
+    return wp.length(wp.vec3(xi - xj)) <= (ri + rj) * (1.0 + gap_tolerance)
 
 
 @wp.kernel
@@ -190,7 +190,7 @@ def count_bond_pairs_kernel(
     search_radius: float,
     # In:
     grid: wp.uint64,
-    particle_q: wp.array(dtype=wp.vec3),
+    particle_q: wp.array(dtype=wp.vec3d),
     bondable: wp.array(dtype=int),
     # Out:
     pair_count: wp.array(dtype=int),
@@ -202,7 +202,7 @@ def count_bond_pairs_kernel(
     xi = particle_q[i]
     ri = particle_radius[i]
     n = int(0)
-    for j in wp.hash_grid_query(grid, xi, search_radius):
+    for j in wp.hash_grid_query(grid, xi, wp.float64(search_radius)):
         if j > i and bondable[j] == bondable[i]:
             if within_bond_gap(xi, ri, particle_q[j], particle_radius[j], gap_tolerance):
                 n += 1
@@ -217,7 +217,7 @@ def fill_bond_pairs_kernel(
     search_radius: float,
     # In:
     grid: wp.uint64,
-    particle_q: wp.array(dtype=wp.vec3),
+    particle_q: wp.array(dtype=wp.vec3d),
     bondable: wp.array(dtype=int),
     pair_offset: wp.array(dtype=int),
     # Out:
@@ -230,7 +230,7 @@ def fill_bond_pairs_kernel(
     xi = particle_q[i]
     ri = particle_radius[i]
     slot = pair_offset[i]
-    for j in wp.hash_grid_query(grid, xi, search_radius):
+    for j in wp.hash_grid_query(grid, xi, wp.float64(search_radius)):
         if j > i and bondable[j] == bondable[i]:
             if within_bond_gap(xi, ri, particle_q[j], particle_radius[j], gap_tolerance):
                 pairs[slot] = wp.vec2i(i, j)

@@ -3,6 +3,8 @@
 Conventions (as in LIGGGHTS' ``pair gran``): for a pair (i, j) the unit normal ``n = (x_i - x_j) / |x_i - x_j|``
 points from j to i, the overlap is ``delta = r_i + r_j - |x_i - x_j|`` and the normal speed
 ``v_n = (v_i - v_j) . n`` is negative while the spheres approach. A positive normal force pushes i along +n.
+Centres (and wall points) are float64; ``x_i - x_j`` is formed in float64 and rounded to float32 once, so the contact
+arithmetic sees the same small vector wherever the pair is (warpdem.model, State.particle_q).
 
 The neighbour list is a *half* list: particle i stores the j > i within ``r_i + r_j + skin``, in fixed slots
 ``i * K .. i * K + K - 1``. Each slot carries the tangential spring of that pair (``shear``, [m], in the
@@ -380,14 +382,14 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
         dt: float,
         # State in:
         particle_count: wp.array(dtype=int),
-        particle_q: wp.array(dtype=wp.vec3),
+        particle_q: wp.array(dtype=wp.vec3d),
         particle_qd: wp.array(dtype=wp.vec3),
         particle_omega: wp.array(dtype=wp.vec3),
         nbr_count: wp.array(dtype=int),
         nbr_index: wp.array(dtype=int),
         nbr_bond: wp.array(dtype=int),
         bond_broken: wp.array(dtype=int),
-        wall_point: wp.array(dtype=wp.vec3),
+        wall_point: wp.array(dtype=wp.vec3d),
         # State out:
         nbr_shear: wp.array(dtype=wp.vec3),
         wall_shear: wp.array(dtype=wp.vec3),
@@ -428,9 +430,8 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
             if carried_by_bond(nbr_bond[slot], bond_broken):
                 continue  # the bonds stage handles this pair
             j = nbr_index[slot]
-            xj = particle_q[j]
             rj = particle_radius[j]
-            d = xi - xj
+            d = wp.vec3(xi - particle_q[j])  # float64 difference, exact or nearly: the same at any offset
             dist2 = wp.dot(d, d)
             rsum = ri + rj
             if dist2 >= rsum * rsum:
@@ -494,7 +495,7 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
                 )
         for w in range(num_walls):
             nw = wall_normal[w]
-            gap = wp.dot(xi - wall_point[w], nw)
+            gap = wp.dot(wp.vec3(xi - wall_point[w]), nw)
             slot = i * num_walls + w
             if gap >= ri:
                 if wp.static(track_energy):
@@ -567,13 +568,13 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
         max_neighbors: int,
         # State in:
         particle_count: wp.array(dtype=int),
-        particle_q: wp.array(dtype=wp.vec3),
+        particle_q: wp.array(dtype=wp.vec3d),
         nbr_count: wp.array(dtype=int),
         nbr_index: wp.array(dtype=int),
         nbr_bond: wp.array(dtype=int),
         bond_broken: wp.array(dtype=int),
         nbr_shear: wp.array(dtype=wp.vec3),
-        wall_point: wp.array(dtype=wp.vec3),
+        wall_point: wp.array(dtype=wp.vec3d),
         wall_shear: wp.array(dtype=wp.vec3),
         # Out:
         energy_elastic: wp.array(dtype=wp.float64),
@@ -594,7 +595,7 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
                 continue
             j = nbr_index[slot]
             rj = particle_radius[j]
-            delta = ri + rj - wp.length(xi - particle_q[j])
+            delta = ri + rj - wp.length(wp.vec3(xi - particle_q[j]))
             if delta <= 0.0:
                 continue
             if particle_inv_mass[i] + particle_inv_mass[j] == 0.0:
@@ -607,7 +608,7 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
             e += elastic_energy(delta, fnv[2]) + 0.5 * kt * wp.dot(sh, sh)
             touching += 1
         for w in range(num_walls):
-            delta = ri - wp.dot(xi - wall_point[w], wall_normal[w])
+            delta = ri - wp.dot(wp.vec3(xi - wall_point[w]), wall_normal[w])
             if delta <= 0.0 or particle_inv_mass[i] == 0.0:
                 continue
             p = pair_table[mat_i * num_materials + wall_material[w]]
@@ -706,7 +707,7 @@ class NeighborInputs:
     the Model/State arrays of those names, the skin [m] and the query radius 2 r_max + skin [m]."""
 
     particle_radius: wp.array(dtype=float)
-    particle_q: wp.array(dtype=wp.vec3)
+    particle_q: wp.array(dtype=wp.vec3d)
     skin: float
     search_radius: float
     bond_count: wp.array(dtype=int)
@@ -727,12 +728,12 @@ def neighbor_search_radius(inputs: NeighborInputs, i: int) -> float:
 
 
 @wp.func
-def is_neighbor_candidate(inputs: NeighborInputs, i: int, xi: wp.vec3, j: int) -> bool:
+def is_neighbor_candidate(inputs: NeighborInputs, i: int, xi: wp.vec3d, j: int) -> bool:
     """Half list: j > i, within r_i + r_j + skin."""
     if j <= i:
         return False
     cutoff = inputs.particle_radius[i] + inputs.particle_radius[j] + inputs.skin
-    d = xi - inputs.particle_q[j]
+    d = wp.vec3(xi - inputs.particle_q[j])
     return not (wp.dot(d, d) >= cutoff * cutoff)  # not ≥ rather than <: a NaN distance keeps the pair
 
 
@@ -758,6 +759,8 @@ NEIGHBOR_LIST = make_list_kernels(
         history=NeighborHistory,
         copy=copy_neighbor_history,
         fresh=fresh_neighbor_history,
+        owner_vec=wp.vec3d,
+        grid_vec=wp.vec3d,
     )
 )
 """Build and commit kernels of the sphere–sphere half list."""

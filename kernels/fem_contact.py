@@ -8,7 +8,9 @@ each face, of area A on a tet of modulus E and height h over it, is a spring f E
 three nodes (f the face's stiffness factor: its joint set's, or the model's for other faces).
 
 Sphere–face: the closest point c of the triangle to the sphere centre x (barycentric weights w); touching when
-|x - c| < r with x in front of the face. The force is the sphere contact law of the model (kernels/contact.py,
+|x - c| < r with x in front of the face. The vertices are taken relative to the float64 centre (float64
+differences rounded once), so the sphere's side of the arithmetic does not depend on the offset; the nodes' float32
+positions do. The force is the sphere contact law of the model (kernels/contact.py,
 ``make_pair_laws``) with the face as a flat body (R* = r, as a wall), m* = 1 / (1/m_s + Σ w_i²/m_i), and the equal
 and opposite force goes to the face's nodes with the weights w_i. A sphere may touch several faces; a contact at a
 face's edge or vertex counts only if no other face is nearer (the same edge point seen from the two faces that share
@@ -123,6 +125,13 @@ def projection_barycentric(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, area2
     wa = wp.dot(wp.cross(c - b, p - b), area2) * inv
     wb = wp.dot(wp.cross(a - c, p - c), area2) * inv
     return wp.vec3(wa, wb, 1.0 - wa - wb)
+
+
+@wp.func
+def relative_position(q: wp.vec3, x: wp.vec3d) -> wp.vec3:
+    """q - x [m]: a float32 point (an FEM node) seen from a float64 sphere centre, the difference formed in float64
+    and rounded once."""
+    return wp.vec3(wp.vec3d(q) - x)
 
 
 @wp.func
@@ -394,15 +403,15 @@ def sphere_face_search_radius(inputs: SphereFaceInputs, i: int) -> float:
 
 
 @wp.func
-def is_sphere_face_candidate(inputs: SphereFaceInputs, i: int, x: wp.vec3, f: int) -> bool:
-    """The face's closest point within r + margin of the sphere centre."""
+def is_sphere_face_candidate(inputs: SphereFaceInputs, i: int, x: wp.vec3d, f: int) -> bool:
+    """The face's closest point within r + margin of the sphere centre (in coordinates relative to the centre)."""
     cutoff = inputs.particle_radius[i] + inputs.margin
     fn = inputs.face_nodes[f]
-    a = inputs.node_q[fn[0]]
-    b = inputs.node_q[fn[1]]
-    c = inputs.node_q[fn[2]]
-    w = closest_point_barycentric(x, a, b, c)
-    d = x - (w[0] * a + w[1] * b + w[2] * c)
+    a = relative_position(inputs.node_q[fn[0]], x)
+    b = relative_position(inputs.node_q[fn[1]], x)
+    c = relative_position(inputs.node_q[fn[2]], x)
+    w = closest_point_barycentric(wp.vec3(0.0), a, b, c)
+    d = -(w[0] * a + w[1] * b + w[2] * c)
     return not (wp.dot(d, d) >= cutoff * cutoff)  # not ≥ rather than <: a NaN distance keeps the pair
 
 
@@ -425,6 +434,8 @@ SPHERE_FACE_LIST = make_list_kernels(
         history=SphereFaceHistory,
         copy=copy_sphere_face_history,
         fresh=fresh_sphere_face_history,
+        owner_vec=wp.vec3d,
+        grid_vec=wp.vec3,  # the grid of face centroids is float32, as the nodes are
     )
 )
 """Build and commit kernels of the sphere–face lists."""
@@ -504,15 +515,21 @@ NODE_FACE_LIST = make_list_kernels(
 
 
 @wp.func
-def sphere_face_contact(x: wp.vec3, r: float, a: wp.vec3, b: wp.vec3, c: wp.vec3):
-    """Geometry of a sphere (centre x, radius r) against triangle abc.
+def sphere_face_contact(x: wp.vec3d, r: float, fn: wp.vec3i, node_q: wp.array(dtype=wp.vec3)):
+    """Geometry of a sphere (centre x, radius r) against the triangle of nodes fn.
+
+    The vertices are taken relative to the centre (float64 differences rounded once), so the arithmetic is the
+    same wherever the pair is.
 
     Returns:
         (barycentric weights of the closest point, unit normal from it to x, distance [m], touching (r beyond the
         distance and x in front of the face), in the face's interior).
     """
-    w = closest_point_barycentric(x, a, b, c)
-    d = x - (w[0] * a + w[1] * b + w[2] * c)
+    a = relative_position(node_q[fn[0]], x)
+    b = relative_position(node_q[fn[1]], x)
+    c = relative_position(node_q[fn[2]], x)
+    w = closest_point_barycentric(wp.vec3(0.0), a, b, c)
+    d = -(w[0] * a + w[1] * b + w[2] * c)
     dist = wp.length(d)
     nf = wp.cross(b - a, c - a)
     touching = dist < r and wp.dot(d, nf) > 0.0
@@ -540,23 +557,28 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
     @wp.func
     def counted_face(
         i: int,
-        x: wp.vec3,
+        x: wp.vec3d,
         r: float,
+        face_radius: float,
         count: int,
         max_sphere_faces: int,
         sphere_face_index: wp.array(dtype=int),
         face_nodes: wp.array(dtype=wp.vec3i),
         node_q: wp.array(dtype=wp.vec3),
     ) -> int:
-        """The nearest touching face of sphere i (an edge or vertex contact counts only if it is this one), -1."""
-        tol = TIE_EPS * (wp.length(x) + r)
+        """The nearest touching face of sphere i (an edge or vertex contact counts only if it is this one), -1.
+
+        Ties are judged relative to the size of the coordinates the distances come from, the vertices relative to
+        the centre: within r + 2 face_radius of it for a touching face.
+        """
+        tol = TIE_EPS * (r + 2.0 * face_radius)
         best_d = float(0.0)
         best_interior = int(0)
         best_f = int(-1)
         for s in range(count):
             f = sphere_face_index[i * max_sphere_faces + s]
             fn = face_nodes[f]
-            _w, _n, dist, touching, interior = sphere_face_contact(x, r, node_q[fn[0]], node_q[fn[1]], node_q[fn[2]])
+            _w, _n, dist, touching, interior = sphere_face_contact(x, r, fn, node_q)
             if touching:
                 inside = int(interior)
                 if nearer(dist, inside, f, best_d, best_interior, best_f, tol):
@@ -577,11 +599,12 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
         tet_material: wp.array(dtype=int),
         face_nodes: wp.array(dtype=wp.vec3i),
         face_tet: wp.array(dtype=int),
+        face_radius: float,
         max_sphere_faces: int,
         dt: float,
         # State in:
         particle_count: wp.array(dtype=int),
-        particle_q: wp.array(dtype=wp.vec3),
+        particle_q: wp.array(dtype=wp.vec3d),
         particle_qd: wp.array(dtype=wp.vec3),
         particle_omega: wp.array(dtype=wp.vec3),
         sphere_face_count: wp.array(dtype=int),
@@ -606,7 +629,7 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
         r = particle_radius[i]
         inv_mi = particle_inv_mass[i]
         # Pass 1: the nearest contact (an edge or vertex contact counts only if it is the nearest).
-        best_f = counted_face(i, x, r, count, max_sphere_faces, sphere_face_index, face_nodes, node_q)
+        best_f = counted_face(i, x, r, face_radius, count, max_sphere_faces, sphere_face_index, face_nodes, node_q)
         # Pass 2: springs of pairs that no longer count are handed to a pair that starts counting (the contact
         # point slid from one face onto the next).
         orphan = wp.vec3(0.0)
@@ -614,7 +637,7 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
             slot = i * max_sphere_faces + s
             f = sphere_face_index[slot]
             fn = face_nodes[f]
-            w, n, dist, touching, interior = sphere_face_contact(x, r, node_q[fn[0]], node_q[fn[1]], node_q[fn[2]])
+            w, n, dist, touching, interior = sphere_face_contact(x, r, fn, node_q)
             if not (touching and (interior or f == best_f)):
                 sh = sphere_face_shear[slot]
                 if wp.dot(sh, sh) > wp.dot(orphan, orphan):
@@ -632,7 +655,7 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
             slot = i * max_sphere_faces + s
             f = sphere_face_index[slot]
             fn = face_nodes[f]
-            w, n, dist, touching, interior = sphere_face_contact(x, r, node_q[fn[0]], node_q[fn[1]], node_q[fn[2]])
+            w, n, dist, touching, interior = sphere_face_contact(x, r, fn, node_q)
             if not (touching and (interior or f == best_f)):
                 continue
             inv_sum = inv_mi
@@ -684,10 +707,11 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
         tet_material: wp.array(dtype=int),
         face_nodes: wp.array(dtype=wp.vec3i),
         face_tet: wp.array(dtype=int),
+        face_radius: float,
         max_sphere_faces: int,
         # State in:
         particle_count: wp.array(dtype=int),
-        particle_q: wp.array(dtype=wp.vec3),
+        particle_q: wp.array(dtype=wp.vec3d),
         sphere_face_count: wp.array(dtype=int),
         sphere_face_index: wp.array(dtype=int),
         sphere_face_shear: wp.array(dtype=wp.vec3),
@@ -702,13 +726,13 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
         count = wp.min(sphere_face_count[i], max_sphere_faces)
         x = particle_q[i]
         r = particle_radius[i]
-        best_f = counted_face(i, x, r, count, max_sphere_faces, sphere_face_index, face_nodes, node_q)
+        best_f = counted_face(i, x, r, face_radius, count, max_sphere_faces, sphere_face_index, face_nodes, node_q)
         e = float(0.0)
         for s in range(count):
             slot = i * max_sphere_faces + s
             f = sphere_face_index[slot]
             fn = face_nodes[f]
-            w, _n, dist, touching, interior = sphere_face_contact(x, r, node_q[fn[0]], node_q[fn[1]], node_q[fn[2]])
+            w, _n, dist, touching, interior = sphere_face_contact(x, r, fn, node_q)
             if not (touching and (interior or f == best_f)):
                 continue
             inv_sum = particle_inv_mass[i] + w[0] * w[0] * node_inv_mass[fn[0]]
@@ -949,7 +973,7 @@ def make_node_contact_kernel(track_energy: bool):
         node_qd: wp.array(dtype=wp.vec3),
         node_face_count: wp.array(dtype=int),
         node_face_index: wp.array(dtype=int),
-        wall_point: wp.array(dtype=wp.vec3),
+        wall_point: wp.array(dtype=wp.vec3d),
         # In:
         face_normal: wp.array(dtype=wp.vec3),
         # State out:
@@ -1057,7 +1081,7 @@ def make_node_contact_kernel(track_energy: bool):
         for wall in range(num_walls):
             nw = wall_normal[wall]
             slot = v * num_walls + wall
-            gap = wp.dot(x - wall_point[wall], nw)
+            gap = wp.dot(wp.vec3(wp.vec3d(x) - wall_point[wall]), nw)
             if gap >= 0.0 or inv_mv == 0.0:
                 node_wall_shear[slot] = wp.vec3(0.0)
                 continue
@@ -1105,7 +1129,7 @@ def fem_contact_energy_kernel(
     node_face_offset: wp.array(dtype=float),
     node_face_shear: wp.array(dtype=wp.vec3),
     node_wall_shear: wp.array(dtype=wp.vec3),
-    wall_point: wp.array(dtype=wp.vec3),
+    wall_point: wp.array(dtype=wp.vec3d),
     # Out:
     energy: wp.array(dtype=wp.float64),
 ):
@@ -1128,7 +1152,7 @@ def fem_contact_energy_kernel(
         sh = node_face_shear[v]
         e += 0.5 * kn * best_d * best_d + 0.5 * p.kt_ratio * kn * wp.dot(sh, sh)
     for wall in range(num_walls):
-        gap = wp.dot(x - wall_point[wall], wall_normal[wall])
+        gap = wp.dot(wp.vec3(wp.vec3d(x) - wall_point[wall]), wall_normal[wall])
         if gap < 0.0:
             p = fem_pair_table[mat_v * num_materials + wall_material[wall]]
             sh = node_wall_shear[v * num_walls + wall]

@@ -2,8 +2,9 @@
 
 Step n → n+1 (LIGGGHTS ``fix nve/sphere``): first half kick and drift, v ← v + dt/2 a_n, x ← x + dt v, which also
 clears the force accumulators for the new evaluation; then, after the forces at x_{n+1}, the second half kick
-v ← v + dt/2 a_{n+1}. Rotation of spheres is isotropic (I = 2/5 m r²), so ω is kicked the same way. FEM nodes
-(lumped mass, translation only) take the same two half kicks in their own kernels; they drift their displacement,
+v ← v + dt/2 a_{n+1}. Sphere centres are float64 (the drift adds the float32 dt·v without loss at any offset);
+velocities and forces are float32. Rotation of spheres is isotropic (I = 2/5 m r²), so ω is kicked the same way. FEM
+nodes (lumped mass, translation only) take the same two half kicks in their own kernels; they drift their displacement,
 u ← u + dt v, and x = X + u follows. Their held components (fixed, rollers) stay zero, and a node with a velocity
 driver (warpdem.loads) holds its velocity while the driver does, the driver's work booked. The state's time advances
 last, after the second half kick.
@@ -54,19 +55,23 @@ def drift_particle(
     dt: float,
     half_skin: float,
     v: wp.vec3,
-    particle_q_at_build: wp.array(dtype=wp.vec3),
-    particle_q: wp.array(dtype=wp.vec3),
+    particle_q_at_build: wp.array(dtype=wp.vec3d),
+    particle_q: wp.array(dtype=wp.vec3d),
     particle_f: wp.array(dtype=wp.vec3),
     particle_t: wp.array(dtype=wp.vec3),
     rebuild_flag: wp.array(dtype=int),
 ):
     """Drift by dt with v, clear the force and torque accumulators, flag a rebuild when the sphere moved half the
-    skin since the neighbour list was built (the Verlet-skin criterion)."""
-    x = particle_q[i] + dt * v
+    skin since the neighbour list was built (the Verlet-skin criterion).
+
+    The centre is float64: the increment dt·v (float32, the same at any offset) is added without loss wherever the
+    sphere is (a float32 coordinate of 10 m has a spacing of 1 µm, and dt·v of a microsecond step is often less).
+    """
+    x = particle_q[i] + wp.vec3d(dt * v)
     particle_q[i] = x
     particle_f[i] = wp.vec3(0.0)
     particle_t[i] = wp.vec3(0.0)
-    moved = x - particle_q_at_build[i]
+    moved = wp.vec3(x - particle_q_at_build[i])
     if wp.dot(moved, moved) > half_skin * half_skin:
         rebuild_flag[0] = 1
 
@@ -232,11 +237,11 @@ def make_particle_drift_kernel(after_second_half: bool) -> wp.Kernel:
         half_skin: float,
         # State in:
         particle_count: wp.array(dtype=int),
-        particle_q_at_build: wp.array(dtype=wp.vec3),
+        particle_q_at_build: wp.array(dtype=wp.vec3d),
         # In:
         track_energy: int,
         # State out:
-        particle_q: wp.array(dtype=wp.vec3),
+        particle_q: wp.array(dtype=wp.vec3d),
         particle_qd: wp.array(dtype=wp.vec3),
         particle_omega: wp.array(dtype=wp.vec3),
         particle_f: wp.array(dtype=wp.vec3),
@@ -459,7 +464,7 @@ def advance_walls_kernel(
     wall_velocity: wp.array(dtype=wp.vec3),
     dt: float,
     # State out:
-    wall_point: wp.array(dtype=wp.vec3),
+    wall_point: wp.array(dtype=wp.vec3d),
 ):
-    w = wp.tid()  # one thread per wall
-    wall_point[w] = wall_point[w] + dt * wall_velocity[w]
+    w = wp.tid()  # one thread per wall; its point is float64, as sphere centres are
+    wall_point[w] = wall_point[w] + wp.vec3d(dt * wall_velocity[w])

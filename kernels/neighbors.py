@@ -43,6 +43,10 @@ class ListSpec:
             in the old list, and the commit); None without history.
         fresh: wp.func (inputs, history, slot, owner, candidate) that writes the history of a pair new to the list;
             None without history.
+        owner_vec: type of the owners' positions, ``wp.vec3`` (FEM nodes) or ``wp.vec3d`` (spheres, whose centres are
+            float64 so that nothing depends on where the origin is); ``accept`` receives one.
+        grid_vec: type of the grid's points, ``wp.vec3`` or ``wp.vec3d``; the owner's position is converted to it
+            for the query (the grid only proposes candidates, ``accept`` decides).
     """
 
     inputs: Any
@@ -52,6 +56,8 @@ class ListSpec:
     history: Any = NoHistory
     copy: wp.Function | None = None
     fresh: wp.Function | None = None
+    owner_vec: Any = wp.vec3
+    grid_vec: Any = wp.vec3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,6 +97,9 @@ def make_list_kernels(spec: ListSpec) -> ListKernels:
     active = spec.active
     copy = spec.copy
     fresh = spec.fresh
+    OwnerVec = spec.owner_vec
+    GridVec = spec.grid_vec
+    GridScalar = GridVec._wp_scalar_type_
     has_history = History is not NoHistory
     if (copy is not None) != has_history or (fresh is not None) != has_history:
         raise ValueError("a list with history needs its history struct, copy and fresh; one without, none of them")
@@ -104,7 +113,7 @@ def make_list_kernels(spec: ListSpec) -> ListKernels:
         # State in:
         grid: wp.uint64,
         owner_count: wp.array(dtype=int),
-        owner_q: wp.array(dtype=wp.vec3),
+        owner_q: wp.array(dtype=OwnerVec),
         candidate_count: wp.array(dtype=int),
         list_count: wp.array(dtype=int),
         list_index: wp.array(dtype=int),
@@ -128,7 +137,7 @@ def make_list_kernels(spec: ListSpec) -> ListKernels:
         if wp.static(has_history):
             old_n = wp.min(list_count[i], max_slots)
         count = int(0)
-        query = wp.hash_grid_query(grid, x, radius(inputs, i))
+        query = wp.hash_grid_query(grid, GridVec(x), GridScalar(radius(inputs, i)))
         for c in query:
             if c >= n_candidates:
                 continue
@@ -181,13 +190,14 @@ def make_list_kernels(spec: ListSpec) -> ListKernels:
 def finish_rebuild_kernel(
     # State in:
     owner_count: wp.array(dtype=int),
-    owner_q: wp.array(dtype=wp.vec3),
+    owner_q: wp.array(dtype=Any),
     # State out:
-    q_at_build: wp.array(dtype=wp.vec3),
+    q_at_build: wp.array(dtype=Any),
     rebuild_flag: wp.array(dtype=int),
     rebuild_total: wp.array(dtype=int),
 ):
-    i = wp.tid()  # one thread per owner slot (at least one thread): the positions the skin is measured from
+    i = wp.tid()  # one thread per owner slot (at least one thread): the positions the skin is measured from (vec3 or
+    # vec3d, as the owners' positions)
     if i == 0:
         rebuild_flag[0] = 0
         rebuild_total[0] = rebuild_total[0] + 1

@@ -16,8 +16,9 @@ Oracles:
 - stiffness: a bonded pair with one sphere fixed is a harmonic oscillator, m ẍ = -k_n x, period T = 2π sqrt(m/k_n);
   velocity Verlet shortens the period by the factor ω_h/ω = (2/(ω dt)) arcsin(ω dt/2) ≈ 1 + (ω dt)²/24.
 
-Tolerances (named below) come from dt and float32: positions are float32, so a distance of about L0 carries an error
-of a few ulp(L0) (STRETCH_ULPS); relative force and energy tolerances follow from that error over the stretch.
+Tolerances (named below) come from dt and float32: the kernels see the difference of the (float64) centres rounded to
+float32, so a distance of about L0 carries an error of a few ulp(L0) (STRETCH_ULPS); relative force and energy
+tolerances follow from that error over the stretch.
 """
 
 from __future__ import annotations
@@ -37,8 +38,8 @@ YOUNG = 5.0e7  # [Pa] material and bond modulus
 POISSON = 0.25
 DT = 1.0e-5  # [s]; ω dt <= 0.12 for every mode below (critical: 2)
 F32_EPS = float(np.finfo(np.float32).eps)
-# |x_i - x_j| - L0 computed in float32 from float32 centres: the difference, the length and the subtraction of L0
-# each round by at most half an ulp of ~L0; 4 ulp covers that with margin.
+# |x_i - x_j| - L0 computed in float32 from the float64 difference of the centres: its rounding to float32, the length
+# and the subtraction of L0 each round by at most half an ulp of ~L0; 4 ulp covers that with margin.
 STRETCH_ULPS = 4.0
 UNBREAKABLE = 1.0e12  # [Pa] strength of the mode that must not fail
 

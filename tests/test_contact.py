@@ -31,7 +31,7 @@ EPS32 = float(np.finfo(np.float32).eps)
 """float32 machine epsilon, 2⁻²³: ulp(x) <= EPS32 |x|, and rounding to nearest errs by at most ulp/2."""
 
 # Material of the impact tests (glass-like density, soft enough for overlaps of a few % of the radius, so that the
-# float32 centre coordinates resolve them finely).
+# float32 differences of the centres resolve them finely).
 RADIUS = 0.01  # [m]
 DENSITY = 2500.0  # [kg/m³]
 YOUNG = 1.0e7  # [Pa]
@@ -48,10 +48,11 @@ STEPS_PER_CONTACT = 2000
 
 PEAK_RTOL = 1.0e-3
 """Peak overlap and force. Velocity Verlet's error over one contact is O((ω dt)²) = (π/2000)² ≈ 2.5e-6. The
-overlap is a difference of float32 centre coordinates (|x| ≈ r): each drift rounds by at most ulp(r)/2 = 4.7e-10 m,
-and these roundings vary from step to step during the contact, so over 2000 steps and two spheres they add up to
-about 4σ = 4 √2 √(2000/12) ulp(r) ≈ 7e-8 m, i.e. 3e-4 of the smallest peak overlap here (linear model,
-δ_max = 2.3e-4 m). 1e-3 covers the sum with a factor 3 to spare."""
+centres are float64 (their drift rounds by 2⁻⁵³ |x|, negligible); the force law sees their difference rounded to
+float32 (|x_i - x_j| ≈ 2r: by at most ulp(2r)/2 = 9.3e-10 m per evaluation), and these roundings vary from step to
+step during the contact, so over 2000 steps they move the peak by about 4σ = 4 √(2000/12) ulp(2r) ≈ 1e-7 m, i.e.
+4e-4 of the smallest peak overlap here (linear model, δ_max = 2.3e-4 m). 1e-3 covers the sum with a factor 2.5 to
+spare."""
 
 DURATION_RTOL = 2.0 / STEPS_PER_CONTACT
 """Contact duration counted in whole steps: it can be off by at most one step at each end."""
@@ -91,7 +92,8 @@ spheres:
 - P: each of the <= 2n kicks of a sphere rounds v by ulp(v)/2 <= EPS32 |v|/2, in varying amounts (the
   accelerations change every step), so σ_P = EPS32 √(2n/12) sqrt(Σ (m |v|)²);
 - L: a drift x ← x + dt v repeats almost the same increment between collisions, so its rounding is systematic:
-  after n steps a sphere is off by up to n ulp(x)/2, σ = n ulp(x)/√12 <= n EPS32 |x|/√12 per sphere, giving
+  after n steps a sphere is off by up to n ulp(x)/2 (the centres are float64 and round far less; the float32 bound
+  is kept), σ = n ulp(x)/√12 <= n EPS32 |x|/√12 per sphere, giving
   σ_L = n EPS32 / √12 sqrt(Σ (m |x| |v|)²), plus kick terms like σ_P's for |x| m v and I ω.
 Measured: |ΔP| and |ΔL| reach 5 % and 2 % of these tolerances."""
 
@@ -183,7 +185,7 @@ def impact_simulation(
 
 
 def impact_overlap(sim: Simulation, target: str) -> float:
-    """Overlap now [m], from the float32 centres (evaluated in float64)."""
+    """Overlap now [m], from the float64 centres."""
     x = sim.state.particle_q.numpy()[:, 0].astype(np.float64)
     return 2.0 * RADIUS - (x[1] - x[0]) if target == "sphere" else RADIUS - x[0]
 
@@ -211,11 +213,12 @@ def random_spheres(
 
 
 def pairs_within(q: np.ndarray, radius: np.ndarray, skin: float) -> set[tuple[int, int]]:
-    """Brute-force O(N²) set of pairs i < j with |x_i − x_j| < r_i + r_j + skin, in the float32 arithmetic of
-    build_neighbors_kernel: d = x_i − x_j, d·d < (r_i + r_j + skin)²."""
-    q = q.astype(np.float32)
+    """Brute-force O(N²) set of pairs i < j with |x_i − x_j| < r_i + r_j + skin, in the arithmetic of
+    is_neighbor_candidate: d = x_i − x_j formed in float64 and rounded to float32, then d·d < (r_i + r_j + skin)² in
+    float32."""
+    q = q.astype(np.float64)
     r = radius.astype(np.float32)
-    d = q[:, None, :] - q[None, :, :]
+    d = (q[:, None, :] - q[None, :, :]).astype(np.float32)
     d2 = d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2]
     cutoff = r[:, None] + r[None, :] + np.float32(skin)
     i, j = np.nonzero(np.triu(d2 < cutoff * cutoff, 1))

@@ -114,9 +114,9 @@ def test_scene_runs_two_frames_and_restarts_bit_for_bit(device, tmp_path, path, 
         assert points.GetTimeSamples() == [float(frame) for frame in range(FRAMES + 1)]
         for frame in range(FRAMES + 1):
             assert len(points.Get(float(frame))) == n
-        np.testing.assert_array_equal(
-            np.asarray(points.Get(float(FRAMES))).reshape(-1, 3), arrays["state/particle_q"][:n]
-        )
+        # USD points are float32: the float64 centres rounded once, at the write.
+        usd_points = np.asarray(points.Get(float(FRAMES))).reshape(-1, 3)
+        np.testing.assert_array_equal(usd_points, arrays["state/particle_q"][:n].astype(np.float32))
     rock = stage.GetPrimAtPath("/World/Rock")
     assert bool(rock) == (nn > 0)
     if nn:

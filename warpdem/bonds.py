@@ -119,10 +119,10 @@ def find_bond_pairs(
     if n == 0 or not np.any(group):
         return np.zeros((0, 2), dtype=np.int32)
     search = float(2.0 * radius.max() * (1.0 + gap_tolerance))
-    wq = wp.array(q.astype(np.float32), dtype=wp.vec3, device=device)
+    wq = wp.array(np.asarray(q, dtype=np.float64), dtype=wp.vec3d, device=device)
     wr = wp.array(radius.astype(np.float32), dtype=float, device=device)
     wg = wp.array(group.astype(np.int32), dtype=int, device=device)
-    grid = wp.HashGrid(*(hash_grid_dims(n),) * 3, device=device)
+    grid = wp.HashGrid(*(hash_grid_dims(n),) * 3, device=device, dtype=wp.float64)
     grid.build(wq, search)
     counts = wp.zeros(n, dtype=int, device=device)
     common = [wr, float(gap_tolerance), search, grid.id, wq, wg]

@@ -846,11 +846,11 @@ def new_state(
     mesh = mesh if mesh is not None else TetMeshData.empty()
     nn, nt = len(mesh.points), len(mesh.tets)
 
-    def vec(a: np.ndarray | None, size: int) -> wp.array:
-        out = np.zeros((size, 3), dtype=np.float32)
+    def vec(a: np.ndarray | None, size: int, dtype=wp.vec3) -> wp.array:
+        out = np.zeros((size, 3), dtype=np.float64 if dtype == wp.vec3d else np.float32)
         if a is not None:
             out[: len(a)] = a
-        return wp.array(out, dtype=wp.vec3, device=device)
+        return wp.array(out, dtype=dtype, device=device)
 
     def arr(a: np.ndarray, dtype, size: int, fill=0) -> wp.array:
         out = np.full(size, fill, dtype={int: np.int32, float: np.float32, wp.int64: np.int64}[dtype])
@@ -864,12 +864,13 @@ def new_state(
     q = particles.q
     return State(
         particle_count=scalar(n),
-        particle_q=vec(q, cap),
+        # Absolute positions of spheres and walls are float64 (State.particle_q); everything else float32.
+        particle_q=vec(q, cap, wp.vec3d),
         particle_qd=vec(particles.qd, cap),
         particle_omega=vec(particles.omega, cap),
         particle_f=vec(None, cap),
         particle_t=vec(None, cap),
-        particle_q_at_build=vec(q, cap),
+        particle_q_at_build=vec(q, cap, wp.vec3d),
         rebuild_flag=scalar(1),
         rebuild_total=scalar(0),
         nbr_needed=scalar(0),
@@ -877,7 +878,7 @@ def new_state(
         nbr_index=wp.zeros(cap * k, dtype=int, device=device),
         nbr_shear=wp.zeros(cap * k, dtype=wp.vec3, device=device),
         nbr_bond=wp.full(cap * k, -1, dtype=int, device=device),
-        wall_point=vec(walls.point, len(walls)),
+        wall_point=vec(walls.point, len(walls), wp.vec3d),
         wall_shear=wp.zeros(cap * len(walls), dtype=wp.vec3, device=device),
         bond_count=scalar(nb),
         bond_i=arr(pairs[:, 0], int, nb),

@@ -38,11 +38,17 @@ DEFAULT_SKIN_FRACTION = 0.25
 """Default ``fem_skin`` as a fraction of the smallest tet height over a boundary face [-]."""
 
 
+def sphere_face_rows(model: Model) -> int:
+    """Spheres with sphere–face lists: every slot in a model with boundary faces, none without (there the lists
+    would be 132 bytes per sphere that nothing reads)."""
+    return model.particle_capacity if model.face_capacity else 0
+
+
 def fem_contact_state(model: Model) -> dict[str, wp.array]:
     """The State fields of the FEM contact stage and the joint elements of a model: no contact yet, lists to be
     built (``fem_rebuild_flag`` = 1), every joint element intact."""
     d = model.device
-    ncap, pcap = model.node_capacity, model.particle_capacity
+    ncap, pcap = model.node_capacity, sphere_face_rows(model)
 
     def one(v: int = 0) -> wp.array:
         return wp.array([v], dtype=int, device=d)
@@ -381,6 +387,7 @@ def eval_fem_contacts(
                 m.tet_material,
                 m.face_nodes,
                 m.face_tet,
+                m.face_radius,
                 m.max_sphere_faces,
                 step,
                 # State in:
@@ -489,7 +496,7 @@ def _regrow_rows(a: wp.array, rows: int, old_k: int, new_k: int) -> wp.array:
 
 def regrow_fem_contacts(model: Model, state: State, max_sphere_faces: int, max_node_faces: int) -> tuple[Model, State]:
     """A model and state with more candidate slots per sphere and node, the existing slots copied over."""
-    pcap, ncap = model.particle_capacity, model.node_capacity
+    pcap, ncap = sphere_face_rows(model), model.node_capacity
     ks, kn = model.max_sphere_faces, model.max_node_faces
     fields = {
         "sphere_face_index": _regrow_rows(state.sphere_face_index, pcap, ks, max_sphere_faces),
@@ -559,6 +566,7 @@ def fem_contact_energy(model: Model, state: State) -> tuple[float, float]:
                 m.tet_material,
                 m.face_nodes,
                 m.face_tet,
+                m.face_radius,
                 m.max_sphere_faces,
                 s.particle_count,
                 s.particle_q,

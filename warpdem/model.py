@@ -205,12 +205,16 @@ class State:
 
     Attributes:
         particle_count: live particles, shape (1,), int32.
-        particle_q: centres [m], shape (particle_capacity,), vec3.
+        particle_q: centres [m], shape (particle_capacity,), vec3d (float64). The only float64 positions, with the
+            wall points and ``particle_q_at_build``: a float32 coordinate of 10 m has a spacing of 1 µm, below the
+            drift dt·v of a microsecond step, and rounds contact overlaps differently at every offset. Kernels form
+            differences x_i - x_j (or x_i - wall point, x_i - FEM node) in float64 and round the small result to
+            float32 once, so every contact, bond and wall law sees the same numbers wherever the model sits.
         particle_qd: velocities [m/s], shape (particle_capacity,), vec3.
         particle_omega: angular velocities [rad/s], shape (particle_capacity,), vec3.
         particle_f: forces [N] (gravity excluded), shape (particle_capacity,), vec3.
         particle_t: torques [N m], shape (particle_capacity,), vec3.
-        particle_q_at_build: centres when the neighbour list was built [m], shape (particle_capacity,), vec3.
+        particle_q_at_build: centres when the neighbour list was built [m], shape (particle_capacity,), vec3d.
         rebuild_flag: 1 when the neighbour list must be rebuilt before the next force evaluation, shape (1,).
         rebuild_total: neighbour-list builds since the start, shape (1,).
         nbr_needed: the largest neighbour count seen at a build (overflow when > max_neighbors), shape (1,).
@@ -218,7 +222,8 @@ class State:
         nbr_index: neighbour j > i in each slot, shape (particle_capacity * max_neighbors,), int32.
         nbr_shear: tangential spring of each slot [m], shape (particle_capacity * max_neighbors,), vec3.
         nbr_bond: bond between the slot's pair or -1, shape (particle_capacity * max_neighbors,), int32.
-        wall_point: a point on each wall [m], shape (num_walls,), vec3.
+        wall_point: a point on each wall [m], shape (num_walls,), vec3d (float64, as the centres it is measured
+            from).
         wall_shear: tangential spring of each sphere–wall pair [m], shape (particle_capacity * num_walls,), vec3.
         bond_count: live bonds (intact or broken but not yet compacted), shape (1,), int32.
         bond_i, bond_j: the bonded spheres, i < j, shape (bond_capacity,), int32.
@@ -248,7 +253,9 @@ class State:
         node_u: node displacements x - X [m], shape (node_capacity,), vec3. The integrator advances u and the tets
             read it: float32 then resolves strains to ε₃₂ |u|/h instead of ε₃₂ |x|/h, and a step's increment dt·v
             is not lost against the size of the coordinates.
-        node_q: node positions x = X + u [m] (kept for contact and output), shape (node_capacity,), vec3.
+        node_q: node positions x = X + u [m] (kept for contact and output), shape (node_capacity,), vec3 (float32:
+            the contact geometry of nodes rounds to ulp(|x|)/2, e.g. 3.8 µm at 100 m; a sphere–face contact takes the
+            float64 difference from the sphere's centre to these).
         node_qd: node velocities [m/s], shape (node_capacity,), vec3.
         node_f: node forces [N] (gravity excluded; starts each step at the damping force -α m v), shape
             (node_capacity,), vec3.
@@ -273,7 +280,8 @@ class State:
         sphere_face_needed: the most candidate faces a sphere had at a build (overflow when > max_sphere_faces),
             shape (1,); sphere_face_count: candidate faces of each sphere, shape (particle_capacity,);
             sphere_face_index: candidate face of each slot, shape (particle_capacity * max_sphere_faces,), int32;
-            sphere_face_shear: tangential spring of each slot [m], same shape, vec3.
+            sphere_face_shear: tangential spring of each slot [m], same shape, vec3. In a model without boundary faces
+            (face_capacity 0) the three per-sphere arrays are empty (warpdem.fem_contact.sphere_face_rows).
         node_face_needed: the most candidate faces a node had at a build (overflow when > max_node_faces), shape
             (1,); node_face_count: candidate faces of each node, shape (node_capacity,); node_face_index: candidate
             face of each slot, shape (node_capacity * max_node_faces,), int32.
