@@ -646,10 +646,10 @@ def make_wall_force_kernel(normal: str, tangential: str, rolling: str) -> wp.Ker
         num_walls: int,
         # State in:
         particle_count: wp.array(dtype=int),
-        particle_q: wp.array(dtype=wp.vec3),
+        particle_q: wp.array(dtype=wp.vec3d),
         particle_qd: wp.array(dtype=wp.vec3),
         particle_omega: wp.array(dtype=wp.vec3),
-        wall_point: wp.array(dtype=wp.vec3),
+        wall_point: wp.array(dtype=wp.vec3d),
         wall_shear: wp.array(dtype=wp.vec3),
         # Out:
         wall_force: wp.array(dtype=wp.vec3d),
@@ -665,7 +665,7 @@ def make_wall_force_kernel(normal: str, tangential: str, rolling: str) -> wp.Ker
         wi = particle_omega[i]
         for w in range(num_walls):
             nw = wall_normal[w]
-            delta = ri - wp.dot(xi - wall_point[w], nw)
+            delta = ri - wp.dot(wp.vec3(xi - wall_point[w]), nw)
             if delta <= 0.0:
                 continue
             # As eval_contacts_kernel: a wall is a sphere of infinite radius, R* = r_i, m* = m_i.

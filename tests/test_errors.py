@@ -244,7 +244,9 @@ def test_explicit_dt_above_the_dashpot_step_is_a_scene_error():
     # wave_column has a non-reflecting base whose dashpots are stable below ~8e-6 s; dt = 1e-3 s is far above.
     scene = load_scene(REPO / "scenes" / "wave_column.toml")
     scene.run.dt = 1e-3
-    with pytest.raises(SceneError, match=r"wave_column\.toml: run\.dt: non-reflecting boundary: dt = 0\.001 s exceeds"):
+    with pytest.raises(
+        SceneError, match=r"wave_column\.toml: run\.dt: dt = 0\.001 s exceeds .* non-reflecting boundary"
+    ):
         build_scene(scene, "cpu")
 
 
