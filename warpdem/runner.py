@@ -20,7 +20,7 @@ from .builder import finalize_scene, scene_builder
 from .checkpoint import CheckpointError, checkpoint_name, read_checkpoint, write_checkpoint
 from .guard import UnstableRunError
 from .limits import MAX_ELEMENTS, MAX_STEPS
-from .model import Model, State
+from .model import NEIGHBOR_FIELDS, Model, State
 from .scene import Scene, SceneError
 from .simulation import EnergyBalance, Simulation, balance_error
 
@@ -265,10 +265,11 @@ def restore_checkpoint(
             raise CheckpointError(f"{path}: {key} holds {bad} non-finite value(s); the run it saved had already failed")
         # Arrays sized by the particle capacity (or its neighbour slots) must agree with the attributes, or the
         # kernels would index past their ends.
-        if like.shape and like.shape[0] == template.particle_q.shape[0] and key.startswith(("state/", "model/")):
-            expected = slots["particle_capacity"]
-        elif like.shape and like.shape[0] == template.nbr_index.shape[0] and key.startswith("state/nbr_"):
+        # Neighbour slots by name: with one slot per sphere they are as long as the per-sphere arrays.
+        if key.removeprefix("state/") in NEIGHBOR_FIELDS:
             expected = slots["neighbor slots"]
+        elif like.shape and like.shape[0] == template.particle_q.shape[0] and key.startswith(("state/", "model/")):
+            expected = slots["particle_capacity"]
         else:
             expected = None
         if expected is not None and (data.ndim == 0 or len(data) != expected):
