@@ -28,11 +28,12 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
 
-from warpdem.builder import ModelBuilder, build_scene, scene_builder
+from warpdem.builder import ModelBuilder
 from warpdem.checkpoint import read_checkpoint
 from warpdem.cli import EXIT_UNSTABLE, main
 from warpdem.guard import SPEED_LIMIT_FACTOR, UnstableRunError
 from warpdem.scene import SceneError, load_scene
+from warpdem.scene_build import build_scene, scene_builder
 from warpdem.simulation import Simulation
 from warpdem.tets import reference_geometry, tet_stable_time_steps
 

@@ -23,10 +23,10 @@ import warp as wp
 from warp._src import context
 from warpdem.kernels import overlap as ko
 
-from warpdem.builder import build_scene, finalize_scene, scene_builder
 from warpdem.mesh import box_mesh
 from warpdem.overlap import OVERLAP_TOLERANCE, ROUNDOFF, initial_overlap, sphere_pair_overlaps, sphere_rock_penetration
 from warpdem.scene import SceneError, default_scene_path, load_scene, parse_scene
+from warpdem.scene_build import build_scene, finalize_scene, scene_builder
 
 DEPTH_ATOL = 1e-6  # [m] float32 positions of order 1 m: ~1e-7 each, a few roundings
 MARGIN = 1e-4  # [m] distance kept from the cube's faces by the inside/outside test points

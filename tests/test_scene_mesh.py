@@ -16,10 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from warpdem.builder import NODE_MOTIONS, finalize_scene, scene_builder
+from warpdem.builder import NODE_MOTIONS
 from warpdem.geology import GeologyMesh, write_mesh
 from warpdem.mesh import TET_FACES, boundary_faces
 from warpdem.scene import Material, Region, SceneError, parse_scene
+from warpdem.scene_build import finalize_scene, scene_builder
 from warpdem.scene_mesh import box_face_sets, face_normals, nodes_of_selection, rock_mesh, select_faces
 from warpdem.tets import TetProps
 
@@ -263,7 +264,7 @@ def test_file_joint_group_selection_and_errors(tmp_path: Path):
 
 
 def test_scene_without_spheres_or_mesh_is_refused():
-    from warpdem.builder import build_scene
+    from warpdem.scene_build import build_scene
 
     data = {"name": "empty", "run": {"end_time": 0.01}, "materials": {"rock": dict(ROCK)}}
     with pytest.raises(SceneError, match="empty: particles: the scene creates no sphere"):

@@ -21,11 +21,12 @@ import numpy as np
 import pytest
 
 from warpdem import packing
-from warpdem.builder import ModelBuilder, build_scene
+from warpdem.builder import ModelBuilder
 from warpdem.checkpoint import read_checkpoint
 from warpdem.model import BOND_FIELDS
 from warpdem.runner import RunOptions, run_scene
 from warpdem.scene import load_scene, parse_scene
+from warpdem.scene_build import build_scene
 from warpdem.simulation import Simulation
 
 RADIUS = 0.005  # [m]

@@ -26,11 +26,11 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
 
-from warpdem.builder import finalize_scene, scene_builder
 from warpdem.contact import wall_forces
 from warpdem.loads import load_forces
 from warpdem.runner import RunOptions, run_scene
 from warpdem.scene import parse_scene
+from warpdem.scene_build import finalize_scene, scene_builder
 from warpdem.simulation import EnergyBalance, Simulation, balance_error
 from warpdem.timeseries import COUNT_COLUMNS, energy_lines, energy_signs, read_series, unit
 

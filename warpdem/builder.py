@@ -1,4 +1,5 @@
-"""Building a Model and its initial State: from Python (:class:`ModelBuilder`) or from a scene (:func:`build_scene`).
+"""Building a Model and its initial State from Python (:class:`ModelBuilder`); a scene file goes through
+:func:`warpdem.scene_build.build_scene`, which fills a ModelBuilder.
 
 Everything here runs once, on the host, before the first step.
 """
@@ -8,26 +9,22 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 import warp as wp
 
-from . import packing
 from .bonds import find_bond_pairs
 from .contact import critical_time_step_hertz
 from .fem_contact import attach_fem_contact, contact_critical_step_at, fem_contact_state
-from .guard import CriticalStep, UnstableTimeStepError, check_time_step, p_wave_speed, run_away_speed
+from .guard import CriticalStep, check_time_step, p_wave_speed, run_away_speed
 from .joints import JointData, JointProps, count_split_nodes
 from .kernels.contact import ContactPair
 from .kernels.tets import TetMaterial
-from .limits import F32_MAX
 from .loads import LoadModel, LoadSpecs, PressureHistory
-from .mesh import MeshQuality, check_tets, tet_signed_volumes
+from .mesh import MeshQuality, check_tets
 from .model import BondData, Model, ParticleData, State, TetMeshData, WallData, pair_table_array
-from .overlap import OVERLAP_TOLERANCE, InitialOverlap, initial_overlap
+from .overlap import InitialOverlap, initial_overlap
 from .restitution import hertz_damping_coefficient, linear_damping_ratio
-from .scene import Scene, SceneError
 from .tets import (
     TetProps,
     characteristic_lengths,
@@ -503,7 +500,7 @@ class ModelBuilder:
     def measure_initial_overlap(self, device: wp.context.DeviceLike = None) -> InitialOverlap:
         """Spheres that start overlapping each other or the rock (:func:`warpdem.overlap.initial_overlap`), sphere ids
         in creation order; also kept as ``overlap``. :meth:`finalize` does not refuse overlaps (tests and scripts
-        start contacts pre-loaded on purpose); scenes do (:func:`finalize_scene`)."""
+        start contacts pre-loaded on purpose); scenes do (:func:`warpdem.scene_build.finalize_scene`)."""
         particles, mesh = self.particle_data(), self.tet_mesh_data()
         free = particles.motion == MOTIONS["free"]
         self.overlap = initial_overlap(particles.q, particles.radius, free, mesh.points, mesh.tets, device)
@@ -923,211 +920,3 @@ def new_state(
 
 # ----------------------------------------------------------------------------------------------------------------
 # Scenes
-
-
-def packing_region(region) -> packing.Box | packing.Cylinder:
-    """The packing module's region for a scene Region."""
-    if region.box is not None:
-        return packing.Box(np.asarray(region.box.lo, float), np.asarray(region.box.hi, float))
-    c = region.cylinder
-    return packing.Cylinder(np.asarray(c.center, float), float(c.radius), float(c.height), "xyz".index(c.axis))
-
-
-def read_particle_file(path: Path, radius: float | None, where: str) -> tuple[np.ndarray, np.ndarray]:
-    """Centres (N, 3) [m] and radii (N,) [m] from a text file of ``x y z`` or ``x y z r`` lines."""
-    try:
-        data = np.loadtxt(path, comments="#", ndmin=2, dtype=np.float64)
-    except (OSError, ValueError) as exc:
-        raise SceneError(f"{where}.path: cannot read particle file {path}: {exc}") from None
-    if data.size == 0:
-        raise SceneError(f"{where}.path: particle file {path} has no spheres")
-    if data.shape[1] not in (3, 4):
-        raise SceneError(f"{where}.path: {path} has {data.shape[1]} columns; allowed: 3 (x y z) or 4 (x y z r)")
-    if not np.all(np.isfinite(data) & (np.abs(data) <= F32_MAX)):
-        raise SceneError(f"{where}.path: {path} contains non-finite numbers or numbers beyond {F32_MAX:g}")
-    if data.shape[1] == 4:
-        if np.any(data[:, 3] <= 0):
-            raise SceneError(f"{where}.path: {path} has radii <= 0")
-        return data[:, :3], data[:, 3]
-    if radius is None:
-        raise SceneError(f"{where}.radius: required because {path} has 3 columns (x y z)")
-    return data, np.full(len(data), radius)
-
-
-def scene_builder(scene: Scene) -> ModelBuilder:
-    """A ModelBuilder holding everything a validated scene describes.
-
-    Raises:
-        SceneError: a particle file cannot be read, or a region holds no sphere.
-    """
-    source = scene.source
-    c = scene.contact
-    b = ModelBuilder(normal=c.normal, tangential=c.tangential, rolling=c.rolling, gravity=tuple(scene.gravity.vector))
-    for name, mat in scene.materials.items():
-        b.add_material(name, mat.density, mat.youngs_modulus, mat.poisson_ratio)
-    names = scene.material_names()
-    for ia, a in enumerate(names):
-        for bname in names[ia:]:
-            it = scene.interaction_for(a, bname)
-            b.set_interaction(a, bname, InteractionProps(it.friction, it.restitution, it.rolling_friction))
-    rng = np.random.default_rng(scene.run.seed)
-    for k, src in enumerate(scene.particles):
-        where = f"particles[{k}]"
-        material = scene.parts[src.part].material
-        if src.kind == "packing":
-            region = packing_region(src.region)
-            if src.arrangement == "random":
-                q, r = packing.random_packing(
-                    region,
-                    src.radius,
-                    src.radius_max or src.radius,
-                    rng,
-                    volume_fraction=src.target_volume_fraction,
-                    max_count=src.count,
-                )
-            else:
-                q = packing.lattice_packing(region, src.radius, src.arrangement, max_count=src.count)
-                r = np.full(len(q), src.radius)
-            if len(q) == 0:
-                raise SceneError(f"{source}: {where}.region: no sphere of radius {src.radius} fits in the region")
-            b.add_spheres(q, r, material, velocity=src.velocity, part=src.part)
-        elif src.kind == "sphere":
-            b.add_sphere(
-                src.center,
-                src.radius,
-                material,
-                velocity=src.velocity,
-                angular_velocity=src.angular_velocity,
-                motion=src.motion,
-                part=src.part,
-            )
-        else:
-            q, r = read_particle_file(Path(src.path), src.radius, f"{source}: {where}")
-            b.add_spheres(q, r, material, velocity=src.velocity, part=src.part)
-    q_all = b.particle_data().q
-    for k, bond in enumerate(scene.bonds):
-        ids = np.nonzero(bond.region.contains(q_all))[0] if len(q_all) else np.zeros(0, int)
-        if len(ids) < 2:
-            raise SceneError(f"{source}: bonds[{k}].region: contains {len(ids)} sphere(s); a bond needs two")
-        b.add_bonded_group(
-            ids,
-            youngs_modulus=scene.bond_youngs_modulus(bond),
-            tensile_strength=bond.tensile_strength,
-            shear_strength=bond.shear_strength,
-            stiffness_ratio=bond.stiffness_ratio,
-            radius_factor=bond.radius_factor,
-            gap_tolerance=bond.gap_tolerance,
-            damping_ratio=bond.damping_ratio,
-        )
-    for wall in scene.walls:
-        if wall.kind == "plane":
-            b.add_plane_wall(wall.point, wall.normal, wall.material, wall.velocity)
-        else:
-            b.add_box_walls(wall.lo, wall.hi, wall.material, open_top=wall.open_top)
-    if scene.mesh is not None:
-        from .scene_mesh import add_scene_mesh
-
-        add_scene_mesh(b, scene)
-    return b
-
-
-def build_scene(scene: Scene, device: wp.context.DeviceLike = None) -> tuple[Model, State]:
-    """Model and initial state of a validated scene on ``device`` (default: the scene's run.device)."""
-    return finalize_scene(scene, scene_builder(scene), device)
-
-
-FLOAT32_TINY = float(np.finfo(np.float32).tiny)
-"""Smallest normal float32 [-]: a mass or moment of inertia below it has no finite inverse on the device."""
-
-
-def _check_representable(scene: Scene, b: ModelBuilder) -> None:
-    """Refuses sphere masses and moments of inertia (ρ 4/3 π r³, 2/5 m r²) and tet node masses (ρ V / 4) that the
-    device's float32 cannot hold with a finite inverse: each scene number is in range (warpdem.limits), but their
-    products need not be.
-
-    Raises:
-        SceneError: naming the material's density, with the range of the offending quantity.
-    """
-    names = list(b.materials)
-    quantities: list[tuple[int, str, np.ndarray]] = []
-    if b.sphere_count:
-        particles = b.particle_data()
-        mass = np.array([b.materials[names[m]].density for m in particles.material]) * (
-            4.0 / 3.0 * math.pi * particles.radius**3
-        )
-        quantities += [(m, "sphere mass [kg]", mass[particles.material == m]) for m in np.unique(particles.material)]
-        inertia = 0.4 * mass * particles.radius**2
-        quantities += [
-            (m, "sphere moment of inertia [kg m²]", inertia[particles.material == m])
-            for m in np.unique(particles.material)
-        ]
-    if b.node_count:
-        mesh = b.tet_mesh_data()
-        density = np.array([b.materials[n].density for n in names])[mesh.material]
-        node_mass = density * np.abs(tet_signed_volumes(mesh.points, mesh.tets)) / 4.0
-        quantities += [(m, "tet node mass [kg]", node_mass[mesh.material == m]) for m in np.unique(mesh.material)]
-    for m, what, values in quantities:
-        lo, hi = float(values.min()), float(values.max())
-        if not (lo >= FLOAT32_TINY and hi <= F32_MAX):
-            raise SceneError(
-                f"{scene.source}: materials.{names[m]}.density: gives a {what} from {lo:.3g} to {hi:.3g}, outside "
-                f"what the device's float32 holds ({FLOAT32_TINY:.3g} to {F32_MAX:g}); check the density and the sizes"
-            )
-
-
-def finalize_scene(scene: Scene, b: ModelBuilder, device: wp.context.DeviceLike = None) -> tuple[Model, State]:
-    """Model and initial state from the builder of a scene (:func:`scene_builder`), with the scene's run settings.
-
-    The initial overlaps are measured first (``b.overlap``, :meth:`ModelBuilder.measure_initial_overlap`).
-
-    Raises:
-        SceneError: the scene creates neither a sphere nor a tet, a mesh file's joint faces are not interior faces, or
-            spheres start overlapping each other or the rock beyond OVERLAP_TOLERANCE (or with a centre inside the
-            rock) and ``run.allow_initial_overlap`` is off,
-            or an explicit run.dt exceeds the critical time step and run.allow_unstable_dt is off.
-    """
-    from .joints import JointFaceError
-
-    if b.sphere_count == 0 and b.node_count == 0:
-        raise SceneError(f"{scene.source}: particles: the scene creates no sphere (and has no [mesh])")
-    _check_representable(scene, b)
-    run = scene.run
-    overlap = b.measure_initial_overlap(device if device is not None else run.device)
-    overlapping = overlap.exceeds(OVERLAP_TOLERANCE) and not run.allow_initial_overlap
-    skin = None if scene.contact.skin == "auto" else float(scene.contact.skin)
-    try:
-        built = b.finalize(
-            device if device is not None else run.device,
-            dt=None if run.dt == "auto" else float(run.dt),
-            safety_factor=run.safety_factor,
-            skin=skin,
-            max_neighbors=scene.capacity.neighbors_per_particle,
-            particle_capacity=scene.capacity.particles,
-            node_capacity=scene.capacity.nodes,
-            tet_capacity=scene.capacity.tets,
-            allow_unstable_dt=run.allow_unstable_dt,
-        )
-    except JointFaceError as exc:
-        raise SceneError(f"{scene.source}: mesh: {exc}") from None
-    except CoincidentSpheresError as exc:
-        raise SceneError(f"{scene.source}: bonds[{exc.group}].region: {exc}") from None
-    except UnstableTimeStepError as exc:
-        if overlapping:  # deep initial overlaps set the critical step: name the cause, not the symptom
-            raise _overlap_error(scene, overlap) from None
-        raise SceneError(
-            f"{scene.source}: run.dt: {exc}; allowed: dt <= {exc.critical.value:.4g} s, dt = 'auto' "
-            f"(run.safety_factor x the critical step), or run.allow_unstable_dt = true to run it anyway"
-        ) from None
-    # Coincident bonded spheres (the more specific error, naming the source) were refused by finalize first.
-    if overlapping:
-        raise _overlap_error(scene, overlap)
-    return built
-
-
-def _overlap_error(scene: Scene, overlap: InitialOverlap) -> SceneError:
-    """The refusal of spheres that start overlapping each other or the rock beyond :data:`OVERLAP_TOLERANCE`."""
-    return SceneError(
-        f"{scene.source}: run.allow_initial_overlap: spheres start overlapping beyond the tolerance "
-        f"({100.0 * OVERLAP_TOLERANCE:g} % of a radius, no centre in the rock): {overlap.format()}; move them "
-        "apart (or out of the rock), or set allow_initial_overlap = true in [run] to start from this state anyway"
-    )

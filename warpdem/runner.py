@@ -16,12 +16,12 @@ import numpy as np
 import warp as wp
 
 from . import __version__
-from .builder import finalize_scene, scene_builder
 from .checkpoint import CheckpointError, checkpoint_name, read_checkpoint, write_checkpoint
 from .guard import UnstableRunError
 from .limits import MAX_ELEMENTS, MAX_STEPS
 from .model import NEIGHBOR_FIELDS, Model, State
 from .scene import Scene, SceneError
+from .scene_build import finalize_scene, scene_builder
 from .simulation import EnergyBalance, Simulation, balance_error
 
 
