@@ -480,14 +480,17 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         except OSError as exc:
             raise _output_error(f"{scene.source}: output.checkpoint_dir", path, exc) from None
 
-    def write_frame(writer: UsdWriter, frame: int) -> None:
+    def write_frame(writer: UsdWriter, frame: int) -> EnergyBalance:
+        """Writes every output of one frame; returns its energy balance (read back once, for the series and the
+        summary)."""
+        energy = sim.energy()
         rock.write_vtu(frame, sim.time, sim.model, sim.state)
         n = sim.particle_count
         q = sim.state.particle_q.numpy()[:n]
         v = sim.state.particle_qd.numpy()[:n]
         if scene.output.particles_vtu and n:
             vtu.write_particles(frame, sim.time, q, sphere_point_data(sim.model, sim.state))
-        series.record(sim, frame)
+        series.record(sim, frame, energy)
         speed = np.linalg.norm(v, axis=1)
         broken, damage = sphere_damage(sim.model, sim.state)
         if scene.output.color_by == "part":
@@ -513,9 +516,8 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
             surface=rock.surface(sim.model, sim.state),
             bonds_broken=broken if sim.model.bond_capacity else None,
         )
+        return energy
 
-    energy_start = sim.energy()
-    in_play = energy_start.in_play
     progress = None
     if not options.quiet and sys.stderr.isatty():
         from tqdm import tqdm
@@ -541,7 +543,8 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
             where = f"{scene.source}: output.directory / output.usd"
         raise _output_error(where, usd_path, exc) from None
     with stop, writer:
-        write_frame(writer, frame)
+        energy_start = energy_end = write_frame(writer, frame)
+        in_play = energy_start.in_play
         while frame < total_frames and stop.signum is None:
             steps_before = sim.step_count
             try:
@@ -551,8 +554,8 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
                 unstable = exc
                 break
             frame += 1
-            write_frame(writer, frame)
-            in_play = max(in_play, sim.energy().in_play)
+            energy_end = write_frame(writer, frame)
+            in_play = max(in_play, energy_end.in_play)
             if progress is not None:
                 progress.update(round((sim.step_count - steps_before) * model.dt, 9))
             if frames_per_checkpoint and frame % frames_per_checkpoint == 0 and frame < total_frames:
@@ -572,7 +575,6 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     steps = sim.step_count - steps0
     n = sim.particle_count
     tets = int(np.count_nonzero(sim.state.tet_active.numpy()[: int(sim.state.tet_count.numpy()[0])]))
-    energy_end = sim.energy()
     return RunSummary(
         simulated_time=sim.time,
         steps=sim.step_count,

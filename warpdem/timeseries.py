@@ -207,9 +207,14 @@ class TimeSeries:
                     self.energy_start = kept[0]
                     self.in_play = max(e.in_play for e in kept)
 
-    def record(self, sim: Simulation, frame: int) -> dict[str, float]:
-        """Appends the row of this frame (replacing a row of the same frame) and rewrites both files."""
-        energy = sim.energy()
+    def record(self, sim: Simulation, frame: int, energy: EnergyBalance | None = None) -> dict[str, float]:
+        """Appends the row of this frame (replacing a row of the same frame) and rewrites both files.
+
+        Args:
+            sim: the simulation. frame: output frame number. energy: its balance now, when the caller has read it
+                back already (None: ``sim.energy()``).
+        """
+        energy = sim.energy() if energy is None else energy
         if self.energy_start is None:
             self.energy_start = energy
         self.in_play = max(self.in_play, self.energy_start.in_play, energy.in_play)
