@@ -113,6 +113,14 @@ class Model:
         joint_a, joint_b: daughter nodes of each element, a < b, shape (joint_capacity,), int32.
         joint_area: interface area of each element [m²]; joint_kn: its normal stiffness [N/m]; joint_tet_face: the
             tet-face slot of A's joint face (its outward normal is the element's); joint_set: its joint set.
+
+    Nodal fracture (warpdem.fracture, warpdem.cohesive; LDEC §2.2–2.3):
+        fracture_interval: steps between two split passes; 0: fracture is off.
+        cohesive_capacity: cohesive element slots (grows ×2 on overflow between steps).
+        node_may_split: 1 where a node may split (the scene's fracture region), else 0, shape (node_capacity,), int32
+            (a daughter inherits its parent's flag).
+        fracture_material_table: T_f, Γ and α of every material id, shape (num_materials,), FractureMaterial
+            (kernels/fracture.py).
     """
 
     device: wp.context.Device
@@ -187,6 +195,10 @@ class Model:
     joint_kn: wp.array | None = None
     joint_tet_face: wp.array | None = None
     joint_set: wp.array | None = None
+    fracture_interval: int = 0
+    cohesive_capacity: int = 0
+    node_may_split: wp.array | None = None
+    fracture_material_table: wp.array | None = None
 
     @property
     def max_radius(self) -> float:
@@ -297,6 +309,28 @@ class State:
         joint_count: joint interface elements, shape (1,), int32.
         joint_broken: 0 intact, 1 failed in tension, 2 failed in shear, shape (joint_capacity,), int32.
         joints_broken_total: joint elements failed since the start, shape (1,), int32.
+
+    Cohesive elements between the daughters A, B of a split node (LDEC eqs. 4–10; arrays of shape
+    (cohesive_capacity,) unless said):
+        cohesive_count: live elements (intact, or broken and not yet compacted), shape (1,), int32.
+        cohesive_a, cohesive_b: the daughter nodes A (the − side, keeps the parent's index at the split) and B (the
+            + side), int32.
+        cohesive_fc: f_c, the force at the onset of fracture (eq. 4) [N], float32.
+        cohesive_delta_c: δ_c, the critical opening (eq. 10) [m], float32.
+        cohesive_alpha: α of the weakening law (eq. 6) [-], float32.
+        cohesive_area: A_f, the new crack area attributed to the node, both faces (eq. 9) [m²], float32.
+        cohesive_dir: unit direction from A to B before any opening (the principal direction p1 at the split), vec3.
+        cohesive_d_max: d_max, the largest opening |x_B − x_A| so far (eq. 8) [m], float32.
+        cohesive_broken: 0 intact, 1 broken (d_max ≥ δ_c) and awaiting compaction, int32.
+        cohesive_broken_total: elements broken since the start, shape (1,), int32.
+        cohesive_area_broken: Σ A_f of the broken elements [m²], shape (1,), float64.
+        cohesive_work_broken: Σ Γ A_f = Σ (1 − α/2) f_c δ_c of the broken elements [J] (eq. 9), shape (1,), float64.
+        node_damage: largest δ_max/δ_c of the node's cohesive elements so far, 1 once one broke [-], shape
+            (node_capacity,), float32 (a daughter inherits its parent's).
+        node_energy_cohesive: energy the node's cohesive elements dissipated (½ f_c per unit growth of δ_max, and
+            the spring energy left at the break) [J], shape (node_capacity,), float64.
+        node_splits_total: node splits since the start, shape (1,), int32.
+        crack_area_total: Σ A_f of every cohesive element born [m²] (both faces), shape (1,), float64.
     """
 
     particle_count: wp.array
@@ -372,6 +406,23 @@ class State:
     joint_count: wp.array
     joint_broken: wp.array
     joints_broken_total: wp.array
+    cohesive_count: wp.array
+    cohesive_a: wp.array
+    cohesive_b: wp.array
+    cohesive_fc: wp.array
+    cohesive_delta_c: wp.array
+    cohesive_alpha: wp.array
+    cohesive_area: wp.array
+    cohesive_dir: wp.array
+    cohesive_d_max: wp.array
+    cohesive_broken: wp.array
+    cohesive_broken_total: wp.array
+    cohesive_area_broken: wp.array
+    cohesive_work_broken: wp.array
+    node_damage: wp.array
+    node_energy_cohesive: wp.array
+    node_splits_total: wp.array
+    crack_area_total: wp.array
 
     def arrays(self) -> dict[str, wp.array]:
         """All arrays of the state by field name."""
@@ -403,6 +454,45 @@ BOND_FIELDS = (
     "bond_energy_prev",
 )
 """State fields indexed by bond (compacted together)."""
+
+COHESIVE_FIELDS = (
+    "cohesive_a",
+    "cohesive_b",
+    "cohesive_fc",
+    "cohesive_delta_c",
+    "cohesive_alpha",
+    "cohesive_area",
+    "cohesive_dir",
+    "cohesive_d_max",
+    "cohesive_broken",
+)
+"""State fields indexed by cohesive element (compacted and grown together)."""
+
+
+def fracture_state(model: Model) -> dict[str, wp.array]:
+    """The State fields of nodal fracture for a model: ``model.cohesive_capacity`` empty element slots, no damage."""
+    d, cap, ncap = model.device, model.cohesive_capacity, model.node_capacity
+    one = {"dtype": int, "device": d}
+    return {
+        "cohesive_count": wp.zeros(1, **one),
+        "cohesive_a": wp.zeros(cap, **one),
+        "cohesive_b": wp.zeros(cap, **one),
+        "cohesive_fc": wp.zeros(cap, dtype=float, device=d),
+        "cohesive_delta_c": wp.zeros(cap, dtype=float, device=d),
+        "cohesive_alpha": wp.zeros(cap, dtype=float, device=d),
+        "cohesive_area": wp.zeros(cap, dtype=float, device=d),
+        "cohesive_dir": wp.zeros(cap, dtype=wp.vec3, device=d),
+        "cohesive_d_max": wp.zeros(cap, dtype=float, device=d),
+        "cohesive_broken": wp.zeros(cap, **one),
+        "cohesive_broken_total": wp.zeros(1, **one),
+        "cohesive_area_broken": wp.zeros(1, dtype=wp.float64, device=d),
+        "cohesive_work_broken": wp.zeros(1, dtype=wp.float64, device=d),
+        "node_damage": wp.zeros(ncap, dtype=float, device=d),
+        "node_energy_cohesive": wp.zeros(ncap, dtype=wp.float64, device=d),
+        "node_splits_total": wp.zeros(1, **one),
+        "crack_area_total": wp.zeros(1, dtype=wp.float64, device=d),
+    }
+
 
 NEIGHBOR_FIELDS = ("nbr_index", "nbr_shear", "nbr_bond")
 """State fields with max_neighbors slots per particle (regrown together)."""
