@@ -16,8 +16,6 @@ daughters' forces are differences of forces of size |F_A| (the star's tets pull 
 from __future__ import annotations
 
 import numpy as np
-import pytest
-import warp as wp
 
 from warpdem.builder import ModelBuilder
 from warpdem.fracture import FractureProps, attach_fracture
