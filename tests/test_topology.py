@@ -119,7 +119,7 @@ def test_elements_follow_their_representative_tets(device):
     # Stretch along x, then along y, then along z: nodes split again and again, across joints and earlier cracks;
     # every cohesive and joint element keeps nodes its representative tets hold, and the pressure faces stay faces
     # of the tets behind them.
-    model, state, pts, tets = split_model(device, joint=True, pressure=True)
+    model, state, _pts, tets = split_model(device, joint=True, pressure=True)
     sim = Simulation(model, state)
     total = 0
     for axis in (0, 1, 2):
@@ -141,7 +141,7 @@ def test_elements_follow_their_representative_tets(device):
 
 
 def test_regrow_nodes_keeps_live_slots(device):
-    model, state, pts, tets = split_model(device, joint=False)
+    model, state, _pts, _tets = split_model(device, joint=False)
     cap = model.node_capacity
     grown_model, grown_state = regrow_nodes(model, state, 2 * cap)
     assert grown_model.node_capacity == 2 * cap
