@@ -366,3 +366,36 @@ def test_energy_balance_of_a_cracking_bar_closes(device, alpha):
     np.testing.assert_allclose(float(s.cohesive_work_broken.numpy()[0]), TOUGHNESS * 2.0, rtol=1e-5)
     assert e.cohesive_elastic == 0.0 and int(s.cohesive_count.numpy()[0]) == 0  # broken elements compacted away
     assert worst < ENERGY_BOUND
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"materials": [FractureProps(STRENGTH, TOUGHNESS)] * 2}, "one FractureProps per material"),
+        ({"materials": [FractureProps(STRENGTH, None)]}, "fracture_energy"),
+        ({"materials": [FractureProps(-1.0, TOUGHNESS)]}, "tensile_strength"),
+        ({"materials": [FractureProps(STRENGTH, TOUGHNESS, 1.5)]}, "alpha"),
+        ({"check_interval": 0}, "check_interval"),
+        ({"may_split": np.ones(3, dtype=bool)}, "may_split"),
+        ({"cohesive_capacity": 0}, "cohesive_capacity"),
+    ],
+)
+def test_attach_fracture_rejects_bad_input(kwargs, message):
+    pts, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (1, 1, 1))
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", DENSITY, YOUNG, 0.25)
+    b.add_tet_mesh(pts, tets, "rock")
+    model, state = b.finalize("cpu", safety_factor=0.5)
+    args = {"materials": [FractureProps(STRENGTH, TOUGHNESS)], **kwargs}
+    materials = args.pop("materials")
+    with pytest.raises(ValueError, match=message):
+        attach_fracture(model, state, materials, **args)
+
+
+def test_material_without_strength_never_splits(device):
+    # T_f = None: the material's nodes are no candidates however high the stress.
+    model, state, pts = bar(device)
+    model, state = attach_fracture(model, state, [FractureProps(None, None)])
+    sim = Simulation(model, state)
+    stretch(sim, pts, 10 * STRENGTH / YOUNG, 0.25)
+    assert sim.fracture_pass().splits == 0

@@ -219,6 +219,10 @@ class FracturePass:
         self.claim_sigma = wp.zeros(t1, dtype=float, device=d)
         self.claim_node = wp.zeros(t1, dtype=int, device=d)
         self.pending_count = wp.zeros(1, dtype=int, device=d)
+        self.reached = wp.zeros(1, dtype=int, device=d)
+        table = model.fracture_material_table
+        # The lowest T_f of any material (host copy, read once per capacity): the threshold of the tension bound.
+        self.lowest_strength = float(table.numpy()["tensile_strength"].min()) if table is not None else 0.0
 
     def fits(self, model: Model) -> bool:
         """Whether the buffers match the model's capacities."""
@@ -236,6 +240,17 @@ class FracturePass:
         if m.node_capacity == 0 or m.tet_capacity == 0:
             return 0
         eval_tet_stresses(m, s)
+        # The common case, no tet near its strength, costs one tet pass and one read-back (kernel tension_bound).
+        self.reached.zero_()
+        wp.launch(
+            kfr.tension_bound_kernel,
+            dim=m.tet_capacity,
+            inputs=[s.tet_count, s.tet_active, s.tet_stress, self.lowest_strength],
+            outputs=[self.reached],
+            device=d,
+        )
+        if int(self.reached.numpy()[0]) == 0:
+            return 0
         stars = self.splitter.stars
         # The pass reads the unsplit adjacency (ref_tet_face_nbr), not the current face neighbours.
         stars.build(m.tet_nodes, s.tet_count, s.tet_active, s.node_count, face_neighbors=False)
