@@ -20,6 +20,8 @@ which daughters share) still names the tet that was across each face after any n
 
 from __future__ import annotations
 
+from typing import Any
+
 import warp as wp
 
 from .tets import TetMaterial
@@ -526,3 +528,40 @@ def tet_face_neighbors_from_ref_kernel(
         f = tet_face(n, k)
         if face_in_tet(tet_nodes[t2], f[0], f[1], f[2]) >= 0:
             tet_face_nbr[4 * t + k] = t2
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Element order: joint elements are kept sorted by their node pair (min, max), which the contact stage's binary
+# search (kernels/fem_contact.py ``find_joint``) relies on; a hand-over can move a pair, so it is re-sorted.
+
+
+@wp.kernel
+def element_pair_keys_kernel(
+    # In:
+    count: int,
+    node_capacity: int,
+    element_a: wp.array(dtype=int),
+    element_b: wp.array(dtype=int),
+    # Out:
+    keys: wp.array(dtype=wp.int64),
+    values: wp.array(dtype=int),
+):
+    i = wp.tid()  # one thread per element: its sort key min(a, b) · node_capacity + max(a, b)
+    if i >= count:
+        return
+    a = element_a[i]
+    b = element_b[i]
+    keys[i] = wp.int64(wp.min(a, b)) * wp.int64(node_capacity) + wp.int64(wp.max(a, b))
+    values[i] = i
+
+
+@wp.kernel
+def gather_kernel(
+    # In:
+    order: wp.array(dtype=int),
+    src: wp.array(dtype=Any),
+    # Out:
+    dst: wp.array(dtype=Any),
+):
+    i = wp.tid()  # one thread per slot: dst[i] = src[order[i]]
+    dst[i] = src[order[i]]

@@ -37,7 +37,8 @@ Rules of the split pass (others rely on them):
 - Hand-over: every cohesive and joint element has a representative tet on each side: A's is the tet of its face
   slot (``cohesive_tet_face``, ``joint_tet_face``), B's the tet across that slot in the unsplit mesh. A split moves
   neither, and each always holds its element's node, so when a node splits again each of its elements goes to the
-  daughter whose side holds the representative tet.
+  daughter whose side holds the representative tet. Joint elements are then re-sorted by their node pair
+  (min, max), the order the contact stage searches them in; an element's A stays the node of its face slot's tet.
 - Capacities: before the rounds, the candidate count is read back; it bounds the pass's new nodes and elements, so
   the node and cohesive capacities are grown ×2 until they hold it (warpdem.topology.regrow_nodes,
   warpdem.cohesive.regrow_cohesive) and a pass never overflows half way: a grown run equals a large-capacity one.
@@ -61,7 +62,7 @@ from .joints import load_face_arrays
 from .kernels import fracture as kfr
 from .model import Model, State, fracture_state
 from .tets import eval_tet_stresses
-from .topology import NodeSplitter, reference_face_neighbors
+from .topology import NodeSplitter, reference_face_neighbors, sort_joint_elements
 
 MAX_ROUNDS = 8
 """Independent-set rounds per pass; candidates still waiting after them retry at the next pass."""
@@ -400,4 +401,6 @@ class FracturePass:
             if int(self.pending_count.numpy()[0]) == 0:
                 break
         splits = int(s.node_count.numpy()[0]) - before
+        if splits and m.joint_capacity:
+            sort_joint_elements(m, s)
         return splits, rounds
