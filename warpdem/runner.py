@@ -161,6 +161,11 @@ class RunSummary:
                 row("load work", e0.load_work, e1.load_work),
                 row("contact diss.", e0.dissipated_fem_contact, e1.dissipated_fem_contact),
             ]
+        if self.fracture:
+            lines += [
+                row("cohesive el.", e0.cohesive_elastic, e1.cohesive_elastic),
+                row("cohesive diss.", e0.dissipated_cohesive, e1.dissipated_cohesive),
+            ]
         lines.append(row("elastic", e0.elastic, e1.elastic))
         if e0.gravity_potential != 0.0 or e1.gravity_potential != 0.0:
             lines.append(row("gravity pot.", e0.gravity_potential, e1.gravity_potential))
@@ -624,8 +629,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         energy_error=balance_error(energy_start, energy_end, in_play),
         fracture=bool(fracture),
         **fracture,
-        # The core adds this line to EnergyBalance with the cohesive elements; 0 before it.
-        dissipated_cohesive=float(getattr(energy_end, "dissipated_cohesive", 0.0)),
+        dissipated_cohesive=energy_end.dissipated_cohesive,
     )
 
 
