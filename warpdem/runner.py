@@ -43,6 +43,36 @@ def model_scalars(model: Model) -> dict[str, int | float]:
     }
 
 
+def load_checkpoint_arrays(model: Model) -> dict[str, wp.array]:
+    """The arrays of the model's LoadModel that a run changes, by checkpoint name: the node drivers (per node, grown
+    with the node capacity by a split pass) and the node triples of the loaded and dashpot faces (remapped onto the
+    daughters of split nodes). The rest of the loads comes from the scene."""
+    loads = model.loads
+    if loads is None:
+        return {}
+    out = {f"pressure_{kind}_nodes": faces.nodes for kind, faces in loads.pressure.items()}
+    if loads.dashpots is not None:
+        out["dashpots_nodes"] = loads.dashpots.nodes
+    if isinstance(loads.node_driver, wp.array):
+        out["node_driver"] = loads.node_driver
+    return out
+
+
+def _restore_loads(model: Model, arrays: dict[str, np.ndarray]) -> Model:
+    """The model with its load arrays (:func:`load_checkpoint_arrays`) taken from a checkpoint where it holds them."""
+    held = load_checkpoint_arrays(model)
+    for name, a in held.items():
+        key = f"loads/{name}"
+        if key not in arrays:
+            continue
+        if name == "node_driver":
+            driver = wp.array(arrays[key], dtype=a.dtype, device=model.device)
+            model = dataclasses.replace(model, loads=dataclasses.replace(model.loads, node_driver=driver))
+        elif arrays[key].shape == a.numpy().shape:
+            a.assign(arrays[key])
+    return model
+
+
 SCENE_FIXED_SCALARS = ("bond_capacity", "num_walls", "num_materials")
 """Model scalars that no run changes: a checkpoint whose values differ was taken of another scene."""
 
@@ -209,6 +239,8 @@ def save_checkpoint(path: Path, sim: Simulation, frame: int, extra: dict) -> Pat
     arrays = {f"state/{name}": a.numpy() for name, a in sim.state.arrays().items()}
     for name in model_checkpoint_arrays(sim.model):
         arrays[f"model/{name}"] = getattr(sim.model, name).numpy()
+    for name, a in load_checkpoint_arrays(sim.model).items():
+        arrays[f"loads/{name}"] = a.numpy()
     attrs = {
         **model_scalars(sim.model),
         "step": sim.step_count,
@@ -315,7 +347,7 @@ def restore_checkpoint(
         **{name: load(f"model/{name}", getattr(model, name)) for name in model_checkpoint_arrays(model)},
     )
     state = State(**{name: load(f"state/{name}", a) for name, a in template.arrays().items()})
-    return model, state, attrs
+    return _restore_loads(model, arrays), state, attrs
 
 
 class _StopRequest:
