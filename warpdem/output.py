@@ -3,12 +3,13 @@
 The surface of the rock is every face used by exactly one active tet, so the faces of a converted (inactive) tet's
 neighbours, and both faces of a crack or joint whose nodes have been split, appear by themselves. A split face
 whose two sides have not separated yet (every pair of daughter nodes closer than a gap) is hidden, so a closed joint
-does not draw inside the rock. Host code (numpy), run between steps.
+does not draw inside the rock; a run-time crack (nodes split by the fracture pass) is drawn the same way, and its
+cohesive elements can be drawn as curves. Host code (numpy), run between steps.
 
-VTU series: one ``.vtu`` file per frame (the active tets, with displacement and velocity per node and the stress
-per tet) plus a ``.pvd`` collection that ParaView opens as one time series. Every file is written under a temporary
-name and moved over the final one with ``os.replace``, and the collection is rewritten after every frame, so a run
-that stops part way leaves a valid series of the frames it finished.
+VTU series: one ``.vtu`` file per frame (the active tets, with displacement and velocity per node, its damage with
+fracture on, and the stress per tet) plus a ``.pvd`` collection that ParaView opens as one time series. Every file
+is written under a temporary name and moved over the final one with ``os.replace``, and the collection is rewritten
+after every frame, so a run that stops part way leaves a valid series of the frames it finished.
 """
 
 from __future__ import annotations
