@@ -131,6 +131,25 @@ def test_split_faces_drawn_only_once_open():
     assert len(unsplit) == 8
 
 
+def test_face_grouping_equals_numpy_unique_rows():
+    """The packed-key grouping of the surface search against np.unique(rows, axis=0) (exact), below and above the
+    largest node index a packed key holds."""
+    from warpdem.output import _PACKED_ROW_LIMIT, _row_groups
+
+    rng = np.random.default_rng(3)
+    for high in (1, 7, 1000, 3 * _PACKED_ROW_LIMIT):
+        for count in (0, 1, 2000):
+            rows = np.sort(rng.integers(0, high, size=(count, 3)), axis=1)
+            rows[count - count // 4 :] = rows[: count // 4]  # a quarter repeated: groups of one and of more
+            group, size = _row_groups(rows)
+            if count == 0:
+                assert len(group) == 0 and len(size) == 0
+                continue
+            _, expected_group, expected_size = np.unique(rows, axis=0, return_inverse=True, return_counts=True)
+            np.testing.assert_array_equal(group, expected_group.reshape(-1))
+            np.testing.assert_array_equal(size, expected_size)
+
+
 def test_stress_measures_hand_values():
     sigma, tau, p = 3.0e6, 2.0e6, -5.0e6
     uniaxial = np.diag([sigma, 0.0, 0.0])
@@ -259,6 +278,7 @@ def test_box_scene_writes_rock_surface_vtu_and_mesh_checkpoint(device, tmp_path,
     np.testing.assert_allclose(last.points, node_q, rtol=0, atol=0)
     assert len(last.cells_dict["tetra"]) == 96
     assert "strain" in summary.format() and "rock mesh        45 nodes, 96 tets" in summary.format()
+    assert not summary.fracture and "fracture" not in summary.format()  # no fracture lines where it is off
 
 
 def test_quiet_run_prints_no_mesh_quality(device, tmp_path, capsys):
