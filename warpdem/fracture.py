@@ -232,7 +232,8 @@ class FracturePass:
             return 0
         eval_tet_stresses(m, s)
         stars = self.splitter.stars
-        stars.build(m.tet_nodes, s.tet_count, s.tet_active, s.node_count)
+        # The pass reads the unsplit adjacency (ref_tet_face_nbr), not the current face neighbours.
+        stars.build(m.tet_nodes, s.tet_count, s.tet_active, s.node_count, face_neighbors=False)
         wp.launch(
             kfr.nodal_stress_kernel,
             dim=m.node_capacity,

@@ -73,6 +73,10 @@ def _restore_loads(model: Model, arrays: dict[str, np.ndarray]) -> Model:
     return model
 
 
+NOT_PER_PARTICLE = ("node_", "tet_", "face_", "star_", "joint_", "cohesive_", "ref_", "bond_")
+"""Array names that are never sized by the particle capacity (nodes, tets, faces, joints, cohesive elements and bonds
+grow by their own capacities, which may equal it by chance)."""
+
 SCENE_FIXED_SCALARS = ("bond_capacity", "num_walls", "num_materials")
 """Model scalars that no run changes: a checkpoint whose values differ was taken of another scene."""
 
@@ -327,7 +331,12 @@ def restore_checkpoint(
         # Neighbour slots by name: with one slot per sphere they are as long as the per-sphere arrays.
         if key.removeprefix("state/") in NEIGHBOR_FIELDS:
             expected = slots["neighbor slots"]
-        elif like.shape and like.shape[0] == template.particle_q.shape[0] and key.startswith(("state/", "model/")):
+        elif (
+            like.shape
+            and like.shape[0] == template.particle_q.shape[0]
+            and key.startswith(("state/", "model/"))
+            and not key.split("/", 1)[1].startswith(NOT_PER_PARTICLE)
+        ):
             expected = slots["particle_capacity"]
         else:
             expected = None

@@ -42,8 +42,16 @@ class NodeStars:
         self.tets = wp.zeros(max(4 * tet_capacity, 1), dtype=int, device=device)
         self.tet_face_nbr = wp.full(max(4 * tet_capacity, 1), -1, dtype=int, device=device)
 
-    def build(self, tet_nodes: wp.array, tet_count: wp.array, tet_active: wp.array, node_count: wp.array) -> None:
-        """Count → exclusive scan → fill → sort, then the face neighbours of every tet (launches only)."""
+    def build(
+        self,
+        tet_nodes: wp.array,
+        tet_count: wp.array,
+        tet_active: wp.array,
+        node_count: wp.array,
+        face_neighbors: bool = True,
+    ) -> None:
+        """Count → exclusive scan → fill → sort, then (unless ``face_neighbors`` is False) the face neighbours of every
+        tet (launches only)."""
         d = self.device
         tcap = tet_nodes.shape[0]
         self.count.zero_()
@@ -72,6 +80,8 @@ class NodeStars:
             outputs=[self.tets],
             device=d,
         )
+        if not face_neighbors:
+            return
         wp.launch(
             kt.tet_face_neighbors_kernel,
             dim=tcap,
