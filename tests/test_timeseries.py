@@ -14,7 +14,11 @@ Oracles:
   evaluated twice, so to float32 round-off, ``F32_RTOL``); pressure load force = -p A n on a flat face of area A at
   rest (float32 area, ``F32_RTOL``);
 - a bar pulled apart with nodal fracture on: every split appends one node and gives birth to one cohesive element, so
-  in every row nodes − nodes at frame 0 = splits = cohesive elements intact + broken (exact counts); the summary's
+  in every row nodes − nodes at frame 0 = splits = cohesive elements intact + broken (exact counts); the bar breaks
+  across one section, so the opened crack area is its cross-section W² and the stage gains both sides of the
+  section's triangles (2 × 2 W/h × W/h); a broken element has dissipated Γ A_f (LDEC eq. 9), so where no element is
+  intact the dissipated cohesive energy equals Γ × the broken area (float32 f_c, δ_c, A_f: ``F32_RTOL``) and
+  exceeds it otherwise; the summary's
   fracture lines and JSON hold the last row's numbers; the stage's cohesive curves are the intact elements of each
   frame and its damage primvar (and the VTU point data) the checkpoint's node damage (float32: exact); a restart from
   a middle checkpoint leaves the stage and the series of the uninterrupted run (CPU restarts are bit-identical).
@@ -230,12 +234,19 @@ def test_mesh_run_series_has_nodes_tets_and_load_columns(tmp_path):
 # the first frames, so nodes split and crack faces open.
 
 FRACTURE_FRAMES = 6
+BAR_WIDTH, BAR_CELLS = 0.2, 2  # [m] the square section and the cells across it
 BAR_SCENE = {
     "name": "pulled_bar",
     "run": {"end_time": 1.0, "output_rate": 20000.0},
     "gravity": {"vector": [0.0, 0.0, 0.0]},
     "materials": {"rock": {"density": 2650.0, "youngs_modulus": 5.0e9, "poisson_ratio": 0.25}},
-    "mesh": {"kind": "box", "lo": [0.0, 0.0, 0.0], "hi": [0.2, 0.2, 1.0], "divisions": [2, 2, 10], "material": "rock"},
+    "mesh": {
+        "kind": "box",
+        "lo": [0.0, 0.0, 0.0],
+        "hi": [BAR_WIDTH, BAR_WIDTH, 1.0],
+        "divisions": [BAR_CELLS, BAR_CELLS, 10],
+        "material": "rock",
+    },
     "loads": [
         {"kind": "velocity", "region": {"box": {"lo": [-1, -1, 0.95], "hi": [1, 1, 2]}}, "velocity": [0.0, 0.0, 2.0]}
     ],
@@ -284,6 +295,16 @@ def test_fracture_run_counts_splits_elements_and_crack_area(fracture_run):
     np.testing.assert_array_equal(data["cohesive_intact"] + data["cohesive_broken"], splits)
     assert np.all(np.diff(data["crack_area"]) >= 0.0) and data["crack_area"][-1] > 0.0
     assert np.all(data["crack_area_opened"] <= data["crack_area"])
+    # Broken through one section by the end: the opened area is the section, its work Γ × both faces of it.
+    gamma = BAR_FRACTURE["fracture_energy"]
+    np.testing.assert_allclose(data["crack_area_opened"][-1], BAR_WIDTH**2, rtol=F32_RTOL)
+    np.testing.assert_allclose(data["cohesive_work_broken"][-1], gamma * 2.0 * BAR_WIDTH**2, rtol=F32_RTOL)
+    none_intact = (data["cohesive_intact"] == 0) & (data["cohesive_broken"] > 0)
+    assert np.any(none_intact)
+    np.testing.assert_allclose(
+        data["energy_dissipated_cohesive"][none_intact], data["cohesive_work_broken"][none_intact], rtol=F32_RTOL
+    )
+    assert np.all(data["energy_dissipated_cohesive"] >= data["cohesive_work_broken"] * (1.0 - F32_RTOL))
 
     # The summary is the last row.
     assert summary.fracture
@@ -311,6 +332,12 @@ def test_fracture_run_counts_splits_elements_and_crack_area(fracture_run):
     counts = [len(curves.GetCurveVertexCountsAttr().Get(float(k))) for k in range(FRACTURE_FRAMES + 1)]
     np.testing.assert_array_equal(counts, data["cohesive_intact"])
     rock = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Rock"))
+    # The opened section: both sides of its 2 triangles per cell face, beside the bar's outer triangles.
+    outer = 4 * (BAR_CELLS * BAR_CELLS + 2 * BAR_CELLS * 10)
+    first_open = int(np.argmax(none_intact))
+    triangles = len(rock.GetFaceVertexCountsAttr().Get(float(first_open)))
+    assert len(rock.GetFaceVertexCountsAttr().Get(0.0)) == outer
+    assert triangles == outer + 2 * 2 * BAR_CELLS**2
     damage = UsdGeom.PrimvarsAPI(rock.GetPrim()).GetPrimvar("damage")
     np.testing.assert_array_equal(np.asarray(damage.Get(float(FRACTURE_FRAMES))), arrays["state/node_damage"][:nn])
     np.testing.assert_array_equal(
