@@ -1097,7 +1097,8 @@ class Output(_Model):
     )
     bonds_as_curves: Bool = Field(default=False, description="Write intact bonds as USD curves.")
     cohesive_as_curves: Bool = Field(
-        default=False, description="Write intact cohesive elements (fracture) as USD curves, /World/Cohesive."
+        default=False,
+        description="Write the intact cohesive elements of the crack tips (nodal fracture) as USD curves.",
     )
     checkpoint_every: Float = Field(
         default=0.0, ge=0, description="Checkpoint interval in simulated time [s]; 0 = only at the end."
