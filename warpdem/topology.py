@@ -49,9 +49,11 @@ class NodeStars:
         tet_active: wp.array,
         node_count: wp.array,
         face_neighbors: bool = True,
+        ref_face_nbr: wp.array | None = None,
     ) -> None:
         """Count → exclusive scan → fill → sort, then (unless ``face_neighbors`` is False) the face neighbours of every
-        tet (launches only)."""
+        tet (launches only). Given the unsplit adjacency (``Model.ref_tet_face_nbr``), a face's neighbour is its
+        unsplit one where that still holds the face's nodes (four lookups per tet instead of a star search)."""
         d = self.device
         tcap = tet_nodes.shape[0]
         self.count.zero_()
@@ -81,6 +83,15 @@ class NodeStars:
             device=d,
         )
         if not face_neighbors:
+            return
+        if ref_face_nbr is not None:
+            wp.launch(
+                kt.tet_face_neighbors_from_ref_kernel,
+                dim=tcap,
+                inputs=[tet_nodes, ref_face_nbr, tet_count, tet_active],
+                outputs=[self.tet_face_nbr],
+                device=d,
+            )
             return
         wp.launch(
             kt.tet_face_neighbors_kernel,
