@@ -131,6 +131,25 @@ def test_split_faces_drawn_only_once_open():
     assert len(unsplit) == 8
 
 
+def test_face_grouping_equals_numpy_unique_rows():
+    """The packed-key grouping of the surface search against np.unique(rows, axis=0) (exact), below and above the
+    largest node index a packed key holds."""
+    from warpdem.output import _PACKED_ROW_LIMIT, _row_groups
+
+    rng = np.random.default_rng(3)
+    for high in (1, 7, 1000, 3 * _PACKED_ROW_LIMIT):
+        for count in (0, 1, 2000):
+            rows = np.sort(rng.integers(0, high, size=(count, 3)), axis=1)
+            rows[count - count // 4 :] = rows[: count // 4]  # a quarter repeated: groups of one and of more
+            group, size = _row_groups(rows)
+            if count == 0:
+                assert len(group) == 0 and len(size) == 0
+                continue
+            _, expected_group, expected_size = np.unique(rows, axis=0, return_inverse=True, return_counts=True)
+            np.testing.assert_array_equal(group, expected_group.reshape(-1))
+            np.testing.assert_array_equal(size, expected_size)
+
+
 def test_stress_measures_hand_values():
     sigma, tau, p = 3.0e6, 2.0e6, -5.0e6
     uniaxial = np.diag([sigma, 0.0, 0.0])
@@ -259,6 +278,7 @@ def test_box_scene_writes_rock_surface_vtu_and_mesh_checkpoint(device, tmp_path,
     np.testing.assert_allclose(last.points, node_q, rtol=0, atol=0)
     assert len(last.cells_dict["tetra"]) == 96
     assert "strain" in summary.format() and "rock mesh        45 nodes, 96 tets" in summary.format()
+    assert not summary.fracture and "fracture" not in summary.format()  # no fracture lines where it is off
 
 
 def test_quiet_run_prints_no_mesh_quality(device, tmp_path, capsys):
@@ -342,3 +362,184 @@ def test_cli_reports_an_unusable_mesh_file(tmp_path, capsys):
     assert status == 2
     assert err.startswith(f"error: {scene}: mesh.path: ") and "cannot read as gmsh" in err and "Traceback" not in err
     assert not (tmp_path / "out").exists() or not list((tmp_path / "out").rglob("*.usd*"))
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Run-time cracks (LDEC node splitting): daughters appended past the mesh's nodes, tets remapped to them. The split is
+# made by hand here, as the split pass makes it (the + side of the plane z = z_K takes the new daughter B, which
+# copies K's reference position, position and displacement), so the output is checked without the fracture pass.
+
+CRACK_Z = 1.0  # [m] the crack plane, through the middle nodes of a 2 m cube of 2 × 2 × 2 cells
+CRACK_SCENE = {
+    "name": "cracked_cube",
+    "run": {"end_time": 1.0, "output_rate": 1000.0},
+    "gravity": {"vector": [0.0, 0.0, 0.0]},
+    "materials": {"rock": {"density": 2650.0, "youngs_modulus": 5.0e9, "poisson_ratio": 0.25}},
+    "mesh": {"kind": "box", "lo": [0.0, 0.0, 0.0], "hi": [2.0, 2.0, 2.0], "divisions": [2, 2, 2], "material": "rock"},
+    "capacity": {"nodes": 27 + 2},
+}
+CENTRE, SIDE = 13, 12  # box_mesh node (i, j, k) = i + 3 (j + 3 k): (1, 1, 1) inside, (0, 1, 1) on the x = 0 face
+OPENING = 0.05  # [m] z displacement of the + side daughters once the crack opens (CLOSED_GAP × size ~ 5e-4 m)
+DELTA_C = 0.04  # [m] critical opening of the hand-made cohesive elements
+
+
+def split_by_hand(model, state, k: int, damage: float) -> int:
+    """Splits node k along the plane z = z_K (the + side tets take a new daughter B), adds a cohesive element K–B and
+    sets both daughters' damage; returns B."""
+    nn = int(state.node_count.numpy()[0])
+    for array in (model.node_ref_q, state.node_q, state.node_u, state.node_qd):
+        a = array.numpy()
+        a[nn] = a[k]
+        array.assign(a)
+    nt = int(state.tet_count.numpy()[0])
+    tets = model.tet_nodes.numpy()
+    ref = model.node_ref_q.numpy()
+    plus = np.any(tets[:nt] == k, axis=1) & (ref[tets[:nt]].mean(axis=1)[:, 2] > ref[k, 2])
+    tets[:nt][plus] = np.where(tets[:nt][plus] == k, nn, tets[:nt][plus])
+    model.tet_nodes.assign(tets)
+    state.node_count.assign(np.array([nn + 1], np.int32))
+    c = int(state.cohesive_count.numpy()[0])
+    for array, value in ((state.cohesive_a, k), (state.cohesive_b, nn), (state.cohesive_delta_c, DELTA_C)):
+        a = array.numpy()
+        a[c] = value
+        array.assign(a)
+    state.cohesive_count.assign(np.array([c + 1], np.int32))
+    state.node_splits_total.assign(state.node_splits_total.numpy() + 1)
+    set_damage(state, [k, nn], damage)
+    return nn
+
+
+def set_damage(state, nodes: list[int], value: float) -> None:
+    d = state.node_damage.numpy()
+    d[nodes] = value
+    state.node_damage.assign(d)
+
+
+def cracking_cube(restart_frame: int | None = None):
+    """A fresh model of CRACK_SCENE with fracture on and the story of its frames: 0 intact; 1 the centre node split
+    (interior, closed); 2 the side node split (on the surface, closed); 3 the + side daughters moved up by OPENING (the
+    crack opens) and the centre's element broken; 4 nothing moved but the velocities. Yields (frame, model, state)."""
+    import dataclasses
+
+    from warpdem.model import fracture_state
+    from warpdem.scene_build import finalize_scene, scene_builder
+
+    scene = parse_scene(CRACK_SCENE)
+    model, state = finalize_scene(scene, scene_builder(scene), "cpu")
+    model = dataclasses.replace(model, fracture_interval=1, cohesive_capacity=4)
+    state = dataclasses.replace(state, **fracture_state(model))
+    points, tets = box_mesh((0, 0, 0), (2, 2, 2), (2, 2, 2))  # the mesh the scene builds, in the same order
+    np.testing.assert_array_equal(model.node_ref_q.numpy()[:27], points.astype(np.float32))
+    np.testing.assert_array_equal(model.tet_nodes.numpy()[:48], tets)
+    yield 0, model, state
+    b_centre = split_by_hand(model, state, CENTRE, 0.25)
+    yield 1, model, state
+    b_side = split_by_hand(model, state, SIDE, 0.5)
+    yield 2, model, state
+    for array in (state.node_u, state.node_q):
+        a = array.numpy()
+        a[[b_centre, b_side], 2] += OPENING
+        array.assign(a)
+    set_damage(state, [CENTRE, b_centre], 1.0)
+    state.cohesive_broken.assign(np.array([1, 0, 0, 0], np.int32))
+    state.cohesive_broken_total.assign(np.array([1], np.int32))
+    yield 3, model, state
+    state.node_qd.assign(state.node_qd.numpy() + 1.0)
+    yield 4, model, state
+
+
+def write_cracking_cube(path: Path, rock, first_frame: int = 0) -> list[tuple]:
+    """Writes the rock of :func:`cracking_cube` from ``first_frame`` on (a restart when above 0); returns, per frame
+    written, (node damage, node positions, intact cohesive pairs)."""
+    from warpdem.usd import UsdWriter
+
+    held = []
+    none = {
+        "positions": np.zeros((0, 3)),
+        "radii": np.zeros(0),
+        "velocities": np.zeros((0, 3)),
+        "colors": np.zeros((0, 3)),
+    }
+    with UsdWriter(path, 1000.0, first_frame=first_frame, append=first_frame > 0) as writer:
+        for frame, model, state in cracking_cube():
+            if frame < first_frame:
+                continue
+            nn, nc = int(state.node_count.numpy()[0]), int(state.cohesive_count.numpy()[0])
+            intact = state.cohesive_broken.numpy()[:nc] == 0
+            pairs = np.stack([state.cohesive_a.numpy()[:nc], state.cohesive_b.numpy()[:nc]], axis=1)[intact]
+            held.append((state.node_damage.numpy()[:nn].copy(), state.node_q.numpy()[:nn].copy(), pairs))
+            rock.write_vtu(frame, 1e-3 * frame, model, state)
+            writer.write_frame(
+                time=1e-3 * frame,
+                ids=np.zeros(0, np.int64),
+                **none,
+                surface=rock.surface(model, state),
+                cohesive=rock.cohesive_curves(model, state),
+            )
+    return held
+
+
+def test_run_time_crack_faces_appear_as_they_open_with_damage(tmp_path):
+    """Oracles: the triangles are re-authored exactly where the drawn surface changes (frame 2: the side node's outer
+    faces now use its daughter; frame 3: the crack opens), never on a split that shows nothing (frame 1: an interior
+    node, closed); the opened crack adds both sides of every mesh triangle in the plane z = CRACK_Z that has a split
+    node (brute force over the tets' faces); damage primvar, damage colours, VTU point data and cohesive curves
+    equal what the state holds at every frame (float32 storage: exact)."""
+    from warpdem.output import RockFrames, VtuSeries, damage_colors
+
+    path = tmp_path / "crack.usdc"
+    rock = RockFrames("damage", VtuSeries(tmp_path, "crack"))
+    held = write_cracking_cube(path, rock)
+
+    points, tets = box_mesh((0, 0, 0), (2, 2, 2), (2, 2, 2))
+    in_plane = {
+        frozenset(f)
+        for tet in tets
+        for f in np.asarray(tet)[[[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]]]
+        if np.all(np.isclose(points[f, 2], CRACK_Z))
+    }
+    crack = [f for f in in_plane if CENTRE in f or SIDE in f]
+    assert len(crack) > 0
+    outer = len(boundary_faces(tets))
+
+    stage = Usd.Stage.Open(str(path))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Rock"))
+    assert mesh.GetFaceVertexIndicesAttr().GetTimeSamples() == [0.0, 2.0, 3.0]
+    faces = [np.asarray(mesh.GetFaceVertexIndicesAttr().Get(float(c))).reshape(-1, 3) for c in range(5)]
+    assert [len(f) for f in faces] == [outer] * 3 + [outer + 2 * len(crack)] * 2
+    # The daughters' roots (27: the centre's, 28: the side's) map every frame's triangles back onto the mesh's.
+    root = np.concatenate([np.arange(27), [CENTRE, SIDE]])
+    np.testing.assert_array_equal(sorted_rows(root[faces[2]]), sorted_rows(faces[0]))
+    opened = {tuple(r) for r in sorted_rows(faces[3])} - {tuple(r) for r in sorted_rows(faces[2])}
+    new_rows = [tuple(sorted(root[r])) for r in faces[3] if tuple(sorted(r)) in opened]
+    assert sorted(new_rows) == sorted(tuple(sorted(f)) for f in crack for _ in range(2))
+
+    primvars = UsdGeom.PrimvarsAPI(mesh.GetPrim())
+    cohesive = UsdGeom.BasisCurves(stage.GetPrimAtPath("/World/Cohesive"))
+    for code, (damage, q, pairs) in enumerate(held):
+        np.testing.assert_array_equal(np.asarray(primvars.GetPrimvar("damage").Get(code)), damage)
+        np.testing.assert_array_equal(
+            np.asarray(mesh.GetDisplayColorPrimvar().Get(code)), damage_colors(damage).astype(np.float32)
+        )
+        ends = np.asarray(cohesive.GetPointsAttr().Get(code)).reshape(-1, 2, 3)
+        np.testing.assert_array_equal(ends, q[pairs])
+        assert len(pairs) == [0, 1, 2, 1, 1][code]
+    assert mesh.GetDisplayColorPrimvar().GetInterpolation() == UsdGeom.Tokens.vertex
+    vtu = meshio.read(rock.vtu.files[-1])
+    np.testing.assert_array_equal(vtu.point_data["damage"], held[-1][0])
+    assert len(vtu.points) == 29
+
+
+@pytest.mark.parametrize("restart_frame", [3, 4])
+def test_restart_extends_a_cracked_stage(tmp_path, restart_frame):
+    """A restarted run (a new RockFrames, the stage extended from ``restart_frame``) leaves the stage of the
+    uninterrupted one, damage primvar and cohesive curves included, sample by sample."""
+    from stage_compare import assert_stages_equal
+
+    from warpdem.output import RockFrames
+
+    whole, pieces = tmp_path / "whole.usdc", tmp_path / "pieces.usdc"
+    write_cracking_cube(whole, RockFrames("stress"))
+    write_cracking_cube(pieces, RockFrames("stress"))
+    write_cracking_cube(pieces, RockFrames("stress"), first_frame=restart_frame)
+    assert_stages_equal(Usd.Stage.Open(str(pieces)), Usd.Stage.Open(str(whole)))

@@ -12,12 +12,23 @@ Oracles:
   broken sum to twice the bonds broken (each broken bond is counted on both its spheres);
 - wall force = minus the sum of the wall contact forces on the spheres (Newton's third law; the same float32 law
   evaluated twice, so to float32 round-off, ``F32_RTOL``); pressure load force = -p A n on a flat face of area A at
-  rest (float32 area, ``F32_RTOL``).
+  rest (float32 area, ``F32_RTOL``);
+- a bar pulled apart with nodal fracture on: every split appends one node and gives birth to one cohesive element, so
+  in every row nodes − nodes at frame 0 = splits = cohesive elements intact + broken (exact counts); the bar breaks
+  across one section, so the opened crack area is its cross-section W² and the stage gains both sides of the
+  section's triangles (2 × 2 W/h × W/h); a broken element has dissipated Γ A_f (LDEC eq. 9), so where no element is
+  intact the dissipated cohesive energy equals Γ × the broken area (float32 f_c, δ_c, A_f: ``F32_RTOL``) and
+  exceeds it otherwise; the summary's
+  fracture lines and JSON hold the last row's numbers; the stage's cohesive curves are the intact elements of each
+  frame and its damage primvar (and the VTU point data) the checkpoint's node damage (float32: exact); a restart from
+  a middle checkpoint leaves the stage and the series of the uninterrupted run (CPU restarts are bit-identical).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import shutil
 import xml.etree.ElementTree as ET
 
 import h5py
@@ -32,7 +43,7 @@ from warpdem.runner import RunOptions, run_scene
 from warpdem.scene import parse_scene
 from warpdem.scene_build import finalize_scene, scene_builder
 from warpdem.simulation import EnergyBalance, Simulation, balance_error
-from warpdem.timeseries import COUNT_COLUMNS, energy_lines, energy_signs, read_series, unit
+from warpdem.timeseries import COUNT_COLUMNS, FRACTURE_COLUMNS, energy_lines, energy_signs, read_series, unit
 
 SUM_RTOL = 1e-12  # a sum of ~15 float64 terms of one magnitude
 F32_RTOL = 1e-5  # float32 forces and areas, a few roundings
@@ -216,3 +227,148 @@ def test_mesh_run_series_has_nodes_tets_and_load_columns(tmp_path):
     np.testing.assert_allclose(data["load0_fz"][0], -PRESSURE * 0.5, rtol=F32_RTOL)
     assert data["energy_error"][-1] == summary.energy_error
     assert dataclasses.asdict(summary.energy_end)["strain"] == data["energy_strain"][-1] > 0.0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Nodal fracture: a bar of 2 × 2 × 10 cells pulled at 2 m/s at the top, fixed at the bottom; T_f is reached within
+# the first frames, so nodes split and crack faces open.
+
+FRACTURE_FRAMES = 6
+BAR_WIDTH, BAR_CELLS = 0.2, 2  # [m] the square section and the cells across it
+BAR_SCENE = {
+    "name": "pulled_bar",
+    "run": {"end_time": 1.0, "output_rate": 20000.0},
+    "gravity": {"vector": [0.0, 0.0, 0.0]},
+    "materials": {"rock": {"density": 2650.0, "youngs_modulus": 5.0e9, "poisson_ratio": 0.25}},
+    "mesh": {
+        "kind": "box",
+        "lo": [0.0, 0.0, 0.0],
+        "hi": [BAR_WIDTH, BAR_WIDTH, 1.0],
+        "divisions": [BAR_CELLS, BAR_CELLS, 10],
+        "material": "rock",
+    },
+    "loads": [
+        {"kind": "velocity", "region": {"box": {"lo": [-1, -1, 0.95], "hi": [1, 1, 2]}}, "velocity": [0.0, 0.0, 2.0]}
+    ],
+    "boundaries": [{"faces": "z-", "kind": "fixed"}],
+    "output": {"vtu": True, "mesh_color_by": "damage", "cohesive_as_curves": True},
+}
+BAR_FRACTURE = {"tensile_strength": 2.0e6, "fracture_energy": 50.0, "alpha": 1.0}
+
+
+def run_with_fracture(options: RunOptions):
+    """run_scene of BAR_SCENE with nodal fracture attached to the built model (every node may split, a pass every
+    step)."""
+    import warpdem.runner as runner
+    from warpdem.fracture import FractureProps, attach_fracture
+
+    build = runner.finalize_scene
+
+    def finalize_with_fracture(scene, builder, device=None):
+        model, state = build(scene, builder, device)
+        return attach_fracture(model, state, [FractureProps(**BAR_FRACTURE)], check_interval=1)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(runner, "finalize_scene", finalize_with_fracture)
+        return run_scene(parse_scene(BAR_SCENE), options)
+
+
+@pytest.fixture(scope="module")
+def fracture_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("fracture")
+    period = 3.0 / BAR_SCENE["run"]["output_rate"]
+    options = RunOptions(device="cpu", frames=FRACTURE_FRAMES, out_dir=out, checkpoint_every=period, quiet=True)
+    return run_with_fracture(options), out
+
+
+def test_fracture_run_counts_splits_elements_and_crack_area(fracture_run):
+    from warpdem.checkpoint import read_checkpoint
+    from warpdem.runner import summary_json
+
+    summary, out = fracture_run
+    data = read_series(summary.series_path)
+    columns = list(data)
+    assert columns[columns.index("joints_failed") + 1 :][: len(FRACTURE_COLUMNS)] == list(FRACTURE_COLUMNS)
+    splits = data["splits"]
+    assert splits[0] == 0 and splits[-1] > 0, "the pulled bar should crack within the run"
+    np.testing.assert_array_equal(data["nodes"] - data["nodes"][0], splits)
+    np.testing.assert_array_equal(data["cohesive_intact"] + data["cohesive_broken"], splits)
+    assert np.all(np.diff(data["crack_area"]) >= 0.0) and data["crack_area"][-1] > 0.0
+    assert np.all(data["crack_area_opened"] <= data["crack_area"])
+    # Broken through one section by the end: the opened area is the section, its work Γ × both faces of it.
+    gamma = BAR_FRACTURE["fracture_energy"]
+    np.testing.assert_allclose(data["crack_area_opened"][-1], BAR_WIDTH**2, rtol=F32_RTOL)
+    np.testing.assert_allclose(data["cohesive_work_broken"][-1], gamma * 2.0 * BAR_WIDTH**2, rtol=F32_RTOL)
+    none_intact = (data["cohesive_intact"] == 0) & (data["cohesive_broken"] > 0)
+    assert np.any(none_intact)
+    np.testing.assert_allclose(
+        data["energy_dissipated_cohesive"][none_intact], data["cohesive_work_broken"][none_intact], rtol=F32_RTOL
+    )
+    assert np.all(data["energy_dissipated_cohesive"] >= data["cohesive_work_broken"] * (1.0 - F32_RTOL))
+
+    # The summary is the last row.
+    assert summary.fracture
+    for name in FRACTURE_COLUMNS:
+        assert getattr(summary, name) == data[name][-1], name
+    assert summary.dissipated_cohesive == data["energy_dissipated_cohesive"][-1]
+    text = summary.format()
+    assert (
+        f"fracture         {summary.splits} node splits; cohesive elements {summary.cohesive_intact} intact, "
+        f"{summary.cohesive_broken} broken"
+    ) in text
+    assert f"crack area       {summary.crack_area:.6g} m² made, {summary.crack_area_opened:.6g} m² opened" in text
+    assert f"cohesive energy  {summary.dissipated_cohesive:.6g} J dissipated" in text
+    as_json = json.loads(summary_json(summary))
+    for name in (*FRACTURE_COLUMNS, "fracture", "dissipated_cohesive"):
+        assert as_json[name] == getattr(summary, name), name
+    with h5py.File(out / "pulled_bar_series.h5") as f:
+        assert f["crack_area"].attrs["unit"] == "m^2" and f["splits"].dtype == np.int64
+
+    # The stage: one curve per intact element at every frame; damage as the checkpoint holds it at the end.
+    arrays, _ = read_checkpoint(summary.checkpoints[-1])
+    nn = int(arrays["state/node_count"][0])
+    stage = Usd.Stage.Open(str(summary.usd_path))
+    curves = UsdGeom.BasisCurves(stage.GetPrimAtPath("/World/Cohesive"))
+    counts = [len(curves.GetCurveVertexCountsAttr().Get(float(k))) for k in range(FRACTURE_FRAMES + 1)]
+    np.testing.assert_array_equal(counts, data["cohesive_intact"])
+    rock = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Rock"))
+    # The opened section: both sides of its 2 triangles per cell face, beside the bar's outer triangles.
+    outer = 4 * (BAR_CELLS * BAR_CELLS + 2 * BAR_CELLS * 10)
+    first_open = int(np.argmax(none_intact))
+    triangles = len(rock.GetFaceVertexCountsAttr().Get(float(first_open)))
+    assert len(rock.GetFaceVertexCountsAttr().Get(0.0)) == outer
+    assert triangles == outer + 2 * 2 * BAR_CELLS**2
+    damage = UsdGeom.PrimvarsAPI(rock.GetPrim()).GetPrimvar("damage")
+    np.testing.assert_array_equal(np.asarray(damage.Get(float(FRACTURE_FRAMES))), arrays["state/node_damage"][:nn])
+    np.testing.assert_array_equal(
+        np.asarray(rock.GetPointsAttr().Get(float(FRACTURE_FRAMES))), arrays["state/node_q"][:nn]
+    )
+    vtu = meshio.read(sorted((out / "pulled_bar_vtu").glob("*.vtu"))[-1])
+    np.testing.assert_array_equal(vtu.point_data["damage"], arrays["state/node_damage"][:nn])
+
+
+def test_fracture_run_plot_has_a_fracture_picture(fracture_run, tmp_path):
+    import matplotlib.image as mpimg
+
+    from warpdem.plot import plot_run
+
+    _, out = fracture_run
+    files = plot_run(out, tmp_path, size=(400, 300))
+    assert sorted(f.name for f in files) == [f"pulled_bar_{k}.png" for k in ("counts", "energy", "fracture")]
+    image = mpimg.imread(tmp_path / "pulled_bar_fracture.png")[..., :3]
+    assert image.shape[:2] == (300, 400)
+    assert np.mean(np.any(np.abs(image - image[0, 0]) > 0.02, axis=-1)) > 0.01  # not blank
+
+
+def test_restarted_fracture_run_leaves_the_uninterrupted_stage_and_series(fracture_run, tmp_path):
+    from stage_compare import assert_stages_equal
+
+    summary, out = fracture_run
+    shutil.copytree(out, tmp_path / "restart")
+    middle = tmp_path / "restart" / summary.checkpoints[0].relative_to(out)
+    again = run_with_fracture(
+        RunOptions(device="cpu", frames=FRACTURE_FRAMES, out_dir=tmp_path / "restart", restart=middle, quiet=True)
+    )
+    assert again.splits == summary.splits and again.crack_area == summary.crack_area
+    assert again.series_path.read_text() == summary.series_path.read_text()
+    assert_stages_equal(Usd.Stage.Open(str(again.usd_path)), Usd.Stage.Open(str(summary.usd_path)))

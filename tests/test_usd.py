@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
 
-from warpdem.usd import SurfaceFrame, UsdWriter
+from warpdem.usd import CurveSet, SurfaceFrame, UsdWriter
 
 RTOL = 1e-6  # float32 storage
 FPS = 24.0
@@ -245,7 +245,9 @@ def test_first_frame_offsets_the_timeline(tmp_path: pathlib.Path) -> None:
 # Rock surface (/World/Rock)
 
 
-def make_surface(points: np.ndarray, faces: np.ndarray, seed: int, vertex_colors: bool = False) -> SurfaceFrame:
+def make_surface(
+    points: np.ndarray, faces: np.ndarray, seed: int, vertex_colors: bool = False, damage: bool = False
+) -> SurfaceFrame:
     rng = np.random.default_rng(seed)
     f, p = len(faces), len(points)
     return SurfaceFrame(
@@ -256,6 +258,17 @@ def make_surface(points: np.ndarray, faces: np.ndarray, seed: int, vertex_colors
         max_principal=rng.normal(scale=1e6, size=f),
         colors=rng.uniform(0.0, 1.0, size=(p if vertex_colors else f, 3)),
         vertex_colors=vertex_colors,
+        damage=rng.uniform(0.0, 1.0, size=p) if damage else None,
+    )
+
+
+def make_curves(count: int, seed: int) -> CurveSet:
+    rng = np.random.default_rng(seed)
+    return CurveSet(
+        endpoints=rng.normal(size=(count, 2, 3)),
+        width=0.01 * (seed + 1),
+        damage=rng.uniform(0.0, 1.0, size=count),
+        colors=rng.uniform(0.0, 1.0, size=(count, 3)),
     )
 
 
@@ -331,6 +344,45 @@ def test_rock_surface_vertex_colors_and_late_appearance(tmp_path: pathlib.Path) 
     np.testing.assert_allclose(np.asarray(rock.GetDisplayColorPrimvar().Get(1.0)), surface.colors, rtol=RTOL)
 
 
+def test_rock_damage_primvar_and_cohesive_curves(tmp_path: pathlib.Path) -> None:
+    """primvars:damage on /World/Rock (vertex) reads back at every frame; /World/Cohesive appears at frame 1 (empty at
+    frame 0), one 2-point curve per element with its ends, width, damage and colour, and is emptied at frame 3."""
+    frames = [*make_frames(), make_frames(seed=3)[0]]
+    surfaces = [make_surface(TETRA_POINTS + 0.1 * k, TETRA_FACES, seed=k, damage=True) for k in range(4)]
+    curves = [None, make_curves(3, seed=1), make_curves(2, seed=2), None]
+    path = tmp_path / "cracks.usdc"
+    with UsdWriter(path, FPS) as writer:
+        for frame, surface, cohesive in zip(frames, surfaces, curves, strict=True):
+            writer.write_frame(**frame, surface=surface, cohesive=cohesive)
+    stage = Usd.Stage.Open(str(path))
+    damage = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/World/Rock")).GetPrimvar("damage")
+    assert damage.GetInterpolation() == UsdGeom.Tokens.vertex
+    assert damage.GetAttr().GetTimeSamples() == [0.0, 1.0, 2.0, 3.0]
+    for code, surface in enumerate(surfaces):
+        np.testing.assert_array_equal(np.asarray(damage.Get(code)), surface.damage.astype(np.float32))
+    cohesive = UsdGeom.BasisCurves(stage.GetPrimAtPath("/World/Cohesive"))
+    assert cohesive.GetTypeAttr().Get() == UsdGeom.Tokens.linear
+    primvars = UsdGeom.PrimvarsAPI(cohesive.GetPrim())
+    assert primvars.GetPrimvar("damage").GetInterpolation() == UsdGeom.Tokens.uniform
+    assert cohesive.GetDisplayColorPrimvar().GetInterpolation() == UsdGeom.Tokens.uniform
+    for code, c in enumerate(curves):
+        m = 0 if c is None else len(c.endpoints)
+        np.testing.assert_array_equal(np.asarray(cohesive.GetCurveVertexCountsAttr().Get(code)), np.full(m, 2))
+        points = np.asarray(cohesive.GetPointsAttr().Get(code)).reshape(m, 2, 3)
+        if c is None:
+            continue
+        np.testing.assert_array_equal(points, c.endpoints.astype(np.float32))
+        np.testing.assert_allclose(np.asarray(cohesive.GetWidthsAttr().Get(code)), [c.width], rtol=RTOL)
+        np.testing.assert_array_equal(np.asarray(primvars.GetPrimvar("damage").Get(code)), c.damage.astype(np.float32))
+        np.testing.assert_array_equal(
+            np.asarray(cohesive.GetDisplayColorPrimvar().Get(code)), c.colors.astype(np.float32)
+        )
+        extent = np.asarray(cohesive.GetExtentAttr().Get(code))
+        ends = c.endpoints.reshape(-1, 3).astype(np.float32)
+        half = 0.5 * np.float32(c.width)
+        np.testing.assert_allclose(extent, [ends.min(axis=0) - half, ends.max(axis=0) + half], rtol=RTOL)
+
+
 def test_rock_surface_bad_inputs(tmp_path: pathlib.Path) -> None:
     frame = make_frames()[0]
     good = make_surface(TETRA_POINTS, TETRA_FACES, seed=0)
@@ -343,6 +395,15 @@ def test_rock_surface_bad_inputs(tmp_path: pathlib.Path) -> None:
             writer.write_frame(**frame, surface=SurfaceFrame(**{**vars(good), "von_mises": good.von_mises[:2]}))
         with pytest.raises(ValueError, match=r"surface\.colors"):
             writer.write_frame(**frame, surface=SurfaceFrame(**{**vars(good), "vertex_colors": True}))
+        with pytest.raises(ValueError, match=r"surface\.damage"):
+            writer.write_frame(**frame, surface=SurfaceFrame(**{**vars(good), "damage": np.zeros(2)}))
+        curves = make_curves(2, seed=0)
+        with pytest.raises(ValueError, match=r"cohesive\.endpoints"):
+            writer.write_frame(**frame, cohesive=CurveSet(**{**vars(curves), "endpoints": np.zeros((2, 3))}))
+        with pytest.raises(ValueError, match=r"cohesive\.damage"):
+            writer.write_frame(**frame, cohesive=CurveSet(**{**vars(curves), "damage": np.zeros(3)}))
+        with pytest.raises(ValueError, match=r"cohesive\.width"):
+            writer.write_frame(**frame, cohesive=CurveSet(**{**vars(curves), "width": float("nan")}))
         assert writer.frame_count == 0
 
 
@@ -352,7 +413,8 @@ def test_rock_surface_bad_inputs(tmp_path: pathlib.Path) -> None:
 
 def story() -> list[dict]:
     """Six frames in which everything a frame can change changes: no spheres at first (frames 0–1), spheres from
-    frame 2 with ids changing at 4, bonds from 3, a rock surface from 1 whose triangles change at 3 and vanish at 5."""
+    frame 2 with ids changing at 4, bonds from 3, a rock surface with damage from 1 whose triangles change at 3 and
+    vanish at 5, cohesive curves from 2 that vanish at 5."""
     base = make_frames() + make_frames(seed=2)
     none = {
         "positions": np.zeros((0, 3)),
@@ -368,7 +430,9 @@ def story() -> list[dict]:
             frame["bonds"] = np.array([[0, 1]])
         if 1 <= k < 5:
             faces = TETRA_FACES if k < 3 else TETRA_FACES[:2]
-            frame["surface"] = make_surface(TETRA_POINTS + 0.1 * k, faces, seed=k)
+            frame["surface"] = make_surface(TETRA_POINTS + 0.1 * k, faces, seed=k, damage=True)
+        if 2 <= k < 5:
+            frame["cohesive"] = make_curves(k, seed=k)
         frames.append(frame)
     return frames
 

@@ -3,12 +3,13 @@
 The surface of the rock is every face used by exactly one active tet, so the faces of a converted (inactive) tet's
 neighbours, and both faces of a crack or joint whose nodes have been split, appear by themselves. A split face
 whose two sides have not separated yet (every pair of daughter nodes closer than a gap) is hidden, so a closed joint
-does not draw inside the rock. Host code (numpy), run between steps.
+does not draw inside the rock; a run-time crack (nodes split by the fracture pass) is drawn the same way, and its
+cohesive elements can be drawn as curves. Host code (numpy), run between steps.
 
-VTU series: one ``.vtu`` file per frame (the active tets, with displacement and velocity per node and the stress
-per tet) plus a ``.pvd`` collection that ParaView opens as one time series. Every file is written under a temporary
-name and moved over the final one with ``os.replace``, and the collection is rewritten after every frame, so a run
-that stops part way leaves a valid series of the frames it finished.
+VTU series: one ``.vtu`` file per frame (the active tets, with displacement and velocity per node, its damage with
+fracture on, and the stress per tet) plus a ``.pvd`` collection that ParaView opens as one time series. Every file
+is written under a temporary name and moved over the final one with ``os.replace``, and the collection is rewritten
+after every frame, so a run that stops part way leaves a valid series of the frames it finished.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from .mesh import TET_FACES
-from .usd import SurfaceFrame
+from .usd import CurveSet, SurfaceFrame
 
 if TYPE_CHECKING:
     from .model import Model, State
@@ -31,6 +32,7 @@ __all__ = [
     "RockFrames",
     "VtuSeries",
     "max_principal_stress",
+    "node_damage",
     "open_faces",
     "ramp_colors",
     "split_face_pairs",
@@ -42,6 +44,9 @@ MATERIAL_PALETTE = np.array(
     [[0.62, 0.6, 0.56], [0.75, 0.5, 0.3], [0.45, 0.55, 0.7], [0.5, 0.65, 0.4], [0.7, 0.45, 0.55], [0.8, 0.75, 0.45]]
 )
 """Display colours of material ids (cycled), linear RGB."""
+
+COHESIVE_WIDTH = 0.05
+"""Width of the cohesive element curves as a fraction of the mesh size: visible beside the tets, not hiding them."""
 
 CLOSED_GAP = 1e-3
 """A split face counts as closed while its daughter nodes are closer than this times the mesh size (the cube root
@@ -74,6 +79,14 @@ def damage_colors(fraction: np.ndarray) -> np.ndarray:
     k = np.minimum(t.astype(int), 1)
     w = (t - k)[:, None]
     return (1.0 - w) * stops[k] + w * stops[k + 1]
+
+
+def node_damage(model: Model, state: State) -> np.ndarray | None:
+    """Damage of the live FEM nodes (reads back; call between steps): the largest δ_max/δ_c of each node's cohesive
+    elements so far, 1 once one broke, shape (N,), float32 in [0, 1]; None when fracture is off."""
+    if model.fracture_interval <= 0:
+        return None
+    return state.node_damage.numpy()[: int(state.node_count.numpy()[0])]
 
 
 def sphere_point_data(model: Model, state: State) -> dict[str, np.ndarray]:
@@ -149,9 +162,38 @@ def _single_faces(tet_nodes: np.ndarray, active: np.ndarray) -> tuple[np.ndarray
     owner = np.repeat(owner_tets, 4)
     if len(faces) == 0:
         return np.zeros((0, 3), np.int32), np.zeros(0, np.int64)
-    _, inverse, counts = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True)
-    single = counts[inverse.reshape(-1)] == 1
+    # Each face's nodes in increasing order (min, middle, max: cheaper than np.sort along rows of three).
+    lo, hi = faces.min(axis=1), faces.max(axis=1)
+    group, size = _row_groups(np.stack([lo, faces.sum(axis=1) - lo - hi, hi], axis=1))
+    single = size[group] == 1
     return faces[single].astype(np.int32), owner[single]
+
+
+def _row_groups(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Groups equal rows of non-negative integer triples, shape (F, 3): the group of each row, shape (F,), and the
+    size of each group, groups numbered in the lexicographic order of their rows (as ``np.unique(rows, axis=0)``).
+
+    A row is packed into one int64 key (a b c in base n, n the largest entry + 1) where n³ fits, so the sort is one
+    of F integers rather than ``np.unique``'s sort of F row records, about ten times slower: this runs on every frame
+    in which a crack grows."""
+    rows = np.asarray(rows, dtype=np.int64).reshape(-1, 3)
+    n = int(rows.max()) + 1 if len(rows) else 1
+    if n > _PACKED_ROW_LIMIT:
+        _, group, size = np.unique(rows, axis=0, return_inverse=True, return_counts=True)
+        return group.reshape(-1), size
+    key = (rows[:, 0] * n + rows[:, 1]) * n + rows[:, 2]
+    # np.unique's inverse costs a stable sort and an unsort; equal keys need no stable order, so group by hand.
+    order = np.argsort(key)
+    sorted_key = key[order]
+    first = np.ones(len(key), dtype=bool)  # the first row of each group in sorted order
+    first[1:] = sorted_key[1:] != sorted_key[:-1]
+    group = np.empty(len(key), dtype=np.int64)
+    group[order] = np.cumsum(first) - 1
+    return group, np.diff(np.append(np.flatnonzero(first), len(key)))
+
+
+_PACKED_ROW_LIMIT = 2_000_000
+"""Largest entry + 1 of rows packed into one int64 key by :func:`_row_groups`: 2e6³ = 8e18 < 2⁶³ ≈ 9.2e18."""
 
 
 def split_face_pairs(faces: np.ndarray, node_root: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -171,8 +213,7 @@ def split_face_pairs(faces: np.ndarray, node_root: np.ndarray) -> tuple[np.ndarr
     if len(faces) == 0:
         empty = np.zeros((0, 3), np.int64)
         return np.zeros((0, 2), np.int64), empty, empty
-    _, group, group_size = np.unique(sorted_roots, axis=0, return_inverse=True, return_counts=True)
-    group = group.reshape(-1)
+    group, group_size = _row_groups(sorted_roots)
     twins = np.nonzero(group_size[group] == 2)[0]
     pairs = twins[np.argsort(group[twins], kind="stable")].reshape(-1, 2)
     return pairs, sorted_nodes[pairs[:, 0]], sorted_nodes[pairs[:, 1]]
@@ -335,24 +376,31 @@ class VtuSeries:
 class RockFrames:
     """Per-frame output of the FEM rock of a simulation: the USD surface and, optionally, a VTU series.
 
-    The surface is recomputed only when the live tets or their nodes change (a topology pass ran), and every frame
-    once nodes have been split (joints, cracks): daughters of one node share their reference position, which
-    identifies the two sides of a split face, drawn once their daughters are more than :data:`CLOSED_GAP` of the
-    mesh size apart. Colours scale with the largest value seen so far in the run, so a colour means the same in
-    every later frame.
+    The surface is recomputed only when the live tets or their nodes change (a topology pass ran: the joint
+    pre-split, or a run-time split that appends daughter nodes and remaps tets to them), and which split faces are
+    open every frame: daughters of one node share their reference position, which identifies the two sides of a split
+    face, drawn once their daughters are more than :data:`CLOSED_GAP` of the mesh size apart. Colours scale with the
+    largest value seen so far in the run, so a colour means the same in every later frame. With fracture on
+    (``model.fracture_interval`` > 0) the surface carries each node's damage (``state.node_damage``) and the VTU
+    files a ``damage`` point field.
 
     Args:
-        color_by: ``"stress"`` (von Mises, per triangle), ``"speed"`` (per vertex) or ``"material"`` (per triangle).
+        color_by: ``"stress"`` (von Mises, per triangle), ``"speed"`` (per vertex), ``"material"`` (per triangle) or
+            ``"damage"`` (per vertex: the largest δ_max/δ_c of the node's cohesive elements, 1 once one broke;
+            :func:`damage_colors`, the ramp of the spheres' damage).
         vtu: the VTU series to write, or None.
     """
 
+    COLOR_BY = ("stress", "speed", "material", "damage")
+
     def __init__(self, color_by: str = "stress", vtu: VtuSeries | None = None) -> None:
-        if color_by not in ("stress", "speed", "material"):
-            raise ValueError(f"color_by: expected 'stress', 'speed' or 'material', got {color_by!r}")
+        if color_by not in self.COLOR_BY:
+            raise ValueError(f"color_by: expected one of {', '.join(map(repr, self.COLOR_BY))}, got {color_by!r}")
         self.color_by = color_by
         self.vtu = vtu
         self._key: tuple[np.ndarray, np.ndarray, int] | None = None
         self._pairs: tuple[np.ndarray, np.ndarray, np.ndarray] = split_face_pairs(np.zeros((0, 3), np.int64), [])
+        self._size = 0.0
         self._gap = 0.0
         self._faces = np.zeros((0, 3), np.int32)
         self._owner = np.zeros(0, np.int64)
@@ -385,7 +433,8 @@ class RockFrames:
             _, root = np.unique(model.node_ref_q.numpy()[:nn], axis=0, return_inverse=True)
             self._pairs = split_face_pairs(self._faces, root.reshape(-1))
             volume = model.tet_volume.numpy()[: len(active)][active]
-            self._gap = CLOSED_GAP * float(np.cbrt(volume.mean())) if len(volume) else 0.0
+            self._size = float(np.cbrt(volume.mean())) if len(volume) else 0.0
+            self._gap = CLOSED_GAP * self._size
             self._key = (tet_nodes.copy(), active.copy(), nn)
         # Every frame: which split faces are open (daughters share X, so displacements give the gaps).
         keep = open_faces(len(self._faces), *self._pairs, state.node_u.numpy()[:nn], self._gap)
@@ -394,9 +443,12 @@ class RockFrames:
         von_mises = von_mises_stress(stress)
         q = state.node_q.numpy()[:nn]
         v = state.node_qd.numpy()[:nn]
-        vertex_colors = self.color_by == "speed"
+        damage = node_damage(model, state)
+        vertex_colors = self.color_by in ("speed", "damage")
         if self.color_by == "material":
             colors = MATERIAL_PALETTE[model.tet_material.numpy()[owner] % len(MATERIAL_PALETTE)]
+        elif self.color_by == "damage":
+            colors = damage_colors(damage if damage is not None else np.zeros(nn))
         else:
             values = np.linalg.norm(v, axis=1) if vertex_colors else von_mises
             self._scale = max(self._scale, float(values.max(initial=0.0)))
@@ -409,6 +461,31 @@ class RockFrames:
             max_principal=max_principal_stress(stress),
             colors=colors,
             vertex_colors=vertex_colors,
+            damage=damage,
+        )
+
+    def cohesive_curves(self, model: Model, state: State) -> CurveSet | None:
+        """The intact cohesive elements now as curves from daughter A to daughter B (reads back; call between
+        steps), each with its damage δ_max/δ_c; None when fracture is off. The width is :data:`COHESIVE_WIDTH` of
+        the mesh size (measured by the last :meth:`surface`, else here)."""
+        if model.fracture_interval <= 0:
+            return None
+        if self._size == 0.0:
+            nt = int(state.tet_count.numpy()[0])
+            volume = model.tet_volume.numpy()[:nt][state.tet_active.numpy()[:nt] == 1]
+            self._size = float(np.cbrt(volume.mean())) if len(volume) else 0.0
+        nc = int(state.cohesive_count.numpy()[0])
+        intact = state.cohesive_broken.numpy()[:nc] == 0
+        a, b = state.cohesive_a.numpy()[:nc][intact], state.cohesive_b.numpy()[:nc][intact]
+        q = state.node_q.numpy()
+        delta_c = state.cohesive_delta_c.numpy()[:nc][intact].astype(np.float64)
+        d_max = state.cohesive_d_max.numpy()[:nc][intact].astype(np.float64)
+        damage = np.clip(d_max / np.maximum(delta_c, 1e-300), 0.0, 1.0)
+        return CurveSet(
+            endpoints=np.stack([q[a], q[b]], axis=1).reshape(-1, 2, 3),
+            width=COHESIVE_WIDTH * self._size,
+            damage=damage,
+            colors=damage_colors(damage),
         )
 
     def write_vtu(self, frame: int, time: float, model: Model, state: State) -> pathlib.Path | None:
@@ -417,12 +494,16 @@ class RockFrames:
         if self.vtu is None or nn == 0:
             return None
         stress = state.tet_stress.numpy()[: len(active)][active].astype(np.float64)
+        point_data = {"displacement": state.node_u.numpy()[:nn], "velocity": state.node_qd.numpy()[:nn]}
+        damage = node_damage(model, state)
+        if damage is not None:
+            point_data["damage"] = damage
         return self.vtu.write(
             frame,
             time,
             state.node_q.numpy()[:nn],
             tet_nodes[active],
-            point_data={"displacement": state.node_u.numpy()[:nn], "velocity": state.node_qd.numpy()[:nn]},
+            point_data=point_data,
             cell_data={
                 "stress": stress.reshape(-1, 9),
                 "von_mises": von_mises_stress(stress),

@@ -11,6 +11,8 @@ For every ``<name>_series.csv`` in the folder (warpdem.timeseries) it writes:
   largest speed.
 - ``<name>_forces.png``: the force on each wall and on each loaded face set over time (components and magnitude);
   only for runs that have walls or pressure loads.
+- ``<name>_fracture.png``: the crack area made and opened (one face) with the node splits over time, and the
+  energy the cohesive elements dissipated against Γ × the area of the broken ones; only for runs with fracture on.
 """
 
 from __future__ import annotations
@@ -133,6 +135,34 @@ def plot_forces(
     return _save(fig, path)
 
 
+def plot_fracture(
+    data: dict[str, np.ndarray], name: str, path: pathlib.Path, size: tuple[int, int]
+) -> pathlib.Path | None:
+    """Crack area and splits over time, and the cohesive energy books (module docstring); None without fracture."""
+    if "crack_area" not in data:
+        return None
+    t = data["time"]
+    fig, (ax, energy_ax) = _figure(size, rows=2)
+    ax.plot(t, data["crack_area"], color="k", label="crack area made")
+    ax.plot(t, data["crack_area_opened"], "k--", label="opened (cohesive elements broken)")
+    ax.set_ylabel("area, one face [m²]")
+    ax.set_title(f"{name}: fracture")
+    splits_ax = ax.twinx()
+    splits_ax.plot(t, data["splits"], color="crimson", lw=1.0, label="node splits")
+    splits_ax.set_ylabel("node splits [-]", color="crimson")
+    splits_ax.tick_params(axis="y", colors="crimson")
+    handles, labels = ax.get_legend_handles_labels()
+    h2, l2 = splits_ax.get_legend_handles_labels()
+    ax.legend(handles + h2, labels + l2, fontsize=7, loc="upper left", framealpha=0.8)
+    if "energy_dissipated_cohesive" in data:
+        energy_ax.plot(t, data["energy_dissipated_cohesive"], color="k", label="dissipated by cohesive elements")
+    energy_ax.plot(t, data["cohesive_work_broken"], "k--", label="Γ × area of the broken elements")
+    energy_ax.set_ylabel("energy [J]")
+    energy_ax.set_xlabel("time [s]")
+    energy_ax.legend(fontsize=7, loc="upper left", framealpha=0.8)
+    return _save(fig, path)
+
+
 def plot_run(
     run_dir: str | os.PathLike, out_dir: str | os.PathLike | None = None, size: tuple[int, int] = (800, 600)
 ) -> list[pathlib.Path]:
@@ -164,4 +194,7 @@ def plot_run(
         forces = plot_forces(data, name, out / f"{name}_forces.png", size)
         if forces is not None:
             written.append(forces)
+        fracture = plot_fracture(data, name, out / f"{name}_fracture.png", size)
+        if fracture is not None:
+            written.append(fracture)
     return written

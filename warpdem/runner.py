@@ -116,7 +116,13 @@ class RunSummary:
 
     ``energy_in_play`` [J] is the largest :attr:`EnergyBalance.in_play` (kinetic + elastic + strain, or the work put
     in so far; no gravity potential) over the run's frames, and ``energy_error`` the balance's change over the run
-    relative to it: a scale with no arbitrary datum, so the error does not depend on where z = 0 is."""
+    relative to it: a scale with no arbitrary datum, so the error does not depend on where z = 0 is.
+
+    With fracture on (``fracture``; warpdem.timeseries.fracture_values): node ``splits``, cohesive elements
+    ``cohesive_intact`` and ``cohesive_broken``, the crack area made (``crack_area``, one face [m²]) and fully
+    opened (``crack_area_opened``), the energy the cohesive elements dissipated (``dissipated_cohesive`` [J]) and,
+    to compare, Γ A_f of the broken ones (``cohesive_work_broken`` [J]: a broken element has dissipated exactly that,
+    LDEC eq. 9; the intact ones add ½ f_c δ_max each)."""
 
     simulated_time: float
     steps: int
@@ -140,6 +146,14 @@ class RunSummary:
     series_path: Path | None = None
     energy_in_play: float = 0.0
     energy_error: float = 0.0
+    fracture: bool = False
+    splits: int = 0
+    cohesive_intact: int = 0
+    cohesive_broken: int = 0
+    crack_area: float = 0.0
+    crack_area_opened: float = 0.0
+    dissipated_cohesive: float = 0.0
+    cohesive_work_broken: float = 0.0
 
     def format(self) -> str:
         e0, e1 = self.energy_start, self.energy_end
@@ -157,6 +171,14 @@ class RunSummary:
         if self.nodes:
             rate = self.tet_steps_per_second / 1e6
             lines.append(f"rock mesh        {self.nodes} nodes, {self.tets} tets  ({rate:.3f} M tet-steps/s)")
+        if self.fracture:
+            lines += [
+                f"fracture         {self.splits} node splits; cohesive elements {self.cohesive_intact} intact, "
+                f"{self.cohesive_broken} broken",
+                f"crack area       {self.crack_area:.6g} m² made, {self.crack_area_opened:.6g} m² opened (one face)",
+                f"cohesive energy  {self.dissipated_cohesive:.6g} J dissipated; Γ × area of the broken elements "
+                f"{self.cohesive_work_broken:.6g} J",
+            ]
 
         def row(label: str, a: float, b: float) -> str:
             return f"  {label:<15}{a:<14.6g} {b:.6g}"
@@ -172,6 +194,11 @@ class RunSummary:
                 row("non-refl. abs.", e0.absorbed_boundaries, e1.absorbed_boundaries),
                 row("load work", e0.load_work, e1.load_work),
                 row("contact diss.", e0.dissipated_fem_contact, e1.dissipated_fem_contact),
+            ]
+        if self.fracture:
+            lines += [
+                row("cohesive el.", e0.cohesive_elastic, e1.cohesive_elastic),
+                row("cohesive diss.", e0.dissipated_cohesive, e1.dissipated_cohesive),
             ]
         lines.append(row("elastic", e0.elastic, e1.elastic))
         if e0.gravity_potential != 0.0 or e1.gravity_potential != 0.0:
@@ -492,7 +519,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     frames_per_checkpoint = max(1, round(checkpoint_every / frame_period)) if checkpoint_every > 0 else 0
 
     from .output import RockFrames, VtuSeries, damage_colors, sphere_damage, sphere_point_data
-    from .timeseries import TimeSeries
+    from .timeseries import TimeSeries, fracture_values
     from .usd import UsdWriter
 
     # Colour scales are the largest values seen so far in the run: a restart continues them from its checkpoint.
@@ -506,6 +533,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         raise _output_error(f"{scene.source}: output.directory", out_dir, exc) from None
     rock = RockFrames(scene.output.mesh_color_by, vtu if mesh_vtu else None)
     rock.color_scale = float(attrs.get("rock_color_scale", 0.0))
+    cohesive_as_curves = bool(getattr(scene.output, "cohesive_as_curves", False))
 
     def checkpoint(frame: int) -> None:
         extra = {
@@ -556,6 +584,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
             bonds=bonds,
             surface=rock.surface(sim.model, sim.state),
             bonds_broken=broken if sim.model.bond_capacity else None,
+            cohesive=rock.cohesive_curves(sim.model, sim.state) if cohesive_as_curves else None,
         )
         return energy
 
@@ -616,6 +645,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     steps = sim.step_count - steps0
     n = sim.particle_count
     tets = int(np.count_nonzero(sim.state.tet_active.numpy()[: int(sim.state.tet_count.numpy()[0])]))
+    fracture = fracture_values(sim.model, sim.state)
     return RunSummary(
         simulated_time=sim.time,
         steps=sim.step_count,
@@ -638,6 +668,9 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         series_path=series.csv_path,
         energy_in_play=in_play,
         energy_error=balance_error(energy_start, energy_end, in_play),
+        fracture=bool(fracture),
+        **fracture,
+        dissipated_cohesive=energy_end.dissipated_cohesive,
     )
 
 

@@ -1096,12 +1096,18 @@ class Output(_Model):
         description="Particle colouring in the USD file; damage = the fraction of each sphere's bonds broken so far.",
     )
     bonds_as_curves: Bool = Field(default=False, description="Write intact bonds as USD curves.")
+    cohesive_as_curves: Bool = Field(
+        default=False,
+        description="Write the intact cohesive elements of the crack tips (nodal fracture) as USD curves.",
+    )
     checkpoint_every: Float = Field(
         default=0.0, ge=0, description="Checkpoint interval in simulated time [s]; 0 = only at the end."
     )
     checkpoint_dir: PathText = Field(default="checkpoints", description="Checkpoint directory, relative to directory.")
-    mesh_color_by: Literal["stress", "speed", "material"] = Field(
-        default="stress", description="Colouring of the rock surface /World/Rock in the USD file."
+    mesh_color_by: Literal["stress", "speed", "material", "damage"] = Field(
+        default="stress",
+        description="Colouring of the rock surface /World/Rock in the USD file; damage = each node's cohesive damage "
+        "(fracture).",
     )
     vtu: Bool = Field(
         default=False,

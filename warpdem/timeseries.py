@@ -14,6 +14,9 @@ Columns (units in :data:`UNITS` and the HDF5 attributes):
   the first frame of the timeline, relative to the largest energy in play so far: the number the summary prints);
 - counts [-]: ``spheres``, ``contacts`` (touching sphere pairs), ``bonds_intact``, ``bonds_broken``, ``nodes``,
   ``tets`` (active), ``joints_intact``, ``joints_failed``;
+- with fracture on (``model.fracture_interval`` > 0; :data:`FRACTURE_COLUMNS`): ``splits``, ``cohesive_intact``,
+  ``cohesive_broken`` [-], ``crack_area`` and ``crack_area_opened`` [m²] (one face), ``cohesive_work_broken`` [J]
+  (Γ A_f of the broken elements, what the dissipated energy ``energy_dissipated_cohesive`` must reach for them);
 - ``wall<w>_fx``, ``_fy``, ``_fz`` [N]: force of the spheres on wall w (in the order the scene makes walls);
 - ``load<i>_fx``, ``_fy``, ``_fz`` [N]: total force of pressure load ``[[loads]]`` entry i on the rock, -∫ p dA;
 - ``max_speed`` [m/s]: the largest speed of any sphere or FEM node.
@@ -31,6 +34,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
+    from .model import Model, State
     from .simulation import EnergyBalance, Simulation
 
 COUNT_COLUMNS = {
@@ -44,6 +48,39 @@ COUNT_COLUMNS = {
     "joints_failed": "joint elements failed since the start",
 }
 """Integer columns and what they count."""
+
+FRACTURE_COLUMNS = {
+    "splits": ("-", "node splits since the start"),
+    "cohesive_intact": ("-", "intact cohesive elements"),
+    "cohesive_broken": ("-", "cohesive elements broken since the start"),
+    "crack_area": ("m^2", "area of the crack surface made so far, one face (half of Σ A_f of every element born)"),
+    "crack_area_opened": ("m^2", "area of the fully opened crack surface, one face (half of Σ A_f of the broken)"),
+    "cohesive_work_broken": (
+        "J",
+        "Γ A_f summed over the broken cohesive elements (fracture energy of the opened area)",
+    ),
+}
+"""Columns of a run with fracture on: unit and what each holds."""
+
+INTEGER_COLUMNS = frozenset({"frame", *COUNT_COLUMNS, "splits", "cohesive_intact", "cohesive_broken"})
+"""Columns that hold whole numbers (read back and stored as integers)."""
+
+
+def fracture_values(model: Model, state: State) -> dict[str, int | float]:
+    """The fracture counters now (reads back; call between steps), by :data:`FRACTURE_COLUMNS` name; empty when
+    fracture is off. Alive elements are the live slots (``cohesive_count``) less those broken and not yet
+    compacted; the crack areas are half of the A_f sums, which count both faces (LDEC eq. 9)."""
+    if model.fracture_interval <= 0:
+        return {}
+    nc = int(state.cohesive_count.numpy()[0])
+    return {
+        "splits": int(state.node_splits_total.numpy()[0]),
+        "cohesive_intact": int(np.count_nonzero(state.cohesive_broken.numpy()[:nc] == 0)),
+        "cohesive_broken": int(state.cohesive_broken_total.numpy()[0]),
+        "crack_area": 0.5 * float(state.crack_area_total.numpy()[0]),
+        "crack_area_opened": 0.5 * float(state.cohesive_area_broken.numpy()[0]),
+        "cohesive_work_broken": float(state.cohesive_work_broken.numpy()[0]),
+    }
 
 
 def energy_lines() -> list[str]:
@@ -63,7 +100,9 @@ def energy_signs() -> dict[str, float]:
 
 
 def unit(column: str) -> str:
-    """Unit of a column: ``s``, ``J``, ``N``, ``m/s`` or ``-``."""
+    """Unit of a column: ``s``, ``J``, ``N``, ``m/s``, ``m^2`` or ``-``."""
+    if column in FRACTURE_COLUMNS:
+        return FRACTURE_COLUMNS[column][0]
     if column == "time":
         return "s"
     if column == "energy_error":
@@ -91,6 +130,8 @@ def description(column: str) -> str:
         return f"energy balance line {column.removeprefix('energy_')}"
     if column in COUNT_COLUMNS:
         return COUNT_COLUMNS[column]
+    if column in FRACTURE_COLUMNS:
+        return FRACTURE_COLUMNS[column][1]
     if match := re.fullmatch(r"(wall|load)(\d+)_f([xyz])", column):
         kind, index, axis = match.groups()
         what = "force of the spheres on wall" if kind == "wall" else "pressure force of [[loads]] entry"
@@ -138,6 +179,7 @@ def frame_values(
         "joints_intact": int(np.count_nonzero(s.joint_broken.numpy()[:nj] == 0)),
         "joints_failed": int(s.joints_broken_total.numpy()[0]),
     }
+    row |= fracture_values(m, s)
     for w, force in enumerate(wall_forces(m, s)):
         row |= {f"wall{w}_f{axis}": float(f) for axis, f in zip("xyz", force, strict=True)}
     names, forces = load_forces(m, s)
@@ -190,9 +232,8 @@ class TimeSeries:
             if old and "frame" in old:
                 keep = old["frame"] < first_frame
                 self.columns = list(old)
-                ints = {"frame", *COUNT_COLUMNS}
                 self.rows = [
-                    [int(old[c][r]) if c in ints else float(old[c][r]) for c in self.columns]
+                    [int(old[c][r]) if c in INTEGER_COLUMNS else float(old[c][r]) for c in self.columns]
                     for r in np.flatnonzero(keep)
                 ]
                 if self.rows and old["frame"][keep][0] == 0:
@@ -243,7 +284,7 @@ class TimeSeries:
                 f.attrs["columns"] = self.columns
                 table = np.array(self.rows, dtype=np.float64).reshape(len(self.rows), len(self.columns))
                 for k, name in enumerate(self.columns):
-                    integer = name == "frame" or name in COUNT_COLUMNS
+                    integer = name in INTEGER_COLUMNS
                     data = f.create_dataset(name, data=table[:, k].astype(np.int64 if integer else np.float64))
                     data.attrs["unit"] = unit(name)
                     data.attrs["description"] = description(name)

@@ -15,7 +15,11 @@ Stage layout::
                         velocities [m/s] every frame, faceVertexCounts / faceVertexIndices only on the frames where
                         the topology changes, primvars:speed [m/s] (vertex), primvars:vonMisesStress and
                         primvars:maxPrincipalStress [Pa] (uniform: one per triangle), primvars:displayColor (uniform
-                        or vertex), extent [m] of the triangles' vertices
+                        or vertex), extent [m] of the triangles' vertices; primvars:damage [-] (vertex, float in
+                        [0, 1]: the node's cohesive damage; when the surface carries it, i.e. with fracture on)
+    /World/Cohesive     BasisCurves, linear, one 2-vertex curve per intact cohesive element from daughter A to
+                        daughter B (only when cohesive curves are given): points [m], constant width [m],
+                        primvars:damage [-] and primvars:displayColor (uniform: one per curve)
 
 The stage is authored into ``<stem>.partial<suffix>`` next to the final file and moved over the final name
 with ``os.replace`` at :meth:`UsdWriter.close`, so a crashed run never leaves a half-written file under the
@@ -39,12 +43,12 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["SurfaceFrame", "UsdWriter", "stage_frame"]
+__all__ = ["CurveSet", "SurfaceFrame", "UsdWriter", "stage_frame"]
 
 _SUFFIXES = (".usd", ".usdc", ".usda")
 
 # The prims a frame defines only once it carries their data; a restart drops them again where no sample is left.
-_LAZY_PRIMS = ("/World/Particles", "/World/Bonds", "/World/Rock")
+_LAZY_PRIMS = ("/World/Particles", "/World/Bonds", "/World/Rock", "/World/Cohesive")
 
 # Radius-to-width ratio of the bond curves: thin enough to leave the spheres visible, thick enough to see.
 _BOND_WIDTH_PER_MEAN_RADIUS = 0.5
@@ -63,6 +67,7 @@ class SurfaceFrame:
         colors: display colours, linear RGB in [0, 1], shape (F, 3) (one per triangle) or (P, 3) (one per vertex,
             when ``vertex_colors``).
         vertex_colors: whether ``colors`` holds one colour per vertex instead of one per triangle.
+        damage: optional damage of each vertex [-], shape (P,), in [0, 1] (written to ``primvars:damage``).
     """
 
     points: np.ndarray
@@ -72,6 +77,24 @@ class SurfaceFrame:
     max_principal: np.ndarray
     colors: np.ndarray
     vertex_colors: bool = False
+    damage: np.ndarray | None = None
+
+
+@dataclass
+class CurveSet:
+    """One frame of straight two-point curves (the cohesive elements of the FEM rock).
+
+    Attributes:
+        endpoints: the two ends of each curve [m], shape (M, 2, 3).
+        width: the width of every curve [m].
+        damage: a value per curve [-], shape (M,) (``primvars:damage``).
+        colors: display colour of each curve, linear RGB in [0, 1], shape (M, 3).
+    """
+
+    endpoints: np.ndarray
+    width: float
+    damage: np.ndarray
+    colors: np.ndarray
 
 
 class UsdWriter:
@@ -196,6 +219,8 @@ class UsdWriter:
         self._rock: Any = None  # UsdGeom.Mesh, defined on the first frame that carries a surface
         self._rock_attrs: dict[str, Any] = {}
         self._rock_vertex_colors = False
+        self._cohesive: Any = None  # UsdGeom.BasisCurves, defined on the first frame that carries cohesive curves
+        self._cohesive_attrs: dict[str, Any] = {}
         self._last_faces: np.ndarray | None = None
         self._last_ids: np.ndarray | None = None
         self._damage_primvar: Any = None  # primvars:bondsBroken, defined on the first frame that carries it
@@ -224,10 +249,13 @@ class UsdWriter:
         rock = self._stage.GetPrimAtPath("/World/Rock")
         if rock:
             color = UsdGeom.Mesh(rock).GetDisplayColorPrimvar()
-            self._define_rock(color.GetInterpolation() == UsdGeom.Tokens.vertex)
+            damage = UsdGeom.PrimvarsAPI(rock).HasPrimvar("damage")
+            self._define_rock(color.GetInterpolation() == UsdGeom.Tokens.vertex, damage)
             indices = self._rock_attrs["indices"]
             if indices.GetNumTimeSamples():
                 self._last_faces = np.asarray(indices.Get(code), dtype=np.int32).reshape(-1, 3)
+        if self._stage.GetPrimAtPath("/World/Cohesive"):
+            self._define_cohesive()
 
     def _define_particles(self) -> None:
         """Defines /World/Particles and its attributes (or takes over those of an extended stage)."""
@@ -275,6 +303,7 @@ class UsdWriter:
         bonds: np.ndarray | None = None,
         surface: SurfaceFrame | None = None,
         bonds_broken: np.ndarray | None = None,
+        cohesive: CurveSet | None = None,
     ) -> int:
         """Authors one frame of particle (and optionally bond and rock surface) data.
 
@@ -294,6 +323,8 @@ class UsdWriter:
                 a later frame without one authors an empty mesh.
             bonds_broken: Optional bonds each sphere has lost so far, shape (N,), integer (a damage measure),
                 written to ``primvars:bondsBroken``.
+            cohesive: Optional cohesive elements as curves, written to ``/World/Cohesive``; once any frame has
+                carried them, a later frame without them authors an empty set.
 
         Returns:
             The time code (frame number) of the frame just written.
@@ -327,6 +358,7 @@ class UsdWriter:
             if bond_arr.size and (bond_arr.min() < 0 or bond_arr.max() >= n):
                 raise ValueError(f"bonds: indices must lie in [0, {n}), got range [{bond_arr.min()}, {bond_arr.max()}]")
         checked_surface = _check_surface(surface) if surface is not None else None
+        checked_cohesive = _check_curves(cohesive) if cohesive is not None else None
 
         code = float(self._first_frame + self._frame_count)
         self._time_attr.Set(t, code)
@@ -362,7 +394,12 @@ class UsdWriter:
         if checked_surface is not None:
             self._write_surface(code, *checked_surface)
         elif self._rock is not None:
-            self._write_surface(code, *_empty_surface(), self._rock_vertex_colors)
+            self._write_surface(code, *_empty_surface(), self._rock_vertex_colors, None)
+
+        if checked_cohesive is not None:
+            self._write_cohesive(code, *checked_cohesive)
+        elif self._cohesive is not None:
+            self._write_cohesive(code, *_empty_curves())
 
         self._frame_count += 1
         if self._crate and self.save_interval_frames > 0 and self._frame_count % self.save_interval_frames == 0:
@@ -450,45 +487,44 @@ class UsdWriter:
             if code > 0.0:
                 # USD holds the first sample backwards in time; an empty sample before it keeps earlier frames
                 # from drawing bonds that did not exist yet.
-                self._set_bonds(code - 1.0, np.zeros((0, 3), np.float32), np.zeros(0, np.int32), 0.0)
+                _set_curves(self._bonds, code - 1.0, np.zeros((0, 3), np.float32), 0.0)
 
         endpoints = np.ascontiguousarray(pos[bonds.reshape(-1)], dtype=np.float32)
         width = _BOND_WIDTH_PER_MEAN_RADIUS * float(rad.mean()) if rad.size else 0.0
-        counts = np.full(bonds.shape[0], 2, dtype=np.int32)
-        self._set_bonds(code, endpoints, counts, width)
+        _set_curves(self._bonds, code, endpoints, width)
 
     def _define_bonds(self) -> None:
         """Defines /World/Bonds (or takes over that of an extended stage)."""
-        from pxr import UsdGeom
+        self._bonds = _define_curves(self._stage, "/World/Bonds")
 
-        self._bonds = UsdGeom.BasisCurves.Define(self._stage, "/World/Bonds")
-        self._bonds.CreateTypeAttr(UsdGeom.Tokens.linear)
-        self._bonds.CreateWidthsAttr()
-        self._bonds.SetWidthsInterpolation(UsdGeom.Tokens.constant)
+    def _write_cohesive(
+        self, code: float, endpoints: np.ndarray, width: float, damage: np.ndarray, colors: np.ndarray
+    ) -> None:
+        """Authors the cohesive element curves of one frame (arguments as :class:`CurveSet`, checked: endpoints
+        flattened to shape (2 M, 3), float32 arrays)."""
+        from pxr import Vt
 
-    def _set_bonds(self, code: float, endpoints: np.ndarray, counts: np.ndarray, width: float) -> None:
-        """Sets the bond curve attributes at one time code.
+        if self._cohesive is None:
+            self._define_cohesive()
+            if code > self._start:
+                # USD holds the first sample backwards in time: frames before the elements existed draw none.
+                self._write_cohesive(code - 1.0, *_empty_curves())
+        _set_curves(self._cohesive, code, endpoints, width)
+        self._cohesive_attrs["damage"].Set(Vt.FloatArray.FromNumpy(damage), code)
+        self._cohesive_attrs["color"].Set(Vt.Vec3fArray.FromNumpy(colors), code)
 
-        Args:
-            code: Time code.
-            endpoints: Curve vertices [m], shape (2 M, 3), float32.
-            counts: Vertices per curve, shape (M,), all 2.
-            width: Constant curve width [m].
-        """
-        from pxr import Gf, Vt
+    def _define_cohesive(self) -> None:
+        """Defines /World/Cohesive and its primvars (or takes over those of an extended stage)."""
+        from pxr import Sdf, UsdGeom
 
-        self._bonds.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(endpoints), code)
-        self._bonds.GetCurveVertexCountsAttr().Set(Vt.IntArray.FromNumpy(counts), code)
-        self._bonds.GetWidthsAttr().Set(Vt.FloatArray([width]), code)
-        if endpoints.shape[0]:
-            half = 0.5 * width
-            lo = endpoints.min(axis=0) - half
-            hi = endpoints.max(axis=0) + half
-        else:
-            # USD's empty range: min above max.
-            lo = np.full(3, np.finfo(np.float32).max)
-            hi = -lo
-        self._bonds.GetExtentAttr().Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]), code)
+        curves = _define_curves(self._stage, "/World/Cohesive")
+        self._cohesive = curves
+        self._cohesive_attrs = {
+            "damage": UsdGeom.PrimvarsAPI(curves.GetPrim()).CreatePrimvar(
+                "damage", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.uniform
+            ),
+            "color": curves.CreateDisplayColorPrimvar(UsdGeom.Tokens.uniform),
+        }
 
     def _write_surface(
         self,
@@ -500,15 +536,20 @@ class UsdWriter:
         max_principal: np.ndarray,
         colors: np.ndarray,
         vertex_colors: bool,
+        damage: np.ndarray | None,
     ) -> None:
-        """Authors the rock surface of one frame (arguments as :class:`SurfaceFrame`, checked and converted)."""
+        """Authors the rock surface of one frame (arguments as :class:`SurfaceFrame`, checked and converted). Once
+        the damage primvar exists, a frame without damage authors an empty one (as the triangles of a vanished rock),
+        so no frame holds another frame's values."""
         from pxr import Gf, Vt
 
         if self._rock is None:
-            self._define_rock(vertex_colors)
+            self._define_rock(vertex_colors, damage is not None)
             if code > self._start:
                 # USD holds the first sample backwards in time: frames before the surface existed draw nothing.
-                self._write_surface(code - 1.0, *_empty_surface(), vertex_colors)
+                self._write_surface(code - 1.0, *_empty_surface(), vertex_colors, None)
+        elif damage is not None and "damage" not in self._rock_attrs:
+            self._define_rock_damage()
         a = self._rock_attrs
         if self._last_faces is None or not np.array_equal(self._last_faces, faces):
             a["counts"].Set(Vt.IntArray.FromNumpy(np.full(len(faces), 3, dtype=np.int32)), code)
@@ -520,6 +561,8 @@ class UsdWriter:
         a["von_mises"].Set(Vt.FloatArray.FromNumpy(von_mises), code)
         a["max_principal"].Set(Vt.FloatArray.FromNumpy(max_principal), code)
         a["color"].Set(Vt.Vec3fArray.FromNumpy(colors), code)
+        if "damage" in a:
+            a["damage"].Set(Vt.FloatArray.FromNumpy(damage if damage is not None else np.zeros(0, np.float32)), code)
         if faces.size:
             used = points[faces.reshape(-1)]
             lo, hi = used.min(axis=0), used.max(axis=0)
@@ -528,8 +571,9 @@ class UsdWriter:
             hi = -lo
         a["extent"].Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]), code)
 
-    def _define_rock(self, vertex_colors: bool) -> None:
-        """Defines /World/Rock and its attributes (or takes over those of an extended stage)."""
+    def _define_rock(self, vertex_colors: bool, damage: bool) -> None:
+        """Defines /World/Rock and its attributes, with the damage primvar when ``damage`` (or takes over those of
+        an extended stage)."""
         from pxr import Sdf, UsdGeom
 
         mesh = UsdGeom.Mesh.Define(self._stage, "/World/Rock")
@@ -553,6 +597,16 @@ class UsdWriter:
                 "maxPrincipalStress", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.uniform
             ),
         }
+        if damage:
+            self._define_rock_damage()
+
+    def _define_rock_damage(self) -> None:
+        """Defines the damage primvar of /World/Rock (or takes over that of an extended stage)."""
+        from pxr import Sdf, UsdGeom
+
+        self._rock_attrs["damage"] = UsdGeom.PrimvarsAPI(self._rock.GetPrim()).CreatePrimvar(
+            "damage", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex
+        )
 
     def _check_open(self) -> None:
         if self._closed:
@@ -562,9 +616,10 @@ class UsdWriter:
         """Drops every handle on the stage so USD releases the layer."""
         self._closed = True
         self._time_attr = self._damage_primvar = None
-        self._points = self._bonds = self._rock = None
+        self._points = self._bonds = self._rock = self._cohesive = None
         self._particle_attrs = {}
         self._rock_attrs = {}
+        self._cohesive_attrs = {}
         self._stage = None
         self._layer = None
 
@@ -608,8 +663,9 @@ def _check_surface(surface: SurfaceFrame) -> tuple:
     von_mises = _as_float32(surface.von_mises, "surface.von_mises", (f,))
     max_principal = _as_float32(surface.max_principal, "surface.max_principal", (f,))
     colors = _as_float32(surface.colors, "surface.colors", (p if surface.vertex_colors else f, 3))
+    damage = _as_float32(surface.damage, "surface.damage", (p,)) if surface.damage is not None else None
     faces = np.ascontiguousarray(faces, dtype=np.int32)
-    return pts, faces, vel, von_mises, max_principal, colors, bool(surface.vertex_colors)
+    return pts, faces, vel, von_mises, max_principal, colors, bool(surface.vertex_colors), damage
 
 
 def _empty_surface() -> tuple:
@@ -617,6 +673,65 @@ def _empty_surface() -> tuple:
     z3 = np.zeros((0, 3), np.float32)
     z = np.zeros(0, np.float32)
     return z3, np.zeros((0, 3), np.int32), z3, z, z, z3
+
+
+def _check_curves(curves: CurveSet) -> tuple:
+    """Checks a curve set's shapes and converts it for USD: endpoints as (2 M, 3) float32, width, damage and colours
+    float32.
+
+    Raises:
+        ValueError: If shapes disagree or the width is not a finite number >= 0.
+    """
+    ends = _as_float32(curves.endpoints, "cohesive.endpoints", (-1, 2, 3))
+    m = ends.shape[0]
+    width = float(curves.width)
+    if not (math.isfinite(width) and width >= 0.0):
+        raise ValueError(f"cohesive.width: expected a finite number >= 0, got {curves.width}")
+    damage = _as_float32(curves.damage, "cohesive.damage", (m,))
+    colors = _as_float32(curves.colors, "cohesive.colors", (m, 3))
+    return ends.reshape(-1, 3), width, damage, colors
+
+
+def _empty_curves() -> tuple:
+    """The arrays of a curve set without curves (checked form)."""
+    return np.zeros((0, 3), np.float32), 0.0, np.zeros(0, np.float32), np.zeros((0, 3), np.float32)
+
+
+def _define_curves(stage: Any, path: str) -> Any:
+    """Defines linear BasisCurves with one constant width at ``path`` (or takes over those of an extended stage)."""
+    from pxr import UsdGeom
+
+    curves = UsdGeom.BasisCurves.Define(stage, path)
+    curves.CreateTypeAttr(UsdGeom.Tokens.linear)
+    curves.CreateWidthsAttr()
+    curves.SetWidthsInterpolation(UsdGeom.Tokens.constant)
+    return curves
+
+
+def _set_curves(curves: Any, code: float, endpoints: np.ndarray, width: float) -> None:
+    """Sets the points, vertex counts, width and extent of two-point curves at one time code.
+
+    Args:
+        curves: UsdGeom.BasisCurves (from :func:`_define_curves`).
+        code: Time code.
+        endpoints: Curve vertices [m], the two ends of each curve in turn, shape (2 M, 3), float32.
+        width: Constant curve width [m].
+    """
+    from pxr import Gf, Vt
+
+    curves.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(endpoints), code)
+    counts = np.full(endpoints.shape[0] // 2, 2, dtype=np.int32)
+    curves.GetCurveVertexCountsAttr().Set(Vt.IntArray.FromNumpy(counts), code)
+    curves.GetWidthsAttr().Set(Vt.FloatArray([width]), code)
+    if endpoints.shape[0]:
+        half = 0.5 * width
+        lo = endpoints.min(axis=0) - half
+        hi = endpoints.max(axis=0) + half
+    else:
+        # USD's empty range: min above max.
+        lo = np.full(3, np.finfo(np.float32).max)
+        hi = -lo
+    curves.GetExtentAttr().Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]), code)
 
 
 def _drop_samples_from(stage: Any, code: float) -> None:
