@@ -51,6 +51,7 @@ __all__ = [
     "Room",
     "Shaft",
     "Tunnel",
+    "component_labels",
     "interior_faces",
     "joint_normal",
     "mesh_cylinder",
@@ -1020,8 +1021,18 @@ def _blocks_from_components(tets: np.ndarray, joint_faces: np.ndarray) -> np.nda
     order = np.argsort(inverse, kind="stable")  # the two rows of a shared face become neighbours
     shared = (counts[inverse[order]] == 2) & ~is_joint[inverse[order]]
     pairs = order[shared].reshape(-1, 2) // 4
-    a, b = pairs[:, 0], pairs[:, 1]
-    labels = np.arange(len(tets))
+    return component_labels(len(tets), pairs[:, 0], pairs[:, 1])
+
+
+def component_labels(count: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Connected components of the graph on ``count`` vertices with edges ``a[i]``–``b[i]``.
+
+    Returns:
+        The component of each vertex, shape (count,), int64, numbered 0, 1, ... in order of each component's lowest
+        vertex.
+    """
+    a, b = np.asarray(a, dtype=np.int64), np.asarray(b, dtype=np.int64)
+    labels = np.arange(count)
     while True:  # min-label propagation with pointer jumping
         new = labels.copy()
         m = np.minimum(labels[a], labels[b])
