@@ -372,7 +372,14 @@ def birth_cohesive_kernel(
     # A_f counts both faces of the new crack (LDEC §2.3).
     area_f = 2.0 * area
     fm = fracture_material_table[tet_material[rep // 4]]
-    fc = wp.length(cohesive_force_at_split(m_a, m_b, f_a, f_b))
+    f_ab = cohesive_force_at_split(m_a, m_b, f_a, f_b)
+    fc = wp.length(f_ab)
+    # The element's direction before any opening: that of eq. 4's force, so that both daughters keep the parent's
+    # acceleration exactly (eq. 3), lateral components included; it points to B's side (along p1) in tension. Only a
+    # force that does not pull across the plane (not a tensile split) falls back to p1.
+    direction = node_p1[v]
+    if wp.dot(f_ab, direction) > 0.0:
+        direction = f_ab / fc
     delta_c = float(0.0)
     if fc > 0.0:
         delta_c = critical_opening(fm.fracture_energy, area_f, fm.alpha, fc)
@@ -382,7 +389,7 @@ def birth_cohesive_kernel(
     cohesive_delta_c[slot_c] = delta_c
     cohesive_alpha[slot_c] = fm.alpha
     cohesive_area[slot_c] = area_f
-    cohesive_dir[slot_c] = node_p1[v]
+    cohesive_dir[slot_c] = direction
     cohesive_d_max[slot_c] = 0.0
     cohesive_broken[slot_c] = 0
     cohesive_tet_face[slot_c] = rep

@@ -42,8 +42,18 @@ class NodeStars:
         self.tets = wp.zeros(max(4 * tet_capacity, 1), dtype=int, device=device)
         self.tet_face_nbr = wp.full(max(4 * tet_capacity, 1), -1, dtype=int, device=device)
 
-    def build(self, tet_nodes: wp.array, tet_count: wp.array, tet_active: wp.array, node_count: wp.array) -> None:
-        """Count → exclusive scan → fill → sort, then the face neighbours of every tet (launches only)."""
+    def build(
+        self,
+        tet_nodes: wp.array,
+        tet_count: wp.array,
+        tet_active: wp.array,
+        node_count: wp.array,
+        face_neighbors: bool = True,
+        ref_face_nbr: wp.array | None = None,
+    ) -> None:
+        """Count → exclusive scan → fill → sort, then (unless ``face_neighbors`` is False) the face neighbours of every
+        tet (launches only). Given the unsplit adjacency (``Model.ref_tet_face_nbr``), a face's neighbour is its
+        unsplit one where that still holds the face's nodes (four lookups per tet instead of a star search)."""
         d = self.device
         tcap = tet_nodes.shape[0]
         self.count.zero_()
@@ -72,6 +82,17 @@ class NodeStars:
             outputs=[self.tets],
             device=d,
         )
+        if not face_neighbors:
+            return
+        if ref_face_nbr is not None:
+            wp.launch(
+                kt.tet_face_neighbors_from_ref_kernel,
+                dim=tcap,
+                inputs=[tet_nodes, ref_face_nbr, tet_count, tet_active],
+                outputs=[self.tet_face_nbr],
+                device=d,
+            )
+            return
         wp.launch(
             kt.tet_face_neighbors_kernel,
             dim=tcap,
