@@ -8,8 +8,12 @@ Oracles:
   thickness) nodes: an exact count.
 - notched plate (symmetry): the plate, its edge notch and its loads are mirror-symmetric about y = 0, so the
   principal tension at the notch tip is along y and the crack must open along the element faces of that plane:
-  every split node's reference position has y = 0 to float32 round-off (SYMMETRY_TOL), and the first pass that
-  splits does so at the notch tip (x within one element of it), where the stress concentrates.
+  every split node's reference position has y = 0 to float32 round-off (SYMMETRY_TOL); the first pass that splits
+  does so at the notch tip (x = NOTCH), where the stress concentrates, and the crack then grows into the ligament
+  (checked up to its first element of growth, before the waves reflected by the plate's edges reach the tip).
+  The applied tension, 0.4 T_f, lies between the tip's onset (~T_f/3: the nodal stress averages the tip singularity
+  over an element) and T_f/2, where the waves from the two loaded edges, doubling where they meet on the plane,
+  would split the whole plane at once (scenes/pmma_plate.toml).
 """
 
 from __future__ import annotations
@@ -53,12 +57,12 @@ material = "pmma"
 [[loads]]
 kind = "pressure"
 faces = "y+"
-history = {{ kind = "table", times = [0.0, 2.0e-6, 1.0], values = [0.0, -4.0e6, -4.0e6] }}
+history = {{ kind = "table", times = [0.0, 2.0e-6, 1.0], values = [0.0, -4.8e6, -4.8e6] }}
 
 [[loads]]
 kind = "pressure"
 faces = "y-"
-history = {{ kind = "table", times = [0.0, 2.0e-6, 1.0], values = [0.0, -4.0e6, -4.0e6] }}
+history = {{ kind = "table", times = [0.0, 2.0e-6, 1.0], values = [0.0, -4.8e6, -4.8e6] }}
 
 [fracture]
 enabled = true
@@ -92,20 +96,25 @@ def test_notched_plate_cracks_from_the_tip_along_the_symmetry_plane(device):
     n0 = int(state.node_count.numpy()[0])
     sim = Simulation(model, state)
     first_split_x = None
-    steps = int(scene.run.end_time / model.dt)
-    for _ in range(steps):
-        sim.advance(1)  # a split pass after every step (check_interval = 1)
+    born = np.zeros((0, 3))
+    # Step (a split pass after every step) until the crack has advanced one element past the notch tip into the
+    # ligament: the first growth of the crack, before reflections from the plate's edges reach the tip.
+    for _ in range(int(scene.run.end_time / model.dt)):
+        sim.advance(1)
         n = int(sim.state.node_count.numpy()[0])
+        born = sim.model.node_ref_q.numpy()[n0:n].astype(np.float64)
         if n > n0 and first_split_x is None:
-            first_split_x = sim.model.node_ref_q.numpy()[n0:n, 0].astype(np.float64)
-    n = int(sim.state.node_count.numpy()[0])
+            first_split_x = born[:, 0].copy()
+        if len(born) and born[:, 0].max() >= NOTCH + H * (1.0 - 1e-6):
+            break
     assert first_split_x is not None, "the notched plate never cracked"
-    # The first splits are the notch tip's nodes (x = NOTCH) or their next neighbours along the plane.
-    assert np.all(np.abs(first_split_x - NOTCH) <= H * (1.0 + 1e-6)), first_split_x
-    born = sim.model.node_ref_q.numpy()[n0:n].astype(np.float64)
+    # The first splits are the notch tip's nodes (x = NOTCH, the rim of the seed crack that the pre-split kept whole).
+    np.testing.assert_allclose(first_split_x, NOTCH, atol=SYMMETRY_TOL)
+    assert born[:, 0].max() >= NOTCH + H * (1.0 - 1e-6), "the crack did not grow past the notch tip"
+    # Every split so far is on the symmetry plane y = 0, at the tip or one element ahead: it runs from the tip into
+    # the ligament, never back into the notch or off the plane.
     np.testing.assert_allclose(born[:, 1], 0.0, atol=SYMMETRY_TOL)
-    # Every daughter is ahead of the notch: the crack runs from the tip into the ligament, never back into the notch.
-    assert np.all(born[:, 0] >= NOTCH - 1e-9)
+    assert np.all((born[:, 0] >= NOTCH - SYMMETRY_TOL) & (born[:, 0] <= NOTCH + H + SYMMETRY_TOL)), born
 
 
 def _plate_dict() -> dict:
