@@ -184,6 +184,7 @@ def boulder_impact(scene, device: str, end_time: float | None) -> list[str]:
             f"  t = {t * 1e3:6.2f} ms  splits {splits:5d}  pieces {len(pieces):4d}  fragments (>= {MIN_FRAGMENT_TETS} "
             f"tets) {len(big):3d}  largest {pieces[0] / pieces.sum():.2f} of the tets"
         )
+        print(lines[-1], flush=True)  # a long run: show it as it goes
     big = pieces[pieces >= MIN_FRAGMENT_TETS]
     out = lines[:: max(1, len(lines) // 20)]
     out.append(
