@@ -1,5 +1,5 @@
 """Reports of the fracture scenes (issue 9 §7): ``python benchmarks/fracture_scenes.py [SCENE ...] [--device cpu]
-[--end-time T]`` with SCENE among pmma_plate, brazilian_disc, boulder_impact (default: all three).
+[--end-time T] [--checkpoint FILE]`` with SCENE among pmma_plate, brazilian_disc, boulder_impact (default: all three).
 
 Each scene of ``scenes/`` is built as ``warpdem run`` builds it (:func:`warpdem.scene_build.build_scene`) and stepped
 in Python, sampling between steps (split passes run inside ``Simulation.advance``):
@@ -154,21 +154,30 @@ def brazilian_disc(scene, device: str, end_time: float | None) -> list[str]:
 
 
 def fragments(sim) -> np.ndarray:
-    """Tet count of each connected piece of the rock (shared nodes and intact cohesive elements), largest first."""
+    """Tet count of each connected piece of the rock of a simulation, largest first (:func:`fragment_sizes`)."""
+    s = sim.state
+    count = int(s.cohesive_count.numpy()[0])
+    return fragment_sizes(
+        sim.model.tet_nodes.numpy()[: int(s.tet_count.numpy()[0])],
+        int(s.node_count.numpy()[0]),
+        s.cohesive_a.numpy()[:count],
+        s.cohesive_b.numpy()[:count],
+        s.cohesive_broken.numpy()[:count],
+    )
+
+
+def fragment_sizes(
+    tets: np.ndarray, node_count: int, cohesive_a: np.ndarray, cohesive_b: np.ndarray, broken: np.ndarray
+) -> np.ndarray:
+    """Tet count of each connected piece of the rock (tets joined through shared nodes and through the cohesive
+    elements not yet broken), largest first; the arrays of the live tets (T, 4) and cohesive elements (C,)."""
     from warpdem.geology import component_labels
 
-    s = sim.state
-    nt, nn = int(s.tet_count.numpy()[0]), int(s.node_count.numpy()[0])
-    tets = sim.model.tet_nodes.numpy()[:nt].astype(np.int64)
-    # Vertices: nodes 0..nn-1; each tet joins its four nodes, each intact cohesive element its two daughters.
-    a = [np.repeat(tets[:, 0], 3)]
-    b = [tets[:, 1:].reshape(-1)]
-    count = int(s.cohesive_count.numpy()[0])
-    if count:
-        intact = s.cohesive_broken.numpy()[:count] == 0
-        a.append(s.cohesive_a.numpy()[:count][intact])
-        b.append(s.cohesive_b.numpy()[:count][intact])
-    labels = component_labels(nn, np.concatenate(a), np.concatenate(b))
+    tets = np.asarray(tets, dtype=np.int64)
+    intact = np.asarray(broken) == 0
+    a = np.concatenate([np.repeat(tets[:, 0], 3), np.asarray(cohesive_a)[intact]])
+    b = np.concatenate([tets[:, 1:].reshape(-1), np.asarray(cohesive_b)[intact]])
+    labels = component_labels(node_count, a, b)
     return np.sort(np.bincount(labels[tets[:, 0]]))[::-1]
 
 
@@ -194,6 +203,26 @@ def boulder_impact(scene, device: str, end_time: float | None) -> list[str]:
     return out
 
 
+def checkpoint_fragments(path: Path) -> str:
+    """The fragments of the rock in a checkpoint of any run (``warpdem run``), as :func:`boulder_impact` counts them."""
+    from warpdem.checkpoint import read_checkpoint
+
+    arrays, attrs = read_checkpoint(path)
+    count = int(arrays["state/cohesive_count"][0])
+    pieces = fragment_sizes(
+        arrays["model/tet_nodes"][: int(arrays["state/tet_count"][0])],
+        int(arrays["state/node_count"][0]),
+        arrays["state/cohesive_a"][:count],
+        arrays["state/cohesive_b"][:count],
+        arrays["state/cohesive_broken"][:count],
+    )
+    big = pieces[pieces >= MIN_FRAGMENT_TETS]
+    return (
+        f"{path.name} (t = {float(attrs['time']) * 1e3:.2f} ms): {len(big)} fragments of >= {MIN_FRAGMENT_TETS} tets, "
+        f"sizes {big.tolist()} of {pieces.sum()} tets, {len(pieces) - len(big)} chips"
+    )
+
+
 REPORTS: dict[str, Callable[..., list[str]]] = {
     "pmma_plate": pmma_plate,
     "brazilian_disc": brazilian_disc,
@@ -206,7 +235,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("scenes", nargs="*", metavar="SCENE", help=f"one of {', '.join(REPORTS)} [all]")
     parser.add_argument("--device", default="cpu", help="Warp device [cpu]")
     parser.add_argument("--end-time", type=float, help="simulated end time [s] (default: the scene's)")
+    parser.add_argument("--checkpoint", type=Path, help="only count the rock fragments in this checkpoint of a run")
     args = parser.parse_args(argv)
+    if args.checkpoint is not None:
+        print(checkpoint_fragments(args.checkpoint))
+        return 0
     unknown = [name for name in args.scenes if name not in REPORTS]
     if unknown:
         parser.error(f"unknown scene {unknown[0]!r}; allowed: {', '.join(REPORTS)}")
