@@ -77,6 +77,10 @@ NOT_PER_PARTICLE = ("node_", "tet_", "face_", "star_", "joint_", "cohesive_", "r
 """Array names that are never sized by the particle capacity (nodes, tets, faces, joints, cohesive elements and bonds
 grow by their own capacities, which may equal it by chance)."""
 
+SPHERE_FACE_SLOTS = ("sphere_face_index", "sphere_face_shear")
+"""Sphere–face candidate slots: particle_capacity × max_sphere_faces long (empty without boundary faces), so as long
+as the per-sphere arrays when one slot per sphere is left; told by name, not by length."""
+
 SCENE_FIXED_SCALARS = ("bond_capacity", "num_walls", "num_materials")
 """Model scalars that no run changes: a checkpoint whose values differ was taken of another scene."""
 
@@ -331,6 +335,8 @@ def restore_checkpoint(
         # Neighbour slots by name: with one slot per sphere they are as long as the per-sphere arrays.
         if key.removeprefix("state/") in NEIGHBOR_FIELDS:
             expected = slots["neighbor slots"]
+        elif key.removeprefix("state/") in SPHERE_FACE_SLOTS:
+            expected = None
         elif (
             like.shape
             and like.shape[0] == template.particle_q.shape[0]
