@@ -54,9 +54,10 @@ from .contact import (
     make_pair_laws,
     rotate_into_plane,
 )
-from .joints import JointMaterial, local_index, tet_face, triangle_area_vector, youngs_modulus
+from .joints import JointMaterial, youngs_modulus
 from .neighbors import ListSpec, make_list_kernels
 from .tets import TetMaterial
+from .topology import local_index, tet_face, triangle_area_vector
 
 wp.set_module_options({"enable_backward": False})
 
@@ -1158,3 +1159,53 @@ def fem_contact_energy_kernel(
             sh = node_wall_shear[v * num_walls + wall]
             e += 0.5 * kn * gap * gap + 0.5 * p.kt_ratio * kn * wp.dot(sh, sh)
     energy[v] = wp.float64(e)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Face ids across a surface rebuild (after a split pass).
+
+
+@wp.kernel
+def tet_face_slots_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    face_nodes: wp.array(dtype=wp.vec3i),
+    face_tet: wp.array(dtype=int),
+    # State in:
+    face_count: wp.array(dtype=int),
+    # Out:
+    face_slot: wp.array(dtype=int),
+):
+    f = wp.tid()  # one thread per face slot: the tet-face slot 4t + k each boundary face is (before a split)
+    face_slot[f] = -1
+    if f >= face_count[0]:
+        return
+    t = face_tet[f]
+    n = face_nodes[f]
+    from_k = int(-1)
+    nodes = tet_nodes[t]
+    for k in range(4):
+        if nodes[k] != n[0] and nodes[k] != n[1] and nodes[k] != n[2]:
+            from_k = k
+    if from_k >= 0:
+        face_slot[f] = 4 * t + from_k
+
+
+@wp.kernel
+def remap_face_ids_kernel(
+    # In:
+    old_face_count: int,
+    face_slot: wp.array(dtype=int),
+    slot_to_face: wp.array(dtype=int),
+    # Out:
+    ids: wp.array(dtype=int),
+):
+    i = wp.tid()  # one thread per entry of a face-id array: old face → its tet-face slot → the new face of that slot
+    f = ids[i]
+    if f < 0 or f >= old_face_count:
+        return
+    s = face_slot[f]
+    if s < 0:
+        ids[i] = -1
+        return
+    ids[i] = slot_to_face[s]

@@ -181,6 +181,29 @@ def bulk_viscosity_pressure(volume_rate: float, length: float, mat: TetMaterial)
     return mat.density * length * (mat.c_quad * length * volume_rate * volume_rate - mat.c_lin * mat.c_p * volume_rate)
 
 
+@wp.func
+def director_forces(
+    f: wp.mat33, a: wp.mat33, pressure: float, mu: float, volume0: float, inv_ref: wp.mat33
+) -> wp.mat33:
+    """Nodal forces of a tet of P = μ F + pressure cof F: the rows of -V₀ D⁻¹ Pᵀ = -V₀ (μ D⁻¹ Fᵀ + pressure A) are
+    the forces on nodes 1..3 [N] (node 0 takes minus their sum), with A = D⁻¹ cof Fᵀ and pressure = g(J) - q [Pa]."""
+    return -volume0 * (mu * (inv_ref * wp.transpose(f)) + pressure * a)
+
+
+@wp.func
+def elastic_node_force(
+    u0: wp.vec3, u1: wp.vec3, u2: wp.vec3, u3: wp.vec3, inv_ref: wp.mat33, volume0: float, mat: TetMaterial, k: int
+) -> wp.vec3:
+    """Elastic force of a tet on its node k (0..3) [N] at the displacements u_i [m] (no bulk viscosity): the force
+    eval_tet_forces_kernel adds to that node when the tet is at rest."""
+    f = deformation_gradient(u0, u1, u2, u3, inv_ref)
+    g = volumetric_stress(wp.determinant(f), mat.mu, mat.lam)
+    h = director_forces(f, inv_ref * wp.transpose(cofactor(f)), g, mat.mu, volume0, inv_ref)
+    if k == 0:
+        return -(h[0] + h[1] + h[2])
+    return h[k - 1]
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # Kernels.
 
@@ -226,7 +249,7 @@ def eval_tet_forces_kernel(
     q = bulk_viscosity_pressure(j_rate / wp.max(j, J_MIN), tet_length[t], mat)
     # P = μ F + (g - q) cof F: the elastic law plus the viscous pressure q as -q J F⁻ᵀ. Nodal forces -V₀ P D⁻ᵀ e_i
     # are the rows of -V₀ D⁻¹ Pᵀ = -V₀ (μ D⁻¹ Fᵀ + (g - q) A) on nodes 1..3, minus their sum on node 0.
-    h = -volume0 * (mat.mu * (inv_ref * wp.transpose(f)) + (g - q) * a)
+    h = director_forces(f, a, g - q, mat.mu, volume0, inv_ref)
     f1 = h[0]
     f2 = h[1]
     f3 = h[2]

@@ -92,10 +92,9 @@ def compact_bonds(model: Model, state: State, compactor: Compactor) -> None:
     """Remove broken bonds: compact every bond array and remap the neighbour slots' bond indices."""
     if model.bond_capacity == 0:
         return
-    compactor.plan(state.bond_count, state.bond_broken)
-    compactor.scatter(state.bond_count, [getattr(state, name) for name in BOND_FIELDS])
-    compactor.remap(state.nbr_bond)
-    compactor.finish(state.bond_count)
+    compactor.remove(
+        state.bond_count, state.bond_broken, [getattr(state, name) for name in BOND_FIELDS], remap=[state.nbr_bond]
+    )
 
 
 def find_bond_pairs(

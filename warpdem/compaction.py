@@ -92,6 +92,24 @@ class Compactor:
                 device=self.device,
             )
 
+    def remove(
+        self, count: wp.array, dead: wp.array, arrays: Sequence[wp.array], remap: Sequence[wp.array] = ()
+    ) -> None:
+        """A whole removal pass: :meth:`plan`, :meth:`scatter` ``arrays``, :meth:`remap` the index arrays ``remap``
+        that point into the set, and :meth:`finish` (the live ``count`` becomes the survivors' count).
+
+        Args:
+            count: live slots, shape (1,), int32 (updated).
+            dead: non-zero for slots to remove, shape (capacity,), int32.
+            arrays: the parallel arrays of the set, each of shape (capacity,) (``dead`` may be one of them).
+            remap: index arrays pointing into the set (negative entries stay as they are).
+        """
+        self.plan(count, dead)
+        self.scatter(count, arrays)
+        for indices in remap:
+            self.remap(indices)
+        self.finish(count)
+
     def plan_append(self, count: wp.array, copies: wp.array) -> wp.array:
         """Plan an append pass: live slot k (k < count) gets ``copies[k]`` new slots after the live ones.
 

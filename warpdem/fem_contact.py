@@ -27,12 +27,13 @@ import warp as wp
 
 from .compaction import Compactor
 from .contact import hash_grid_dims
-from .joints import JointData, JointProps, NodeStars, eval_joints, joint_energy, joint_material_table, split_joints
+from .joints import JointData, JointProps, eval_joints, joint_energy, joint_material_table, split_joints
 from .kernels import fem_contact as kf
 from .kernels.contact import ContactPair
 from .mesh import TET_FACES
 from .model import Model, State
 from .neighbors import SkinnedList, SlotArrays, finish_rebuild, make_struct
+from .topology import NodeStars
 
 DEFAULT_SKIN_FRACTION = 0.25
 """Default ``fem_skin`` as a fraction of the smallest tet height over a boundary face [-]."""
@@ -98,10 +99,19 @@ def fem_pair_table(pairs: list[list[ContactPair]], device: wp.context.Device) ->
 def build_surface(model: Model, state: State) -> Model:
     """Rebuild the node → tet stars, the tet face neighbours, the boundary faces (a compaction of the tet-face slots
     to those with no neighbour), every node's penalty stiffness and the faces' extent, on the device. Between steps
-    (reads back the face count and extent); the face arrays grow when the surface outgrows them.
+    (reads back the face count and extent); the face arrays grow (×2) when the surface outgrows them.
 
     Returns:
         The model with the new topology arrays; ``state.face_count`` is set.
+    """
+    return rebuild_surface(model, state)[0]
+
+
+def rebuild_surface(model: Model, state: State) -> tuple[Model, wp.array]:
+    """:func:`build_surface`, writing into the model's existing topology arrays where they are large enough (so a
+    captured graph that reads them stays valid), and also returning the new face of every tet-face slot (-1 for an
+    interior slot), shape (4 tet_capacity,), int32: the map that carries face ids across the rebuild (a face keeps
+    its tet-face slot through any split).
     """
     m, s = model, state
     d = m.device
@@ -127,6 +137,8 @@ def build_surface(model: Model, state: State) -> Model:
     if m.face_nodes is not None and m.face_capacity >= count:
         face_nodes, face_tet, face_joint, face_depth = m.face_nodes, m.face_tet, m.face_joint, m.face_depth
     else:
+        if m.face_nodes is not None:
+            cap = max(count, 2 * m.face_capacity)  # a growing crack surface: amortised growth, as every capacity
         face_nodes = wp.zeros(cap, dtype=wp.vec3i, device=d)
         face_tet = wp.zeros(cap, dtype=int, device=d)
         face_joint = wp.zeros(cap, dtype=int, device=d)
@@ -140,8 +152,8 @@ def build_surface(model: Model, state: State) -> Model:
             device=d,
         )
     wp.copy(s.face_count, compactor.new_count)
-    stiffness = wp.zeros(ncap, dtype=float, device=d)
-    material = wp.zeros(ncap, dtype=int, device=d)
+    stiffness = _reuse(m.node_contact_stiffness, ncap, float, d)
+    material = _reuse(m.node_contact_material, ncap, int, d)
     if ncap:
         wp.launch(
             kf.node_contact_stiffness_kernel,
@@ -172,13 +184,22 @@ def build_surface(model: Model, state: State) -> Model:
             device=d,
         )
     radius, depth_max = (float(v) for v in extent.numpy())
-    return dataclasses.replace(
+    topology = {}
+    for name, new in (
+        ("star_offset", stars.offset),
+        ("star_count", stars.count),
+        ("star_tets", stars.tets),
+        ("tet_face_nbr", stars.tet_face_nbr),
+    ):
+        old = getattr(m, name)
+        if old is not None and old.shape == new.shape:
+            wp.copy(old, new)
+            new = old
+        topology[name] = new
+    model = dataclasses.replace(
         m,
         face_capacity=cap,
-        star_offset=stars.offset,
-        star_count=stars.count,
-        star_tets=stars.tets,
-        tet_face_nbr=stars.tet_face_nbr,
+        **topology,
         face_nodes=face_nodes,
         face_tet=face_tet,
         face_joint=face_joint,
@@ -188,6 +209,49 @@ def build_surface(model: Model, state: State) -> Model:
         face_radius=radius,
         face_depth_max=depth_max,
     )
+    return model, old_to_new
+
+
+def _reuse(a: wp.array | None, n: int, dtype: type, device: wp.context.Device) -> wp.array:
+    """``a`` zeroed when it has n entries, else a new zero array of n."""
+    if a is not None and a.shape[0] == n:
+        a.zero_()
+        return a
+    return wp.zeros(n, dtype=dtype, device=device)
+
+
+def remap_face_ids(
+    model: Model, state: State, face_slot: wp.array, old_face_count: int, slot_to_face: wp.array
+) -> None:
+    """Carry the face ids the FEM contact state holds (each node's spring target ``node_face_spring``, the
+    sphere–face candidate slots ``sphere_face_index``) across a surface rebuild: old face → its tet-face slot
+    (``face_slot``, taken before the topology changed) → the new face of that slot (``slot_to_face`` from
+    :func:`rebuild_surface`). Launches only."""
+    for ids in (state.node_face_spring, state.sphere_face_index):
+        if ids.shape[0] and old_face_count:
+            wp.launch(
+                kf.remap_face_ids_kernel,
+                dim=ids.shape[0],
+                inputs=[old_face_count, face_slot, slot_to_face],
+                outputs=[ids],
+                device=model.device,
+            )
+
+
+def face_slots(model: Model, state: State, out: wp.array | None = None) -> wp.array:
+    """The tet-face slot 4t + k of every boundary face (-1 past the count), shape (face_capacity,), int32; call before
+    a topology pass changes the tets (launches only)."""
+    if out is None or out.shape[0] != max(model.face_capacity, 1):
+        out = wp.full(max(model.face_capacity, 1), -1, dtype=int, device=model.device)
+    if model.face_capacity:
+        wp.launch(
+            kf.tet_face_slots_kernel,
+            dim=model.face_capacity,
+            inputs=[model.tet_nodes, model.face_nodes, model.face_tet, state.face_count],
+            outputs=[out],
+            device=model.device,
+        )
+    return out
 
 
 def attach_fem_contact(

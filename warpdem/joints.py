@@ -29,18 +29,35 @@ rim still connects the two sides; a node where two joints cross gets up to three
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
-from .compaction import Compactor
 from .kernels import joints as kj
 from .kernels.contact import ContactPair
 from .mesh import TET_FACES
 from .model import Model, State
 from .restitution import linear_damping_ratio
+from .topology import NodeSplitter, NodeStars
+
+__all__ = [
+    "JointData",
+    "JointElements",
+    "JointFaceError",
+    "JointProps",
+    "NodeSplitter",
+    "NodeStars",
+    "build_joint_elements",
+    "count_split_nodes",
+    "eval_joints",
+    "joint_energy",
+    "joint_material",
+    "joint_material_table",
+    "load_face_arrays",
+    "split_joints",
+    "tag_joint_faces",
+]
 
 
 @dataclass
@@ -126,185 +143,6 @@ class JointData:
 
 class JointFaceError(ValueError):
     """Joint faces that are not interior faces of the tet mesh (each must be shared by exactly two tets)."""
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Node → tet adjacency
-
-
-class NodeStars:
-    """The star of every node (live, active tets holding it) as a CSR on the device, sorted per node.
-
-    Args:
-        node_capacity, tet_capacity: sizes of the node and tet arrays.
-        device: Warp device.
-    """
-
-    def __init__(self, node_capacity: int, tet_capacity: int, device: wp.context.Device) -> None:
-        self.device = device
-        self.count = wp.zeros(max(node_capacity, 1), dtype=int, device=device)
-        self.offset = wp.zeros(max(node_capacity, 1), dtype=int, device=device)
-        self.fill = wp.zeros(max(node_capacity, 1), dtype=int, device=device)
-        self.tets = wp.zeros(max(4 * tet_capacity, 1), dtype=int, device=device)
-        self.tet_face_nbr = wp.full(max(4 * tet_capacity, 1), -1, dtype=int, device=device)
-
-    def build(self, tet_nodes: wp.array, tet_count: wp.array, tet_active: wp.array, node_count: wp.array) -> None:
-        """Count → exclusive scan → fill → sort, then the face neighbours of every tet (launches only)."""
-        d = self.device
-        tcap = tet_nodes.shape[0]
-        self.count.zero_()
-        self.fill.zero_()
-        if tcap == 0:
-            return
-        wp.launch(
-            kj.count_node_tets_kernel,
-            dim=tcap,
-            inputs=[tet_nodes, tet_count, tet_active],
-            outputs=[self.count],
-            device=d,
-        )
-        wp.utils.array_scan(self.count, self.offset, inclusive=False)
-        wp.launch(
-            kj.fill_node_tets_kernel,
-            dim=tcap,
-            inputs=[tet_nodes, tet_count, tet_active, self.offset],
-            outputs=[self.fill, self.tets],
-            device=d,
-        )
-        wp.launch(
-            kj.sort_node_tets_kernel,
-            dim=self.count.shape[0],
-            inputs=[node_count, self.offset, self.count],
-            outputs=[self.tets],
-            device=d,
-        )
-        wp.launch(
-            kj.tet_face_neighbors_kernel,
-            dim=tcap,
-            inputs=[tet_nodes, tet_count, tet_active, self.offset, self.count, self.tets],
-            outputs=[self.tet_face_nbr],
-            device=d,
-        )
-
-    def csr(self) -> list[wp.array]:
-        """(offset, count, tets): the arguments kernels take for a star lookup."""
-        return [self.offset, self.count, self.tets]
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# The split pass
-
-
-def _node_arrays(obj: object, node_capacity: int) -> list[wp.array]:
-    """Per-node arrays of a Model or State to carry into new node slots: fields ``node_*`` of length node_capacity,
-    except the energy accumulators (a new node has dissipated nothing yet)."""
-    out = []
-    for f in dataclasses.fields(obj):
-        a = getattr(obj, f.name)
-        if not (f.name.startswith("node_") and isinstance(a, wp.array)):
-            continue
-        if a.ndim == 1 and a.shape[0] == node_capacity and not f.name.startswith("node_energy"):
-            out.append(a)
-    return out
-
-
-class NodeSplitter:
-    """Splits nodes whose star the tagged faces cut into several components (module docstring, steps 1–5).
-
-    Args:
-        node_capacity, tet_capacity: sizes of the node and tet arrays.
-        device: Warp device.
-    """
-
-    def __init__(self, node_capacity: int, tet_capacity: int, device: wp.context.Device) -> None:
-        self.device = device
-        self.node_capacity = node_capacity
-        self.stars = NodeStars(node_capacity, tet_capacity, device)
-        self.star_comp = wp.zeros(max(4 * tet_capacity, 1), dtype=int, device=device)
-        self.copies = wp.zeros(max(node_capacity, 1), dtype=int, device=device)
-        self.compactor = Compactor(node_capacity, device)
-
-    def plan(
-        self,
-        tet_nodes: wp.array,
-        tet_count: wp.array,
-        tet_active: wp.array,
-        node_count: wp.array,
-        tet_face_joint: wp.array,
-    ) -> wp.array:
-        """Build the stars, label their components across the tagged faces and plan the new slots.
-
-        Args:
-            tet_face_joint: joint set of each tet-face slot 4t + k, -1 where none, shape (4 tet_capacity,).
-
-        Returns:
-            The node count after the split, shape (1,) (may exceed the capacity: grow and redo).
-        """
-        self.stars.build(tet_nodes, tet_count, tet_active, node_count)
-        if self.node_capacity:
-            wp.launch(
-                kj.label_star_components_kernel,
-                dim=self.node_capacity,
-                inputs=[tet_nodes, node_count, *self.stars.csr(), self.stars.tet_face_nbr, tet_face_joint],
-                outputs=[self.star_comp, self.copies],
-                device=self.device,
-            )
-        self.compactor.plan_append(node_count, self.copies)
-        return self.compactor.new_count
-
-    def new_node_count(self) -> int:
-        """Node count after the planned split (reads back)."""
-        return int(self.compactor.new_count.numpy()[0])
-
-    def split_args(self) -> list[wp.array]:
-        """Star CSR, components and first new slots: what a kernel needs to find the node a tet holds after the
-        split (``split_node_index``)."""
-        return [*self.stars.csr(), self.star_comp, self.compactor.first_new]
-
-    def remap_faces(self, tet_nodes: wp.array, faces: wp.array) -> None:
-        """Rewrite a face list (vec3i, pre-split ids) onto the nodes of the tet holding each face. Call before
-        :meth:`apply` (it reads the tets' pre-split nodes)."""
-        if faces.shape[0]:
-            wp.launch(
-                kj.remap_split_faces_kernel,
-                dim=faces.shape[0],
-                inputs=[tet_nodes, *self.split_args()],
-                outputs=[faces],
-                device=self.device,
-            )
-
-    def apply(self, model: Model, state: State, extra_node_arrays: Sequence[wp.array] = ()) -> None:
-        """Carry out the planned split in place: replicate every per-node array into the new slots, re-lump the
-        masses, remap the tets and set the node count. The new count must fit the capacity."""
-        m, s = model, state
-        arrays = _node_arrays(m, m.node_capacity) + _node_arrays(s, m.node_capacity) + list(extra_node_arrays)
-        self.compactor.replicate(s.node_count, arrays)
-        if m.node_capacity:
-            wp.launch(
-                kj.relump_split_nodes_kernel,
-                dim=m.node_capacity,
-                inputs=[
-                    m.tet_volume,
-                    m.tet_material,
-                    m.tet_material_table,
-                    s.node_count,
-                    *self.stars.csr(),
-                    self.star_comp,
-                    self.copies,
-                    self.compactor.first_new,
-                ],
-                outputs=[m.node_mass, m.node_inv_mass, m.node_damping],
-                device=self.device,
-            )
-        if m.tet_capacity:
-            wp.launch(
-                kj.remap_split_tets_kernel,
-                dim=m.tet_capacity,
-                inputs=[s.tet_count, s.tet_active, *self.split_args()],
-                outputs=[m.tet_nodes],
-                device=self.device,
-            )
-        self.compactor.finish(s.node_count)
 
 
 def tag_joint_faces(
@@ -441,7 +279,7 @@ def build_joint_elements(
     return out
 
 
-def _load_face_arrays(loads: object) -> list[wp.array]:
+def load_face_arrays(loads: object) -> list[wp.array]:
     """Face node lists (vec3i) of a warpdem.loads.LoadModel: the pressure face sets and the dashpot faces."""
     if loads is None:
         return []
@@ -476,7 +314,7 @@ def split_joints(model: Model, state: State, joints: JointData) -> Model:
     if needed > m.node_capacity:
         raise ValueError(f"split_joints: the split needs {needed} node slots, the model has {m.node_capacity}")
     elements = build_joint_elements(splitter, m, faces, sets, sides)
-    for face_nodes in _load_face_arrays(m.loads):
+    for face_nodes in load_face_arrays(m.loads):
         splitter.remap_faces(m.tet_nodes, face_nodes)
     driver = getattr(m.loads, "node_driver", None)
     splitter.apply(m, s, [driver] if isinstance(driver, wp.array) else [])

@@ -121,6 +121,9 @@ class Model:
             (a daughter inherits its parent's flag).
         fracture_material_table: T_f, Γ and α of every material id, shape (num_materials,), FractureMaterial
             (kernels/fracture.py).
+        ref_tet_face_nbr: the tet across each tet-face slot 4t + k in the unsplit mesh (faces matched by reference
+            positions, so joints and cracks do not cut it), -1 on the outer surface, shape (4 tet_capacity,), int32
+            (warpdem.topology.reference_face_neighbors; tet slots never move, so it holds for the whole run).
     """
 
     device: wp.context.Device
@@ -199,6 +202,7 @@ class Model:
     cohesive_capacity: int = 0
     node_may_split: wp.array | None = None
     fracture_material_table: wp.array | None = None
+    ref_tet_face_nbr: wp.array | None = None
 
     @property
     def max_radius(self) -> float:
@@ -322,6 +326,9 @@ class State:
         cohesive_dir: unit direction from A to B before any opening (the principal direction p1 at the split), vec3.
         cohesive_d_max: d_max, the largest opening |x_B − x_A| so far (eq. 8) [m], float32.
         cohesive_broken: 0 intact, 1 broken (d_max ≥ δ_c) and awaiting compaction, int32.
+        cohesive_tet_face: the tet-face slot 4t + k, on A's side, of the largest crack face the element was born with:
+            tet t is A's representative tet and the tet across the slot in the unsplit mesh (Model.ref_tet_face_nbr)
+            B's; a later split of A or B hands the element to the daughter on its representative tet's side, int32.
         cohesive_broken_total: elements broken since the start, shape (1,), int32.
         cohesive_area_broken: Σ A_f of the broken elements [m²], shape (1,), float64.
         cohesive_work_broken: Σ Γ A_f = Σ (1 − α/2) f_c δ_c of the broken elements [J] (eq. 9), shape (1,), float64.
@@ -416,6 +423,7 @@ class State:
     cohesive_dir: wp.array
     cohesive_d_max: wp.array
     cohesive_broken: wp.array
+    cohesive_tet_face: wp.array
     cohesive_broken_total: wp.array
     cohesive_area_broken: wp.array
     cohesive_work_broken: wp.array
@@ -465,6 +473,7 @@ COHESIVE_FIELDS = (
     "cohesive_dir",
     "cohesive_d_max",
     "cohesive_broken",
+    "cohesive_tet_face",
 )
 """State fields indexed by cohesive element (compacted and grown together)."""
 
@@ -484,6 +493,7 @@ def fracture_state(model: Model) -> dict[str, wp.array]:
         "cohesive_dir": wp.zeros(cap, dtype=wp.vec3, device=d),
         "cohesive_d_max": wp.zeros(cap, dtype=float, device=d),
         "cohesive_broken": wp.zeros(cap, **one),
+        "cohesive_tet_face": wp.full(cap, -1, **one),
         "cohesive_broken_total": wp.zeros(1, **one),
         "cohesive_area_broken": wp.zeros(1, dtype=wp.float64, device=d),
         "cohesive_work_broken": wp.zeros(1, dtype=wp.float64, device=d),

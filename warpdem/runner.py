@@ -43,6 +43,40 @@ def model_scalars(model: Model) -> dict[str, int | float]:
     }
 
 
+def load_checkpoint_arrays(model: Model) -> dict[str, wp.array]:
+    """The arrays of the model's LoadModel that a run changes, by checkpoint name: the node drivers (per node, grown
+    with the node capacity by a split pass) and the node triples of the loaded and dashpot faces (remapped onto the
+    daughters of split nodes). The rest of the loads comes from the scene."""
+    loads = model.loads
+    if loads is None:
+        return {}
+    out = {f"pressure_{kind}_nodes": faces.nodes for kind, faces in loads.pressure.items()}
+    if loads.dashpots is not None:
+        out["dashpots_nodes"] = loads.dashpots.nodes
+    if isinstance(loads.node_driver, wp.array):
+        out["node_driver"] = loads.node_driver
+    return out
+
+
+def _restore_loads(model: Model, arrays: dict[str, np.ndarray]) -> Model:
+    """The model with its load arrays (:func:`load_checkpoint_arrays`) taken from a checkpoint where it holds them."""
+    held = load_checkpoint_arrays(model)
+    for name, a in held.items():
+        key = f"loads/{name}"
+        if key not in arrays:
+            continue
+        if name == "node_driver":
+            driver = wp.array(arrays[key], dtype=a.dtype, device=model.device)
+            model = dataclasses.replace(model, loads=dataclasses.replace(model.loads, node_driver=driver))
+        elif arrays[key].shape == a.numpy().shape:
+            a.assign(arrays[key])
+    return model
+
+
+NOT_PER_PARTICLE = ("node_", "tet_", "face_", "star_", "joint_", "cohesive_", "ref_", "bond_")
+"""Array names that are never sized by the particle capacity (nodes, tets, faces, joints, cohesive elements and bonds
+grow by their own capacities, which may equal it by chance)."""
+
 SCENE_FIXED_SCALARS = ("bond_capacity", "num_walls", "num_materials")
 """Model scalars that no run changes: a checkpoint whose values differ was taken of another scene."""
 
@@ -182,6 +216,8 @@ def save_checkpoint(path: Path, sim: Simulation, frame: int, extra: dict) -> Pat
     arrays = {f"state/{name}": a.numpy() for name, a in sim.state.arrays().items()}
     for name in model_checkpoint_arrays(sim.model):
         arrays[f"model/{name}"] = getattr(sim.model, name).numpy()
+    for name, a in load_checkpoint_arrays(sim.model).items():
+        arrays[f"loads/{name}"] = a.numpy()
     attrs = {
         **model_scalars(sim.model),
         "step": sim.step_count,
@@ -268,7 +304,12 @@ def restore_checkpoint(
         # Neighbour slots by name: with one slot per sphere they are as long as the per-sphere arrays.
         if key.removeprefix("state/") in NEIGHBOR_FIELDS:
             expected = slots["neighbor slots"]
-        elif like.shape and like.shape[0] == template.particle_q.shape[0] and key.startswith(("state/", "model/")):
+        elif (
+            like.shape
+            and like.shape[0] == template.particle_q.shape[0]
+            and key.startswith(("state/", "model/"))
+            and not key.split("/", 1)[1].startswith(NOT_PER_PARTICLE)
+        ):
             expected = slots["particle_capacity"]
         else:
             expected = None
@@ -288,7 +329,7 @@ def restore_checkpoint(
         **{name: load(f"model/{name}", getattr(model, name)) for name in model_checkpoint_arrays(model)},
     )
     state = State(**{name: load(f"state/{name}", a) for name, a in template.arrays().items()})
-    return model, state, attrs
+    return _restore_loads(model, arrays), state, attrs
 
 
 class _StopRequest:

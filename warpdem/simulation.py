@@ -5,6 +5,7 @@ A step (DESIGN.md, stages in order):
 1. integrate, first half — kick by dt/2, drift by dt, clear forces, flag a neighbour rebuild if needed (spheres
    and FEM nodes);
 2. tetrahedra — Cosserat point element forces and bulk viscosity (their Cauchy stresses are refreshed between steps);
+   cohesive elements between the daughters of split nodes (LDEC eqs. 5–8, warpdem.cohesive);
 3. contact search — rebuild the skinned neighbour list from the hash grid when flagged (conditional node);
 4. contact — sphere–sphere and sphere–wall forces with tangential history; FEM contact (its lists rebuilt in a
    conditional node when a node moved half the FEM skin or the sphere list was rebuilt): sphere–face, node–face
@@ -16,8 +17,10 @@ A step (DESIGN.md, stages in order):
 
 The step allocates nothing and reads nothing back. Between frames (:meth:`Simulation.advance`) the host checks the
 device's overflow counters; if a capacity was exceeded it grows the buffers ×2, restores the state saved at the
-start of the advance and runs it again, so nothing is ever dropped. Topology passes (removing broken bonds) run
-there too.
+start of the advance and runs it again, so nothing is ever dropped. Topology passes (removing broken bonds and
+cohesive elements) run there too. With nodal fracture on, an advance runs in chunks that end on multiples of
+``model.fracture_interval`` steps, each chunk with its own overflow redo, and a split pass (:meth:`Simulation
+.fracture_pass`, warpdem.fracture) after each: a redo never crosses a topology pass.
 """
 
 from __future__ import annotations
@@ -30,14 +33,25 @@ import numpy as np
 import warp as wp
 
 from .bonds import bond_energy, compact_bonds, eval_bonds
+from .cohesive import cohesive_energy, compact_cohesive, eval_cohesive, regrow_cohesive
 from .compaction import Compactor
 from .contact import NeighborList, contact_energy, eval_contacts
-from .fem_contact import FemContact, fem_contact_energy, fem_contact_growth, regrow_fem_contacts
+from .fem_contact import (
+    FemContact,
+    face_slots,
+    fem_contact_energy,
+    fem_contact_growth,
+    rebuild_surface,
+    regrow_fem_contacts,
+    remap_face_ids,
+)
+from .fracture import FracturePass, SplitReport
 from .guard import GuardReport, StabilityGuard, UnstableRunError
 from .integrate import integrate_first_half, integrate_second_half, kick_drift
 from .loads import eval_loads, relax_to_equilibrium
 from .model import NEIGHBOR_FIELDS, Model, State
 from .tets import eval_tet_stresses, eval_tets, tet_energy
+from .topology import regrow_nodes
 
 
 @dataclass
@@ -59,7 +73,10 @@ class EnergyBalance:
     ``absorbed_boundaries`` what the non-reflecting boundaries' dashpots took out of the model, ``load_work`` the work
     of pressure loads and velocity drivers on the FEM nodes. ``elastic`` is the energy of the springs of the sphere
     contacts, the bonds, the FEM contacts and intact joint elements; ``dissipated_fem_contact`` is what the FEM
-    contacts' dashpots and friction took, and the springs of failed joints.
+    contacts' dashpots and friction took, and the springs of failed joints. ``cohesive_elastic`` is the spring
+    energy stored in the intact cohesive elements of split nodes (½ k d², counted in ``in_play``) and
+    ``dissipated_cohesive`` what they dissipated (½ f_c per unit growth of δ_max, and what a breaking element still
+    held; warpdem.cohesive).
     """
 
     kinetic_translational: float
@@ -78,6 +95,8 @@ class EnergyBalance:
     absorbed_boundaries: float = 0.0
     stiffness_change: float = 0.0
     shadow: float = 0.0
+    cohesive_elastic: float = 0.0
+    dissipated_cohesive: float = 0.0
 
     @property
     def kinetic(self) -> float:
@@ -88,7 +107,8 @@ class EnergyBalance:
         """Energy in play [J]: the larger of kinetic + elastic + strain and the work put in so far by walls, driven
         spheres and loads. It holds no gravity potential, whose datum (where z = 0 is) is arbitrary: the balance's
         error is scaled by its largest value over a run."""
-        return max(self.kinetic + self.elastic + self.strain, abs(self.boundary_work) + abs(self.load_work))
+        stored = self.kinetic + self.elastic + self.strain + self.cohesive_elastic
+        return max(stored, abs(self.boundary_work) + abs(self.load_work))
 
     @property
     def total(self) -> float:
@@ -107,6 +127,8 @@ class EnergyBalance:
             + self.dissipated_fem_contact
             + self.absorbed_boundaries
             - self.stiffness_change
+            + self.cohesive_elastic
+            + self.dissipated_cohesive
         )
 
 
@@ -188,6 +210,9 @@ class Simulation:
         self.neighbors = NeighborList(self.model, self.state) if self.has_spheres else None
         self.fem_contact = FemContact(self.model, self.state, self.has_spheres) if self.model.face_capacity else None
         self.bond_compactor = Compactor(self.model.bond_capacity, self.model.device)
+        self.cohesive_compactor = Compactor(self.model.cohesive_capacity, self.model.device)
+        self._fracture: FracturePass | None = None
+        self._face_slot: wp.array | None = None
         self._snapshot: State | None = None
         self._graphs: tuple | None = None
 
@@ -201,6 +226,8 @@ class Simulation:
         """Stages 2–6 of a step: every force at the drifted positions (launches only)."""
         m, s = self.model, self.state
         eval_tets(m, s)
+        if m.cohesive_capacity:
+            eval_cohesive(m, s, track_energy=self.track_energy)
         if self.has_spheres:
             self.neighbors.rebuild_if_needed()
             eval_contacts(m, s, self.track_energy)
@@ -233,6 +260,8 @@ class Simulation:
         s.contact_t_tangential.zero_()
         s.node_f.zero_()
         eval_tets(m, s, dt=0.0)
+        if m.cohesive_capacity:
+            eval_cohesive(m, s, dt=0.0, track_energy=self.track_energy)
         if self.has_spheres:
             s.rebuild_flag.fill_(1)
             self.neighbors.rebuild_if_needed()
@@ -284,12 +313,27 @@ class Simulation:
 
     def advance(self, n_steps: int) -> None:
         """Run ``n_steps`` steps, then the between-step work: overflow check (grow and redo), stability guard, bond
-        compaction.
+        and cohesive compaction. With nodal fracture on, the steps run in chunks ending on multiples of
+        ``model.fracture_interval`` (counted from step 0), each followed by a split pass (:meth:`fracture_pass`).
 
         Raises:
             warpdem.guard.UnstableRunError: the state went non-finite or ran away (warpdem.guard); the simulation is
                 left at the first bad step.
         """
+        k = self.model.fracture_interval
+        if k <= 0:
+            self._advance_chunk(n_steps)
+            return
+        remaining = n_steps
+        while remaining > 0:
+            chunk = min(remaining, k - self.step_count % k)
+            self._advance_chunk(chunk)
+            remaining -= chunk
+            if self.step_count % k == 0:
+                self.fracture_pass()
+
+    def _advance_chunk(self, n_steps: int) -> None:
+        """:meth:`advance` without split passes."""
         if self._snapshot is None:
             self._snapshot = self.state.clone()
         else:
@@ -308,6 +352,7 @@ class Simulation:
         if report is not None:
             raise self._first_bad_step(report, n_steps)
         self.remove_broken_bonds()
+        self.remove_broken_cohesive()
         # No stage of the step reads the tet stresses; they are brought up to date for whoever reads the state now.
         eval_tet_stresses(self.model, self.state)
 
@@ -358,6 +403,91 @@ class Simulation:
             compact_bonds(self.model, self.state, self.bond_compactor)
         return self.bond_count
 
+    def remove_broken_cohesive(self) -> int:
+        """Compact broken cohesive elements away (between steps). Returns the live element count."""
+        if self.model.cohesive_capacity == 0:
+            return 0
+        s = self.state
+        n = int(s.cohesive_count.numpy()[0])
+        if n and np.any(s.cohesive_broken.numpy()[:n]):
+            return compact_cohesive(self.model, s, self.cohesive_compactor)
+        return n
+
+    # ------------------------------------------------------------------------------------------------------------
+    def fracture_pass(self) -> SplitReport:
+        """One split pass now, between steps (warpdem.fracture): candidates, capacities grown ×2 to hold them, rounds
+        of independent sets; after splits the surface and contact lists are rebuilt and the forces re-evaluated at
+        the current positions (dt = 0, booking nothing). Captured graphs are kept unless an array they read was
+        reallocated. Reads back a few counts.
+
+        Returns:
+            What the pass did (no-op report when fracture is off).
+        """
+        if self.model.fracture_interval <= 0:
+            return SplitReport(0, 0, False)
+        grew = False
+        while True:
+            if self._fracture is None or not self._fracture.fits(self.model):
+                self._fracture = FracturePass(self.model)
+            found = self._fracture.find_candidates(self.model, self.state)
+            if found == 0:
+                return SplitReport(0, 0, grew)
+            if not self._grow_for_split(found):
+                break
+            grew = True
+        m, s = self.model, self.state
+        old_faces = int(s.face_count.numpy()[0]) if m.face_capacity else 0
+        if m.face_capacity:
+            self._face_slot = face_slots(m, s, self._face_slot)
+        splits, rounds = self._fracture.split(m, s)
+        if splits:
+            self._after_split(old_faces)
+        return SplitReport(splits, rounds, grew)
+
+    def _grow_for_split(self, candidates: int) -> bool:
+        """Grow the node and cohesive capacities ×2 until they hold ``candidates`` more of each (the most a pass can
+        add). Returns whether anything grew (the stages are then set up again and graphs re-captured)."""
+        m, s = self.model, self.state
+        nodes = int(s.node_count.numpy()[0]) + candidates
+        elements = int(s.cohesive_count.numpy()[0]) + candidates
+        if nodes <= m.node_capacity and elements <= m.cohesive_capacity:
+            return False
+        if nodes > m.node_capacity:
+            cap = max(m.node_capacity, 1)
+            while cap < nodes:
+                cap *= 2
+            m, s = regrow_nodes(m, s, cap)
+        if elements > m.cohesive_capacity:
+            cap = max(m.cohesive_capacity, 1)
+            while cap < elements:
+                cap *= 2
+            m, s = regrow_cohesive(m, s, cap)
+        self.model, self.state = m, s
+        self.growths += 1
+        self._setup()
+        return True
+
+    def _after_split(self, old_faces: int) -> None:
+        """After a pass that split nodes: rebuild the surface on the device (crack faces become contact faces), carry
+        the face ids of the contact state over, and re-evaluate the forces at dt = 0 (the contact lists rebuilt)."""
+        m, s = self.model, self.state
+        if m.face_capacity:
+            model, slot_to_face = rebuild_surface(m, s)
+            remap_face_ids(model, s, self._face_slot, old_faces, slot_to_face)
+            same = all(
+                getattr(model, f) is getattr(m, f) for f in ("face_nodes", "star_tets", "node_contact_stiffness")
+            )
+            same = same and (model.face_radius, model.face_depth_max) == (m.face_radius, m.face_depth_max)
+            self.model = model
+            if same:
+                self.fem_contact.model = model
+            else:
+                # A face array grew or the faces' extent (baked into the launches) changed: new stage, new graphs.
+                self._setup()
+        self.evaluate_forces()
+        while self._grow_if_overflowed(self.state):
+            self.evaluate_forces()
+
     @property
     def bond_count(self) -> int:
         """Live bonds (host read-back)."""
@@ -390,6 +520,7 @@ class Simulation:
         e_bond, _ = bond_energy(m, s)
         g = np.asarray(m.gravity, dtype=np.float64)
         nn = self.node_count
+        e_cohesive, d_cohesive = cohesive_energy(m, s) if m.cohesive_capacity else (0.0, 0.0)
         node_mass = m.node_mass.numpy()[:nn].astype(np.float64)
         node_v = s.node_qd.numpy()[:nn].astype(np.float64)
         # X + u in float64 rather than the float32 sum node_q, so the potential keeps the displacements' precision.
@@ -414,6 +545,8 @@ class Simulation:
             dissipated_fem_contact=d_fem,
             absorbed_boundaries=float(s.node_energy_absorbed.numpy()[:nn].sum()),
             stiffness_change=float(s.energy_stiffness_change.numpy()[:n].sum()),
+            cohesive_elastic=e_cohesive,
+            dissipated_cohesive=d_cohesive,
         )
 
     def _shadow_term(self, mass: np.ndarray, free: np.ndarray, g: np.ndarray) -> float:

@@ -1,0 +1,158 @@
+"""Mesh topology and node duplication (kernels/topology.py, warpdem/topology.py), shared by joints and fracture.
+
+Oracles: numpy rebuilds of the star CSR and of the unsplit face adjacency (faces matched by sorted node triples of
+the original mesh, an independent method from the device's star search through reference positions); the hand-over
+invariant (each element's representative tets hold its nodes) after repeated splits of one node and of joint nodes;
+loaded faces still faces of the tets that hold them after a split; growth that keeps every live slot bit for bit.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from warpdem.builder import ModelBuilder
+from warpdem.fracture import FractureProps, attach_fracture
+from warpdem.joints import JointProps
+from warpdem.loads import PressureHistory
+from warpdem.mesh import TET_FACES, box_mesh
+from warpdem.simulation import Simulation
+from warpdem.tets import set_node_displacements
+from warpdem.topology import NodeStars, reference_face_neighbors, regrow_nodes
+
+YOUNG = 1.0e9  # [Pa]
+DENSITY = 2000.0  # [kg/m³]
+STRENGTH = 1.0e6  # [Pa]
+
+
+def numpy_face_neighbors(tets: np.ndarray) -> np.ndarray:
+    """The tet across each tet-face slot 4t + k (-1 on the surface), by sorted node triples."""
+    key = np.sort(tets[:, TET_FACES].reshape(-1, 3), axis=1)
+    _, inverse = np.unique(key, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    order = np.argsort(inverse, kind="stable")
+    same = np.nonzero(inverse[order][1:] == inverse[order][:-1])[0]  # the two slots of an interior face, adjacent
+    a, b = order[same], order[same + 1]
+    out = np.full(len(key), -1)
+    out[a], out[b] = b // 4, a // 4
+    return out
+
+
+def test_star_csr_matches_numpy(device):
+    pts, tets = box_mesh((0, 0, 0), (2, 1, 1), (4, 2, 3))
+    nn, nt = len(pts), len(tets)
+    active = np.ones(nt, dtype=np.int32)
+    active[::5] = 0  # inactive tets are in no star
+    stars = NodeStars(nn, nt, device)
+    tet_nodes = wp.array(tets.astype(np.int32), dtype=wp.vec4i, device=device)
+    stars.build(
+        tet_nodes,
+        wp.array([nt], dtype=int, device=device),
+        wp.array(active, dtype=int, device=device),
+        wp.array([nn], dtype=int, device=device),
+    )
+    off, cnt, star = stars.offset.numpy(), stars.count.numpy(), stars.tets.numpy()
+    for v in range(nn):
+        expected = np.nonzero(np.any(tets == v, axis=1) & (active == 1))[0]
+        np.testing.assert_array_equal(star[off[v] : off[v] + cnt[v]], expected)
+    # Face neighbours of the active tets: those of the active sub-mesh.
+    nbr = stars.tet_face_nbr.numpy()[: 4 * nt].reshape(nt, 4)
+    live = np.nonzero(active)[0]
+    expected = numpy_face_neighbors(tets[live]).reshape(-1, 4)
+    got = nbr[live]
+    np.testing.assert_array_equal(np.where(got >= 0, np.searchsorted(live, np.maximum(got, 0)), -1), expected)
+
+
+def split_model(device, *, joint: bool, pressure: bool = False):
+    """A 2 × 1 × 1 m block (4 × 2 × 2 cells) with fracture attached; optionally a bonded joint on x = 1 (pre-split at
+    build) and a pressure load on its top face."""
+    pts, tets = box_mesh((0, 0, 0), (2, 1, 1), (4, 2, 2))
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", DENSITY, YOUNG, 0.25)
+    kw = {}
+    if joint:
+        faces = tets[:, TET_FACES].reshape(-1, 3)
+        on = np.all(np.isclose(pts[faces][:, :, 0], 1.0), axis=1)
+        kw = {"joint_faces": np.unique(np.sort(faces[on], axis=1), axis=0)}
+        kw["joint_set"] = b.add_joint_set(JointProps(friction=0.5, cohesion=1e9, tensile_strength=1e9))
+    b.add_tet_mesh(pts, tets, "rock", **kw)
+    if pressure:
+        faces = tets[:, TET_FACES].reshape(-1, 3)
+        top = np.all(np.isclose(pts[faces][:, :, 2], 1.0), axis=1)
+        b.add_face_pressure(np.unique(np.sort(faces[top], axis=1), axis=0), PressureHistory.table([0, 1], [1e3, 1e3]))
+    model, state = b.finalize(device, safety_factor=0.5)
+    model, state = attach_fracture(model, state, [FractureProps(STRENGTH, 100.0)])
+    return model, state, pts, tets
+
+
+def test_reference_adjacency_is_the_unsplit_meshs(device):
+    # A joint pre-split at build separates the two halves; the reference adjacency still joins them, as numpy's
+    # adjacency of the original mesh does (model tets mapped back to original nodes by reference position).
+    model, state, pts, tets = split_model(device, joint=True)
+    nt = len(tets)
+    lookup = {tuple(np.round(p, 9)): i for i, p in enumerate(pts)}
+    ref = model.node_ref_q.numpy().astype(np.float64)
+    original = np.array([[lookup[tuple(np.round(ref[v], 9))] for v in t] for t in model.tet_nodes.numpy()[:nt]])
+    expected = numpy_face_neighbors(original)
+    np.testing.assert_array_equal(model.ref_tet_face_nbr.numpy()[: 4 * nt], expected)
+    np.testing.assert_array_equal(reference_face_neighbors(model, state).numpy()[: 4 * nt], expected)
+    assert model.joint_capacity > 0 and np.any(model.tet_face_nbr.numpy()[: 4 * nt] != expected)  # the joint is open
+
+
+def representative_invariant(model, state) -> None:
+    """Each cohesive and joint element's representative tets hold its nodes (the hand-over rule)."""
+    nt = int(state.tet_count.numpy()[0])
+    tets = model.tet_nodes.numpy()[:nt]
+    ref_nbr = model.ref_tet_face_nbr.numpy()
+    n = int(state.cohesive_count.numpy()[0])
+    groups = [(state.cohesive_a.numpy()[:n], state.cohesive_b.numpy()[:n], state.cohesive_tet_face.numpy()[:n])]
+    if model.joint_capacity:
+        groups.append((model.joint_a.numpy(), model.joint_b.numpy(), model.joint_tet_face.numpy()))
+    for a, b, slot in groups:
+        assert np.all(np.any(tets[slot // 4] == a[:, None], axis=1))
+        assert np.all(np.any(tets[ref_nbr[slot]] == b[:, None], axis=1))
+        ref = model.node_ref_q.numpy()
+        np.testing.assert_array_equal(ref[a], ref[b])
+
+
+def test_elements_follow_their_representative_tets(device):
+    # Stretch along x, then along y, then along z: nodes split again and again, across joints and earlier cracks;
+    # every cohesive and joint element keeps nodes its representative tets hold, and the pressure faces stay faces
+    # of the tets behind them.
+    model, state, _pts, tets = split_model(device, joint=True, pressure=True)
+    sim = Simulation(model, state)
+    total = 0
+    for axis in (0, 1, 2):
+        n = sim.node_count
+        x = sim.model.node_ref_q.numpy()[:n].astype(np.float64)
+        u = np.zeros_like(x)
+        u[:, axis] = 2.0 * STRENGTH / YOUNG * x[:, axis]
+        set_node_displacements(sim.model, sim.state, u)
+        total += sim.fracture_pass().splits
+        representative_invariant(sim.model, sim.state)
+    assert total > 10 and int(sim.state.cohesive_count.numpy()[0]) == total
+    nt = len(tets)
+    cur = sim.model.tet_nodes.numpy()[:nt]
+    faces = np.sort(cur[:, TET_FACES].reshape(-1, 3), axis=1)
+    known = {tuple(f) for f in faces.tolist()}
+    for fs in sim.model.loads.pressure.values():
+        for f in fs.nodes.numpy().tolist():
+            assert tuple(sorted(f)) in known
+
+
+def test_regrow_nodes_keeps_live_slots(device):
+    model, state, _pts, _tets = split_model(device, joint=False)
+    cap = model.node_capacity
+    grown_model, grown_state = regrow_nodes(model, state, 2 * cap)
+    assert grown_model.node_capacity == 2 * cap
+    for obj, grown in ((model, grown_model), (state, grown_state)):
+        for name, a in obj.arrays().items():
+            g = getattr(grown, name)
+            if name.startswith("node_") and a.shape[0] == cap:
+                assert g.shape[0] == 2 * cap, name
+                np.testing.assert_array_equal(g.numpy()[:cap], a.numpy(), err_msg=name)
+    spring = grown_state.node_face_spring.numpy()
+    assert np.all(spring[cap:] == -1)
+    k = model.max_node_faces
+    np.testing.assert_array_equal(grown_state.node_face_index.numpy()[: cap * k], state.node_face_index.numpy())
+    assert grown_state.node_face_index.shape[0] == 2 * cap * k
