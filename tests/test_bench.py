@@ -47,24 +47,14 @@ def test_fracture_bench_splits_the_nodes_due(tmp_path, device):
     lies strictly inside the block along x, so its star has tets on both sides of the plane x = X: all of them are
     due, the pass splits them all (its rounds split neighbours one after another) and adds one node each. The host
     count (``due``, brute force over the tets) must agree. The cracking run's grains (T_f … 2 T_f) are strained to
-    σ_xx ≈ E ε = 2 T_f half way through it (``cracking_block``), so it must split nodes, one new node per split.
+    σ_xx ≈ E ε = 2 T_f half way through it (``cracking_block``), so it must split nodes, one new node per split; the
+    same run with the pass off (interval 0) splits none.
     """
     cells, fraction = 6, 0.05
     out = tmp_path / "fracture.json"
-    argv = ["bench", "fracture", "--tets", str(6 * cells**3), "--fraction", str(fraction), "--steps", "2"]
-    argv += ["--device", device]
-    argv += [
-        "--repeat",
-        "1",
-        "--run-tets",
-        str(6 * cells**3),
-        "--run-steps",
-        "40",
-        "--intervals",
-        "1",
-        "--json",
-        str(out),
-    ]
+    tets = str(6 * cells**3)
+    argv = ["bench", "fracture", "--tets", tets, "--fraction", str(fraction), "--steps", "2", "--repeat", "1"]
+    argv += ["--run-tets", tets, "--run-steps", "40", "--intervals", "0", "1", "--device", device, "--json", str(out)]
     assert main(argv) == 0
     data = json.loads(out.read_text())
     (p,) = data["passes"]
@@ -73,6 +63,7 @@ def test_fracture_bench_splits_the_nodes_due(tmp_path, device):
     assert p["due"] == p["may_split"] == p["splits"]
     assert p["nodes_after"] == p["nodes"] + p["splits"]
     assert not p["grew"]  # node slots were reserved for the daughters
-    (r,) = data["runs"]
+    off, r = data["runs"]
+    assert off["interval"] == 0 and off["splits"] == 0 and off["nodes_after"] == (cells + 1) ** 3  # the pass off
     assert r["splits"] > 0
     assert r["nodes_after"] == (cells + 1) ** 3 + r["splits"]

@@ -497,9 +497,11 @@ def cracking_block(cells: int, device: str, steps: int, interval: int, seed: int
     """The cracking run: the granite cube of :func:`stretched_block`, made of grains of GRAIN_CELLS³ cells with
     seeded random strengths T_f … 2 T_f (one material per strength class), pulled apart along x at a constant strain
     rate (x-faces driven at ∓v, the rest starting with the matching velocity v_x = v (2x − 1), so there is no shock),
-    every other node free to split, a pass every ``interval`` steps. The rate takes the weakest grains to T_f a
-    quarter of the way through ``steps`` steps at half the critical step and the strongest by half way (σ_xx ≈ E ε
-    in uniaxial stress), so the block cracks through most of the run. Returns a Simulation."""
+    every other node free to split, a pass every ``interval`` steps (0: none, the reference). The rate takes the
+    weakest grains to T_f a quarter of the way through ``steps`` steps at half the critical step and the strongest by
+    half way (σ_xx ≈ E ε in uniaxial stress), so the block cracks through most of the run. Returns a Simulation."""
+    import dataclasses
+
     from .builder import ModelBuilder
     from .fracture import FractureProps, attach_fracture
     from .mesh import box_mesh
@@ -535,7 +537,9 @@ def cracking_block(cells: int, device: str, steps: int, interval: int, seed: int
     b.add_node_velocity(right, (speed, 0.0, 0.0))
     model, state = b.finalize(device, dt=dt)
     props = [FractureProps(tensile_strength=float(t), fracture_energy=FRACTURE_ENERGY) for t in strengths]
-    model, state = attach_fracture(model, state, props, check_interval=interval, may_split=~(left | right))
+    model, state = attach_fracture(model, state, props, check_interval=max(interval, 1), may_split=~(left | right))
+    if interval == 0:  # the reference: the same model with the pass off
+        model = dataclasses.replace(model, fracture_interval=0)
     return Simulation(model, state, track_energy=False)
 
 

@@ -84,6 +84,13 @@ def _non_negative_float(text: str) -> float:
     return value
 
 
+def _non_negative_int(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0 (got {text})")
+    return value
+
+
 def _positive_int(text: str) -> int:
     value = int(text)
     if value <= 0:
@@ -170,12 +177,16 @@ def fracture_bench_parser() -> argparse.ArgumentParser:
         "--run-tets",
         type=_positive_int,
         nargs="*",
-        default=[50_000],
+        default=[10_000],
         help="tets wanted for the cracking run (none: skip it)",
     )
     p.add_argument("--run-steps", type=_positive_int, default=200, help="steps of the cracking run [200]")
     p.add_argument(
-        "--intervals", type=_positive_int, nargs="+", default=[1, 10], help="steps between passes in the cracking run"
+        "--intervals",
+        type=_non_negative_int,
+        nargs="+",
+        default=[0, 1, 10],
+        help="steps between passes in the cracking run (0: fracture off, the reference)",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the nodes that split and of the grain strengths")
     p.add_argument("--device", default="cpu", help="Warp device")
