@@ -175,18 +175,21 @@ def in_one_ring(
 
 @wp.func
 def find_joint(joint_a: wp.array(dtype=int), joint_b: wp.array(dtype=int), count: int, a: int, b: int) -> int:
-    """Index of the joint element (a, b), a < b, in the elements sorted by (a, b) (binary search), -1 if absent."""
+    """Index of the joint element of nodes {a, b}, a < b, in the elements sorted by their pair (min, max) (binary
+    search), -1 if absent. An element's A may be the larger index once a split pass handed it over (warpdem.topology
+    .sort_joint_elements keeps the order)."""
     lo = int(0)
     hi = count
     while lo < hi:
         mid = (lo + hi) // 2
-        ma = joint_a[mid]
-        if ma < a or (ma == a and joint_b[mid] < b):
+        ma = wp.min(joint_a[mid], joint_b[mid])
+        mb = wp.max(joint_a[mid], joint_b[mid])
+        if ma < a or (ma == a and mb < b):
             lo = mid + 1
         else:
             hi = mid
     if lo < count:
-        if joint_a[lo] == a and joint_b[lo] == b:
+        if wp.min(joint_a[lo], joint_b[lo]) == a and wp.max(joint_a[lo], joint_b[lo]) == b:
             return lo
     return -1
 

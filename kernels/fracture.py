@@ -162,6 +162,32 @@ def nodal_stress_kernel(
 
 
 @wp.kernel
+def tension_bound_kernel(
+    # State in:
+    tet_count: wp.array(dtype=int),
+    tet_active: wp.array(dtype=int),
+    tet_stress: wp.array(dtype=wp.mat33),
+    # In:
+    threshold: float,
+    # Out:
+    reached: wp.array(dtype=int),
+):
+    t = wp.tid()  # one thread per tet slot: does any tet's stress bound reach the lowest T_f?
+    if t >= tet_count[0] or tet_active[t] == 0:
+        return
+    s = tet_stress[t]
+    # Gershgorin: every eigenvalue of σ is at most max_i (σ_ii + Σ_{j≠i} |σ_ij|). A node's σ1 is the largest
+    # eigenvalue of an average of its tets' stresses, at most the largest of theirs (λ_max is convex), so no node
+    # can reach T_f while no tet's bound does.
+    bound = wp.max(
+        s[0, 0] + wp.abs(s[0, 1]) + wp.abs(s[0, 2]),
+        wp.max(s[1, 1] + wp.abs(s[1, 0]) + wp.abs(s[1, 2]), s[2, 2] + wp.abs(s[2, 0]) + wp.abs(s[2, 1])),
+    )
+    if bound >= threshold:
+        reached[0] = 1
+
+
+@wp.kernel
 def not_candidate_kernel(
     # In:
     candidate: wp.array(dtype=int),

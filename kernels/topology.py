@@ -20,6 +20,8 @@ which daughters share) still names the tet that was across each face after any n
 
 from __future__ import annotations
 
+from typing import Any
+
 import warp as wp
 
 from .tets import TetMaterial
@@ -497,3 +499,69 @@ def hand_over_elements_kernel(
     tb = ref_tet_face_nbr[slot]
     if tb >= 0:
         element_b[i] = follow_split(element_b[i], tb, star_offset, star_count, star_tets, star_comp, copies, first_new)
+
+
+@wp.kernel
+def tet_face_neighbors_from_ref_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    ref_tet_face_nbr: wp.array(dtype=int),
+    # State in:
+    tet_count: wp.array(dtype=int),
+    tet_active: wp.array(dtype=int),
+    # Out:
+    tet_face_nbr: wp.array(dtype=int),
+):
+    t = wp.tid()  # one thread per tet slot; the current neighbour across each face: the unsplit one, if it still
+    # holds the face's three nodes (splits only ever separate tets, never join new ones)
+    for k in range(4):
+        tet_face_nbr[4 * t + k] = -1
+    if t >= tet_count[0] or tet_active[t] == 0:
+        return
+    n = tet_nodes[t]
+    for k in range(4):
+        t2 = ref_tet_face_nbr[4 * t + k]
+        if t2 < 0:
+            continue
+        if tet_active[t2] == 0:
+            continue
+        f = tet_face(n, k)
+        if face_in_tet(tet_nodes[t2], f[0], f[1], f[2]) >= 0:
+            tet_face_nbr[4 * t + k] = t2
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Element order: joint elements are kept sorted by their node pair (min, max), which the contact stage's binary
+# search (kernels/fem_contact.py ``find_joint``) relies on; a hand-over can move a pair, so it is re-sorted.
+
+
+@wp.kernel
+def element_pair_keys_kernel(
+    # In:
+    count: int,
+    node_capacity: int,
+    element_a: wp.array(dtype=int),
+    element_b: wp.array(dtype=int),
+    # Out:
+    keys: wp.array(dtype=wp.int64),
+    values: wp.array(dtype=int),
+):
+    i = wp.tid()  # one thread per element: its sort key min(a, b) · node_capacity + max(a, b)
+    if i >= count:
+        return
+    a = element_a[i]
+    b = element_b[i]
+    keys[i] = wp.int64(wp.min(a, b)) * wp.int64(node_capacity) + wp.int64(wp.max(a, b))
+    values[i] = i
+
+
+@wp.kernel
+def gather_kernel(
+    # In:
+    order: wp.array(dtype=int),
+    src: wp.array(dtype=Any),
+    # Out:
+    dst: wp.array(dtype=Any),
+):
+    i = wp.tid()  # one thread per slot: dst[i] = src[order[i]]
+    dst[i] = src[order[i]]

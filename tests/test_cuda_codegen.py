@@ -24,7 +24,7 @@ SCENES = [*sorted((Path(__file__).resolve().parent.parent / "scenes").glob("*.to
 CUDA_ARCHS = (90, 80)
 # Kernel files that no shipped scene may reach yet (nodal fracture runs only where a scene enables it): imported here,
 # so that their kernels are compiled whatever the scenes do.
-IMPORTED_STAGES = ("cohesive",)
+IMPORTED_STAGES = ("cohesive", "fracture", "topology")
 
 
 def warpdem_modules() -> list:

@@ -100,14 +100,19 @@ def test_reference_adjacency_is_the_unsplit_meshs(device):
 
 
 def representative_invariant(model, state) -> None:
-    """Each cohesive and joint element's representative tets hold its nodes (the hand-over rule)."""
+    """Each cohesive and joint element's representative tets hold its nodes (the hand-over rule); joint elements stay
+    sorted by node pair."""
     nt = int(state.tet_count.numpy()[0])
     tets = model.tet_nodes.numpy()[:nt]
     ref_nbr = model.ref_tet_face_nbr.numpy()
     n = int(state.cohesive_count.numpy()[0])
     groups = [(state.cohesive_a.numpy()[:n], state.cohesive_b.numpy()[:n], state.cohesive_tet_face.numpy()[:n])]
     if model.joint_capacity:
-        groups.append((model.joint_a.numpy(), model.joint_b.numpy(), model.joint_tet_face.numpy()))
+        ja, jb = model.joint_a.numpy(), model.joint_b.numpy()
+        groups.append((ja, jb, model.joint_tet_face.numpy()))
+        # Sorted by pair (min, max), strictly: the contact stage finds an element by binary search.
+        key = np.minimum(ja, jb).astype(np.int64) * model.node_capacity + np.maximum(ja, jb)
+        assert np.all(np.diff(key) > 0)
     for a, b, slot in groups:
         assert np.all(np.any(tets[slot // 4] == a[:, None], axis=1))
         assert np.all(np.any(tets[ref_nbr[slot]] == b[:, None], axis=1))

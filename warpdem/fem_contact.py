@@ -117,7 +117,7 @@ def rebuild_surface(model: Model, state: State) -> tuple[Model, wp.array]:
     d = m.device
     ncap, tcap = m.node_capacity, m.tet_capacity
     stars = NodeStars(ncap, tcap, d)
-    stars.build(m.tet_nodes, s.tet_count, s.tet_active, s.node_count)
+    stars.build(m.tet_nodes, s.tet_count, s.tet_active, s.node_count, ref_face_nbr=m.ref_tet_face_nbr)
     slots = 4 * tcap
     compactor = Compactor(slots, d)
     tet_face_count = wp.zeros(1, dtype=int, device=d)

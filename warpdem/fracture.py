@@ -37,7 +37,8 @@ Rules of the split pass (others rely on them):
 - Hand-over: every cohesive and joint element has a representative tet on each side: A's is the tet of its face
   slot (``cohesive_tet_face``, ``joint_tet_face``), B's the tet across that slot in the unsplit mesh. A split moves
   neither, and each always holds its element's node, so when a node splits again each of its elements goes to the
-  daughter whose side holds the representative tet.
+  daughter whose side holds the representative tet. Joint elements are then re-sorted by their node pair
+  (min, max), the order the contact stage searches them in; an element's A stays the node of its face slot's tet.
 - Capacities: before the rounds, the candidate count is read back; it bounds the pass's new nodes and elements, so
   the node and cohesive capacities are grown ×2 until they hold it (warpdem.topology.regrow_nodes,
   warpdem.cohesive.regrow_cohesive) and a pass never overflows half way: a grown run equals a large-capacity one.
@@ -61,7 +62,7 @@ from .joints import load_face_arrays
 from .kernels import fracture as kfr
 from .model import Model, State, fracture_state
 from .tets import eval_tet_stresses
-from .topology import NodeSplitter, reference_face_neighbors
+from .topology import NodeSplitter, reference_face_neighbors, sort_joint_elements
 
 MAX_ROUNDS = 8
 """Independent-set rounds per pass; candidates still waiting after them retry at the next pass."""
@@ -219,6 +220,10 @@ class FracturePass:
         self.claim_sigma = wp.zeros(t1, dtype=float, device=d)
         self.claim_node = wp.zeros(t1, dtype=int, device=d)
         self.pending_count = wp.zeros(1, dtype=int, device=d)
+        self.reached = wp.zeros(1, dtype=int, device=d)
+        table = model.fracture_material_table
+        # The lowest T_f of any material (host copy, read once per capacity): the threshold of the tension bound.
+        self.lowest_strength = float(table.numpy()["tensile_strength"].min()) if table is not None else 0.0
 
     def fits(self, model: Model) -> bool:
         """Whether the buffers match the model's capacities."""
@@ -236,6 +241,17 @@ class FracturePass:
         if m.node_capacity == 0 or m.tet_capacity == 0:
             return 0
         eval_tet_stresses(m, s)
+        # The common case, no tet near its strength, costs one tet pass and one read-back (kernel tension_bound).
+        self.reached.zero_()
+        wp.launch(
+            kfr.tension_bound_kernel,
+            dim=m.tet_capacity,
+            inputs=[s.tet_count, s.tet_active, s.tet_stress, self.lowest_strength],
+            outputs=[self.reached],
+            device=d,
+        )
+        if int(self.reached.numpy()[0]) == 0:
+            return 0
         stars = self.splitter.stars
         # The pass reads the unsplit adjacency (ref_tet_face_nbr), not the current face neighbours.
         stars.build(m.tet_nodes, s.tet_count, s.tet_active, s.node_count, face_neighbors=False)
@@ -385,4 +401,6 @@ class FracturePass:
             if int(self.pending_count.numpy()[0]) == 0:
                 break
         splits = int(s.node_count.numpy()[0]) - before
+        if splits and m.joint_capacity:
+            sort_joint_elements(m, s)
         return splits, rounds

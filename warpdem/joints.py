@@ -8,7 +8,7 @@ A *bonded* joint (cohesion c > 0 or tensile strength σ_t > 0) also ties each pa
 element that carries tension up to σ_t A and shear up to c A + μ σ_n A until it fails; a failed element is
 purely frictional from then on (kernels/joints.py).
 
-The pass (:class:`NodeSplitter`) is a compaction pass on the device, written for run-time node splitting too:
+The pass (:class:`warpdem.topology.NodeSplitter`, shared with nodal fracture) is a compaction pass on the device:
 
 1. the node → tet adjacency (*star*): count → exclusive scan → fill → sort each node's list;
 2. the face neighbours of every tet, and the joint faces tagged on the tet-face slots of both sides;

@@ -323,7 +323,8 @@ class State:
         cohesive_delta_c: δ_c, the critical opening (eq. 10) [m], float32.
         cohesive_alpha: α of the weakening law (eq. 6) [-], float32.
         cohesive_area: A_f, the new crack area attributed to the node, both faces (eq. 9) [m²], float32.
-        cohesive_dir: unit direction from A to B before any opening (the principal direction p1 at the split), vec3.
+        cohesive_dir: unit direction from A to B before any opening: that of eq. 4's force at the split (along the
+            principal direction p1 in a pure tensile split; warpdem.fracture says why), vec3.
         cohesive_d_max: d_max, the largest opening |x_B − x_A| so far (eq. 8) [m], float32.
         cohesive_broken: 0 intact, 1 broken (d_max ≥ δ_c) and awaiting compaction, int32.
         cohesive_tet_face: the tet-face slot 4t + k, on A's side, of the largest crack face the element was born with:

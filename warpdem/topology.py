@@ -49,9 +49,11 @@ class NodeStars:
         tet_active: wp.array,
         node_count: wp.array,
         face_neighbors: bool = True,
+        ref_face_nbr: wp.array | None = None,
     ) -> None:
         """Count → exclusive scan → fill → sort, then (unless ``face_neighbors`` is False) the face neighbours of every
-        tet (launches only)."""
+        tet (launches only). Given the unsplit adjacency (``Model.ref_tet_face_nbr``), a face's neighbour is its
+        unsplit one where that still holds the face's nodes (four lookups per tet instead of a star search)."""
         d = self.device
         tcap = tet_nodes.shape[0]
         self.count.zero_()
@@ -81,6 +83,15 @@ class NodeStars:
             device=d,
         )
         if not face_neighbors:
+            return
+        if ref_face_nbr is not None:
+            wp.launch(
+                kt.tet_face_neighbors_from_ref_kernel,
+                dim=tcap,
+                inputs=[tet_nodes, ref_face_nbr, tet_count, tet_active],
+                outputs=[self.tet_face_nbr],
+                device=d,
+            )
             return
         wp.launch(
             kt.tet_face_neighbors_kernel,
@@ -360,3 +371,34 @@ def regrow_nodes(model: Model, state: State, capacity: int) -> tuple[Model, Stat
     )
     state = dataclasses.replace(state, **grown_fields(state, set()))
     return model, state
+
+
+def sort_joint_elements(model: Model, state: State) -> None:
+    """Re-sort the joint elements by their node pair (min(a, b), max(a, b)) in place (a stable radix sort on the
+    device, then every joint array gathered in that order), after a split pass handed some over: the contact stage
+    finds a pair's element by binary search (kernels/fem_contact.py ``find_joint``). Launches only."""
+    n = model.joint_capacity
+    if n == 0:
+        return
+    d = model.device
+    keys = wp.zeros(2 * n, dtype=wp.int64, device=d)  # radix_sort_pairs needs twice the length as scratch
+    order = wp.zeros(2 * n, dtype=int, device=d)
+    wp.launch(
+        kt.element_pair_keys_kernel,
+        dim=n,
+        inputs=[n, model.node_capacity, model.joint_a, model.joint_b],
+        outputs=[keys, order],
+        device=d,
+    )
+    wp.utils.radix_sort_pairs(keys, order, n)
+    for a in (
+        model.joint_a,
+        model.joint_b,
+        model.joint_area,
+        model.joint_kn,
+        model.joint_tet_face,
+        model.joint_set,
+        state.joint_broken,
+    ):
+        src = wp.clone(a)
+        wp.launch(kt.gather_kernel, dim=n, inputs=[order, src], outputs=[a], device=d)
