@@ -28,8 +28,13 @@ import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from .model import Model, State
+    from .simulation import Simulation
 
 DATA_DIR = Path(__file__).resolve().parent / "data" / "bench"
 """The settling cases shipped with the package: ``init_N<N>.txt.gz`` (centres [m], one ``x y z`` line per sphere,
@@ -321,7 +326,9 @@ def spread_nodes(cells: int, fraction: float, seed: int) -> np.ndarray:
     return mask
 
 
-def stretched_block(cells: int, device: str, may_split: np.ndarray, node_capacity: int | None = None):
+def stretched_block(
+    cells: int, device: str, may_split: np.ndarray, node_capacity: int | None = None
+) -> tuple[Model, State]:
     """The fracture pass case: a granite cube of side 1 m, ``cells``³ cells of 6 Kuhn tets, stretched along x in
     uniaxial strain to σ_xx = STRETCH × T_f (displacement u = ε X, x-faces held, at rest, no gravity), fracture on
     with a pass every step and ``may_split`` (bool per node) the nodes that may split. Returns (model, state) with
@@ -348,11 +355,13 @@ def stretched_block(cells: int, device: str, may_split: np.ndarray, node_capacit
     return attach_fracture(model, state, [props], check_interval=1, may_split=may_split)
 
 
-def qualifying_nodes(model, state, may_split: np.ndarray) -> int:
+def qualifying_nodes(model: Model, state: State, may_split: np.ndarray) -> int:
     """How many nodes the split pass must split, counted on the host by brute force (the rules of warpdem.fracture):
     nodes with ``may_split``, whose volume-weighted average of their tets' stresses (LDEC eq. 1) has σ1 ≥ the least
     T_f of their tets' materials, and whose star has tets on both sides of the plane through the node normal to p1.
-    Nodes that share a tet are all counted: the pass's rounds split them one after another."""
+    Nodes that share a tet are all counted: the pass's rounds split them one after another. (The pass also asks for a
+    face between the two sides; a node's star in a conforming mesh such as the Kuhn box is face-connected around it,
+    so tets on both sides imply one.)"""
     nodes = int(state.node_count.numpy()[0])
     tcount = int(state.tet_count.numpy()[0])
     tets = model.tet_nodes.numpy()[:tcount].astype(np.int64)
@@ -493,7 +502,7 @@ STRENGTH_CLASSES = 8
 """Tensile strengths of the cracking block's grains: T_f × (1, …, 2) in this many even steps."""
 
 
-def cracking_block(cells: int, device: str, steps: int, interval: int, seed: int = 0):
+def cracking_block(cells: int, device: str, steps: int, interval: int, seed: int = 0) -> Simulation:
     """The cracking run: the granite cube of :func:`stretched_block`, made of grains of GRAIN_CELLS³ cells with
     seeded random strengths T_f … 2 T_f (one material per strength class), pulled apart along x at a constant strain
     rate (x-faces driven at ∓v, the rest starting with the matching velocity v_x = v (2x − 1), so there is no shock),
