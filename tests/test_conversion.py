@@ -499,3 +499,37 @@ def test_material_that_never_converts_stays_a_continuum(device):
     stretch(sim, 1e-2)
     assert sim.conversion_pass().converted == 0
     assert sim.particle_count == 0
+
+
+def test_pressure_on_faces_of_converted_tets_is_dropped(device):
+    # Pressure on both ends of a bar; the tets of the x = 0 end convert. Their loaded faces are dropped (collapsed,
+    # zero area): from then on the load does no work there (the work of the x = 0 faces' nodes stays constant), while
+    # the x = 4 end, still a continuum, keeps being pushed (its work grows).
+    from warpdem.loads import PressureHistory
+
+    pts, tets = box_mesh((0.0, 0.0, 0.0), (LENGTH, 1.0, 1.0), (8, 2, 2))
+    faces = tets[:, TET_FACES].reshape(-1, 3)
+    on = {end: faces[np.all(np.isclose(pts[faces][:, :, 0], end), axis=1)] for end in (0.0, LENGTH)}
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    b.add_tet_mesh(pts, tets, "rock")
+    b.add_face_pressure(np.concatenate([on[0.0], on[LENGTH]]), PressureHistory.blast(1.0e5, 0.0, 1.0))
+    model, state = b.finalize(device, safety_factor=0.5)
+    model, state = attach_conversion(model, state, [ConversionProps(tresca_strength=1e12)])
+    sim = Simulation(model, state)
+    # Only the tets that own the loaded faces (three nodes on x = 0): most end nodes keep other tets, mass and motion,
+    # so only the dropping keeps the load off them.
+    end_tets = np.sum(np.isclose(pts[tets][:, :, 0], 0.0), axis=1) == 3
+    sim.convert_tets(end_tets)
+    left = np.unique(on[0.0])
+    assert np.count_nonzero(sim.model.node_inv_mass.numpy()[left] > 0.0) >= len(left) - 1
+    right = np.unique(on[LENGTH])
+    work = sim.state.node_energy_boundary_work
+    w0 = work.numpy().copy()
+    sim.advance(10)
+    w1 = work.numpy()
+    np.testing.assert_array_equal(w1[left], w0[left])
+    assert np.all(w1[right] > w0[right])
+    nodes = next(iter(sim.model.loads.pressure.values())).nodes.numpy()
+    collapsed = (nodes[:, 0] == nodes[:, 1]) & (nodes[:, 1] == nodes[:, 2])
+    assert collapsed.sum() == len(on[0.0])
