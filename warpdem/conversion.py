@@ -66,7 +66,7 @@ from .coupling import compact_coupling
 from .kernels import compaction as kc
 from .kernels import conversion as kcv
 from .kernels import topology as kt
-from .model import BOND_FIELDS, COUPLING_FIELDS, NEIGHBOR_FIELDS, Model, State
+from .model import BOND_FIELDS, COUPLING_FIELDS, NEIGHBOR_FIELDS, Model, State, conversion_state
 from .tets import eval_tet_stresses, tet_energies
 from .topology import NodeStars, reference_face_neighbors
 
@@ -301,8 +301,6 @@ def attach_conversion(
         if model.ref_tet_face_nbr is not None
         else reference_face_neighbors(model, state),
     )
-    from .model import conversion_state
-
     return model, dataclasses.replace(state, **conversion_state(model))
 
 
