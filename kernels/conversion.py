@@ -270,7 +270,8 @@ def spawn_spheres_kernel(
         wp.min(face_distance(origin, x0, x1, x3), face_distance(origin, x0, x2, x1)),
     )
     scale = wp.max(wp.max(wp.abs(c[0]), wp.max(wp.abs(c[1]), wp.abs(c[2]))), wp.length(x0))
-    radius = h - 8.0 * F32_EPS * scale
+    # (At most half of h: a tiny tet far out, where float32 cannot resolve it, still gets a sphere.)
+    radius = wp.max(h - 8.0 * F32_EPS * scale, 0.5 * h)
     v0 = node_qd[n[0]]
     v1 = node_qd[n[1]]
     v2 = node_qd[n[2]]
