@@ -581,3 +581,19 @@ def test_each_criterion_converts_exactly_the_tets_at_or_above_its_fraction(devic
     clear = np.abs(measure / 0.9 - 1.0) > CRITERION_RTOL
     np.testing.assert_array_equal(converted[clear], measure[clear] >= 0.9)
     assert 0 < converted.sum() < len(tets)
+
+
+def test_attach_conversion_refuses_a_step_the_bonded_spheres_cannot_take():
+    # dt at 0.9 of the tets' critical step is stable for the continuum but above the bonded spheres' (about 0.6 of
+    # it here: k_n = α E A / L on a sphere of ρ V): refused with the stable step named; 0.5 of it is accepted and
+    # recorded as the model's critical step.
+    pts, tets = box_mesh((0.0, 0.0, 0.0), (LENGTH, 1.0, 1.0), (8, 2, 2))
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    b.add_tet_mesh(pts, tets, "rock")
+    model, state = b.finalize("cpu", safety_factor=0.9)
+    with pytest.raises(ValueError, match="exceeds the stable step"):
+        attach_conversion(model, state, [ConversionProps(tresca_strength=TRESCA)])
+    model, state = b.finalize("cpu", safety_factor=0.5)
+    model, _ = attach_conversion(model, state, [ConversionProps(tresca_strength=TRESCA)])
+    assert model.dt < model.critical_dt and "bonded spheres" in model.critical_dt_source

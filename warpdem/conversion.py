@@ -285,6 +285,16 @@ def attach_conversion(
     if not _is_count(coupling_capacity, 1):
         raise ValueError(f"attach_conversion: coupling_capacity must be an integer >= 1, got {coupling_capacity!r}")
     d = model.device
+    table = conversion_material_table(model, materials, d)
+    critical, tet = conversion_critical_step(
+        dataclasses.replace(model, conversion_material_table=table), state, flags[:nt].astype(bool)
+    )
+    if model.dt > critical:
+        raise ValueError(
+            f"attach_conversion: the time step {model.dt:.3g} s exceeds the stable step {critical:.3g} s of the bonded "
+            f"spheres that tet {tet} would become (warpdem.conversion.conversion_critical_step); build with a smaller "
+            "dt or safety factor"
+        )
     skin = model.skin
     if skin <= 0.0:
         skin = 0.4 * smallest_converted_radius(model, state)
@@ -296,7 +306,11 @@ def attach_conversion(
         conversion_part=int(part),
         coupling_capacity=int(coupling_capacity),
         tet_may_convert=wp.array(flags, dtype=int, device=d),
-        conversion_material_table=conversion_material_table(model, materials, d),
+        conversion_material_table=table,
+        critical_dt=min(model.critical_dt, critical),
+        critical_dt_source=model.critical_dt_source
+        if model.critical_dt <= critical
+        else f"the bonded spheres of tet {tet}",
         ref_tet_face_nbr=model.ref_tet_face_nbr
         if model.ref_tet_face_nbr is not None
         else reference_face_neighbors(model, state),
@@ -315,6 +329,39 @@ def smallest_converted_radius(model: Model, state: State) -> float:
     faces = x[:, [[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]]]  # (M, 4, 3, 3)
     area = 0.5 * np.linalg.norm(np.cross(faces[:, :, 1] - faces[:, :, 0], faces[:, :, 2] - faces[:, :, 0]), axis=2)
     return float(np.min(3.0 * volume / area.max(axis=1)) / 4.0)
+
+
+def conversion_critical_step(model: Model, state: State, may_convert: np.ndarray) -> tuple[float, int]:
+    """Stable step [s] of the bonded spheres the tets that may convert become, and the tet that sets it (-1: none).
+    Build time (host, reference configuration).
+
+    A sphere of mass m = ρ V (radius r = min d_f, d_f = 3 V / (4 A_f) the centroid's distance to face f) has a bond
+    or a coupling (k ≤ k_n, warpdem.coupling) across each face: k_n,f = α E A_f / L_f with L_f ≈ 2 d_f, k_s = β k_n.
+    As builder.bond_critical_step: a translational mode ω² = Σ_f k_n,f / m and a rotational one ω² = 2 Σ_f k_s,f
+    d_f² / I, I = (2/5) m r² (neighbours counter-rotating); no dashpot, so dt = 2 / ω.
+
+    Args:
+        may_convert: bool per live tet.
+    """
+    nt = int(state.tet_count.numpy()[0])
+    table = model.conversion_material_table.numpy()
+    mats = model.tet_material.numpy()[:nt]
+    live = np.nonzero(np.asarray(may_convert, dtype=bool) & (table["converts"][mats] != 0))[0]
+    if len(live) == 0:
+        return math.inf, -1
+    x = model.node_ref_q.numpy().astype(np.float64)[model.tet_nodes.numpy()[live]]
+    volume = np.abs(np.linalg.det(x[:, 1:] - x[:, :1])) / 6.0
+    faces = x[:, [[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]]]
+    area = 0.5 * np.linalg.norm(np.cross(faces[:, :, 1] - faces[:, :, 0], faces[:, :, 2] - faces[:, :, 0]), axis=2)
+    d = 3.0 * volume[:, None] / (4.0 * area)
+    modulus = table["bond_modulus"][mats[live]].astype(np.float64)
+    beta = table["bond_shear_ratio"][mats[live]].astype(np.float64)
+    kn = modulus[:, None] * area / (2.0 * d)
+    mass = model.tet_material_table.numpy()["density"][mats[live]] * volume
+    inertia = 0.4 * mass * d.min(axis=1) ** 2
+    omega2 = np.maximum(kn.sum(axis=1) / mass, 2.0 * beta * np.sum(kn * d**2, axis=1) / inertia)
+    k = int(np.argmax(omega2))
+    return float(2.0 / math.sqrt(omega2[k])), int(live[k])
 
 
 # ----------------------------------------------------------------------------------------------------------------
