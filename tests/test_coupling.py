@@ -57,6 +57,7 @@ FLOOR_REFLECTED = 0.02  # measured 0.006 left behind, 0.99 through, in a bar wit
 FIRST_REFLECTED = 0.15  # measured 0.104 (energy fractions; see wave_fractions)
 BAND_REFLECTED = 0.22  # measured 0.170
 BAND_TRANSMITTED = 0.75  # measured 0.806
+CALIBRATION_RTOL = 0.10  # the issue's "within 10 %" for the fully converted bar
 WAVE_BOOKS_RTOL = 5.0e-3  # measured ≤ 2.6e-3 while the pulse is in the far dashpots, ~1e-4 otherwise
 
 
@@ -504,3 +505,69 @@ def test_plane_wave_crosses_converted_band(device):
     assert transmitted > BAND_TRANSMITTED
     # Oracle 2: the books close (no damping anywhere; the far dashpots' take is a line of them).
     assert books < WAVE_BOOKS_RTOL
+
+
+def test_converted_bar_wave_speed(device):
+    # A fully converted bar, 12 cubic cells long, free at both ends, set moving in its lowest longitudinal mode
+    # v = v0 cos(π x / L): the left half's momentum swings as cos(ω t), ω = π c / L, c = sqrt(E/ρ) for a bar whose
+    # wavelength (2 L = 24 cells) is long against its width. Zero crossings of that momentum give the half period.
+    sim, _, _ = bar(device, 12, (0, 12))
+    m, s = sim.model, sim.state
+    n = sim.particle_count
+    length = 12 * CELL
+    x = s.particle_q.numpy()[:n, 0].copy()
+    v = np.zeros((m.particle_capacity, 3), dtype=np.float32)
+    v[:n, 0] = 0.01 * np.cos(np.pi * x / length)
+    s.particle_qd.assign(v)
+    sim.evaluate_forces()
+    mass = m.particle_mass.numpy()[:n].astype(np.float64)
+    left = x < 0.5 * length
+    times, momenta = [], []
+    chunk = 4
+    for _ in range(round(2.2 * 2.0 * length / BAR_WAVE / (chunk * m.dt))):
+        sim.advance(chunk)
+        times.append(sim.time)
+        momenta.append(float(np.sum(mass[left] * sim.state.particle_qd.numpy()[:n, 0][left])))
+    t, p = np.array(times), np.array(momenta)
+    k = np.nonzero(p[:-1] * p[1:] < 0.0)[0]
+    crossings = t[k] - p[k] * (t[k + 1] - t[k]) / (p[k + 1] - p[k])
+    assert len(crossings) >= 3
+    speed = 2.0 * length / (2.0 * np.mean(np.diff(crossings)))
+    print(f"converted bar: c = {speed:.1f} m/s, sqrt(E/rho) = {BAR_WAVE:.1f} m/s, ratio {speed / BAR_WAVE:.4f}")
+    # The issue's 10 %; the zero crossings are interpolated within a chunk of 4 steps (< 1 % of the half period).
+    np.testing.assert_allclose(speed, BAR_WAVE, rtol=CALIBRATION_RTOL)
+
+
+def test_converted_bar_tensile_strength(device):
+    # The same bar pulled apart: the first cell's spheres held, the last cell's driven along +x at a speed ramped up
+    # over 3 transits L / c (so the stress wave of the start, ρ c v, stays a few % of T_f) to ε_f L / (10 L / c),
+    # failure in ~10 transits: close to quasi-static. Peak nominal stress = the pull on the driven spheres / the
+    # cross-section, against T_f.
+    sim, _, _ = bar(device, 12, (0, 12))
+    m, s = sim.model, sim.state
+    n = sim.particle_count
+    length = 12 * CELL
+    x = s.particle_q.numpy()[:n, 0].copy()
+    held, pulled = x < CELL, x > length - CELL
+    motion = m.particle_motion.numpy()
+    motion[:n][held] = 1
+    motion[:n][pulled] = 2
+    m.particle_motion.assign(motion)
+    transit = length / BAR_WAVE
+    speed = BAR_TF / BAR_E * length / (10.0 * transit)
+    area = (2 * CELL) ** 2
+    peak, chunk = 0.0, 20
+    while True:
+        ramp = min(sim.time / (3.0 * transit), 1.0)
+        v = sim.state.particle_qd.numpy()
+        v[:n][pulled] = (speed * ramp, 0.0, 0.0)
+        sim.state.particle_qd.assign(v)
+        sim.advance(chunk)
+        stress = -float(sim.state.particle_f.numpy()[:n][pulled, 0].sum()) / area
+        peak = max(peak, stress)
+        broken = int(sim.state.bonds_broken_total.numpy()[0])
+        if (broken and stress < 0.2 * peak) or sim.time > 30.0 * transit:
+            break
+    print(f"converted bar: peak nominal stress {peak:.4e} Pa = {peak / BAR_TF:.4f} T_f, {broken} bonds broken")
+    assert broken > 0
+    np.testing.assert_allclose(peak, BAR_TF, rtol=CALIBRATION_RTOL)
