@@ -120,8 +120,9 @@ class ConversionProps:
             raise ValueError(f"{where}: friction_angle must lie in [0, 90) degrees, got {self.friction_angle}")
 
     def bond_strengths(self) -> tuple[float, float]:
-        """Tensile and shear strength of the material the bonds stand for [Pa], before the factor α: T_f (else the
-        Mohr–Coulomb tensile strength 2 c cos φ / (1 + sin φ), else τ_f), and τ_f (else c, else T_f)."""
+        """Tensile and shear strength of the material the bonds stand for [Pa], before the lattice factor κ / S:
+        T_f (else the Mohr–Coulomb tensile strength 2 c cos φ / (1 + sin φ), else τ_f), and τ_f (else c, else
+        T_f)."""
         phi = math.radians(self.friction_angle)
         tensile = self.tensile_strength
         if tensile is None and self.cohesion is not None:
