@@ -391,12 +391,13 @@ def test_restart_continues_bit_for_bit_across_a_conversion(device, tmp_path):
         np.testing.assert_array_equal(a[name], b[name], err_msg=name)
 
 
-ENERGY_BOUND = 5.0e-3
+ENERGY_BOUND = 2.0e-3
 """Bound on the energy balance error of a pulled bar converting its middle [-] (relative to the largest energy in
 play). A pass closes the books exactly (released = strain + kinetic energy about the centroid beyond the spin + the
-change of the shadow term and of the coupling springs); what remains is the integration error of the violent release
-each conversion causes in the tets (the same bar released from a stretch without conversion drifts by 1e-3 to 6e-3 of
-its strain energy in 20 steps through its bulk viscosity) and of the new bonds and couplings."""
+change of the shadow term and of the coupling springs; test_a_pass_closes_the_books_exactly); what remains is the
+integration error of the release each conversion causes in the tets (the same bar released from a stretch without
+conversion drifts by 1e-3 to 6e-3 of its strain energy in 20 steps through its bulk viscosity) and of the new bonds and
+couplings: measured 8.0e-4 over 60 steps (48 tets converted), bound with a margin of 2.5."""
 
 
 def test_energy_balance_closes_across_conversions(device):
