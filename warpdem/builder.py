@@ -22,7 +22,17 @@ from .kernels.contact import ContactPair
 from .kernels.tets import TetMaterial
 from .loads import LoadModel, LoadSpecs, PressureHistory
 from .mesh import MeshQuality, check_tets
-from .model import BondData, Model, ParticleData, State, TetMeshData, WallData, fracture_state, pair_table_array
+from .model import (
+    BondData,
+    Model,
+    ParticleData,
+    State,
+    TetMeshData,
+    WallData,
+    conversion_state,
+    fracture_state,
+    pair_table_array,
+)
 from .overlap import InitialOverlap, initial_overlap
 from .restitution import hertz_damping_coefficient, linear_damping_ratio
 from .tets import (
@@ -916,6 +926,7 @@ def new_state(
         node_energy_boundary_work=wp.zeros(model.node_capacity, dtype=wp.float64, device=device),
         **fem_contact_state(model),
         **fracture_state(model),
+        **conversion_state(model),
     )
 
 

@@ -124,6 +124,16 @@ class Model:
         ref_tet_face_nbr: the tet across each tet-face slot 4t + k in the unsplit mesh (faces matched by reference
             positions, so joints and cracks do not cut it), -1 on the outer surface, shape (4 tet_capacity,), int32
             (warpdem.topology.reference_face_neighbors; tet slots never move, so it holds for the whole run).
+
+    Adaptive FEM→DEM conversion (warpdem.conversion, warpdem.coupling; CIMNE §4–5):
+        conversion_interval: steps between two conversion passes; 0: conversion is off.
+        spheres_per_tet: spheres spawned in place of one converted tet (1 or more, a scene option).
+        conversion_part: part id of the spawned spheres.
+        coupling_capacity: penalty coupling slots (grows ×2 on overflow between steps).
+        tet_may_convert: 1 where a tet may convert (the scene's conversion region), else 0, shape (tet_capacity,),
+            int32.
+        conversion_material_table: criterion, fraction and strengths of every material id, shape (num_materials,),
+            ConversionMaterial (kernels/conversion.py).
     """
 
     device: wp.context.Device
@@ -203,6 +213,12 @@ class Model:
     node_may_split: wp.array | None = None
     fracture_material_table: wp.array | None = None
     ref_tet_face_nbr: wp.array | None = None
+    conversion_interval: int = 0
+    spheres_per_tet: int = 1
+    conversion_part: int = 0
+    coupling_capacity: int = 0
+    tet_may_convert: wp.array | None = None
+    conversion_material_table: wp.array | None = None
 
     @property
     def max_radius(self) -> float:
@@ -339,6 +355,22 @@ class State:
             the spring energy left at the break) [J], shape (node_capacity,), float64.
         node_splits_total: node splits since the start, shape (1,), int32.
         crack_area_total: Σ A_f of every cohesive element born [m²] (both faces), shape (1,), float64.
+
+    Adaptive FEM→DEM conversion (arrays of shape (coupling_capacity,) unless said):
+        tets_converted_total: tets converted since the start, shape (1,), int32.
+        spheres_spawned_total: spheres spawned by conversion since the start, shape (1,), int32.
+        energy_released_conversion: energy that left the mechanical books at conversions [J] — the strain energy and
+            the kinetic energy of the motion relative to the centroid (beyond the spheres' spin) that the converted
+            tets held, less what the new bonds and coupling springs hold — shape (1,), float64.
+        coupling_count: live penalty couplings (overlap zone, CIMNE eqs. 8–9), shape (1,), int32.
+        coupling_particle: the sphere of each coupling, int32.
+        coupling_tet: the still-continuous tet whose material point the sphere is tied to, int32.
+        coupling_bary: the material point's barycentric coordinates in that tet's reference configuration (the
+            shape functions N_a of eq. 9; may lie slightly outside the tet), vec4.
+        coupling_k: penalty stiffness [N/m], float32.
+        coupling_energy_prev: spring energy at the last evaluation [J] (for the Verlet books), float32.
+        tet_sphere: the sphere spawned in place of each tet, -1 while it is a tet, shape (tet_capacity,), int32
+            (the bonds of a later conversion find their partner spheres through it).
     """
 
     particle_count: wp.array
@@ -432,6 +464,16 @@ class State:
     node_energy_cohesive: wp.array
     node_splits_total: wp.array
     crack_area_total: wp.array
+    tets_converted_total: wp.array
+    spheres_spawned_total: wp.array
+    energy_released_conversion: wp.array
+    coupling_count: wp.array
+    coupling_particle: wp.array
+    coupling_tet: wp.array
+    coupling_bary: wp.array
+    coupling_k: wp.array
+    coupling_energy_prev: wp.array
+    tet_sphere: wp.array
 
     def arrays(self) -> dict[str, wp.array]:
         """All arrays of the state by field name."""
@@ -502,6 +544,27 @@ def fracture_state(model: Model) -> dict[str, wp.array]:
         "node_energy_cohesive": wp.zeros(ncap, dtype=wp.float64, device=d),
         "node_splits_total": wp.zeros(1, **one),
         "crack_area_total": wp.zeros(1, dtype=wp.float64, device=d),
+    }
+
+
+COUPLING_FIELDS = ("coupling_particle", "coupling_tet", "coupling_bary", "coupling_k", "coupling_energy_prev")
+"""State fields indexed by penalty coupling (compacted and grown together)."""
+
+
+def conversion_state(model: Model) -> dict[str, wp.array]:
+    """The State fields of FEM→DEM conversion for a model: ``model.coupling_capacity`` empty coupling slots."""
+    d, cap = model.device, model.coupling_capacity
+    return {
+        "tets_converted_total": wp.zeros(1, dtype=int, device=d),
+        "spheres_spawned_total": wp.zeros(1, dtype=int, device=d),
+        "energy_released_conversion": wp.zeros(1, dtype=wp.float64, device=d),
+        "coupling_count": wp.zeros(1, dtype=int, device=d),
+        "coupling_particle": wp.zeros(cap, dtype=int, device=d),
+        "coupling_tet": wp.zeros(cap, dtype=int, device=d),
+        "coupling_bary": wp.zeros(cap, dtype=wp.vec4, device=d),
+        "coupling_k": wp.zeros(cap, dtype=float, device=d),
+        "coupling_energy_prev": wp.zeros(cap, dtype=float, device=d),
+        "tet_sphere": wp.full(model.tet_capacity, -1, dtype=int, device=d),
     }
 
 
