@@ -29,7 +29,7 @@ import pytest
 
 from warpdem.builder import InteractionProps, ModelBuilder
 from warpdem.compaction import Compactor
-from warpdem.conversion import ConversionProps, attach_conversion, regrow_bonds
+from warpdem.conversion import ConversionProps, attach_conversion
 from warpdem.coupling import (
     compact_coupling,
     coupling_energy,
@@ -39,9 +39,8 @@ from warpdem.coupling import (
     regrow_coupling,
     set_couplings,
 )
-from warpdem.lattice import edge_bond_lattice, edge_pairs
 from warpdem.mesh import TET_FACES, box_mesh
-from warpdem.model import BOND_FIELDS, COUPLING_FIELDS
+from warpdem.model import COUPLING_FIELDS
 from warpdem.simulation import Simulation
 from warpdem.tets import TetProps, tet_energies
 
@@ -54,12 +53,12 @@ RIGID_ROUNDOFF = 16.0
 BOOKS_RTOL = 2.0e-3  # measured 4.9e-4 (free block, the builder's step): the tets' O((ω dt)²), with a margin of 4
 DT_ORDER = 3.0
 FLOOR_REFLECTED = 0.02  # measured 0.006 left behind, 0.99 through, in a bar without a band
-FIRST_REFLECTED = 0.15  # measured 0.104 (energy fractions; see wave_fractions)
-BAND_REFLECTED = 0.22  # measured 0.170
-BAND_TRANSMITTED = 0.75  # measured 0.806
-EDGE_FIRST_REFLECTED = 0.07  # measured 0.043
-EDGE_BAND_REFLECTED = 0.09  # measured 0.057
-EDGE_BAND_TRANSMITTED = 0.90  # measured 0.935
+# Energy fractions (wave_fractions), measured on the CPU; the bounds leave ~1.5× on what is reflected for the order
+# of float32 atomics on a GPU and small changes of the network. A spring interface alone would reflect
+# (ω Z / 2 κ)² ≈ 1 % here (warpdem/coupling.py); the rest is the network's own impedance and dispersion.
+FIRST_REFLECTED = 0.08  # measured 0.0545
+BAND_REFLECTED = 0.11  # measured 0.077
+BAND_TRANSMITTED = 0.88  # measured 0.914
 CALIBRATION_RTOL = 0.10  # the issue's "within 10 %" for the fully converted bar
 WAVE_BOOKS_RTOL = 5.0e-3  # measured ≤ 2.6e-3 while the pulse is in the far dashpots, ~1e-4 otherwise
 
@@ -364,9 +363,8 @@ BAR_WAVE = float(np.sqrt(BAR_E / DENSITY))  # sqrt(E/ρ) [m/s]
 
 def bar(device, cells: int, band: tuple[int, int] | None, far_dashpots: bool = False):
     """A bar of Kuhn tets, ``cells`` cubic cells long and 2 × 2 across, no bulk viscosity; the tets whose centroid
-    lies in cells band[0] ≤ x / CELL < band[1] converted (Simulation.convert_tets) and their face bonds replaced by
-    the edge network of warpdem.lattice; non-reflecting dashpots on the far end if asked. Returns (sim, points,
-    tets)."""
+    lies in cells band[0] < x / CELL < band[1] converted (Simulation.convert_tets); non-reflecting dashpots on the
+    far end if asked. Returns (sim, points, tets)."""
     points, tets = box_mesh((0.0, 0.0, 0.0), (cells * CELL, 2 * CELL, 2 * CELL), (cells, 2, 2))
     b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
     b.add_material("rock", DENSITY, BAR_E, BAR_NU)
@@ -384,69 +382,8 @@ def bar(device, cells: int, band: tuple[int, int] | None, far_dashpots: bool = F
     if band is not None:
         x = points[tets].mean(axis=1)[:, 0] / CELL
         mask = (x > band[0]) & (x < band[1])
-        sim.convert_tets(mask)
-        install_lattice(sim, tets, points, mask)
+        sim.convert_tets(mask)  # spheres, the edge-bond network (warpdem.lattice) and the couplings
     return sim, points, tets
-
-
-def install_lattice(sim: Simulation, tets: np.ndarray, points: np.ndarray, mask: np.ndarray) -> None:
-    """Replace the bonds of a fresh conversion (spheres 0.. in tet order) by warpdem.lattice's edge network."""
-    m, s = sim.model, sim.state
-    sphere = np.cumsum(mask) - 1  # the conversion's slots: an exclusive scan over the converted tets
-    centers = np.zeros((len(tets), 3))
-    centers[mask] = s.particle_q.numpy()[: int(mask.sum())]
-    net = edge_bond_lattice(tets, points, mask, centers, BAR_E, BAR_TF)
-    pairs = sphere[net.pairs]
-    if len(pairs) > m.bond_capacity:
-        m, s = regrow_bonds(m, s, len(pairs))
-        sim.model, sim.state = m, s
-    key = pairs[:, 0] * m.particle_capacity + pairs[:, 1]
-    order = np.argsort(key)  # the contact stage finds bonds by binary search over bond_key
-    host = {
-        "bond_i": pairs[order, 0],
-        "bond_j": pairs[order, 1],
-        "bond_key": key[order],
-        "bond_rest_length": net.rest_length[order],
-        "bond_kn": net.kn[order],
-        "bond_ks": net.ks[order],
-        "bond_area": net.area[order],
-        "bond_tensile_strength": net.tensile_strength[order],
-        "bond_shear_strength": net.shear_strength[order],
-    }
-    for name in BOND_FIELDS:
-        a = getattr(s, name)
-        a.zero_()
-        if name in host:
-            full = np.zeros(a.shape, dtype=a.numpy().dtype)
-            full[: len(pairs)] = host[name]
-            a.assign(full)
-    s.bond_count.fill_(len(pairs))
-    sim._setup()  # the neighbour slots find their bonds again at the rebuild of the forced evaluation
-    sim.evaluate_forces()
-    while sim._grow_if_overflowed(sim.state):
-        sim.evaluate_forces()
-
-
-def install_edge_couplings(sim: Simulation, points: np.ndarray, tets: np.ndarray, mask: np.ndarray) -> int:
-    """Couple every converted sphere to every active tet that shares an edge with its tet (where a bond would be
-    if that tet converted), in place of the conversion's face couplings: material point at the sphere's current
-    position, stiffness by the rule with the mean bond k_n. Returns the coupling count."""
-    m, s = sim.model, sim.state
-    sphere = np.cumsum(mask) - 1
-    pairs = edge_pairs(tets, np.ones(len(tets), dtype=bool))
-    mixed = pairs[mask[pairs[:, 0]] != mask[pairs[:, 1]]]
-    conv = np.where(mask[mixed[:, 0]], mixed[:, 0], mixed[:, 1])
-    tet = np.where(mask[mixed[:, 0]], mixed[:, 1], mixed[:, 0])
-    particle = sphere[conv]
-    bary = material_point(m, tet, s.particle_q.numpy()[particle], s)
-    kn = float(s.bond_kn.numpy()[: sim.bond_count].mean())
-    k = coupling_stiffness(m.particle_mass.numpy()[particle], kn, m.node_mass.numpy()[tets[tet]], bary)
-    if len(particle) > m.coupling_capacity:
-        sim.model, sim.state = regrow_coupling(m, s, len(particle))
-        sim._setup()
-    set_couplings(sim.model, sim.state, particle, tet, bary, k)
-    sim.evaluate_forces()
-    return len(particle)
 
 
 def launch_pulse(sim: Simulation, centre: float, width: float, amplitude: float) -> None:
@@ -492,20 +429,15 @@ def region_energies(sim: Simulation, points: np.ndarray, tets: np.ndarray, x1: f
     return float(left), float(right + s.node_energy_absorbed.numpy()[:nn].sum())
 
 
-def wave_fractions(
-    device, band: tuple[int, int] | None, edge_couplings: bool = False
-) -> tuple[float, float, float, float]:
+def wave_fractions(device, band: tuple[int, int] | None) -> tuple[float, float, float, float]:
     """A bar pulse 12 cells wide launched in the first 20 cells of a 40-cell bar (front at x = 0.7 m, tail at
     0.1 m) towards a band of converted cells 20..28 (x1 = 1 m, x2 = 1.4 m) or none, non-reflecting far end.
     Timeline at c = 707 m/s: the front meets x1 at 0.42 ms and x2 at 0.99 ms, the tail passes x1 at 1.27 ms, what
     x2 reflects is back at x1 from 1.56 ms, what x1 reflects returns from the free near end to x1 at 3.7 ms.
     Returns, as fractions of the launched energy: what is left of the band at 1.45 ms (the first interface's
     reflection), at 3.0 ms (the band's whole reflection), right of it + absorbed at 3.0 ms (transmitted), and
-    the largest |Δ books| / in play at the two times. ``edge_couplings``: :func:`install_edge_couplings`."""
+    the largest |Δ books| / in play at the two times."""
     sim, points, tets = bar(device, 40, band, far_dashpots=True)
-    if edge_couplings:
-        centre = points[tets].mean(axis=1)[:, 0] / CELL
-        install_edge_couplings(sim, points, tets, (centre > band[0]) & (centre < band[1]))
     x1, x2 = 20 * CELL, 28 * CELL
     launch_pulse(sim, centre=8 * CELL, width=12 * CELL, amplitude=1.0e-5)
     e0 = sim.energy()
@@ -524,7 +456,8 @@ def test_plane_wave_crosses_converted_band(device):
     # only what the tets' dispersion and the far dashpots' mismatch (c_p vs the bar speed) send back: the floor.
     _, floor_left, floor_right, _ = wave_fractions(device, None)
     assert floor_left < FLOOR_REFLECTED and floor_right > 1.0 - FLOOR_REFLECTED
-    # The band: tets → bonded spheres (edge network) → tets, tied by the conversion's couplings (the stiffness rule).
+    # The band: tets → bonded spheres (the edge network) → tets, each sphere tied to every active tet sharing an edge
+    # with its tet, by the stiffness rule (what Simulation.convert_tets makes).
     first, reflected, transmitted, books = wave_fractions(device, (20, 28))
     print(
         f"wave: floor {floor_left:.4f} / {floor_right:.4f}; first interface {first:.4f}, band reflected "
@@ -534,17 +467,6 @@ def test_plane_wave_crosses_converted_band(device):
     assert reflected < BAND_REFLECTED
     assert transmitted > BAND_TRANSMITTED
     # Oracle 2: the books close (no damping anywhere; the far dashpots' take is a line of them).
-    assert books < WAVE_BOOKS_RTOL
-    # Couplings wherever a bond would be (to the tets sharing an edge, 104 instead of the 16 face neighbours): the
-    # interface is tied at as many points as the network inside the band, and reflects far less.
-    first, reflected, transmitted, books = wave_fractions(device, (20, 28), edge_couplings=True)
-    print(
-        f"wave, edge couplings: first interface {first:.4f}, band reflected {reflected:.4f}, transmitted "
-        f"{transmitted:.4f}, books {books:.1e}"
-    )
-    assert first < EDGE_FIRST_REFLECTED
-    assert reflected < EDGE_BAND_REFLECTED
-    assert transmitted > EDGE_BAND_TRANSMITTED
     assert books < WAVE_BOOKS_RTOL
 
 

@@ -37,12 +37,13 @@ frequency ω meeting a spring interface between media of impedance Z = ρ c refl
 of its amplitude. With k ~ k_n = E A / L (L the centre spacing), 2 κ / (ω Z) = 2 / (q L) (q the wavenumber): a wave
 of length λ reflects |R| ≈ π L / λ of its amplitude (for k summed over the couplings of a face of area A), so a
 wave resolved by ~10 spheres keeps a few per cent of its energy at a penalty interface, and a stiffer penalty would
-shrink |R| only at the price of a smaller stable step. Measured (tests/test_coupling.py, a bar pulse 12 cells long
-through an 8-cell converted band of the edge-bond network, warpdem.lattice): with couplings to the face neighbours
-only, the first interface reflects 10.5 % of the energy, the band 17 % in all, 81 % goes through; coupling each
-sphere to every active tet that shares an edge with its tet (where a bond would be) gives 4.3 %, 5.7 % and 93 %.
-With face couplings 4× stiffer than the rule: 7.9 %, 12 %, 86 %; 4× softer: 21 %, 33 %, 63 %. So the number of
-tied points matters more than k, and the rule's cap (stable step, no stiffer than the bonds) costs little.
+shrink |R| only at the price of a smaller stable step. Measured (tests/test_coupling.py: a bar pulse 12 cells long,
+2 × 2 cubic cells across, through an 8-cell converted band and back into tets; energy fractions): as the conversion
+pass builds it — the edge-bond network of warpdem.lattice, each sphere coupled to every active tet that shares an
+edge with its tet — the first interface reflects 5.5 %, the band 7.7 % in all, 91 % goes through (a bar without a
+band: 0.5 % and 99 %). With couplings to face neighbours only (16 instead of 104): 10.5 %, 17 %, 81 %; those 4×
+stiffer than the rule: 7.9 %, 12 %, 86 %; 4× softer: 21 %, 33 %, 63 %. The number of tied points matters more than
+k, and the rule's cap (stable step, no stiffer than the bonds) costs little.
 """
 
 from __future__ import annotations
@@ -176,9 +177,10 @@ def coupling_stiffness(
     - ω_c ≤ ω_b: k ≤ 2 k_n / (1 + m_s Σ N_a² / m_a) — the coupling's own mode does not lower the critical step below
       a bond's; on the FEM side the stiffness it adds to node a's diagonal, k N_a² / m_a ≤ ω_c², is no more than a
       bond's mode either;
-    - k ≤ k_n: no stiffer than the bonds it joins. With one sphere per tet a sphere has one bond or one coupling per
-      face neighbour (≤ 4), so the springs on it sum to at most 4 k_n, the fully bonded sphere's translational mode
-      4 k_n / m_s that the step must cover once the whole region has converted.
+    - k ≤ k_n: no stiffer than the bonds it joins. A sphere has one bond or one coupling per tet sharing an edge
+      with its tet (warpdem.lattice), each coupling no stiffer than the bond it stands for, so the springs on it
+      sum to no more than the fully bonded sphere's, Σ k_n, whose translational mode Σ k_n / m_s the step must
+      cover once the whole region has converted (the conversion's stable step).
 
     Where the nodes are heavy (m_s Σ N_a² / m_a ≤ 1, the usual case while the continuum around is intact) the cap is
     k_n; next to a node that has lost most of its tets k falls so the coupling's mode stays at the bond's.
