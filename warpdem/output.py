@@ -20,6 +20,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from .fragments import fragment_colors
 from .mesh import TET_FACES
 from .usd import SurfaceFrame
 
@@ -342,13 +343,14 @@ class RockFrames:
     every later frame.
 
     Args:
-        color_by: ``"stress"`` (von Mises, per triangle), ``"speed"`` (per vertex) or ``"material"`` (per triangle).
+        color_by: ``"stress"`` (von Mises, per triangle), ``"speed"`` (per vertex), ``"material"`` (per triangle) or
+            ``"fragment"`` (per vertex, by the fragment id :meth:`surface` is given; warpdem.fragments).
         vtu: the VTU series to write, or None.
     """
 
     def __init__(self, color_by: str = "stress", vtu: VtuSeries | None = None) -> None:
-        if color_by not in ("stress", "speed", "material"):
-            raise ValueError(f"color_by: expected 'stress', 'speed' or 'material', got {color_by!r}")
+        if color_by not in ("stress", "speed", "material", "fragment"):
+            raise ValueError(f"color_by: expected 'stress', 'speed', 'material' or 'fragment', got {color_by!r}")
         self.color_by = color_by
         self.vtu = vtu
         self._key: tuple[np.ndarray, np.ndarray, int] | None = None
@@ -373,8 +375,14 @@ class RockFrames:
         nt = int(state.tet_count.numpy()[0])
         return nn, model.tet_nodes.numpy()[:nt], state.tet_active.numpy()[:nt] == 1
 
-    def surface(self, model: Model, state: State) -> SurfaceFrame | None:
-        """The rock surface now (reads back; call between steps), or None for a model without tets."""
+    def surface(self, model: Model, state: State, fragment: np.ndarray | None = None) -> SurfaceFrame | None:
+        """The rock surface now (reads back; call between steps), or None for a model without tets.
+
+        Args:
+            model, state: the simulation's. fragment: the fragment id of each live node (FragmentStats.node_label),
+                shape (node_count,), or None; carried as the surface's ``fragment`` primvar and, with color_by
+                "fragment", its colours (grey without it).
+        """
         nn, tet_nodes, active = self._live(model, state)
         if nn == 0:
             return None
@@ -394,8 +402,10 @@ class RockFrames:
         von_mises = von_mises_stress(stress)
         q = state.node_q.numpy()[:nn]
         v = state.node_qd.numpy()[:nn]
-        vertex_colors = self.color_by == "speed"
-        if self.color_by == "material":
+        vertex_colors = self.color_by in ("speed", "fragment")
+        if self.color_by == "fragment":
+            colors = fragment_colors(fragment if fragment is not None else np.full(nn, -1))
+        elif self.color_by == "material":
             colors = MATERIAL_PALETTE[model.tet_material.numpy()[owner] % len(MATERIAL_PALETTE)]
         else:
             values = np.linalg.norm(v, axis=1) if vertex_colors else von_mises
@@ -409,6 +419,7 @@ class RockFrames:
             max_principal=max_principal_stress(stress),
             colors=colors,
             vertex_colors=vertex_colors,
+            fragment=fragment,
         )
 
     def write_vtu(self, frame: int, time: float, model: Model, state: State) -> pathlib.Path | None:

@@ -1091,17 +1091,19 @@ class Output(_Model):
     usd: PathText | None = Field(
         default=None, description="USD file inside directory (.usd, .usda or .usdc); '<name>.usdc' after loading."
     )
-    color_by: Literal["speed", "part", "damage"] = Field(
+    color_by: Literal["speed", "part", "damage", "fragment"] = Field(
         default="speed",
-        description="Particle colouring in the USD file; damage = the fraction of each sphere's bonds broken so far.",
+        description="Particle colouring in the USD file; damage = the fraction of each sphere's bonds broken so far; "
+        "fragment = a colour per fragment (warpdem.fragments).",
     )
     bonds_as_curves: Bool = Field(default=False, description="Write intact bonds as USD curves.")
     checkpoint_every: Float = Field(
         default=0.0, ge=0, description="Checkpoint interval in simulated time [s]; 0 = only at the end."
     )
     checkpoint_dir: PathText = Field(default="checkpoints", description="Checkpoint directory, relative to directory.")
-    mesh_color_by: Literal["stress", "speed", "material"] = Field(
-        default="stress", description="Colouring of the rock surface /World/Rock in the USD file."
+    mesh_color_by: Literal["stress", "speed", "material", "fragment"] = Field(
+        default="stress",
+        description="Colouring of the rock surface /World/Rock in the USD file; fragment = a colour per fragment.",
     )
     vtu: Bool = Field(
         default=False,
