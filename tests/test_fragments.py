@@ -422,3 +422,25 @@ def test_usd_fragment_primvars(tmp_path):
     rock = stage.GetPrimAtPath("/World/Rock").GetAttribute("primvars:fragment")
     np.testing.assert_array_equal(rock.Get(1.0), [0, 0, 0, -1])
     assert str(rock.GetTypeName()) == "int[]"
+
+
+def test_rock_surface_by_fragment(device):
+    """The rock surface coloured by fragment carries the node labels and one colour per fragment; tets per fragment
+    count each active tet once, in the fragment of its nodes."""
+    from warpdem.fragments import tets_per_fragment
+    from warpdem.output import RockFrames
+
+    model, state = break_randomly(*exploded_model(device, spheres=False), 3)
+    stats = label_fragments(model, state)
+    surface = RockFrames("fragment").surface(model, state, stats.node_label)
+    np.testing.assert_array_equal(surface.fragment, stats.node_label)
+    assert surface.vertex_colors
+    np.testing.assert_array_equal(surface.colors, fragment_colors(stats.node_label))
+    nt = int(state.tet_count.numpy()[0])
+    active = state.tet_active.numpy()[:nt] == 1
+    tets = model.tet_nodes.numpy()[:nt][active]
+    per_tet = stats.node_label[tets]
+    assert np.all(per_tet == per_tet[:, :1])  # a tet's four nodes are in one fragment
+    # Every node with mass lies in an active tet, so every fragment (nodes only here) holds one; each tet counts once.
+    counts = tets_per_fragment(model, state, stats)
+    assert counts.sum() == len(tets) and np.all(counts > 0)

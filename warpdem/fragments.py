@@ -45,6 +45,7 @@ __all__ = [
     "fragment_colors",
     "label_fragments",
     "read_fragments",
+    "tets_per_fragment",
 ]
 
 
@@ -225,6 +226,14 @@ def _stats(
         fragment_mass=fragment_mass,
         fragment_velocity=velocity,
     )
+
+
+def tets_per_fragment(model: Model, state: State, stats: FragmentStats) -> np.ndarray:
+    """Active tets in each fragment, indexed by fragment id, shape (count,), int64 (0 for a fragment of spheres only;
+    a tet's nodes share one fragment, so its first node's label is the tet's). Reads back the tets."""
+    nt = int(state.tet_count.numpy()[0]) if model.tet_capacity else 0
+    first = model.tet_nodes.numpy()[:nt, 0][state.tet_active.numpy()[:nt] == 1]
+    return np.bincount(stats.node_label[first], minlength=stats.count).astype(np.int64)
 
 
 def fragment_colors(labels: np.ndarray) -> np.ndarray:
