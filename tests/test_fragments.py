@@ -444,3 +444,34 @@ def test_rock_surface_by_fragment(device):
     # Every node with mass lies in an active tet, so every fragment (nodes only here) holds one; each tet counts once.
     counts = tets_per_fragment(model, state, stats)
     assert counts.sum() == len(tets) and np.all(counts > 0)
+
+
+@pytest.mark.parametrize("seed", SEEDS[:2])
+def test_converted_spheres_end_to_end(device, seed):
+    """A bar of tets whose middle band and a random fifth elsewhere convert into bonded spheres coupled to the
+    remaining tets (warpdem.conversion), then a random half of the bonds broken: the labels equal the search's (nodes
+    left without mass are in no fragment, couplings join spheres to the continuum), and the fragments hold the bar's
+    mass
+    ρ L W H: Σ of float32 node and sphere masses, rtol = 16 ε₃₂ as the conversion tests' mass bound."""
+    from test_conversion import DENSITY, LENGTH, bar
+
+    from warpdem.simulation import Simulation
+
+    rng = np.random.default_rng(seed)
+    model, state, points, tets = bar(device, may_convert="all")
+    sim = Simulation(model, state)
+    # The band 1.5 < x < 2.5 converts whole (its inner nodes lose all their mass), elsewhere a random fifth.
+    band = np.abs(points[tets].mean(axis=1)[:, 0] - LENGTH / 2) < 0.5
+    mask = band | (rng.random(len(tets)) < 0.2)
+    assert sim.convert_tets(mask).converted == mask.sum()
+    m, s = sim.model, sim.state
+    nb = sim.bond_count
+    broken = s.bond_broken.numpy()
+    broken[:nb] = rng.random(nb) < 0.5
+    s.bond_broken.assign(broken)
+    stats = label_fragments(m, s)
+    node_label, particle_label = brute_force_labels(m, s)
+    np.testing.assert_array_equal(stats.node_label, node_label)
+    np.testing.assert_array_equal(stats.particle_label, particle_label)
+    assert np.any(node_label < 0) and int(s.coupling_count.numpy()[0]) > 0  # both rules were exercised
+    np.testing.assert_allclose(stats.total_mass, DENSITY * LENGTH, rtol=16 * np.finfo(np.float32).eps)
