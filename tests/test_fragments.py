@@ -281,6 +281,13 @@ def test_fragment_colors():
     np.testing.assert_array_equal(colors[0], [0.5, 0.5, 0.5])
     np.testing.assert_array_equal(colors[1], colors[4])
     assert np.abs(colors[1] - colors[2]).max() > 0.1 and np.abs(colors[2] - colors[3]).max() > 0.1
+    # The vectorised HSV conversion against the standard library's, over many hues.
+    import colorsys
+
+    labels = np.arange(500)
+    hues = np.mod(labels * 0.618033988749895, 1.0)
+    expected = np.array([colorsys.hsv_to_rgb(h, 0.65, 0.9) for h in hues])
+    np.testing.assert_allclose(fragment_colors(labels), expected, rtol=0, atol=1e-12)
 
 
 def test_hdf5_round_trip_and_restart(tmp_path, device):
