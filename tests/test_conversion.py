@@ -27,6 +27,7 @@ from warpdem.conversion import (
     ConversionProps,
     attach_conversion,
     bond_calibration,
+    conversion_material_table,
     regrow_bonds,
     regrow_particles,
 )
@@ -61,6 +62,7 @@ def bar(
     jitter: float = 0.0,
     criterion: str = "tresca",
     divisions=(8, 2, 2),
+    origin=(0.0, 0.0, 0.0),
 ):
     """A bar [0, 4] × [0, 1] × [0, 1] m of tets with conversion attached; ``may_convert`` "mid" (tets with centroids in
     1.5 < x < 2.5), "all" or a mask; optional velocity drivers ±driver_speed along x on the ends."""
@@ -69,6 +71,7 @@ def bar(
         rng = np.random.default_rng(7)
         inner = np.all((pts > 1e-9) & (pts < np.array([LENGTH, 1.0, 1.0]) - 1e-9), axis=1)
         pts = pts + inner[:, None] * rng.uniform(-jitter, jitter, pts.shape)
+    pts = pts + np.asarray(origin)
     b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
     b.add_material("rock", DENSITY, YOUNG, POISSON)
     b.add_tet_mesh(pts, tets, "rock")
@@ -76,7 +79,7 @@ def bar(
         b.add_node_velocity(np.isclose(pts[:, 0], 0.0), (-driver_speed, 0.0, 0.0))
         b.add_node_velocity(np.isclose(pts[:, 0], LENGTH), (driver_speed, 0.0, 0.0))
     model, state = b.finalize(device, safety_factor=0.5, particle_capacity=particle_capacity)
-    centroid = pts[tets].mean(axis=1)
+    centroid = pts[tets].mean(axis=1) - np.asarray(origin)
     if isinstance(may_convert, str):
         mask = (np.abs(centroid[:, 0] - LENGTH / 2) < 0.5) if may_convert == "mid" else None
     else:
@@ -268,12 +271,14 @@ def point_triangle_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.n
     return np.where(inside, np.abs(h), edges)
 
 
-def test_spheres_touch_but_overlap_neither_each_other_nor_the_remaining_faces(device):
-    # A random third of a jittered, stretched bar converts: brute force over all pairs, every two spheres are apart
-    # by at least r_i + r_j and every sphere is at least r from every remaining boundary face; each sphere touches
-    # its own tet's nearest face (gap below the float32 margin of the radius rule).
+@pytest.mark.parametrize("origin", [(0.0, 0.0, 0.0), (2.0e3, -1.0e3, 5.0e2)])
+def test_spheres_touch_but_overlap_neither_each_other_nor_the_remaining_faces(device, origin):
+    # A random third of a jittered, stretched bar converts, at the origin and 2 km from it (float32 node positions
+    # resolve 1.2e-4 m there): brute force over all pairs, every two spheres are apart by at least r_i + r_j and every
+    # sphere is at least r from every remaining boundary face; each sphere touches its own tet's nearest face (gap
+    # below the float32 margin of the radius rule).
     rng = np.random.default_rng(3)
-    model, state, _, tets = bar(device, jitter=0.08, may_convert="all")
+    model, state, _, tets = bar(device, jitter=0.08, may_convert="all", origin=origin)
     sim = Simulation(model, state)
     stretch(sim, 1e-4)
     mask = rng.random(len(tets)) < 0.35
@@ -499,3 +504,80 @@ def test_material_that_never_converts_stays_a_continuum(device):
     stretch(sim, 1e-2)
     assert sim.conversion_pass().converted == 0
     assert sim.particle_count == 0
+
+
+def test_pressure_on_faces_of_converted_tets_is_dropped(device):
+    # Pressure on both ends of a bar; the tets of the x = 0 end convert. Their loaded faces are dropped (collapsed,
+    # zero area): from then on the load does no work there (the work of the x = 0 faces' nodes stays constant), while
+    # the x = 4 end, still a continuum, keeps being pushed (its work grows).
+    from warpdem.loads import PressureHistory
+
+    pts, tets = box_mesh((0.0, 0.0, 0.0), (LENGTH, 1.0, 1.0), (8, 2, 2))
+    faces = tets[:, TET_FACES].reshape(-1, 3)
+    on = {end: faces[np.all(np.isclose(pts[faces][:, :, 0], end), axis=1)] for end in (0.0, LENGTH)}
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    b.add_tet_mesh(pts, tets, "rock")
+    b.add_face_pressure(np.concatenate([on[0.0], on[LENGTH]]), PressureHistory.blast(1.0e5, 0.0, 1.0))
+    model, state = b.finalize(device, safety_factor=0.5)
+    model, state = attach_conversion(model, state, [ConversionProps(tresca_strength=1e12)])
+    sim = Simulation(model, state)
+    # Only the tets that own the loaded faces (three nodes on x = 0): most end nodes keep other tets, mass and motion,
+    # so only the dropping keeps the load off them.
+    end_tets = np.sum(np.isclose(pts[tets][:, :, 0], 0.0), axis=1) == 3
+    sim.convert_tets(end_tets)
+    left = np.unique(on[0.0])
+    assert np.count_nonzero(sim.model.node_inv_mass.numpy()[left] > 0.0) >= len(left) - 1
+    right = np.unique(on[LENGTH])
+    work = sim.state.node_energy_boundary_work
+    w0 = work.numpy().copy()
+    sim.advance(10)
+    w1 = work.numpy()
+    np.testing.assert_array_equal(w1[left], w0[left])
+    assert np.all(w1[right] > w0[right])
+    nodes = next(iter(sim.model.loads.pressure.values())).nodes.numpy()
+    collapsed = (nodes[:, 0] == nodes[:, 1]) & (nodes[:, 1] == nodes[:, 2])
+    assert collapsed.sum() == len(on[0.0])
+
+
+def criterion_measure(stress: np.ndarray, criterion: str, props: ConversionProps) -> np.ndarray:
+    """The criterion's stress over strength from numpy principal stresses (tension positive), float64."""
+    sig = np.linalg.eigvalsh(stress.astype(np.float64))
+    s1, s3 = sig[:, -1], sig[:, 0]
+    if criterion == "tresca":
+        return (s1 - s3) / (2.0 * props.tresca_strength)
+    if criterion == "rankine":
+        return s1 / props.tensile_strength
+    phi = np.radians(props.friction_angle)
+    return (s1 * (1 + np.sin(phi)) - s3 * (1 - np.sin(phi))) / (2.0 * props.cohesion * np.cos(phi))
+
+
+@pytest.mark.parametrize("criterion", ["tresca", "rankine", "mohr_coulomb"])
+def test_each_criterion_converts_exactly_the_tets_at_or_above_its_fraction(device, criterion):
+    # A random smooth displacement field gives every tet another stress state (tension, compression, shear). With the
+    # strength set at the median of the criterion's measure, the pass converts exactly the tets whose numpy measure
+    # reaches f (tets within CRITERION_RTOL of f excluded: float32 eig3 against float64).
+    rng = np.random.default_rng(11)
+    model, state, _, tets = bar(device, may_convert="all", divisions=(6, 3, 3), jitter=0.05)
+    sim = Simulation(model, state)
+    x = sim.model.node_ref_q.numpy()[: sim.node_count].astype(np.float64)
+    coeff = rng.normal(0.0, 1e-3, (3, 3, 2))
+    u = np.stack([np.sin(x @ coeff[i, :, 0]) + x @ coeff[i, :, 1] for i in range(3)], 1)
+    set_node_displacements(sim.model, sim.state, u)
+    eval_tet_stresses(sim.model, sim.state)
+    stress = sim.state.tet_stress.numpy()[: len(tets)]
+    unit = ConversionProps(criterion, 0.9, 1.0, 1.0, 1.0, 25.0)
+    measure = criterion_measure(stress, criterion, unit)
+    strength = float(np.median(measure) / 0.9)
+    assert strength > 0.0
+    props = ConversionProps(criterion, 0.9, strength, strength, strength, 25.0)
+    sim.model = dataclasses.replace(
+        sim.model,
+        conversion_material_table=conversion_material_table(sim.model, [props], sim.model.device),
+    )
+    measure = criterion_measure(stress, criterion, props)
+    sim.conversion_pass()
+    converted = sim.state.tet_active.numpy()[: len(tets)] == 0
+    clear = np.abs(measure / 0.9 - 1.0) > CRITERION_RTOL
+    np.testing.assert_array_equal(converted[clear], measure[clear] >= 0.9)
+    assert 0 < converted.sum() < len(tets)
