@@ -482,3 +482,21 @@ def test_converted_spheres_end_to_end(device, seed):
     np.testing.assert_array_equal(stats.particle_label, particle_label)
     assert np.any(node_label < 0) and int(s.coupling_count.numpy()[0]) > 0  # both rules were exercised
     np.testing.assert_allclose(stats.total_mass, DENSITY * LENGTH, rtol=16 * np.finfo(np.float32).eps)
+
+
+def test_rock_coloured_by_fragment_in_a_run(tmp_path):
+    """A block that cannot break (no fracture, joints, bonds or conversion) writes no fragment record, but with
+    mesh_color_by = "fragment" its stage carries the rock's labels: one fragment, every vertex 0."""
+    from pxr import Usd
+    from test_timeseries import MESH_SCENE
+
+    from warpdem.runner import RunOptions, run_scene
+    from warpdem.scene import parse_scene
+
+    scene = parse_scene({**MESH_SCENE, "output": {"mesh_color_by": "fragment"}})
+    summary = run_scene(scene, RunOptions(device="cpu", frames=1, out_dir=tmp_path, quiet=True))
+    assert summary.fragments_path is None and not list(tmp_path.glob("*_fragments.h5"))
+    stage = Usd.Stage.Open(str(summary.usd_path))
+    rock = stage.GetPrimAtPath("/World/Rock")
+    label = np.asarray(rock.GetAttribute("primvars:fragment").Get(1.0))
+    np.testing.assert_array_equal(label, np.zeros(summary.nodes, dtype=np.int32))
