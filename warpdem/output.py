@@ -21,6 +21,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from .fragments import fragment_colors
 from .mesh import TET_FACES
 from .usd import CurveSet, SurfaceFrame
 
@@ -387,11 +388,12 @@ class RockFrames:
     Args:
         color_by: ``"stress"`` (von Mises, per triangle), ``"speed"`` (per vertex), ``"material"`` (per triangle) or
             ``"damage"`` (per vertex: the largest δ_max/δ_c of the node's cohesive elements, 1 once one broke;
-            :func:`damage_colors`, the ramp of the spheres' damage).
+            :func:`damage_colors`, the ramp of the spheres' damage) or ``"fragment"`` (per vertex, by the fragment id
+            :meth:`surface` is given; warpdem.fragments).
         vtu: the VTU series to write, or None.
     """
 
-    COLOR_BY = ("stress", "speed", "material", "damage")
+    COLOR_BY = ("stress", "speed", "material", "damage", "fragment")
 
     def __init__(self, color_by: str = "stress", vtu: VtuSeries | None = None) -> None:
         if color_by not in self.COLOR_BY:
@@ -421,8 +423,14 @@ class RockFrames:
         nt = int(state.tet_count.numpy()[0])
         return nn, model.tet_nodes.numpy()[:nt], state.tet_active.numpy()[:nt] == 1
 
-    def surface(self, model: Model, state: State) -> SurfaceFrame | None:
-        """The rock surface now (reads back; call between steps), or None for a model without tets."""
+    def surface(self, model: Model, state: State, fragment: np.ndarray | None = None) -> SurfaceFrame | None:
+        """The rock surface now (reads back; call between steps), or None for a model without tets.
+
+        Args:
+            model, state: the simulation's. fragment: the fragment id of each live node (FragmentStats.node_label),
+                shape (node_count,), or None; carried as the surface's ``fragment`` primvar and, with color_by
+                "fragment", its colours (grey without it).
+        """
         nn, tet_nodes, active = self._live(model, state)
         if nn == 0:
             return None
@@ -444,8 +452,10 @@ class RockFrames:
         q = state.node_q.numpy()[:nn]
         v = state.node_qd.numpy()[:nn]
         damage = node_damage(model, state)
-        vertex_colors = self.color_by in ("speed", "damage")
-        if self.color_by == "material":
+        vertex_colors = self.color_by in ("speed", "damage", "fragment")
+        if self.color_by == "fragment":
+            colors = fragment_colors(fragment if fragment is not None else np.full(nn, -1))
+        elif self.color_by == "material":
             colors = MATERIAL_PALETTE[model.tet_material.numpy()[owner] % len(MATERIAL_PALETTE)]
         elif self.color_by == "damage":
             colors = damage_colors(damage if damage is not None else np.zeros(nn))
@@ -462,6 +472,7 @@ class RockFrames:
             colors=colors,
             vertex_colors=vertex_colors,
             damage=damage,
+            fragment=fragment,
         )
 
     def cohesive_curves(self, model: Model, state: State) -> CurveSet | None:

@@ -13,6 +13,9 @@ For every ``<name>_series.csv`` in the folder (warpdem.timeseries) it writes:
   only for runs that have walls or pressure loads.
 - ``<name>_fracture.png``: the crack area made and opened (one face) with the node splits over time, and the
   energy the cohesive elements dissipated against Γ × the area of the broken ones; only for runs with fracture on.
+- ``<name>_fragments.png``: the cumulative mass distribution of the fragments at the last frame (the share of the
+  fragmented mass in pieces of at most a given mass, a sieve curve) and the largest fragment's mass over time; only
+  where the run wrote ``<name>_fragments.h5`` (warpdem.fragments: scenes that can break apart).
 """
 
 from __future__ import annotations
@@ -29,13 +32,13 @@ class PlotError(Exception):
     """A run folder that cannot be plotted (one readable line)."""
 
 
-def _figure(size: tuple[int, int], rows: int = 1):
+def _figure(size: tuple[int, int], rows: int = 1, sharex: bool = True):
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(rows, 1, figsize=(size[0] / 100.0, size[1] / 100.0), dpi=100, sharex=True, squeeze=False)
+    fig, axes = plt.subplots(rows, 1, figsize=(size[0] / 100.0, size[1] / 100.0), dpi=100, sharex=sharex, squeeze=False)
     # Fixed margins (room for the labels of both y axes) instead of tight_layout, which draws every figure twice.
     fig.subplots_adjust(left=0.11, right=0.87, bottom=0.1, top=0.93, hspace=0.3)
     return fig, list(axes[:, 0])
@@ -163,6 +166,46 @@ def plot_fracture(
     return _save(fig, path)
 
 
+def plot_fragments(fragments_path: pathlib.Path, name: str, path: pathlib.Path, size: tuple[int, int]) -> pathlib.Path:
+    """The cumulative mass distribution at the last frame and the largest fragment over time (module docstring).
+
+    Raises:
+        PlotError: the fragment file is unreadable or holds no frame.
+    """
+    from .fragments import read_fragments
+
+    try:
+        series = read_fragments(fragments_path)
+    except (OSError, KeyError, ValueError) as exc:
+        raise PlotError(f"{fragments_path}: unreadable fragment file ({exc})") from None
+    if len(series.frame) == 0:
+        raise PlotError(f"{fragments_path}: holds no frame")
+    fig, (dist_ax, time_ax) = _figure(size, rows=2, sharex=False)  # mass on one axis, time on the other
+    fig.subplots_adjust(hspace=0.45)
+    masses = np.sort(series.masses[-1])
+    if len(masses):
+        # Share of the total in fragments of mass ≤ m: the sum of the masses up to m over the total (a sieve curve).
+        passing = np.cumsum(masses) / masses.sum()
+        dist_ax.step(masses, passing, where="post", color="k")
+        dist_ax.set_xscale("log")
+    dist_ax.set_xlabel("fragment mass m [kg]")
+    dist_ax.set_ylabel("mass share in fragments ≤ m [-]")
+    dist_ax.set_title(
+        f"{name}: {len(masses)} fragments at t = {series.time[-1]:.4g} s (frame {series.frame[-1]})", fontsize=9
+    )
+    time_ax.plot(series.time, series.largest, color="k", label="largest fragment")
+    time_ax.set_xlabel("time [s]")
+    time_ax.set_ylabel("mass [kg]")
+    count_ax = time_ax.twinx()
+    count_ax.plot(series.time, series.count, color="crimson", lw=1.0, label="fragments")
+    count_ax.set_ylabel("fragments [-]", color="crimson")
+    count_ax.tick_params(axis="y", colors="crimson")
+    handles, labels = time_ax.get_legend_handles_labels()
+    h2, l2 = count_ax.get_legend_handles_labels()
+    time_ax.legend(handles + h2, labels + l2, fontsize=7, loc="best", framealpha=0.8)
+    return _save(fig, path)
+
+
 def plot_run(
     run_dir: str | os.PathLike, out_dir: str | os.PathLike | None = None, size: tuple[int, int] = (800, 600)
 ) -> list[pathlib.Path]:
@@ -197,4 +240,7 @@ def plot_run(
         fracture = plot_fracture(data, name, out / f"{name}_fracture.png", size)
         if fracture is not None:
             written.append(fracture)
+        fragments_path = run_dir / f"{name}_fragments.h5"
+        if fragments_path.is_file():
+            written.append(plot_fragments(fragments_path, name, out / f"{name}_fragments.png", size))
     return written

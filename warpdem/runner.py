@@ -158,6 +158,17 @@ class RunSummary:
     crack_area_opened: float = 0.0
     dissipated_cohesive: float = 0.0
     cohesive_work_broken: float = 0.0
+    fragments_path: Path | None = None
+    """The per-frame fragment record (warpdem.fragments), for scenes that can break apart; None otherwise."""
+    fragment_count: int = 0
+    fragment_largest: float = 0.0
+    """Mass of the largest fragment at the last frame [kg]."""
+    fragment_mass: float = 0.0
+    """Mass of all fragments at the last frame [kg]."""
+    ejecta_speed_max: float = 0.0
+    ejecta_speed_median: float = 0.0
+    """Largest and median centre-of-mass speed of the fragments other than the largest at the last frame [m/s]
+    (0 with one fragment)."""
 
     def format(self) -> str:
         e0, e1 = self.energy_start, self.energy_end
@@ -223,8 +234,21 @@ class RunSummary:
             lines.append(f"USD              {self.usd_path}")
         if self.pvd_path is not None:
             lines.append(f"VTU series       {self.pvd_path}")
+        if self.fragments_path is not None:
+            share = self.fragment_largest / self.fragment_mass if self.fragment_mass > 0.0 else 0.0
+            lines.append(
+                f"fragments        {self.fragment_count}, largest {self.fragment_largest:.6g} kg ({share:.1%} of "
+                f"{self.fragment_mass:.6g} kg)"
+            )
+            if self.fragment_count > 1:
+                lines.append(
+                    f"ejecta speed     max {self.ejecta_speed_max:.6g} m/s, median {self.ejecta_speed_median:.6g} m/s "
+                    "(fragments but the largest)"
+                )
         if self.series_path is not None:
             lines.append(f"time series      {self.series_path}")
+        if self.fragments_path is not None:
+            lines.append(f"fragment record  {self.fragments_path}")
         if self.checkpoints:
             lines.append(f"checkpoint       {self.checkpoints[-1]}")
         return "\n".join(lines)
@@ -526,6 +550,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     checkpoint_dir = out_dir / scene.output.checkpoint_dir
     frames_per_checkpoint = max(1, round(checkpoint_every / frame_period)) if checkpoint_every > 0 else 0
 
+    from .fragments import FragmentFile, FragmentStats, can_fragment, fragment_colors, label_fragments
     from .output import RockFrames, VtuSeries, damage_colors, sphere_damage, sphere_point_data
     from .timeseries import TimeSeries, fracture_values
     from .usd import UsdWriter
@@ -537,11 +562,15 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     try:
         vtu = VtuSeries(out_dir, output_stem, first_frame) if mesh_vtu or scene.output.particles_vtu else None
         series = TimeSeries(out_dir, output_stem, first_frame)
+        # Only a scene that can break apart gets a fragment record: elsewhere it would count the same pieces.
+        fragment_file = FragmentFile(out_dir, output_stem, first_frame) if can_fragment(model) else None
     except OSError as exc:
         raise _output_error(f"{scene.source}: output.directory", out_dir, exc) from None
     rock = RockFrames(scene.output.mesh_color_by, vtu if mesh_vtu else None)
     rock.color_scale = float(attrs.get("rock_color_scale", 0.0))
     cohesive_as_curves = bool(getattr(scene.output, "cohesive_as_curves", False))
+    by_fragment = fragment_file is not None or "fragment" in (scene.output.color_by, scene.output.mesh_color_by)
+    last_fragments: list[FragmentStats] = []
 
     def checkpoint(frame: int) -> None:
         extra = {
@@ -568,12 +597,22 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         if scene.output.particles_vtu and n:
             vtu.write_particles(frame, sim.time, q, sphere_point_data(sim.model, sim.state))
         series.record(sim, frame, energy)
+        fragments = label_fragments(sim.model, sim.state) if by_fragment else None
+        if fragments is not None:
+            last_fragments[:] = [fragments]
+            if fragment_file is not None:
+                try:
+                    fragment_file.record(frame, sim.time, fragments)
+                except OSError as exc:
+                    raise _output_error(f"{scene.source}: output.directory", fragment_file.path, exc) from None
         speed = np.linalg.norm(v, axis=1)
         broken, damage = sphere_damage(sim.model, sim.state)
         if scene.output.color_by == "part":
             colors = PART_PALETTE[sim.model.particle_part.numpy()[:n] % len(PART_PALETTE)]
         elif scene.output.color_by == "damage":
             colors = damage_colors(damage)
+        elif scene.output.color_by == "fragment":
+            colors = fragment_colors(fragments.particle_label)
         else:
             speed_scale[0] = max(speed_scale[0], float(speed.max(initial=0.0)))
             colors = speed_colors(speed, speed_scale[0])
@@ -590,9 +629,10 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
             ids=sim.model.particle_id.numpy()[:n].astype(np.int64),
             colors=colors,
             bonds=bonds,
-            surface=rock.surface(sim.model, sim.state),
+            surface=rock.surface(sim.model, sim.state, fragments.node_label if fragments is not None else None),
             bonds_broken=broken if sim.model.bond_capacity else None,
             cohesive=rock.cohesive_curves(sim.model, sim.state) if cohesive_as_curves else None,
+            fragments=fragments.particle_label if fragments is not None else None,
         )
         return energy
 
@@ -654,6 +694,8 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     n = sim.particle_count
     tets = int(np.count_nonzero(sim.state.tet_active.numpy()[: int(sim.state.tet_count.numpy()[0])]))
     fracture = fracture_values(sim.model, sim.state)
+    fragments = last_fragments[0] if fragment_file is not None and last_fragments else None
+    ejecta = fragments.ejecta_speeds if fragments is not None else np.zeros(0)
     return RunSummary(
         simulated_time=sim.time,
         steps=sim.step_count,
@@ -679,6 +721,12 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         fracture=bool(fracture),
         **fracture,
         dissipated_cohesive=energy_end.dissipated_cohesive,
+        fragments_path=fragment_file.path if fragments is not None else None,
+        fragment_count=fragments.count if fragments is not None else 0,
+        fragment_largest=fragments.largest if fragments is not None else 0.0,
+        fragment_mass=fragments.total_mass if fragments is not None else 0.0,
+        ejecta_speed_max=float(ejecta.max(initial=0.0)),
+        ejecta_speed_median=float(np.median(ejecta)) if len(ejecta) else 0.0,
     )
 
 
@@ -720,4 +768,5 @@ def summary_json(summary: RunSummary) -> str:
     d["checkpoints"] = [str(p) for p in summary.checkpoints]
     d["pvd_path"] = str(summary.pvd_path) if summary.pvd_path else None
     d["series_path"] = str(summary.series_path) if summary.series_path else None
+    d["fragments_path"] = str(summary.fragments_path) if summary.fragments_path else None
     return json.dumps(d, indent=1)

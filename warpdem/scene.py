@@ -1171,9 +1171,10 @@ class Output(_Model):
     usd: PathText | None = Field(
         default=None, description="USD file inside directory (.usd, .usda or .usdc); '<name>.usdc' after loading."
     )
-    color_by: Literal["speed", "part", "damage"] = Field(
+    color_by: Literal["speed", "part", "damage", "fragment"] = Field(
         default="speed",
-        description="Particle colouring in the USD file; damage = the fraction of each sphere's bonds broken so far.",
+        description="Particle colouring in the USD file; damage = the fraction of each sphere's bonds broken so far; "
+        "fragment = a colour per fragment (warpdem.fragments).",
     )
     bonds_as_curves: Bool = Field(default=False, description="Write intact bonds as USD curves.")
     cohesive_as_curves: Bool = Field(
@@ -1184,10 +1185,10 @@ class Output(_Model):
         default=0.0, ge=0, description="Checkpoint interval in simulated time [s]; 0 = only at the end."
     )
     checkpoint_dir: PathText = Field(default="checkpoints", description="Checkpoint directory, relative to directory.")
-    mesh_color_by: Literal["stress", "speed", "material", "damage"] = Field(
+    mesh_color_by: Literal["stress", "speed", "material", "damage", "fragment"] = Field(
         default="stress",
         description="Colouring of the rock surface /World/Rock in the USD file; damage = each node's cohesive damage "
-        "(fracture).",
+        "(fracture); fragment = a colour per fragment.",
     )
     vtu: Bool = Field(
         default=False,

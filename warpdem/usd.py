@@ -9,14 +9,18 @@ Stage layout::
     /World              Xform, default prim; custom double ``warpdem:time`` [s], one sample per frame
     /World/Particles    Points (only once a frame has spheres): points [m], widths (diameters) [m],
                         velocities [m/s], ids, primvars:displayColor (vertex), primvars:speed [m/s] (vertex),
-                        extent [m], primvars:bondsBroken (vertex, int: bonds each sphere has lost so far; when given)
+                        extent [m], primvars:bondsBroken (vertex, int: bonds each sphere has lost so far; when given),
+                        primvars:fragment (vertex, int: the fragment id of each sphere, -1 for none, warpdem.fragments;
+                        when given)
     /World/Bonds        BasisCurves, linear, one 2-vertex curve per bond (only when bonds are given)
     /World/Rock         Mesh of triangles (only when a frame carries a :class:`SurfaceFrame`): points [m] and
                         velocities [m/s] every frame, faceVertexCounts / faceVertexIndices only on the frames where
                         the topology changes, primvars:speed [m/s] (vertex), primvars:vonMisesStress and
                         primvars:maxPrincipalStress [Pa] (uniform: one per triangle), primvars:displayColor (uniform
                         or vertex), extent [m] of the triangles' vertices; primvars:damage [-] (vertex, float in
-                        [0, 1]: the node's cohesive damage; when the surface carries it, i.e. with fracture on)
+                        [0, 1]: the node's cohesive damage; when the surface carries it, i.e. with fracture on),
+                        primvars:fragment (vertex, int: the fragment id of each node, -1 for a node without mass;
+                        when the frame carries it)
     /World/Cohesive     BasisCurves, linear, one 2-vertex curve per intact cohesive element from daughter A to
                         daughter B (only when cohesive curves are given): points [m], constant width [m],
                         primvars:damage [-] and primvars:displayColor (uniform: one per curve)
@@ -68,6 +72,7 @@ class SurfaceFrame:
             when ``vertex_colors``).
         vertex_colors: whether ``colors`` holds one colour per vertex instead of one per triangle.
         damage: optional damage of each vertex [-], shape (P,), in [0, 1] (written to ``primvars:damage``).
+        fragment: fragment id of each vertex (-1 for none; warpdem.fragments), shape (P,), integer, or None.
     """
 
     points: np.ndarray
@@ -78,6 +83,7 @@ class SurfaceFrame:
     colors: np.ndarray
     vertex_colors: bool = False
     damage: np.ndarray | None = None
+    fragment: np.ndarray | None = None
 
 
 @dataclass
@@ -224,6 +230,7 @@ class UsdWriter:
         self._last_faces: np.ndarray | None = None
         self._last_ids: np.ndarray | None = None
         self._damage_primvar: Any = None  # primvars:bondsBroken, defined on the first frame that carries it
+        self._fragment_primvars: dict[str, Any] = {}  # primvars:fragment of the spheres and the rock, likewise
         self._frame_count = 0
         self._first_frame = int(first_frame)
         self._start = start  # time code of the stage's first frame (before first_frame in an extended stage)
@@ -304,6 +311,7 @@ class UsdWriter:
         surface: SurfaceFrame | None = None,
         bonds_broken: np.ndarray | None = None,
         cohesive: CurveSet | None = None,
+        fragments: np.ndarray | None = None,
     ) -> int:
         """Authors one frame of particle (and optionally bond and rock surface) data.
 
@@ -325,6 +333,8 @@ class UsdWriter:
                 written to ``primvars:bondsBroken``.
             cohesive: Optional cohesive elements as curves, written to ``/World/Cohesive``; once any frame has
                 carried them, a later frame without them authors an empty set.
+            fragments: Optional fragment id of each sphere, shape (N,), integer (-1 for none), written to
+                ``primvars:fragment``.
 
         Returns:
             The time code (frame number) of the frame just written.
@@ -386,6 +396,9 @@ class UsdWriter:
                 )
             self._damage_primvar.Set(Vt.IntArray.FromNumpy(damage), code)
 
+        if fragments is not None and self._points is not None:
+            self._set_fragment("/World/Particles", self._points.GetPrim(), code, np.asarray(fragments).reshape(n))
+
         if bond_arr is not None:
             self._write_bonds(code, pos, rad, bond_arr)
         elif self._bonds is not None:
@@ -393,6 +406,9 @@ class UsdWriter:
 
         if checked_surface is not None:
             self._write_surface(code, *checked_surface)
+            if surface.fragment is not None:
+                label = np.asarray(surface.fragment).reshape(len(checked_surface[0]))
+                self._set_fragment("/World/Rock", self._rock.GetPrim(), code, label)
         elif self._rock is not None:
             self._write_surface(code, *_empty_surface(), self._rock_vertex_colors, None)
 
@@ -406,6 +422,18 @@ class UsdWriter:
             self._stage.SetEndTimeCode(code)
             self._layer.Save()
         return int(code)
+
+    def _set_fragment(self, path: str, prim: Any, code: float, label: np.ndarray) -> None:
+        """Sets ``primvars:fragment`` (vertex, int) of a prim at one time code, defining it on first use."""
+        from pxr import Sdf, UsdGeom, Vt
+
+        primvar = self._fragment_primvars.get(path)
+        if primvar is None:
+            primvar = UsdGeom.PrimvarsAPI(prim).CreatePrimvar(
+                "fragment", Sdf.ValueTypeNames.IntArray, UsdGeom.Tokens.vertex
+            )
+            self._fragment_primvars[path] = primvar
+        primvar.Set(Vt.IntArray.FromNumpy(np.ascontiguousarray(label, dtype=np.int32)), code)
 
     def _set_particles(self, code: float, pos: np.ndarray, vel: np.ndarray, rad: np.ndarray, col: np.ndarray) -> None:
         """Sets the sphere attributes but ids at one time code (float32 arrays, as :meth:`write_frame` checked)."""
@@ -616,6 +644,7 @@ class UsdWriter:
         """Drops every handle on the stage so USD releases the layer."""
         self._closed = True
         self._time_attr = self._damage_primvar = None
+        self._fragment_primvars = {}
         self._points = self._bonds = self._rock = self._cohesive = None
         self._particle_attrs = {}
         self._rock_attrs = {}
