@@ -186,20 +186,32 @@ def make_list_kernels(spec: ListSpec) -> ListKernels:
     return ListKernels(build_list_kernel, commit_list_kernel, spec)
 
 
-@wp.kernel
-def finish_rebuild_kernel(
-    # State in:
-    owner_count: wp.array(dtype=int),
-    owner_q: wp.array(dtype=Any),
-    # State out:
-    q_at_build: wp.array(dtype=Any),
-    rebuild_flag: wp.array(dtype=int),
-    rebuild_total: wp.array(dtype=int),
-):
-    i = wp.tid()  # one thread per owner slot (at least one thread): the positions the skin is measured from (vec3 or
-    # vec3d, as the owners' positions)
-    if i == 0:
-        rebuild_flag[0] = 0
-        rebuild_total[0] = rebuild_total[0] + 1
-    if i < owner_count[0]:
-        q_at_build[i] = owner_q[i]
+def make_finish_rebuild_kernel(vec_type: type) -> wp.Kernel:
+    """The kernel that ends a rebuild, for owners whose positions are ``vec_type`` (wp.vec3 nodes, wp.vec3d spheres).
+
+    One concrete kernel per type, not one generic (``Any``) kernel: Warp 1.19's recording of a CPU graph replays a
+    generic kernel launched inside a ``capture_if`` branch with the overload of another launch, so the sphere list's
+    ``q_at_build`` (vec3d) was written through the nodes' vec3 overload and kept its old value; every replayed step then
+    saw the sphere half a skin away and rebuilt (issue 9, boulder_impact).
+    """
+
+    def finish_rebuild_kernel(
+        # State in:
+        owner_count: wp.array(dtype=int),
+        owner_q: wp.array(dtype=vec_type),
+        # State out:
+        q_at_build: wp.array(dtype=vec_type),
+        rebuild_flag: wp.array(dtype=int),
+        rebuild_total: wp.array(dtype=int),
+    ):
+        i = wp.tid()  # one thread per owner slot (at least one thread): the positions the skin is measured from
+        if i == 0:
+            rebuild_flag[0] = 0
+            rebuild_total[0] = rebuild_total[0] + 1
+        if i < owner_count[0]:
+            q_at_build[i] = owner_q[i]
+
+    return wp.Kernel(finish_rebuild_kernel, key=f"finish_rebuild_kernel_{vec_type.__name__}")
+
+
+FINISH_REBUILD_KERNELS = {wp.vec3: make_finish_rebuild_kernel(wp.vec3), wp.vec3d: make_finish_rebuild_kernel(wp.vec3d)}

@@ -450,3 +450,54 @@ def test_block_rests_on_wall(device):
     np.testing.assert_allclose((k * depth).sum(), weight, rtol=REST_RTOL)
     assert np.abs(sim.state.node_qd.numpy()[:n]).max() < 1e-3
     assert wp.get_device(device) == model.device
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Sphere list rebuilds next to a tet mesh
+
+
+def skin_rebuilds(q0: np.ndarray, v: np.ndarray, dt: float, half_skin: float, steps: int) -> int:
+    """Sphere-list rebuilds in ``steps`` free drifts x += float32(dt v) (float64 centres, as the integrator drifts):
+    one each step on which some sphere is more than half the skin from where it was at the last build."""
+    q = q0.astype(np.float64)
+    at_build = q.copy()
+    dx = (np.float32(dt) * v.astype(np.float32)).astype(np.float64)
+    rebuilds = 0
+    for _ in range(steps):
+        q = q + dx
+        moved = (q - at_build).astype(np.float32)
+        if np.any(np.einsum("ij,ij->i", moved, moved) > np.float32(half_skin) ** 2):
+            rebuilds += 1
+            at_build = q.copy()
+    return rebuilds
+
+
+@pytest.mark.parametrize("count", [1, 3])
+def test_sphere_list_rebuilds_once_per_half_skin_next_to_mesh(device, count):
+    # Spheres fly freely (no gravity, no contact) over a tet slab, so each drifts by dt v a step and the Verlet list
+    # must rebuild exactly when one of them has moved half the skin since the last build (skin_rebuilds, the same
+    # float32 test on the same float64 centres): the count is exact. Before the fix the captured step wrote the
+    # spheres' build positions through the nodes' vec3 overload, so after the first rebuild it rebuilt every step.
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 0.2), (2, 2, 1))
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", 2500.0, 1.0e9, POISSON)
+    b.add_tet_mesh(points, tets, "rock")
+    r = 0.05
+    speeds = [(3.0, 0.0, 0.0), (0.0, -2.0, 1.0), (-1.5, 1.0, 0.5)][:count]
+    for k, velocity in enumerate(speeds):
+        b.add_sphere((0.2 + 0.3 * k, 0.5, 0.6), r, "rock", velocity=velocity)
+    model, state = b.finalize(device, skin=0.02)
+    sim = Simulation(model, state)
+    q0 = sim.state.particle_q.numpy()[:count]
+    v = sim.state.particle_qd.numpy()[:count]
+    start = int(sim.state.rebuild_total.numpy()[0])
+    steps = int(0.05 / np.linalg.norm(v, axis=1).max() / model.dt) + 1  # the fastest sphere moves ~2.5 skins
+    first = steps // 3
+    sim.advance(first)  # two runs: the count carries across advance calls (a restart of the step graph)
+    sim.advance(steps - first)
+    expected = skin_rebuilds(q0, v, model.dt, 0.5 * model.skin, steps)
+    assert expected >= 4
+    assert int(sim.state.rebuild_total.numpy()[0]) - start == expected
+    np.testing.assert_array_equal(
+        sim.state.particle_q_at_build.numpy()[:count] != q0, np.ones((count, 3), bool) & (v != 0)
+    )

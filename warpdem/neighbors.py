@@ -138,7 +138,7 @@ def finish_rebuild(
     """After a rebuild: keep the owners' positions to measure the skin from, lower the flag, count the rebuild
     (launch only). ``owner_q`` sets the threads: one per owner slot."""
     wp.launch(
-        kn.finish_rebuild_kernel,
+        kn.FINISH_REBUILD_KERNELS[owner_q.dtype],
         dim=max(owner_q.shape[0], 1),
         inputs=[owner_count, owner_q],
         outputs=[q_at_build, rebuild_flag, rebuild_total],
