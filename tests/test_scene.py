@@ -333,7 +333,7 @@ MESH_BAD_SCENES = [
         "unknown_mesh_kind",
         edit('kind = "box"', 'kind = "sphere"', base=MESH_BASE),
         "mesh.kind",
-        "unknown value 'sphere'; allowed: 'box', 'geology', 'file'",
+        "unknown value 'sphere'; allowed: 'box', 'geology', 'file', 'cylinder', 'ellipsoid'",
     ),
     (
         "zero_division",
@@ -585,6 +585,130 @@ MESH_BAD_SCENES = [
     ),
 ]
 BAD_SCENES += MESH_BAD_SCENES
+
+FRACTURING = edit(
+    "poisson_ratio = 0.25",
+    "poisson_ratio = 0.25\ntensile_strength = 1e7\nfracture_energy = 100.0",
+    base=MESH_BASE,
+)
+FRACTURE_ON = FRACTURING + "\n[fracture]\nenabled = true\n"
+SEED = (
+    "[[fracture.seed_cracks]]\npoint = [0.5, 0.5, 2.0]\nnormal = [0.0, 0.0, 1.0]\n"
+    "region = { box = { lo = [0.0, 0.0, 1.9], hi = [0.5, 1.0, 2.1] } }\n"
+)
+
+FRACTURE_BAD_SCENES = [
+    (
+        "fracture_check_interval_zero",
+        FRACTURE_ON + "check_interval = 0\n",
+        "fracture.check_interval",
+        "greater than or equal to 1 (got 0)",
+    ),
+    (
+        "fracture_cohesive_capacity_zero",
+        FRACTURE_ON + "cohesive_capacity = 0\n",
+        "fracture.cohesive_capacity",
+        "greater than 0 (got 0)",
+    ),
+    ("fracture_unknown_key", FRACTURE_ON + "interval = 3\n", "fracture.interval", "unknown key"),
+    (
+        "fracture_region_two_shapes",
+        FRACTURE_ON
+        + "region = { box = { lo = [0, 0, 0], hi = [1, 1, 1] }, cylinder = { center = [0, 0, 0], radius = 1, "
+        "height = 1 } }\n",
+        "fracture.region",
+        "needs exactly one of 'box' or 'cylinder'",
+    ),
+    (
+        "cohesive_alpha_above_one",
+        edit("fracture_energy = 100.0", "fracture_energy = 100.0\ncohesive_alpha = 1.5", base=FRACTURE_ON),
+        "materials.rock.cohesive_alpha",
+        "less than or equal to 1 (got 1.5)",
+    ),
+    (
+        "cohesive_alpha_negative",
+        edit("fracture_energy = 100.0", "fracture_energy = 100.0\ncohesive_alpha = -0.1", base=FRACTURE_ON),
+        "materials.rock.cohesive_alpha",
+        "greater than or equal to 0 (got -0.1)",
+    ),
+    (
+        "fracture_without_mesh",
+        MINIMAL + "\n[fracture]\nenabled = true\n",
+        "fracture.enabled",
+        "needs a [mesh]",
+    ),
+    (
+        "seed_cracks_without_mesh",
+        MINIMAL + "\n" + SEED,
+        "fracture.seed_cracks",
+        "needs a [mesh]",
+    ),
+    (
+        "fracture_material_without_fracture_energy",
+        edit("fracture_energy = 100.0\n", "", base=FRACTURE_ON),
+        "materials.rock.fracture_energy",
+        "required: [fracture] is enabled",
+    ),
+    (
+        "fracture_material_without_tensile_strength",
+        edit("tensile_strength = 1e7\n", "", base=FRACTURE_ON),
+        "materials.rock.tensile_strength",
+        "required: [fracture] is enabled",
+    ),
+    (
+        "seed_crack_zero_normal",
+        FRACTURING + "\n" + SEED.replace("normal = [0.0, 0.0, 1.0]", "normal = [0.0, 0.0, 0.0]"),
+        "fracture.seed_cracks[0].normal",
+        "must be a nonzero vector",
+    ),
+    (
+        "seed_crack_negative_friction",
+        FRACTURING + "\n" + SEED + "friction = -0.2\n",
+        "fracture.seed_cracks[0].friction",
+        "greater than or equal to 0 (got -0.2)",
+    ),
+    (
+        "seed_crack_without_region",
+        FRACTURING + "\n" + SEED.replace("region = { box = { lo = [0.0, 0.0, 1.9], hi = [0.5, 1.0, 2.1] } }\n", ""),
+        "fracture.seed_cracks[0].region",
+        "required",
+    ),
+    (
+        "cohesive_as_curves_not_bool",
+        MESH_BASE + '\n[output]\ncohesive_as_curves = "yes"\n',
+        "output.cohesive_as_curves",
+        "valid boolean (got 'yes')",
+    ),
+    (
+        "cylinder_mesh_zero_radius",
+        MINIMAL + '\n[mesh]\nkind = "cylinder"\ncenter = [0, 0, 0]\nradius = 0.0\nheight = 0.1\nh = 0.05\n'
+        'material = "rock"\n',
+        "mesh.radius",
+        "greater than 0 (got 0.0)",
+    ),
+    (
+        "cylinder_mesh_bad_axis",
+        MINIMAL + '\n[mesh]\nkind = "cylinder"\ncenter = [0, 0, 0]\naxis = "w"\nradius = 1.0\nheight = 0.1\n'
+        'h = 0.05\nmaterial = "rock"\n',
+        "mesh.axis",
+        "allowed: 'x', 'y', 'z'",
+    ),
+    (
+        "ellipsoid_mesh_negative_radius",
+        MINIMAL + '\n[mesh]\nkind = "ellipsoid"\ncenter = [0, 0, 0]\nradii = [1.0, -1.0, 1.0]\nh = 0.5\n'
+        'material = "rock"\n',
+        "mesh.radii",
+        "every component must be > 0",
+    ),
+    (
+        "ellipsoid_mesh_unknown_material",
+        MINIMAL + '\n[mesh]\nkind = "ellipsoid"\ncenter = [0, 0, 0]\nradii = [1.0, 1.0, 1.0]\nh = 0.5\n'
+        'material = "granite"\n',
+        "mesh.material",
+        "unknown material 'granite'",
+    ),
+]
+BAD_SCENES += FRACTURE_BAD_SCENES
 
 
 @pytest.mark.parametrize(("text", "key_path", "phrase"), [c[1:] for c in BAD_SCENES], ids=[c[0] for c in BAD_SCENES])
@@ -857,3 +981,73 @@ def test_file_mesh_path_resolved_against_scene_directory(tmp_path: Path, monkeyp
     assert scene.mesh.path == (scene_dir / "rock.msh").resolve()
     assert scene.mesh.material_map == {"1": "rock"}
     assert scene.face_set_names() is None  # a file's face sets are known when it is read
+
+
+def test_fracture_keys_default_off(tmp_path: Path) -> None:
+    scene = load_scene(write(tmp_path, MESH_BASE, "column.toml"))
+    assert scene.materials["rock"].cohesive_alpha == 1.0
+    fracture = scene.fracture
+    assert (fracture.enabled, fracture.check_interval, fracture.region, fracture.cohesive_capacity) == (
+        False,
+        1,
+        None,
+        None,
+    )
+    assert fracture.seed_cracks == []
+    assert scene.output.cohesive_as_curves is False
+
+
+def test_fracture_keys_values(tmp_path: Path) -> None:
+    text = edit("fracture_energy = 100.0", "fracture_energy = 100.0\ncohesive_alpha = 0.5", base=FRACTURE_ON)
+    text += "check_interval = 5\ncohesive_capacity = 128\nregion = { box = { lo = [0, 0, 1], hi = [1, 1, 3] } }\n"
+    text += "\n" + SEED + "friction = 0.3\n\n[output]\ncohesive_as_curves = true\n"
+    scene = load_scene(write(tmp_path, text))
+    assert scene.materials["rock"].cohesive_alpha == 0.5
+    fracture = scene.fracture
+    assert (fracture.enabled, fracture.check_interval, fracture.cohesive_capacity) == (True, 5, 128)
+    assert fracture.region is not None and fracture.region.box.hi == (1.0, 1.0, 3.0)
+    (crack,) = fracture.seed_cracks
+    assert crack.point == (0.5, 0.5, 2.0) and crack.normal == (0.0, 0.0, 1.0) and crack.friction == 0.3
+    assert scene.output.cohesive_as_curves is True
+
+
+def test_solid_mesh_kinds(tmp_path: Path) -> None:
+    text = MINIMAL + (
+        '\n[mesh]\nkind = "cylinder"\ncenter = [0, -0.01, 0]\naxis = "y"\nradius = 0.05\nheight = 0.02\n'
+        'h = 0.01\nmaterial = "rock"\n'
+    )
+    scene = load_scene(write(tmp_path, text))
+    mesh = scene.mesh
+    assert mesh is not None and mesh.kind == "cylinder" and mesh.axis == "y" and mesh.fixed is False
+    assert scene.face_set_names() == ["surface"]
+    text = MINIMAL + '\n[mesh]\nkind = "ellipsoid"\ncenter = [0, 0, 1]\nradii = [1.0, 0.8, 0.6]\nh = 0.3\n'
+    text += 'material = "rock"\n'
+    mesh = load_scene(write(tmp_path, text)).mesh
+    assert mesh is not None and mesh.kind == "ellipsoid" and mesh.radii == (1.0, 0.8, 0.6)
+
+
+def test_seed_crack_faces_on_a_box_mesh(tmp_path: Path) -> None:
+    """A Kuhn box mesh cuts every cell face of a grid plane into two triangles, so a seed crack on an interior grid
+    plane whose region holds an a × b patch of cells cracks exactly 2 a b faces (exact: the grid nodes lie on the
+    plane to round-off, SEED_PLANE_TOLERANCE is 1e-9 of the diagonal)."""
+    from warpdem.mesh import box_mesh
+    from warpdem.scene_mesh import seed_crack_faces
+
+    # Cells of 0.5 x 0.5 x 0.5 m; the plane z = 2 is interior; the region holds x in [0, 0.5], y in [0, 1].
+    scene = load_scene(write(tmp_path, FRACTURING + "\n" + SEED))
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 4.0), (2, 2, 8))
+    (crack,) = scene.fracture.seed_cracks
+    faces = seed_crack_faces(points, tets, crack, "scene: fracture.seed_cracks[0]")
+    cells_x, cells_y = 1, 2
+    assert faces.shape == (2 * cells_x * cells_y, 3)
+    assert np.all(np.abs(points[faces][..., 2] - 2.0) <= 1e-12)
+    assert np.all(points[faces][..., 0] <= 0.5)
+    # Each face is shared by two tets (an interior face).
+    all_faces = np.sort(tets[:, [[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]]].reshape(-1, 3), axis=1)
+    for face in faces:
+        assert np.count_nonzero(np.all(all_faces == np.sort(face), axis=1)) == 2
+
+    # A plane off the grid (z = 2.1) holds no mesh face: a SceneError naming the crack's region.
+    off = crack.model_copy(update={"point": (0.5, 0.5, 2.1)})
+    with pytest.raises(SceneError, match=r"fracture.seed_cracks\[0\].region: no interior face"):
+        seed_crack_faces(points, tets, off, "scene: fracture.seed_cracks[0]")

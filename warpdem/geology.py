@@ -24,12 +24,13 @@ group whose name makes it a joint set (``joint*``) or a named boundary/load set.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 import os
 import pathlib
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 from xml.sax.saxutils import quoteattr
@@ -50,7 +51,11 @@ __all__ = [
     "Room",
     "Shaft",
     "Tunnel",
+    "component_labels",
+    "interior_faces",
     "joint_normal",
+    "mesh_cylinder",
+    "mesh_ellipsoid",
     "mesh_geology",
     "read_mesh",
     "write_mesh",
@@ -61,6 +66,9 @@ BOX_FACE_NAMES = ("x-", "x+", "y-", "y+", "z-", "z+")
 
 OPENING_FACE_NAME = "opening"
 """Name of the tunnel, shaft and room walls in :attr:`GeologyMesh.boundary_faces`."""
+
+SURFACE_FACE_NAME = "surface"
+"""Name of the whole outer surface of a solid meshed by :func:`mesh_cylinder` or :func:`mesh_ellipsoid`."""
 
 # Openings spanning the model and joint polygons are built this fraction of the box diagonal past the box, so
 # every boolean intersection with the box faces is transversal rather than coincident.
@@ -665,6 +673,96 @@ def _on_box_face(bbox: Sequence[float], lo: np.ndarray, hi: np.ndarray, tol: flo
     return False
 
 
+def _gmsh_options(h: float, refine: bool) -> dict[str, float]:
+    """Every Gmsh option a mesh depends on, so that a caller's own Gmsh settings do not leak in.
+
+    Args:
+        h: target tet edge length [m]. refine: a background size field (opening refinement) sets the sizes.
+    """
+    return {
+        "General.Terminal": 0,
+        "General.NumThreads": 1,  # single-threaded Delaunay: equal inputs, identical meshes
+        "Mesh.Algorithm3D": 1,
+        "Mesh.MeshSizeMin": 0.0,
+        "Mesh.MeshSizeMax": h,
+        "Mesh.MeshSizeFromCurvature": 0,
+        "Mesh.MeshSizeExtendFromBoundary": 0 if refine else 1,
+        "Mesh.MeshSizeFromPoints": 0 if refine else 1,
+        "Mesh.Algorithm": 6,  # Frontal-Delaunay surfaces
+        "Mesh.Smoothing": 1,
+        "Mesh.QualityType": 2,  # gamma (inradius / longest edge): the quality the optimiser works on
+        "Mesh.Optimize": 1,
+        "Mesh.OptimizeThreshold": OPTIMIZE_THRESHOLD,
+        "Mesh.OptimizeNetgen": 0,  # adds ~70 % tets and lowers the stable step on jointed models
+    }
+
+
+@contextlib.contextmanager
+def _gmsh_model(options: Mapping[str, float], model_name: str, what: str) -> Iterator[Any]:
+    """A fresh Gmsh model with ``options`` set, yielding the ``gmsh`` module; afterwards Gmsh is finalized if this
+    started it, else the caller's model and option values are restored. A Gmsh failure (a plain ``Exception`` with
+    Gmsh's last error) becomes ``RuntimeError("<what>: Gmsh failed: ...")``."""
+    import gmsh
+
+    started = not gmsh.isInitialized()
+    if started:
+        gmsh.initialize(readConfigFiles=False, interruptible=False)
+    saved = {} if started else {name: gmsh.option.getNumber(name) for name in options}
+    current_model = None if started else gmsh.model.getCurrent()
+    try:
+        for name, value in options.items():
+            gmsh.option.setNumber(name, value)
+        gmsh.model.add(model_name)
+        yield gmsh
+    except Exception as exc:
+        if type(exc) is Exception:  # the Gmsh API raises plain Exception with its last error message
+            raise RuntimeError(f"{what}: Gmsh failed: {exc}") from exc
+        raise
+    finally:
+        if started:
+            gmsh.finalize()
+        else:
+            if model_name in gmsh.model.list():
+                gmsh.model.setCurrent(model_name)
+                gmsh.model.remove()
+            if current_model in gmsh.model.list():
+                gmsh.model.setCurrent(current_model)
+            for name, value in saved.items():
+                gmsh.option.setNumber(name, value)
+
+
+def _gmsh_volume_tets(
+    gmsh: Any, volume_tags: Sequence[int], what: str
+) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[np.ndarray]]:
+    """The meshed nodes and the tets of each volume of the current Gmsh model.
+
+    Returns:
+        Node coordinates [m] (K, 3); Gmsh node tag → row of the coordinates (-1: none); the tets of each volume
+        as rows into the coordinates (T_v, 4); the block index of each of those tets (its volume's position).
+    """
+    node_tags, coords, _ = gmsh.model.mesh.getNodes()
+    index = np.full(int(node_tags.max()) + 1, -1, dtype=np.int64)
+    index[node_tags.astype(np.int64)] = np.arange(len(node_tags))
+    tet_parts, block_parts = [], []
+    for b, v in enumerate(volume_tags):
+        for etype, _, enodes in zip(*gmsh.model.mesh.getElements(3, v), strict=True):
+            if etype != _GMSH_TET:
+                raise RuntimeError(f"{what}: Gmsh produced element type {etype} in volume {v}")
+            tet_parts.append(index[enodes.astype(np.int64)].reshape(-1, 4))
+            block_parts.append(np.full(len(tet_parts[-1]), b, dtype=np.int64))
+    return coords.reshape(-1, 3), index, tet_parts, block_parts
+
+
+def _used_nodes(coords: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Contiguous numbering over the nodes the tets use: points (N, 3) float64, the positively oriented tets (M, 4)
+    and the map old row → new node (-1 where unused), shape (K,)."""
+    used = np.unique(tets)
+    renumber = np.full(len(coords), -1, dtype=np.int64)
+    renumber[used] = np.arange(len(used))
+    points = np.ascontiguousarray(coords[used], dtype=np.float64)
+    return points, _orient_tets(points, renumber[tets]), renumber
+
+
 def mesh_geology(geology: Geology) -> GeologyMesh:
     """Meshes a jointed rock mass with first-order tetrahedra conforming to its joints, layers and openings.
 
@@ -688,8 +786,6 @@ def mesh_geology(geology: Geology) -> GeologyMesh:
         ValueError: If the openings remove the whole box.
         RuntimeError: If Gmsh fails to build or mesh the model (its message included).
     """
-    import gmsh
-
     rock = geology.rock
     lo, hi = np.asarray(rock.lo, float), np.asarray(rock.hi, float)
     diag = float(np.linalg.norm(hi - lo))
@@ -697,35 +793,7 @@ def mesh_geology(geology: Geology) -> GeologyMesh:
     tol = _REL_TOL * diag
     joint_surfaces = _joint_geometry(geology)
     refine = geology.h_opening is not None and bool(geology.openings)
-    # Every option the result depends on is set, so a caller's own Gmsh settings do not leak in; a caller's
-    # session gets its values back afterwards.
-    options = {
-        "General.Terminal": 0,
-        "General.NumThreads": 1,  # single-threaded Delaunay: equal inputs, identical meshes
-        "Mesh.Algorithm3D": 1,
-        "Mesh.MeshSizeMin": 0.0,
-        "Mesh.MeshSizeMax": geology.h,
-        "Mesh.MeshSizeFromCurvature": 0,
-        "Mesh.MeshSizeExtendFromBoundary": 0 if refine else 1,
-        "Mesh.MeshSizeFromPoints": 0 if refine else 1,
-        "Mesh.Algorithm": 6,  # Frontal-Delaunay surfaces
-        "Mesh.Smoothing": 1,
-        "Mesh.QualityType": 2,  # gamma (inradius / longest edge): the quality the optimiser works on
-        "Mesh.Optimize": 1,
-        "Mesh.OptimizeThreshold": OPTIMIZE_THRESHOLD,
-        "Mesh.OptimizeNetgen": 0,  # adds ~70 % tets and lowers the stable step on jointed models
-    }
-
-    started = not gmsh.isInitialized()
-    if started:
-        gmsh.initialize(readConfigFiles=False, interruptible=False)
-    saved = {} if started else {name: gmsh.option.getNumber(name) for name in options}
-    current_model = None if started else gmsh.model.getCurrent()
-    model_name = f"warpdem_geology_{id(geology)}"
-    try:
-        for name, value in options.items():
-            gmsh.option.setNumber(name, value)
-        gmsh.model.add(model_name)
+    with _gmsh_model(_gmsh_options(geology.h, refine), f"warpdem_geology_{id(geology)}", "mesh_geology") as gmsh:
         occ = gmsh.model.occ
 
         box = occ.addBox(*lo, *(hi - lo))
@@ -798,39 +866,13 @@ def mesh_geology(geology: Geology) -> GeologyMesh:
             field_mesh.setAsBackgroundMesh(threshold)
         gmsh.model.mesh.generate(3)
 
-        node_tags, coords, _ = gmsh.model.mesh.getNodes()
-        index = np.full(int(node_tags.max()) + 1, -1, dtype=np.int64)
-        index[node_tags.astype(np.int64)] = np.arange(len(node_tags))
-        coords = coords.reshape(-1, 3)
-
-        tet_parts, block_parts = [], []
-        for b, v in enumerate(volume_tags):
-            for etype, _, enodes in zip(*gmsh.model.mesh.getElements(3, v), strict=True):
-                if etype != _GMSH_TET:
-                    raise RuntimeError(f"mesh_geology: Gmsh produced element type {etype} in volume {v}")
-                tet_parts.append(index[enodes.astype(np.int64)].reshape(-1, 4))
-                block_parts.append(np.full(len(tet_parts[-1]), b, dtype=np.int64))
+        coords, index, tet_parts, block_parts = _gmsh_volume_tets(gmsh, volume_tags, "mesh_geology")
         face_parts, face_set_parts = [], []
         for s, k in sorted(surface_set.items(), key=lambda item: (item[1], item[0])):  # grouped by set
             for etype, _, enodes in zip(*gmsh.model.mesh.getElements(2, s), strict=True):
                 if etype == _GMSH_TRIANGLE:
                     face_parts.append(index[enodes.astype(np.int64)].reshape(-1, 3))
                     face_set_parts.append(np.full(len(face_parts[-1]), k, dtype=np.int64))
-    except Exception as exc:
-        if type(exc) is Exception:  # the Gmsh API raises plain Exception with its last error message
-            raise RuntimeError(f"mesh_geology: Gmsh failed: {exc}") from exc
-        raise
-    finally:
-        if started:
-            gmsh.finalize()
-        else:
-            if model_name in gmsh.model.list():
-                gmsh.model.setCurrent(model_name)
-                gmsh.model.remove()
-            if current_model in gmsh.model.list():
-                gmsh.model.setCurrent(current_model)
-            for name, value in saved.items():
-                gmsh.option.setNumber(name, value)
 
     tets = np.concatenate(tet_parts) if tet_parts else np.zeros((0, 4), np.int64)
     if len(tets) == 0:
@@ -838,12 +880,7 @@ def mesh_geology(geology: Geology) -> GeologyMesh:
     joint_faces = np.concatenate(face_parts) if face_parts else np.zeros((0, 3), np.int64)
     joint_face_set = np.concatenate(face_set_parts) if face_set_parts else np.zeros(0, np.int64)
 
-    # Contiguous numbering over the nodes the tets use.
-    used = np.unique(tets)
-    renumber = np.full(len(coords), -1, dtype=np.int64)
-    renumber[used] = np.arange(len(used))
-    points = np.ascontiguousarray(coords[used], dtype=np.float64)
-    tets = _orient_tets(points, renumber[tets])
+    points, tets, renumber = _used_nodes(coords, tets)
     joint_faces = renumber[joint_faces]
 
     # Joint faces: normal along the set's nominal normal.
@@ -865,6 +902,62 @@ def mesh_geology(geology: Geology) -> GeologyMesh:
         boundary_faces=_classify_boundary(points, tets, lo, hi, 1e3 * tol),
         num_blocks=len(volume_tags),
     )
+
+
+def _mesh_solid(add: Callable[[Any], int], h: float, material: str, what: str) -> GeologyMesh:
+    """One OCC solid (``add(occ)`` returns its volume tag) meshed with tets of edge about ``h`` [m], as one block
+    of one material; ``boundary_faces`` holds its outer surface as :data:`SURFACE_FACE_NAME`."""
+    with _gmsh_model(_gmsh_options(h, refine=False), f"warpdem_{what}_{id(add)}", what) as gmsh:
+        volume = add(gmsh.model.occ)
+        gmsh.model.occ.synchronize()
+        gmsh.model.mesh.generate(3)
+        coords, _, tet_parts, _ = _gmsh_volume_tets(gmsh, [volume], what)
+    if not tet_parts or not sum(len(t) for t in tet_parts):
+        raise RuntimeError(f"{what}: Gmsh produced no tetrahedra")
+    points, tets, _ = _used_nodes(coords, np.concatenate(tet_parts))
+    return GeologyMesh(
+        points=points,
+        tets=tets,
+        tet_block=np.zeros(len(tets), np.int64),
+        tet_material=np.zeros(len(tets), np.int64),
+        material_names=[material],
+        joint_faces=np.zeros((0, 3), np.int64),
+        joint_face_set=np.zeros(0, np.int64),
+        joint_set_names=[],
+        boundary_faces={SURFACE_FACE_NAME: outer_faces(tets).astype(np.int64)},
+        num_blocks=1,
+    )
+
+
+def mesh_cylinder(
+    center: Sequence[float], axis: Sequence[float], radius: float, height: float, h: float, material: str
+) -> GeologyMesh:
+    """A solid circular cylinder (a disc when ``height`` is small) meshed with Gmsh (the options of
+    :func:`mesh_geology`, so equal inputs give identical meshes).
+
+    Args:
+        center: centre of the base disc [m], shape (3,). axis: direction of the axis (any length), shape (3,).
+        radius: radius [m]. height: length along ``axis`` from the base disc [m]. h: target tet edge [m].
+        material: the material name of every tet.
+
+    Raises:
+        RuntimeError: Gmsh fails.
+    """
+    direction = np.asarray(axis, dtype=np.float64)
+    direction = height * direction / np.linalg.norm(direction)
+    return _mesh_solid(lambda occ: occ.addCylinder(*center, *direction, radius), h, material, "mesh_cylinder")
+
+
+def mesh_ellipsoid(center: Sequence[float], radii: Sequence[float], h: float, material: str) -> GeologyMesh:
+    """A solid ellipsoid with semi-axes ``radii`` along x, y and z [m] (a unit OCC sphere scaled by them), meshed
+    with Gmsh; see :func:`mesh_cylinder`."""
+
+    def add(occ: Any) -> int:
+        tag = occ.addSphere(*center, 1.0)
+        occ.dilate([(3, tag)], *center, *radii)
+        return tag
+
+    return _mesh_solid(add, h, material, "mesh_ellipsoid")
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -892,6 +985,12 @@ def _tet_face_table(tets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     faces = tets[:, TET_FACES].reshape(-1, 3)
     keys, inverse, counts = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True)
     return faces, keys, inverse.reshape(-1), counts
+
+
+def interior_faces(tets: np.ndarray) -> np.ndarray:
+    """Faces shared by two tets, as sorted node triples, shape (F, 3), int64, in lexicographic order."""
+    _, keys, _, counts = _tet_face_table(np.asarray(tets, dtype=np.int64))
+    return keys[counts == 2]
 
 
 def _classify_boundary(
@@ -922,8 +1021,18 @@ def _blocks_from_components(tets: np.ndarray, joint_faces: np.ndarray) -> np.nda
     order = np.argsort(inverse, kind="stable")  # the two rows of a shared face become neighbours
     shared = (counts[inverse[order]] == 2) & ~is_joint[inverse[order]]
     pairs = order[shared].reshape(-1, 2) // 4
-    a, b = pairs[:, 0], pairs[:, 1]
-    labels = np.arange(len(tets))
+    return component_labels(len(tets), pairs[:, 0], pairs[:, 1])
+
+
+def component_labels(count: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Connected components of the graph on ``count`` vertices with edges ``a[i]``–``b[i]``.
+
+    Returns:
+        The component of each vertex, shape (count,), int64, numbered 0, 1, ... in order of each component's lowest
+        vertex.
+    """
+    a, b = np.asarray(a, dtype=np.int64), np.asarray(b, dtype=np.int64)
+    labels = np.arange(count)
     while True:  # min-label propagation with pointer jumping
         new = labels.copy()
         m = np.minimum(labels[a], labels[b])

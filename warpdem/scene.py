@@ -49,7 +49,7 @@ from pydantic import (
     model_validator,
 )
 
-from .geology import BOX_FACE_NAMES, OPENING_FACE_NAME
+from .geology import BOX_FACE_NAMES, OPENING_FACE_NAME, SURFACE_FACE_NAME
 from .limits import (
     BYTES_PER_NEIGHBOR_SLOT,
     BYTES_PER_NODE,
@@ -339,6 +339,13 @@ class Material(_Model):
     )
     fracture_energy: Float | None = Field(
         default=None, gt=0, description="Fracture energy Γ of new cracks (cohesive elements, LDEC eq. 10) [J/m^2]."
+    )
+    cohesive_alpha: Float = Field(
+        default=1.0,
+        ge=0,
+        le=1,
+        description="Softening parameter α in [0, 1] of the cohesive elements (LDEC eq. 6): 1 a linear drop from f_c "
+        "to 0 over δ_c, 0 a constant f_c until δ_c [-].",
     )
     tresca_strength: Float | None = Field(
         default=None, gt=0, description="Tresca (shear) strength for the FEM-to-DEM conversion (CIMNE §5) [Pa]."
@@ -902,7 +909,47 @@ class FileMesh(_Model):
         return self
 
 
-Mesh = Annotated[BoxMesh | GeologyMeshSpec | FileMesh, Field(discriminator="kind")]
+def _positive_vec3(value: tuple[float, float, float]) -> tuple[float, float, float]:
+    if not all(c > 0.0 for c in value):
+        raise ValueError("every component must be > 0")
+    return value
+
+
+class CylinderMesh(_Model):
+    """A solid circular cylinder (a disc when short) along a coordinate axis, meshed with Gmsh."""
+
+    kind: Literal["cylinder"] = Field(description="Mesh kind.")
+    center: Vec3 = Field(description="Centre of the base disc [m] (as a cylinder region's).")
+    axis: Literal["x", "y", "z"] = Field(default="z", description="Coordinate axis of the cylinder.")
+    radius: Float = Field(gt=0, description="Radius [m].")
+    height: Float = Field(gt=0, description="Length along the axis from the base disc [m] (a disc's thickness).")
+    h: Float = Field(gt=0, description="Target tet edge length [m].")
+    material: Str = Field(description="Name of a material defined in [materials].")
+    fixed: Bool = _fixed_field()
+    velocity: Vec3 = _velocity_field()
+
+    def volume(self) -> float:
+        """Volume π r² height [m³]."""
+        return math.pi * self.radius**2 * self.height
+
+
+class EllipsoidMesh(_Model):
+    """A solid ellipsoid with axis-aligned semi-axes (a sphere when they are equal), meshed with Gmsh."""
+
+    kind: Literal["ellipsoid"] = Field(description="Mesh kind.")
+    center: Vec3 = Field(description="Centre [m].")
+    radii: Annotated[Vec3, AfterValidator(_positive_vec3)] = Field(description="Semi-axes along x, y and z [m].")
+    h: Float = Field(gt=0, description="Target tet edge length [m].")
+    material: Str = Field(description="Name of a material defined in [materials].")
+    fixed: Bool = _fixed_field()
+    velocity: Vec3 = _velocity_field()
+
+    def volume(self) -> float:
+        """Volume 4/3 π a b c [m³]."""
+        return 4.0 / 3.0 * math.pi * math.prod(self.radii)
+
+
+Mesh = Annotated[BoxMesh | GeologyMeshSpec | FileMesh | CylinderMesh | EllipsoidMesh, Field(discriminator="kind")]
 """The ``[mesh]`` section, selected by ``kind``."""
 
 
@@ -1080,6 +1127,39 @@ class Boundary(_Model):
 
 
 # ----------------------------------------------------------------------------------------------------------------------
+# Nodal fracture
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+def _nonzero_vec3(value: tuple[float, float, float]) -> tuple[float, float, float]:
+    if not math.hypot(*value) > 0.0:
+        raise ValueError("must be a nonzero vector")
+    return value
+
+
+class SeedCrack(_Model):
+    """An open, frictional pre-crack: the mesh faces on a plane inside a region, split at build time."""
+
+    point: Vec3 = Field(description="A point on the crack plane [m].")
+    normal: Annotated[Vec3, AfterValidator(_nonzero_vec3)] = Field(description="Normal of the crack plane [-].")
+    region: Region = Field(description="The mesh faces on the plane with all three nodes inside are cracked.")
+    friction: Float = Field(default=0.0, ge=0, description="Coulomb friction coefficient of the crack faces [-].")
+
+
+class Fracture(_Model):
+    """Nodal fracture of the rock mesh (LDEC §2.2–2.3): nodes whose averaged stress reaches the material's tensile
+    strength split, joined by softening cohesive elements."""
+
+    enabled: Bool = Field(default=False, description="Run the split pass (every mesh material needs T_f and Γ).")
+    check_interval: Int = Field(default=1, ge=1, description="Steps between split passes [-].")
+    region: Region | None = Field(default=None, description="Only nodes inside may split; omitted: every node.")
+    cohesive_capacity: Int | None = Field(
+        default=None, gt=0, description="Initial cohesive element slots (they grow); default chosen by the build."
+    )
+    seed_cracks: list[SeedCrack] = Field(default_factory=list, description="Open pre-cracks made at build time.")
+
+
+# ----------------------------------------------------------------------------------------------------------------------
 # Output and capacity
 # ----------------------------------------------------------------------------------------------------------------------
 
@@ -1096,6 +1176,10 @@ class Output(_Model):
         description="Particle colouring in the USD file; damage = the fraction of each sphere's bonds broken so far.",
     )
     bonds_as_curves: Bool = Field(default=False, description="Write intact bonds as USD curves.")
+    cohesive_as_curves: Bool = Field(
+        default=False,
+        description="Write the intact cohesive elements of the crack tips (nodal fracture) as USD curves.",
+    )
     checkpoint_every: Float = Field(
         default=0.0, ge=0, description="Checkpoint interval in simulated time [s]; 0 = only at the end."
     )
@@ -1183,6 +1267,7 @@ class Scene(_Model):
     )
     loads: list[Load] = Field(default_factory=list, description="Loads on the mesh.")
     boundaries: list[Boundary] = Field(default_factory=list, description="Boundary conditions of the mesh.")
+    fracture: Fracture = Field(default_factory=Fracture, description="Nodal fracture of the rock mesh.")
     output: Output = Field(default_factory=Output, description="Output settings.")
     capacity: Capacity = Field(default_factory=Capacity, description="Initial buffer capacities.")
     _source: str | None = PrivateAttr(default=None)
@@ -1336,6 +1421,10 @@ class Scene(_Model):
                 tets += volume / _regular_tet_volume(mesh.h_opening)
             nodes = tets / 4.0
             key = "mesh.h"
+        elif isinstance(mesh, CylinderMesh | EllipsoidMesh):
+            tets = mesh.volume() / _regular_tet_volume(mesh.h)
+            nodes = tets / 4.0
+            key = "mesh.h"
         if tets:
             contributions += [(key, "tets", tets), (key, "nodes", nodes)]
         surfaces = self._joint_surface_problem()
@@ -1391,11 +1480,47 @@ class Scene(_Model):
             f"{MAX_JOINT_SURFACES}: make the spacing larger compared with the model ({diagonal:.3g} m across)"
         )
 
+    def mesh_material_names(self) -> list[str] | None:
+        """Materials the mesh's tets may take, known before it is built (None for a mesh file with neither
+        ``material`` nor ``material_map``: its group names, read at build)."""
+        mesh = self.mesh
+        if mesh is None:
+            return []
+        if mesh.kind == "file":
+            if mesh.material is not None:
+                return [mesh.material]
+            return list(dict.fromkeys(mesh.material_map.values())) or None
+        names = [mesh.material]
+        if mesh.kind == "geology":
+            names += [layer.material for layer in mesh.layers]
+        return list(dict.fromkeys(names))
+
+    def fracture_material_problems(self, names: list[str]) -> list[tuple[str, str]]:
+        """``(key path, message)`` for each of the named (defined) materials that nodal fracture cannot split: one
+        without ``tensile_strength`` T_f or ``fracture_energy`` Γ (the split criterion and eq. 10's δ_c need both)."""
+        problems = []
+        for name in names:
+            material = self.materials.get(name)
+            if material is None:
+                continue  # an unknown name is reported by the reference checks
+            for key in ("tensile_strength", "fracture_energy"):
+                if getattr(material, key) is None:
+                    problems.append(
+                        (
+                            f"materials.{_format_key(name)}.{key}",
+                            "required: [fracture] is enabled and the mesh is made of this material "
+                            "(allowed: a number > 0)",
+                        )
+                    )
+        return problems
+
     def face_set_names(self) -> list[str] | None:
         """Face set names the mesh is known to have before it is built (None for a mesh file: read at build)."""
         mesh = self.mesh
         if mesh is None or mesh.kind == "file":
             return None
+        if mesh.kind in ("cylinder", "ellipsoid"):
+            return [SURFACE_FACE_NAME]
         names = list(BOX_FACE_NAMES)
         if mesh.kind == "geology" and mesh.openings:
             names.append(OPENING_FACE_NAME)
@@ -1408,9 +1533,15 @@ class Scene(_Model):
             for section, entries in (("loads", self.loads), ("boundaries", self.boundaries)):
                 if entries:
                     problems.append((section, "needs a [mesh] to act on"))
+            if self.fracture.enabled:
+                problems.append(("fracture.enabled", "needs a [mesh] to split (nodal fracture acts on tets)"))
+            if self.fracture.seed_cracks:
+                problems.append(("fracture.seed_cracks", "needs a [mesh] to crack"))
             return problems
         materials = self.material_names()
-        if mesh.kind in ("box", "geology"):
+        if self.fracture.enabled:
+            problems += self.fracture_material_problems(self.mesh_material_names() or [])
+        if mesh.kind in ("box", "geology", "cylinder", "ellipsoid"):
             check("mesh.material", mesh.material, materials, "material")
         if mesh.kind == "file":
             if mesh.material is not None:

@@ -220,7 +220,46 @@ def finalize_scene(scene: Scene, b: ModelBuilder, device: wp.context.DeviceLike 
     # Coincident bonded spheres (the more specific error, naming the source) were refused by finalize first.
     if overlapping:
         raise _overlap_error(scene, overlap)
-    return built
+    return attach_scene_fracture(scene, *built)
+
+
+def attach_scene_fracture(scene: Scene, model: Model, state: State) -> tuple[Model, State]:
+    """Turns nodal fracture on for a built scene with ``[fracture] enabled`` (else returns model and state as they
+    are): T_f, Γ and α of every material in material-id order (:func:`warpdem.fracture.attach_fracture`), the
+    check interval, the initial cohesive slots, and the nodes that may split: those inside ``[fracture].region`` at
+    their built positions (after the seed cracks' pre-split, so both copies of a crack node are judged alike).
+
+    Raises:
+        SceneError: the split pass refuses the settings (its message, naming [fracture]).
+    """
+    fracture = scene.fracture
+    if not fracture.enabled:
+        return model, state
+    from .fracture import FractureProps, attach_fracture
+
+    # A material needs both T_f and Γ to split (the mesh's were checked at load and build); one with only one of
+    # them (a sphere or wall material, say) never splits.
+    props = [
+        FractureProps(m.tensile_strength, m.fracture_energy, m.cohesive_alpha)
+        if m.tensile_strength is not None and m.fracture_energy is not None
+        else FractureProps(None, None, m.cohesive_alpha)
+        for m in scene.materials.values()
+    ]
+    may_split = None
+    if fracture.region is not None:
+        count = int(state.node_count.numpy()[0])
+        may_split = fracture.region.contains(state.node_q.numpy()[:count])
+    try:
+        return attach_fracture(
+            model,
+            state,
+            props,
+            check_interval=fracture.check_interval,
+            may_split=may_split,
+            cohesive_capacity=fracture.cohesive_capacity,
+        )
+    except ValueError as exc:
+        raise SceneError(f"{scene.source}: fracture: {exc}") from None
 
 
 def _overlap_error(scene: Scene, overlap: InitialOverlap) -> SceneError:

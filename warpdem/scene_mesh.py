@@ -1,8 +1,10 @@
 """The rock mesh of a scene's ``[mesh]`` section, and the face and node sets its loads and boundaries name.
 
 Every mesh kind becomes a :class:`warpdem.geology.GeologyMesh`: ``"box"`` through the Kuhn box mesher
-(:func:`warpdem.mesh.box_mesh`) with the six box faces picked by their outward normals, ``"geology"`` through Gmsh
-(:func:`warpdem.geology.mesh_geology`), ``"file"`` through meshio (:func:`warpdem.geology.read_mesh`). Loads and
+(:func:`warpdem.mesh.box_mesh`) with the six box faces picked by their outward normals, ``"geology"``, ``"cylinder"``
+and ``"ellipsoid"`` through Gmsh (:func:`warpdem.geology.mesh_geology`, :func:`~warpdem.geology.mesh_cylinder`,
+:func:`~warpdem.geology.mesh_ellipsoid`), ``"file"`` through meshio (:func:`warpdem.geology.read_mesh`). The
+``[[fracture.seed_cracks]]`` become joint faces of open, frictional joint sets (:func:`seed_crack_faces`). Loads and
 boundaries select faces by name (``boundary_faces`` of the mesh) or by a region (the outer faces whose three nodes
 lie inside it), and velocity loads select nodes the same way. Problems are :class:`warpdem.scene.SceneError` lines
 naming the scene and the key path.
@@ -26,11 +28,14 @@ from .geology import (
     Room,
     Shaft,
     Tunnel,
+    interior_faces,
+    mesh_cylinder,
+    mesh_ellipsoid,
     mesh_geology,
     read_mesh,
 )
 from .mesh import MeshError, boundary_faces, box_mesh
-from .scene import BoxMesh, FileMesh, GeologyMeshSpec, JointProperties, Region, Scene, SceneError
+from .scene import BoxMesh, FileMesh, GeologyMeshSpec, JointProperties, Region, Scene, SceneError, SeedCrack
 from .tets import TetProps
 
 if TYPE_CHECKING:
@@ -44,8 +49,13 @@ __all__ = [
     "joint_set_properties",
     "nodes_of_selection",
     "rock_mesh",
+    "seed_crack_faces",
     "select_faces",
 ]
+
+SEED_PLANE_TOLERANCE = 1e-9
+"""A node lies on a seed crack's plane when its distance from it is within this fraction of the mesh's bounding-box
+diagonal [-]: far above the float64 rounding of the coordinates (1e-16 relative), far below any tet's height."""
 
 # A box mesh face lies on box face ±axis when its unit normal is within this of ±e_axis (Kuhn faces are exact).
 _AXIS_COSINE = 1.0 - 1e-6
@@ -165,6 +175,11 @@ def rock_mesh(scene: Scene) -> GeologyMesh:
         if spec.kind == "geology":
             seed = spec.seed if spec.seed is not None else scene.run.seed
             return mesh_geology(_geology(spec, seed))
+        if spec.kind == "cylinder":
+            axis = np.eye(3)["xyz".index(spec.axis)]
+            return mesh_cylinder(spec.center, axis, spec.radius, spec.height, spec.h, spec.material)
+        if spec.kind == "ellipsoid":
+            return mesh_ellipsoid(spec.center, spec.radii, spec.h, spec.material)
         return _file(spec, scene)
     except (ValueError, RuntimeError, MeshError) as exc:
         if isinstance(exc, SceneError):
@@ -199,6 +214,36 @@ def select_faces(mesh: GeologyMesh, faces: str | None, region: Region | None, wh
     selected = outer[np.all(inside[outer], axis=1)]
     if len(selected) == 0:
         raise SceneError(f"{where}.region: contains no outer face of the mesh (all three nodes inside)")
+    return selected
+
+
+def seed_crack_faces(points: np.ndarray, tets: np.ndarray, crack: SeedCrack, where: str) -> np.ndarray:
+    """The interior faces of a mesh that a seed crack cuts: all three nodes on its plane (within
+    :data:`SEED_PLANE_TOLERANCE` of the mesh diagonal) and inside its region, with a tet on either side.
+
+    Args:
+        points: node positions [m], shape (N, 3). tets: node indices, shape (M, 4). crack: the seed crack.
+        where: ``"<scene>: <key path>"`` of the crack, for the error message.
+
+    Returns:
+        Node triples (sorted), shape (F, 3), int64.
+
+    Raises:
+        SceneError: no interior face of the mesh lies on the plane inside the region.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    normal = np.asarray(crack.normal, dtype=np.float64)
+    normal /= np.linalg.norm(normal)
+    diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    on_plane = np.abs((points - np.asarray(crack.point)) @ normal) <= SEED_PLANE_TOLERANCE * diagonal
+    on_crack = on_plane & crack.region.contains(points)
+    faces = interior_faces(tets)
+    selected = faces[np.all(on_crack[faces], axis=1)]
+    if len(selected) == 0:
+        raise SceneError(
+            f"{where}.region: no interior face of the mesh lies on the plane through {list(crack.point)} normal to "
+            f"{list(crack.normal)} inside the region (the plane must hold mesh faces, e.g. a box mesh's grid plane)"
+        )
     return selected
 
 
@@ -238,11 +283,12 @@ def add_scene_mesh(builder: ModelBuilder, scene: Scene) -> tuple[GeologyMesh, np
         m = scene.materials[name]
         builder.set_tet_properties(name, TetProps(m.bulk_viscosity_linear, m.bulk_viscosity_quadratic, m.mass_damping))
     per_tet = np.asarray(mesh.material_names)[mesh.tet_material]
+    if scene.fracture.enabled:
+        problems = scene.fracture_material_problems(mesh.material_names)
+        if problems:
+            raise SceneError([f"{scene.source}: {key}: {message}" for key, message in problems])
     fixed = np.ones(len(mesh.points), dtype=bool) if spec.fixed else None
-    joints = {}
-    if len(mesh.joint_faces):
-        set_ids = np.asarray(_add_joint_sets(builder, scene, mesh), dtype=np.int64)
-        joints = {"joint_faces": mesh.joint_faces, "joint_set": set_ids[mesh.joint_face_set]}
+    joints = _joint_faces(builder, scene, mesh)
     try:
         nodes = builder.add_tet_mesh(
             mesh.points, mesh.tets, per_tet, fixed_nodes=fixed, velocity=spec.velocity, **joints
@@ -279,6 +325,37 @@ def joint_set_properties(scene: Scene, mesh: GeologyMesh) -> list[JointProps]:
             JointProps(**{key: given.get(key, getattr(defaults, key)) for key in JointProperties.model_fields})
         )
     return props
+
+
+def _joint_faces(builder: ModelBuilder, scene: Scene, mesh: GeologyMesh) -> dict[str, np.ndarray]:
+    """The ``joint_faces`` and ``joint_set`` arguments of :meth:`~warpdem.builder.ModelBuilder.add_tet_mesh`: the
+    mesh's own joints (their sets added to the builder) and each seed crack's faces, a joint set of its own that is
+    open from the start (no cohesion, no tensile strength: the pre-split faces only touch, with the crack's
+    friction; stiffness and restitution from ``[joints]``). A face that is already a joint keeps its joint's set."""
+    from .joints import JointProps
+
+    faces, sets = [], []
+    if len(mesh.joint_faces):
+        set_ids = np.asarray(_add_joint_sets(builder, scene, mesh), dtype=np.int64)
+        faces.append(np.asarray(mesh.joint_faces, dtype=np.int64))
+        sets.append(set_ids[mesh.joint_face_set])
+    defaults = scene.joints
+    for k, crack in enumerate(scene.fracture.seed_cracks):
+        cracked = seed_crack_faces(mesh.points, mesh.tets, crack, f"{scene.source}: fracture.seed_cracks[{k}]")
+        props = JointProps(
+            friction=crack.friction,
+            stiffness_factor=defaults.stiffness_factor,
+            restitution=defaults.restitution,
+            shear_stiffness_ratio=defaults.shear_stiffness_ratio,
+        )
+        faces.append(cracked)
+        sets.append(np.full(len(cracked), builder.add_joint_set(props, name=f"seed_crack{k}"), dtype=np.int64))
+    if not faces:
+        return {}
+    all_faces, all_sets = np.concatenate(faces), np.concatenate(sets)
+    _, first = np.unique(np.sort(all_faces, axis=1), axis=0, return_index=True)
+    keep = np.sort(first)  # the first entry of a face listed twice: the mesh's joints come first
+    return {"joint_faces": all_faces[keep], "joint_set": all_sets[keep]}
 
 
 def _add_joint_sets(builder: ModelBuilder, scene: Scene, mesh: GeologyMesh) -> list[int]:
