@@ -56,10 +56,12 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from .compaction import Compactor
+from .coupling import compact_coupling
 from .kernels import compaction as kc
 from .kernels import conversion as kcv
 from .kernels import topology as kt
-from .model import BOND_FIELDS, NEIGHBOR_FIELDS, Model, State
+from .model import BOND_FIELDS, COUPLING_FIELDS, NEIGHBOR_FIELDS, Model, State
 from .tets import eval_tet_stresses, tet_energies
 from .topology import NodeStars, reference_face_neighbors
 
@@ -433,7 +435,9 @@ class ConversionPass:
         self.released = wp.zeros(t1, dtype=wp.float64, device=d)
         self.released_total = wp.zeros(1, dtype=wp.float64, device=d)
         self.forced = wp.zeros(t1, dtype=int, device=d)
-        self.counts = wp.zeros(2, dtype=int, device=d)  # converting tets, new bonds
+        self.couplings = wp.zeros(t1, dtype=int, device=d)
+        self.coupling_offset = wp.zeros(t1, dtype=int, device=d)
+        self.counts = wp.zeros(3, dtype=int, device=d)  # converting tets, new bonds, new couplings
         self.node_touched = wp.zeros(max(ncap, 1), dtype=int, device=d)
         self.stars = NodeStars(ncap, tcap, d)
 
@@ -441,12 +445,12 @@ class ConversionPass:
         """Whether the buffers match the model's capacities."""
         return self.tet_capacity == model.tet_capacity and self.node_capacity == model.node_capacity
 
-    def find(self, model: Model, state: State, forced: np.ndarray | None = None) -> tuple[int, int]:
+    def find(self, model: Model, state: State, forced: np.ndarray | None = None) -> tuple[int, int, int]:
         """Refresh the tet stresses, flag the converting tets (the criterion, or ``forced``: bool per tet slot),
-        scan the flags and the bonds each new sphere will own. Reads back (tets, bonds)."""
+        scan the flags, the bonds each new sphere will own and its couplings. Reads back (tets, bonds, couplings)."""
         m, s, d = model, state, self.device
         if m.tet_capacity == 0:
-            return 0, 0
+            return 0, 0, 0
         eval_tet_stresses(m, s)
         if forced is not None:
             self.forced.assign(np.asarray(forced, dtype=np.int32))
@@ -475,17 +479,26 @@ class ConversionPass:
             device=d,
         )
         wp.utils.array_scan(self.bonds, self.bond_offset, inclusive=False)
-        wp.launch(kcv.scan_total_kernel, dim=1, inputs=[self.flag, self.offset], outputs=[self.counts[0:1]], device=d)
         wp.launch(
-            kcv.scan_total_kernel, dim=1, inputs=[self.bonds, self.bond_offset], outputs=[self.counts[1:2]], device=d
+            kcv.count_conversion_couplings_kernel,
+            dim=m.tet_capacity,
+            inputs=[m.tet_nodes, m.ref_tet_face_nbr, s.tet_count, s.tet_active, self.flag],
+            outputs=[self.couplings],
+            device=d,
         )
-        tets, bonds = (int(v) for v in self.counts.numpy())
-        return tets, bonds
+        wp.utils.array_scan(self.couplings, self.coupling_offset, inclusive=False)
+        for k, (items, offset) in enumerate(
+            ((self.flag, self.offset), (self.bonds, self.bond_offset), (self.couplings, self.coupling_offset))
+        ):
+            wp.launch(kcv.scan_total_kernel, dim=1, inputs=[items, offset], outputs=[self.counts[k : k + 1]], device=d)
+        tets, bonds, couplings = (int(v) for v in self.counts.numpy())
+        return tets, bonds, couplings
 
-    def convert(self, model: Model, state: State) -> None:
-        """Carry out the flagged conversions in place (after :meth:`find`; the particle and bond capacities must hold
-        the new spheres and bonds): spheres, tets deactivated, bonds appended and re-sorted, nodes re-lumped.
-        Launches only."""
+    def convert(self, model: Model, state: State, coupling_compactor: Compactor | None = None) -> None:
+        """Carry out the flagged conversions in place (after :meth:`find`; the particle, bond and coupling
+        capacities must hold what it found): spheres, tets deactivated, bonds appended and re-sorted, nodes re-lumped,
+        the couplings of converted tets released and the new spheres' couplings written (with
+        ``coupling_compactor``, a Compactor of ``model.coupling_capacity`` slots). Reads back the coupling count."""
         m, s, d = model, state, self.device
         energies = tet_energies(m, s)  # before the tets are deactivated
         wp.copy(self.was_sphere, s.tet_sphere)
@@ -567,6 +580,37 @@ class ConversionPass:
             outputs=[m.node_mass, m.node_inv_mass, m.node_damping, m.node_motion, s.node_qd],
             device=d,
         )
+        if m.coupling_capacity and coupling_compactor is not None:
+            # Couplings to the tets that converted now are released (their spheres bond instead), then the new
+            # spheres are tied to their still-continuous face neighbours (at the re-lumped node masses).
+            compact_coupling(m, s, coupling_compactor)
+            wp.launch(
+                kcv.write_conversion_couplings_kernel,
+                dim=m.tet_capacity,
+                inputs=[
+                    m.node_ref_q,
+                    m.tet_nodes,
+                    m.ref_tet_face_nbr,
+                    m.tet_material,
+                    m.conversion_material_table,
+                    m.particle_mass,
+                    m.node_mass,
+                    s.tet_count,
+                    s.coupling_count,
+                    s.particle_q,
+                    s.node_u,
+                    s.node_q,
+                    s.tet_active,
+                    s.tet_sphere,
+                    self.flag,
+                    self.coupling_offset,
+                ],
+                outputs=[getattr(s, name) for name in COUPLING_FIELDS],
+                device=d,
+            )
+            wp.launch(
+                kcv.add_coupling_count_kernel, dim=1, inputs=[self.counts[2:3]], outputs=[s.coupling_count], device=d
+            )
         wp.utils.array_sum(self.released, out=self.released_total)
         wp.launch(
             kcv.add_released_kernel,

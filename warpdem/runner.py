@@ -73,7 +73,7 @@ def _restore_loads(model: Model, arrays: dict[str, np.ndarray]) -> Model:
     return model
 
 
-NOT_PER_PARTICLE = ("node_", "tet_", "face_", "star_", "joint_", "cohesive_", "ref_", "bond_")
+NOT_PER_PARTICLE = ("node_", "tet_", "face_", "star_", "joint_", "cohesive_", "ref_", "bond_", "coupling_")
 """Array names that are never sized by the particle capacity (nodes, tets, faces, joints, cohesive elements and bonds
 grow by their own capacities, which may equal it by chance)."""
 
@@ -306,7 +306,7 @@ def restore_checkpoint(
             expected = slots["neighbor slots"]
         elif (
             like.shape
-            and like.shape[0] == template.particle_q.shape[0]
+            and like.shape[0] == template.particle_q.shape[0] > 1  # capacity 1 (no spheres yet): counters look alike
             and key.startswith(("state/", "model/"))
             and not key.split("/", 1)[1].startswith(NOT_PER_PARTICLE)
         ):
