@@ -625,3 +625,29 @@ def add_coupling_count_kernel(
 ):
     _ = wp.tid()  # one thread: the pass's new couplings join the live ones
     coupling_count[0] = coupling_count[0] + total[0]
+
+
+@wp.kernel
+def drop_converted_faces_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    # Model out:
+    face_nodes: wp.array(dtype=wp.vec3i),
+    face_edge_a: wp.array(dtype=wp.vec3),
+    face_edge_b: wp.array(dtype=wp.vec3),
+):
+    f = wp.tid()  # one thread per loaded face: it stays while an active tet holds its three nodes
+    n = face_nodes[f]
+    if n[0] != n[1]:
+        start = star_offset[n[0]]
+        for e in range(start, start + star_count[n[0]]):
+            if shares_face(tet_nodes[star_tets[e]], n):
+                return
+    # Its tet converted: the face is dropped, collapsed onto its first node with zero reference edges (zero area, so
+    # no force and no work; a collapsed triple, as a checkpoint keeps it, is recognised as dropped).
+    face_nodes[f] = wp.vec3i(n[0], n[0], n[0])
+    face_edge_a[f] = wp.vec3(0.0)
+    face_edge_b[f] = wp.vec3(0.0)

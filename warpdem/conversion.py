@@ -34,16 +34,21 @@ Rules of the conversion pass (others rely on them):
   two tets still share the face's three nodes, so never across a crack or a joint): normal stiffness k_n = α E A /
   L, A the shared face's area, L the distance of the centres, k_s = β k_n, tensile strength α T_f, shear strength α
   τ_f (α T_f without τ_f) (:func:`bond_calibration` derives α and β), no dashpot, born relaxed (rest length = L).
+- Couplings (warpdem.coupling, CIMNE eqs. 8–9): each new sphere is tied to every still-active face neighbour of its
+  tet (same adjacency rule as the bonds) at its current barycentric coordinates there (born relaxed), with
+  warpdem.coupling.coupling_stiffness's rule k = k_n min(1, 2 / (1 + m_s Σ N_a² / m_a)), k_n the bond the two would
+  share; couplings to the tets converting now are released first (compact_coupling).
 - Energy: ``energy_released_conversion`` += strain energy + kinetic energy of the tet's nodes' shares − the sphere's
-  translational and spin energy (the bonds are born relaxed, so they hold nothing); couplings, where they exist, add
-  their birth energy to the books through ``coupling_energy``. The books (EnergyBalance) carry it as the line
-  ``released_conversion``.
+  translational and spin energy (bonds and couplings are born relaxed, so they hold nothing), + the springs of the
+  released couplings, + the change of Verlet's shadow term over the pass (Simulation: the scheme conserves kinetic −
+  shadow, and the pass changes the forces and masses without work). A pass therefore closes the books
+  (EnergyBalance, line ``released_conversion``) exactly, to the float64 rounding of the sums.
 - After a pass (Simulation): boundary faces rebuilt on the device (the faces of converted tets' neighbours become
-  contact faces for the spheres), the face ids of the contact state carried over, pressure loads on faces of
-  converted tets kept on their nodes (a pressure face is a triple of nodes; where those nodes lost all their tets
-  they are held and the load does no work: the blast pressure stops acting where the material turned to spheres),
-  the stages set up again (sphere contact comes alive after the first conversion) and the forces re-evaluated at
-  dt = 0.
+  contact faces for the spheres), the face ids of the contact state carried over, pressure and dashpot faces of
+  converted tets dropped (:func:`drop_converted_load_faces`: collapsed to zero area, so the blast pressure stops
+  acting where the material turned into spheres — the spheres carry no face load — and the loads' work stops with
+  it; a face that a crack only split stays, on the daughters of its tet's side), the stages set up again (sphere
+  contact comes alive after the first conversion) and the forces re-evaluated at dt = 0.
 """
 
 from __future__ import annotations
@@ -61,7 +66,7 @@ from .coupling import compact_coupling
 from .kernels import compaction as kc
 from .kernels import conversion as kcv
 from .kernels import topology as kt
-from .model import BOND_FIELDS, COUPLING_FIELDS, NEIGHBOR_FIELDS, Model, State
+from .model import BOND_FIELDS, COUPLING_FIELDS, NEIGHBOR_FIELDS, Model, State, conversion_state
 from .tets import eval_tet_stresses, tet_energies
 from .topology import NodeStars, reference_face_neighbors
 
@@ -296,8 +301,6 @@ def attach_conversion(
         if model.ref_tet_face_nbr is not None
         else reference_face_neighbors(model, state),
     )
-    from .model import conversion_state
-
     return model, dataclasses.replace(state, **conversion_state(model))
 
 
@@ -641,3 +644,22 @@ def sort_bonds(model: Model, state: State) -> None:
     wp.launch(kcv.inverse_order_kernel, dim=n, inputs=[s.bond_count, order], outputs=[old_to_new], device=d)
     if s.nbr_bond.shape[0]:
         wp.launch(kc.remap_indices_kernel, dim=s.nbr_bond.shape[0], inputs=[old_to_new], outputs=[s.nbr_bond], device=d)
+
+
+def drop_converted_load_faces(model: Model) -> None:
+    """Drop the pressure and dashpot faces of converted tets (those no active tet holds any more): each is collapsed
+    to zero area on its first node, so the load stops acting where the material turned into spheres (the spheres
+    carry no face load). Reads the model's star CSR (valid after a surface rebuild). Launches only; idempotent."""
+    loads = model.loads
+    if loads is None or model.star_offset is None:
+        return
+    sets = list(loads.pressure.values()) + ([loads.dashpots] if loads.dashpots is not None else [])
+    for faces in sets:
+        if faces.count:
+            wp.launch(
+                kcv.drop_converted_faces_kernel,
+                dim=faces.count,
+                inputs=[model.tet_nodes, model.star_offset, model.star_count, model.star_tets],
+                outputs=[faces.nodes, faces.edge_a, faces.edge_b],
+                device=model.device,
+            )

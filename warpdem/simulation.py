@@ -36,7 +36,14 @@ from .bonds import bond_energy, compact_bonds, eval_bonds
 from .cohesive import cohesive_energy, compact_cohesive, eval_cohesive, regrow_cohesive
 from .compaction import Compactor
 from .contact import NeighborList, contact_energy, eval_contacts
-from .conversion import ConversionPass, ConversionReport, grown, regrow_bonds, regrow_particles
+from .conversion import (
+    ConversionPass,
+    ConversionReport,
+    drop_converted_load_faces,
+    grown,
+    regrow_bonds,
+    regrow_particles,
+)
 from .coupling import coupling_energy, eval_coupling, regrow_coupling
 from .fem_contact import (
     FemContact,
@@ -205,6 +212,10 @@ class Simulation:
         self.time = time
         self.growths = 0
         self.guard = StabilityGuard(model.device)
+        if model.tet_may_convert is not None:
+            # A restart: the checkpoint keeps dropped load faces as collapsed node triples; their edges come from the
+            # scene and are zeroed again (a no-op at t = 0).
+            drop_converted_load_faces(model)
         self._setup()
         if not primed:
             self.evaluate_forces()
@@ -608,6 +619,7 @@ class Simulation:
             model, slot_to_face = rebuild_surface(m, s)
             remap_face_ids(model, s, self._face_slot, old_faces, slot_to_face)
             self.model = model
+            drop_converted_load_faces(model)
         self._setup()
         self.evaluate_forces()
         while self._grow_if_overflowed(self.state):
