@@ -711,6 +711,126 @@ FRACTURE_BAD_SCENES = [
 BAD_SCENES += FRACTURE_BAD_SCENES
 
 
+CONVERTING = edit("poisson_ratio = 0.25", "poisson_ratio = 0.25\ntresca_strength = 1e7", base=MESH_BASE)
+CONVERSION_ON = CONVERTING + "\n[conversion]\nenabled = true\n"
+ARCH = (
+    MINIMAL + '\n[mesh]\nkind = "arch"\ncenter = [0, 0, 0]\nradius = 10.0\nthickness = 2.0\nheight = 4.0\n'
+    'angle = 60.0\ndivisions = [6, 2, 4]\nmaterial = "rock"\n'
+)
+
+CONVERSION_BAD_SCENES = [
+    (
+        "conversion_without_mesh",
+        MINIMAL + "\n[conversion]\nenabled = true\n",
+        "conversion.enabled",
+        "needs a [mesh] to convert",
+    ),
+    (
+        "conversion_unknown_criterion",
+        CONVERSION_ON + 'criterion = "von_mises"\n',
+        "conversion.criterion",
+        "unknown value 'von_mises'; allowed: 'tresca', 'rankine', 'mohr_coulomb'",
+    ),
+    ("conversion_fraction_zero", CONVERSION_ON + "fraction = 0.0\n", "conversion.fraction", "greater than 0"),
+    ("conversion_fraction_above_one", CONVERSION_ON + "fraction = 1.5\n", "conversion.fraction", "less than or equal"),
+    (
+        "conversion_check_interval_zero",
+        CONVERSION_ON + "check_interval = 0\n",
+        "conversion.check_interval",
+        "greater than or equal to 1",
+    ),
+    (
+        "conversion_spheres_per_tet_zero",
+        CONVERSION_ON + "spheres_per_tet = 0\n",
+        "conversion.spheres_per_tet",
+        "greater than or equal to 1",
+    ),
+    ("conversion_unknown_key", CONVERSION_ON + "interval = 3\n", "conversion.interval", "unknown key"),
+    ("conversion_bad_part_name", CONVERSION_ON + 'part = "1st"\n', "conversion.part", "invalid name"),
+    (
+        "conversion_region_empty",
+        CONVERSION_ON + "region = {}\n",
+        "conversion.region",
+        "needs exactly one of 'box' or 'cylinder'",
+    ),
+    (
+        "start_as_spheres_without_conversion",
+        CONVERTING + "\n[conversion]\nstart_as_spheres = { box = { lo = [0, 0, 0], hi = [1, 1, 1] } }\n",
+        "conversion.start_as_spheres",
+        "needs conversion.enabled = true",
+    ),
+    (
+        "tresca_material_without_tresca_strength",
+        MESH_BASE + "\n[conversion]\nenabled = true\n",
+        "materials.rock.tresca_strength",
+        "required: [conversion] is enabled with criterion 'tresca'",
+    ),
+    (
+        "rankine_material_without_tensile_strength",
+        CONVERSION_ON + 'criterion = "rankine"\n',
+        "materials.rock.tensile_strength",
+        "required: [conversion] is enabled with criterion 'rankine'",
+    ),
+    (
+        "mohr_coulomb_material_without_cohesion",
+        CONVERSION_ON + 'criterion = "mohr_coulomb"\n',
+        "materials.rock.cohesion",
+        "required: [conversion] is enabled with criterion 'mohr_coulomb'",
+    ),
+    (
+        "negative_cohesion",
+        edit("tresca_strength = 1e7", "tresca_strength = 1e7\ncohesion = -1.0", base=CONVERSION_ON),
+        "materials.rock.cohesion",
+        "greater than 0",
+    ),
+    (
+        "friction_angle_90",
+        edit("tresca_strength = 1e7", "tresca_strength = 1e7\nfriction_angle = 90.0", base=CONVERSION_ON),
+        "materials.rock.friction_angle",
+        "less than 90",
+    ),
+    ("resolution_zero", edit("end_time = 0.1", "end_time = 0.1\nresolution = 0.0"), "run.resolution", "greater than 0"),
+    (
+        "resolution_string",
+        edit("end_time = 0.1", 'end_time = 0.1\nresolution = "high"'),
+        "run.resolution",
+        "valid number",
+    ),
+    (
+        "material_region_unknown_material",
+        CONVERTING + '\n[[material_regions]]\nregion = { box = { lo = [0, 0, 0], hi = [1, 1, 1] } }\nmaterial = "x"\n',
+        "material_regions[0].material",
+        "unknown material 'x'",
+    ),
+    (
+        "material_regions_without_mesh",
+        MINIMAL + '\n[[material_regions]]\nregion = { box = { lo = [0, 0, 0], hi = [1, 1, 1] } }\nmaterial = "rock"\n',
+        "material_regions",
+        "needs a [mesh]",
+    ),
+    (
+        "material_region_without_strength",
+        edit(
+            "[[loads]]",
+            "[materials.soil]\ndensity = 2000.0\nyoungs_modulus = 1e9\npoisson_ratio = 0.3\n\n[[loads]]",
+            base=CONVERSION_ON,
+        )
+        + '\n[[material_regions]]\nregion = { box = { lo = [0, 0, 0], hi = [1, 1, 1] } }\nmaterial = "soil"\n',
+        "materials.soil.tresca_strength",
+        "required: [conversion] is enabled",
+    ),
+    ("arch_too_thick", ARCH.replace("thickness = 2.0", "thickness = 10.0"), "mesh", "radius must exceed the thickness"),
+    ("arch_angle_above_180", ARCH.replace("angle = 60.0", "angle = 200.0"), "mesh.angle", "less than or equal to 180"),
+    (
+        "arch_unknown_face_set",
+        ARCH + '\n[[boundaries]]\nfaces = "z-"\nkind = "fixed"\n',
+        "boundaries[0].faces",
+        "unknown face set 'z-'; the arch mesh has: 'left', 'right', 'downstream', 'upstream', 'base', 'crest'",
+    ),
+]
+BAD_SCENES += CONVERSION_BAD_SCENES
+
+
 @pytest.mark.parametrize(("text", "key_path", "phrase"), [c[1:] for c in BAD_SCENES], ids=[c[0] for c in BAD_SCENES])
 def test_bad_scene_reports_one_line(tmp_path: Path, text: str, key_path: str | None, phrase: str) -> None:
     path = write(tmp_path, text, "bad_scene.toml")
@@ -1051,3 +1171,54 @@ def test_seed_crack_faces_on_a_box_mesh(tmp_path: Path) -> None:
     off = crack.model_copy(update={"point": (0.5, 0.5, 2.1)})
     with pytest.raises(SceneError, match=r"fracture.seed_cracks\[0\].region: no interior face"):
         seed_crack_faces(points, tets, off, "scene: fracture.seed_cracks[0]")
+
+
+def test_conversion_keys_default_off(tmp_path: Path) -> None:
+    scene = load_scene(write(tmp_path, MESH_BASE, "column.toml"))
+    rock = scene.materials["rock"]
+    assert (rock.cohesion, rock.friction_angle) == (None, 30.0)
+    c = scene.conversion
+    assert (c.enabled, c.criterion, c.fraction, c.check_interval, c.spheres_per_tet, c.part) == (
+        False,
+        "tresca",
+        0.9,
+        1,
+        1,
+        "converted",
+    )
+    assert (c.region, c.start_as_spheres) == (None, None)
+    assert scene.run.resolution == 1.0 and scene.material_regions == []
+    assert scene.scaled_mesh() is scene.mesh  # resolution 1: the mesh as written
+
+
+def test_conversion_keys_values(tmp_path: Path) -> None:
+    text = edit("tresca_strength = 1e7", "tresca_strength = 1e7\ncohesion = 5e6\nfriction_angle = 35.0", CONVERSION_ON)
+    text += (
+        'criterion = "mohr_coulomb"\nfraction = 0.8\ncheck_interval = 10\nspheres_per_tet = 1\npart = "debris"\n'
+        "region = { box = { lo = [0, 0, 1], hi = [1, 1, 3] } }\n"
+        "start_as_spheres = { cylinder = { center = [0.5, 0.5, 3.0], radius = 0.3, height = 1.0 } }\n"
+    )
+    scene = load_scene(write(tmp_path, text))
+    rock = scene.materials["rock"]
+    assert (rock.tresca_strength, rock.cohesion, rock.friction_angle) == (1e7, 5e6, 35.0)
+    c = scene.conversion
+    assert (c.enabled, c.criterion, c.fraction, c.check_interval, c.part) == (True, "mohr_coulomb", 0.8, 10, "debris")
+    assert c.region is not None and c.region.box.hi == (1.0, 1.0, 3.0)
+    assert c.start_as_spheres is not None and c.start_as_spheres.cylinder.radius == 0.3
+
+
+def test_resolution_scales_the_mesh(tmp_path: Path) -> None:
+    """run.resolution k: box and arch divisions × k (rounded, at least 1), Gmsh edge lengths h / k; the size estimate
+    grows with it (6 tets per cell: k³ as many)."""
+    scene = load_scene(write(tmp_path, edit("end_time = 0.01", "end_time = 0.01\nresolution = 2.5", MESH_BASE)))
+    assert scene.scaled_mesh().divisions == (5, 5, 20)  # (2, 2, 8) × 2.5
+    assert scene.mesh.divisions == (2, 2, 8)  # the scene itself is unchanged
+    coarse = load_scene(write(tmp_path, edit("end_time = 0.01", "end_time = 0.01\nresolution = 0.1", MESH_BASE)))
+    assert coarse.scaled_mesh().divisions == (1, 1, 1)
+    text = MINIMAL.replace("end_time = 0.1", "end_time = 0.1\nresolution = 2.0") + (
+        '\n[mesh]\nkind = "cylinder"\ncenter = [0, 0, 0]\nradius = 0.05\nheight = 0.02\nh = 0.01\nmaterial = "rock"\n'
+    )
+    assert load_scene(write(tmp_path, text)).scaled_mesh().h == 0.005
+    arch = load_scene(write(tmp_path, ARCH.replace("end_time = 0.1", "end_time = 0.1\nresolution = 2.0")))
+    assert arch.scaled_mesh().divisions == (12, 4, 8)
+    assert arch.face_set_names() == ["left", "right", "downstream", "upstream", "base", "crest"]

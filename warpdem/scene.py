@@ -64,6 +64,7 @@ __all__ = [
     "RESERVED_SECTIONS",
     "SCHEMA_VERSION",
     "AirblastLoad",
+    "ArchMesh",
     "BlastHistory",
     "BondRegion",
     "Boundary",
@@ -72,6 +73,7 @@ __all__ = [
     "BoxWall",
     "Capacity",
     "ContactSettings",
+    "Conversion",
     "Cylinder",
     "FileMesh",
     "FileSource",
@@ -86,6 +88,7 @@ __all__ = [
     "Layer",
     "Load",
     "Material",
+    "MaterialRegion",
     "Mesh",
     "Opening",
     "Output",
@@ -114,7 +117,7 @@ __all__ = [
 SCHEMA_VERSION = 1
 """The only scene schema version this release reads."""
 
-RESERVED_SECTIONS = ("tets", "fracture", "conversion")
+RESERVED_SECTIONS = ("tets",)
 """Top-level sections planned for later schema versions; named explicitly so users are not told 'unknown key'."""
 
 _NAME_PATTERN = re.compile(r"[A-Za-z_][A-Za-z0-9_-]*")
@@ -296,6 +299,13 @@ class Run(_Model):
         description="Run an explicit dt above the critical time step (refused otherwise); the run-time guard still "
         "stops a run that blows up.",
     )
+    resolution: Float = Field(
+        default=1.0,
+        gt=0,
+        le=1000,
+        description="Mesh refinement knob: tet edge lengths h (and h_opening) are divided by it, box and arch "
+        "divisions multiplied by it (Scene.scaled_mesh); 1 is sized for two CPU cores, a GPU takes 4 or more [-].",
+    )
 
     @field_validator("device")
     @classmethod
@@ -349,6 +359,12 @@ class Material(_Model):
     )
     tresca_strength: Float | None = Field(
         default=None, gt=0, description="Tresca (shear) strength for the FEM-to-DEM conversion (CIMNE §5) [Pa]."
+    )
+    cohesion: Float | None = Field(
+        default=None, gt=0, description="Cohesion c of the Mohr–Coulomb conversion criterion [Pa]."
+    )
+    friction_angle: Float = Field(
+        default=30.0, ge=0, lt=90, description="Friction angle φ of the Mohr–Coulomb conversion criterion [deg]."
     )
     bulk_viscosity_linear: Float = Field(
         default=0.06, ge=0, description="Linear bulk-viscosity coefficient c_lin of the tets (shock capture) [-]."
@@ -949,7 +965,49 @@ class EllipsoidMesh(_Model):
         return 4.0 / 3.0 * math.pi * math.prod(self.radii)
 
 
-Mesh = Annotated[BoxMesh | GeologyMeshSpec | FileMesh | CylinderMesh | EllipsoidMesh, Field(discriminator="kind")]
+ARCH_FACE_NAMES = ("left", "right", "downstream", "upstream", "base", "crest")
+"""Face sets of an arch mesh: the two abutment ends (angle − and +), the inner (concave) and outer (convex) faces, the
+base and the crest."""
+
+
+class ArchMesh(_Model):
+    """A curved wall (an arch dam section): a structured tet mesh of an annular sector about a vertical axis, each
+    cell split into 6 Kuhn tets. Curved in plan; with ``bulge`` also in section (a double-curvature dam)."""
+
+    kind: Literal["arch"] = Field(description="Mesh kind.")
+    center: Vec3 = Field(description="Point of the vertical axis at the base [m]; the arch opens towards -y.")
+    radius: Float = Field(gt=0, description="Radius of the outer (upstream, convex) face at the base [m].")
+    thickness: Float = Field(gt=0, description="Radial thickness at the base [m].")
+    crest_thickness: Float | None = Field(
+        default=None, gt=0, description="Radial thickness at the crest [m]; default the base thickness."
+    )
+    height: Float = Field(gt=0, description="Height from the base to the crest [m].")
+    angle: Float = Field(gt=0, le=180, description="Central angle of the sector, symmetric about +y [deg].")
+    bulge: Float = Field(
+        default=0.0,
+        description="Radial offset of the section at mid-height [m] (a parabola, 0 at base and crest): the second "
+        "curvature of a double-curvature dam.",
+    )
+    divisions: tuple[PositiveInt, PositiveInt, PositiveInt] = Field(
+        description="Cells along the arc, through the thickness and up the height [-]."
+    )
+    material: Str = Field(description="Name of a material defined in [materials].")
+    fixed: Bool = _fixed_field()
+    velocity: Vec3 = _velocity_field()
+
+    @model_validator(mode="after")
+    def _inner_radius(self) -> ArchMesh:
+        thickest = max(self.thickness, self.crest_thickness or self.thickness)
+        if not self.radius - thickest - max(0.0, -self.bulge) > 0.0:
+            raise ValueError(
+                f"radius must exceed the thickness (and any inward bulge): radius {self.radius}, thickness {thickest}"
+            )
+        return self
+
+
+Mesh = Annotated[
+    BoxMesh | GeologyMeshSpec | FileMesh | CylinderMesh | EllipsoidMesh | ArchMesh, Field(discriminator="kind")
+]
 """The ``[mesh]`` section, selected by ``kind``."""
 
 
@@ -1160,6 +1218,49 @@ class Fracture(_Model):
 
 
 # ----------------------------------------------------------------------------------------------------------------------
+# FEM→DEM conversion
+# ----------------------------------------------------------------------------------------------------------------------
+
+CONVERSION_STRENGTH = {"tresca": "tresca_strength", "rankine": "tensile_strength", "mohr_coulomb": "cohesion"}
+"""The material key each conversion criterion reads (Tresca τ_f, Rankine T_f, Mohr–Coulomb c)."""
+
+
+class Conversion(_Model):
+    """Adaptive FEM→DEM conversion (CIMNE §4–5): tets whose stress reaches a fraction of their material's strength
+    turn into bonded spheres, penalty-coupled to the intact tets around them."""
+
+    enabled: Bool = Field(
+        default=False,
+        description="Run the conversion pass (every mesh material needs the strength its criterion reads).",
+    )
+    criterion: Literal["tresca", "rankine", "mohr_coulomb"] = Field(
+        default="tresca",
+        description="'tresca' ((σ1 − σ3)/2 ≥ f τ_f), 'rankine' (σ1 ≥ f T_f) or 'mohr_coulomb' (c and φ).",
+    )
+    fraction: Float = Field(
+        default=0.9, gt=0, le=1, description="Fraction f of the strength at which a tet converts (CIMNE: 90 %) [-]."
+    )
+    check_interval: Int = Field(default=1, ge=1, description="Steps between conversion passes [-].")
+    region: Region | None = Field(
+        default=None, description="Only tets whose centroid is inside may convert; omitted: every tet."
+    )
+    start_as_spheres: Region | None = Field(
+        default=None, description="Tets whose centroid is inside are converted at t = 0, whatever their stress."
+    )
+    spheres_per_tet: Int = Field(default=1, ge=1, description="Spheres spawned per converted tet [-].")
+    part: Name = Field(
+        default="converted", description="Part of the spawned spheres (created if [parts] does not name it)."
+    )
+
+
+class MaterialRegion(_Model):
+    """Tets of the mesh whose centroid lies in a region take another material (a second body, a lining)."""
+
+    region: Region = Field(description="Tets whose centroid is inside take the material; later entries win.")
+    material: Str = Field(description="Name of a material defined in [materials].")
+
+
+# ----------------------------------------------------------------------------------------------------------------------
 # Output and capacity
 # ----------------------------------------------------------------------------------------------------------------------
 
@@ -1271,6 +1372,10 @@ class Scene(_Model):
     loads: list[Load] = Field(default_factory=list, description="Loads on the mesh.")
     boundaries: list[Boundary] = Field(default_factory=list, description="Boundary conditions of the mesh.")
     fracture: Fracture = Field(default_factory=Fracture, description="Nodal fracture of the rock mesh.")
+    conversion: Conversion = Field(default_factory=Conversion, description="Adaptive FEM→DEM conversion.")
+    material_regions: list[MaterialRegion] = Field(
+        default_factory=list, description="Regions of the mesh made of another material than the mesh's."
+    )
     output: Output = Field(default_factory=Output, description="Output settings.")
     capacity: Capacity = Field(default_factory=Capacity, description="Initial buffer capacities.")
     _source: str | None = PrivateAttr(default=None)
@@ -1411,9 +1516,9 @@ class Scene(_Model):
         contributions.append(
             ("capacity.neighbors_per_particle", "neighbor slots", spheres * self.capacity.neighbors_per_particle)
         )
-        mesh = self.mesh
+        mesh = self.scaled_mesh()
         tets = nodes = 0.0
-        if isinstance(mesh, BoxMesh):
+        if isinstance(mesh, BoxMesh | ArchMesh):
             cells = math.prod(float(d) for d in mesh.divisions)
             tets, nodes = 6.0 * cells, math.prod(float(d) + 1.0 for d in mesh.divisions)
             key = "mesh.divisions"
@@ -1459,6 +1564,19 @@ class Scene(_Model):
         worst = max(contributions, key=blame)
         return [(worst[0], problem)]
 
+    def scaled_mesh(self) -> Mesh | None:
+        """The ``[mesh]`` at ``run.resolution``: edge lengths h and h_opening divided by it, box and arch divisions
+        multiplied by it (rounded, at least 1); a mesh file as it is. Resolution 1 gives the mesh as written."""
+        mesh, k = self.mesh, self.run.resolution
+        if mesh is None or k == 1.0 or mesh.kind == "file":
+            return mesh
+        if mesh.kind in ("box", "arch"):
+            return mesh.model_copy(update={"divisions": tuple(max(1, round(d * k)) for d in mesh.divisions)})
+        update = {"h": mesh.h / k}
+        if mesh.kind == "geology" and mesh.h_opening is not None:
+            update["h_opening"] = mesh.h_opening / k
+        return mesh.model_copy(update=update)
+
     def _joint_surface_problem(self) -> tuple[str, str] | None:
         """Refuses joint sets that would hand Gmsh more than MAX_JOINT_SURFACES planes and discs to fragment the model
         by (a spacing far below the model size): the count is the model's diagonal / spacing + 1 planes per set, times
@@ -1496,6 +1614,7 @@ class Scene(_Model):
         names = [mesh.material]
         if mesh.kind == "geology":
             names += [layer.material for layer in mesh.layers]
+        names += [zone.material for zone in self.material_regions]
         return list(dict.fromkeys(names))
 
     def fracture_material_problems(self, names: list[str]) -> list[tuple[str, str]]:
@@ -1517,6 +1636,23 @@ class Scene(_Model):
                     )
         return problems
 
+    def conversion_material_problems(self, names: list[str]) -> list[tuple[str, str]]:
+        """``(key path, message)`` for each of the named (defined) materials that lacks the strength the conversion
+        criterion reads (:data:`CONVERSION_STRENGTH`), when ``[conversion]`` is enabled."""
+        if not self.conversion.enabled:
+            return []
+        criterion = self.conversion.criterion
+        key = CONVERSION_STRENGTH[criterion]
+        return [
+            (
+                f"materials.{_format_key(name)}.{key}",
+                f"required: [conversion] is enabled with criterion {criterion!r} and the mesh is made of this "
+                "material (allowed: a number > 0)",
+            )
+            for name in names
+            if name in self.materials and getattr(self.materials[name], key) is None
+        ]
+
     def face_set_names(self) -> list[str] | None:
         """Face set names the mesh is known to have before it is built (None for a mesh file: read at build)."""
         mesh = self.mesh
@@ -1524,6 +1660,8 @@ class Scene(_Model):
             return None
         if mesh.kind in ("cylinder", "ellipsoid"):
             return [SURFACE_FACE_NAME]
+        if mesh.kind == "arch":
+            return list(ARCH_FACE_NAMES)
         names = list(BOX_FACE_NAMES)
         if mesh.kind == "geology" and mesh.openings:
             names.append(OPENING_FACE_NAME)
@@ -1531,6 +1669,8 @@ class Scene(_Model):
 
     def _mesh_problems(self, check: Any) -> list[tuple[str, str]]:
         problems: list[tuple[str, str]] = []
+        if self.conversion.start_as_spheres is not None and not self.conversion.enabled:
+            problems.append(("conversion.start_as_spheres", "needs conversion.enabled = true"))
         mesh = self.mesh
         if mesh is None:
             for section, entries in (("loads", self.loads), ("boundaries", self.boundaries)):
@@ -1540,11 +1680,18 @@ class Scene(_Model):
                 problems.append(("fracture.enabled", "needs a [mesh] to split (nodal fracture acts on tets)"))
             if self.fracture.seed_cracks:
                 problems.append(("fracture.seed_cracks", "needs a [mesh] to crack"))
+            if self.conversion.enabled:
+                problems.append(("conversion.enabled", "needs a [mesh] to convert (FEM→DEM conversion acts on tets)"))
+            if self.material_regions:
+                problems.append(("material_regions", "needs a [mesh] whose tets they assign"))
             return problems
         materials = self.material_names()
+        for i, zone in enumerate(self.material_regions):
+            check(f"material_regions[{i}].material", zone.material, materials, "material")
         if self.fracture.enabled:
             problems += self.fracture_material_problems(self.mesh_material_names() or [])
-        if mesh.kind in ("box", "geology", "cylinder", "ellipsoid"):
+        problems += self.conversion_material_problems(self.mesh_material_names() or [])
+        if mesh.kind in ("box", "geology", "cylinder", "ellipsoid", "arch"):
             check("mesh.material", mesh.material, materials, "material")
         if mesh.kind == "file":
             if mesh.material is not None:

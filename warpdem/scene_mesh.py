@@ -35,7 +35,18 @@ from .geology import (
     read_mesh,
 )
 from .mesh import MeshError, boundary_faces, box_mesh
-from .scene import BoxMesh, FileMesh, GeologyMeshSpec, JointProperties, Region, Scene, SceneError, SeedCrack
+from .scene import (
+    ARCH_FACE_NAMES,
+    ArchMesh,
+    BoxMesh,
+    FileMesh,
+    GeologyMeshSpec,
+    JointProperties,
+    Region,
+    Scene,
+    SceneError,
+    SeedCrack,
+)
 from .tets import TetProps
 
 if TYPE_CHECKING:
@@ -44,6 +55,8 @@ if TYPE_CHECKING:
 
 __all__ = [
     "add_scene_mesh",
+    "arch_mesh",
+    "assign_material_regions",
     "box_face_sets",
     "face_normals",
     "joint_set_properties",
@@ -135,6 +148,63 @@ def _box(spec: BoxMesh) -> GeologyMesh:
     )
 
 
+def arch_mesh(spec: ArchMesh) -> GeologyMesh:
+    """The structured tet mesh of an arch (:class:`~warpdem.scene.ArchMesh`): the Kuhn mesh of the unit cube
+    (:func:`warpdem.mesh.box_mesh`) in coordinates (s, w, ζ) mapped onto the annular sector
+
+        θ = (s − ½) angle,  z = ζ H,  t(ζ) = thickness + (crest_thickness − thickness) ζ,
+        r = radius + 4 bulge ζ (1 − ζ) − (1 − w) t(ζ),  x = c + (r sin θ, r cos θ, z).
+
+    The map's Jacobian has a positive determinant (∂x/∂s along +θ, ∂x/∂w along +r, ∂x/∂ζ up: a right-handed frame
+    as (x, y, z) at θ = 0), so the Kuhn tets stay positively oriented; the face sets are the unit cube's faces
+    (:func:`box_face_sets` before the map) named :data:`~warpdem.scene.ARCH_FACE_NAMES`.
+    """
+    unit, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), spec.divisions)
+    tets = tets.astype(np.int64)
+    s, w, zeta = unit.T
+    theta = (s - 0.5) * np.radians(spec.angle)
+    crest = spec.crest_thickness if spec.crest_thickness is not None else spec.thickness
+    r = (
+        spec.radius
+        + 4.0 * spec.bulge * zeta * (1.0 - zeta)
+        - (1.0 - w) * (spec.thickness + (crest - spec.thickness) * zeta)
+    )
+    points = np.asarray(spec.center, dtype=np.float64) + np.stack(
+        [r * np.sin(theta), r * np.cos(theta), zeta * spec.height], axis=1
+    )
+    sets = box_face_sets(unit, tets)
+    return GeologyMesh(
+        points=points,
+        tets=tets,
+        tet_block=np.zeros(len(tets), np.int64),
+        tet_material=np.zeros(len(tets), np.int64),
+        material_names=[spec.material],
+        joint_faces=np.zeros((0, 3), np.int64),
+        joint_face_set=np.zeros(0, np.int64),
+        joint_set_names=[],
+        boundary_faces={name: sets[box] for name, box in zip(ARCH_FACE_NAMES, BOX_FACE_NAMES, strict=True)},
+        num_blocks=1,
+    )
+
+
+def assign_material_regions(mesh: GeologyMesh, scene: Scene) -> GeologyMesh:
+    """The mesh with the tets whose centroid lies in a ``[[material_regions]]`` entry's region made of its material
+    (later entries win), the new materials appended to ``mesh.material_names``."""
+    if not scene.material_regions:
+        return mesh
+    centroids = mesh.points[mesh.tets].mean(axis=1)
+    names = list(mesh.material_names)
+    material = mesh.tet_material.copy()
+    for zone in scene.material_regions:
+        if zone.material not in names:
+            names.append(zone.material)
+        material[zone.region.contains(centroids)] = names.index(zone.material)
+    used = np.unique(material)  # a material no tet keeps is dropped, so the builder sees only the mesh's own
+    mesh.tet_material = np.searchsorted(used, material).astype(np.int64)
+    mesh.material_names = [names[i] for i in used]
+    return mesh
+
+
 def _file(spec: FileMesh, scene: Scene) -> GeologyMesh:
     source = scene.source
     # TOML keys are strings; a key of digits names a physical group by its number.
@@ -165,13 +235,21 @@ def rock_mesh(scene: Scene) -> GeologyMesh:
     Raises:
         SceneError: the scene has no mesh, Gmsh fails, or the mesh file cannot be used.
     """
-    spec = scene.mesh
+    mesh = _rock_mesh(scene)
+    return assign_material_regions(mesh, scene)
+
+
+def _rock_mesh(scene: Scene) -> GeologyMesh:
+    """The mesh of :func:`rock_mesh` before its material regions, at the scene's resolution."""
+    spec = scene.scaled_mesh()
     source = scene.source
     if spec is None:
         raise SceneError(f"{source}: mesh: the scene has no [mesh]")
     try:
         if spec.kind == "box":
             return _box(spec)
+        if spec.kind == "arch":
+            return arch_mesh(spec)
         if spec.kind == "geology":
             seed = spec.seed if spec.seed is not None else scene.run.seed
             return mesh_geology(_geology(spec, seed))
@@ -283,10 +361,11 @@ def add_scene_mesh(builder: ModelBuilder, scene: Scene) -> tuple[GeologyMesh, np
         m = scene.materials[name]
         builder.set_tet_properties(name, TetProps(m.bulk_viscosity_linear, m.bulk_viscosity_quadratic, m.mass_damping))
     per_tet = np.asarray(mesh.material_names)[mesh.tet_material]
+    problems = scene.conversion_material_problems(mesh.material_names)
     if scene.fracture.enabled:
-        problems = scene.fracture_material_problems(mesh.material_names)
-        if problems:
-            raise SceneError([f"{scene.source}: {key}: {message}" for key, message in problems])
+        problems += scene.fracture_material_problems(mesh.material_names)
+    if problems:
+        raise SceneError([f"{scene.source}: {key}: {message}" for key, message in problems])
     fixed = np.ones(len(mesh.points), dtype=bool) if spec.fixed else None
     joints = _joint_faces(builder, scene, mesh)
     try:
