@@ -1,15 +1,31 @@
 """Adaptive FEM→DEM conversion (CIMNE §4–5, DESIGN.md stage 7): the conversion properties of a material, and the
-kernels of the between-steps conversion pass (criterion per tet, spawning spheres and their bonds)."""
+kernels of the between-steps conversion pass (criterion per tet, spawning spheres and their bonds).
+
+The pass (warpdem/conversion.py) runs them in this order: ``flag_conversion_kernel`` (criterion) → exclusive scan of
+the flags (sphere slots) → ``count_conversion_bonds_kernel`` → exclusive scan (bond slots) → the host grows the
+capacities → ``spawn_spheres_kernel`` → ``write_conversion_bonds_kernel`` → bonds re-sorted by key →
+``relump_converted_nodes_kernel`` over the nodes the converted tets held.
+"""
 
 from __future__ import annotations
 
 import warp as wp
+
+from .tets import TET_ACTIVE, TetMaterial
+from .topology import tet_face
 
 wp.set_module_options({"enable_backward": False})
 
 CRITERION_TRESCA = wp.constant(0)
 CRITERION_RANKINE = wp.constant(1)
 CRITERION_MOHR_COULOMB = wp.constant(2)
+
+NEVER = wp.constant(3.4e38)
+"""Strength of a material that never converts [Pa]."""
+
+F32_EPS = wp.constant(1.1920929e-7)
+"""float32 machine epsilon: the sphere radius keeps 8 ulps of the larger of |centroid| and the tet's size clear of
+the faces, so float32 node positions (ulp(|x|)/2) never make a new sphere overlap its own tet's neighbours."""
 
 
 @wp.struct
@@ -18,12 +34,20 @@ class ConversionMaterial:
 
     Attributes:
         criterion: CRITERION_TRESCA ((σ1 − σ3)/2 ≥ f τ_f), CRITERION_RANKINE (σ1 ≥ f T_f) or CRITERION_MOHR_COULOMB
-            (σ1 (1 − sin φ)/ (2 c cos φ) − σ3 (1 + sin φ)/(2 c cos φ) ≥ f, tension positive), int32.
+            ((σ1 (1 + sin φ) − σ3 (1 − sin φ)) / (2 c cos φ) ≥ f, tension positive: the uniaxial tensile strength
+            is 2 c cos φ / (1 + sin φ), the compressive one 2 c cos φ / (1 − sin φ)), int32.
         fraction: f, the fraction of the strength at which a tet converts (0.9: CIMNE's 90 %) [-].
         tresca_strength: τ_f [Pa] (a very large value, 3.4e38: never by Tresca).
         tensile_strength: T_f [Pa] (Rankine; also the bonds' tensile strength).
         cohesion: c of Mohr–Coulomb [Pa].
         friction_angle: φ of Mohr–Coulomb [rad].
+        bond_modulus: α E, the modulus of the new bonds' normal springs k_n = α E A / L [Pa] (warpdem.conversion
+            .bond_calibration: α makes the bond network's affine Young's modulus equal to E).
+        bond_shear_ratio: β = k_s / k_n of the new bonds (matches the material's Poisson ratio where ν ≤ 1/4) [-].
+        bond_tensile_strength: the new bonds' tensile strength α T_f [Pa] (a bond along the load carries α σ per
+            unit area of its face, so the bar fails at σ = T_f).
+        bond_shear_strength: the new bonds' shear strength α τ_f (α T_f without τ_f) [Pa].
+        converts: 1 when the material converts at all, else 0.
     """
 
     criterion: int
@@ -32,3 +56,449 @@ class ConversionMaterial:
     tensile_strength: float
     cohesion: float
     friction_angle: float
+    bond_modulus: float
+    bond_shear_ratio: float
+    bond_tensile_strength: float
+    bond_shear_strength: float
+    converts: int
+
+
+@wp.func
+def principal_extremes(s: wp.mat33) -> wp.vec2:
+    """(σ1, σ3): the largest and smallest principal stress of a symmetric stress [Pa] (wp.eig3, tension positive)."""
+    _q, d = wp.eig3(s)
+    return wp.vec2(wp.max(d[0], wp.max(d[1], d[2])), wp.min(d[0], wp.min(d[1], d[2])))
+
+
+@wp.func
+def conversion_measure(s: wp.mat33, mat: ConversionMaterial) -> float:
+    """The criterion's stress over its strength [-]: the tet converts when this reaches ``mat.fraction``.
+
+    Tresca (σ1 − σ3) / (2 τ_f); Rankine σ1 / T_f; Mohr–Coulomb (σ1 (1 + sin φ) − σ3 (1 − sin φ)) / (2 c cos φ)
+    (CIMNE §5 step 3: point-wise stresses at the element centroid, constant in a linear tet)."""
+    p = principal_extremes(s)
+    if mat.criterion == CRITERION_RANKINE:
+        return p[0] / mat.tensile_strength
+    if mat.criterion == CRITERION_MOHR_COULOMB:
+        sin_phi = wp.sin(mat.friction_angle)
+        return (p[0] * (1.0 + sin_phi) - p[1] * (1.0 - sin_phi)) / (2.0 * mat.cohesion * wp.cos(mat.friction_angle))
+    return (p[0] - p[1]) / (2.0 * mat.tresca_strength)
+
+
+@wp.kernel
+def flag_conversion_kernel(
+    # Model:
+    tet_material: wp.array(dtype=int),
+    conversion_material_table: wp.array(dtype=ConversionMaterial),
+    tet_may_convert: wp.array(dtype=int),
+    # State in:
+    tet_count: wp.array(dtype=int),
+    tet_active: wp.array(dtype=int),
+    tet_stress: wp.array(dtype=wp.mat33),
+    # In:
+    forced: wp.array(dtype=int),
+    use_forced: int,
+    # Out:
+    flag: wp.array(dtype=int),
+):
+    t = wp.tid()  # one thread per tet slot
+    flag[t] = 0
+    if t >= tet_count[0]:
+        return
+    if tet_active[t] != TET_ACTIVE:
+        return
+    if use_forced != 0:
+        flag[t] = wp.where(forced[t] != 0, 1, 0)
+        return
+    if tet_may_convert[t] == 0:
+        return
+    mat = conversion_material_table[tet_material[t]]
+    if mat.converts == 0:
+        return
+    # not (< f) rather than ≥ f: a non-finite stress converts (the guard reports it; nothing is left half-done).
+    if not (conversion_measure(tet_stress[t], mat) < mat.fraction):
+        flag[t] = 1
+
+
+@wp.kernel
+def scan_total_kernel(
+    # In:
+    flag: wp.array(dtype=int),
+    offset: wp.array(dtype=int),
+    # Out:
+    total: wp.array(dtype=int),
+):
+    _ = wp.tid()  # one thread: the sum of an exclusive scan is its last offset plus its last entry
+    last = flag.shape[0] - 1
+    total[0] = offset[last] + flag[last]
+
+
+@wp.func
+def shares_face(n: wp.vec4i, face: wp.vec3i) -> bool:
+    """Whether tet nodes ``n`` hold the three nodes of ``face`` (the face is still shared, not cut by a crack)."""
+    hits = int(0)
+    for a in range(3):
+        for b in range(4):
+            if n[b] == face[a]:
+                hits += 1
+    return hits == 3
+
+
+@wp.func
+def bond_partner(
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    ref_tet_face_nbr: wp.array(dtype=int),
+    tet_sphere: wp.array(dtype=int),
+    flag: wp.array(dtype=int),
+    t: int,
+    k: int,
+) -> int:
+    """The tet across face k of converting tet t whose sphere the new sphere of t bonds to, or -1: a neighbour in
+    the unsplit mesh that still shares the face (no crack or joint between them) and either converted in an earlier
+    pass or converts in this one with a larger index (each bond has one owner, so it is written once)."""
+    nbr = ref_tet_face_nbr[4 * t + k]
+    if nbr < 0:
+        return -1
+    if not shares_face(tet_nodes[nbr], tet_face(tet_nodes[t], k)):
+        return -1
+    if tet_sphere[nbr] >= 0:
+        return nbr
+    if flag[nbr] != 0 and nbr > t:
+        return nbr
+    return -1
+
+
+@wp.kernel
+def count_conversion_bonds_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    ref_tet_face_nbr: wp.array(dtype=int),
+    # State in:
+    tet_count: wp.array(dtype=int),
+    tet_sphere: wp.array(dtype=int),
+    # In:
+    flag: wp.array(dtype=int),
+    # Out:
+    bonds: wp.array(dtype=int),
+):
+    t = wp.tid()  # one thread per tet slot: the bonds its new sphere owns
+    bonds[t] = 0
+    if t >= tet_count[0] or flag[t] == 0:
+        return
+    n = int(0)
+    for k in range(4):
+        if bond_partner(tet_nodes, ref_tet_face_nbr, tet_sphere, flag, t, k) >= 0:
+            n += 1
+    bonds[t] = n
+
+
+@wp.func
+def centroid64(node_ref_q: wp.array(dtype=wp.vec3), node_u: wp.array(dtype=wp.vec3), n: wp.vec4i) -> wp.vec3d:
+    """Current centroid Σ (X_a + u_a) / 4 in float64 [m] (X + u keeps the displacements' precision far from the
+    origin; the same sum the energy books use for the nodes' gravity potential)."""
+    c = wp.vec3d(0.0, 0.0, 0.0)
+    for a in range(4):
+        c += wp.vec3d(node_ref_q[n[a]]) + wp.vec3d(node_u[n[a]])
+    return c * wp.float64(0.25)
+
+
+@wp.func
+def face_distance(x: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
+    """Distance from x to the plane of the triangle (a, b, c) [m]."""
+    nrm = wp.normalize(wp.cross(b - a, c - a))
+    return wp.abs(wp.dot(x - a, nrm))
+
+
+@wp.kernel
+def spawn_spheres_kernel(
+    # Model:
+    node_ref_q: wp.array(dtype=wp.vec3),
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    tet_volume: wp.array(dtype=float),
+    tet_material: wp.array(dtype=int),
+    tet_material_table: wp.array(dtype=TetMaterial),
+    conversion_part: int,
+    # State in:
+    tet_count: wp.array(dtype=int),
+    particle_count: wp.array(dtype=int),
+    node_u: wp.array(dtype=wp.vec3),
+    node_qd: wp.array(dtype=wp.vec3),
+    # In:
+    flag: wp.array(dtype=int),
+    offset: wp.array(dtype=int),
+    strain_energy: wp.array(dtype=wp.float64),
+    # Model out:
+    particle_radius: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
+    particle_inv_mass: wp.array(dtype=float),
+    particle_inv_inertia: wp.array(dtype=float),
+    particle_material: wp.array(dtype=int),
+    particle_motion: wp.array(dtype=int),
+    particle_part: wp.array(dtype=int),
+    particle_id: wp.array(dtype=int),
+    # State out:
+    particle_q: wp.array(dtype=wp.vec3d),
+    particle_qd: wp.array(dtype=wp.vec3),
+    particle_omega: wp.array(dtype=wp.vec3),
+    particle_q_at_build: wp.array(dtype=wp.vec3d),
+    tet_active: wp.array(dtype=int),
+    tet_sphere: wp.array(dtype=int),
+    # Out:
+    node_touched: wp.array(dtype=int),
+    released: wp.array(dtype=wp.float64),
+):
+    t = wp.tid()  # one thread per tet slot: a converting tet writes its sphere at particle_count + its scan offset
+    released[t] = wp.float64(0.0)
+    if t >= tet_count[0] or flag[t] == 0:
+        return
+    slot = particle_count[0] + offset[t]
+    n = tet_nodes[t]
+    mat = tet_material_table[tet_material[t]]
+    mass = mat.density * tet_volume[t]  # exactly the ρ V₀ / 4 × 4 the nodes lose (lumped masses)
+    c64 = centroid64(node_ref_q, node_u, n)
+    c = wp.vec3(c64)
+    x0 = wp.vec3(wp.vec3d(node_ref_q[n[0]]) + wp.vec3d(node_u[n[0]]) - c64)
+    x1 = wp.vec3(wp.vec3d(node_ref_q[n[1]]) + wp.vec3d(node_u[n[1]]) - c64)
+    x2 = wp.vec3(wp.vec3d(node_ref_q[n[2]]) + wp.vec3d(node_u[n[2]]) - c64)
+    x3 = wp.vec3(wp.vec3d(node_ref_q[n[3]]) + wp.vec3d(node_u[n[3]]) - c64)
+    # Radius: the smallest distance from the centroid to a face (h_k / 4 of the tet's heights), less a float32
+    # margin, so the sphere touches its tet's nearest face and overlaps no neighbour (tet or sphere) at birth.
+    origin = wp.vec3(0.0)
+    h = wp.min(
+        wp.min(face_distance(origin, x1, x2, x3), face_distance(origin, x0, x3, x2)),
+        wp.min(face_distance(origin, x0, x1, x3), face_distance(origin, x0, x2, x1)),
+    )
+    scale = wp.max(wp.max(wp.abs(c[0]), wp.max(wp.abs(c[1]), wp.abs(c[2]))), wp.length(x0))
+    radius = h - 8.0 * F32_EPS * scale
+    v0 = node_qd[n[0]]
+    v1 = node_qd[n[1]]
+    v2 = node_qd[n[2]]
+    v3 = node_qd[n[3]]
+    # Each node carries ρ V₀ / 4 of this tet: the tet's momentum is ρ V₀ times the mean velocity.
+    v = 0.25 * (v0 + v1 + v2 + v3)
+    # Velocity gradient L = [v_a − v_0] [x_a − x_0]⁻¹ (current configuration); spin = axial vector of (L − Lᵀ)/2.
+    dx = wp.matrix_from_cols(x1 - x0, x2 - x0, x3 - x0)
+    dv = wp.matrix_from_cols(v1 - v0, v2 - v0, v3 - v0)
+    grad = dv * wp.inverse(dx)
+    omega = wp.vec3(0.5 * (grad[2, 1] - grad[1, 2]), 0.5 * (grad[0, 2] - grad[2, 0]), 0.5 * (grad[1, 0] - grad[0, 1]))
+    inertia = 0.4 * mass * radius * radius
+    particle_radius[slot] = radius
+    particle_mass[slot] = mass
+    particle_inv_mass[slot] = 1.0 / mass
+    particle_inv_inertia[slot] = 1.0 / inertia
+    particle_material[slot] = tet_material[t]
+    particle_motion[slot] = 0
+    particle_part[slot] = conversion_part
+    particle_id[slot] = slot
+    particle_q[slot] = c64
+    particle_q_at_build[slot] = c64
+    particle_qd[slot] = v
+    particle_omega[slot] = omega
+    tet_active[t] = 0
+    tet_sphere[t] = slot
+    for a in range(4):
+        node_touched[n[a]] = 1
+    # Energy the mechanical books lose: the strain energy, and the kinetic energy of the nodes' shares (ρ V₀ / 4
+    # each) less the sphere's translational and spin energy (the motion relative to the centroid beyond the spin).
+    quarter = wp.float64(0.25) * wp.float64(mass)
+    ke_tet = (
+        wp.float64(0.5)
+        * quarter
+        * (
+            wp.float64(wp.dot(v0, v0))
+            + wp.float64(wp.dot(v1, v1))
+            + wp.float64(wp.dot(v2, v2))
+            + wp.float64(wp.dot(v3, v3))
+        )
+    )
+    ke_sphere = wp.float64(0.5) * wp.float64(mass) * wp.float64(wp.dot(v, v)) + wp.float64(0.5) * wp.float64(
+        inertia
+    ) * wp.float64(wp.dot(omega, omega))
+    released[t] = strain_energy[t] + ke_tet - ke_sphere
+
+
+@wp.kernel
+def write_conversion_bonds_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    ref_tet_face_nbr: wp.array(dtype=int),
+    tet_material: wp.array(dtype=int),
+    conversion_material_table: wp.array(dtype=ConversionMaterial),
+    particle_capacity: int,
+    # State in:
+    tet_count: wp.array(dtype=int),
+    bond_count: wp.array(dtype=int),
+    particle_q: wp.array(dtype=wp.vec3d),
+    node_q: wp.array(dtype=wp.vec3),
+    tet_sphere: wp.array(dtype=int),
+    # In:
+    flag: wp.array(dtype=int),
+    was_sphere: wp.array(dtype=int),
+    offset: wp.array(dtype=int),
+    # State out:
+    bond_i: wp.array(dtype=int),
+    bond_j: wp.array(dtype=int),
+    bond_key: wp.array(dtype=wp.int64),
+    bond_rest_length: wp.array(dtype=float),
+    bond_kn: wp.array(dtype=float),
+    bond_ks: wp.array(dtype=float),
+    bond_area: wp.array(dtype=float),
+    bond_tensile_strength: wp.array(dtype=float),
+    bond_shear_strength: wp.array(dtype=float),
+    bond_damping: wp.array(dtype=float),
+    bond_shear: wp.array(dtype=wp.vec3),
+    bond_broken: wp.array(dtype=int),
+    bond_energy_prev: wp.array(dtype=wp.vec2),
+):
+    t = wp.tid()  # one thread per tet slot: a converting tet writes the bonds it owns (count_conversion_bonds)
+    if t >= tet_count[0] or flag[t] == 0:
+        return
+    b = bond_count[0] + offset[t]
+    for k in range(4):
+        nbr = bond_partner(tet_nodes, ref_tet_face_nbr, was_sphere, flag, t, k)
+        if nbr < 0:
+            continue
+        si = tet_sphere[t]
+        sj = tet_sphere[nbr]
+        i = wp.min(si, sj)
+        j = wp.max(si, sj)
+        f = tet_face(tet_nodes[t], k)
+        area = 0.5 * wp.length(wp.cross(node_q[f[1]] - node_q[f[0]], node_q[f[2]] - node_q[f[0]]))
+        length = wp.length(wp.vec3(particle_q[i] - particle_q[j]))
+        ma = conversion_material_table[tet_material[t]]
+        mb = conversion_material_table[tet_material[nbr]]
+        # Two materials: the springs of both halves in series (harmonic mean modulus), the weaker strength.
+        modulus = 2.0 * ma.bond_modulus * mb.bond_modulus / (ma.bond_modulus + mb.bond_modulus)
+        kn = modulus * area / length
+        bond_i[b] = i
+        bond_j[b] = j
+        bond_key[b] = wp.int64(i) * wp.int64(particle_capacity) + wp.int64(j)
+        bond_rest_length[b] = length  # born relaxed: the strain energy the tets held is booked as released
+        bond_kn[b] = kn
+        bond_ks[b] = kn * 0.5 * (ma.bond_shear_ratio + mb.bond_shear_ratio)
+        bond_area[b] = area
+        bond_tensile_strength[b] = wp.min(ma.bond_tensile_strength, mb.bond_tensile_strength)
+        bond_shear_strength[b] = wp.min(ma.bond_shear_strength, mb.bond_shear_strength)
+        bond_damping[b] = 0.0
+        bond_shear[b] = wp.vec3(0.0)
+        bond_broken[b] = 0
+        bond_energy_prev[b] = wp.vec2(0.0)
+        b += 1
+
+
+@wp.kernel
+def bond_sort_keys_kernel(
+    # State in:
+    bond_count: wp.array(dtype=int),
+    bond_key: wp.array(dtype=wp.int64),
+    # Out:
+    keys: wp.array(dtype=wp.int64),
+    order: wp.array(dtype=int),
+):
+    b = wp.tid()  # one thread per bond slot: (key, slot) pairs for the radix sort
+    if b >= bond_count[0]:
+        return
+    keys[b] = bond_key[b]
+    order[b] = b
+
+
+@wp.kernel
+def inverse_order_kernel(
+    # State in:
+    bond_count: wp.array(dtype=int),
+    # In:
+    order: wp.array(dtype=int),
+    # Out:
+    old_to_new: wp.array(dtype=int),
+):
+    b = wp.tid()  # one thread per sorted slot: old slot order[b] moves to b
+    if b >= bond_count[0]:
+        return
+    old_to_new[order[b]] = b
+
+
+@wp.kernel
+def relump_converted_nodes_kernel(
+    # Model:
+    tet_volume: wp.array(dtype=float),
+    tet_material: wp.array(dtype=int),
+    tet_material_table: wp.array(dtype=TetMaterial),
+    # State in:
+    node_count: wp.array(dtype=int),
+    # In:
+    node_touched: wp.array(dtype=int),
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    # Model out:
+    node_mass: wp.array(dtype=float),
+    node_inv_mass: wp.array(dtype=float),
+    node_damping: wp.array(dtype=float),
+    node_motion: wp.array(dtype=int),
+    # State out:
+    node_qd: wp.array(dtype=wp.vec3),
+):
+    v = wp.tid()  # one thread per node slot; only the nodes of converted tets change
+    if v >= node_count[0] or node_touched[v] == 0:
+        return
+    # Σ ρ V₀ / 4 over the node's remaining active tets, in ascending tet order (deterministic sums).
+    mass = float(0.0)
+    damping = float(0.0)
+    start = star_offset[v]
+    for e in range(start, start + star_count[v]):
+        t = star_tets[e]
+        mat = tet_material_table[tet_material[t]]
+        quarter = 0.25 * mat.density * tet_volume[t]
+        mass += quarter
+        damping += quarter * mat.alpha
+    node_mass[v] = mass
+    if mass > 0.0:
+        node_damping[v] = damping / mass
+        if node_inv_mass[v] != 0.0:  # a held node stays held
+            node_inv_mass[v] = 1.0 / mass
+    else:
+        # No tet left: the node is deactivated — no mass, held (gravity does not move it), at rest; it has no
+        # boundary face, so the contact stages skip it (zero penalty stiffness).
+        node_damping[v] = 0.0
+        node_inv_mass[v] = 0.0
+        node_motion[v] = 1
+        node_qd[v] = wp.vec3(0.0)
+
+
+@wp.kernel
+def add_released_kernel(
+    # In:
+    total: wp.array(dtype=wp.float64),
+    converted: wp.array(dtype=int),
+    spawned: wp.array(dtype=int),
+    # State out:
+    energy_released_conversion: wp.array(dtype=wp.float64),
+    tets_converted_total: wp.array(dtype=int),
+    spheres_spawned_total: wp.array(dtype=int),
+    particle_count: wp.array(dtype=int),
+):
+    _ = wp.tid()  # one thread: the pass's totals into the state's counters
+    energy_released_conversion[0] = energy_released_conversion[0] + total[0]
+    tets_converted_total[0] = tets_converted_total[0] + converted[0]
+    spheres_spawned_total[0] = spheres_spawned_total[0] + spawned[0]
+    particle_count[0] = particle_count[0] + spawned[0]
+
+
+@wp.kernel
+def add_bond_count_kernel(
+    # In:
+    counts: wp.array(dtype=int),
+    # State out:
+    bond_count: wp.array(dtype=int),
+):
+    _ = wp.tid()  # one thread: the pass's new bonds (counts[1]) join the live ones
+    bond_count[0] = bond_count[0] + counts[1]
+
+
+@wp.kernel
+def iota_kernel(
+    # Out:
+    order: wp.array(dtype=int),
+):
+    b = wp.tid()  # one thread per slot: the identity order
+    order[b] = b

@@ -369,6 +369,8 @@ class State:
             shape functions N_a of eq. 9; may lie slightly outside the tet), vec4.
         coupling_k: penalty stiffness [N/m], float32.
         coupling_energy_prev: spring energy at the last evaluation [J] (for the Verlet books), float32.
+        tet_sphere: the sphere spawned in place of each tet, -1 while it is a tet, shape (tet_capacity,), int32
+            (the bonds of a later conversion find their partner spheres through it).
     """
 
     particle_count: wp.array
@@ -471,6 +473,7 @@ class State:
     coupling_bary: wp.array
     coupling_k: wp.array
     coupling_energy_prev: wp.array
+    tet_sphere: wp.array
 
     def arrays(self) -> dict[str, wp.array]:
         """All arrays of the state by field name."""
@@ -561,6 +564,7 @@ def conversion_state(model: Model) -> dict[str, wp.array]:
         "coupling_bary": wp.zeros(cap, dtype=wp.vec4, device=d),
         "coupling_k": wp.zeros(cap, dtype=float, device=d),
         "coupling_energy_prev": wp.zeros(cap, dtype=float, device=d),
+        "tet_sphere": wp.full(model.tet_capacity, -1, dtype=int, device=d),
     }
 
 

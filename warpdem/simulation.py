@@ -36,6 +36,7 @@ from .bonds import bond_energy, compact_bonds, eval_bonds
 from .cohesive import cohesive_energy, compact_cohesive, eval_cohesive, regrow_cohesive
 from .compaction import Compactor
 from .contact import NeighborList, contact_energy, eval_contacts
+from .conversion import ConversionPass, ConversionReport, grown, regrow_bonds, regrow_particles
 from .fem_contact import (
     FemContact,
     face_slots,
@@ -76,7 +77,10 @@ class EnergyBalance:
     contacts' dashpots and friction took, and the springs of failed joints. ``cohesive_elastic`` is the spring
     energy stored in the intact cohesive elements of split nodes (½ k d², counted in ``in_play``) and
     ``dissipated_cohesive`` what they dissipated (½ f_c per unit growth of δ_max, and what a breaking element still
-    held; warpdem.cohesive).
+    held; warpdem.cohesive). ``released_conversion`` is what left the mechanical books when tets turned into spheres
+    (their strain energy and the kinetic energy of their motion about the centroid beyond the spheres' spin, less
+    what the new bonds and couplings hold; warpdem.conversion) and ``coupling_elastic`` the spring energy of the
+    penalty couplings between converted spheres and the continuum (in ``in_play``; warpdem.coupling).
     """
 
     kinetic_translational: float
@@ -97,6 +101,8 @@ class EnergyBalance:
     shadow: float = 0.0
     cohesive_elastic: float = 0.0
     dissipated_cohesive: float = 0.0
+    released_conversion: float = 0.0
+    coupling_elastic: float = 0.0
 
     @property
     def kinetic(self) -> float:
@@ -107,7 +113,7 @@ class EnergyBalance:
         """Energy in play [J]: the larger of kinetic + elastic + strain and the work put in so far by walls, driven
         spheres and loads. It holds no gravity potential, whose datum (where z = 0 is) is arbitrary: the balance's
         error is scaled by its largest value over a run."""
-        stored = self.kinetic + self.elastic + self.strain + self.cohesive_elastic
+        stored = self.kinetic + self.elastic + self.strain + self.cohesive_elastic + self.coupling_elastic
         return max(stored, abs(self.boundary_work) + abs(self.load_work))
 
     @property
@@ -129,6 +135,8 @@ class EnergyBalance:
             - self.stiffness_change
             + self.cohesive_elastic
             + self.dissipated_cohesive
+            + self.released_conversion
+            + self.coupling_elastic
         )
 
 
@@ -212,6 +220,7 @@ class Simulation:
         self.bond_compactor = Compactor(self.model.bond_capacity, self.model.device)
         self.cohesive_compactor = Compactor(self.model.cohesive_capacity, self.model.device)
         self._fracture: FracturePass | None = None
+        self._conversion: ConversionPass | None = None
         self._face_slot: wp.array | None = None
         self._snapshot: State | None = None
         self._graphs: tuple | None = None
@@ -313,23 +322,34 @@ class Simulation:
 
     def advance(self, n_steps: int) -> None:
         """Run ``n_steps`` steps, then the between-step work: overflow check (grow and redo), stability guard, bond
-        and cohesive compaction. With nodal fracture on, the steps run in chunks ending on multiples of
-        ``model.fracture_interval`` (counted from step 0), each followed by a split pass (:meth:`fracture_pass`).
+        and cohesive compaction. With conversion or nodal fracture on, the steps run in chunks ending on multiples of
+        ``model.conversion_interval`` and of ``model.fracture_interval`` (counted from step 0), each followed by the
+        passes due there: first the conversion pass (:meth:`conversion_pass`), then the split pass
+        (:meth:`fracture_pass`).
+
+        Why conversion first: a tet that qualifies for both has failed as a whole; converting it hands its mass and
+        momentum to a sphere and takes its stress out of the nodal averages, so the split pass that follows sees only
+        the continuum that remains. Splitting first would create cohesive elements (and crack area, booked at birth)
+        across faces of a tet that then stops existing as a continuum, and split nodes whose stars the conversion
+        would empty at once.
 
         Raises:
             warpdem.guard.UnstableRunError: the state went non-finite or ran away (warpdem.guard); the simulation is
                 left at the first bad step.
         """
-        k = self.model.fracture_interval
-        if k <= 0:
+        kc, kf = self.model.conversion_interval, self.model.fracture_interval
+        intervals = [k for k in (kc, kf) if k > 0]
+        if not intervals:
             self._advance_chunk(n_steps)
             return
         remaining = n_steps
         while remaining > 0:
-            chunk = min(remaining, k - self.step_count % k)
+            chunk = min(remaining, *(k - self.step_count % k for k in intervals))
             self._advance_chunk(chunk)
             remaining -= chunk
-            if self.step_count % k == 0:
+            if kc > 0 and self.step_count % kc == 0:
+                self.conversion_pass()
+            if kf > 0 and self.step_count % kf == 0:
                 self.fracture_pass()
 
     def _advance_chunk(self, n_steps: int) -> None:
@@ -488,6 +508,92 @@ class Simulation:
         while self._grow_if_overflowed(self.state):
             self.evaluate_forces()
 
+    # ------------------------------------------------------------------------------------------------------------
+    def conversion_pass(self) -> ConversionReport:
+        """One conversion pass now, between steps (warpdem.conversion): tets at their criterion turn into bonded
+        spheres; capacities grow ×2 first to hold what the pass writes; then the surface and contact lists are
+        rebuilt, the stages set up again (sphere contact comes alive with the first spheres) and the forces
+        re-evaluated at the current positions (dt = 0). Reads back a few counts.
+
+        Returns:
+            What the pass did (no-op report when conversion is off).
+        """
+        if self.model.conversion_interval <= 0:
+            return ConversionReport(0, 0, 0, 0, False)
+        return self._convert(None)
+
+    def convert_tets(self, mask: np.ndarray) -> ConversionReport:
+        """Convert the given tets now, whatever their stress (e.g. a scene region that starts as spheres), as a
+        conversion pass does (:meth:`conversion_pass`); tets already converted are skipped.
+
+        Args:
+            mask: bool per live tet, shape (tet_count,).
+
+        Raises:
+            ValueError: conversion is not attached (warpdem.conversion.attach_conversion) or the mask has the wrong
+                shape.
+        """
+        m = self.model
+        if m.conversion_material_table is None:
+            raise ValueError("convert_tets: conversion is not attached (warpdem.conversion.attach_conversion)")
+        nt = int(self.state.tet_count.numpy()[0])
+        mask = np.asarray(mask)
+        if mask.shape != (nt,):
+            raise ValueError(f"convert_tets: mask must have one entry per live tet, shape ({nt},), got {mask.shape}")
+        forced = np.zeros(m.tet_capacity, dtype=np.int32)
+        forced[:nt] = mask.astype(bool)
+        return self._convert(forced)
+
+    def _convert(self, forced: np.ndarray | None) -> ConversionReport:
+        """A conversion pass of the tets the criterion flags (``forced`` None) or of ``forced`` (int per tet slot)."""
+        if self._conversion is None or not self._conversion.fits(self.model):
+            self._conversion = ConversionPass(self.model)
+        tets, bonds = self._conversion.find(self.model, self.state, forced)
+        if tets == 0:
+            return ConversionReport(0, 0, 0, 0, False)
+        spawned = tets * self.model.spheres_per_tet
+        grew = self._grow_for_conversion(spawned, bonds)
+        m, s = self.model, self.state
+        old_faces = int(s.face_count.numpy()[0]) if m.face_capacity else 0
+        if m.face_capacity:
+            self._face_slot = face_slots(m, s, self._face_slot)
+        self._conversion.convert(m, s)
+        self._after_conversion(old_faces)
+        return ConversionReport(tets, spawned, bonds, 0, grew)
+
+    def _grow_for_conversion(self, spheres: int, bonds: int) -> bool:
+        """Grow the particle and bond capacities ×2 until they hold ``spheres`` and ``bonds`` more (what the pass
+        writes). Returns whether anything grew."""
+        m, s = self.model, self.state
+        particles = self.particle_count + spheres
+        total_bonds = self.bond_count + bonds
+        grew = False
+        if particles > m.particle_capacity:
+            m, s = regrow_particles(m, s, grown(m.particle_capacity, particles))
+            grew = True
+        if total_bonds > m.bond_capacity:
+            m, s = regrow_bonds(m, s, grown(m.bond_capacity, total_bonds))
+            grew = True
+        if grew:
+            self.model, self.state = m, s
+            self.growths += 1
+        return grew
+
+    def _after_conversion(self, old_faces: int) -> None:
+        """After a pass that converted tets: rebuild the surface on the device (the faces of converted tets'
+        neighbours become contact faces), carry the face ids of the contact state over, set the stages up again
+        (new spheres, possibly the first: sphere contact comes alive; graphs re-captured) and re-evaluate the forces
+        at dt = 0 (the contact lists rebuilt)."""
+        m, s = self.model, self.state
+        if m.face_capacity:
+            model, slot_to_face = rebuild_surface(m, s)
+            remap_face_ids(model, s, self._face_slot, old_faces, slot_to_face)
+            self.model = model
+        self._setup()
+        self.evaluate_forces()
+        while self._grow_if_overflowed(self.state):
+            self.evaluate_forces()
+
     @property
     def bond_count(self) -> int:
         """Live bonds (host read-back)."""
@@ -547,6 +653,7 @@ class Simulation:
             stiffness_change=float(s.energy_stiffness_change.numpy()[:n].sum()),
             cohesive_elastic=e_cohesive,
             dissipated_cohesive=d_cohesive,
+            released_conversion=float(s.energy_released_conversion.numpy()[0]),
         )
 
     def _shadow_term(self, mass: np.ndarray, free: np.ndarray, g: np.ndarray) -> float:
