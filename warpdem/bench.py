@@ -705,16 +705,28 @@ def spread_tets(tets: int, fraction: float, seed: int) -> np.ndarray:
 def converting_block(cells: int, device: str, may_convert: np.ndarray, stretch: float = STRETCH):
     """The conversion pass case: :func:`stretched_granite` at σ_xx = ``stretch`` × T_f with conversion on (Tresca,
     0.9 τ_f = 0.9 TRESCA_STRENGTH, a pass every step, one sphere per tet) and ``may_convert`` (bool per tet) the tets
-    that may convert. Particle and coupling slots are reserved for every tet that may convert (a sphere each, a
-    coupling per face), so the pass does not grow them. Returns (model, state)."""
-    from .conversion import ConversionProps, attach_conversion
+    that may convert. Particle, bond and coupling slots are reserved for the case where every tet that may convert
+    does (a sphere each, a bond per pair of them sharing a face, a coupling per face), so the pass does not grow
+    them. Returns (model, state)."""
+    from .conversion import ConversionProps, attach_conversion, regrow_bonds
 
     flagged = int(np.count_nonzero(may_convert))
     model, state = stretched_granite(cells, device, stretch=stretch, particle_capacity=flagged)
     props = ConversionProps(criterion="tresca", fraction=CONVERSION_FRACTION, tresca_strength=TRESCA_STRENGTH)
-    return attach_conversion(
+    model, state = attach_conversion(
         model, state, [props], check_interval=1, may_convert=may_convert, coupling_capacity=4 * flagged
     )
+    return regrow_bonds(model, state, face_pairs(model, may_convert))
+
+
+def face_pairs(model, mask: np.ndarray) -> int:
+    """Pairs of tets in ``mask`` (bool per tet, shape (tet_count,)) that share a face of the unsplit mesh
+    (``model.ref_tet_face_nbr``): the bonds a conversion of exactly those tets makes (one per such pair)."""
+    count = len(mask)
+    neighbour = model.ref_tet_face_nbr.numpy()[: 4 * count].reshape(count, 4)
+    tet = np.repeat(np.arange(count), 4).reshape(count, 4)
+    both = mask[:, None] & (neighbour > tet) & mask[np.maximum(neighbour, 0)]
+    return int(np.count_nonzero(both))
 
 
 def due_tets(model, state) -> np.ndarray:
@@ -744,9 +756,9 @@ def due_tets(model, state) -> np.ndarray:
 @dataclass
 class ConversionPassResult:
     """The conversion pass against the force step on one mesh: sizes, the tets that may convert and those due
-    (:func:`due_tets`), what the pass did (tets converted, spheres spawned, bonds and couplings made, whether a
-    capacity grew), wall times [s] (build, one force step = the fastest run of ``steps`` over steps, the fastest
-    pass), the pass in force steps, and peak host RSS [MB]."""
+    (:func:`due_tets`), what the pass did (tets converted, spheres spawned, bonds made against the face-sharing pairs
+    of tets due (:func:`face_pairs`), couplings made, whether a capacity grew), wall times [s] (build, one force step
+    = the fastest run of ``steps`` over steps, the fastest pass), the pass in force steps, and peak host RSS [MB]."""
 
     device: str
     tets: int
@@ -755,6 +767,7 @@ class ConversionPassResult:
     due: int
     converted: int
     spawned: int
+    bonds_due: int
     bonds: int
     couplings: int
     grew: bool
@@ -780,7 +793,7 @@ def bench_conversion_pass(
     for r in range(repeat):
         build, (model, state) = timed(device, lambda: converting_block(cells, device, may_convert))
         if r == 0:
-            due = int(np.count_nonzero(due_tets(model, state)))
+            due = due_tets(model, state)
             step_time = force_step_time(model, state, steps, repeat)
             build_time = build
         sim = Simulation(model, state, track_energy=False)
@@ -791,9 +804,10 @@ def bench_conversion_pass(
         tets=int(sim.state.tet_count.numpy()[0]),
         nodes=int(sim.state.node_count.numpy()[0]),
         may_convert=int(np.count_nonzero(may_convert)),
-        due=due,
+        due=int(np.count_nonzero(due)),
         converted=report.converted,
         spawned=report.spawned,
+        bonds_due=face_pairs(sim.model, due),
         bonds=report.bonds,
         couplings=report.couplings,
         grew=report.grew,
@@ -820,9 +834,11 @@ def converting_run_block(cells: int, device: str, steps: int, interval: int, see
     count = int(state.tet_count.numpy()[0])
     centroid_x = model.node_ref_q.numpy()[model.tet_nodes.numpy()[:count], 0].mean(axis=1)
     central = np.abs(centroid_x - 0.5) < 0.5 * CONVERSION_SLAB
+    # A strength class no grain drew has no tets (and no elastic constants to calibrate bonds from): None.
+    used = np.isin(np.arange(len(strengths)), model.tet_material.numpy()[:count])
     props = [
-        ConversionProps(criterion="tresca", fraction=CONVERSION_FRACTION, tresca_strength=0.5 * float(t))
-        for t in strengths
+        ConversionProps(criterion="tresca", fraction=CONVERSION_FRACTION, tresca_strength=0.5 * float(t)) if u else None
+        for t, u in zip(strengths, used, strict=True)
     ]
     model, state = attach_conversion(model, state, props, check_interval=max(interval, 1), may_convert=central)
     if interval == 0:  # the reference: the same model with the pass off
@@ -887,6 +903,7 @@ def format_conversion_pass_row(r: ConversionPassResult, header: bool) -> str:
         f"{r.peak_rss_mb:>9.0f}"
         + ("   GREW" if r.grew else "")
         + ("" if r.converted == r.due else "   CONVERTED != DUE")
+        + ("" if r.bonds == r.bonds_due else "   BONDS != DUE")
     )
     if not header:
         return line
