@@ -12,14 +12,15 @@ to the origin f = k d with k = f_env(δ_max)/δ_max; the force vector is then si
 d_max ≥ δ_c the element is broken: it applies no force and waits for the compaction pass.
 
 Before any opening. LDEC removes the singularity of eq. 6 at δ_max = 0 by d/δ_max := 1, and e is then undefined. The
-daughters are born with equal X and u, so d = 0 exactly; afterwards d − 0 is at first float32 round-off of the two
+daughters are born with equal X and u, so d = 0 exactly; afterwards d is at first only float32 round-off of the two
 displacements (a spacing of 2⁻²³ |u| ≈ 1.2e-7 |u|), whose direction is noise and whose ratio d/δ_max would make the
 force jump between 0 and f_c from step to step. So while δ_max < OPEN_FRACTION δ_c (1e-4 δ_c: above that round-off for
-displacements up to ~10³ δ_c) the element is taken as not yet open: d/δ_max := 1 and e := cohesive_dir, the principal
-direction p1 of the split (from A's side to B's side). The force is then f_env(δ_max) ≈ f_c along p1, which is what
-eq. 3–4 need (the daughters accelerate together), and it meets eq. 6 continuously where δ_max passes the threshold
-while loading (d = δ_max there). The energy books below are those of eq. 6 throughout; the regularised force differs
-from their gradient only below 1e-4 δ_c, by at most f_c × 1e-4 δ_c ≤ 2e-4 Γ A_f of work over the element's life.
+displacements up to ~10³ δ_c) the element is taken as not yet open: d/δ_max := 1 and e := cohesive_dir, the direction
+the split gave it (from A's side to B's side; warpdem.fracture). The force is then f_env(δ_max) ≈ f_c along it,
+which is what eqs. 3–4 need at the split (the daughters keep the parent's acceleration), and it meets eq. 6
+continuously where δ_max passes the threshold while loading (d = δ_max there). The energy books below are those of
+eq. 6 throughout; the regularised force differs from their gradient only below 1e-4 δ_c, by at most f_c × 1e-4 δ_c
+≤ 2e-4 Γ A_f of work over the element's life.
 
 Energy identity (what the books rest on). The work the nodes do on the element while it loads along the envelope to
 δ_max is ∫₀^δmax f_c (1 − α δ/δ_c) dδ = f_c δ_max − ½ α f_c δ_max²/δ_c. Of it the element holds, on its unloading
@@ -73,7 +74,7 @@ def cohesive_force(r: wp.vec3, d_max: float, fc: float, delta_c: float, alpha: f
     """Force of the element on A [N] (−it acts on B) at the opening r = x_B − x_A [m] and the history d_max ≥ |r|.
 
     LDEC eq. 6 (with eq. 7): f e = f_c (1 − α δ_max/δ_c) (d/δ_max) e = k r. Before any opening (δ_max below
-    OPEN_FRACTION δ_c) d/δ_max := 1 and e := ``direction`` (module docstring), so f = f_env(δ_max) along p1.
+    OPEN_FRACTION δ_c) d/δ_max := 1 and e := ``direction`` (module docstring), so f = f_env(δ_max) along it.
     """
     delta_max = capped_opening(d_max, delta_c)
     if delta_max < OPEN_FRACTION * delta_c:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import warp as wp
 
 from warpdem.builder import ModelBuilder
 from warpdem.fracture import FractureProps, attach_fracture
@@ -411,3 +412,28 @@ def test_material_without_strength_never_splits(device):
     sim = Simulation(model, state)
     stretch(sim, pts, 10 * STRENGTH / YOUNG, 0.25)
     assert sim.fracture_pass().splits == 0
+
+
+def test_face_ids_follow_their_tet_face_slots(device):
+    # The contact state's face ids (node springs, sphere candidates) are carried across the surface rebuild through
+    # the tet-face slot of each face, which no split changes: every old face maps to the new face of its own slot.
+    from warpdem.fem_contact import face_slots, rebuild_surface, remap_face_ids
+    from warpdem.fracture import FracturePass
+
+    model, state, pts = bar(device, node_capacity=200, cohesive_capacity=64)
+    stretch(Simulation(model, state), pts, 1.5 * STRENGTH / YOUNG, 0.25)
+    old_count = int(state.face_count.numpy()[0])
+    old_slots = face_slots(model, state).numpy()[:old_count]
+    fp = FracturePass(model)
+    assert fp.find_candidates(model, state) > 0
+    assert fp.split(model, state)[0] > 0
+    model, slot_to_face = rebuild_surface(model, state)
+    assert int(state.face_count.numpy()[0]) > old_count  # the crack's faces joined the surface
+    spring = np.full(model.node_capacity, -1, dtype=np.int32)
+    spring[:old_count] = np.arange(old_count)[::-1]  # any old face ids
+    state.node_face_spring.assign(spring)
+    remap_face_ids(model, state, wp.array(old_slots, dtype=int, device=device), old_count, slot_to_face)
+    new_ids = state.node_face_spring.numpy()[:old_count]
+    assert np.all(new_ids >= 0)
+    new_slots = face_slots(model, state).numpy()
+    np.testing.assert_array_equal(new_slots[new_ids], old_slots[np.arange(old_count)[::-1]])
