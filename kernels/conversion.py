@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from .coupling import current_barycentric
 from .tets import TET_ACTIVE, TetMaterial
 from .topology import tet_face
 
@@ -269,7 +270,8 @@ def spawn_spheres_kernel(
         wp.min(face_distance(origin, x0, x1, x3), face_distance(origin, x0, x2, x1)),
     )
     scale = wp.max(wp.max(wp.abs(c[0]), wp.max(wp.abs(c[1]), wp.abs(c[2]))), wp.length(x0))
-    radius = h - 8.0 * F32_EPS * scale
+    # (At most half of h: a tiny tet far out, where float32 cannot resolve it, still gets a sphere.)
+    radius = wp.max(h - 8.0 * F32_EPS * scale, 0.5 * h)
     v0 = node_qd[n[0]]
     v1 = node_qd[n[1]]
     v2 = node_qd[n[2]]
@@ -502,3 +504,151 @@ def iota_kernel(
 ):
     b = wp.tid()  # one thread per slot: the identity order
     order[b] = b
+
+
+@wp.func
+def coupling_partner(
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    ref_tet_face_nbr: wp.array(dtype=int),
+    tet_active: wp.array(dtype=int),
+    flag: wp.array(dtype=int),
+    t: int,
+    k: int,
+) -> int:
+    """The tet across face k of converting tet t that the new sphere is coupled to, or -1: a neighbour in the unsplit
+    mesh that still shares the face and stays a tet through this pass (active, not converting)."""
+    nbr = ref_tet_face_nbr[4 * t + k]
+    if nbr < 0:
+        return -1
+    if tet_active[nbr] != TET_ACTIVE or flag[nbr] != 0:
+        return -1
+    if not shares_face(tet_nodes[nbr], tet_face(tet_nodes[t], k)):
+        return -1
+    return nbr
+
+
+@wp.kernel
+def count_conversion_couplings_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    ref_tet_face_nbr: wp.array(dtype=int),
+    # State in:
+    tet_count: wp.array(dtype=int),
+    tet_active: wp.array(dtype=int),
+    # In:
+    flag: wp.array(dtype=int),
+    # Out:
+    couplings: wp.array(dtype=int),
+):
+    t = wp.tid()  # one thread per tet slot: the couplings of its new sphere (before the pass deactivates tets)
+    couplings[t] = 0
+    if t >= tet_count[0] or flag[t] == 0:
+        return
+    n = int(0)
+    for k in range(4):
+        if coupling_partner(tet_nodes, ref_tet_face_nbr, tet_active, flag, t, k) >= 0:
+            n += 1
+    couplings[t] = n
+
+
+@wp.kernel
+def write_conversion_couplings_kernel(
+    # Model:
+    node_ref_q: wp.array(dtype=wp.vec3),
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    ref_tet_face_nbr: wp.array(dtype=int),
+    tet_material: wp.array(dtype=int),
+    conversion_material_table: wp.array(dtype=ConversionMaterial),
+    particle_mass: wp.array(dtype=float),
+    node_mass: wp.array(dtype=float),
+    # State in:
+    tet_count: wp.array(dtype=int),
+    coupling_count: wp.array(dtype=int),
+    particle_q: wp.array(dtype=wp.vec3d),
+    node_u: wp.array(dtype=wp.vec3),
+    node_q: wp.array(dtype=wp.vec3),
+    tet_active: wp.array(dtype=int),
+    tet_sphere: wp.array(dtype=int),
+    # In:
+    flag: wp.array(dtype=int),
+    offset: wp.array(dtype=int),
+    # State out:
+    coupling_particle: wp.array(dtype=int),
+    coupling_tet: wp.array(dtype=int),
+    coupling_bary: wp.array(dtype=wp.vec4),
+    coupling_k: wp.array(dtype=float),
+    coupling_energy_prev: wp.array(dtype=float),
+):
+    t = wp.tid()  # one thread per tet slot: a converted tet writes its sphere's couplings (after compaction)
+    if t >= tet_count[0] or flag[t] == 0:
+        return
+    c = coupling_count[0] + offset[t]
+    p = tet_sphere[t]
+    x = particle_q[p]
+    for k in range(4):
+        nbr = coupling_partner(tet_nodes, ref_tet_face_nbr, tet_active, flag, t, k)
+        if nbr < 0:
+            continue
+        n = tet_nodes[nbr]
+        # N_a at the sphere's centre in the neighbour's current configuration: Σ N_a x_a = x_p, a spring born
+        # relaxed (CIMNE eq. 9 with zero residual).
+        bary = current_barycentric(x, n, node_ref_q, node_u)
+        # The stiffness rule (warpdem.coupling.coupling_stiffness): k = k_n min(1, 2 / (1 + m_s Σ N_a² / m_a)), k_n
+        # the bond the sphere would have with the neighbour's sphere (face area A, centres L apart).
+        f = tet_face(tet_nodes[t], k)
+        area = 0.5 * wp.length(wp.cross(node_q[f[1]] - node_q[f[0]], node_q[f[2]] - node_q[f[0]]))
+        mid = wp.vec3d(0.0, 0.0, 0.0)
+        for a in range(4):
+            mid += wp.vec3d(node_ref_q[n[a]]) + wp.vec3d(node_u[n[a]])
+        length = wp.length(wp.vec3(mid * wp.float64(0.25) - x))
+        ma = conversion_material_table[tet_material[t]]
+        mb = conversion_material_table[tet_material[nbr]]
+        modulus = 2.0 * ma.bond_modulus * mb.bond_modulus / (ma.bond_modulus + mb.bond_modulus)
+        kn = modulus * area / length
+        ratio = float(0.0)
+        for a in range(4):
+            ratio += bary[a] * bary[a] / node_mass[n[a]]
+        ratio *= particle_mass[p]
+        coupling_particle[c] = p
+        coupling_tet[c] = nbr
+        coupling_bary[c] = bary
+        coupling_k[c] = kn * wp.min(1.0, 2.0 / (1.0 + ratio))
+        coupling_energy_prev[c] = 0.0
+        c += 1
+
+
+@wp.kernel
+def add_coupling_count_kernel(
+    # In:
+    total: wp.array(dtype=int),
+    # State out:
+    coupling_count: wp.array(dtype=int),
+):
+    _ = wp.tid()  # one thread: the pass's new couplings join the live ones
+    coupling_count[0] = coupling_count[0] + total[0]
+
+
+@wp.kernel
+def drop_converted_faces_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    # Model out:
+    face_nodes: wp.array(dtype=wp.vec3i),
+    face_edge_a: wp.array(dtype=wp.vec3),
+    face_edge_b: wp.array(dtype=wp.vec3),
+):
+    f = wp.tid()  # one thread per loaded face: it stays while an active tet holds its three nodes
+    n = face_nodes[f]
+    if n[0] != n[1]:
+        start = star_offset[n[0]]
+        for e in range(start, start + star_count[n[0]]):
+            if shares_face(tet_nodes[star_tets[e]], n):
+                return
+    # Its tet converted: the face is dropped, collapsed onto its first node with zero reference edges (zero area, so
+    # no force and no work; a collapsed triple, as a checkpoint keeps it, is recognised as dropped).
+    face_nodes[f] = wp.vec3i(n[0], n[0], n[0])
+    face_edge_a[f] = wp.vec3(0.0)
+    face_edge_b[f] = wp.vec3(0.0)

@@ -22,9 +22,9 @@ from warpdem.scene import default_scene_path, load_scene
 
 SCENES = [*sorted((Path(__file__).resolve().parent.parent / "scenes").glob("*.toml")), default_scene_path()]
 CUDA_ARCHS = (90, 80)
-# Kernel files that no shipped scene may reach yet (nodal fracture runs only where a scene enables it): imported here,
-# so that their kernels are compiled whatever the scenes do.
-IMPORTED_STAGES = ("cohesive", "fracture", "topology")
+# Kernel files that no shipped scene may reach yet (nodal fracture and conversion run only where a scene enables
+# them): imported here, so that their kernels are compiled whatever the scenes do.
+IMPORTED_STAGES = ("cohesive", "conversion", "fracture", "topology")
 
 
 def warpdem_modules() -> list:

@@ -34,16 +34,21 @@ Rules of the conversion pass (others rely on them):
   two tets still share the face's three nodes, so never across a crack or a joint): normal stiffness k_n = α E A /
   L, A the shared face's area, L the distance of the centres, k_s = β k_n, tensile strength α T_f, shear strength α
   τ_f (α T_f without τ_f) (:func:`bond_calibration` derives α and β), no dashpot, born relaxed (rest length = L).
+- Couplings (warpdem.coupling, CIMNE eqs. 8–9): each new sphere is tied to every still-active face neighbour of its
+  tet (same adjacency rule as the bonds) at its current barycentric coordinates there (born relaxed), with
+  warpdem.coupling.coupling_stiffness's rule k = k_n min(1, 2 / (1 + m_s Σ N_a² / m_a)), k_n the bond the two would
+  share; couplings to the tets converting now are released first (compact_coupling).
 - Energy: ``energy_released_conversion`` += strain energy + kinetic energy of the tet's nodes' shares − the sphere's
-  translational and spin energy (the bonds are born relaxed, so they hold nothing); couplings, where they exist, add
-  their birth energy to the books through ``coupling_energy``. The books (EnergyBalance) carry it as the line
-  ``released_conversion``.
+  translational and spin energy (bonds and couplings are born relaxed, so they hold nothing), + the springs of the
+  released couplings, + the change of Verlet's shadow term over the pass (Simulation: the scheme conserves kinetic −
+  shadow, and the pass changes the forces and masses without work). A pass therefore closes the books
+  (EnergyBalance, line ``released_conversion``) exactly, to the float64 rounding of the sums.
 - After a pass (Simulation): boundary faces rebuilt on the device (the faces of converted tets' neighbours become
-  contact faces for the spheres), the face ids of the contact state carried over, pressure loads on faces of
-  converted tets kept on their nodes (a pressure face is a triple of nodes; where those nodes lost all their tets
-  they are held and the load does no work: the blast pressure stops acting where the material turned to spheres),
-  the stages set up again (sphere contact comes alive after the first conversion) and the forces re-evaluated at
-  dt = 0.
+  contact faces for the spheres), the face ids of the contact state carried over, pressure and dashpot faces of
+  converted tets dropped (:func:`drop_converted_load_faces`: collapsed to zero area, so the blast pressure stops
+  acting where the material turned into spheres — the spheres carry no face load — and the loads' work stops with
+  it; a face that a crack only split stays, on the daughters of its tet's side), the stages set up again (sphere
+  contact comes alive after the first conversion) and the forces re-evaluated at dt = 0.
 """
 
 from __future__ import annotations
@@ -56,10 +61,12 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from .compaction import Compactor
+from .coupling import compact_coupling
 from .kernels import compaction as kc
 from .kernels import conversion as kcv
 from .kernels import topology as kt
-from .model import BOND_FIELDS, NEIGHBOR_FIELDS, Model, State
+from .model import BOND_FIELDS, COUPLING_FIELDS, NEIGHBOR_FIELDS, Model, State, conversion_state
 from .tets import eval_tet_stresses, tet_energies
 from .topology import NodeStars, reference_face_neighbors
 
@@ -294,8 +301,6 @@ def attach_conversion(
         if model.ref_tet_face_nbr is not None
         else reference_face_neighbors(model, state),
     )
-    from .model import conversion_state
-
     return model, dataclasses.replace(state, **conversion_state(model))
 
 
@@ -433,7 +438,9 @@ class ConversionPass:
         self.released = wp.zeros(t1, dtype=wp.float64, device=d)
         self.released_total = wp.zeros(1, dtype=wp.float64, device=d)
         self.forced = wp.zeros(t1, dtype=int, device=d)
-        self.counts = wp.zeros(2, dtype=int, device=d)  # converting tets, new bonds
+        self.couplings = wp.zeros(t1, dtype=int, device=d)
+        self.coupling_offset = wp.zeros(t1, dtype=int, device=d)
+        self.counts = wp.zeros(3, dtype=int, device=d)  # converting tets, new bonds, new couplings
         self.node_touched = wp.zeros(max(ncap, 1), dtype=int, device=d)
         self.stars = NodeStars(ncap, tcap, d)
 
@@ -441,12 +448,12 @@ class ConversionPass:
         """Whether the buffers match the model's capacities."""
         return self.tet_capacity == model.tet_capacity and self.node_capacity == model.node_capacity
 
-    def find(self, model: Model, state: State, forced: np.ndarray | None = None) -> tuple[int, int]:
+    def find(self, model: Model, state: State, forced: np.ndarray | None = None) -> tuple[int, int, int]:
         """Refresh the tet stresses, flag the converting tets (the criterion, or ``forced``: bool per tet slot),
-        scan the flags and the bonds each new sphere will own. Reads back (tets, bonds)."""
+        scan the flags, the bonds each new sphere will own and its couplings. Reads back (tets, bonds, couplings)."""
         m, s, d = model, state, self.device
         if m.tet_capacity == 0:
-            return 0, 0
+            return 0, 0, 0
         eval_tet_stresses(m, s)
         if forced is not None:
             self.forced.assign(np.asarray(forced, dtype=np.int32))
@@ -475,17 +482,26 @@ class ConversionPass:
             device=d,
         )
         wp.utils.array_scan(self.bonds, self.bond_offset, inclusive=False)
-        wp.launch(kcv.scan_total_kernel, dim=1, inputs=[self.flag, self.offset], outputs=[self.counts[0:1]], device=d)
         wp.launch(
-            kcv.scan_total_kernel, dim=1, inputs=[self.bonds, self.bond_offset], outputs=[self.counts[1:2]], device=d
+            kcv.count_conversion_couplings_kernel,
+            dim=m.tet_capacity,
+            inputs=[m.tet_nodes, m.ref_tet_face_nbr, s.tet_count, s.tet_active, self.flag],
+            outputs=[self.couplings],
+            device=d,
         )
-        tets, bonds = (int(v) for v in self.counts.numpy())
-        return tets, bonds
+        wp.utils.array_scan(self.couplings, self.coupling_offset, inclusive=False)
+        for k, (items, offset) in enumerate(
+            ((self.flag, self.offset), (self.bonds, self.bond_offset), (self.couplings, self.coupling_offset))
+        ):
+            wp.launch(kcv.scan_total_kernel, dim=1, inputs=[items, offset], outputs=[self.counts[k : k + 1]], device=d)
+        tets, bonds, couplings = (int(v) for v in self.counts.numpy())
+        return tets, bonds, couplings
 
-    def convert(self, model: Model, state: State) -> None:
-        """Carry out the flagged conversions in place (after :meth:`find`; the particle and bond capacities must hold
-        the new spheres and bonds): spheres, tets deactivated, bonds appended and re-sorted, nodes re-lumped.
-        Launches only."""
+    def convert(self, model: Model, state: State, coupling_compactor: Compactor | None = None) -> None:
+        """Carry out the flagged conversions in place (after :meth:`find`; the particle, bond and coupling
+        capacities must hold what it found): spheres, tets deactivated, bonds appended and re-sorted, nodes re-lumped,
+        the couplings of converted tets released and the new spheres' couplings written (with
+        ``coupling_compactor``, a Compactor of ``model.coupling_capacity`` slots). Reads back the coupling count."""
         m, s, d = model, state, self.device
         energies = tet_energies(m, s)  # before the tets are deactivated
         wp.copy(self.was_sphere, s.tet_sphere)
@@ -567,6 +583,37 @@ class ConversionPass:
             outputs=[m.node_mass, m.node_inv_mass, m.node_damping, m.node_motion, s.node_qd],
             device=d,
         )
+        if m.coupling_capacity and coupling_compactor is not None:
+            # Couplings to the tets that converted now are released (their spheres bond instead), then the new
+            # spheres are tied to their still-continuous face neighbours (at the re-lumped node masses).
+            compact_coupling(m, s, coupling_compactor)
+            wp.launch(
+                kcv.write_conversion_couplings_kernel,
+                dim=m.tet_capacity,
+                inputs=[
+                    m.node_ref_q,
+                    m.tet_nodes,
+                    m.ref_tet_face_nbr,
+                    m.tet_material,
+                    m.conversion_material_table,
+                    m.particle_mass,
+                    m.node_mass,
+                    s.tet_count,
+                    s.coupling_count,
+                    s.particle_q,
+                    s.node_u,
+                    s.node_q,
+                    s.tet_active,
+                    s.tet_sphere,
+                    self.flag,
+                    self.coupling_offset,
+                ],
+                outputs=[getattr(s, name) for name in COUPLING_FIELDS],
+                device=d,
+            )
+            wp.launch(
+                kcv.add_coupling_count_kernel, dim=1, inputs=[self.counts[2:3]], outputs=[s.coupling_count], device=d
+            )
         wp.utils.array_sum(self.released, out=self.released_total)
         wp.launch(
             kcv.add_released_kernel,
@@ -597,3 +644,22 @@ def sort_bonds(model: Model, state: State) -> None:
     wp.launch(kcv.inverse_order_kernel, dim=n, inputs=[s.bond_count, order], outputs=[old_to_new], device=d)
     if s.nbr_bond.shape[0]:
         wp.launch(kc.remap_indices_kernel, dim=s.nbr_bond.shape[0], inputs=[old_to_new], outputs=[s.nbr_bond], device=d)
+
+
+def drop_converted_load_faces(model: Model) -> None:
+    """Drop the pressure and dashpot faces of converted tets (those no active tet holds any more): each is collapsed
+    to zero area on its first node, so the load stops acting where the material turned into spheres (the spheres
+    carry no face load). Reads the model's star CSR (valid after a surface rebuild). Launches only; idempotent."""
+    loads = model.loads
+    if loads is None or model.star_offset is None:
+        return
+    sets = list(loads.pressure.values()) + ([loads.dashpots] if loads.dashpots is not None else [])
+    for faces in sets:
+        if faces.count:
+            wp.launch(
+                kcv.drop_converted_faces_kernel,
+                dim=faces.count,
+                inputs=[model.tet_nodes, model.star_offset, model.star_count, model.star_tets],
+                outputs=[faces.nodes, faces.edge_a, faces.edge_b],
+                device=model.device,
+            )

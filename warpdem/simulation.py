@@ -36,7 +36,15 @@ from .bonds import bond_energy, compact_bonds, eval_bonds
 from .cohesive import cohesive_energy, compact_cohesive, eval_cohesive, regrow_cohesive
 from .compaction import Compactor
 from .contact import NeighborList, contact_energy, eval_contacts
-from .conversion import ConversionPass, ConversionReport, grown, regrow_bonds, regrow_particles
+from .conversion import (
+    ConversionPass,
+    ConversionReport,
+    drop_converted_load_faces,
+    grown,
+    regrow_bonds,
+    regrow_particles,
+)
+from .coupling import coupling_energy, eval_coupling, regrow_coupling
 from .fem_contact import (
     FemContact,
     face_slots,
@@ -204,6 +212,10 @@ class Simulation:
         self.time = time
         self.growths = 0
         self.guard = StabilityGuard(model.device)
+        if model.tet_may_convert is not None:
+            # A restart: the checkpoint keeps dropped load faces as collapsed node triples; their edges come from the
+            # scene and are zeroed again (a no-op at t = 0).
+            drop_converted_load_faces(model)
         self._setup()
         if not primed:
             self.evaluate_forces()
@@ -219,6 +231,7 @@ class Simulation:
         self.fem_contact = FemContact(self.model, self.state, self.has_spheres) if self.model.face_capacity else None
         self.bond_compactor = Compactor(self.model.bond_capacity, self.model.device)
         self.cohesive_compactor = Compactor(self.model.cohesive_capacity, self.model.device)
+        self.coupling_compactor = Compactor(self.model.coupling_capacity, self.model.device)
         self._fracture: FracturePass | None = None
         self._conversion: ConversionPass | None = None
         self._face_slot: wp.array | None = None
@@ -243,6 +256,7 @@ class Simulation:
         if self.fem_contact is not None:
             self.fem_contact.eval(self.track_energy)
         eval_bonds(m, s, track_energy=self.track_energy)
+        eval_coupling(m, s, track_energy=self.track_energy)
         eval_loads(m, s)
 
     def _head(self) -> None:
@@ -279,6 +293,7 @@ class Simulation:
             s.fem_rebuild_flag.fill_(1)
             self.fem_contact.eval(self.track_energy, dt=0.0)
         eval_bonds(m, s, dt=0.0, track_energy=self.track_energy)
+        eval_coupling(m, s, dt=0.0, track_energy=self.track_energy)
         eval_loads(m, s, dt=0.0)
         eval_tet_stresses(m, s)
 
@@ -548,26 +563,40 @@ class Simulation:
         """A conversion pass of the tets the criterion flags (``forced`` None) or of ``forced`` (int per tet slot)."""
         if self._conversion is None or not self._conversion.fits(self.model):
             self._conversion = ConversionPass(self.model)
-        tets, bonds = self._conversion.find(self.model, self.state, forced)
+        tets, bonds, couplings = self._conversion.find(self.model, self.state, forced)
         if tets == 0:
             return ConversionReport(0, 0, 0, 0, False)
         spawned = tets * self.model.spheres_per_tet
-        grew = self._grow_for_conversion(spawned, bonds)
+        grew = self._grow_for_conversion(spawned, bonds, couplings)
         m, s = self.model, self.state
         old_faces = int(s.face_count.numpy()[0]) if m.face_capacity else 0
         if m.face_capacity:
             self._face_slot = face_slots(m, s, self._face_slot)
-        self._conversion.convert(m, s)
+        before = self.shadow() - coupling_energy(m, s) if self.track_energy else 0.0
+        self._conversion.convert(m, s, self.coupling_compactor)
         self._after_conversion(old_faces)
-        return ConversionReport(tets, spawned, bonds, 0, grew)
+        if self.track_energy:
+            # The leapfrog kinetic energy the scheme conserves is kinetic − shadow; the pass changes the shadow term
+            # (lighter nodes, new free faces, the spheres' forces) without any work, and releases the springs of
+            # couplings to the converted tets (new couplings are born relaxed): both booked as released with the
+            # rest, so the books stay closed across the pass.
+            after = self.shadow() - coupling_energy(self.model, self.state)
+            released = self.state.energy_released_conversion
+            released.assign(released.numpy() + (after - before))
+        return ConversionReport(tets, spawned, bonds, couplings, grew)
 
-    def _grow_for_conversion(self, spheres: int, bonds: int) -> bool:
-        """Grow the particle and bond capacities ×2 until they hold ``spheres`` and ``bonds`` more (what the pass
-        writes). Returns whether anything grew."""
+    def _grow_for_conversion(self, spheres: int, bonds: int, couplings: int) -> bool:
+        """Grow the particle, bond and coupling capacities ×2 until they hold ``spheres``, ``bonds`` and
+        ``couplings`` more (what the pass writes; couplings before the pass releases any). Returns whether anything
+        grew."""
         m, s = self.model, self.state
         particles = self.particle_count + spheres
         total_bonds = self.bond_count + bonds
+        total_couplings = int(s.coupling_count.numpy()[0]) + couplings
         grew = False
+        if total_couplings > m.coupling_capacity:
+            m, s = regrow_coupling(m, s, grown(m.coupling_capacity, total_couplings))
+            grew = True
         if particles > m.particle_capacity:
             m, s = regrow_particles(m, s, grown(m.particle_capacity, particles))
             grew = True
@@ -577,6 +606,7 @@ class Simulation:
         if grew:
             self.model, self.state = m, s
             self.growths += 1
+            self.coupling_compactor = Compactor(m.coupling_capacity, m.device)
         return grew
 
     def _after_conversion(self, old_faces: int) -> None:
@@ -589,6 +619,7 @@ class Simulation:
             model, slot_to_face = rebuild_surface(m, s)
             remap_face_ids(model, s, self._face_slot, old_faces, slot_to_face)
             self.model = model
+            drop_converted_load_faces(model)
         self._setup()
         self.evaluate_forces()
         while self._grow_if_overflowed(self.state):
@@ -654,7 +685,15 @@ class Simulation:
             cohesive_elastic=e_cohesive,
             dissipated_cohesive=d_cohesive,
             released_conversion=float(s.energy_released_conversion.numpy()[0]),
+            coupling_elastic=coupling_energy(m, s),
         )
+
+    def shadow(self) -> float:
+        """Verlet's shadow term of the energy books now [J] (:meth:`_shadow_term`; reads back)."""
+        m, n = self.model, self.particle_count
+        mass = m.particle_mass.numpy()[:n].astype(np.float64)
+        free = m.particle_motion.numpy()[:n] == 0
+        return self._shadow_term(mass, free, np.asarray(m.gravity, dtype=np.float64))
 
     def _shadow_term(self, mass: np.ndarray, free: np.ndarray, g: np.ndarray) -> float:
         """Verlet's shadow term dt²/8 Σ (|f + m g|²/m + |t|²/I) [J] of the free spheres and the kicked velocity

@@ -1,0 +1,353 @@
+"""Penalty coupling of spheres to material points in tets (kernels/coupling.py, warpdem/coupling.py; CIMNE eqs. 8–9).
+
+Oracles:
+- forces against a float64 host evaluation of f = k g, g = Σ N_a x_a - x_p, and -N_a f on the nodes; Σ forces = 0
+  and Σ (x - c) × F = 0 (the sphere's k g and the nodes' shares -N_a k g are a collinear pair along g);
+- a rigid rotation and translation of the tet, the sphere carried to where its material point goes: no force
+  (barycentric interpolation is affine);
+- energy: a sphere coupled to a free tet, oscillating, run by the real integrator: kinetic − shadow + strain + ½ k|g|²
+  is constant (Verlet conserves it exactly for a quadratic potential; the tets' corotational nonlinearity leaves
+  O((ω dt)²) of the strain amplitude, checked by halving dt);
+- compaction: the survivors are exactly the couplings whose tet is active, in their order; regrow copies the live
+  slots; an evaluation at dt = 0 books nothing and applies the same forces as at dt > 0;
+- the stiffness rule: k ≤ k_n and the coupling's two-body mode no faster than a bond's, ω_c² ≤ 2 k_n / m_s.
+
+Tolerances. Forces: each node's share is a float32 product and the sums are float32 atomics, FORCE_ROUNDOFF ε₃₂ of
+Σ |f|; the gap is formed from float32 displacements, so a rigid motion of size |u| leaves a gap of a few ε₃₂ |u|
+(RIGID_ROUNDOFF). Energy: against a held block the coupled sphere is a linear oscillator and the books close to rounding
+of the gap (float32 X_a - x_p at the tet's size L: 8 ε₃₂ L / |g|); a free block leaves the tets' O((ω dt)²), bounded by
+BOOKS_RTOL of the energy in play at the builder's step, and halving dt must cut it by at least DT_ORDER (second
+order: 4, less a margin for rounding).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from warpdem.builder import InteractionProps, ModelBuilder
+from warpdem.compaction import Compactor
+from warpdem.coupling import (
+    compact_coupling,
+    coupling_energy,
+    coupling_stiffness,
+    eval_coupling,
+    material_point,
+    regrow_coupling,
+    set_couplings,
+)
+from warpdem.mesh import box_mesh
+from warpdem.model import COUPLING_FIELDS
+from warpdem.simulation import Simulation
+
+YOUNG = 1.0e8  # [Pa]
+POISSON = 0.25
+DENSITY = 2000.0  # [kg/m³]
+F32_EPS = float(np.finfo(np.float32).eps)
+FORCE_ROUNDOFF = 16.0
+RIGID_ROUNDOFF = 16.0
+BOOKS_RTOL = 2.0e-3  # measured 4.9e-4 (free block, the builder's step): the tets' O((ω dt)²), with a margin of 4
+DT_ORDER = 3.0
+
+
+def block_with_spheres(
+    device, n_spheres: int, divisions=(2, 2, 1), capacity: int = 8, offset=(0.0, 0.0, 0.0), held: bool = False
+):
+    """A box of tets [0, 1]² × [0, 0.5] (shifted by ``offset``; free, or every node ``held``) and ``n_spheres``
+    small spheres well above it (no sphere–face contact), no gravity, ``capacity`` coupling slots."""
+    o = np.asarray(offset, dtype=np.float64)
+    points, tets = box_mesh(o, o + np.array([1.0, 1.0, 0.5]), divisions)
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    b.set_interaction("rock", "rock", InteractionProps(friction=0.0, restitution=1.0))
+    b.add_tet_mesh(points, tets, "rock", fixed_nodes=np.arange(len(points)) if held else None)
+    for s in range(n_spheres):
+        b.add_sphere(o + np.array([0.2 + 0.6 * s / max(n_spheres - 1, 1), 0.5, 0.8]), 0.05, "rock")
+    model, state = b.finalize(device, sort=False)
+    return regrow_coupling(model, state, capacity)
+
+
+def host_gap(model, state, particle, tet, bary) -> np.ndarray:
+    """g = Σ N_a (X_a + u_a) - x_p in float64 [m], shape (K, 3)."""
+    nodes = model.tet_nodes.numpy()[tet]
+    x = model.node_ref_q.numpy().astype(np.float64) + state.node_u.numpy().astype(np.float64)
+    xp = state.particle_q.numpy()[particle]
+    return np.einsum("ka,kad->kd", bary.astype(np.float64), x[nodes]) - xp
+
+
+def clear_forces(state) -> None:
+    state.particle_f.zero_()
+    state.node_f.zero_()
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Forces
+
+
+def test_forces_match_host_and_balance(device):
+    rng = np.random.default_rng(3)
+    model, state = block_with_spheres(device, 3)
+    nn = int(state.node_count.numpy()[0])
+    state.node_u.assign(rng.normal(0.0, 0.01, (model.node_capacity, 3)).astype(np.float32))
+    particle = np.array([0, 1, 2, 0])
+    tet = np.array([0, 3, 7, 5])
+    # N_a summing to 1, one coupling with a material point outside its tet (a negative weight).
+    bary = rng.uniform(0.0, 1.0, (4, 4))
+    bary[3] = (1.2, 0.4, -0.3, 0.1)
+    bary /= bary.sum(axis=1, keepdims=True)
+    k = np.array([1.0e6, 3.0e6, 2.0e6, 5.0e5])
+    set_couplings(model, state, particle, tet, bary, k)
+    clear_forces(state)
+    eval_coupling(model, state)
+    g = host_gap(model, state, particle, tet, bary.astype(np.float32))
+    f = k[:, None] * g
+    # Sphere forces: f = k g, summed per sphere (sphere 0 has two couplings).
+    expect_p = np.zeros((3, 3))
+    np.add.at(expect_p, particle, f)
+    fp = state.particle_f.numpy()[:3].astype(np.float64)
+    fn = state.node_f.numpy()[:nn].astype(np.float64)
+    scale = float(np.abs(f).sum())
+    np.testing.assert_allclose(fp, expect_p, rtol=0, atol=FORCE_ROUNDOFF * F32_EPS * scale)
+    # Node forces: -N_a f on node a.
+    expect_n = np.zeros((nn, 3))
+    nodes = model.tet_nodes.numpy()[tet]
+    np.add.at(expect_n, nodes.ravel(), (-bary.astype(np.float32)[:, :, None] * f[:, None, :]).reshape(-1, 3))
+    np.testing.assert_allclose(fn, expect_n, rtol=0, atol=FORCE_ROUNDOFF * F32_EPS * scale)
+    # Σ F = 0 and Σ (x - c) × F = 0 about the block's centre: each coupling's forces are collinear along g.
+    xn = model.node_ref_q.numpy()[:nn].astype(np.float64) + state.node_u.numpy()[:nn].astype(np.float64)
+    xp = state.particle_q.numpy()[:3]
+    c = xn.mean(axis=0)
+    net = fp.sum(axis=0) + fn.sum(axis=0)
+    moment = np.cross(xp - c, fp).sum(axis=0) + np.cross(xn - c, fn).sum(axis=0)
+    arm = float(np.abs(np.concatenate([xp, xn]) - c).max())
+    np.testing.assert_allclose(net, 0.0, atol=FORCE_ROUNDOFF * F32_EPS * scale)
+    np.testing.assert_allclose(moment, 0.0, atol=FORCE_ROUNDOFF * F32_EPS * scale * arm)
+    assert scale > 1.0e3  # the springs are stretched: the balance is not 0 = 0
+    # The recorded spring energies are ½ k |g|², and coupling_energy sums them.
+    u = 0.5 * k * np.sum(g * g, axis=1)
+    np.testing.assert_allclose(state.coupling_energy_prev.numpy()[:4], u, rtol=1.0e-5)
+    np.testing.assert_allclose(coupling_energy(model, state), u.sum(), rtol=1.0e-5)
+
+
+@pytest.mark.parametrize("offset", [(0.0, 0.0, 0.0), (2000.0, -1500.0, 300.0)], ids=["origin", "far"])
+def test_rigid_motion_gives_no_force(device, offset):
+    model, state = block_with_spheres(device, 2, offset=offset)
+    nn = int(state.node_count.numpy()[0])
+    x_ref = model.node_ref_q.numpy()[:nn].astype(np.float64)
+    tet = np.array([2, 9])
+    # Material points in the reference configuration: one inside its tet, one 0.3 m beyond it.
+    centre = x_ref[model.tet_nodes.numpy()[tet]].mean(axis=1)
+    points = centre + np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.3]])
+    bary = material_point(model, tet, points)
+    np.testing.assert_allclose(bary.sum(axis=1), 1.0, atol=4 * F32_EPS)
+    assert bary[1].min() < 0.0  # the second lies outside: extrapolation is part of the test
+    # Rotate by 40° about a tilted axis through the block's centre and translate; carry the spheres along.
+    axis = np.array([1.0, 2.0, 2.0]) / 3.0
+    a = np.radians(40.0)
+    kx = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    rot = np.eye(3) + np.sin(a) * kx + (1 - np.cos(a)) * kx @ kx
+    c = x_ref.mean(axis=0)
+    shift = np.array([0.7, -0.4, 0.25])
+    moved = (x_ref - c) @ rot.T + c + shift
+    u = np.zeros((model.node_capacity, 3), dtype=np.float32)
+    u[:nn] = moved - x_ref
+    state.node_u.assign(u)
+    q = state.particle_q.numpy()
+    q[:2] = (points - c) @ rot.T + c + shift
+    state.particle_q.assign(q)
+    k = 1.0e6
+    set_couplings(model, state, [0, 1], tet, bary, [k, k])
+    clear_forces(state)
+    eval_coupling(model, state)
+    # |g| ≤ a few ε₃₂ of |u| (the float32 displacements) and of |X - x_p| (rounded once), plus the float32 N_a.
+    size = float(np.abs(u).max()) + 1.0
+    np.testing.assert_allclose(state.particle_f.numpy()[:2], 0.0, atol=RIGID_ROUNDOFF * F32_EPS * k * size)
+    np.testing.assert_allclose(state.node_f.numpy()[:nn], 0.0, atol=RIGID_ROUNDOFF * F32_EPS * k * size)
+
+
+def test_material_point_of_current_position_has_no_gap(device):
+    rng = np.random.default_rng(5)
+    model, state = block_with_spheres(device, 1)
+    state.node_u.assign(rng.normal(0.0, 0.02, (model.node_capacity, 3)).astype(np.float32))
+    tets = np.array([0, 4, 6])
+    nn = int(state.node_count.numpy()[0])
+    xn = model.node_ref_q.numpy()[:nn].astype(np.float64) + state.node_u.numpy()[:nn].astype(np.float64)
+    pts = xn[model.tet_nodes.numpy()[tets]].mean(axis=1) + rng.normal(0.0, 0.1, (3, 3))
+    bary = material_point(model, tets, pts, state)
+    back = np.einsum("ka,kad->kd", bary.astype(np.float64), xn[model.tet_nodes.numpy()[tets]])
+    np.testing.assert_allclose(back, pts, atol=8 * F32_EPS)  # rounded once at the scale of the tet (1 m)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Energy
+
+
+class CoupledSimulation(Simulation):
+    """A Simulation whose force stage includes the couplings (placed as the bonds are, after contact)."""
+
+    def _forces(self) -> None:
+        super()._forces()
+        eval_coupling(self.model, self.state, track_energy=self.track_energy)
+
+    def evaluate_forces(self) -> None:
+        super().evaluate_forces()
+        eval_coupling(self.model, self.state, dt=0.0, track_energy=self.track_energy)
+
+
+def oscillator_drift(device, dt_factor: float, held: bool = False, gap: float = 0.004) -> tuple[float, float]:
+    """A sphere coupled to a material point 0.3 m above a tet block (free or ``held``), released with a gap and a
+    velocity, run for a fixed time; ``gap`` scales the release gap [m]. Returns (largest |Δ total| / in play, periods
+    of the coupling run)."""
+    model, state = block_with_spheres(device, 1, divisions=(1, 1, 1), held=held)
+    model = dataclasses.replace(model, dt=model.dt * dt_factor)
+    tet = 0
+    nn = int(state.node_count.numpy()[0])
+    x_ref = model.node_ref_q.numpy()[:nn].astype(np.float64)
+    point = x_ref[model.tet_nodes.numpy()[tet]].mean(axis=0) + np.array([0.1, 0.0, 0.3])
+    bary = material_point(model, tet, point)
+    m_s = float(model.particle_mass.numpy()[0])
+    node_mass = model.node_mass.numpy()[model.tet_nodes.numpy()[tet]]
+    k = coupling_stiffness(m_s, 5.0e6, node_mass, bary)
+    q = state.particle_q.numpy()
+    q[0] = point + gap * np.array([0.5, -0.25, 0.75])  # released with a gap
+    state.particle_q.assign(q)
+    state.particle_qd.assign(np.array([[0.05, 0.1, -0.02]], dtype=np.float32))
+    set_couplings(model, state, [0], [tet], bary[None], [k])
+    sim = CoupledSimulation(model, state, use_graph=False)
+
+    def total() -> tuple[float, float]:
+        e = sim.energy()
+        u = coupling_energy(sim.model, sim.state)
+        return e.total + u, e.in_play + u
+
+    t0, in_play = total()
+    worst = 0.0
+    period = 2 * np.pi / np.sqrt(k / m_s)
+    n_steps = round(3.0 * period / model.dt)
+    chunk = -(-n_steps // 30)
+    for _ in range(30):
+        sim.advance(chunk)
+        t, p = total()
+        in_play = max(in_play, p)
+        worst = max(worst, abs(t - t0))
+    return worst / in_play, chunk * 30 * model.dt / period
+
+
+def test_books_close_for_coupled_oscillator(device):
+    # Verlet + shadow term conserve Σ ½ m v_{n-1/2}·v_{n+1/2} + U exactly for a quadratic U (warpdem/coupling.py):
+    # against a held block the coupled sphere is a linear oscillator and the books close to rounding.
+    # Rounding: the gap is formed from X_a - x_p rounded to float32 at the tet's size L (~1 m), an error of a few
+    # ε₃₂ L in g, so ½ k|g|² is resolved to ~2 · 4 ε₃₂ L / |g| of itself.
+    gap = 0.04
+    exact, periods = oscillator_drift(device, 1.0, held=True, gap=gap)
+    assert periods >= 2.9
+    assert exact < 8.0 * F32_EPS * 1.0 / gap
+    # A free block: the tets' corotational forces are not linear, so what is left is the tets' O((ω dt)²) of the
+    # strain energy the coupling feeds them; it shrinks ~4× when dt halves.
+    coarse, _ = oscillator_drift(device, 1.0)
+    fine, _ = oscillator_drift(device, 0.5)
+    print(f"books: held {exact:.2e}, free {coarse:.2e} at dt, {fine:.2e} at dt/2")
+    assert coarse < BOOKS_RTOL
+    assert fine <= coarse / DT_ORDER
+
+
+def test_dt_zero_books_nothing(device):
+    model, state = block_with_spheres(device, 2)
+    rng = np.random.default_rng(11)
+    state.node_u.assign(rng.normal(0.0, 0.01, (model.node_capacity, 3)).astype(np.float32))
+    set_couplings(model, state, [0, 1], [1, 4], np.full((2, 4), 0.25), [1.0e6, 2.0e6])
+    lines = ("energy_damping", "energy_friction", "energy_boundary_work", "node_energy_damping")
+    before = {name: getattr(state, name).numpy().copy() for name in lines}
+    forces = []
+    for dt in (0.0, model.dt):
+        clear_forces(state)
+        eval_coupling(model, state, dt=dt)
+        forces.append((state.particle_f.numpy().copy(), state.node_f.numpy().copy()))
+        for name in lines:
+            np.testing.assert_array_equal(getattr(state, name).numpy(), before[name])
+    np.testing.assert_array_equal(forces[0][0], forces[1][0])
+    np.testing.assert_array_equal(forces[0][1], forces[1][1])
+    assert np.abs(forces[0][0]).max() > 0.0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Compaction and capacity
+
+
+def test_compaction_keeps_couplings_of_active_tets(device):
+    rng = np.random.default_rng(7)
+    model, state = block_with_spheres(device, 3, capacity=16)
+    n_tets = int(state.tet_count.numpy()[0])
+    count = 13
+    particle = rng.integers(0, 3, count)
+    tet = rng.integers(0, 6, count)  # several couplings per tet, so a conversion releases some of them
+    bary = rng.dirichlet(np.ones(4), count)
+    k = rng.uniform(1.0e5, 1.0e6, count)
+    set_couplings(model, state, particle, tet, bary, k)
+    active = state.tet_active.numpy()
+    converted = [1, 4, n_tets - 1]
+    active[converted] = 0
+    state.tet_active.assign(active)
+    # A coupling whose tet converted applies no force and holds no energy before it is removed.
+    keep = active[tet] != 0
+    clear_forces(state)
+    eval_coupling(model, state)
+    f_before = state.particle_f.numpy().copy()
+    e_before = coupling_energy(model, state)
+    live = compact_coupling(model, state, Compactor(model.coupling_capacity, model.device))
+    assert live == int(keep.sum()) and 0 < live < count
+    np.testing.assert_array_equal(state.coupling_particle.numpy()[:live], particle[keep])
+    np.testing.assert_array_equal(state.coupling_tet.numpy()[:live], tet[keep])
+    np.testing.assert_array_equal(state.coupling_bary.numpy()[:live], bary[keep].astype(np.float32))
+    np.testing.assert_array_equal(state.coupling_k.numpy()[:live], k[keep].astype(np.float32))
+    clear_forces(state)
+    eval_coupling(model, state)
+    np.testing.assert_array_equal(state.particle_f.numpy(), f_before)
+    assert coupling_energy(model, state) == e_before
+    # Slots past the count are zero (a bitwise restart sees no leftovers).
+    for name in COUPLING_FIELDS:
+        assert not np.any(getattr(state, name).numpy()[live:])
+
+
+def test_regrow_copies_live_couplings(device):
+    model, state = block_with_spheres(device, 2, capacity=2)
+    set_couplings(model, state, [0, 1], [3, 5], np.full((2, 4), 0.25), [1.0e6, 2.0e6])
+    grown_model, grown = regrow_coupling(model, state, 8)
+    assert grown_model.coupling_capacity == 8 and model.coupling_capacity == 2
+    for name in COUPLING_FIELDS:
+        old, new = getattr(state, name).numpy(), getattr(grown, name).numpy()
+        assert new.shape[0] == 8
+        np.testing.assert_array_equal(new[:2], old[:2])
+        assert not np.any(new[2:])
+    clear_forces(state)
+    eval_coupling(model, state)
+    f = state.particle_f.numpy().copy()
+    clear_forces(grown)
+    eval_coupling(grown_model, grown)
+    np.testing.assert_array_equal(grown.particle_f.numpy(), f)
+    with pytest.raises(ValueError, match="below the 2 live"):
+        regrow_coupling(model, state, 1)
+    with pytest.raises(ValueError, match="couplings for 2 slots"):
+        set_couplings(model, state, [0, 1, 1], [0, 1, 2], np.full((3, 4), 0.25), [1.0, 1.0, 1.0])
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Stiffness rule
+
+
+def test_stiffness_rule_bounds():
+    rng = np.random.default_rng(13)
+    m_s = rng.uniform(0.1, 10.0, 200)
+    kn = rng.uniform(1.0e5, 1.0e8, 200)
+    node_mass = rng.uniform(0.01, 20.0, (200, 4))
+    bary = rng.dirichlet(np.ones(4), 200) * 1.4 - 0.1  # some outside the tet (Σ = 1.0)
+    k = coupling_stiffness(m_s, kn, node_mass, bary)
+    omega_c2 = k * (1.0 / m_s + np.sum(bary**2 / node_mass, axis=1))
+    assert np.all(k <= kn * (1 + 1e-12))
+    assert np.all(omega_c2 <= 2.0 * kn / m_s * (1 + 1e-12))
+    # Heavy nodes (intact continuum around): the cap is the bond stiffness itself.
+    assert coupling_stiffness(1.0, 1.0e6, np.full(4, 10.0), np.full(4, 0.25)) == 1.0e6
+    with pytest.raises(ValueError, match="positive"):
+        coupling_stiffness(0.0, 1.0e6, np.full(4, 1.0), np.full(4, 0.25))
