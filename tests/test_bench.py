@@ -25,7 +25,7 @@ from warpdem.bench import (
     TRESCA_STRENGTH,
     converting_block,
     due_tets,
-    face_pairs,
+    face_counts,
     find_case,
     spread_tets,
 )
@@ -91,8 +91,8 @@ def test_conversion_pass_converts_the_flagged_tets_above_the_threshold(device, s
     τ_f = T_f and f = 0.9, s = 3 puts every tet at T_f ≥ 0.9 τ_f (11 % above the threshold, far beyond float32
     round-off ~1e-7), s = 2.5 at 0.83 τ_f (7 % below it): the tets due are the flagged ones, or none. The host's
     brute-force count (``due_tets``) must say the same, and the pass must convert exactly that set (tet_active = 0),
-    one sphere per tet and one bond per pair of them that shares a face (counted on the host over the unsplit mesh's
-    face neighbours).
+    one sphere per tet, one bond per pair of them that shares a face and one coupling per face they share with a tet
+    that stays continuous (counted on the host over the unsplit mesh's face neighbours).
     """
     cells = 4
     may_convert = spread_tets(6 * cells**3, 0.05, seed=3)
@@ -107,8 +107,10 @@ def test_conversion_pass_converts_the_flagged_tets_above_the_threshold(device, s
     np.testing.assert_array_equal(converted, expected)
     assert report.converted == report.spawned == int(np.count_nonzero(expected))
     assert int(sim.state.particle_count.numpy()[0]) == report.spawned
-    assert report.bonds == int(sim.state.bond_count.numpy()[0]) == face_pairs(sim.model, expected)
-    assert not report.grew  # particle and bond slots were reserved
+    bonds, couplings = face_counts(sim.model, expected)
+    assert report.bonds == int(sim.state.bond_count.numpy()[0]) == bonds
+    assert report.couplings == int(sim.state.coupling_count.numpy()[0]) == couplings
+    assert not report.grew  # particle, bond and coupling slots were reserved
 
 
 def test_conversion_bench_converts_the_tets_due(tmp_path, device):
@@ -131,7 +133,7 @@ def test_conversion_bench_converts_the_tets_due(tmp_path, device):
     assert p["tets"] == 6 * cells**3 and p["nodes"] == (cells + 1) ** 3
     assert p["may_convert"] == round(fraction * 6 * cells**3)
     assert p["due"] == p["may_convert"] == p["converted"] == p["spawned"]
-    assert p["bonds"] == p["bonds_due"]
+    assert p["bonds"] == p["bonds_due"] and p["couplings"] == p["couplings_due"]
     assert not p["grew"]  # particle and coupling slots were reserved
     off, r = data["runs"]
     assert off["interval"] == 0 and off["converted"] == 0 and off["spheres"] == 0  # the pass off
