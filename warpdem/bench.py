@@ -1,5 +1,6 @@
-"""Benchmarks: ``python -m warpdem bench`` (DEM settling), ``python -m warpdem bench tets`` (tetrahedra) and
-``python -m warpdem bench fracture`` (the split pass and a cracking run).
+"""Benchmarks: ``python -m warpdem bench`` (DEM settling), ``python -m warpdem bench tets`` (tetrahedra),
+``python -m warpdem bench fracture`` (the split pass and a cracking run) and ``python -m warpdem bench conversion``
+(the FEM→DEM conversion pass and a converting run).
 
 Settling, the case other DEM codes are measured on (issue "Foundation", §7): N spheres (r = 0.01 m,
 ρ = 2500 kg/m³, E = 1e7 Pa, ν = 0.3, μ = 0.5, e = 0.5, Hertz–Mindlin with history) start at rest from the centres
@@ -18,6 +19,13 @@ units of force steps of the same mesh, on a granite cube of Kuhn tets (about 0.2
 figure is 1 M) stretched in uniaxial strain to 3 T_f with a seeded random 1 % of its nodes free to split
 (:func:`stretched_block`); and the step rate of a cracking run, a smaller cube of grains of random strength pulled
 apart at a constant strain rate with a pass every 1 or 10 steps (:func:`cracking_block`).
+
+Conversion (issue 10 §8): the cost of one conversion pass (``Simulation.conversion_pass``: the criterion, spheres,
+bonds and couplings written, nodes re-lumped, the surface and contact lists rebuilt, forces re-evaluated) in units
+of force steps of the same mesh, on the same stretched cube with a seeded random 1 % of its tets, all above the
+Tresca threshold, allowed to convert (:func:`converting_block`); and the step rate of a converting run, the pulled
+cube of grains with its central slab allowed to convert, a pass every 1 or 10 steps (:func:`converting_run_block`).
+The two pass benchmarks and the two runs share the block, the timing and the command line (:func:`run_pass_bench`).
 """
 
 from __future__ import annotations
@@ -735,9 +743,9 @@ def face_counts(model, mask: np.ndarray) -> tuple[int, int]:
 
 def due_tets(model, state) -> np.ndarray:
     """The tets a conversion pass must convert, found on the host by brute force (the rules of warpdem.conversion):
-    live, active tets with ``tet_may_convert`` whose stress (``state.tet_stress``, brought up to date here) reaches
-    the criterion of their material — Tresca (σ1 − σ3)/2 ≥ f τ_f or Rankine σ1 ≥ f T_f, principal stresses in
-    float64. Returns a bool mask, shape (tet_count,)."""
+    live, active tets with ``tet_may_convert`` of a material that converts, whose stress (``state.tet_stress``,
+    brought up to date here) reaches the criterion of their material — Tresca (σ1 − σ3)/2 ≥ f τ_f or Rankine
+    σ1 ≥ f T_f, principal stresses in float64. Returns a bool mask, shape (tet_count,)."""
     from .kernels.conversion import CRITERION_RANKINE, CRITERION_TRESCA
     from .tets import eval_tet_stresses
 
@@ -754,7 +762,7 @@ def due_tets(model, state) -> np.ndarray:
     rankine = sigma[:, 2] >= fraction * table["tensile_strength"][material]
     reached = np.where(criterion == int(CRITERION_TRESCA), tresca, rankine)
     live = (state.tet_active.numpy()[:count] != 0) & (model.tet_may_convert.numpy()[:count] != 0)
-    return live & reached
+    return live & (table["converts"][material] != 0) & reached
 
 
 @dataclass
