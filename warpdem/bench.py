@@ -37,9 +37,15 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import warp as wp
+
+    from .model import Model, State
+    from .simulation import Simulation
 
 DATA_DIR = Path(__file__).resolve().parent / "data" / "bench"
 """The settling cases shipped with the package: ``init_N<N>.txt.gz`` (centres [m], one ``x y z`` line per sphere,
@@ -340,7 +346,7 @@ def stretched_granite(
     stretch: float = STRETCH,
     node_capacity: int | None = None,
     particle_capacity: int | None = None,
-):
+) -> tuple[Model, State]:
     """The block of the pass benchmarks (fracture, conversion): a granite cube of side 1 m, ``cells``³ cells of 6
     Kuhn tets, stretched along x in uniaxial strain to σ_xx = ``stretch`` × T_f (displacement u = ε X, x-faces held,
     at rest, no gravity). Returns (model, state) with the stretch in ``state.node_u``/``node_q``; ``node_capacity``
@@ -370,7 +376,9 @@ def stretched_granite(
     return model, state
 
 
-def stretched_block(cells: int, device: str, may_split: np.ndarray, node_capacity: int | None = None):
+def stretched_block(
+    cells: int, device: str, may_split: np.ndarray, node_capacity: int | None = None
+) -> tuple[Model, State]:
     """The fracture pass case: :func:`stretched_granite` at σ_xx = STRETCH × T_f with fracture on, a pass every step
     and ``may_split`` (bool per node) the nodes that may split. Returns (model, state); ``node_capacity`` leaves room
     for the daughters."""
@@ -381,11 +389,13 @@ def stretched_block(cells: int, device: str, may_split: np.ndarray, node_capacit
     return attach_fracture(model, state, [props], check_interval=1, may_split=may_split)
 
 
-def qualifying_nodes(model, state, may_split: np.ndarray) -> int:
+def qualifying_nodes(model: Model, state: State, may_split: np.ndarray) -> int:
     """How many nodes the split pass must split, counted on the host by brute force (the rules of warpdem.fracture):
     nodes with ``may_split``, whose volume-weighted average of their tets' stresses (LDEC eq. 1) has σ1 ≥ the least
     T_f of their tets' materials, and whose star has tets on both sides of the plane through the node normal to p1.
-    Nodes that share a tet are all counted: the pass's rounds split them one after another."""
+    Nodes that share a tet are all counted: the pass's rounds split them one after another. (The pass also asks for a
+    face between the two sides; a node's star in a conforming mesh such as the Kuhn box is face-connected around it,
+    so tets on both sides imply one.)"""
     nodes = int(state.node_count.numpy()[0])
     tcount = int(state.tet_count.numpy()[0])
     tets = model.tet_nodes.numpy()[:tcount].astype(np.int64)
@@ -454,7 +464,7 @@ class FracturePassResult:
     peak_rss_mb: float
 
 
-def timed(device, fn: Callable[[], T]) -> tuple[float, T]:
+def timed(device: str | wp.context.Device, fn: Callable[[], T]) -> tuple[float, T]:
     """Wall time [s] of ``fn()`` with the device synchronised before and after (launches are asynchronous), and what
     it returned."""
     import warp as wp
@@ -466,7 +476,7 @@ def timed(device, fn: Callable[[], T]) -> tuple[float, T]:
     return time.perf_counter() - t0, out
 
 
-def force_step_time(model, state, steps: int, repeat: int) -> float:
+def force_step_time(model: Model, state: State, steps: int, repeat: int) -> float:
     """The cost of one force step of a model [s]: the fastest of ``repeat`` runs of ``steps`` steps of
     ``Simulation.advance`` over steps, with the between-steps passes off (fracture_interval = conversion_interval
     = 0), after compilation and capture. ``state`` is left as it was given (the pass benchmarks time their pass on
@@ -542,7 +552,7 @@ STRENGTH_CLASSES = 8
 """Tensile strengths of the cracking block's grains: T_f × (1, …, 2) in this many even steps."""
 
 
-def pulled_granite(cells: int, device: str, steps: int, seed: int = 0):
+def pulled_granite(cells: int, device: str, steps: int, seed: int = 0) -> tuple[Model, State, np.ndarray, np.ndarray]:
     """The block of the run benchmarks (cracking, converting): the granite cube of :func:`stretched_granite`, made of
     grains of GRAIN_CELLS³ cells with seeded random strengths T_f … 2 T_f (one material per strength class, named
     ``granite<k>``), pulled apart along x at a constant strain rate (x-faces driven at ∓v, the rest starting with
@@ -585,7 +595,7 @@ def pulled_granite(cells: int, device: str, steps: int, seed: int = 0):
     return model, state, strengths, left | right
 
 
-def cracking_block(cells: int, device: str, steps: int, interval: int, seed: int = 0):
+def cracking_block(cells: int, device: str, steps: int, interval: int, seed: int = 0) -> Simulation:
     """The cracking run: :func:`pulled_granite` with every node but the driven ones free to split, a pass every
     ``interval`` steps (0: none, the reference), so the block cracks through most of the run. Returns a
     Simulation."""
@@ -710,7 +720,7 @@ def spread_tets(tets: int, fraction: float, seed: int) -> np.ndarray:
     return mask
 
 
-def converting_block(cells: int, device: str, may_convert: np.ndarray, stretch: float = STRETCH):
+def converting_block(cells: int, device: str, may_convert: np.ndarray, stretch: float = STRETCH) -> tuple[Model, State]:
     """The conversion pass case: :func:`stretched_granite` at σ_xx = ``stretch`` × T_f with conversion on (Tresca,
     0.9 τ_f = 0.9 TRESCA_STRENGTH, a pass every step, one sphere per tet) and ``may_convert`` (bool per tet) the tets
     that may convert. Particle, bond and coupling slots are reserved for the case where every tet that may convert
@@ -727,7 +737,7 @@ def converting_block(cells: int, device: str, may_convert: np.ndarray, stretch: 
     return regrow_bonds(model, state, face_counts(model, may_convert)[0])
 
 
-def face_counts(model, mask: np.ndarray) -> tuple[int, int]:
+def face_counts(model: Model, mask: np.ndarray) -> tuple[int, int]:
     """What a conversion of exactly the tets in ``mask`` (bool per tet, shape (tet_count,), all tets active) makes,
     counted over the faces of the unsplit mesh (``model.ref_tet_face_nbr``): (bonds, one per pair of tets in the mask
     that share a face; couplings, one per face between a tet in the mask and a still-continuous tet)."""
@@ -741,7 +751,7 @@ def face_counts(model, mask: np.ndarray) -> tuple[int, int]:
     return int(np.count_nonzero(bonds)), int(np.count_nonzero(couplings))
 
 
-def due_tets(model, state) -> np.ndarray:
+def due_tets(model: Model, state: State) -> np.ndarray:
     """The tets a conversion pass must convert, found on the host by brute force (the rules of warpdem.conversion):
     live, active tets with ``tet_may_convert`` of a material that converts, whose stress (``state.tet_stress``,
     brought up to date here) reaches the criterion of their material — Tresca (σ1 − σ3)/2 ≥ f τ_f or Rankine
@@ -835,7 +845,7 @@ def bench_conversion_pass(
     )
 
 
-def converting_run_block(cells: int, device: str, steps: int, interval: int, seed: int = 0):
+def converting_run_block(cells: int, device: str, steps: int, interval: int, seed: int = 0) -> Simulation:
     """The converting run: :func:`pulled_granite` with conversion on in its central slab (tets whose centroid lies
     within CONVERSION_SLAB / 2 of x = 0.5 m: the block fails at its centre), Tresca with τ_f = T_f / 2 of each grain
     (σ_xx ≈ E ε in uniaxial stress reaches 0.9 × 2 τ_f just before the grain's T_f), a pass every ``interval``
