@@ -2,9 +2,10 @@
 kernels of the between-steps conversion pass (criterion per tet, spawning spheres and their bonds).
 
 The pass (warpdem/conversion.py) runs them in this order: ``flag_conversion_kernel`` (criterion) → exclusive scan of
-the flags (sphere slots) → ``count_conversion_bonds_kernel`` → exclusive scan (bond slots) → the host grows the
-capacities → ``spawn_spheres_kernel`` → ``write_conversion_bonds_kernel`` → bonds re-sorted by key →
-``relump_converted_nodes_kernel`` over the nodes the converted tets held.
+the flags (sphere slots) → ``edge_degree_kernel`` and ``count_conversion_links_kernel`` over the stars of all live
+tets → exclusive scans (bond and coupling slots) → the host grows the capacities → ``spawn_spheres_kernel`` →
+``write_conversion_bonds_kernel`` → bonds re-sorted by key → ``relump_converted_nodes_kernel`` over the nodes the
+converted tets held → couplings of converted tets released → ``write_conversion_couplings_kernel``.
 """
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ import warp as wp
 
 from .coupling import current_barycentric
 from .tets import TET_ACTIVE, TetMaterial
-from .topology import tet_face
 
 wp.set_module_options({"enable_backward": False})
 
@@ -42,12 +42,12 @@ class ConversionMaterial:
         tensile_strength: T_f [Pa] (Rankine; also the bonds' tensile strength).
         cohesion: c of Mohr–Coulomb [Pa].
         friction_angle: φ of Mohr–Coulomb [rad].
-        bond_modulus: α E, the modulus of the new bonds' normal springs k_n = α E A / L [Pa] (warpdem.conversion
-            .bond_calibration: α makes the bond network's affine Young's modulus equal to E).
-        bond_shear_ratio: β = k_s / k_n of the new bonds (matches the material's Poisson ratio where ν ≤ 1/4) [-].
-        bond_tensile_strength: the new bonds' tensile strength α T_f [Pa] (a bond along the load carries α σ per
-            unit area of its face, so the bar fails at σ = T_f).
-        bond_shear_strength: the new bonds' shear strength α τ_f (α T_f without τ_f) [Pa].
+        bond_modulus: κ E, the modulus of the new bonds' normal springs k_b = κ E V_b / L_b² [Pa] (warpdem.lattice:
+            the edge network's energy equivalence, κ measured on a bar).
+        bond_shear_ratio: k_s / k_n of the new bonds (0: normal springs alone; the edge network is rigid) [-].
+        bond_tensile_strength: the new bonds' tensile strength (κ / S) T_f per unit A_b = V_b / L_b [Pa]: a bond
+            breaks at the stretch L_b T_f / (S E) (S = warpdem.lattice.STRENGTH_FACTOR), so a bar fails at T_f.
+        bond_shear_strength: (κ / S) τ_f (T_f without τ_f) [Pa] (inactive without shear springs).
         converts: 1 when the material converts at all, else 0.
     """
 
@@ -146,51 +146,119 @@ def shares_face(n: wp.vec4i, face: wp.vec3i) -> bool:
 
 
 @wp.func
-def bond_partner(
-    tet_nodes: wp.array(dtype=wp.vec4i),
-    ref_tet_face_nbr: wp.array(dtype=int),
-    tet_sphere: wp.array(dtype=int),
-    flag: wp.array(dtype=int),
-    t: int,
-    k: int,
-) -> int:
-    """The tet across face k of converting tet t whose sphere the new sphere of t bonds to, or -1: a neighbour in
-    the unsplit mesh that still shares the face (no crack or joint between them) and either converted in an earlier
-    pass or converts in this one with a larger index (each bond has one owner, so it is written once)."""
-    nbr = ref_tet_face_nbr[4 * t + k]
-    if nbr < 0:
+def shared_nodes(a: wp.vec4i, b: wp.vec4i) -> wp.vec2i:
+    """(how many of tet a's nodes tet b holds, the lowest local index in a of one it holds (4: none))."""
+    count = int(0)
+    first = int(4)
+    for i in range(4):
+        for j in range(4):
+            if a[i] == b[j]:
+                count += 1
+                first = wp.min(first, i)
+    return wp.vec2i(count, first)
+
+
+@wp.func
+def edge_neighbor(tet_nodes: wp.array(dtype=wp.vec4i), star_tets: wp.array(dtype=int), t: int, a: int, e: int) -> int:
+    """The tet at star slot e of tet t's local node a when it shares an edge (two nodes or more) with t and a is the
+    first node of t it holds (so each edge neighbour is seen once, scanning a = 0..3 and each star in order), else
+    -1. Nodes split by a crack are different nodes: no neighbour across a crack or a joint."""
+    n = star_tets[e]
+    if n == t:
         return -1
-    if not shares_face(tet_nodes[nbr], tet_face(tet_nodes[t], k)):
+    shared = shared_nodes(tet_nodes[t], tet_nodes[n])
+    if shared[0] < 2 or shared[1] != a:
         return -1
-    if tet_sphere[nbr] >= 0:
-        return nbr
-    if flag[nbr] != 0 and nbr > t:
-        return nbr
-    return -1
+    return n
 
 
 @wp.kernel
-def count_conversion_bonds_kernel(
+def edge_degree_kernel(
     # Model:
     tet_nodes: wp.array(dtype=wp.vec4i),
-    ref_tet_face_nbr: wp.array(dtype=int),
     # State in:
     tet_count: wp.array(dtype=int),
+    # In:
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    # Out:
+    degree: wp.array(dtype=int),
+):
+    t = wp.tid()  # one thread per tet slot: Z_t, the live tets sharing an edge with it (warpdem.lattice)
+    degree[t] = 0
+    if t >= tet_count[0]:
+        return
+    z = int(0)
+    nodes = tet_nodes[t]
+    for a in range(4):
+        v = nodes[a]
+        for e in range(star_offset[v], star_offset[v] + star_count[v]):
+            if edge_neighbor(tet_nodes, star_tets, t, a, e) >= 0:
+                z += 1
+    degree[t] = z
+
+
+@wp.func
+def bonds_to(tet_sphere: wp.array(dtype=int), flag: wp.array(dtype=int), t: int, n: int) -> bool:
+    """Whether converting tet t's sphere owns a bond to edge neighbour n's: n converted in an earlier pass, or
+    converts in this one with a larger index (each bond has one owner, so it is written once)."""
+    if tet_sphere[n] >= 0:
+        return True
+    return flag[n] != 0 and n > t
+
+
+@wp.func
+def couples_to(tet_active: wp.array(dtype=int), flag: wp.array(dtype=int), n: int) -> bool:
+    """Whether edge neighbour n stays a tet through this pass (active, not converting): the sphere couples to it."""
+    return tet_active[n] == TET_ACTIVE and flag[n] == 0
+
+
+@wp.kernel
+def count_conversion_links_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    # State in:
+    tet_count: wp.array(dtype=int),
+    tet_active: wp.array(dtype=int),
     tet_sphere: wp.array(dtype=int),
     # In:
     flag: wp.array(dtype=int),
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
     # Out:
     bonds: wp.array(dtype=int),
+    couplings: wp.array(dtype=int),
 ):
-    t = wp.tid()  # one thread per tet slot: the bonds its new sphere owns
+    t = wp.tid()  # one thread per tet slot: the bonds its new sphere owns and its couplings (before the pass)
     bonds[t] = 0
+    couplings[t] = 0
     if t >= tet_count[0] or flag[t] == 0:
         return
-    n = int(0)
-    for k in range(4):
-        if bond_partner(tet_nodes, ref_tet_face_nbr, tet_sphere, flag, t, k) >= 0:
-            n += 1
-    bonds[t] = n
+    nb = int(0)
+    nc = int(0)
+    nodes = tet_nodes[t]
+    for a in range(4):
+        v = nodes[a]
+        for e in range(star_offset[v], star_offset[v] + star_count[v]):
+            n = edge_neighbor(tet_nodes, star_tets, t, a, e)
+            if n < 0:
+                continue
+            if bonds_to(tet_sphere, flag, t, n):
+                nb += 1
+            elif couples_to(tet_active, flag, n):
+                nc += 1
+    bonds[t] = nb
+    couplings[t] = nc
+
+
+@wp.func
+def lattice_stiffness(mat_t: ConversionMaterial, mat_n: ConversionMaterial, volume: float, length: float) -> float:
+    """k_b = κ E V_b / L_b² [N/m] of a bond of the edge network (warpdem.lattice: energy equivalence under an affine
+    strain, with the factor κ measured on a bar); E the mean of the two materials' (``bond_modulus`` holds κ E),
+    V_b = V_t / Z_t + V_n / Z_n the volume the bond stands for."""
+    return 0.5 * (mat_t.bond_modulus + mat_n.bond_modulus) * volume / (length * length)
 
 
 @wp.func
@@ -323,7 +391,7 @@ def spawn_spheres_kernel(
 def write_conversion_bonds_kernel(
     # Model:
     tet_nodes: wp.array(dtype=wp.vec4i),
-    ref_tet_face_nbr: wp.array(dtype=int),
+    tet_volume: wp.array(dtype=float),
     tet_material: wp.array(dtype=int),
     conversion_material_table: wp.array(dtype=ConversionMaterial),
     particle_capacity: int,
@@ -331,12 +399,15 @@ def write_conversion_bonds_kernel(
     tet_count: wp.array(dtype=int),
     bond_count: wp.array(dtype=int),
     particle_q: wp.array(dtype=wp.vec3d),
-    node_q: wp.array(dtype=wp.vec3),
     tet_sphere: wp.array(dtype=int),
     # In:
     flag: wp.array(dtype=int),
     was_sphere: wp.array(dtype=int),
     offset: wp.array(dtype=int),
+    degree: wp.array(dtype=int),
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
     # State out:
     bond_i: wp.array(dtype=int),
     bond_j: wp.array(dtype=int),
@@ -352,40 +423,42 @@ def write_conversion_bonds_kernel(
     bond_broken: wp.array(dtype=int),
     bond_energy_prev: wp.array(dtype=wp.vec2),
 ):
-    t = wp.tid()  # one thread per tet slot: a converting tet writes the bonds it owns (count_conversion_bonds)
+    t = wp.tid()  # one thread per tet slot: a converting tet writes the bonds it owns (count_conversion_links)
     if t >= tet_count[0] or flag[t] == 0:
         return
     b = bond_count[0] + offset[t]
-    for k in range(4):
-        nbr = bond_partner(tet_nodes, ref_tet_face_nbr, was_sphere, flag, t, k)
-        if nbr < 0:
-            continue
-        si = tet_sphere[t]
-        sj = tet_sphere[nbr]
-        i = wp.min(si, sj)
-        j = wp.max(si, sj)
-        f = tet_face(tet_nodes[t], k)
-        area = 0.5 * wp.length(wp.cross(node_q[f[1]] - node_q[f[0]], node_q[f[2]] - node_q[f[0]]))
-        length = wp.length(wp.vec3(particle_q[i] - particle_q[j]))
-        ma = conversion_material_table[tet_material[t]]
-        mb = conversion_material_table[tet_material[nbr]]
-        # Two materials: the springs of both halves in series (harmonic mean modulus), the weaker strength.
-        modulus = 2.0 * ma.bond_modulus * mb.bond_modulus / (ma.bond_modulus + mb.bond_modulus)
-        kn = modulus * area / length
-        bond_i[b] = i
-        bond_j[b] = j
-        bond_key[b] = wp.int64(i) * wp.int64(particle_capacity) + wp.int64(j)
-        bond_rest_length[b] = length  # born relaxed: the strain energy the tets held is booked as released
-        bond_kn[b] = kn
-        bond_ks[b] = kn * 0.5 * (ma.bond_shear_ratio + mb.bond_shear_ratio)
-        bond_area[b] = area
-        bond_tensile_strength[b] = wp.min(ma.bond_tensile_strength, mb.bond_tensile_strength)
-        bond_shear_strength[b] = wp.min(ma.bond_shear_strength, mb.bond_shear_strength)
-        bond_damping[b] = 0.0
-        bond_shear[b] = wp.vec3(0.0)
-        bond_broken[b] = 0
-        bond_energy_prev[b] = wp.vec2(0.0)
-        b += 1
+    nodes = tet_nodes[t]
+    for a in range(4):
+        v = nodes[a]
+        for e in range(star_offset[v], star_offset[v] + star_count[v]):
+            nbr = edge_neighbor(tet_nodes, star_tets, t, a, e)
+            if nbr < 0:
+                continue
+            if not bonds_to(was_sphere, flag, t, nbr):
+                continue
+            si = tet_sphere[t]
+            sj = tet_sphere[nbr]
+            i = wp.min(si, sj)
+            j = wp.max(si, sj)
+            length = wp.length(wp.vec3(particle_q[i] - particle_q[j]))
+            vb = tet_volume[t] / float(degree[t]) + tet_volume[nbr] / float(degree[nbr])
+            ma = conversion_material_table[tet_material[t]]
+            mb = conversion_material_table[tet_material[nbr]]
+            bond_i[b] = i
+            bond_j[b] = j
+            bond_key[b] = wp.int64(i) * wp.int64(particle_capacity) + wp.int64(j)
+            bond_rest_length[b] = length  # born relaxed: the strain energy the tets held is booked as released
+            bond_kn[b] = lattice_stiffness(ma, mb, vb, length)
+            bond_ks[b] = 0.0  # normal springs alone: the edge network is rigid (warpdem.lattice)
+            bond_area[b] = vb / length
+            # k_b L / (E A_b) = κ: a strength κ T_f / S per unit A_b breaks the bond at the stretch L T_f / (S E).
+            bond_tensile_strength[b] = wp.min(ma.bond_tensile_strength, mb.bond_tensile_strength)
+            bond_shear_strength[b] = wp.min(ma.bond_shear_strength, mb.bond_shear_strength)
+            bond_damping[b] = 0.0
+            bond_shear[b] = wp.vec3(0.0)
+            bond_broken[b] = 0
+            bond_energy_prev[b] = wp.vec2(0.0)
+            b += 1
 
 
 @wp.kernel
@@ -506,57 +579,12 @@ def iota_kernel(
     order[b] = b
 
 
-@wp.func
-def coupling_partner(
-    tet_nodes: wp.array(dtype=wp.vec4i),
-    ref_tet_face_nbr: wp.array(dtype=int),
-    tet_active: wp.array(dtype=int),
-    flag: wp.array(dtype=int),
-    t: int,
-    k: int,
-) -> int:
-    """The tet across face k of converting tet t that the new sphere is coupled to, or -1: a neighbour in the unsplit
-    mesh that still shares the face and stays a tet through this pass (active, not converting)."""
-    nbr = ref_tet_face_nbr[4 * t + k]
-    if nbr < 0:
-        return -1
-    if tet_active[nbr] != TET_ACTIVE or flag[nbr] != 0:
-        return -1
-    if not shares_face(tet_nodes[nbr], tet_face(tet_nodes[t], k)):
-        return -1
-    return nbr
-
-
-@wp.kernel
-def count_conversion_couplings_kernel(
-    # Model:
-    tet_nodes: wp.array(dtype=wp.vec4i),
-    ref_tet_face_nbr: wp.array(dtype=int),
-    # State in:
-    tet_count: wp.array(dtype=int),
-    tet_active: wp.array(dtype=int),
-    # In:
-    flag: wp.array(dtype=int),
-    # Out:
-    couplings: wp.array(dtype=int),
-):
-    t = wp.tid()  # one thread per tet slot: the couplings of its new sphere (before the pass deactivates tets)
-    couplings[t] = 0
-    if t >= tet_count[0] or flag[t] == 0:
-        return
-    n = int(0)
-    for k in range(4):
-        if coupling_partner(tet_nodes, ref_tet_face_nbr, tet_active, flag, t, k) >= 0:
-            n += 1
-    couplings[t] = n
-
-
 @wp.kernel
 def write_conversion_couplings_kernel(
     # Model:
     node_ref_q: wp.array(dtype=wp.vec3),
     tet_nodes: wp.array(dtype=wp.vec4i),
-    ref_tet_face_nbr: wp.array(dtype=int),
+    tet_volume: wp.array(dtype=float),
     tet_material: wp.array(dtype=int),
     conversion_material_table: wp.array(dtype=ConversionMaterial),
     particle_mass: wp.array(dtype=float),
@@ -566,12 +594,15 @@ def write_conversion_couplings_kernel(
     coupling_count: wp.array(dtype=int),
     particle_q: wp.array(dtype=wp.vec3d),
     node_u: wp.array(dtype=wp.vec3),
-    node_q: wp.array(dtype=wp.vec3),
     tet_active: wp.array(dtype=int),
     tet_sphere: wp.array(dtype=int),
     # In:
     flag: wp.array(dtype=int),
     offset: wp.array(dtype=int),
+    degree: wp.array(dtype=int),
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
     # State out:
     coupling_particle: wp.array(dtype=int),
     coupling_tet: wp.array(dtype=int),
@@ -585,36 +616,39 @@ def write_conversion_couplings_kernel(
     c = coupling_count[0] + offset[t]
     p = tet_sphere[t]
     x = particle_q[p]
-    for k in range(4):
-        nbr = coupling_partner(tet_nodes, ref_tet_face_nbr, tet_active, flag, t, k)
-        if nbr < 0:
-            continue
-        n = tet_nodes[nbr]
-        # N_a at the sphere's centre in the neighbour's current configuration: Σ N_a x_a = x_p, a spring born
-        # relaxed (CIMNE eq. 9 with zero residual).
-        bary = current_barycentric(x, n, node_ref_q, node_u)
-        # The stiffness rule (warpdem.coupling.coupling_stiffness): k = k_n min(1, 2 / (1 + m_s Σ N_a² / m_a)), k_n
-        # the bond the sphere would have with the neighbour's sphere (face area A, centres L apart).
-        f = tet_face(tet_nodes[t], k)
-        area = 0.5 * wp.length(wp.cross(node_q[f[1]] - node_q[f[0]], node_q[f[2]] - node_q[f[0]]))
-        mid = wp.vec3d(0.0, 0.0, 0.0)
-        for a in range(4):
-            mid += wp.vec3d(node_ref_q[n[a]]) + wp.vec3d(node_u[n[a]])
-        length = wp.length(wp.vec3(mid * wp.float64(0.25) - x))
-        ma = conversion_material_table[tet_material[t]]
-        mb = conversion_material_table[tet_material[nbr]]
-        modulus = 2.0 * ma.bond_modulus * mb.bond_modulus / (ma.bond_modulus + mb.bond_modulus)
-        kn = modulus * area / length
-        ratio = float(0.0)
-        for a in range(4):
-            ratio += bary[a] * bary[a] / node_mass[n[a]]
-        ratio *= particle_mass[p]
-        coupling_particle[c] = p
-        coupling_tet[c] = nbr
-        coupling_bary[c] = bary
-        coupling_k[c] = kn * wp.min(1.0, 2.0 / (1.0 + ratio))
-        coupling_energy_prev[c] = 0.0
-        c += 1
+    nodes = tet_nodes[t]
+    for a in range(4):
+        v = nodes[a]
+        for e in range(star_offset[v], star_offset[v] + star_count[v]):
+            nbr = edge_neighbor(tet_nodes, star_tets, t, a, e)
+            if nbr < 0:
+                continue
+            if tet_sphere[nbr] >= 0 or not couples_to(tet_active, flag, nbr):
+                continue
+            n = tet_nodes[nbr]
+            # N_a at the sphere's centre in the neighbour's current configuration: Σ N_a x_a = x_p, a spring born
+            # relaxed (CIMNE eq. 9 with zero residual).
+            bary = current_barycentric(x, n, node_ref_q, node_u)
+            # The stiffness rule (warpdem.coupling.coupling_stiffness): k = k_n min(1, 2 / (1 + m_s Σ N_a² / m_a)),
+            # k_n the bond the sphere would have with a sphere at the neighbour's centroid.
+            mid = wp.vec3d(0.0, 0.0, 0.0)
+            for k in range(4):
+                mid += wp.vec3d(node_ref_q[n[k]]) + wp.vec3d(node_u[n[k]])
+            length = wp.length(wp.vec3(mid * wp.float64(0.25) - x))
+            vb = tet_volume[t] / float(degree[t]) + tet_volume[nbr] / float(degree[nbr])
+            kn = lattice_stiffness(
+                conversion_material_table[tet_material[t]], conversion_material_table[tet_material[nbr]], vb, length
+            )
+            ratio = float(0.0)
+            for k in range(4):
+                ratio += bary[k] * bary[k] / node_mass[n[k]]
+            ratio *= particle_mass[p]
+            coupling_particle[c] = p
+            coupling_tet[c] = nbr
+            coupling_bary[c] = bary
+            coupling_k[c] = kn * wp.min(1.0, 2.0 / (1.0 + ratio))
+            coupling_energy_prev[c] = 0.0
+            c += 1
 
 
 @wp.kernel

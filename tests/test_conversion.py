@@ -8,7 +8,7 @@ same tet stresses (no conversion below f, every tet above f converted in the che
 overlap checks of the new spheres against each other and the remaining boundary faces; topology invariants (indices
 in range, bond keys sorted, node masses = Σ ρV/4 of the active tets); determinism (two runs); capacity growth against
 a large-capacity run; a restart from a checkpoint against the uninterrupted run; the energy books closing across
-conversions; the bond calibration against a numerical isotropic average.
+conversions.
 
 Tolerances: float32 round-off ε₃₂ = 1.19e-7. Masses are float32 sums of a handful of ρV/4 terms: relative
 MASS_RTOL = 16 ε₃₂ of the total. Momenta are float64 sums of float32 m v: relative MOMENTUM_RTOL = 16 ε₃₂ of Σ m |v|.
@@ -26,7 +26,6 @@ from warpdem.builder import ModelBuilder
 from warpdem.conversion import (
     ConversionProps,
     attach_conversion,
-    bond_calibration,
     conversion_material_table,
     regrow_bonds,
     regrow_particles,
@@ -392,12 +391,13 @@ def test_restart_continues_bit_for_bit_across_a_conversion(device, tmp_path):
         np.testing.assert_array_equal(a[name], b[name], err_msg=name)
 
 
-ENERGY_BOUND = 5.0e-3
+ENERGY_BOUND = 2.0e-3
 """Bound on the energy balance error of a pulled bar converting its middle [-] (relative to the largest energy in
 play). A pass closes the books exactly (released = strain + kinetic energy about the centroid beyond the spin + the
-change of the shadow term and of the coupling springs); what remains is the integration error of the violent release
-each conversion causes in the tets (the same bar released from a stretch without conversion drifts by 1e-3 to 6e-3 of
-its strain energy in 20 steps through its bulk viscosity) and of the new bonds and couplings."""
+change of the shadow term and of the coupling springs; test_a_pass_closes_the_books_exactly); what remains is the
+integration error of the release each conversion causes in the tets (the same bar released from a stretch without
+conversion drifts by 1e-3 to 6e-3 of its strain energy in 20 steps through its bulk viscosity) and of the new bonds and
+couplings: measured 8.0e-4 over 60 steps (48 tets converted), bound with a margin of 2.5."""
 
 
 def test_energy_balance_closes_across_conversions(device):
@@ -442,31 +442,6 @@ def test_conversion_runs_before_splitting_on_a_tet_that_qualifies_for_both(devic
     assert int(sim.state.tets_converted_total.numpy()[0]) == len(tets)
     assert int(sim.state.node_splits_total.numpy()[0]) == 0
     assert sim.particle_count == len(tets)
-
-
-def test_bond_calibration_matches_the_isotropic_network_average():
-    # Affine network stiffness C_ijkl = Σ_n w L² [(k_n − k_s) n_i n_j n_k n_l + k_s δ_ik n_j n_l] (symmetrised) over
-    # a near-uniform set of 40000 directions (Fibonacci sphere: averages of degree-4 polynomials to ~1e-8), with
-    # Σ k_n L² / V = 3 α E: its Young's modulus is E and its Poisson ratio ν (ν ≤ 1/4; 1/4 above).
-    k = 40000
-    i = np.arange(k) + 0.5
-    z = 1.0 - 2.0 * i / k
-    phi = np.pi * (1.0 + 5**0.5) * i
-    n = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], 1)
-    for nu in (0.1, 0.2, 0.25, 0.3):
-        alpha, beta = bond_calibration(nu)
-        s = 3.0 * alpha  # E = 1
-        nnnn = np.einsum("ki,kj,kl,km->ijlm", n, n, n, n) / k
-        nn = np.einsum("ki,kj->ij", n, n) / k
-        eye = np.eye(3)
-        c = s * (
-            (1 - beta) * nnnn + beta * 0.5 * (np.einsum("ik,jl->ijkl", eye, nn) + np.einsum("il,jk->ijkl", eye, nn))
-        )
-        c = 0.5 * (c + c.transpose(1, 0, 2, 3))
-        mu, lam = c[0, 1, 0, 1], c[0, 0, 1, 1]
-        young = mu * (3 * lam + 2 * mu) / (lam + mu)
-        np.testing.assert_allclose(young, 1.0, rtol=1e-6)
-        np.testing.assert_allclose(lam / (2 * (lam + mu)), min(nu, 0.25), rtol=1e-6)
 
 
 @pytest.mark.parametrize(
@@ -581,3 +556,19 @@ def test_each_criterion_converts_exactly_the_tets_at_or_above_its_fraction(devic
     clear = np.abs(measure / 0.9 - 1.0) > CRITERION_RTOL
     np.testing.assert_array_equal(converted[clear], measure[clear] >= 0.9)
     assert 0 < converted.sum() < len(tets)
+
+
+def test_attach_conversion_refuses_a_step_the_bonded_spheres_cannot_take():
+    # dt at 0.9 of the tets' critical step is stable for the continuum but above the bonded spheres' (about 0.6 of
+    # it here: k_n = α E A / L on a sphere of ρ V): refused with the stable step named; 0.5 of it is accepted and
+    # recorded as the model's critical step.
+    pts, tets = box_mesh((0.0, 0.0, 0.0), (LENGTH, 1.0, 1.0), (8, 2, 2))
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    b.add_tet_mesh(pts, tets, "rock")
+    model, state = b.finalize("cpu", safety_factor=0.9)
+    with pytest.raises(ValueError, match="exceeds the stable step"):
+        attach_conversion(model, state, [ConversionProps(tresca_strength=TRESCA)])
+    model, state = b.finalize("cpu", safety_factor=0.5)
+    model, _ = attach_conversion(model, state, [ConversionProps(tresca_strength=TRESCA)])
+    assert model.dt < model.critical_dt and "bonded spheres" in model.critical_dt_source

@@ -30,14 +30,20 @@ Rules of the conversion pass (others rely on them):
 - Nodes: each loses ρ V₀ / 4 of every converted tet (its mass re-lumped from its remaining active tets, summed in
   ascending tet order); a node left without active tets is deactivated: mass 0, inv_mass 0, held (motion 1), at
   rest; its penalty stiffness is 0 after the surface rebuild, so contact skips it.
-- Bonds: between the spheres of face-sharing converted tets (the unsplit adjacency ``ref_tet_face_nbr`` where the
-  two tets still share the face's three nodes, so never across a crack or a joint): normal stiffness k_n = α E A /
-  L, A the shared face's area, L the distance of the centres, k_s = β k_n, tensile strength α T_f, shear strength α
-  τ_f (α T_f without τ_f) (:func:`bond_calibration` derives α and β), no dashpot, born relaxed (rest length = L).
-- Couplings (warpdem.coupling, CIMNE eqs. 8–9): each new sphere is tied to every still-active face neighbour of its
-  tet (same adjacency rule as the bonds) at its current barycentric coordinates there (born relaxed), with
-  warpdem.coupling.coupling_stiffness's rule k = k_n min(1, 2 / (1 + m_s Σ N_a² / m_a)), k_n the bond the two would
-  share; couplings to the tets converting now are released first (compact_coupling).
+- Bonds: the edge network of warpdem.lattice — between the spheres of converted tets that share an edge (two
+  nodes; so never across a crack or a joint, whose nodes are split). One sphere per tet bonded across faces alone
+  has Z ≤ 4 and is a mechanism (Maxwell: 3 Z / 2 < 6); edge neighbours give Z ≈ 12 and a network rigid with normal
+  springs alone. k_b = κ E V_b / L_b² (V_b = V_t / Z_t + V_n / Z_n, Z over all live tets, so a bond's stiffness does
+  not depend on which of its neighbours have converted yet; L_b the centres' distance), k_s = 0, area V_b / L_b,
+  tensile strength (κ / S) T_f (warpdem.lattice's κ = STIFFNESS_FACTOR and S = STRENGTH_FACTOR, measured on a fully
+  converted bar: bar-wave speed 0.998 sqrt(E/ρ), tensile strength 0.987 T_f, tests/test_coupling.py), no dashpot,
+  born relaxed (rest length = L_b).
+- Couplings (warpdem.coupling, CIMNE eqs. 8–9): each new sphere is tied to every still-active tet sharing an edge
+  with its tet (the adjacency of the bonds; ccoupling measured 4.3 % reflection at the first interface this way
+  against 10.5 % with face neighbours alone) at its current barycentric coordinates there (born relaxed), with
+  warpdem.coupling.coupling_stiffness's rule k = k_b min(1, 2 / (1 + m_s Σ N_a² / m_a)), k_b the bond the sphere
+  would have with a sphere at that tet's centroid; couplings to the tets converting now are released first
+  (compact_coupling).
 - Energy: ``energy_released_conversion`` += strain energy + kinetic energy of the tet's nodes' shares − the sphere's
   translational and spin energy (bonds and couplings are born relaxed, so they hold nothing), + the springs of the
   released couplings, + the change of Verlet's shadow term over the pass (Simulation: the scheme conserves kinetic −
@@ -66,9 +72,10 @@ from .coupling import compact_coupling
 from .kernels import compaction as kc
 from .kernels import conversion as kcv
 from .kernels import topology as kt
+from .lattice import STIFFNESS_FACTOR, STRENGTH_FACTOR, edge_pairs
 from .model import BOND_FIELDS, COUPLING_FIELDS, NEIGHBOR_FIELDS, Model, State, conversion_state
 from .tets import eval_tet_stresses, tet_energies
-from .topology import NodeStars, reference_face_neighbors
+from .topology import NodeStars
 
 CRITERIA = {"tresca": 0, "rankine": 1, "mohr_coulomb": 2}
 """Criterion names and their kernel constants (kernels/conversion.py CRITERION_*)."""
@@ -113,8 +120,9 @@ class ConversionProps:
             raise ValueError(f"{where}: friction_angle must lie in [0, 90) degrees, got {self.friction_angle}")
 
     def bond_strengths(self) -> tuple[float, float]:
-        """Tensile and shear strength of the material the bonds stand for [Pa], before the factor α: T_f (else the
-        Mohr–Coulomb tensile strength 2 c cos φ / (1 + sin φ), else τ_f), and τ_f (else c, else T_f)."""
+        """Tensile and shear strength of the material the bonds stand for [Pa], before the lattice factor κ / S:
+        T_f (else the Mohr–Coulomb tensile strength 2 c cos φ / (1 + sin φ), else τ_f), and τ_f (else c, else
+        T_f)."""
         phi = math.radians(self.friction_angle)
         tensile = self.tensile_strength
         if tensile is None and self.cohesion is not None:
@@ -141,44 +149,6 @@ class ConversionReport:
     grew: bool
 
 
-def bond_calibration(poisson_ratio: float) -> tuple[float, float]:
-    """α and β of the bonds between converted spheres: k_n = α E A / L, k_s = β k_n (A the shared face's area, L the
-    distance of the two centres), so that the bond network has, under an affine strain, the continuum's Young's
-    modulus E (hence its bar-wave speed sqrt(E/ρ), the spheres carrying ρ V) and, for ν ≤ 1/4, its Poisson ratio.
-
-    Derivation. A bond across face f carries its stretch k_n L n·ε·n and its shear k_s L (ε n − (n·ε·n) n); the
-    network's stiffness is C_ijkl = (1/V) Σ L² [(k_n − k_s) n_i n_j n_k n_l + k_s δ_ik n_j n_l] (symmetrised). Each
-    tet's centroid lies h/4 = 3 V_t / (4 A_f) above each face, so Σ_f A_f L = Σ_t 4 · 3 V_t / 4 = 3 V, and for
-    isotropic bond directions ⟨n_i n_j n_k n_l⟩ = (δδ + δδ + δδ)/15, ⟨n_j n_l⟩ = δ_jl / 3. With S = 3 α E:
-    λ = S (1 − β) / 15, μ = S ((1 − β)/15 + β/6), so ν = λ / (2(λ + μ)) gives β = (1 − 4ν)/(1 + ν) (0 for ν ≥ 1/4:
-    a central-force network has ν = 1/4), and E_net = μ (3λ + 2μ)/(λ + μ) = E fixes α (2 for β = 0).
-
-    Strength: a bond along the load of a bar in uniaxial stress σ stretches by ε = σ/E over L and carries k_n L ε /
-    A = α σ per unit face area, so bonds of tensile strength α T_f (per unit area A) fail at σ = T_f.
-
-    Args:
-        poisson_ratio: ν of the material [-].
-
-    Returns:
-        (α, β) [-].
-    """
-    beta = max(0.0, (1.0 - 4.0 * poisson_ratio) / (1.0 + poisson_ratio))
-    lam = (1.0 - beta) / 15.0
-    mu = (1.0 - beta) / 15.0 + beta / 6.0
-    e_per_s = mu * (3.0 * lam + 2.0 * mu) / (lam + mu)
-    return 1.0 / (3.0 * e_per_s), beta
-
-
-def converted_bond_stiffness(
-    youngs_modulus: float, poisson_ratio: float, area: float, length: float
-) -> tuple[float, float]:
-    """(k_n, k_s) [N/m] of a bond between the spheres of two converted tets sharing a face of ``area`` [m²] whose
-    centres are ``length`` [m] apart (:func:`bond_calibration`)."""
-    alpha, beta = bond_calibration(poisson_ratio)
-    kn = alpha * youngs_modulus * area / length
-    return kn, beta * kn
-
-
 def conversion_material_table(
     model: Model, materials: Sequence[ConversionProps | None], device: wp.context.Device
 ) -> wp.array:
@@ -199,7 +169,6 @@ def conversion_material_table(
         if p is not None:
             mu, lam = float(continuum["mu"][mid]), float(continuum["lam"][mid])
             young = mu * (3.0 * lam + 2.0 * mu) / (lam + mu)
-            alpha, beta = bond_calibration(lam / (2.0 * (lam + mu)))
             tensile, shear = p.bond_strengths()
             m.criterion = CRITERIA[p.criterion]
             m.fraction = float(p.fraction)
@@ -207,10 +176,10 @@ def conversion_material_table(
                 value = getattr(p, name)
                 setattr(m, name, float(value) if value is not None else float(kcv.NEVER))
             m.friction_angle = math.radians(p.friction_angle)
-            m.bond_modulus = alpha * young
-            m.bond_shear_ratio = beta
-            m.bond_tensile_strength = alpha * tensile
-            m.bond_shear_strength = alpha * shear
+            m.bond_modulus = STIFFNESS_FACTOR * young
+            m.bond_shear_ratio = 0.0
+            m.bond_tensile_strength = STIFFNESS_FACTOR / STRENGTH_FACTOR * tensile
+            m.bond_shear_strength = STIFFNESS_FACTOR / STRENGTH_FACTOR * shear
             m.converts = 1
         table.append(m)
     return wp.array(table, dtype=kcv.ConversionMaterial, device=device)
@@ -246,7 +215,7 @@ def attach_conversion(
 
     Returns:
         The model (``conversion_interval``, ``spheres_per_tet``, ``conversion_part``, ``coupling_capacity``,
-        ``tet_may_convert``, ``conversion_material_table``, ``ref_tet_face_nbr`` set) and the state with the
+        ``tet_may_convert``, ``conversion_material_table``, ``critical_dt`` set) and the state with the
         conversion fields allocated.
 
     Raises:
@@ -285,6 +254,16 @@ def attach_conversion(
     if not _is_count(coupling_capacity, 1):
         raise ValueError(f"attach_conversion: coupling_capacity must be an integer >= 1, got {coupling_capacity!r}")
     d = model.device
+    table = conversion_material_table(model, materials, d)
+    critical, tet = conversion_critical_step(
+        dataclasses.replace(model, conversion_material_table=table), state, flags[:nt].astype(bool)
+    )
+    if model.dt > critical:
+        raise ValueError(
+            f"attach_conversion: the time step {model.dt:.3g} s exceeds the stable step {critical:.3g} s of the bonded "
+            f"spheres that tet {tet} would become (warpdem.conversion.conversion_critical_step); build with a smaller "
+            "dt or safety factor"
+        )
     skin = model.skin
     if skin <= 0.0:
         skin = 0.4 * smallest_converted_radius(model, state)
@@ -296,10 +275,11 @@ def attach_conversion(
         conversion_part=int(part),
         coupling_capacity=int(coupling_capacity),
         tet_may_convert=wp.array(flags, dtype=int, device=d),
-        conversion_material_table=conversion_material_table(model, materials, d),
-        ref_tet_face_nbr=model.ref_tet_face_nbr
-        if model.ref_tet_face_nbr is not None
-        else reference_face_neighbors(model, state),
+        conversion_material_table=table,
+        critical_dt=min(model.critical_dt, critical),
+        critical_dt_source=model.critical_dt_source
+        if model.critical_dt <= critical
+        else f"the bonded spheres of tet {tet}",
     )
     return model, dataclasses.replace(state, **conversion_state(model))
 
@@ -315,6 +295,43 @@ def smallest_converted_radius(model: Model, state: State) -> float:
     faces = x[:, [[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]]]  # (M, 4, 3, 3)
     area = 0.5 * np.linalg.norm(np.cross(faces[:, :, 1] - faces[:, :, 0], faces[:, :, 2] - faces[:, :, 0]), axis=2)
     return float(np.min(3.0 * volume / area.max(axis=1)) / 4.0)
+
+
+def conversion_critical_step(model: Model, state: State, may_convert: np.ndarray) -> tuple[float, int]:
+    """Stable step [s] of the bonded spheres the tets that may convert become, and the tet that sets it (-1: none).
+    Build time (host, reference configuration).
+
+    A sphere of mass m = ρ V has a bond of the edge network (k_b = κ E V_b / L_b², :mod:`warpdem.lattice`) or a
+    coupling (k ≤ k_b, warpdem.coupling) to each tet sharing an edge with its tet; L_b the distance of the two
+    centroids. Its stiffest translational mode is bounded by ω² = Σ_b k_b / m (every spring along the motion, as
+    builder.bond_critical_step's Z k_n / m); the bonds have no shear springs or dashpots, so dt = 2 / ω.
+
+    Args:
+        may_convert: bool per live tet.
+    """
+    nt = int(state.tet_count.numpy()[0])
+    table = model.conversion_material_table.numpy()
+    mats = model.tet_material.numpy()[:nt]
+    converts = np.asarray(may_convert, dtype=bool) & (table["converts"][mats] != 0)
+    if not converts.any():
+        return math.inf, -1
+    tets = model.tet_nodes.numpy()[:nt]
+    x = model.node_ref_q.numpy().astype(np.float64)[tets]
+    volume = np.abs(np.linalg.det(x[:, 1:] - x[:, :1])) / 6.0
+    pairs = edge_pairs(tets, np.ones(nt, dtype=bool))
+    degree = np.bincount(pairs.ravel(), minlength=nt).astype(np.float64)
+    i, j = pairs[:, 0], pairs[:, 1]
+    centroid = x.mean(axis=1)
+    length = np.linalg.norm(centroid[i] - centroid[j], axis=1)
+    modulus = table["bond_modulus"][mats].astype(np.float64)
+    kb = 0.5 * (modulus[i] + modulus[j]) * (volume[i] / degree[i] + volume[j] / degree[j]) / length**2
+    stiffness = np.bincount(pairs.ravel(), weights=np.repeat(kb, 2), minlength=nt)
+    mass = model.tet_material_table.numpy()["density"][mats] * volume
+    omega2 = np.where(converts, stiffness / mass, 0.0)
+    k = int(np.argmax(omega2))
+    if omega2[k] <= 0.0:
+        return math.inf, -1
+    return float(2.0 / math.sqrt(omega2[k])), k
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -443,6 +460,9 @@ class ConversionPass:
         self.counts = wp.zeros(3, dtype=int, device=d)  # converting tets, new bonds, new couplings
         self.node_touched = wp.zeros(max(ncap, 1), dtype=int, device=d)
         self.stars = NodeStars(ncap, tcap, d)
+        self.full_stars = NodeStars(ncap, tcap, d)
+        self.all_live = wp.ones(t1, dtype=int, device=d)
+        self.degree = wp.zeros(t1, dtype=int, device=d)
 
     def fits(self, model: Model) -> bool:
         """Whether the buffers match the model's capacities."""
@@ -474,21 +494,23 @@ class ConversionPass:
             device=d,
         )
         wp.utils.array_scan(self.flag, self.offset, inclusive=False)
+        # The edge network over every live tet, converted or not (stars of all live tets; each tet's Z_t).
+        self.full_stars.build(m.tet_nodes, s.tet_count, self.all_live, s.node_count, face_neighbors=False)
         wp.launch(
-            kcv.count_conversion_bonds_kernel,
+            kcv.edge_degree_kernel,
             dim=m.tet_capacity,
-            inputs=[m.tet_nodes, m.ref_tet_face_nbr, s.tet_count, s.tet_sphere, self.flag],
-            outputs=[self.bonds],
+            inputs=[m.tet_nodes, s.tet_count, *self.full_stars.csr()],
+            outputs=[self.degree],
+            device=d,
+        )
+        wp.launch(
+            kcv.count_conversion_links_kernel,
+            dim=m.tet_capacity,
+            inputs=[m.tet_nodes, s.tet_count, s.tet_active, s.tet_sphere, self.flag, *self.full_stars.csr()],
+            outputs=[self.bonds, self.couplings],
             device=d,
         )
         wp.utils.array_scan(self.bonds, self.bond_offset, inclusive=False)
-        wp.launch(
-            kcv.count_conversion_couplings_kernel,
-            dim=m.tet_capacity,
-            inputs=[m.tet_nodes, m.ref_tet_face_nbr, s.tet_count, s.tet_active, self.flag],
-            outputs=[self.couplings],
-            device=d,
-        )
         wp.utils.array_scan(self.couplings, self.coupling_offset, inclusive=False)
         for k, (items, offset) in enumerate(
             ((self.flag, self.offset), (self.bonds, self.bond_offset), (self.couplings, self.coupling_offset))
@@ -550,18 +572,19 @@ class ConversionPass:
                 dim=m.tet_capacity,
                 inputs=[
                     m.tet_nodes,
-                    m.ref_tet_face_nbr,
+                    m.tet_volume,
                     m.tet_material,
                     m.conversion_material_table,
                     m.particle_capacity,
                     s.tet_count,
                     s.bond_count,
                     s.particle_q,
-                    s.node_q,
                     s.tet_sphere,
                     self.flag,
                     self.was_sphere,
                     self.bond_offset,
+                    self.degree,
+                    *self.full_stars.csr(),
                 ],
                 outputs=[getattr(s, name) for name in BOND_FIELDS],
                 device=d,
@@ -593,7 +616,7 @@ class ConversionPass:
                 inputs=[
                     m.node_ref_q,
                     m.tet_nodes,
-                    m.ref_tet_face_nbr,
+                    m.tet_volume,
                     m.tet_material,
                     m.conversion_material_table,
                     m.particle_mass,
@@ -602,11 +625,12 @@ class ConversionPass:
                     s.coupling_count,
                     s.particle_q,
                     s.node_u,
-                    s.node_q,
                     s.tet_active,
                     s.tet_sphere,
                     self.flag,
                     self.coupling_offset,
+                    self.degree,
+                    *self.full_stars.csr(),
                 ],
                 outputs=[getattr(s, name) for name in COUPLING_FIELDS],
                 device=d,

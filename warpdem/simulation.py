@@ -10,7 +10,8 @@ A step (DESIGN.md, stages in order):
 4. contact — sphere–sphere and sphere–wall forces with tangential history; FEM contact (its lists rebuilt in a
    conditional node when a node moved half the FEM skin or the sphere list was rebuilt): sphere–face, node–face
    across joints and cracks, node–wall, and the joint interface elements (warpdem.fem_contact, warpdem.joints);
-5. bonds — cohesive bond forces and breakage;
+5. bonds — cohesive bond forces and breakage; the penalty couplings of converted spheres to the continuum
+   (warpdem.coupling);
 6. loads and boundaries — pressure histories on faces, non-reflecting dashpots (fixed and roller nodes and velocity
    drivers are held by the integrator);
 7. integrate, second half — kick by dt/2 with the new forces; advance the time.
@@ -18,9 +19,10 @@ A step (DESIGN.md, stages in order):
 The step allocates nothing and reads nothing back. Between frames (:meth:`Simulation.advance`) the host checks the
 device's overflow counters; if a capacity was exceeded it grows the buffers ×2, restores the state saved at the
 start of the advance and runs it again, so nothing is ever dropped. Topology passes (removing broken bonds and
-cohesive elements) run there too. With nodal fracture on, an advance runs in chunks that end on multiples of
-``model.fracture_interval`` steps, each chunk with its own overflow redo, and a split pass (:meth:`Simulation
-.fracture_pass`, warpdem.fracture) after each: a redo never crosses a topology pass.
+cohesive elements) run there too. With nodal fracture or FEM→DEM conversion on, an advance runs in chunks that
+end on multiples of ``model.fracture_interval`` and ``model.conversion_interval`` steps, each chunk with its own
+overflow redo, and the passes due after each (:meth:`Simulation.conversion_pass`, warpdem.conversion, then
+:meth:`Simulation.fracture_pass`, warpdem.fracture): a redo never crosses a topology pass.
 """
 
 from __future__ import annotations
@@ -86,9 +88,10 @@ class EnergyBalance:
     energy stored in the intact cohesive elements of split nodes (½ k d², counted in ``in_play``) and
     ``dissipated_cohesive`` what they dissipated (½ f_c per unit growth of δ_max, and what a breaking element still
     held; warpdem.cohesive). ``released_conversion`` is what left the mechanical books when tets turned into spheres
-    (their strain energy and the kinetic energy of their motion about the centroid beyond the spheres' spin, less
-    what the new bonds and couplings hold; warpdem.conversion) and ``coupling_elastic`` the spring energy of the
-    penalty couplings between converted spheres and the continuum (in ``in_play``; warpdem.coupling).
+    (their strain energy and the kinetic energy of their motion about the centroid beyond the spheres' spin, the
+    springs of released couplings and the pass's change of the shadow term; warpdem.conversion) and
+    ``coupling_elastic`` the spring energy of the penalty couplings between converted spheres and the continuum (in
+    ``in_play``; warpdem.coupling).
     """
 
     kinetic_translational: float
