@@ -25,8 +25,8 @@ from warpdem.bench import (
     TRESCA_STRENGTH,
     converting_block,
     due_tets,
-    face_counts,
     find_case,
+    lattice_counts,
     spread_tets,
 )
 from warpdem.cli import main
@@ -91,8 +91,8 @@ def test_conversion_pass_converts_the_flagged_tets_above_the_threshold(device, s
     τ_f = T_f and f = 0.9, s = 3 puts every tet at T_f ≥ 0.9 τ_f (11 % above the threshold, far beyond float32
     round-off ~1e-7), s = 2.5 at 0.83 τ_f (7 % below it): the tets due are the flagged ones, or none. The host's
     brute-force count (``due_tets``) must say the same, and the pass must convert exactly that set (tet_active = 0),
-    one sphere per tet, one bond per pair of them that shares a face and one coupling per face they share with a tet
-    that stays continuous (counted on the host over the unsplit mesh's face neighbours).
+    one sphere per tet, one bond per pair of them that shares an edge and one coupling per pair of one of them and a
+    tet that stays continuous sharing an edge (warpdem.lattice's network, counted on the host by sorting edges).
     """
     cells = 4
     may_convert = spread_tets(6 * cells**3, 0.05, seed=3)
@@ -102,12 +102,12 @@ def test_conversion_pass_converts_the_flagged_tets_above_the_threshold(device, s
     above = stretch * TENSILE_STRENGTH / 3.0 >= CONVERSION_FRACTION * TRESCA_STRENGTH
     expected = may_convert & above
     np.testing.assert_array_equal(due, expected)
+    bonds, couplings = lattice_counts(sim.model, sim.state, expected)
     report = sim.conversion_pass()
     converted = sim.state.tet_active.numpy()[: 6 * cells**3] == 0
     np.testing.assert_array_equal(converted, expected)
     assert report.converted == report.spawned == int(np.count_nonzero(expected))
     assert int(sim.state.particle_count.numpy()[0]) == report.spawned
-    bonds, couplings = face_counts(sim.model, expected)
     assert report.bonds == int(sim.state.bond_count.numpy()[0]) == bonds
     assert report.couplings == int(sim.state.coupling_count.numpy()[0]) == couplings
     assert not report.grew  # particle, bond and coupling slots were reserved

@@ -724,31 +724,45 @@ def converting_block(cells: int, device: str, may_convert: np.ndarray, stretch: 
     """The conversion pass case: :func:`stretched_granite` at σ_xx = ``stretch`` × T_f with conversion on (Tresca,
     0.9 τ_f = 0.9 TRESCA_STRENGTH, a pass every step, one sphere per tet) and ``may_convert`` (bool per tet) the tets
     that may convert. Particle, bond and coupling slots are reserved for the case where every tet that may convert
-    does (a sphere each, a bond per pair of them sharing a face, a coupling per face), so the pass does not grow
-    them. Returns (model, state)."""
+    does (:func:`lattice_counts`), so the pass does not grow them. Returns (model, state)."""
     from .conversion import ConversionProps, attach_conversion, regrow_bonds
 
     flagged = int(np.count_nonzero(may_convert))
     model, state = stretched_granite(cells, device, stretch=stretch, particle_capacity=flagged)
+    bonds, couplings = lattice_counts(model, state, may_convert)
     props = ConversionProps(criterion="tresca", fraction=CONVERSION_FRACTION, tresca_strength=TRESCA_STRENGTH)
     model, state = attach_conversion(
-        model, state, [props], check_interval=1, may_convert=may_convert, coupling_capacity=4 * flagged
+        model, state, [props], check_interval=1, may_convert=may_convert, coupling_capacity=max(couplings, 1)
     )
-    return regrow_bonds(model, state, face_counts(model, may_convert)[0])
+    return regrow_bonds(model, state, bonds)
 
 
-def face_counts(model: Model, mask: np.ndarray) -> tuple[int, int]:
-    """What a conversion of exactly the tets in ``mask`` (bool per tet, shape (tet_count,), all tets active) makes,
-    counted over the faces of the unsplit mesh (``model.ref_tet_face_nbr``): (bonds, one per pair of tets in the mask
-    that share a face; couplings, one per face between a tet in the mask and a still-continuous tet)."""
+def lattice_counts(model: Model, state: State, mask: np.ndarray) -> tuple[int, int]:
+    """What a conversion of exactly the tets in ``mask`` (bool per tet, shape (tet_count,)) makes, counted on the host
+    by the rules of warpdem.conversion: (bonds, one per pair of tets in the mask that share an edge
+    (warpdem.lattice.edge_pairs); couplings, one per pair of a tet in the mask and an active tet outside it that share
+    an edge)."""
+    from .lattice import TET_EDGES, edge_pairs
+
     count = len(mask)
-    neighbour = model.ref_tet_face_nbr.numpy()[: 4 * count].reshape(count, 4)
-    inside = neighbour >= 0
-    other = mask[np.maximum(neighbour, 0)]
-    tet = np.arange(count)[:, None]
-    bonds = mask[:, None] & inside & other & (neighbour > tet)
-    couplings = mask[:, None] & inside & ~other
-    return int(np.count_nonzero(bonds)), int(np.count_nonzero(couplings))
+    tets = model.tet_nodes.numpy()[:count].astype(np.int64)
+    active = state.tet_active.numpy()[:count] != 0
+    bonds = len(edge_pairs(tets, mask))
+    # The tets that share an edge with one in the mask: edges keyed by their sorted node pair, grouped by key.
+    ends = np.sort(tets[:, TET_EDGES], axis=2).reshape(-1, 2)
+    key = ends[:, 0] * (int(tets.max()) + 1) + ends[:, 1]
+    owner = np.repeat(np.arange(count), 6)
+    order = np.argsort(key, kind="stable")
+    key, owner = key[order], owner[order]
+    group = np.cumsum(np.r_[True, key[1:] != key[:-1]]) - 1
+    touched = np.zeros(group[-1] + 1, dtype=bool)
+    touched[group[mask[owner]]] = True
+    near = np.zeros(count, dtype=bool)
+    near[owner[touched[group]]] = True
+    pairs = edge_pairs(tets, near)
+    i, j = pairs[:, 0], pairs[:, 1]
+    couplings = (mask[i] & ~mask[j] & active[j]) | (mask[j] & ~mask[i] & active[i])
+    return bonds, int(np.count_nonzero(couplings))
 
 
 def due_tets(model: Model, state: State) -> np.ndarray:
@@ -779,7 +793,7 @@ def due_tets(model: Model, state: State) -> np.ndarray:
 class ConversionPassResult:
     """The conversion pass against the force step on one mesh: sizes, the tets that may convert and those due
     (:func:`due_tets`), what the pass did (tets converted, spheres spawned, bonds and couplings made against those the
-    tets due make (:func:`face_counts`), whether a capacity grew), wall times [s] (build, one force step
+    tets due make (:func:`lattice_counts`), whether a capacity grew), wall times [s] (build, one force step
     = the fastest run of ``steps`` over steps, the fastest pass), the pass in force steps, and peak host RSS [MB]."""
 
     device: str
@@ -817,12 +831,12 @@ def bench_conversion_pass(
         build, (model, state) = timed(device, lambda: converting_block(cells, device, may_convert))
         if r == 0:
             due = due_tets(model, state)
+            bonds_due, couplings_due = lattice_counts(model, state, due)
             step_time = force_step_time(model, state, steps, repeat)
             build_time = build
         sim = Simulation(model, state, track_energy=False)
         seconds, report = timed(device, sim.conversion_pass)
         pass_time = min(pass_time, seconds)
-    bonds_due, couplings_due = face_counts(sim.model, due)
     return ConversionPassResult(
         device=str(device),
         tets=int(sim.state.tet_count.numpy()[0]),
