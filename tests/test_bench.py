@@ -4,7 +4,8 @@ after a plain ``pip install .`` from any folder.
 Oracles: the shipped centres of each case have the count and the mean height recorded with the case when it was made
 (``N`` and ``mean_z0`` of box_N<N>.json, the latter to float64 rounding of a mean of N numbers); every sphere lies in
 the case's box; a size without a case is refused with the sizes there are. The fracture benchmark's split pass splits
-exactly the nodes its uniform stretch puts above T_f (see the test).
+exactly the nodes its uniform stretch puts above T_f, and the conversion benchmark's pass converts exactly the tets
+that may convert and are above the Tresca threshold (see the tests).
 """
 
 from __future__ import annotations
@@ -16,8 +17,20 @@ import numpy as np
 import pytest
 
 import warpdem
-from warpdem.bench import DATA_DIR, find_case
+from warpdem.bench import (
+    CONVERSION_FRACTION,
+    DATA_DIR,
+    STRETCH,
+    TENSILE_STRENGTH,
+    TRESCA_STRENGTH,
+    converting_block,
+    due_tets,
+    find_case,
+    lattice_counts,
+    spread_tets,
+)
 from warpdem.cli import main
+from warpdem.simulation import Simulation
 
 MEAN_RTOL = 1e-12  # a float64 mean of 1e5 numbers of order 0.3: rounding ~1e-16 · sqrt(N)
 
@@ -67,3 +80,62 @@ def test_fracture_bench_splits_the_nodes_due(tmp_path, device):
     assert off["interval"] == 0 and off["splits"] == 0 and off["nodes_after"] == (cells + 1) ** 3  # the pass off
     assert r["splits"] > 0
     assert r["nodes_after"] == (cells + 1) ** 3 + r["splits"]
+
+
+@pytest.mark.parametrize("stretch", [STRETCH, 2.5])
+def test_conversion_pass_converts_the_flagged_tets_above_the_threshold(device, stretch):
+    """The conversion benchmark's block converts exactly the tets that may convert and are above the threshold.
+
+    Oracle: u_x = ε X is reproduced exactly by every tet (the patch test), so each holds σ_xx = s T_f and σ_yy = σ_zz
+    = s T_f ν / (1 − ν) = s T_f / 3 (ν = 0.25) for a stretch s: the Tresca stress (σ1 − σ3)/2 = s T_f / 3. With
+    τ_f = T_f and f = 0.9, s = 3 puts every tet at T_f ≥ 0.9 τ_f (11 % above the threshold, far beyond float32
+    round-off ~1e-7), s = 2.5 at 0.83 τ_f (7 % below it): the tets due are the flagged ones, or none. The host's
+    brute-force count (``due_tets``) must say the same, and the pass must convert exactly that set (tet_active = 0),
+    one sphere per tet, one bond per pair of them that shares an edge and one coupling per pair of one of them and a
+    tet that stays continuous sharing an edge (warpdem.lattice's network, counted on the host by sorting edges).
+    """
+    cells = 4
+    may_convert = spread_tets(6 * cells**3, 0.05, seed=3)
+    model, state = converting_block(cells, device, may_convert, stretch=stretch)
+    sim = Simulation(model, state, track_energy=False)
+    due = due_tets(sim.model, sim.state)
+    above = stretch * TENSILE_STRENGTH / 3.0 >= CONVERSION_FRACTION * TRESCA_STRENGTH
+    expected = may_convert & above
+    np.testing.assert_array_equal(due, expected)
+    bonds, couplings = lattice_counts(sim.model, sim.state, expected)
+    report = sim.conversion_pass()
+    converted = sim.state.tet_active.numpy()[: 6 * cells**3] == 0
+    np.testing.assert_array_equal(converted, expected)
+    assert report.converted == report.spawned == int(np.count_nonzero(expected))
+    assert int(sim.state.particle_count.numpy()[0]) == report.spawned
+    assert report.bonds == int(sim.state.bond_count.numpy()[0]) == bonds
+    assert report.couplings == int(sim.state.coupling_count.numpy()[0]) == couplings
+    assert not report.grew  # particle, bond and coupling slots were reserved
+
+
+def test_conversion_bench_converts_the_tets_due(tmp_path, device):
+    """``bench conversion`` at a tiny size: the pass converts exactly the tets due, and the converting run converts.
+
+    Oracle: as above, every tet of the stretched block is 11 % above the Tresca threshold, so the tets due (counted
+    on the host by brute force) are exactly the flagged ones, and the pass converts them all, one sphere each. The
+    converting run's central slab (τ_f = T_f/2 … T_f per grain) is strained to a Tresca stress σ_xx/2 ≈ E ε/2 = T_f
+    half way through the run (``pulled_granite``), past every grain's 0.9 τ_f, so it must convert tets, one sphere
+    each; the same run with the pass off (interval 0) converts none.
+    """
+    cells, fraction = 6, 0.05
+    out = tmp_path / "conversion.json"
+    tets = str(6 * cells**3)
+    argv = ["bench", "conversion", "--tets", tets, "--fraction", str(fraction), "--steps", "2", "--repeat", "1"]
+    argv += ["--run-tets", tets, "--run-steps", "40", "--intervals", "0", "1", "--device", device, "--json", str(out)]
+    assert main(argv) == 0
+    data = json.loads(out.read_text())
+    (p,) = data["passes"]
+    assert p["tets"] == 6 * cells**3 and p["nodes"] == (cells + 1) ** 3
+    assert p["may_convert"] == round(fraction * 6 * cells**3)
+    assert p["due"] == p["may_convert"] == p["converted"] == p["spawned"]
+    assert p["bonds"] == p["bonds_due"] and p["couplings"] == p["couplings_due"]
+    assert not p["grew"]  # particle and coupling slots were reserved
+    off, r = data["runs"]
+    assert off["interval"] == 0 and off["converted"] == 0 and off["spheres"] == 0  # the pass off
+    assert 0 < r["converted"] <= r["may_convert"]
+    assert r["spawned"] == r["spheres"] == r["converted"]

@@ -103,8 +103,9 @@ def run_parser() -> argparse.ArgumentParser:
         prog="python -m warpdem",
         description="Run a warpdem scene (TOML). Without SCENE, runs the embedded default scene. "
         "'python -m warpdem bench' prints the settling benchmark table, 'python -m warpdem bench tets' the "
-        "tetrahedra one, 'python -m warpdem bench fracture' the fracture one; 'python -m warpdem plot RUN_DIR' "
-        "plots a run's time series, 'python -m warpdem preview STAGE' renders frames of its USD stage to PNG.",
+        "tetrahedra one, 'python -m warpdem bench fracture' the fracture one, 'python -m warpdem bench conversion' "
+        "the conversion one; 'python -m warpdem plot RUN_DIR' plots a run's time series, 'python -m warpdem preview "
+        "STAGE' renders frames of its USD stage to PNG.",
     )
     p.add_argument("scene", nargs="?", help="scene file (.toml); default: the embedded default scene")
     p.add_argument("--device", help="Warp device: cpu or cuda:N (default: the scene's run.device)")
@@ -129,7 +130,8 @@ def bench_parser() -> argparse.ArgumentParser:
         prog="python -m warpdem bench",
         description="Settling benchmark: N spheres dropped into a box (see benchmarks/README.md). "
         "'python -m warpdem bench tets' runs the tetrahedra benchmark instead (see 'python -m warpdem bench tets "
-        "--help'), 'python -m warpdem bench fracture' the fracture one.",
+        "--help'), 'python -m warpdem bench fracture' the fracture one, 'python -m warpdem bench conversion' the "
+        "conversion one.",
     )
     p.add_argument("--sizes", type=_positive_int, nargs="+", default=[10000, 100000], help="sphere counts")
     p.add_argument("--steps", type=_positive_int, default=2000, help="time steps to time")
@@ -163,32 +165,51 @@ def _fraction(text: str) -> float:
     return value
 
 
-def fracture_bench_parser() -> argparse.ArgumentParser:
+PASS_BENCH_TEXT = {
+    "fracture": (
+        "Fracture benchmark: one split pass on a stretched Kuhn-tet block with a fraction of its nodes splitting, in "
+        "force steps of the same mesh (target < 20), and the step rate of a cracking run",
+        "nodes that split",
+        "cracking",
+    ),
+    "conversion": (
+        "Conversion benchmark: one FEM-to-DEM conversion pass on a stretched Kuhn-tet block with a fraction of its "
+        "tets converting into bonded spheres, in force steps of the same mesh (target < 20), and the step rate of a "
+        "run whose centre converts as it fails",
+        "tets that convert",
+        "converting",
+    ),
+}
+"""The benchmarks of a between-steps pass (``bench fracture``, ``bench conversion``): description, what the
+fraction counts, the name of the run."""
+
+
+def pass_bench_parser(kind: str) -> argparse.ArgumentParser:
+    """The options of ``python -m warpdem bench fracture|conversion`` (both time a pass and a run the same way)."""
+    description, fraction_of, run = PASS_BENCH_TEXT[kind]
     p = argparse.ArgumentParser(
-        prog="python -m warpdem bench fracture",
-        description="Fracture benchmark: one split pass on a stretched Kuhn-tet block with a fraction of its nodes "
-        "splitting, in force steps of the same mesh (target < 20), and the step rate of a cracking run (see "
-        "benchmarks/README.md). The documented figure is '--tets 1000000'.",
+        prog=f"python -m warpdem bench {kind}",
+        description=f"{description} (see benchmarks/README.md). The documented figure is '--tets 1000000'.",
     )
     p.add_argument("--tets", type=_positive_int, nargs="+", default=[200_000], help="tets wanted for the pass")
-    p.add_argument("--fraction", type=_fraction, default=0.01, help="fraction of the nodes that split [0.01]")
+    p.add_argument("--fraction", type=_fraction, default=0.01, help=f"fraction of the {fraction_of} [0.01]")
     p.add_argument("--steps", type=_positive_int, default=50, help="force steps per timed run [50]")
     p.add_argument(
         "--run-tets",
         type=_positive_int,
         nargs="*",
         default=[10_000],
-        help="tets wanted for the cracking run (none: skip it)",
+        help=f"tets wanted for the {run} run (none: skip it)",
     )
-    p.add_argument("--run-steps", type=_positive_int, default=200, help="steps of the cracking run [200]")
+    p.add_argument("--run-steps", type=_positive_int, default=200, help=f"steps of the {run} run [200]")
     p.add_argument(
         "--intervals",
         type=_non_negative_int,
         nargs="+",
         default=[0, 1, 10],
-        help="steps between passes in the cracking run (0: fracture off, the reference)",
+        help=f"steps between passes in the {run} run (0: the pass off, the reference)",
     )
-    p.add_argument("--seed", type=int, default=0, help="seed of the nodes that split and of the grain strengths")
+    p.add_argument("--seed", type=int, default=0, help=f"seed of the {fraction_of} and of the grain strengths")
     p.add_argument("--device", default="cpu", help="Warp device")
     p.add_argument("--json", type=Path, help="also write the results as JSON")
     p.add_argument("--repeat", type=_positive_int, default=3, help="timed runs and passes per size; the fastest counts")
@@ -260,12 +281,13 @@ def main(argv: list[str] | None = None) -> int:
         args = tet_bench_parser().parse_args(argv[2:])
         init_warp()
         return run_tet_bench(args.sizes, args.steps, args.device, args.json, args.repeat)
-    if argv[:2] == ["bench", "fracture"]:
-        from .bench import run_fracture_bench
+    if argv[:1] == ["bench"] and argv[1:2] and argv[1] in PASS_BENCH_TEXT:
+        from .bench import run_pass_bench
 
-        args = fracture_bench_parser().parse_args(argv[2:])
+        args = pass_bench_parser(argv[1]).parse_args(argv[2:])
         init_warp()
-        return run_fracture_bench(
+        return run_pass_bench(
+            argv[1],
             args.tets,
             args.fraction,
             args.steps,

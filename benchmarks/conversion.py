@@ -1,0 +1,12 @@
+"""Conversion benchmark (issue 10 §8): ``python benchmarks/conversion.py [--tets 1000000] [--fraction 0.01]
+[--steps 50] [--run-tets 10000] [--run-steps 200] [--intervals 0 1 10] [--repeat 3] [--device cpu]``.
+
+The same as ``python -m warpdem bench conversion`` (the cases are described in warpdem/bench.py).
+"""
+
+from __future__ import annotations
+
+from warpdem.cli import main
+
+if __name__ == "__main__":
+    raise SystemExit(main(["bench", "conversion", *__import__("sys").argv[1:]]))
