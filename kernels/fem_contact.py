@@ -482,13 +482,6 @@ def is_node_face_candidate(inputs: NodeFaceInputs, v: int, x: wp.vec3, f: int) -
     """No vertex of the face in the node's 1-ring or held to it by an intact joint element; the face's closest point
     within fem_skin, or the node already behind the face (a build during a contact)."""
     fn = inputs.face_nodes[f]
-    n_joints = inputs.joint_count[0]
-    for k in range(3):
-        u = fn[k]
-        if in_one_ring(v, u, inputs.tet_nodes, inputs.star_offset, inputs.star_count, inputs.star_tets):
-            return False
-        if held_by_joint(v, u, inputs.joint_a, inputs.joint_b, n_joints, inputs.joint_broken):
-            return False
     a = inputs.node_q[fn[0]]
     b = inputs.node_q[fn[1]]
     c = inputs.node_q[fn[2]]
@@ -500,7 +493,18 @@ def is_node_face_candidate(inputs: NodeFaceInputs, v: int, x: wp.vec3, f: int) -
         s = wp.dot(x - a, wp.normalize(area2))
         if s < 0.0 and -s < inputs.face_depth[f]:
             near = min3(projection_barycentric(x, a, b, c, area2)) >= -BARY_EPS
-    return near
+    if not near:
+        # The distance test first: most faces the grid offers are far away, and the 1-ring and joint searches below
+        # cost a star walk each (the list build of a cracked mesh took 3x longer with them first).
+        return False
+    n_joints = inputs.joint_count[0]
+    for k in range(3):
+        u = fn[k]
+        if in_one_ring(v, u, inputs.tet_nodes, inputs.star_offset, inputs.star_count, inputs.star_tets):
+            return False
+        if held_by_joint(v, u, inputs.joint_a, inputs.joint_b, n_joints, inputs.joint_broken):
+            return False
+    return True
 
 
 NODE_FACE_LIST = make_list_kernels(

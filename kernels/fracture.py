@@ -118,6 +118,11 @@ def nodal_stress_kernel(
     candidate[v] = 0
     if v >= node_count[0]:
         return
+    if node_may_split[v] == 0:
+        # σ1 and p1 are only read for candidates: a node outside the fracture region needs neither.
+        node_sigma1[v] = 0.0
+        node_p1[v] = wp.vec3(0.0)
+        return
     start = star_offset[v]
     count = star_count[v]
     # LDEC eq. 1: the volume-weighted average Cauchy stress of the node's active tets, summed in ascending tet order.
@@ -129,7 +134,7 @@ def nodal_stress_kernel(
         s += tet_volume[t] * tet_stress[t]
         volume += tet_volume[t]
         strength = wp.min(strength, fracture_material_table[tet_material[t]].tensile_strength)
-    if volume <= 0.0:
+    if volume <= 0.0 or strength >= NEVER:
         node_sigma1[v] = 0.0
         node_p1[v] = wp.vec3(0.0)
         return
@@ -138,7 +143,7 @@ def nodal_stress_kernel(
     p = wp.vec3(principal[1], principal[2], principal[3])
     node_sigma1[v] = sigma1
     node_p1[v] = p
-    if node_may_split[v] == 0 or strength >= NEVER or sigma1 < strength:
+    if sigma1 < strength:
         return
     # A candidate needs tets on both sides of the plane and a face between them that still holds it (a crack of
     # zero area would be born broken).
