@@ -536,11 +536,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     note = end_time_note(end_time, fps, model.dt, substeps, last_step) if options.frames is None else None
     if note is not None and not options.quiet:
         print(note)
-    # A converting run on the CPU steps without captured graphs: there a run restarted from a checkpoint left the
-    # neighbour-list bookkeeping (rebuild counts, positions at the last build) of the uninterrupted run, whose graphs
-    # were captured at other steps; eager launches restart bit for bit (tests/test_scenes.py).
-    use_graph = not (model.conversion_interval > 0 and device.is_cpu)
-    sim = Simulation(model, state, primed=primed, step=step, time=sim_time, use_graph=use_graph)
+    sim = Simulation(model, state, primed=primed, step=step, time=sim_time)
     if options.restart is None:
         # A new run converts its start_as_spheres region here, before frame 0; a restart's checkpoint holds them.
         start_as_spheres(scene, sim)
