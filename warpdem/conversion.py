@@ -166,8 +166,8 @@ def conversion_material_table(
         m.bond_shear_ratio = 0.0
         m.bond_tensile_strength = m.bond_shear_strength = float(kcv.NEVER)
         m.converts = 0
-        if p is not None:
-            mu, lam = float(continuum["mu"][mid]), float(continuum["lam"][mid])
+        mu, lam = float(continuum["mu"][mid]), float(continuum["lam"][mid])
+        if p is not None and lam + mu > 0.0:  # a material no tet uses has no continuum row (and nothing to convert)
             young = mu * (3.0 * lam + 2.0 * mu) / (lam + mu)
             tensile, shear = p.bond_strengths()
             m.criterion = CRITERIA[p.criterion]
