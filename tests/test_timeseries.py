@@ -354,7 +354,9 @@ def test_fracture_run_plot_has_a_fracture_picture(fracture_run, tmp_path):
 
     _, out = fracture_run
     files = plot_run(out, tmp_path, size=(400, 300))
-    assert sorted(f.name for f in files) == [f"pulled_bar_{k}.png" for k in ("counts", "energy", "fracture")]
+    # A run with fracture can break apart, so it also wrote a fragment file and gets its picture (warpdem.fragments).
+    expected = [f"pulled_bar_{k}.png" for k in ("counts", "energy", "fracture", "fragments")]
+    assert sorted(f.name for f in files) == expected
     image = mpimg.imread(tmp_path / "pulled_bar_fracture.png")[..., :3]
     assert image.shape[:2] == (300, 400)
     assert np.mean(np.any(np.abs(image - image[0, 0]) > 0.02, axis=-1)) > 0.01  # not blank
