@@ -13,7 +13,7 @@ import dataclasses
 
 import warp as wp
 
-from .compaction import Compactor
+from .compaction import Compactor, grow_live_slots
 from .kernels import cohesive as kc
 from .model import COHESIVE_FIELDS, Model, State
 
@@ -143,11 +143,5 @@ def regrow_cohesive(model: Model, state: State, capacity: int) -> tuple[Model, S
     live = int(state.cohesive_count.numpy()[0])
     if capacity < live:
         raise ValueError(f"regrow_cohesive: capacity {capacity} is below the {live} live cohesive elements")
-    fields = {}
-    for name in COHESIVE_FIELDS:
-        old = getattr(state, name)
-        grown = wp.zeros(capacity, dtype=old.dtype, device=old.device)
-        if live:
-            wp.copy(grown, old, count=live)
-        fields[name] = grown
+    fields = grow_live_slots(state, COHESIVE_FIELDS, live, capacity)
     return dataclasses.replace(model, cohesive_capacity=capacity), dataclasses.replace(state, **fields)

@@ -165,3 +165,16 @@ class Compactor:
     def finish(self, count: wp.array) -> None:
         """Set the live count to the pass's new count (the survivors of a removal, count + copies of an append)."""
         wp.copy(count, self.new_count)
+
+
+def grow_live_slots(state: object, fields: Sequence[str], live: int, capacity: int) -> dict[str, wp.array]:
+    """New arrays of ``capacity`` slots for the named fields of ``state`` (a set compacted together: cohesive
+    elements, couplings), the first ``live`` slots copied, the others zero; the caller swaps them in between steps."""
+    out = {}
+    for name in fields:
+        old = getattr(state, name)
+        new = wp.zeros(capacity, dtype=old.dtype, device=old.device)
+        if live:
+            wp.copy(new, old, count=live)
+        out[name] = new
+    return out

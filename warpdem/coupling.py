@@ -53,7 +53,7 @@ import dataclasses
 import numpy as np
 import warp as wp
 
-from .compaction import Compactor
+from .compaction import Compactor, grow_live_slots
 from .kernels import coupling as kcp
 from .model import COUPLING_FIELDS, Model, State
 
@@ -150,13 +150,7 @@ def regrow_coupling(model: Model, state: State, capacity: int) -> tuple[Model, S
     live = int(state.coupling_count.numpy()[0])
     if capacity < live:
         raise ValueError(f"regrow_coupling: capacity {capacity} is below the {live} live couplings")
-    fields = {}
-    for name in COUPLING_FIELDS:
-        old = getattr(state, name)
-        grown = wp.zeros(capacity, dtype=old.dtype, device=old.device)
-        if live:
-            wp.copy(grown, old, count=live)
-        fields[name] = grown
+    fields = grow_live_slots(state, COUPLING_FIELDS, live, capacity)
     return dataclasses.replace(model, coupling_capacity=capacity), dataclasses.replace(state, **fields)
 
 
