@@ -75,7 +75,7 @@ from .kernels import topology as kt
 from .lattice import STIFFNESS_FACTOR, STRENGTH_FACTOR, edge_pairs
 from .model import BOND_FIELDS, COUPLING_FIELDS, NEIGHBOR_FIELDS, Model, State, conversion_state
 from .tets import eval_tet_stresses, tet_energies
-from .topology import NodeStars
+from .topology import NodeStars, live_flags
 
 CRITERIA = {"tresca": 0, "rankine": 1, "mohr_coulomb": 2}
 """Criterion names and their kernel constants (kernels/conversion.py CRITERION_*)."""
@@ -239,16 +239,7 @@ def attach_conversion(
     if model.tet_capacity == 0:
         raise ValueError("attach_conversion: the model has no tets to convert")
     nt = int(state.tet_count.numpy()[0])
-    flags = np.zeros(model.tet_capacity, dtype=np.int32)
-    if may_convert is None:
-        flags[:nt] = 1
-    else:
-        mask = np.asarray(may_convert)
-        if mask.shape != (nt,):
-            raise ValueError(
-                f"attach_conversion: may_convert must have one entry per live tet, shape ({nt},), got {mask.shape}"
-            )
-        flags[:nt] = mask.astype(bool)
+    flags = live_flags(may_convert, nt, model.tet_capacity, "attach_conversion", "may_convert", "tet")
     if coupling_capacity is None:
         coupling_capacity = max(64, nt // 8)
     if not _is_count(coupling_capacity, 1):

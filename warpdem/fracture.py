@@ -62,7 +62,7 @@ from .joints import load_face_arrays
 from .kernels import fracture as kfr
 from .model import Model, State, fracture_state
 from .tets import eval_tet_stresses
-from .topology import NodeSplitter, reference_face_neighbors, sort_joint_elements
+from .topology import NodeSplitter, live_flags, reference_face_neighbors, sort_joint_elements
 
 MAX_ROUNDS = 8
 """Independent-set rounds per pass; candidates still waiting after them retry at the next pass."""
@@ -163,16 +163,7 @@ def attach_fracture(
     if model.tet_capacity == 0:
         raise ValueError("attach_fracture: the model has no tets to split")
     nn = int(state.node_count.numpy()[0])
-    flags = np.zeros(model.node_capacity, dtype=np.int32)
-    if may_split is None:
-        flags[:nn] = 1
-    else:
-        mask = np.asarray(may_split)
-        if mask.shape != (nn,):
-            raise ValueError(
-                f"attach_fracture: may_split must have one entry per live node, shape ({nn},), got {mask.shape}"
-            )
-        flags[:nn] = mask.astype(bool)
+    flags = live_flags(may_split, nn, model.node_capacity, "attach_fracture", "may_split", "node")
     if cohesive_capacity is None:
         cohesive_capacity = max(64, nn // 8)
     if (

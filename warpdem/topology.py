@@ -402,3 +402,21 @@ def sort_joint_elements(model: Model, state: State) -> None:
     ):
         src = wp.clone(a)
         wp.launch(kt.gather_kernel, dim=n, inputs=[order, src], outputs=[a], device=d)
+
+
+def live_flags(mask: np.ndarray | None, live: int, capacity: int, where: str, name: str, items: str) -> np.ndarray:
+    """Per-slot int32 flags (shape (capacity,)) from a bool mask over the ``live`` items (None: all of them), the
+    slots past them 0: which nodes may split, which tets may convert.
+
+    Raises:
+        ValueError: the mask does not hold one entry per live item (``where``: the caller, ``name``: the argument).
+    """
+    flags = np.zeros(capacity, dtype=np.int32)
+    if mask is None:
+        flags[:live] = 1
+        return flags
+    mask = np.asarray(mask)
+    if mask.shape != (live,):
+        raise ValueError(f"{where}: {name} must have one entry per live {items}, shape ({live},), got {mask.shape}")
+    flags[:live] = mask.astype(bool)
+    return flags
