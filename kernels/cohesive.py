@@ -18,24 +18,35 @@ force jump between 0 and f_c from step to step. So while δ_max < OPEN_FRACTION 
 displacements up to ~10³ δ_c) the element is taken as not yet open: d/δ_max := 1 and e := cohesive_dir, the direction
 the split gave it (from A's side to B's side; warpdem.fracture). The force is then f_env(δ_max) ≈ f_c along it,
 which is what eqs. 3–4 need at the split (the daughters keep the parent's acceleration), and it meets eq. 6
-continuously where δ_max passes the threshold while loading (d = δ_max there). The energy books below are those of
-eq. 6 throughout; the regularised force differs from their gradient only below 1e-4 δ_c, by at most f_c × 1e-4 δ_c
-≤ 2e-4 Γ A_f of work over the element's life.
+continuously where δ_max passes the threshold while loading (d = δ_max there). The books below take the work this
+force does, whatever its direction.
 
-Energy identity (what the books rest on). The work the nodes do on the element while it loads along the envelope to
-δ_max is ∫₀^δmax f_c (1 − α δ/δ_c) dδ = f_c δ_max − ½ α f_c δ_max²/δ_c. Of it the element holds, on its unloading
-line, the spring energy ½ k δ_max² = ½ f_c (1 − α δ_max/δ_c) δ_max, which unloading gives back; the difference,
+Energy identity (the law's). The work the nodes do on the element while it loads along the envelope to δ_max is
+∫₀^δmax f_c (1 − α δ/δ_c) dδ = f_c δ_max − ½ α f_c δ_max²/δ_c. Of it the element holds, on its unloading line, the
+spring energy U = ½ k δ_max² = ½ f_c (1 − α δ_max/δ_c) δ_max, which unloading gives back; the difference,
 
     dissipated(δ_max) = f_c δ_max − ½ α f_c δ_max²/δ_c − ½ f_c (1 − α δ_max/δ_c) δ_max = ½ f_c δ_max,
 
-is spent for good, independent of α. So at any time stored + dissipated = ½ k d² + ½ f_c δ_max equals the work done
-on the element (exactly on the envelope and the line, whose pieces are linear in d), and every growth Δδ_max is booked
-as ½ f_c Δδ_max into node_energy_cohesive, half on A and half on B. The element lets go at d = δ_c, still holding
-½ k(δ_c) δ_c² = ½ (1 − α) f_c δ_c, which is released (booked as dissipated) at the break; its life total is then
-½ f_c δ_c + ½ (1 − α) f_c δ_c = (1 − α/2) f_c δ_c = Γ A_f (eq. 9, with δ_c from eq. 10), exactly. The step that breaks
-it overshoots δ_c by part of one step's opening Δd, over which velocity Verlet applies the force of the step before
-instead of the envelope's: for α < 1 (a force that drops from (1 − α) f_c to 0) the energy balance sees up to
-½ (1 − α) f_c Δd per break; for α = 1 the force reaches 0 continuously and the difference is second order in Δd.
+is spent for good, independent of α. The element lets go at d = δ_c, still holding ½ k(δ_c) δ_c² = ½ (1 − α) f_c δ_c,
+which is released at the break; its life total is ½ f_c δ_c + ½ (1 − α) f_c δ_c = (1 − α/2) f_c δ_c = Γ A_f (eq. 9,
+with δ_c from eq. 10). ``cohesive_work_broken`` counts this Γ A_f of every broken element, for the summary.
+
+Energy books (as the scheme does the work). An element opens through δ_c in a few steps once a crack runs, and its
+force is not smooth in time: it is born at f_c, turns with the first openings and drops to zero at the break. The
+discrete work then differs from the law's integral by a fraction of f_c Δd per event, which closes no balance. So
+each element books what velocity Verlet makes its force do, like the sphere contacts and bonds (kernels/contact.py):
+over a step the nodes do on it the trapezoid
+
+    ΔW = ½ dt (f_n + f_{n+1}) · (v_B − v_A)_{n+1/2}                       (x_{n+1} − x_n = dt v_{n+1/2})
+
+(f the force on A, −f on B, v_{n+1/2} the velocities during the evaluation of f_{n+1}), of which its spring now holds
+U_{n+1} = ½ k d²; dissipated += ΔW − (U_{n+1} − U_n), half on A and half on B (``node_energy_cohesive``), with f_n
+and U_n kept per element (``cohesive_f_prev``, ``cohesive_energy_prev``). Stored + dissipated is then the work done
+on the element exactly, and the energy balance closes however coarsely the step resolves δ_c; on a resolved opening
+the trapezoid equals the law's integral (exactly on its linear pieces), so the books still give ½ f_c δ_max while
+intact and Γ A_f at the break (tests/test_cohesive.py). The break step books ½ dt f_n · v_rel + U_n: the element
+applies no force from then on, so nothing is left ahead. A split gives the new element f_prev = its force at birth
+(f_c along ``cohesive_dir``) and U = 0; a hand-over keeps both.
 """
 
 from __future__ import annotations
@@ -96,6 +107,32 @@ def opening(a: int, b: int, node_ref_q: wp.array(dtype=wp.vec3), node_u: wp.arra
     return (node_ref_q[b] - node_ref_q[a]) + (node_u[b] - node_u[a])
 
 
+@wp.func
+def book_step(
+    i: int,
+    a: int,
+    b: int,
+    dt: float,
+    f: wp.vec3,
+    energy: float,
+    track_energy: int,
+    node_qd: wp.array(dtype=wp.vec3),
+    cohesive_f_prev: wp.array(dtype=wp.vec3),
+    cohesive_energy_prev: wp.array(dtype=float),
+    node_energy_cohesive: wp.array(dtype=wp.float64),
+):
+    """Book element i's dissipation over the step that made its force ``f`` [N] (on A) and spring energy ``energy``
+    [J]: the trapezoid ΔW = ½ dt (f_n + f)·(v_B − v_A)_{n+1/2} the nodes did on it, less the change of its spring
+    energy, half on A and half on B (module docstring); then keep f and the energy for the next step."""
+    v_rel = node_qd[b] - node_qd[a]
+    work = wp.float64(0.5 * dt * wp.dot(cohesive_f_prev[i] + f, v_rel))
+    half = wp.float64(0.5) * (work - (wp.float64(energy) - wp.float64(cohesive_energy_prev[i])))
+    wp.atomic_add(node_energy_cohesive, a, half)
+    wp.atomic_add(node_energy_cohesive, b, half)
+    cohesive_f_prev[i] = f
+    cohesive_energy_prev[i] = energy
+
+
 @wp.kernel
 def eval_cohesive_kernel(
     # Model:
@@ -111,10 +148,13 @@ def eval_cohesive_kernel(
     cohesive_area: wp.array(dtype=float),
     cohesive_dir: wp.array(dtype=wp.vec3),
     node_u: wp.array(dtype=wp.vec3),
+    node_qd: wp.array(dtype=wp.vec3),
     # In:
     track_energy: int,
     # State out:
     cohesive_d_max: wp.array(dtype=float),
+    cohesive_f_prev: wp.array(dtype=wp.vec3),
+    cohesive_energy_prev: wp.array(dtype=float),
     cohesive_broken: wp.array(dtype=int),
     cohesive_broken_total: wp.array(dtype=int),
     cohesive_area_broken: wp.array(dtype=wp.float64),
@@ -137,41 +177,48 @@ def eval_cohesive_kernel(
     d_max = wp.max(d_max_old, wp.length(r))  # LDEC eq. 8
     # An intact element has d_max_old < δ_c, so δ_max before this step is d_max_old itself.
     if dt > 0.0 and d_max >= delta_c:
-        # Broken: no force from now on. The books close on Γ A_f (eq. 9): ½ f_c of the last growth of δ_max up to
-        # δ_c, and the spring energy ½ k(δ_c) δ_c² = ½ (1 − α) f_c δ_c held where the element let go.
+        # Broken: no force from now on. The books take the last trapezoid ½ dt f_n·v_rel and release what the spring
+        # held (module docstring); the summary's Γ A_f (eq. 9) goes to cohesive_work_broken.
         cohesive_d_max[i] = d_max
         cohesive_broken[i] = 1
         wp.atomic_add(cohesive_broken_total, 0, 1)
-        fc64 = wp.float64(fc)
-        dc64 = wp.float64(delta_c)
         wp.atomic_add(cohesive_area_broken, 0, wp.float64(cohesive_area[i]))
-        wp.atomic_add(cohesive_work_broken, 0, (wp.float64(1.0) - wp.float64(0.5) * wp.float64(alpha)) * fc64 * dc64)
+        wp.atomic_add(
+            cohesive_work_broken,
+            0,
+            (wp.float64(1.0) - wp.float64(0.5) * wp.float64(alpha)) * wp.float64(fc) * wp.float64(delta_c),
+        )
         fem_rebuild_flag[0] = 1  # the crack faces at A and B may now touch: rebuild the FEM contact lists
         wp.atomic_max(node_damage, a, 1.0)
         wp.atomic_max(node_damage, b, 1.0)
-        if track_energy != 0:
-            rest = (
-                wp.float64(0.5) * fc64 * ((dc64 - wp.float64(d_max_old)) + (wp.float64(1.0) - wp.float64(alpha)) * dc64)
-            )
-            wp.atomic_add(node_energy_cohesive, a, wp.float64(0.5) * rest)
-            wp.atomic_add(node_energy_cohesive, b, wp.float64(0.5) * rest)
+        book_step(
+            i,
+            a,
+            b,
+            dt,
+            wp.vec3(0.0),
+            0.0,
+            track_energy,
+            node_qd,
+            cohesive_f_prev,
+            cohesive_energy_prev,
+            node_energy_cohesive,
+        )
         return
     # The set-up and post-split evaluation (dt = 0) sees the history including the present opening, but keeps none.
     f = cohesive_force(r, d_max, fc, delta_c, alpha, cohesive_dir[i])
     # Held nodes (inverse mass 0) take the force too: the integrator holds them, and the sums stay symmetric.
     wp.atomic_add(node_f, a, f)
     wp.atomic_add(node_f, b, -f)
-    if dt <= 0.0 or d_max <= d_max_old:
+    if dt <= 0.0:
         return
-    cohesive_d_max[i] = d_max
-    damage = d_max / delta_c  # δ_max/δ_c < 1 here
-    wp.atomic_max(node_damage, a, damage)
-    wp.atomic_max(node_damage, b, damage)
-    if track_energy != 0:
-        # ½ f_c Δδ_max (module docstring), in float64 from the float32 openings: the sum over steps telescopes.
-        quarter = wp.float64(0.25) * wp.float64(fc) * (wp.float64(d_max) - wp.float64(d_max_old))
-        wp.atomic_add(node_energy_cohesive, a, quarter)
-        wp.atomic_add(node_energy_cohesive, b, quarter)
+    if d_max > d_max_old:
+        cohesive_d_max[i] = d_max
+        damage = d_max / delta_c  # δ_max/δ_c < 1 here
+        wp.atomic_max(node_damage, a, damage)
+        wp.atomic_max(node_damage, b, damage)
+    u = spring_energy(wp.length(r), d_max, fc, delta_c, alpha)
+    book_step(i, a, b, dt, f, u, track_energy, node_qd, cohesive_f_prev, cohesive_energy_prev, node_energy_cohesive)
 
 
 @wp.kernel

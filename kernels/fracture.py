@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from .cohesive import cohesive_force
 from .tets import TetMaterial, elastic_node_force
 from .topology import local_index, star_find, tet_face, triangle_area_vector
 
@@ -341,6 +342,8 @@ def birth_cohesive_kernel(
     cohesive_area: wp.array(dtype=float),
     cohesive_dir: wp.array(dtype=wp.vec3),
     cohesive_d_max: wp.array(dtype=float),
+    cohesive_f_prev: wp.array(dtype=wp.vec3),
+    cohesive_energy_prev: wp.array(dtype=float),
     cohesive_broken: wp.array(dtype=int),
     cohesive_tet_face: wp.array(dtype=int),
     # Out:
@@ -422,6 +425,10 @@ def birth_cohesive_kernel(
     cohesive_area[slot_c] = area_f
     cohesive_dir[slot_c] = direction
     cohesive_d_max[slot_c] = 0.0
+    # The books' trapezoid starts from the force the element is born with (eq. 4's, before any opening) and no
+    # spring energy (kernels/cohesive.py).
+    cohesive_f_prev[slot_c] = cohesive_force(wp.vec3(0.0), 0.0, fc, delta_c, fm.alpha, direction)
+    cohesive_energy_prev[slot_c] = 0.0
     cohesive_broken[slot_c] = 0
     cohesive_tet_face[slot_c] = rep
     won_area[i] = area_f

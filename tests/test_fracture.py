@@ -53,6 +53,7 @@ def bar(
     jitter: float = 0.0,
     tet_order: np.ndarray | None = None,
     alpha: float = 1.0,
+    safety_factor: float = 0.5,
 ):
     """A bar [0, 4] × [0, 1] × [0, 1] m of tets with fracture attached; ``may_split`` "mid" (the nodes on x = 2), "all"
     or a mask; optional velocity drivers ±driver_speed along x on the ends."""
@@ -69,7 +70,7 @@ def bar(
     if driver_speed:
         b.add_node_velocity(np.isclose(pts[:, 0], 0.0), (-driver_speed, 0.0, 0.0))
         b.add_node_velocity(np.isclose(pts[:, 0], LENGTH), (driver_speed, 0.0, 0.0))
-    model, state = b.finalize(device, safety_factor=0.5, node_capacity=node_capacity)
+    model, state = b.finalize(device, safety_factor=safety_factor, node_capacity=node_capacity)
     mask = None
     if isinstance(may_split, str):
         mask = np.isclose(pts[:, 0], LENGTH / 2) if may_split == "mid" else None
@@ -355,30 +356,53 @@ def test_restart_continues_bit_for_bit_across_splits(device, tmp_path):
 
 ENERGY_BOUND = 5.0e-3
 """Bound on the energy balance error of a cracking bar [-] (relative to the largest energy in play). Without a crack
-the same bar closes to 2e-5; a crack adds the discrete work of the cohesive law, whose zone δ_c is crossed in a few
-steps here (δ_c / (opening rate × dt) ≈ 5), booked against its exact work (eq. 9): measured 1.4e-3 (α = 1) and
-2.0e-3 (α = 0.5), bound with a margin of 2.5."""
+the same bar closes to 2e-5; the cohesive elements book the trapezoid velocity Verlet does (kernels/cohesive.py), so
+a crack adds only the split passes' own rounding and the O(dt²) error of the tets around the crack: bound with a
+margin over the figures measured (printed)."""
 
 
-@pytest.mark.parametrize("alpha", [1.0, 0.5])
-def test_energy_balance_of_a_cracking_bar_closes(device, alpha):
-    model, state, pts = bar(device, driver_speed=1.0, alpha=alpha)
+def crack_bar(device, alpha: float, safety_factor: float) -> tuple[float, float]:
+    """Pull the bar apart at 1 m/s until its mid-section has cracked through (0.028 s); returns the largest balance
+    error relative to the largest energy in play, and the relative excess of the work done on the cohesive elements
+    over the law's Γ A (eq. 9, both faces of the section)."""
+    model, state, pts = bar(device, driver_speed=1.0, alpha=alpha, safety_factor=safety_factor)
     sim = Simulation(model, state)
     start = sim.energy()
     peak, worst = start.in_play, 0.0
-    for _ in range(20):
-        sim.advance(10)
+    steps = round(0.5 / safety_factor) * 5
+    for _ in range(40):
+        sim.advance(steps)
         e = sim.energy()
         peak = max(peak, e.in_play)
         worst = max(worst, abs(e.total - start.total) / peak)
     s = sim.state
     mid = int(np.isclose(pts[:, 0], LENGTH / 2).sum())
     assert int(s.node_splits_total.numpy()[0]) == mid and int(s.cohesive_broken_total.numpy()[0]) == mid
-    # Every element broke: the crack dissipated Γ A_f over its whole area (eq. 9), both faces of the section.
-    np.testing.assert_allclose(e.dissipated_cohesive, TOUGHNESS * 2.0, rtol=1e-4)
+    # Every element broke: the law's Γ A_f over the whole section, counted exactly by the breaks.
     np.testing.assert_allclose(float(s.cohesive_work_broken.numpy()[0]), TOUGHNESS * 2.0, rtol=1e-5)
     assert e.cohesive_elastic == 0.0 and int(s.cohesive_count.numpy()[0]) == 0  # broken elements compacted away
-    assert worst < ENERGY_BOUND
+    return worst, e.dissipated_cohesive / (TOUGHNESS * 2.0) - 1.0
+
+
+@pytest.mark.parametrize("alpha", [1.0, 0.5])
+def test_energy_balance_of_a_cracking_bar_closes(device, alpha):
+    """A bar pulled apart cracks through its mid-section: the books close, and the work the nodes did on the cohesive
+    elements converges to the crack's Γ A (eq. 9) as the step is refined.
+
+    The books are the trapezoid Verlet does (kernels/cohesive.py), so they close whatever the step; the work differs
+    from Γ A_f in each element's break step (the element lets go inside it, over an opening Δd ∝ dt: ½ f_c Δd²/δ_c
+    for α = 1, ½ (1 − α) f_c Δd for α < 1) and in its first steps (the birth force along p1 and the turn onto r).
+    Here the elements cross δ_c in a few steps at the bar's step: the excess is 11 % (α = 1) and 14 % (α = 0.5), and
+    halving the step must cut it at least as a first-order error does (to ≤ 0.6 of it; measured 0.20 and 0.30).
+    """
+    coarse_balance, coarse = crack_bar(device, alpha, 0.5)
+    fine_balance, fine = crack_bar(device, alpha, 0.25)
+    print(
+        f"alpha={alpha}: work/ΓA - 1 = {coarse:.3e} at dt, {fine:.3e} at dt/2; "
+        f"balance {coarse_balance:.2e}, {fine_balance:.2e} (bound {ENERGY_BOUND:.0e})"
+    )
+    assert abs(fine) <= 0.6 * abs(coarse)
+    assert max(coarse_balance, fine_balance) < ENERGY_BOUND
 
 
 @pytest.mark.parametrize(

@@ -23,10 +23,12 @@ def eval_cohesive(model: Model, state: State, dt: float | None = None, track_ene
 
     Per element (one thread per slot of ``model.cohesive_capacity``): the central force of LDEC eqs. 5–8, +f on A
     towards B and −f on B; d_max (eq. 8) and ``node_damage`` (atomic max of δ_max/δ_c on A and B) updated; with
-    ``track_energy`` ½ f_c Δδ_max booked into ``node_energy_cohesive``, half on each node. An element whose d_max
-    reaches δ_c breaks: no force, ``cohesive_broken`` = 1, its remaining energy booked so that it dissipated Γ A_f in
-    all (eq. 9), the counters ``cohesive_broken_total`` / ``cohesive_area_broken`` / ``cohesive_work_broken`` advanced,
-    damage 1 on both nodes and ``fem_rebuild_flag`` raised.
+    ``track_energy`` the trapezoid work of the step less the change of the spring energy booked into
+    ``node_energy_cohesive``, half on each node (kernels/cohesive.py: the books as velocity Verlet does the work, so
+    ``node_qd`` must hold v_{n+1/2}, as it does during a step's force evaluation). An element whose d_max reaches δ_c
+    breaks: no force, ``cohesive_broken`` = 1, what its spring held released into the books, the counters
+    ``cohesive_broken_total`` / ``cohesive_area_broken`` / ``cohesive_work_broken`` (Γ A_f, eq. 9) advanced, damage 1
+    on both nodes and ``fem_rebuild_flag`` raised.
 
     Args:
         model: the model (``node_ref_q``, ``cohesive_capacity``).
@@ -55,11 +57,14 @@ def eval_cohesive(model: Model, state: State, dt: float | None = None, track_ene
             s.cohesive_area,
             s.cohesive_dir,
             s.node_u,
+            s.node_qd,
             # In:
             int(track_energy),
         ],
         outputs=[
             s.cohesive_d_max,
+            s.cohesive_f_prev,
+            s.cohesive_energy_prev,
             s.cohesive_broken,
             s.cohesive_broken_total,
             s.cohesive_area_broken,
@@ -77,8 +82,9 @@ def cohesive_energy(model: Model, state: State) -> tuple[float, float]:
     """The cohesive elements' energy [J]: (stored, dissipated).
 
     stored: Σ over the intact live elements of the spring energy ½ k d² on their unloading lines, k = f(δ_max)/δ_max
-    (0 before any opening); dissipated: Σ ``node_energy_cohesive`` over the live nodes (½ f_c δ_max per intact
-    element, Γ A_f per broken one). Allocates and reads back: call between steps.
+    (0 before any opening); dissipated: Σ ``node_energy_cohesive`` over the live nodes (the work done on the elements
+    less what they hold: ½ f_c δ_max per intact element and Γ A_f per broken one where the steps resolve δ_c).
+    Allocates and reads back: call between steps.
     """
     m, s = model, state
     stored = wp.zeros(1, dtype=wp.float64, device=m.device)

@@ -373,6 +373,8 @@ class FracturePass:
                     s.cohesive_area,
                     s.cohesive_dir,
                     s.cohesive_d_max,
+                    s.cohesive_f_prev,
+                    s.cohesive_energy_prev,
                     s.cohesive_broken,
                     s.cohesive_tet_face,
                     self.won_area,

@@ -342,6 +342,9 @@ class State:
         cohesive_dir: unit direction from A to B before any opening: that of eq. 4's force at the split (along the
             principal direction p1 in a pure tensile split; warpdem.fracture says why), vec3.
         cohesive_d_max: d_max, the largest opening |x_B − x_A| so far (eq. 8) [m], float32.
+        cohesive_f_prev: the element's force on A at its last evaluation (its birth force after a split) [N], vec3: the
+            first half of the next step's trapezoid in the energy books (kernels/cohesive.py).
+        cohesive_energy_prev: its spring energy ½ k d² at the last evaluation (0 at birth) [J], float32.
         cohesive_broken: 0 intact, 1 broken (d_max ≥ δ_c) and awaiting compaction, int32.
         cohesive_tet_face: the tet-face slot 4t + k, on A's side, of the largest crack face the element was born with:
             tet t is A's representative tet and the tet across the slot in the unsplit mesh (Model.ref_tet_face_nbr)
@@ -455,6 +458,8 @@ class State:
     cohesive_area: wp.array
     cohesive_dir: wp.array
     cohesive_d_max: wp.array
+    cohesive_f_prev: wp.array
+    cohesive_energy_prev: wp.array
     cohesive_broken: wp.array
     cohesive_tet_face: wp.array
     cohesive_broken_total: wp.array
@@ -515,6 +520,8 @@ COHESIVE_FIELDS = (
     "cohesive_area",
     "cohesive_dir",
     "cohesive_d_max",
+    "cohesive_f_prev",
+    "cohesive_energy_prev",
     "cohesive_broken",
     "cohesive_tet_face",
 )
@@ -535,6 +542,8 @@ def fracture_state(model: Model) -> dict[str, wp.array]:
         "cohesive_area": wp.zeros(cap, dtype=float, device=d),
         "cohesive_dir": wp.zeros(cap, dtype=wp.vec3, device=d),
         "cohesive_d_max": wp.zeros(cap, dtype=float, device=d),
+        "cohesive_f_prev": wp.zeros(cap, dtype=wp.vec3, device=d),
+        "cohesive_energy_prev": wp.zeros(cap, dtype=float, device=d),
         "cohesive_broken": wp.zeros(cap, **one),
         "cohesive_tet_face": wp.full(cap, -1, **one),
         "cohesive_broken_total": wp.zeros(1, **one),
