@@ -21,6 +21,19 @@ which is what eqs. 3–4 need at the split (the daughters keep the parent's acce
 continuously where δ_max passes the threshold while loading (d = δ_max there). The books below take the work this
 force does, whatever its direction.
 
+An opening the step resolves. Eq. 6 with e = r/d is a spring of stiffness f/d across r, and of k = f_env/δ_max along
+it on the unloading line; both grow without bound as the opening starts. Below d ≈ f_c dt²/m* (m* the daughters'
+reduced mass) their period is shorter than the step, and velocity Verlet turns the slightest sliding of the daughters
+across p1 into an oscillation that feeds on itself: on the PMMA plate the openings swung across the plane every step
+while the crack ran, the elements did net work on the nodes (−0.04 J "dissipated" against Γ A = 0.27 J) and the
+balance drifted by 4.5 % in 70 µs. So the opening threshold follows the step: an element counts as not yet open while
+δ_max < s = max(OPEN_FRACTION δ_c, min(δ_c, f_c dt²/m*)) (:func:`open_length`). Below s its force acts along
+cohesive_dir, with no stiffness across it, and unloads on the line of slope f_env(δ_max)/s,
+f = f_env(δ_max) max(0, 1 − (δ_max − d)/s), which meets eq. 6 where δ_max reaches s; above s every stiffness of the
+element is at most f_c/s ≤ m*/dt², so the pair alone keeps ω dt ≤ 1 (Verlet's limit is 2). s shrinks like dt², so
+the law converges to eq. 6 as the step is refined (tests/test_fracture.py: the work of a cracking bar's elements
+converges to Γ A). A held daughter (inverse mass 0) counts with the other's mass alone.
+
 Energy identity (the law's). The work the nodes do on the element while it loads along the envelope to δ_max is
 ∫₀^δmax f_c (1 − α δ/δ_c) dδ = f_c δ_max − ½ α f_c δ_max²/δ_c. Of it the element holds, on its unloading line, the
 spring energy U = ½ k δ_max² = ½ f_c (1 − α δ_max/δ_c) δ_max, which unloading gives back; the difference,
@@ -81,22 +94,41 @@ def unloading_stiffness(fc: float, delta_max: float, delta_c: float, alpha: floa
 
 
 @wp.func
-def cohesive_force(r: wp.vec3, d_max: float, fc: float, delta_c: float, alpha: float, direction: wp.vec3) -> wp.vec3:
+def open_length(fc: float, delta_c: float, dt: float, inv_mass_a: float, inv_mass_b: float) -> float:
+    """s [m]: the element counts as open once δ_max ≥ s = max(OPEN_FRACTION δ_c, min(δ_c, f_c dt² (1/m_A + 1/m_B)))
+    (module docstring; ``dt`` the model's step [s], inverse masses [1/kg]); above s its stiffness is at most f_c/s."""
+    return wp.max(OPEN_FRACTION * delta_c, wp.min(delta_c, fc * dt * dt * (inv_mass_a + inv_mass_b)))
+
+
+@wp.func
+def cohesive_force(
+    r: wp.vec3, d_max: float, fc: float, delta_c: float, alpha: float, direction: wp.vec3, s: float
+) -> wp.vec3:
     """Force of the element on A [N] (−it acts on B) at the opening r = x_B − x_A [m] and the history d_max ≥ |r|.
 
-    LDEC eq. 6 (with eq. 7): f e = f_c (1 − α δ_max/δ_c) (d/δ_max) e = k r. Before any opening (δ_max below
-    OPEN_FRACTION δ_c) d/δ_max := 1 and e := ``direction`` (module docstring), so f = f_env(δ_max) along it.
+    LDEC eq. 6 (with eq. 7): f e = f_c (1 − α δ_max/δ_c) (d/δ_max) e = k r. Before the element opens (δ_max below
+    ``s``, :func:`open_length`) e := ``direction`` and f = f_env(δ_max) max(0, 1 − (δ_max − d)/s) (module docstring):
+    f_env(δ_max) while loading, as eqs. 3–4 need at the split.
     """
     delta_max = capped_opening(d_max, delta_c)
-    if delta_max < OPEN_FRACTION * delta_c:
-        return envelope_force(fc, delta_max, delta_c, alpha) * direction
+    if delta_max < s:
+        return (
+            envelope_force(fc, delta_max, delta_c, alpha)
+            * wp.max(0.0, 1.0 - (delta_max - wp.length(r)) / s)
+            * direction
+        )
     return unloading_stiffness(fc, delta_max, delta_c, alpha) * r
 
 
 @wp.func
-def spring_energy(d: float, d_max: float, fc: float, delta_c: float, alpha: float) -> float:
-    """Energy the element holds on its unloading line, ½ k d² [J] (k of eqs. 6–7; 0 before any opening)."""
-    k = unloading_stiffness(fc, capped_opening(d_max, delta_c), delta_c, alpha)
+def spring_energy(d: float, d_max: float, fc: float, delta_c: float, alpha: float, s: float) -> float:
+    """Energy the element holds on its unloading line [J]: what it gives back closing to d = 0 along the force of
+    :func:`cohesive_force`, ½ k d² (k of eqs. 6–7) once open, f_env(δ_max) (d (1 − δ_max/s) + d²/(2 s)) below s
+    (both ½ f_env d²/s where δ_max = s)."""
+    delta_max = capped_opening(d_max, delta_c)
+    if delta_max < s:
+        return envelope_force(fc, delta_max, delta_c, alpha) * (d * (1.0 - delta_max / s) + 0.5 * d * d / s)
+    k = unloading_stiffness(fc, delta_max, delta_c, alpha)
     return 0.5 * k * d * d
 
 
@@ -137,6 +169,8 @@ def book_step(
 def eval_cohesive_kernel(
     # Model:
     node_ref_q: wp.array(dtype=wp.vec3),
+    node_inv_mass: wp.array(dtype=float),
+    step: float,
     dt: float,
     # State in:
     cohesive_count: wp.array(dtype=int),
@@ -206,7 +240,8 @@ def eval_cohesive_kernel(
         )
         return
     # The set-up and post-split evaluation (dt = 0) sees the history including the present opening, but keeps none.
-    f = cohesive_force(r, d_max, fc, delta_c, alpha, cohesive_dir[i])
+    s = open_length(fc, delta_c, step, node_inv_mass[a], node_inv_mass[b])
+    f = cohesive_force(r, d_max, fc, delta_c, alpha, cohesive_dir[i], s)
     # Held nodes (inverse mass 0) take the force too: the integrator holds them, and the sums stay symmetric.
     wp.atomic_add(node_f, a, f)
     wp.atomic_add(node_f, b, -f)
@@ -217,32 +252,22 @@ def eval_cohesive_kernel(
         damage = d_max / delta_c  # δ_max/δ_c < 1 here
         wp.atomic_max(node_damage, a, damage)
         wp.atomic_max(node_damage, b, damage)
-    u = spring_energy(wp.length(r), d_max, fc, delta_c, alpha)
+    u = spring_energy(wp.length(r), d_max, fc, delta_c, alpha, s)
     book_step(i, a, b, dt, f, u, track_energy, node_qd, cohesive_f_prev, cohesive_energy_prev, node_energy_cohesive)
 
 
 @wp.kernel
 def cohesive_energy_kernel(
-    # Model:
-    node_ref_q: wp.array(dtype=wp.vec3),
     # State in:
     cohesive_count: wp.array(dtype=int),
-    cohesive_a: wp.array(dtype=int),
-    cohesive_b: wp.array(dtype=int),
-    cohesive_fc: wp.array(dtype=float),
-    cohesive_delta_c: wp.array(dtype=float),
-    cohesive_alpha: wp.array(dtype=float),
-    cohesive_d_max: wp.array(dtype=float),
+    cohesive_energy_prev: wp.array(dtype=float),
     cohesive_broken: wp.array(dtype=int),
-    node_u: wp.array(dtype=wp.vec3),
     # Out:
     energy: wp.array(dtype=wp.float64),
 ):
     i = wp.tid()  # one thread per cohesive element slot
     if i >= cohesive_count[0] or cohesive_broken[i] != 0:
         return
-    d = wp.length(opening(cohesive_a[i], cohesive_b[i], node_ref_q, node_u))
-    # The same history as the force evaluation: d_max including the present opening (eq. 8).
-    d_max = wp.max(cohesive_d_max[i], d)
-    e = spring_energy(d, d_max, cohesive_fc[i], cohesive_delta_c[i], cohesive_alpha[i])
-    wp.atomic_add(energy, 0, wp.float64(e))
+    # The spring energy of the last evaluation, at the positions the state holds between steps: the very figure the
+    # books subtracted (eval_cohesive_kernel), so stored + dissipated is the work done on the elements exactly.
+    wp.atomic_add(energy, 0, wp.float64(cohesive_energy_prev[i]))

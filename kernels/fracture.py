@@ -427,7 +427,7 @@ def birth_cohesive_kernel(
     cohesive_d_max[slot_c] = 0.0
     # The books' trapezoid starts from the force the element is born with (eq. 4's, before any opening) and no
     # spring energy (kernels/cohesive.py).
-    cohesive_f_prev[slot_c] = cohesive_force(wp.vec3(0.0), 0.0, fc, delta_c, fm.alpha, direction)
+    cohesive_f_prev[slot_c] = cohesive_force(wp.vec3(0.0), 0.0, fc, delta_c, fm.alpha, direction, delta_c)
     cohesive_energy_prev[slot_c] = 0.0
     cohesive_broken[slot_c] = 0
     cohesive_tet_face[slot_c] = rep

@@ -686,25 +686,40 @@ def test_without_energy_tracking_history_advances_and_books_stay(device):
     np.testing.assert_array_equal(state.node_energy_cohesive.numpy(), 0.0)
 
 
-def test_below_the_open_fraction_the_force_keeps_p1(device):
-    """While δ_max < OPEN_FRACTION δ_c the opening is float32 round-off of the displacements in a real run: the force
-    is f(δ_max) along p1 (d/δ_max := 1, e := p1); past it, eq. 6 with e = r/d, continuous in magnitude."""
-    model, state = daughter_model(device, 1, capacity=2)
+@pytest.mark.parametrize("s_over_dc", [None, 0.05])
+def test_below_the_opening_threshold_the_force_keeps_p1(device, s_over_dc):
+    """Below the threshold s = max(1e-4 δ_c, min(δ_c, f_c dt²/m*)) (kernels/cohesive.py ``open_length``) the force is
+    f_env(δ_max) along p1 while loading and f_env(δ_max)(1 − (δ_max − d)/s) while unloading; past it, eq. 6 with
+    e = r/d, continuous in magnitude, and no stiffness of the element exceeds f_c/s. ``s_over_dc`` None: the floor
+    1e-4 δ_c (a small step: the opening there is float32 round-off of the displacements in a real run); 0.05: a step
+    with f_c dt²/m* = 0.05 δ_c."""
+    m_star = 1.0 / (1.0 / 2.0 + 1.0 / 3.0)  # the daughters' reduced mass [kg]
+    delta_c = critical_opening(1.0)
+    dt = 1.0e-7 if s_over_dc is None else math.sqrt(s_over_dc * delta_c * m_star / FC)
+    model, state = daughter_model(device, 1, capacity=2, dt=dt)
     p1 = unit([0.0, 0.0, 1.0])
     q = unit([1.0, 1.0, 0.0])
     set_elements(state, [0], [1], 1.0, p1)
     fc, delta_c, _ = stored_f32(state)
-    open_fraction = 1.0e-4  # kernels/cohesive.py OPEN_FRACTION
-    for ratio in (0.25, 0.5, 0.3):  # 0.3: below the largest opening so far, still no line to the origin
+    s_open = max(1.0e-4 * delta_c, min(delta_c, fc * dt * dt / m_star))
+    for ratio in (0.25, 0.5, 0.3):  # 0.3: below the largest opening so far: the short unloading line
         u = np.zeros((2, 3))
-        u[1] = ratio * open_fraction * delta_c * q
+        u[1] = ratio * s_open * q
         f = forces_at(model, state, u)
         d_max = float(state.cohesive_d_max.numpy()[0])
-        np.testing.assert_allclose(f[0], envelope(d_max, fc, delta_c, 1.0) * p1, rtol=FORCE_RTOL)
-    u[1] = 2.0 * open_fraction * delta_c * q
+        d = float(np.linalg.norm(u[1].astype(np.float32)))
+        expected = envelope(d_max, fc, delta_c, 1.0) * (1.0 - (d_max - d) / s_open)
+        np.testing.assert_allclose(f[0], expected * p1, rtol=4 * FORCE_RTOL, atol=FORCE_RTOL * fc)
+    u[1] = 2.0 * s_open * q
     f = forces_at(model, state, u)
     d_max = float(state.cohesive_d_max.numpy()[0])
     np.testing.assert_allclose(f[0], envelope(d_max, fc, delta_c, 1.0) * q, rtol=FORCE_RTOL, atol=FORCE_RTOL * fc)
+    # Unloading from there: the line to the origin, of slope f_env(δ_max)/δ_max ≤ f_c/s.
+    u[1] = 1.5 * s_open * q
+    f = forces_at(model, state, u)
+    k = float(np.linalg.norm(f[0])) / (1.5 * s_open)
+    np.testing.assert_allclose(k, envelope(d_max, fc, delta_c, 1.0) / d_max, rtol=4 * FORCE_RTOL)
+    assert k <= fc / s_open
 
 
 def test_node_with_several_elements_books_each_half(device):

