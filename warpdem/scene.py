@@ -1247,7 +1247,10 @@ class Conversion(_Model):
     start_as_spheres: Region | None = Field(
         default=None, description="Tets whose centroid is inside are converted at t = 0, whatever their stress."
     )
-    spheres_per_tet: Int = Field(default=1, ge=1, description="Spheres spawned per converted tet [-].")
+    spheres_per_tet: Literal[1, 4] = Field(
+        default=1,
+        description="Spheres spawned per converted tet: 1 (at its centroid) or 4 (one per corner sub-tet) [-].",
+    )
     part: Name = Field(
         default="converted", description="Part of the spawned spheres (created if [parts] does not name it)."
     )
