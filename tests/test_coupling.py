@@ -513,8 +513,12 @@ def test_converted_bar_wave_speed(device, spheres_per_tet):
 def test_converted_bar_tensile_strength(device, spheres_per_tet):
     # The same bar pulled apart: the first cell's spheres held, the last cell's driven along +x at a speed ramped up
     # over 3 transits L / c (so the stress wave of the start, ρ c v, stays a few % of T_f) to ε_f L / (10 L / c),
-    # failure in ~10 transits: close to quasi-static. Peak nominal stress = the pull on the driven spheres / the
-    # cross-section, against T_f.
+    # failure in ~10 transits: close to quasi-static. Nominal stress = the pull on the driven spheres / the
+    # cross-section; the strength, against T_f, is the largest before the first bond breaks (sampled every 20 steps,
+    # ~1 % of the load's growth). After it the bar is failing: with one sphere per tet the load drops at once; the
+    # four-sphere network still carries load through its other bonds while the energy each break releases rings
+    # through the undamped bar, so later samples swing dynamically (measured up to 1.25 T_f within 0.15 transits,
+    # far faster than the load grows) before the bar parts. The run goes on until it has parted (< 0.2 of the peak).
     sim, _, _ = bar(device, 12, (0, 12), spheres_per_tet=spheres_per_tet)
     m, s = sim.model, sim.state
     n = sim.particle_count
@@ -528,7 +532,7 @@ def test_converted_bar_tensile_strength(device, spheres_per_tet):
     transit = length / BAR_WAVE
     speed = BAR_TF / BAR_E * length / (10.0 * transit)
     area = (2 * CELL) ** 2
-    peak, chunk = 0.0, 20
+    peak, strength, chunk = 0.0, 0.0, 20
     while True:
         ramp = min(sim.time / (3.0 * transit), 1.0)
         v = sim.state.particle_qd.numpy()
@@ -538,11 +542,13 @@ def test_converted_bar_tensile_strength(device, spheres_per_tet):
         stress = -float(sim.state.particle_f.numpy()[:n][pulled, 0].sum()) / area
         peak = max(peak, stress)
         broken = int(sim.state.bonds_broken_total.numpy()[0])
+        if not broken:
+            strength = stress
         if (broken and stress < 0.2 * peak) or sim.time > 30.0 * transit:
             break
     print(
-        f"converted bar ({spheres_per_tet} per tet): peak nominal stress {peak:.4e} Pa = {peak / BAR_TF:.4f} T_f, "
-        f"{broken} bonds broken"
+        f"converted bar ({spheres_per_tet} per tet): strength {strength:.4e} Pa = {strength / BAR_TF:.4f} T_f (peak "
+        f"{peak / BAR_TF:.4f} T_f), {broken} bonds broken"
     )
-    assert broken > 0
-    np.testing.assert_allclose(peak, BAR_TF, rtol=CALIBRATION_RTOL)
+    assert broken > 0 and stress < 0.2 * peak  # it parted
+    np.testing.assert_allclose(strength, BAR_TF, rtol=CALIBRATION_RTOL)

@@ -21,6 +21,11 @@ Rules of the conversion pass (others rely on them):
   at birth; velocity the mean of the nodes' (each node held ρ V₀ / 4 of the tet: mass and linear momentum are
   conserved exactly, to float32 round-off of the re-lumped masses); spin ω = axial vector of the antisymmetric part
   of the velocity gradient L = [v_a − v_0][x_a − x_0]⁻¹; material the tet's, part ``model.conversion_part``.
+- Four spheres per tet (``spheres_per_tet`` = 4, warpdem.multisphere): one in each corner sub-tet of the 1:8
+  midpoint subdivision, at (x_a + c) / 2 with node a's lumped mass ρ V₀ / 4, the velocity field there and the same
+  spin; radius h_min / 8 (less the float32 margin); slots ``tet_sphere`` + a; bonds to the other three and to the
+  spheres at the same node of the converted tets sharing an edge through it; couplings to the active ones; κ and S of
+  the sub-lattice. The rules below are those of one sphere; warpdem.multisphere says how each carries over.
 - Angular momentum: the orbital part m c × v̄ is conserved exactly (Σ m_a x_a = m c, Σ m_a v_a = m v̄). The tet's
   internal part about its centroid is H = Σ_a (m/4) (x_a − c) × (v_a − v̄); for a rigid rotation v_a − v̄ = ω ×
   (x_a − c) it is J ω with J = Σ (m/4) (|r_a|² 1 − r_a r_aᵀ) the nodes' inertia tensor, while the sphere holds

@@ -20,27 +20,32 @@ Design. A tet converts into four spheres, one in each corner sub-tet of its 1:8 
   H = Σ_a (m/4) r_a × (v_a − v̄) (r_a = x_a − c), the spheres' orbits carry exactly H / 4 (s_a − c = r_a / 2 and
   v(s_a) − v̄ = (v_a − v̄) / 2), their spins 4 · (2/5)(m/4) ρ_s² ω (ρ_s the sphere radius). A conversion therefore
   changes the angular momentum by ΔH = (3/4) H − (2/5) m ρ_s² ω, bounded by |ΔH| ≤ ((3/4) ‖J‖₂ + (2/5) m ρ_s²)
-  |ω| for a rigidly spinning tet (H = J ω, J = Σ_a (m/4)(|r_a|² 1 − r_a r_aᵀ)): a quarter of what one sphere loses
-  at most is kept, (3/4 instead of 1 of J ω; tests/test_multisphere.py checks the exact formula). The energy of the
-  motion neither the orbits nor the spins carry, (m/8) Σ_a (3/4)|v_a − v̄|² − the spins', is booked as released.
-- Why not 8 (all eight sub-tets): the central octahedron's four tets depend on which diagonal splits it and their
-  centroids do not average to c with the corner ones' weights without unequal masses; four spheres already double
-  the resolution of a fragment's shape, at 4× the particles.
+  |ω| for a rigidly spinning tet (H = J ω, J = Σ_a (m/4)(|r_a|² 1 − r_a r_aᵀ)): the orbits keep a quarter of the
+  J ω that one sphere per tet loses (tests/test_multisphere.py checks the exact formula). The energy of the motion
+  neither the orbits nor the spins carry, (m/8) Σ_a (3/4)|v_a − v̄|² less the spins', is booked as released.
+- Eight (every sub-tet of the 1:8 subdivision, each ρ V₀ / 8 at its centroid, which would conserve momentum as
+  well) is not offered: the central octahedron's four tets depend on which of its diagonals splits it, are not
+  similar to the parent (smaller in-radii, so smaller spheres), and would need their own bond rule and calibration.
 
-Bonds (the edge network of warpdem.lattice carried to the sub-lattice). Sphere a of tet t is bonded to the other
-three spheres of its tet (a rigid tetrahedron: 6 bonds, rest lengths the tet's edges / 2) and to sphere a' of every
-converted tet t' that shares an edge through node a (t' holds that node as a'): the spheres around a node form a
-cluster, whose bonds (c_t − c_t') / 2 are the one-sphere lattice's halved. As a body-bar framework each tet's four
-spheres are one rigid body (6 degrees of freedom) with 3 bars to each face neighbour and 2 to each further edge
-neighbour, ~14 per tet in a Kuhn mesh (≥ 6 needed), so the network is rigid with normal springs alone (k_s = 0);
-nothing crosses a crack (split nodes are different nodes). Stiffness k_b = κ₄ E V_b / L_b², V_b = V_s / Z_s + V_s'
-/ Z_s' with V_s = V_t / 4 and Z_s = 3 + the tets sharing an edge through its node (over all live tets, so a bond's
-stiffness does not depend on which neighbours have converted yet): Σ_b V_b = V, the affine energy equivalence gives
-κ = 6 for isotropic bond directions (warpdem.lattice), and κ₄ = SUB_STIFFNESS_FACTOR is that over the measured
-E_net / E. Strength: a bond breaks at the stretch L_b T_f / (S₄ E), tensile strength (κ₄ / S₄) T_f per unit area
-A_b = V_b / L_b. Both factors were measured on a fully converted bar of cubic Kuhn cells (tests/test_multisphere.py):
-with κ = 6 the bar-wave speed is 0.760 sqrt(E/ρ) (E_net = 0.578 E), so κ₄ = 10.39; with S = 1 the peak nominal
-stress is 1.148 T_f, so S₄ = 1.148. Calibrated, the bar measures 1.002 sqrt(E/ρ) and 0.985 T_f.
+Bonds (the edge network of warpdem.lattice carried to the sub-lattice). Sphere a of tet t is bonded to the other three
+spheres of its tet (a rigid tetrahedron: 6 bonds, rest lengths the tet's edges / 2) and to sphere a' of every converted
+tet t' that shares an edge through node a (t' holds that node as a'): the spheres around a node form a cluster, whose
+bonds (c_t − c_t') / 2 are the one-sphere lattice's halved. As a body-bar framework each tet's four spheres are one
+rigid body (6 degrees of freedom) with 3 bars to each face neighbour and 2 to each further edge neighbour, 17 per tet in
+a 6³-cell Kuhn box (≥ 6 needed; Z_s = 11.5 bonds per sphere on average), so the network is rigid with normal springs
+alone (k_s = 0); nothing crosses a crack (split nodes are different nodes). Stiffness k_b = κ₄ E V_b / L_b², V_b = V_s /
+Z_s + V_s' / Z_s' with V_s = V_t / 4 and Z_s = 3 + the tets sharing an edge through its node (over all live tets, so a
+bond's stiffness does not depend on which neighbours have converted yet): Σ_b V_b = V, the affine energy equivalence
+gives κ = 6 for isotropic bond directions (warpdem.lattice), and κ₄ = SUB_STIFFNESS_FACTOR is that over the measured
+E_net / E. Strength: a bond breaks at the stretch L_b T_f / (S₄ E), tensile strength (κ₄ / S₄) T_f per unit area A_b =
+V_b / L_b. Both factors were measured on a fully converted bar of cubic Kuhn cells, 12 long and 2 × 2 across
+(tests/test_coupling.py, parametrized by the spheres per tet): with κ = 6 the bar-wave speed is 0.658 sqrt(E/ρ) (E_net =
+0.432 E: the sub-lattice relaxes non-affinely more than the one-sphere network's 0.615), so κ₄ = 6 / 0.432 = 13.88; with
+S = 1 the nominal stress at the first bond break is 0.768 T_f (the cluster and in-tet bonds that carry the load stretch
+more than the bar), and S₄ = 0.775 puts it at T_f. Calibrated, that bar measures 1.005 sqrt(E/ρ) and 1.002 T_f; 3 × 3
+cells across, 1.033 sqrt(E/ρ) and 0.905 T_f (one sphere per tet there: 0.990 and 0.891). After the first bond breaks the
+four-sphere network still carries load through its other bonds, so the strength is taken at the onset of breaking
+(tests/test_coupling.py says why the later peak is dynamic).
 
 Couplings (warpdem.coupling): sphere a of a new tet is tied to every still-active tet sharing an edge through node a
 (the tets it would bond to), at its barycentric coordinates there, with the stiffness rule k = k_n min(1, 2 / (1 +
@@ -66,10 +71,11 @@ SPHERES_PER_TET = (1, 4)
 """The values ``spheres_per_tet`` may take."""
 
 SUB_STIFFNESS_FACTOR = 13.88
-"""κ₄ of the sub-lattice's k_b = κ₄ E V_b / L_b² [-]: 6 over the measured E_net / E = 0.578 (module docstring)."""
+"""κ₄ of the sub-lattice's k_b = κ₄ E V_b / L_b² [-]: 6 over the measured E_net / E = 0.432 (module docstring)."""
 
 SUB_STRENGTH_FACTOR = 0.775
-"""S₄: sub-lattice bonds break at the stretch L_b T_f / (S₄ E) [-]; the measured peak stress with S = 1 over T_f."""
+"""S₄: sub-lattice bonds break at the stretch L_b T_f / (S₄ E) [-]; the measured stress at the first bond break with
+S = 1, over T_f (0.768; 0.775 centres the calibrated bar on T_f, module docstring)."""
 
 
 def lattice_factors(spheres_per_tet: int) -> tuple[float, float]:
