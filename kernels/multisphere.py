@@ -14,14 +14,16 @@ from __future__ import annotations
 import warp as wp
 
 from .conversion import (
-    F32_EPS,
     ConversionMaterial,
     bonds_to,
+    capped_coupling_stiffness,
     centroid64,
+    centroid_clearance,
+    clear_radius,
     couples_to,
-    face_distance,
     lattice_stiffness,
     shared_nodes,
+    tet_spin,
 )
 from .coupling import current_barycentric
 from .tets import TetMaterial
@@ -58,17 +60,6 @@ def sphere_volume_share(tet_volume: wp.array(dtype=float), sub_degree: wp.array(
     """V_s / Z_s of sphere a of tet t [m³]: its quarter of the tet's volume over its bonds in the full network (3 in
     its tet + one per tet sharing an edge through node a), so the bonds' V_b = Σ over both ends sum to V."""
     return 0.25 * tet_volume[t] / float(3 + sub_degree[SPHERES * t + a])
-
-
-@wp.func
-def capped_coupling_stiffness(
-    kn: float, bary: wp.vec4, nodes: wp.vec4i, node_mass: wp.array(dtype=float), ms: float
-) -> float:
-    """k = k_n min(1, 2 / (1 + m_s Σ N_a² / m_a)) [N/m] (warpdem.coupling.coupling_stiffness)."""
-    ratio = float(0.0)
-    for k in range(4):
-        ratio += bary[k] * bary[k] / node_mass[nodes[k]]
-    return kn * wp.min(1.0, 2.0 / (1.0 + ratio * ms))
 
 
 @wp.kernel
@@ -195,21 +186,14 @@ def spawn_sub_spheres_kernel(
     # faces (half the tet's centroid-to-face distances h_k / 4). Radius: the smallest of them less a float32 margin
     # of 8 ulps of the larger of |c| and the tet's size, so each sphere stays inside its corner sub-tet — clear of
     # its tet's other spheres, of every neighbouring tet and sphere — and touches its sub-tet's nearest face.
-    origin = wp.vec3(0.0)
-    h = wp.min(
-        wp.min(face_distance(origin, r1, r2, r3), face_distance(origin, r0, r3, r2)),
-        wp.min(face_distance(origin, r0, r1, r3), face_distance(origin, r0, r2, r1)),
-    )
     scale = wp.max(wp.max(wp.abs(c[0]), wp.max(wp.abs(c[1]), wp.abs(c[2]))), wp.length(r0))
-    radius = wp.max(0.5 * h - 8.0 * F32_EPS * scale, 0.25 * h)
+    radius = clear_radius(0.5 * centroid_clearance(r0, r1, r2, r3), scale)
     v0 = node_qd[n[0]]
     v1 = node_qd[n[1]]
     v2 = node_qd[n[2]]
     v3 = node_qd[n[3]]
     vbar = 0.25 * (v0 + v1 + v2 + v3)
-    # Velocity gradient L = [v_a − v_0] [x_a − x_0]⁻¹; spin = axial vector of (L − Lᵀ)/2 (every sphere of the tet).
-    grad = wp.matrix_from_cols(v1 - v0, v2 - v0, v3 - v0) * wp.inverse(wp.matrix_from_cols(r1 - r0, r2 - r0, r3 - r0))
-    omega = wp.vec3(0.5 * (grad[2, 1] - grad[1, 2]), 0.5 * (grad[0, 2] - grad[2, 0]), 0.5 * (grad[1, 0] - grad[0, 1]))
+    omega = tet_spin(r0, r1, r2, r3, v0, v1, v2, v3)  # every sphere of the tet
     inertia = 0.4 * mass * radius * radius
     ke_spheres = wp.float64(0.0)
     ke_nodes = wp.float64(0.0)
