@@ -743,7 +743,7 @@ CONVERSION_BAD_SCENES = [
         "conversion_spheres_per_tet_two",
         CONVERSION_ON + "spheres_per_tet = 2\n",
         "conversion.spheres_per_tet",
-        "allowed: 1, 4",
+        "must be 1 or 4",
     ),
     ("conversion_unknown_key", CONVERSION_ON + "interval = 3\n", "conversion.interval", "unknown key"),
     ("conversion_bad_part_name", CONVERSION_ON + 'part = "1st"\n', "conversion.part", "invalid name"),
