@@ -262,6 +262,17 @@ def lattice_stiffness(mat_t: ConversionMaterial, mat_n: ConversionMaterial, volu
 
 
 @wp.func
+def capped_coupling_stiffness(
+    kn: float, bary: wp.vec4, nodes: wp.vec4i, node_mass: wp.array(dtype=float), ms: float
+) -> float:
+    """k = k_n min(1, 2 / (1 + m_s Σ N_a² / m_a)) [N/m] (warpdem.coupling.coupling_stiffness)."""
+    ratio = float(0.0)
+    for k in range(4):
+        ratio += bary[k] * bary[k] / node_mass[nodes[k]]
+    return kn * wp.min(1.0, 2.0 / (1.0 + ratio * ms))
+
+
+@wp.func
 def centroid64(node_ref_q: wp.array(dtype=wp.vec3), node_u: wp.array(dtype=wp.vec3), n: wp.vec4i) -> wp.vec3d:
     """Current centroid Σ (X_a + u_a) / 4 in float64 [m] (X + u keeps the displacements' precision far from the
     origin; the same sum the energy books use for the nodes' gravity potential)."""
@@ -276,6 +287,37 @@ def face_distance(x: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
     """Distance from x to the plane of the triangle (a, b, c) [m]."""
     nrm = wp.normalize(wp.cross(b - a, c - a))
     return wp.abs(wp.dot(x - a, nrm))
+
+
+@wp.func
+def centroid_clearance(r0: wp.vec3, r1: wp.vec3, r2: wp.vec3, r3: wp.vec3) -> float:
+    """The smallest distance from a tet's centroid to its faces, h_min / 4 [m], from its nodes relative to the
+    centroid (r_a = x_a − c)."""
+    origin = wp.vec3(0.0)
+    return wp.min(
+        wp.min(face_distance(origin, r1, r2, r3), face_distance(origin, r0, r3, r2)),
+        wp.min(face_distance(origin, r0, r1, r3), face_distance(origin, r0, r2, r1)),
+    )
+
+
+@wp.func
+def clear_radius(clearance: float, scale: float) -> float:
+    """A sphere radius that keeps ``clearance`` [m] less 8 float32 ulps of ``scale`` (the larger of |centroid| and the
+    tet's size) [m]: float32 node positions never make it overlap what lies ``clearance`` away. At least half the
+    clearance: a tiny tet far out, where float32 cannot resolve it, still gets a sphere."""
+    return wp.max(clearance - 8.0 * F32_EPS * scale, 0.5 * clearance)
+
+
+@wp.func
+def tet_spin(
+    r0: wp.vec3, r1: wp.vec3, r2: wp.vec3, r3: wp.vec3, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, v3: wp.vec3
+) -> wp.vec3:
+    """ω [rad/s]: the axial vector of the antisymmetric part of the velocity gradient L = [v_a − v_0] [x_a − x_0]⁻¹
+    (current configuration; nodes r_a, velocities v_a)."""
+    dx = wp.matrix_from_cols(r1 - r0, r2 - r0, r3 - r0)
+    dv = wp.matrix_from_cols(v1 - v0, v2 - v0, v3 - v0)
+    grad = dv * wp.inverse(dx)
+    return wp.vec3(0.5 * (grad[2, 1] - grad[1, 2]), 0.5 * (grad[0, 2] - grad[2, 0]), 0.5 * (grad[1, 0] - grad[0, 1]))
 
 
 @wp.kernel
@@ -332,25 +374,15 @@ def spawn_spheres_kernel(
     x3 = wp.vec3(wp.vec3d(node_ref_q[n[3]]) + wp.vec3d(node_u[n[3]]) - c64)
     # Radius: the smallest distance from the centroid to a face (h_k / 4 of the tet's heights), less a float32
     # margin, so the sphere touches its tet's nearest face and overlaps no neighbour (tet or sphere) at birth.
-    origin = wp.vec3(0.0)
-    h = wp.min(
-        wp.min(face_distance(origin, x1, x2, x3), face_distance(origin, x0, x3, x2)),
-        wp.min(face_distance(origin, x0, x1, x3), face_distance(origin, x0, x2, x1)),
-    )
     scale = wp.max(wp.max(wp.abs(c[0]), wp.max(wp.abs(c[1]), wp.abs(c[2]))), wp.length(x0))
-    # (At most half of h: a tiny tet far out, where float32 cannot resolve it, still gets a sphere.)
-    radius = wp.max(h - 8.0 * F32_EPS * scale, 0.5 * h)
+    radius = clear_radius(centroid_clearance(x0, x1, x2, x3), scale)
     v0 = node_qd[n[0]]
     v1 = node_qd[n[1]]
     v2 = node_qd[n[2]]
     v3 = node_qd[n[3]]
     # Each node carries ρ V₀ / 4 of this tet: the tet's momentum is ρ V₀ times the mean velocity.
     v = 0.25 * (v0 + v1 + v2 + v3)
-    # Velocity gradient L = [v_a − v_0] [x_a − x_0]⁻¹ (current configuration); spin = axial vector of (L − Lᵀ)/2.
-    dx = wp.matrix_from_cols(x1 - x0, x2 - x0, x3 - x0)
-    dv = wp.matrix_from_cols(v1 - v0, v2 - v0, v3 - v0)
-    grad = dv * wp.inverse(dx)
-    omega = wp.vec3(0.5 * (grad[2, 1] - grad[1, 2]), 0.5 * (grad[0, 2] - grad[2, 0]), 0.5 * (grad[1, 0] - grad[0, 1]))
+    omega = tet_spin(x0, x1, x2, x3, v0, v1, v2, v3)
     inertia = 0.4 * mass * radius * radius
     particle_radius[slot] = radius
     particle_mass[slot] = mass
@@ -639,14 +671,10 @@ def write_conversion_couplings_kernel(
             kn = lattice_stiffness(
                 conversion_material_table[tet_material[t]], conversion_material_table[tet_material[nbr]], vb, length
             )
-            ratio = float(0.0)
-            for k in range(4):
-                ratio += bary[k] * bary[k] / node_mass[n[k]]
-            ratio *= particle_mass[p]
             coupling_particle[c] = p
             coupling_tet[c] = nbr
             coupling_bary[c] = bary
-            coupling_k[c] = kn * wp.min(1.0, 2.0 / (1.0 + ratio))
+            coupling_k[c] = capped_coupling_stiffness(kn, bary, n, node_mass, particle_mass[p])
             coupling_energy_prev[c] = 0.0
             c += 1
 

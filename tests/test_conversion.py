@@ -62,9 +62,11 @@ def bar(
     criterion: str = "tresca",
     divisions=(8, 2, 2),
     origin=(0.0, 0.0, 0.0),
+    spheres_per_tet: int = 1,
 ):
     """A bar [0, 4] × [0, 1] × [0, 1] m of tets with conversion attached; ``may_convert`` "mid" (tets with centroids in
-    1.5 < x < 2.5), "all" or a mask; optional velocity drivers ±driver_speed along x on the ends."""
+    1.5 < x < 2.5), "all" or a mask; optional velocity drivers ±driver_speed along x on the ends; ``spheres_per_tet``
+    spheres per converted tet (4: at 0.2 of the tets' critical step; the sub-lattice's bonds need about 1/4)."""
     pts, tets = box_mesh((0.0, 0.0, 0.0), (LENGTH, 1.0, 1.0), divisions)
     if jitter:
         rng = np.random.default_rng(7)
@@ -77,14 +79,17 @@ def bar(
     if driver_speed:
         b.add_node_velocity(np.isclose(pts[:, 0], 0.0), (-driver_speed, 0.0, 0.0))
         b.add_node_velocity(np.isclose(pts[:, 0], LENGTH), (driver_speed, 0.0, 0.0))
-    model, state = b.finalize(device, safety_factor=0.5, particle_capacity=particle_capacity)
+    safety = 0.5 if spheres_per_tet == 1 else 0.2
+    model, state = b.finalize(device, safety_factor=safety, particle_capacity=particle_capacity)
     centroid = pts[tets].mean(axis=1) - np.asarray(origin)
     if isinstance(may_convert, str):
         mask = (np.abs(centroid[:, 0] - LENGTH / 2) < 0.5) if may_convert == "mid" else None
     else:
         mask = may_convert
     props = ConversionProps(criterion=criterion, tresca_strength=TRESCA, tensile_strength=2 * TRESCA)
-    model, state = attach_conversion(model, state, [props], check_interval=check_interval, may_convert=mask)
+    model, state = attach_conversion(
+        model, state, [props], check_interval=check_interval, may_convert=mask, spheres_per_tet=spheres_per_tet
+    )
     return model, state, pts, tets
 
 

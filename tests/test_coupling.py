@@ -361,10 +361,11 @@ CELL = 0.05  # [m], cubic cells, 2 × 2 across
 BAR_WAVE = float(np.sqrt(BAR_E / DENSITY))  # sqrt(E/ρ) [m/s]
 
 
-def bar(device, cells: int, band: tuple[int, int] | None, far_dashpots: bool = False):
+def bar(device, cells: int, band: tuple[int, int] | None, far_dashpots: bool = False, spheres_per_tet: int = 1):
     """A bar of Kuhn tets, ``cells`` cubic cells long and 2 × 2 across, no bulk viscosity; the tets whose centroid
-    lies in cells band[0] < x / CELL < band[1] converted (Simulation.convert_tets); non-reflecting dashpots on the
-    far end if asked. Returns (sim, points, tets)."""
+    lies in cells band[0] < x / CELL < band[1] converted (Simulation.convert_tets) into ``spheres_per_tet`` spheres
+    each; non-reflecting dashpots on the far end if
+    asked. Returns (sim, points, tets)."""
     points, tets = box_mesh((0.0, 0.0, 0.0), (cells * CELL, 2 * CELL, 2 * CELL), (cells, 2, 2))
     b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
     b.add_material("rock", DENSITY, BAR_E, BAR_NU)
@@ -377,7 +378,9 @@ def bar(device, cells: int, band: tuple[int, int] | None, far_dashpots: bool = F
         b.add_boundary(np.unique(np.sort(faces[far], axis=1), axis=0), "non_reflecting")
     model, state = b.finalize(device, sort=False)
     props = ConversionProps(criterion="rankine", tensile_strength=BAR_TF, fraction=1.0)
-    model, state = attach_conversion(model, state, [props], check_interval=10**9)  # no stress-driven pass
+    model, state = attach_conversion(  # no stress-driven pass
+        model, state, [props], check_interval=10**9, spheres_per_tet=spheres_per_tet
+    )
     sim = Simulation(model, state, use_graph=False)
     if band is not None:
         x = points[tets].mean(axis=1)[:, 0] / CELL
@@ -470,11 +473,13 @@ def test_plane_wave_crosses_converted_band(device):
     assert books < WAVE_BOOKS_RTOL
 
 
-def test_converted_bar_wave_speed(device):
-    # A fully converted bar, 12 cubic cells long, free at both ends, set moving in its lowest longitudinal mode
+@pytest.mark.parametrize("spheres_per_tet", [1, 4])
+def test_converted_bar_wave_speed(device, spheres_per_tet):
+    # A fully converted bar (one sphere per tet, or four: warpdem.multisphere), 12 cubic cells long, free at both
+    # ends, set moving in its lowest longitudinal mode
     # v = v0 cos(π x / L): the left half's momentum swings as cos(ω t), ω = π c / L, c = sqrt(E/ρ) for a bar whose
     # wavelength (2 L = 24 cells) is long against its width. Zero crossings of that momentum give the half period.
-    sim, _, _ = bar(device, 12, (0, 12))
+    sim, _, _ = bar(device, 12, (0, 12), spheres_per_tet=spheres_per_tet)
     m, s = sim.model, sim.state
     n = sim.particle_count
     length = 12 * CELL
@@ -496,17 +501,25 @@ def test_converted_bar_wave_speed(device):
     crossings = t[k] - p[k] * (t[k + 1] - t[k]) / (p[k + 1] - p[k])
     assert len(crossings) >= 3
     speed = 2.0 * length / (2.0 * np.mean(np.diff(crossings)))
-    print(f"converted bar: c = {speed:.1f} m/s, sqrt(E/rho) = {BAR_WAVE:.1f} m/s, ratio {speed / BAR_WAVE:.4f}")
+    print(
+        f"converted bar ({spheres_per_tet} per tet): c = {speed:.1f} m/s, sqrt(E/rho) = {BAR_WAVE:.1f} m/s, "
+        f"ratio {speed / BAR_WAVE:.4f}"
+    )
     # The issue's 10 %; the zero crossings are interpolated within a chunk of 4 steps (< 1 % of the half period).
     np.testing.assert_allclose(speed, BAR_WAVE, rtol=CALIBRATION_RTOL)
 
 
-def test_converted_bar_tensile_strength(device):
+@pytest.mark.parametrize("spheres_per_tet", [1, 4])
+def test_converted_bar_tensile_strength(device, spheres_per_tet):
     # The same bar pulled apart: the first cell's spheres held, the last cell's driven along +x at a speed ramped up
     # over 3 transits L / c (so the stress wave of the start, ρ c v, stays a few % of T_f) to ε_f L / (10 L / c),
-    # failure in ~10 transits: close to quasi-static. Peak nominal stress = the pull on the driven spheres / the
-    # cross-section, against T_f.
-    sim, _, _ = bar(device, 12, (0, 12))
+    # failure in ~10 transits: close to quasi-static. Nominal stress = the pull on the driven spheres / the
+    # cross-section; the strength, against T_f, is the largest before the first bond breaks (sampled every 20 steps,
+    # ~1 % of the load's growth). After it the bar is failing: with one sphere per tet the load drops at once; the
+    # four-sphere network still carries load through its other bonds while the energy each break releases rings
+    # through the undamped bar, so later samples swing dynamically (measured up to 1.25 T_f within 0.15 transits,
+    # far faster than the load grows) before the bar parts. The run goes on until it has parted (< 0.2 of the peak).
+    sim, _, _ = bar(device, 12, (0, 12), spheres_per_tet=spheres_per_tet)
     m, s = sim.model, sim.state
     n = sim.particle_count
     length = 12 * CELL
@@ -519,7 +532,7 @@ def test_converted_bar_tensile_strength(device):
     transit = length / BAR_WAVE
     speed = BAR_TF / BAR_E * length / (10.0 * transit)
     area = (2 * CELL) ** 2
-    peak, chunk = 0.0, 20
+    peak, strength, chunk = 0.0, 0.0, 20
     while True:
         ramp = min(sim.time / (3.0 * transit), 1.0)
         v = sim.state.particle_qd.numpy()
@@ -529,8 +542,13 @@ def test_converted_bar_tensile_strength(device):
         stress = -float(sim.state.particle_f.numpy()[:n][pulled, 0].sum()) / area
         peak = max(peak, stress)
         broken = int(sim.state.bonds_broken_total.numpy()[0])
+        if not broken:
+            strength = stress
         if (broken and stress < 0.2 * peak) or sim.time > 30.0 * transit:
             break
-    print(f"converted bar: peak nominal stress {peak:.4e} Pa = {peak / BAR_TF:.4f} T_f, {broken} bonds broken")
-    assert broken > 0
-    np.testing.assert_allclose(peak, BAR_TF, rtol=CALIBRATION_RTOL)
+    print(
+        f"converted bar ({spheres_per_tet} per tet): strength {strength:.4e} Pa = {strength / BAR_TF:.4f} T_f (peak "
+        f"{peak / BAR_TF:.4f} T_f), {broken} bonds broken"
+    )
+    assert broken > 0 and stress < 0.2 * peak  # it parted
+    np.testing.assert_allclose(strength, BAR_TF, rtol=CALIBRATION_RTOL)

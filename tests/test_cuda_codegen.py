@@ -24,7 +24,7 @@ SCENES = [*sorted((Path(__file__).resolve().parent.parent / "scenes").glob("*.to
 CUDA_ARCHS = (90, 80)
 # Kernel files that no shipped scene may reach yet (nodal fracture and conversion run only where a scene enables
 # them): imported here, so that their kernels are compiled whatever the scenes do.
-IMPORTED_STAGES = ("cohesive", "conversion", "fracture", "topology")
+IMPORTED_STAGES = ("cohesive", "conversion", "fracture", "multisphere", "topology")
 
 
 def warpdem_modules() -> list:

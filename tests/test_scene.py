@@ -740,10 +740,10 @@ CONVERSION_BAD_SCENES = [
         "greater than or equal to 1",
     ),
     (
-        "conversion_spheres_per_tet_zero",
-        CONVERSION_ON + "spheres_per_tet = 0\n",
+        "conversion_spheres_per_tet_two",
+        CONVERSION_ON + "spheres_per_tet = 2\n",
         "conversion.spheres_per_tet",
-        "greater than or equal to 1",
+        "must be 1 or 4",
     ),
     ("conversion_unknown_key", CONVERSION_ON + "interval = 3\n", "conversion.interval", "unknown key"),
     ("conversion_bad_part_name", CONVERSION_ON + 'part = "1st"\n', "conversion.part", "invalid name"),
@@ -1194,7 +1194,7 @@ def test_conversion_keys_default_off(tmp_path: Path) -> None:
 def test_conversion_keys_values(tmp_path: Path) -> None:
     text = edit("tresca_strength = 1e7", "tresca_strength = 1e7\ncohesion = 5e6\nfriction_angle = 35.0", CONVERSION_ON)
     text += (
-        'criterion = "mohr_coulomb"\nfraction = 0.8\ncheck_interval = 10\nspheres_per_tet = 1\npart = "debris"\n'
+        'criterion = "mohr_coulomb"\nfraction = 0.8\ncheck_interval = 10\nspheres_per_tet = 4\npart = "debris"\n'
         "region = { box = { lo = [0, 0, 1], hi = [1, 1, 3] } }\n"
         "start_as_spheres = { cylinder = { center = [0.5, 0.5, 3.0], radius = 0.3, height = 1.0 } }\n"
     )
@@ -1203,6 +1203,7 @@ def test_conversion_keys_values(tmp_path: Path) -> None:
     assert (rock.tresca_strength, rock.cohesion, rock.friction_angle) == (1e7, 5e6, 35.0)
     c = scene.conversion
     assert (c.enabled, c.criterion, c.fraction, c.check_interval, c.part) == (True, "mohr_coulomb", 0.8, 10, "debris")
+    assert c.spheres_per_tet == 4
     assert c.region is not None and c.region.box.hi == (1.0, 1.0, 3.0)
     assert c.start_as_spheres is not None and c.start_as_spheres.cylinder.radius == 0.3
 

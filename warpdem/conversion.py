@@ -21,6 +21,11 @@ Rules of the conversion pass (others rely on them):
   at birth; velocity the mean of the nodes' (each node held ρ V₀ / 4 of the tet: mass and linear momentum are
   conserved exactly, to float32 round-off of the re-lumped masses); spin ω = axial vector of the antisymmetric part
   of the velocity gradient L = [v_a − v_0][x_a − x_0]⁻¹; material the tet's, part ``model.conversion_part``.
+- Four spheres per tet (``spheres_per_tet`` = 4, warpdem.multisphere): one in each corner sub-tet of the 1:8
+  midpoint subdivision, at (x_a + c) / 2 with node a's lumped mass ρ V₀ / 4, the velocity field there and the same
+  spin; radius h_min / 8 (less the float32 margin); slots ``tet_sphere`` + a; bonds to the other three and to the
+  spheres at the same node of the converted tets sharing an edge through it; couplings to the active ones; κ and S of
+  the sub-lattice. The rules below are those of one sphere; warpdem.multisphere says how each carries over.
 - Angular momentum: the orbital part m c × v̄ is conserved exactly (Σ m_a x_a = m c, Σ m_a v_a = m v̄). The tet's
   internal part about its centroid is H = Σ_a (m/4) (x_a − c) × (v_a − v̄); for a rigid rotation v_a − v̄ = ω ×
   (x_a − c) it is J ω with J = Σ (m/4) (|r_a|² 1 − r_a r_aᵀ) the nodes' inertia tensor, while the sphere holds
@@ -67,12 +72,14 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from . import multisphere
 from .compaction import Compactor
 from .coupling import compact_coupling
 from .kernels import compaction as kc
 from .kernels import conversion as kcv
+from .kernels import multisphere as kms
 from .kernels import topology as kt
-from .lattice import STIFFNESS_FACTOR, STRENGTH_FACTOR, edge_pairs
+from .lattice import edge_pairs
 from .model import BOND_FIELDS, COUPLING_FIELDS, NEIGHBOR_FIELDS, Model, State, conversion_state
 from .tets import eval_tet_stresses, tet_energies
 from .topology import NodeStars, live_flags
@@ -150,10 +157,12 @@ class ConversionReport:
 
 
 def conversion_material_table(
-    model: Model, materials: Sequence[ConversionProps | None], device: wp.context.Device
+    model: Model, materials: Sequence[ConversionProps | None], device: wp.context.Device, spheres_per_tet: int = 1
 ) -> wp.array:
     """ConversionMaterial of every material id (``converts`` = 0 for None), with the bond calibration from the
-    model's continuum properties (E, ν from the Lamé constants of ``tet_material_table``)."""
+    model's continuum properties (E, ν from the Lamé constants of ``tet_material_table``) and the lattice factors κ
+    and S of ``spheres_per_tet`` spheres per tet (warpdem.multisphere.lattice_factors)."""
+    stiffness_factor, strength_factor = multisphere.lattice_factors(spheres_per_tet)
     continuum = model.tet_material_table.numpy()
     table = []
     for mid, p in enumerate(materials):
@@ -176,10 +185,10 @@ def conversion_material_table(
                 value = getattr(p, name)
                 setattr(m, name, float(value) if value is not None else float(kcv.NEVER))
             m.friction_angle = math.radians(p.friction_angle)
-            m.bond_modulus = STIFFNESS_FACTOR * young
+            m.bond_modulus = stiffness_factor * young
             m.bond_shear_ratio = 0.0
-            m.bond_tensile_strength = STIFFNESS_FACTOR / STRENGTH_FACTOR * tensile
-            m.bond_shear_strength = STIFFNESS_FACTOR / STRENGTH_FACTOR * shear
+            m.bond_tensile_strength = stiffness_factor / strength_factor * tensile
+            m.bond_shear_strength = stiffness_factor / strength_factor * shear
             m.converts = 1
         table.append(m)
     return wp.array(table, dtype=kcv.ConversionMaterial, device=device)
@@ -209,7 +218,8 @@ def attach_conversion(
         materials: conversion properties per material id, in order (None: the material never converts).
         check_interval: steps between conversion passes (>= 1).
         may_convert: bool per live tet, True where a tet may convert (the scene's region); None: every tet.
-        spheres_per_tet: spheres spawned per converted tet (1).
+        spheres_per_tet: spheres spawned per converted tet: 1 (at the centroid) or 4 (one per corner sub-tet;
+            warpdem.multisphere).
         part: part id of the spawned spheres (< len(model.part_names) when the model names parts).
         coupling_capacity: initial penalty coupling slots (grown ×2 on demand); None: max(64, tet_count // 8).
 
@@ -232,8 +242,11 @@ def attach_conversion(
             p.check(f"attach_conversion: material {name!r}")
     if not _is_count(check_interval, 1):
         raise ValueError(f"attach_conversion: check_interval must be an integer >= 1, got {check_interval!r}")
-    if spheres_per_tet != 1:
-        raise ValueError(f"attach_conversion: spheres_per_tet must be 1 (one sphere per tet), got {spheres_per_tet!r}")
+    if isinstance(spheres_per_tet, bool) or spheres_per_tet not in multisphere.SPHERES_PER_TET:
+        raise ValueError(
+            f"attach_conversion: spheres_per_tet must be 1 (one sphere per tet) or 4 (one per corner sub-tet), got "
+            f"{spheres_per_tet!r}"
+        )
     if not _is_count(part, 0) or (model.part_names and part >= len(model.part_names)):
         raise ValueError(f"attach_conversion: part must be a part id in [0, {len(model.part_names)}), got {part!r}")
     if model.tet_capacity == 0:
@@ -245,9 +258,11 @@ def attach_conversion(
     if not _is_count(coupling_capacity, 1):
         raise ValueError(f"attach_conversion: coupling_capacity must be an integer >= 1, got {coupling_capacity!r}")
     d = model.device
-    table = conversion_material_table(model, materials, d)
+    table = conversion_material_table(model, materials, d, spheres_per_tet)
     critical, tet = conversion_critical_step(
-        dataclasses.replace(model, conversion_material_table=table), state, flags[:nt].astype(bool)
+        dataclasses.replace(model, conversion_material_table=table, spheres_per_tet=int(spheres_per_tet)),
+        state,
+        flags[:nt].astype(bool),
     )
     if model.dt > critical:
         raise ValueError(
@@ -257,7 +272,7 @@ def attach_conversion(
         )
     skin = model.skin
     if skin <= 0.0:
-        skin = 0.4 * smallest_converted_radius(model, state)
+        skin = 0.4 * smallest_converted_radius(model, state) / (2.0 if spheres_per_tet == 4 else 1.0)
     model = dataclasses.replace(
         model,
         skin=float(skin),
@@ -276,8 +291,8 @@ def attach_conversion(
 
 
 def smallest_converted_radius(model: Model, state: State) -> float:
-    """Smallest sphere radius a live tet would convert into, h_min / 4 over its faces, in the reference
-    configuration [m] (host; build time)."""
+    """Smallest sphere radius a live tet would convert into as one sphere, h_min / 4 over its faces, in the reference
+    configuration [m] (host; build time; four spheres per tet get half of it)."""
     nt = int(state.tet_count.numpy()[0])
     if nt == 0:
         return 0.0
@@ -297,6 +312,8 @@ def conversion_critical_step(model: Model, state: State, may_convert: np.ndarray
     centroids. Its stiffest translational mode is bounded by ω² = Σ_b k_b / m (every spring along the motion, as
     builder.bond_critical_step's Z k_n / m); the bonds have no shear springs or dashpots, so dt = 2 / ω.
 
+    Four spheres per tet: warpdem.multisphere.sub_critical_step, the same bound on the sub-lattice.
+
     Args:
         may_convert: bool per live tet.
     """
@@ -307,6 +324,10 @@ def conversion_critical_step(model: Model, state: State, may_convert: np.ndarray
     if not converts.any():
         return math.inf, -1
     tets = model.tet_nodes.numpy()[:nt]
+    if model.spheres_per_tet == 4:
+        density = model.tet_material_table.numpy()["density"][mats].astype(np.float64)
+        modulus = table["bond_modulus"][mats].astype(np.float64)
+        return multisphere.sub_critical_step(tets, model.node_ref_q.numpy(), density, modulus, converts)
     x = model.node_ref_q.numpy().astype(np.float64)[tets]
     volume = np.abs(np.linalg.det(x[:, 1:] - x[:, :1])) / 6.0
     pairs = edge_pairs(tets, np.ones(nt, dtype=bool))
@@ -454,6 +475,8 @@ class ConversionPass:
         self.full_stars = NodeStars(ncap, tcap, d)
         self.all_live = wp.ones(t1, dtype=int, device=d)
         self.degree = wp.zeros(t1, dtype=int, device=d)
+        self.sub_degree = wp.zeros(4 * t1, dtype=int, device=d)  # four spheres per tet: Z per (tet, node)
+        self.spawned = wp.zeros(1, dtype=int, device=d)
 
     def fits(self, model: Model) -> bool:
         """Whether the buffers match the model's capacities."""
@@ -501,6 +524,8 @@ class ConversionPass:
             outputs=[self.bonds, self.couplings],
             device=d,
         )
+        if m.spheres_per_tet == 4:  # the sub-lattice's links replace the counts (warpdem.multisphere)
+            multisphere.count_sub_links(m, s, self)
         wp.utils.array_scan(self.bonds, self.bond_offset, inclusive=False)
         wp.utils.array_scan(self.couplings, self.coupling_offset, inclusive=False)
         for k, (items, offset) in enumerate(
@@ -516,11 +541,12 @@ class ConversionPass:
         the couplings of converted tets released and the new spheres' couplings written (with
         ``coupling_compactor``, a Compactor of ``model.coupling_capacity`` slots). Reads back the coupling count."""
         m, s, d = model, state, self.device
+        sub = m.spheres_per_tet == 4  # four spheres per tet: warpdem.multisphere's kernels, same arguments
         energies = tet_energies(m, s)  # before the tets are deactivated
         wp.copy(self.was_sphere, s.tet_sphere)
         self.node_touched.zero_()
         wp.launch(
-            kcv.spawn_spheres_kernel,
+            kms.spawn_sub_spheres_kernel if sub else kcv.spawn_spheres_kernel,
             dim=m.tet_capacity,
             inputs=[
                 m.node_ref_q,
@@ -559,7 +585,7 @@ class ConversionPass:
         )
         if m.bond_capacity:
             wp.launch(
-                kcv.write_conversion_bonds_kernel,
+                kms.write_sub_bonds_kernel if sub else kcv.write_conversion_bonds_kernel,
                 dim=m.tet_capacity,
                 inputs=[
                     m.tet_nodes,
@@ -574,7 +600,7 @@ class ConversionPass:
                     self.flag,
                     self.was_sphere,
                     self.bond_offset,
-                    self.degree,
+                    self.sub_degree if sub else self.degree,
                     *self.full_stars.csr(),
                 ],
                 outputs=[getattr(s, name) for name in BOND_FIELDS],
@@ -602,7 +628,7 @@ class ConversionPass:
             # spheres are tied to their still-continuous face neighbours (at the re-lumped node masses).
             compact_coupling(m, s, coupling_compactor)
             wp.launch(
-                kcv.write_conversion_couplings_kernel,
+                kms.write_sub_couplings_kernel if sub else kcv.write_conversion_couplings_kernel,
                 dim=m.tet_capacity,
                 inputs=[
                     m.node_ref_q,
@@ -620,7 +646,7 @@ class ConversionPass:
                     s.tet_sphere,
                     self.flag,
                     self.coupling_offset,
-                    self.degree,
+                    self.sub_degree if sub else self.degree,
                     *self.full_stars.csr(),
                 ],
                 outputs=[getattr(s, name) for name in COUPLING_FIELDS],
@@ -630,10 +656,14 @@ class ConversionPass:
                 kcv.add_coupling_count_kernel, dim=1, inputs=[self.counts[2:3]], outputs=[s.coupling_count], device=d
             )
         wp.utils.array_sum(self.released, out=self.released_total)
+        spawned = self.counts[0:1]
+        if sub:
+            wp.launch(kms.scale_count_kernel, dim=1, inputs=[self.counts[0:1], 4], outputs=[self.spawned], device=d)
+            spawned = self.spawned
         wp.launch(
             kcv.add_released_kernel,
             dim=1,
-            inputs=[self.released_total, self.counts[0:1], self.counts[0:1]],
+            inputs=[self.released_total, self.counts[0:1], spawned],
             outputs=[s.energy_released_conversion, s.tets_converted_total, s.spheres_spawned_total, s.particle_count],
             device=d,
         )

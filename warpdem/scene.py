@@ -1247,10 +1247,21 @@ class Conversion(_Model):
     start_as_spheres: Region | None = Field(
         default=None, description="Tets whose centroid is inside are converted at t = 0, whatever their stress."
     )
-    spheres_per_tet: Int = Field(default=1, ge=1, description="Spheres spawned per converted tet [-].")
+    spheres_per_tet: Int = Field(
+        default=1,
+        description="Spheres spawned per converted tet: 1 (at its centroid) or 4 (one per corner sub-tet) [-].",
+    )
     part: Name = Field(
         default="converted", description="Part of the spawned spheres (created if [parts] does not name it)."
     )
+
+    @field_validator("spheres_per_tet")
+    @classmethod
+    def _check_spheres_per_tet(cls, value: int) -> int:
+        # warpdem.multisphere: the corner sub-tets of the 1:8 subdivision (8 is not offered; it says why).
+        if value not in (1, 4):
+            raise ValueError("must be 1 or 4")
+        return value
 
 
 class MaterialRegion(_Model):

@@ -275,7 +275,7 @@ def attach_scene_conversion(scene: Scene, model: Model, state: State) -> tuple[M
             part=model.part_names.index(conversion.part),
         )
     except ValueError as exc:
-        # The pass refuses what the schema allows but this build does not do yet (several spheres per tet).
+        # Values the schema already checks; a direct caller's mistake still names the key.
         key = "conversion.spheres_per_tet" if "spheres_per_tet" in str(exc) else "conversion"
         raise SceneError(f"{scene.source}: {key}: {exc}") from None
 
