@@ -2,8 +2,9 @@
 kernels of the between-steps conversion pass (criterion per tet, spawning spheres and their bonds).
 
 The pass (warpdem/conversion.py) runs them in this order: ``flag_conversion_kernel`` (criterion) → exclusive scan of
-the flags (sphere slots) → ``edge_degree_kernel`` and ``count_conversion_links_kernel`` over the stars of all live
-tets → exclusive scans (bond and coupling slots) → the host grows the capacities → ``spawn_spheres_kernel`` →
+the flags (sphere slots) → ``count_conversion_links_kernel`` over the stars of all live tets (it also marks the
+converting tets and their edge neighbours) → ``edge_degree_kernel`` for the marked tets alone → exclusive scans
+(bond and coupling slots) → the host grows the capacities → ``spawn_spheres_kernel`` →
 ``write_conversion_bonds_kernel`` → bonds re-sorted by key → ``relump_converted_nodes_kernel`` over the nodes the
 converted tets held → couplings of converted tets released → ``write_conversion_couplings_kernel``.
 """
@@ -172,23 +173,15 @@ def edge_neighbor(tet_nodes: wp.array(dtype=wp.vec4i), star_tets: wp.array(dtype
     return n
 
 
-@wp.kernel
-def edge_degree_kernel(
-    # Model:
+@wp.func
+def edge_degree(
     tet_nodes: wp.array(dtype=wp.vec4i),
-    # State in:
-    tet_count: wp.array(dtype=int),
-    # In:
     star_offset: wp.array(dtype=int),
     star_count: wp.array(dtype=int),
     star_tets: wp.array(dtype=int),
-    # Out:
-    degree: wp.array(dtype=int),
-):
-    t = wp.tid()  # one thread per tet slot: Z_t, the live tets sharing an edge with it (warpdem.lattice)
-    degree[t] = 0
-    if t >= tet_count[0]:
-        return
+    t: int,
+) -> int:
+    """Z_t: the tets of the stars that share an edge with tet t (warpdem.lattice), each seen once (edge_neighbor)."""
     z = int(0)
     nodes = tet_nodes[t]
     for a in range(4):
@@ -196,7 +189,28 @@ def edge_degree_kernel(
         for e in range(star_offset[v], star_offset[v] + star_count[v]):
             if edge_neighbor(tet_nodes, star_tets, t, a, e) >= 0:
                 z += 1
-    degree[t] = z
+    return z
+
+
+@wp.kernel
+def edge_degree_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    # State in:
+    tet_count: wp.array(dtype=int),
+    # In:
+    needed: wp.array(dtype=int),
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    # Out:
+    degree: wp.array(dtype=int),
+):
+    t = wp.tid()  # one thread per tet slot: Z_t of the tets the pass reads it for (``needed``), else 0
+    degree[t] = 0
+    if t >= tet_count[0] or needed[t] == 0:
+        return
+    degree[t] = edge_degree(tet_nodes, star_offset, star_count, star_tets, t)
 
 
 @wp.func
@@ -230,12 +244,16 @@ def count_conversion_links_kernel(
     # Out:
     bonds: wp.array(dtype=int),
     couplings: wp.array(dtype=int),
+    needed: wp.array(dtype=int),
 ):
     t = wp.tid()  # one thread per tet slot: the bonds its new sphere owns and its couplings (before the pass)
     bonds[t] = 0
     couplings[t] = 0
     if t >= tet_count[0] or flag[t] == 0:
         return
+    # The tets whose Z the bonds and couplings of this one read: itself and its edge neighbours (``needed`` zeroed
+    # before the launch; several threads may write the same 1).
+    needed[t] = 1
     nb = int(0)
     nc = int(0)
     nodes = tet_nodes[t]
@@ -245,6 +263,7 @@ def count_conversion_links_kernel(
             n = edge_neighbor(tet_nodes, star_tets, t, a, e)
             if n < 0:
                 continue
+            needed[n] = 1
             if bonds_to(tet_sphere, flag, t, n):
                 nb += 1
             elif couples_to(tet_active, flag, n):

@@ -31,6 +31,7 @@ from warpdem.conversion import (
     regrow_particles,
 )
 from warpdem.fracture import FractureProps, attach_fracture
+from warpdem.lattice import STIFFNESS_FACTOR, edge_pairs
 from warpdem.mesh import TET_FACES, box_mesh
 from warpdem.model import NEIGHBOR_FIELDS
 from warpdem.simulation import Simulation, balance_error
@@ -442,6 +443,55 @@ def test_conversion_runs_before_splitting_on_a_tet_that_qualifies_for_both(devic
     assert int(sim.state.tets_converted_total.numpy()[0]) == len(tets)
     assert int(sim.state.node_splits_total.numpy()[0]) == 0
     assert sim.particle_count == len(tets)
+
+
+@pytest.mark.parametrize("split_first", [False, True])
+def test_bond_and_coupling_stiffness_use_the_edge_degrees_of_the_current_mesh(device, split_first):
+    # k_b = κ E V_b / L_b² with V_b = V_t / Z_t + V_n / Z_n (warpdem.lattice), Z the live tets sharing an edge with a
+    # tet in the mesh as it is at the pass: against a brute-force numpy count (warpdem.lattice.edge_pairs) over the
+    # current tet nodes. Without fracture the pass reads the Z found at attach; after a split pass (split nodes cut
+    # edges) it finds Z again around the converting tets. A coupling's k is k_b min(1, 2/(1 + m_s Σ N²/m_a)) ≤ k_b
+    # and equals k_b where the ratio allows (checked on the bonds' V_b / L_b² through the neighbour's centroid).
+    # Tolerance: a handful of float32 products and quotients, 16 ε₃₂.
+    model, state, pts, tets = bar(device, may_convert="all")
+    if split_first:  # nodes left of the middle may split: Z changes there, the right side stays joined (couplings)
+        model, state = attach_fracture(
+            model, state, [FractureProps(1.0e5, 10.0)], check_interval=1, may_split=pts[:, 0] < LENGTH / 2
+        )
+    sim = Simulation(model, state)
+    stretch(sim, 3e-3)
+    if split_first:
+        assert sim.fracture_pass().splits > 0
+    nt = len(tets)
+    current = sim.model.tet_nodes.numpy()[:nt]
+    degree = np.bincount(edge_pairs(current, np.ones(nt, dtype=bool)).ravel(), minlength=nt).astype(np.float64)
+    attach_degree = sim.model.tet_edge_degree.numpy()[:nt]
+    # The splits changed Z (so a pass that read the attach-time Z would fail below); without them it is the same.
+    assert np.any(degree != attach_degree) == split_first
+    centroid = pts[tets].mean(axis=1)
+    sim.convert_tets(np.abs(centroid[:, 0] - LENGTH / 2) < 0.5)
+    m, s = sim.model, sim.state
+    nb, n = sim.bond_count, sim.particle_count
+    assert nb > 0
+    sphere_tet = np.empty(n, dtype=np.int64)
+    tet_sphere = s.tet_sphere.numpy()[:nt]
+    sphere_tet[tet_sphere[tet_sphere >= 0]] = np.nonzero(tet_sphere >= 0)[0]
+    ti, tj = sphere_tet[s.bond_i.numpy()[:nb]], sphere_tet[s.bond_j.numpy()[:nb]]
+    q = s.particle_q.numpy()[:n]
+    length = np.linalg.norm(q[s.bond_i.numpy()[:nb]] - q[s.bond_j.numpy()[:nb]], axis=1)
+    volume = m.tet_volume.numpy()[:nt].astype(np.float64)
+    vb = volume[ti] / degree[ti] + volume[tj] / degree[tj]
+    np.testing.assert_allclose(s.bond_kn.numpy()[:nb], STIFFNESS_FACTOR * YOUNG * vb / length**2, rtol=16 * F32_EPS)
+    nc = int(s.coupling_count.numpy()[0])
+    assert nc > 0
+    tp, tn = sphere_tet[s.coupling_particle.numpy()[:nc]], s.coupling_tet.numpy()[:nc]
+    x = m.node_ref_q.numpy().astype(np.float64) + s.node_u.numpy().astype(np.float64)
+    gap = np.linalg.norm(x[m.tet_nodes.numpy()[tn]].mean(axis=1) - q[s.coupling_particle.numpy()[:nc]], axis=1)
+    kb = STIFFNESS_FACTOR * YOUNG * (volume[tp] / degree[tp] + volume[tn] / degree[tn]) / gap**2
+    k = s.coupling_k.numpy()[:nc]
+    assert np.all(k <= kb * (1 + 16 * F32_EPS))
+    full = k >= kb * (1 - 16 * F32_EPS)
+    assert np.any(full)  # couplings at the full bond stiffness pin Z of both ends
 
 
 @pytest.mark.parametrize(

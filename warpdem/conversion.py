@@ -75,7 +75,7 @@ from .kernels import topology as kt
 from .lattice import STIFFNESS_FACTOR, STRENGTH_FACTOR, edge_pairs
 from .model import BOND_FIELDS, COUPLING_FIELDS, NEIGHBOR_FIELDS, Model, State, conversion_state
 from .tets import eval_tet_stresses, tet_energies
-from .topology import NodeStars, live_flags
+from .topology import NodeStars, live_flags, reference_face_neighbors
 
 CRITERIA = {"tresca": 0, "rankine": 1, "mohr_coulomb": 2}
 """Criterion names and their kernel constants (kernels/conversion.py CRITERION_*)."""
@@ -215,8 +215,8 @@ def attach_conversion(
 
     Returns:
         The model (``conversion_interval``, ``spheres_per_tet``, ``conversion_part``, ``coupling_capacity``,
-        ``tet_may_convert``, ``conversion_material_table``, ``critical_dt`` set) and the state with the
-        conversion fields allocated.
+        ``tet_may_convert``, ``conversion_material_table``, ``tet_edge_degree``, ``ref_tet_face_nbr`` (kept when
+        set), ``critical_dt`` set) and the state with the conversion fields allocated.
 
     Raises:
         ValueError: a bad argument (the message says which and what is allowed).
@@ -246,8 +246,9 @@ def attach_conversion(
         raise ValueError(f"attach_conversion: coupling_capacity must be an integer >= 1, got {coupling_capacity!r}")
     d = model.device
     table = conversion_material_table(model, materials, d)
+    pairs = edge_pairs(model.tet_nodes.numpy()[:nt], np.ones(nt, dtype=bool))
     critical, tet = conversion_critical_step(
-        dataclasses.replace(model, conversion_material_table=table), state, flags[:nt].astype(bool)
+        dataclasses.replace(model, conversion_material_table=table), state, flags[:nt].astype(bool), pairs
     )
     if model.dt > critical:
         raise ValueError(
@@ -266,7 +267,15 @@ def attach_conversion(
         conversion_part=int(part),
         coupling_capacity=int(coupling_capacity),
         tet_may_convert=wp.array(flags, dtype=int, device=d),
+        # The surface rebuild after each pass finds the tets' face neighbours in the unsplit adjacency (four lookups
+        # per tet) rather than by star searches (warpdem.topology.NodeStars.build); fracture builds the same array.
+        ref_tet_face_nbr=model.ref_tet_face_nbr
+        if model.ref_tet_face_nbr is not None
+        else reference_face_neighbors(model, state),
         conversion_material_table=table,
+        tet_edge_degree=wp.array(
+            np.bincount(pairs.ravel(), minlength=model.tet_capacity).astype(np.int32), dtype=int, device=d
+        ),
         critical_dt=min(model.critical_dt, critical),
         critical_dt_source=model.critical_dt_source
         if model.critical_dt <= critical
@@ -288,7 +297,9 @@ def smallest_converted_radius(model: Model, state: State) -> float:
     return float(np.min(3.0 * volume / area.max(axis=1)) / 4.0)
 
 
-def conversion_critical_step(model: Model, state: State, may_convert: np.ndarray) -> tuple[float, int]:
+def conversion_critical_step(
+    model: Model, state: State, may_convert: np.ndarray, pairs: np.ndarray | None = None
+) -> tuple[float, int]:
     """Stable step [s] of the bonded spheres the tets that may convert become, and the tet that sets it (-1: none).
     Build time (host, reference configuration).
 
@@ -299,6 +310,8 @@ def conversion_critical_step(model: Model, state: State, may_convert: np.ndarray
 
     Args:
         may_convert: bool per live tet.
+        pairs: the pairs of live tets that share an edge (warpdem.lattice.edge_pairs over all of them), when the
+            caller has them; None: found here.
     """
     nt = int(state.tet_count.numpy()[0])
     table = model.conversion_material_table.numpy()
@@ -309,7 +322,8 @@ def conversion_critical_step(model: Model, state: State, may_convert: np.ndarray
     tets = model.tet_nodes.numpy()[:nt]
     x = model.node_ref_q.numpy().astype(np.float64)[tets]
     volume = np.abs(np.linalg.det(x[:, 1:] - x[:, :1])) / 6.0
-    pairs = edge_pairs(tets, np.ones(nt, dtype=bool))
+    if pairs is None:
+        pairs = edge_pairs(tets, np.ones(nt, dtype=bool))
     degree = np.bincount(pairs.ravel(), minlength=nt).astype(np.float64)
     i, j = pairs[:, 0], pairs[:, 1]
     centroid = x.mean(axis=1)
@@ -453,7 +467,9 @@ class ConversionPass:
         self.stars = NodeStars(ncap, tcap, d)
         self.full_stars = NodeStars(ncap, tcap, d)
         self.all_live = wp.ones(t1, dtype=int, device=d)
-        self.degree = wp.zeros(t1, dtype=int, device=d)
+        self.found_degree = wp.zeros(t1, dtype=int, device=d)  # Z_t found by the pass (where nodes may split)
+        self.degree = self.found_degree  # the Z_t the pass reads: the model's, or found_degree
+        self.needed = wp.zeros(t1, dtype=int, device=d)  # tets whose Z the pass reads
 
     def fits(self, model: Model) -> bool:
         """Whether the buffers match the model's capacities."""
@@ -487,20 +503,27 @@ class ConversionPass:
         wp.utils.array_scan(self.flag, self.offset, inclusive=False)
         # The edge network over every live tet, converted or not (stars of all live tets; each tet's Z_t).
         self.full_stars.build(m.tet_nodes, s.tet_count, self.all_live, s.node_count, face_neighbors=False)
-        wp.launch(
-            kcv.edge_degree_kernel,
-            dim=m.tet_capacity,
-            inputs=[m.tet_nodes, s.tet_count, *self.full_stars.csr()],
-            outputs=[self.degree],
-            device=d,
-        )
+        self.needed.zero_()
         wp.launch(
             kcv.count_conversion_links_kernel,
             dim=m.tet_capacity,
             inputs=[m.tet_nodes, s.tet_count, s.tet_active, s.tet_sphere, self.flag, *self.full_stars.csr()],
-            outputs=[self.bonds, self.couplings],
+            outputs=[self.bonds, self.couplings, self.needed],
             device=d,
         )
+        self.degree = m.tet_edge_degree
+        if m.fracture_material_table is not None or m.tet_edge_degree is None:
+            # Split nodes cut edges, so Z_t may have changed since attach: found again, but only where a bond or
+            # coupling of this pass reads it (the converting tets and their edge neighbours; a star search from
+            # every live tet was half the pass).
+            self.degree = self.found_degree
+            wp.launch(
+                kcv.edge_degree_kernel,
+                dim=m.tet_capacity,
+                inputs=[m.tet_nodes, s.tet_count, self.needed, *self.full_stars.csr()],
+                outputs=[self.degree],
+                device=d,
+            )
         wp.utils.array_scan(self.bonds, self.bond_offset, inclusive=False)
         wp.utils.array_scan(self.couplings, self.coupling_offset, inclusive=False)
         for k, (items, offset) in enumerate(
