@@ -519,6 +519,7 @@ def relump_converted_nodes_kernel(
     tet_material_table: wp.array(dtype=TetMaterial),
     # State in:
     node_count: wp.array(dtype=int),
+    tet_active: wp.array(dtype=int),
     # In:
     node_touched: wp.array(dtype=int),
     star_offset: wp.array(dtype=int),
@@ -535,12 +536,15 @@ def relump_converted_nodes_kernel(
     v = wp.tid()  # one thread per node slot; only the nodes of converted tets change
     if v >= node_count[0] or node_touched[v] == 0:
         return
-    # Σ ρ V₀ / 4 over the node's remaining active tets, in ascending tet order (deterministic sums).
+    # Σ ρ V₀ / 4 over the node's remaining active tets, in ascending tet order (deterministic sums); the star holds
+    # every live tet of the node, converted ones included.
     mass = float(0.0)
     damping = float(0.0)
     start = star_offset[v]
     for e in range(start, start + star_count[v]):
         t = star_tets[e]
+        if tet_active[t] == 0:  # (converted: as the stars of active tets skip it, kernels/topology.py)
+            continue
         mat = tet_material_table[tet_material[t]]
         quarter = 0.25 * mat.density * tet_volume[t]
         mass += quarter

@@ -464,8 +464,11 @@ class ConversionPass:
         self.coupling_offset = wp.zeros(t1, dtype=int, device=d)
         self.counts = wp.zeros(3, dtype=int, device=d)  # converting tets, new bonds, new couplings
         self.node_touched = wp.zeros(max(ncap, 1), dtype=int, device=d)
-        self.stars = NodeStars(ncap, tcap, d)
+        self.strain_energy = wp.zeros(t1, dtype=wp.float64, device=d)  # of the converting tets
+        # The stars of all live tets, converted or not (the edge network; their active tets re-lump the nodes). They
+        # change only where nodes split: built once while the model cannot split nodes, else at every pass.
         self.full_stars = NodeStars(ncap, tcap, d)
+        self.full_stars_built = False
         self.all_live = wp.ones(t1, dtype=int, device=d)
         self.found_degree = wp.zeros(t1, dtype=int, device=d)  # Z_t found by the pass (where nodes may split)
         self.degree = self.found_degree  # the Z_t the pass reads: the model's, or found_degree
@@ -474,6 +477,15 @@ class ConversionPass:
     def fits(self, model: Model) -> bool:
         """Whether the buffers match the model's capacities."""
         return self.tet_capacity == model.tet_capacity and self.node_capacity == model.node_capacity
+
+    def build_stars(self, model: Model, state: State) -> None:
+        """Build the stars of all live tets unless they still hold: built before and the model cannot split nodes
+        (no fracture attached; tets are never added, so nothing else changes them). Launches only."""
+        m, s = model, state
+        if self.full_stars_built and m.fracture_material_table is None:
+            return
+        self.full_stars.build(m.tet_nodes, s.tet_count, self.all_live, s.node_count, face_neighbors=False)
+        self.full_stars_built = True
 
     def find(self, model: Model, state: State, forced: np.ndarray | None = None) -> tuple[int, int, int]:
         """Refresh the tet stresses, flag the converting tets (the criterion, or ``forced``: bool per tet slot),
@@ -501,8 +513,7 @@ class ConversionPass:
             device=d,
         )
         wp.utils.array_scan(self.flag, self.offset, inclusive=False)
-        # The edge network over every live tet, converted or not (stars of all live tets; each tet's Z_t).
-        self.full_stars.build(m.tet_nodes, s.tet_count, self.all_live, s.node_count, face_neighbors=False)
+        self.build_stars(m, s)  # the edge network over every live tet, converted or not
         self.needed.zero_()
         wp.launch(
             kcv.count_conversion_links_kernel,
@@ -539,7 +550,8 @@ class ConversionPass:
         the couplings of converted tets released and the new spheres' couplings written (with
         ``coupling_compactor``, a Compactor of ``model.coupling_capacity`` slots). Reads back the coupling count."""
         m, s, d = model, state, self.device
-        energies = tet_energies(m, s)  # before the tets are deactivated
+        # Strain energies of the converting tets alone (they are active), before they are deactivated.
+        energies = tet_energies(m, s, active=self.flag, out=self.strain_energy)
         wp.copy(self.was_sphere, s.tet_sphere)
         self.node_touched.zero_()
         wp.launch(
@@ -605,7 +617,6 @@ class ConversionPass:
             )
             wp.launch(kcv.add_bond_count_kernel, dim=1, inputs=[self.counts], outputs=[s.bond_count], device=d)
             sort_bonds(m, s)
-        self.stars.build(m.tet_nodes, s.tet_count, s.tet_active, s.node_count, face_neighbors=False)
         wp.launch(
             kcv.relump_converted_nodes_kernel,
             dim=m.node_capacity,
@@ -614,8 +625,9 @@ class ConversionPass:
                 m.tet_material,
                 m.tet_material_table,
                 s.node_count,
+                s.tet_active,
                 self.node_touched,
-                *self.stars.csr(),
+                *self.full_stars.csr(),
             ],
             outputs=[m.node_mass, m.node_inv_mass, m.node_damping, m.node_motion, s.node_qd],
             device=d,

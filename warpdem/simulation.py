@@ -220,6 +220,12 @@ class Simulation:
             # scene and are zeroed again (a no-op at t = 0).
             drop_converted_load_faces(model)
         self._setup()
+        # The conversion pass's scratch and the stars of all live tets live as long as the simulation (grown with
+        # the capacities): made here, not at the first pass.
+        self._conversion: ConversionPass | None = None
+        if model.tet_may_convert is not None:
+            self._conversion = ConversionPass(model)
+            self._conversion.build_stars(model, state)
         if not primed:
             self.evaluate_forces()
             # The set-up build is checked like any other: a list that overflowed here would be the snapshot the
@@ -236,7 +242,6 @@ class Simulation:
         self.cohesive_compactor = Compactor(self.model.cohesive_capacity, self.model.device)
         self.coupling_compactor = Compactor(self.model.coupling_capacity, self.model.device)
         self._fracture: FracturePass | None = None
-        self._conversion: ConversionPass | None = None
         self._face_slot: wp.array | None = None
         self._snapshot: State | None = None
         self._graphs: tuple | None = None
