@@ -629,6 +629,21 @@ class Simulation:
             self.model = model
             drop_converted_load_faces(model)
         self._setup()
+        if self.fem_contact is not None and self.has_spheres:
+            # The new spheres' face lists, sized first: an overflowing build would redo the whole force evaluation
+            # and every list (the node lists, the bulk of it, twice), where this builds the few spheres' lists once
+            # more (the lists the evaluation then builds are the same).
+            s = self.state
+            kept = [wp.clone(a) for a in (s.sphere_face_count, s.sphere_face_index, s.sphere_face_shear)]
+            self.fem_contact.rebuild_sphere_faces()
+            fem = fem_contact_growth(self.model, s)
+            if fem is not None:
+                # The lists as they were (an overflowing build dropped candidates, and their shear with them).
+                for a, old in zip((s.sphere_face_count, s.sphere_face_index, s.sphere_face_shear), kept, strict=True):
+                    wp.copy(a, old)
+                self.model, self.state = regrow_fem_contacts(self.model, s, *fem)
+                self.growths += 1
+                self._setup()
         self.evaluate_forces()
         while self._grow_if_overflowed(self.state):
             self.evaluate_forces()
