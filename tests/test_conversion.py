@@ -63,6 +63,7 @@ def bar(
     criterion: str = "tresca",
     divisions=(8, 2, 2),
     origin=(0.0, 0.0, 0.0),
+    max_sphere_faces: int = 8,
 ):
     """A bar [0, 4] × [0, 1] × [0, 1] m of tets with conversion attached; ``may_convert`` "mid" (tets with centroids in
     1.5 < x < 2.5), "all" or a mask; optional velocity drivers ±driver_speed along x on the ends."""
@@ -78,7 +79,9 @@ def bar(
     if driver_speed:
         b.add_node_velocity(np.isclose(pts[:, 0], 0.0), (-driver_speed, 0.0, 0.0))
         b.add_node_velocity(np.isclose(pts[:, 0], LENGTH), (driver_speed, 0.0, 0.0))
-    model, state = b.finalize(device, safety_factor=0.5, particle_capacity=particle_capacity)
+    model, state = b.finalize(
+        device, safety_factor=0.5, particle_capacity=particle_capacity, max_sphere_faces=max_sphere_faces
+    )
     centroid = pts[tets].mean(axis=1) - np.asarray(origin)
     if isinstance(may_convert, str):
         mask = (np.abs(centroid[:, 0] - LENGTH / 2) < 0.5) if may_convert == "mid" else None
@@ -337,6 +340,38 @@ def test_two_runs_are_identical_and_growth_equals_a_large_capacity_run(device):
     for name in a:
         np.testing.assert_array_equal(a[name], b[name], err_msg=name)
         np.testing.assert_array_equal(a[name], c[name], err_msg=name)
+
+
+def test_a_pass_whose_sphere_face_lists_overflow_builds_the_contact_lists_once(device):
+    # With one sphere–face slot per sphere, the new spheres (each next to the faces its tet's neighbours now expose)
+    # overflow it. The pass sizes those lists first, so the force evaluation after it builds the FEM contact lists
+    # once (fem_rebuild_total + 1, not + 2), and the lists and forces equal a run with 16 slots from the start.
+    def converted(slots: int) -> Simulation:
+        model, state, _, _ = bar(device, max_sphere_faces=slots)
+        sim = Simulation(model, state)
+        stretch(sim, 3e-3)
+        builds = int(sim.state.fem_rebuild_total.numpy()[0])
+        assert sim.conversion_pass().converted > 0
+        assert int(sim.state.fem_rebuild_total.numpy()[0]) == builds + 1
+        return sim
+
+    small, large = converted(1), converted(16)
+    # The particle slots grow in both runs, the sphere–face slots in the small one alone.
+    assert small.model.max_sphere_faces > 1 and small.growths == large.growths + 1
+    if device != "cpu":
+        return  # float atomics make GPU runs differ in the last bits
+    n = small.particle_count
+    counts = small.state.sphere_face_count.numpy()[:n]
+    np.testing.assert_array_equal(counts, large.state.sphere_face_count.numpy()[:n])
+    assert counts.max() > 1
+    for name in ("sphere_face_index", "sphere_face_shear"):
+        a, b = (getattr(sim.state, name).numpy() for sim in (small, large))
+        a = a.reshape(-1, small.model.max_sphere_faces, *a.shape[1:])
+        b = b.reshape(-1, large.model.max_sphere_faces, *b.shape[1:])
+        for i, c in enumerate(counts):
+            np.testing.assert_array_equal(a[i, :c], b[i, :c], err_msg=name)
+    np.testing.assert_array_equal(small.state.particle_f.numpy()[:n], large.state.particle_f.numpy()[:n])
+    np.testing.assert_array_equal(small.state.node_f.numpy(), large.state.node_f.numpy())
 
 
 def test_regrow_particles_grows_every_per_particle_array(device):
