@@ -34,10 +34,11 @@ Rules of the conversion pass (others rely on them):
   nodes; so never across a crack or a joint, whose nodes are split). One sphere per tet bonded across faces alone
   has Z ≤ 4 and is a mechanism (Maxwell: 3 Z / 2 < 6); edge neighbours give Z ≈ 12 and a network rigid with normal
   springs alone. k_b = κ E V_b / L_b² (V_b = V_t / Z_t + V_n / Z_n, Z over all live tets, so a bond's stiffness does
-  not depend on which of its neighbours have converted yet; L_b the centres' distance), k_s = 0, area V_b / L_b,
-  tensile strength (κ / S) T_f (warpdem.lattice's κ = STIFFNESS_FACTOR and S = STRENGTH_FACTOR, measured on a fully
-  converted bar: bar-wave speed 0.998 sqrt(E/ρ), tensile strength 0.987 T_f, tests/test_coupling.py), no dashpot,
-  born relaxed (rest length = L_b).
+  not depend on which of its neighbours have converted yet: counted once at attach, ``Model.tet_edge_degree``, and
+  where nodes may split (fracture attached) found again at each pass for the converting tets and their edge
+  neighbours; L_b the centres' distance), k_s = 0, area V_b / L_b, tensile strength (κ / S) T_f (warpdem.lattice's
+  κ = STIFFNESS_FACTOR and S = STRENGTH_FACTOR, measured on a fully converted bar: bar-wave speed 0.998 sqrt(E/ρ),
+  tensile strength 0.987 T_f, tests/test_coupling.py), no dashpot, born relaxed (rest length = L_b).
 - Couplings (warpdem.coupling, CIMNE eqs. 8–9): each new sphere is tied to every still-active tet sharing an edge
   with its tet (the adjacency of the bonds; ccoupling measured 4.3 % reflection at the first interface this way
   against 10.5 % with face neighbours alone) at its current barycentric coordinates there (born relaxed), with
@@ -439,7 +440,8 @@ def grown(capacity: int, needed: int) -> int:
 
 
 class ConversionPass:
-    """The scratch buffers and launches of a conversion pass for one tet and node capacity (module docstring).
+    """The scratch buffers and launches of a conversion pass for one tet and node capacity (module docstring). A
+    Simulation keeps one for its life (a new one when the capacities change), with the stars of all live tets.
 
     Args:
         model: the model (its tet and node capacities size the buffers).
