@@ -621,7 +621,7 @@ class Simulation:
         """After a pass that converted tets: rebuild the surface on the device (the faces of converted tets'
         neighbours become contact faces), carry the face ids of the contact state over, set the stages up again
         (new spheres, possibly the first: sphere contact comes alive; graphs re-captured) and re-evaluate the forces
-        at dt = 0 (the contact lists rebuilt)."""
+        at dt = 0 (the contact lists rebuilt once: the new spheres' face slots are sized first)."""
         m, s = self.model, self.state
         if m.face_capacity:
             model, slot_to_face = rebuild_surface(m, s)
