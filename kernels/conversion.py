@@ -2,8 +2,9 @@
 kernels of the between-steps conversion pass (criterion per tet, spawning spheres and their bonds).
 
 The pass (warpdem/conversion.py) runs them in this order: ``flag_conversion_kernel`` (criterion) → exclusive scan of
-the flags (sphere slots) → ``edge_degree_kernel`` and ``count_conversion_links_kernel`` over the stars of all live
-tets → exclusive scans (bond and coupling slots) → the host grows the capacities → ``spawn_spheres_kernel`` →
+the flags (sphere slots) → ``count_conversion_links_kernel`` over the stars of all live tets (it also marks the
+converting tets and their edge neighbours) → ``edge_degree_kernel`` for the marked tets alone → exclusive scans
+(bond and coupling slots) → the host grows the capacities → ``spawn_spheres_kernel`` →
 ``write_conversion_bonds_kernel`` → bonds re-sorted by key → ``relump_converted_nodes_kernel`` over the nodes the
 converted tets held → couplings of converted tets released → ``write_conversion_couplings_kernel``.
 """
@@ -14,6 +15,7 @@ import warp as wp
 
 from .coupling import current_barycentric
 from .tets import TET_ACTIVE, TetMaterial
+from .topology import local_index
 
 wp.set_module_options({"enable_backward": False})
 
@@ -146,19 +148,6 @@ def shares_face(n: wp.vec4i, face: wp.vec3i) -> bool:
 
 
 @wp.func
-def shared_nodes(a: wp.vec4i, b: wp.vec4i) -> wp.vec2i:
-    """(how many of tet a's nodes tet b holds, the lowest local index in a of one it holds (4: none))."""
-    count = int(0)
-    first = int(4)
-    for i in range(4):
-        for j in range(4):
-            if a[i] == b[j]:
-                count += 1
-                first = wp.min(first, i)
-    return wp.vec2i(count, first)
-
-
-@wp.func
 def edge_neighbor(tet_nodes: wp.array(dtype=wp.vec4i), star_tets: wp.array(dtype=int), t: int, a: int, e: int) -> int:
     """The tet at star slot e of tet t's local node a when it shares an edge (two nodes or more) with t and a is the
     first node of t it holds (so each edge neighbour is seen once, scanning a = 0..3 and each star in order), else
@@ -166,10 +155,37 @@ def edge_neighbor(tet_nodes: wp.array(dtype=wp.vec4i), star_tets: wp.array(dtype
     n = star_tets[e]
     if n == t:
         return -1
-    shared = shared_nodes(tet_nodes[t], tet_nodes[n])
-    if shared[0] < 2 or shared[1] != a:
-        return -1
-    return n
+    # n is in the star of t's node a, so it holds that node: it is an edge neighbour seen here when it holds none of
+    # t's nodes before a and one after it (at most 12 comparisons, with early exits: this test runs ~100 times per
+    # converting tet and pass).
+    nodes = tet_nodes[t]
+    other = tet_nodes[n]
+    for i in range(a):
+        if local_index(other, nodes[i]) >= 0:
+            return -1
+    for i in range(a + 1, 4):
+        if local_index(other, nodes[i]) >= 0:
+            return n
+    return -1
+
+
+@wp.func
+def edge_degree(
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    t: int,
+) -> int:
+    """Z_t: the tets of the stars that share an edge with tet t (warpdem.lattice), each seen once (edge_neighbor)."""
+    z = int(0)
+    nodes = tet_nodes[t]
+    for a in range(4):
+        v = nodes[a]
+        for e in range(star_offset[v], star_offset[v] + star_count[v]):
+            if edge_neighbor(tet_nodes, star_tets, t, a, e) >= 0:
+                z += 1
+    return z
 
 
 @wp.kernel
@@ -179,24 +195,18 @@ def edge_degree_kernel(
     # State in:
     tet_count: wp.array(dtype=int),
     # In:
+    needed: wp.array(dtype=int),
     star_offset: wp.array(dtype=int),
     star_count: wp.array(dtype=int),
     star_tets: wp.array(dtype=int),
     # Out:
     degree: wp.array(dtype=int),
 ):
-    t = wp.tid()  # one thread per tet slot: Z_t, the live tets sharing an edge with it (warpdem.lattice)
+    t = wp.tid()  # one thread per tet slot: Z_t of the tets the pass reads it for (``needed``), else 0
     degree[t] = 0
-    if t >= tet_count[0]:
+    if t >= tet_count[0] or needed[t] == 0:
         return
-    z = int(0)
-    nodes = tet_nodes[t]
-    for a in range(4):
-        v = nodes[a]
-        for e in range(star_offset[v], star_offset[v] + star_count[v]):
-            if edge_neighbor(tet_nodes, star_tets, t, a, e) >= 0:
-                z += 1
-    degree[t] = z
+    degree[t] = edge_degree(tet_nodes, star_offset, star_count, star_tets, t)
 
 
 @wp.func
@@ -230,12 +240,16 @@ def count_conversion_links_kernel(
     # Out:
     bonds: wp.array(dtype=int),
     couplings: wp.array(dtype=int),
+    needed: wp.array(dtype=int),
 ):
     t = wp.tid()  # one thread per tet slot: the bonds its new sphere owns and its couplings (before the pass)
     bonds[t] = 0
     couplings[t] = 0
     if t >= tet_count[0] or flag[t] == 0:
         return
+    # The tets whose Z the bonds and couplings of this one read: itself and its edge neighbours (``needed`` zeroed
+    # before the launch; several threads may write the same 1).
+    needed[t] = 1
     nb = int(0)
     nc = int(0)
     nodes = tet_nodes[t]
@@ -245,6 +259,7 @@ def count_conversion_links_kernel(
             n = edge_neighbor(tet_nodes, star_tets, t, a, e)
             if n < 0:
                 continue
+            needed[n] = 1
             if bonds_to(tet_sphere, flag, t, n):
                 nb += 1
             elif couples_to(tet_active, flag, n):
@@ -532,6 +547,7 @@ def relump_converted_nodes_kernel(
     tet_material_table: wp.array(dtype=TetMaterial),
     # State in:
     node_count: wp.array(dtype=int),
+    tet_active: wp.array(dtype=int),
     # In:
     node_touched: wp.array(dtype=int),
     star_offset: wp.array(dtype=int),
@@ -548,12 +564,15 @@ def relump_converted_nodes_kernel(
     v = wp.tid()  # one thread per node slot; only the nodes of converted tets change
     if v >= node_count[0] or node_touched[v] == 0:
         return
-    # Σ ρ V₀ / 4 over the node's remaining active tets, in ascending tet order (deterministic sums).
+    # Σ ρ V₀ / 4 over the node's remaining active tets, in ascending tet order (deterministic sums); the star holds
+    # every live tet of the node, converted ones included.
     mass = float(0.0)
     damping = float(0.0)
     start = star_offset[v]
     for e in range(start, start + star_count[v]):
         t = star_tets[e]
+        if tet_active[t] == 0:  # (converted: as the stars of active tets skip it, kernels/topology.py)
+            continue
         mat = tet_material_table[tet_material[t]]
         quarter = 0.25 * mat.density * tet_volume[t]
         mass += quarter

@@ -31,6 +31,7 @@ from warpdem.conversion import (
     regrow_particles,
 )
 from warpdem.fracture import FractureProps, attach_fracture
+from warpdem.lattice import STIFFNESS_FACTOR, edge_pairs
 from warpdem.mesh import TET_FACES, box_mesh
 from warpdem.model import NEIGHBOR_FIELDS
 from warpdem.simulation import Simulation, balance_error
@@ -63,6 +64,7 @@ def bar(
     divisions=(8, 2, 2),
     origin=(0.0, 0.0, 0.0),
     spheres_per_tet: int = 1,
+    max_sphere_faces: int = 8,
 ):
     """A bar [0, 4] × [0, 1] × [0, 1] m of tets with conversion attached; ``may_convert`` "mid" (tets with centroids in
     1.5 < x < 2.5), "all" or a mask; optional velocity drivers ±driver_speed along x on the ends; ``spheres_per_tet``
@@ -80,7 +82,9 @@ def bar(
         b.add_node_velocity(np.isclose(pts[:, 0], 0.0), (-driver_speed, 0.0, 0.0))
         b.add_node_velocity(np.isclose(pts[:, 0], LENGTH), (driver_speed, 0.0, 0.0))
     safety = 0.5 if spheres_per_tet == 1 else 0.2
-    model, state = b.finalize(device, safety_factor=safety, particle_capacity=particle_capacity)
+    model, state = b.finalize(
+        device, safety_factor=safety, particle_capacity=particle_capacity, max_sphere_faces=max_sphere_faces
+    )
     centroid = pts[tets].mean(axis=1) - np.asarray(origin)
     if isinstance(may_convert, str):
         mask = (np.abs(centroid[:, 0] - LENGTH / 2) < 0.5) if may_convert == "mid" else None
@@ -343,6 +347,38 @@ def test_two_runs_are_identical_and_growth_equals_a_large_capacity_run(device):
         np.testing.assert_array_equal(a[name], c[name], err_msg=name)
 
 
+def test_a_pass_whose_sphere_face_lists_overflow_builds_the_contact_lists_once(device):
+    # With one sphere–face slot per sphere, the new spheres (each next to the faces its tet's neighbours now expose)
+    # overflow it. The pass sizes those lists first, so the force evaluation after it builds the FEM contact lists
+    # once (fem_rebuild_total + 1, not + 2), and the lists and forces equal a run with 16 slots from the start.
+    def converted(slots: int) -> Simulation:
+        model, state, _, _ = bar(device, max_sphere_faces=slots)
+        sim = Simulation(model, state)
+        stretch(sim, 3e-3)
+        builds = int(sim.state.fem_rebuild_total.numpy()[0])
+        assert sim.conversion_pass().converted > 0
+        assert int(sim.state.fem_rebuild_total.numpy()[0]) == builds + 1
+        return sim
+
+    small, large = converted(1), converted(16)
+    # The particle slots grow in both runs, the sphere–face slots in the small one alone.
+    assert small.model.max_sphere_faces > 1 and small.growths == large.growths + 1
+    if device != "cpu":
+        return  # float atomics make GPU runs differ in the last bits
+    n = small.particle_count
+    counts = small.state.sphere_face_count.numpy()[:n]
+    np.testing.assert_array_equal(counts, large.state.sphere_face_count.numpy()[:n])
+    assert counts.max() > 1
+    for name in ("sphere_face_index", "sphere_face_shear"):
+        a, b = (getattr(sim.state, name).numpy() for sim in (small, large))
+        a = a.reshape(-1, small.model.max_sphere_faces, *a.shape[1:])
+        b = b.reshape(-1, large.model.max_sphere_faces, *b.shape[1:])
+        for i, c in enumerate(counts):
+            np.testing.assert_array_equal(a[i, :c], b[i, :c], err_msg=name)
+    np.testing.assert_array_equal(small.state.particle_f.numpy()[:n], large.state.particle_f.numpy()[:n])
+    np.testing.assert_array_equal(small.state.node_f.numpy(), large.state.node_f.numpy())
+
+
 def test_regrow_particles_grows_every_per_particle_array(device):
     # Invariant: every array sized by the particle capacity (or rows of it) grows by the same factor, live slots
     # copied, and bond keys stay i · capacity + j.
@@ -447,6 +483,55 @@ def test_conversion_runs_before_splitting_on_a_tet_that_qualifies_for_both(devic
     assert int(sim.state.tets_converted_total.numpy()[0]) == len(tets)
     assert int(sim.state.node_splits_total.numpy()[0]) == 0
     assert sim.particle_count == len(tets)
+
+
+@pytest.mark.parametrize("split_first", [False, True])
+def test_bond_and_coupling_stiffness_use_the_edge_degrees_of_the_current_mesh(device, split_first):
+    # k_b = κ E V_b / L_b² with V_b = V_t / Z_t + V_n / Z_n (warpdem.lattice), Z the live tets sharing an edge with a
+    # tet in the mesh as it is at the pass: against a brute-force numpy count (warpdem.lattice.edge_pairs) over the
+    # current tet nodes. Without fracture the pass reads the Z found at attach; after a split pass (split nodes cut
+    # edges) it finds Z again around the converting tets. A coupling's k is k_b min(1, 2/(1 + m_s Σ N²/m_a)) ≤ k_b
+    # and equals k_b where the ratio allows (checked on the bonds' V_b / L_b² through the neighbour's centroid).
+    # Tolerance: a handful of float32 products and quotients, 16 ε₃₂.
+    model, state, pts, tets = bar(device, may_convert="all")
+    if split_first:  # nodes left of the middle may split: Z changes there, the right side stays joined (couplings)
+        model, state = attach_fracture(
+            model, state, [FractureProps(1.0e5, 10.0)], check_interval=1, may_split=pts[:, 0] < LENGTH / 2
+        )
+    sim = Simulation(model, state)
+    stretch(sim, 3e-3)
+    if split_first:
+        assert sim.fracture_pass().splits > 0
+    nt = len(tets)
+    current = sim.model.tet_nodes.numpy()[:nt]
+    degree = np.bincount(edge_pairs(current, np.ones(nt, dtype=bool)).ravel(), minlength=nt).astype(np.float64)
+    attach_degree = sim.model.tet_edge_degree.numpy()[:nt]
+    # The splits changed Z (so a pass that read the attach-time Z would fail below); without them it is the same.
+    assert np.any(degree != attach_degree) == split_first
+    centroid = pts[tets].mean(axis=1)
+    sim.convert_tets(np.abs(centroid[:, 0] - LENGTH / 2) < 0.5)
+    m, s = sim.model, sim.state
+    nb, n = sim.bond_count, sim.particle_count
+    assert nb > 0
+    sphere_tet = np.empty(n, dtype=np.int64)
+    tet_sphere = s.tet_sphere.numpy()[:nt]
+    sphere_tet[tet_sphere[tet_sphere >= 0]] = np.nonzero(tet_sphere >= 0)[0]
+    ti, tj = sphere_tet[s.bond_i.numpy()[:nb]], sphere_tet[s.bond_j.numpy()[:nb]]
+    q = s.particle_q.numpy()[:n]
+    length = np.linalg.norm(q[s.bond_i.numpy()[:nb]] - q[s.bond_j.numpy()[:nb]], axis=1)
+    volume = m.tet_volume.numpy()[:nt].astype(np.float64)
+    vb = volume[ti] / degree[ti] + volume[tj] / degree[tj]
+    np.testing.assert_allclose(s.bond_kn.numpy()[:nb], STIFFNESS_FACTOR * YOUNG * vb / length**2, rtol=16 * F32_EPS)
+    nc = int(s.coupling_count.numpy()[0])
+    assert nc > 0
+    tp, tn = sphere_tet[s.coupling_particle.numpy()[:nc]], s.coupling_tet.numpy()[:nc]
+    x = m.node_ref_q.numpy().astype(np.float64) + s.node_u.numpy().astype(np.float64)
+    gap = np.linalg.norm(x[m.tet_nodes.numpy()[tn]].mean(axis=1) - q[s.coupling_particle.numpy()[:nc]], axis=1)
+    kb = STIFFNESS_FACTOR * YOUNG * (volume[tp] / degree[tp] + volume[tn] / degree[tn]) / gap**2
+    k = s.coupling_k.numpy()[:nc]
+    assert np.all(k <= kb * (1 + 16 * F32_EPS))
+    full = k >= kb * (1 - 16 * F32_EPS)
+    assert np.any(full)  # couplings at the full bond stiffness pin Z of both ends
 
 
 @pytest.mark.parametrize(

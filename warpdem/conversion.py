@@ -39,10 +39,11 @@ Rules of the conversion pass (others rely on them):
   nodes; so never across a crack or a joint, whose nodes are split). One sphere per tet bonded across faces alone
   has Z ≤ 4 and is a mechanism (Maxwell: 3 Z / 2 < 6); edge neighbours give Z ≈ 12 and a network rigid with normal
   springs alone. k_b = κ E V_b / L_b² (V_b = V_t / Z_t + V_n / Z_n, Z over all live tets, so a bond's stiffness does
-  not depend on which of its neighbours have converted yet; L_b the centres' distance), k_s = 0, area V_b / L_b,
-  tensile strength (κ / S) T_f (warpdem.lattice's κ = STIFFNESS_FACTOR and S = STRENGTH_FACTOR, measured on a fully
-  converted bar: bar-wave speed 0.998 sqrt(E/ρ), tensile strength 0.987 T_f, tests/test_coupling.py), no dashpot,
-  born relaxed (rest length = L_b).
+  not depend on which of its neighbours have converted yet: counted once at attach, ``Model.tet_edge_degree``, and
+  where nodes may split (fracture attached) found again at each pass for the converting tets and their edge
+  neighbours; L_b the centres' distance), k_s = 0, area V_b / L_b, tensile strength (κ / S) T_f (warpdem.lattice's
+  κ = STIFFNESS_FACTOR and S = STRENGTH_FACTOR, measured on a fully converted bar: bar-wave speed 0.998 sqrt(E/ρ),
+  tensile strength 0.987 T_f, tests/test_coupling.py), no dashpot, born relaxed (rest length = L_b).
 - Couplings (warpdem.coupling, CIMNE eqs. 8–9): each new sphere is tied to every still-active tet sharing an edge
   with its tet (the adjacency of the bonds; ccoupling measured 4.3 % reflection at the first interface this way
   against 10.5 % with face neighbours alone) at its current barycentric coordinates there (born relaxed), with
@@ -82,7 +83,7 @@ from .kernels import topology as kt
 from .lattice import edge_pairs
 from .model import BOND_FIELDS, COUPLING_FIELDS, NEIGHBOR_FIELDS, Model, State, conversion_state
 from .tets import eval_tet_stresses, tet_energies
-from .topology import NodeStars, live_flags
+from .topology import NodeStars, live_flags, reference_face_neighbors
 
 CRITERIA = {"tresca": 0, "rankine": 1, "mohr_coulomb": 2}
 """Criterion names and their kernel constants (kernels/conversion.py CRITERION_*)."""
@@ -225,8 +226,8 @@ def attach_conversion(
 
     Returns:
         The model (``conversion_interval``, ``spheres_per_tet``, ``conversion_part``, ``coupling_capacity``,
-        ``tet_may_convert``, ``conversion_material_table``, ``critical_dt`` set) and the state with the
-        conversion fields allocated.
+        ``tet_may_convert``, ``conversion_material_table``, ``tet_edge_degree``, ``ref_tet_face_nbr`` (kept when
+        set), ``critical_dt`` set) and the state with the conversion fields allocated.
 
     Raises:
         ValueError: a bad argument (the message says which and what is allowed).
@@ -259,10 +260,12 @@ def attach_conversion(
         raise ValueError(f"attach_conversion: coupling_capacity must be an integer >= 1, got {coupling_capacity!r}")
     d = model.device
     table = conversion_material_table(model, materials, d, spheres_per_tet)
+    pairs = edge_pairs(model.tet_nodes.numpy()[:nt], np.ones(nt, dtype=bool))
     critical, tet = conversion_critical_step(
         dataclasses.replace(model, conversion_material_table=table, spheres_per_tet=int(spheres_per_tet)),
         state,
         flags[:nt].astype(bool),
+        pairs,
     )
     if model.dt > critical:
         raise ValueError(
@@ -281,7 +284,15 @@ def attach_conversion(
         conversion_part=int(part),
         coupling_capacity=int(coupling_capacity),
         tet_may_convert=wp.array(flags, dtype=int, device=d),
+        # The surface rebuild after each pass finds the tets' face neighbours in the unsplit adjacency (four lookups
+        # per tet) rather than by star searches (warpdem.topology.NodeStars.build); fracture builds the same array.
+        ref_tet_face_nbr=model.ref_tet_face_nbr
+        if model.ref_tet_face_nbr is not None
+        else reference_face_neighbors(model, state),
         conversion_material_table=table,
+        tet_edge_degree=wp.array(
+            np.bincount(pairs.ravel(), minlength=model.tet_capacity).astype(np.int32), dtype=int, device=d
+        ),
         critical_dt=min(model.critical_dt, critical),
         critical_dt_source=model.critical_dt_source
         if model.critical_dt <= critical
@@ -303,7 +314,9 @@ def smallest_converted_radius(model: Model, state: State) -> float:
     return float(np.min(3.0 * volume / area.max(axis=1)) / 4.0)
 
 
-def conversion_critical_step(model: Model, state: State, may_convert: np.ndarray) -> tuple[float, int]:
+def conversion_critical_step(
+    model: Model, state: State, may_convert: np.ndarray, pairs: np.ndarray | None = None
+) -> tuple[float, int]:
     """Stable step [s] of the bonded spheres the tets that may convert become, and the tet that sets it (-1: none).
     Build time (host, reference configuration).
 
@@ -316,6 +329,8 @@ def conversion_critical_step(model: Model, state: State, may_convert: np.ndarray
 
     Args:
         may_convert: bool per live tet.
+        pairs: the pairs of live tets that share an edge (warpdem.lattice.edge_pairs over all of them), when the
+            caller has them; None: found here.
     """
     nt = int(state.tet_count.numpy()[0])
     table = model.conversion_material_table.numpy()
@@ -330,7 +345,8 @@ def conversion_critical_step(model: Model, state: State, may_convert: np.ndarray
         return multisphere.sub_critical_step(tets, model.node_ref_q.numpy(), density, modulus, converts)
     x = model.node_ref_q.numpy().astype(np.float64)[tets]
     volume = np.abs(np.linalg.det(x[:, 1:] - x[:, :1])) / 6.0
-    pairs = edge_pairs(tets, np.ones(nt, dtype=bool))
+    if pairs is None:
+        pairs = edge_pairs(tets, np.ones(nt, dtype=bool))
     degree = np.bincount(pairs.ravel(), minlength=nt).astype(np.float64)
     i, j = pairs[:, 0], pairs[:, 1]
     centroid = x.mean(axis=1)
@@ -446,7 +462,8 @@ def grown(capacity: int, needed: int) -> int:
 
 
 class ConversionPass:
-    """The scratch buffers and launches of a conversion pass for one tet and node capacity (module docstring).
+    """The scratch buffers and launches of a conversion pass for one tet and node capacity (module docstring). A
+    Simulation keeps one for its life (a new one when the capacities change), with the stars of all live tets.
 
     Args:
         model: the model (its tet and node capacities size the buffers).
@@ -471,16 +488,30 @@ class ConversionPass:
         self.coupling_offset = wp.zeros(t1, dtype=int, device=d)
         self.counts = wp.zeros(3, dtype=int, device=d)  # converting tets, new bonds, new couplings
         self.node_touched = wp.zeros(max(ncap, 1), dtype=int, device=d)
-        self.stars = NodeStars(ncap, tcap, d)
+        self.strain_energy = wp.zeros(t1, dtype=wp.float64, device=d)  # of the converting tets
+        # The stars of all live tets, converted or not (the edge network; their active tets re-lump the nodes). They
+        # change only where nodes split: built once while the model cannot split nodes, else at every pass.
         self.full_stars = NodeStars(ncap, tcap, d)
+        self.full_stars_built = False
         self.all_live = wp.ones(t1, dtype=int, device=d)
-        self.degree = wp.zeros(t1, dtype=int, device=d)
+        self.found_degree = wp.zeros(t1, dtype=int, device=d)  # Z_t found by the pass (where nodes may split)
+        self.degree = self.found_degree  # the Z_t the pass reads: the model's, or found_degree
+        self.needed = wp.zeros(t1, dtype=int, device=d)  # tets whose Z the pass reads
         self.sub_degree = wp.zeros(4 * t1, dtype=int, device=d)  # four spheres per tet: Z per (tet, node)
         self.spawned = wp.zeros(1, dtype=int, device=d)
 
     def fits(self, model: Model) -> bool:
         """Whether the buffers match the model's capacities."""
         return self.tet_capacity == model.tet_capacity and self.node_capacity == model.node_capacity
+
+    def build_stars(self, model: Model, state: State) -> None:
+        """Build the stars of all live tets unless they still hold: built before and the model cannot split nodes
+        (no fracture attached; tets are never added, so nothing else changes them). Launches only."""
+        m, s = model, state
+        if self.full_stars_built and m.fracture_material_table is None:
+            return
+        self.full_stars.build(m.tet_nodes, s.tet_count, self.all_live, s.node_count, face_neighbors=False)
+        self.full_stars_built = True
 
     def find(self, model: Model, state: State, forced: np.ndarray | None = None) -> tuple[int, int, int]:
         """Refresh the tet stresses, flag the converting tets (the criterion, or ``forced``: bool per tet slot),
@@ -508,22 +539,28 @@ class ConversionPass:
             device=d,
         )
         wp.utils.array_scan(self.flag, self.offset, inclusive=False)
-        # The edge network over every live tet, converted or not (stars of all live tets; each tet's Z_t).
-        self.full_stars.build(m.tet_nodes, s.tet_count, self.all_live, s.node_count, face_neighbors=False)
-        wp.launch(
-            kcv.edge_degree_kernel,
-            dim=m.tet_capacity,
-            inputs=[m.tet_nodes, s.tet_count, *self.full_stars.csr()],
-            outputs=[self.degree],
-            device=d,
-        )
+        self.build_stars(m, s)  # the edge network over every live tet, converted or not
+        self.needed.zero_()
         wp.launch(
             kcv.count_conversion_links_kernel,
             dim=m.tet_capacity,
             inputs=[m.tet_nodes, s.tet_count, s.tet_active, s.tet_sphere, self.flag, *self.full_stars.csr()],
-            outputs=[self.bonds, self.couplings],
+            outputs=[self.bonds, self.couplings, self.needed],
             device=d,
         )
+        self.degree = m.tet_edge_degree
+        if m.fracture_material_table is not None or m.tet_edge_degree is None:
+            # Split nodes cut edges, so Z_t may have changed since attach: found again, but only where a bond or
+            # coupling of this pass reads it (the converting tets and their edge neighbours; a star search from
+            # every live tet was half the pass).
+            self.degree = self.found_degree
+            wp.launch(
+                kcv.edge_degree_kernel,
+                dim=m.tet_capacity,
+                inputs=[m.tet_nodes, s.tet_count, self.needed, *self.full_stars.csr()],
+                outputs=[self.degree],
+                device=d,
+            )
         if m.spheres_per_tet == 4:  # the sub-lattice's links replace the counts (warpdem.multisphere)
             multisphere.count_sub_links(m, s, self)
         wp.utils.array_scan(self.bonds, self.bond_offset, inclusive=False)
@@ -542,7 +579,8 @@ class ConversionPass:
         ``coupling_compactor``, a Compactor of ``model.coupling_capacity`` slots). Reads back the coupling count."""
         m, s, d = model, state, self.device
         sub = m.spheres_per_tet == 4  # four spheres per tet: warpdem.multisphere's kernels, same arguments
-        energies = tet_energies(m, s)  # before the tets are deactivated
+        # Strain energies of the converting tets alone (they are active), before they are deactivated.
+        energies = tet_energies(m, s, active=self.flag, out=self.strain_energy)
         wp.copy(self.was_sphere, s.tet_sphere)
         self.node_touched.zero_()
         wp.launch(
@@ -608,7 +646,6 @@ class ConversionPass:
             )
             wp.launch(kcv.add_bond_count_kernel, dim=1, inputs=[self.counts], outputs=[s.bond_count], device=d)
             sort_bonds(m, s)
-        self.stars.build(m.tet_nodes, s.tet_count, s.tet_active, s.node_count, face_neighbors=False)
         wp.launch(
             kcv.relump_converted_nodes_kernel,
             dim=m.node_capacity,
@@ -617,8 +654,9 @@ class ConversionPass:
                 m.tet_material,
                 m.tet_material_table,
                 s.node_count,
+                s.tet_active,
                 self.node_touched,
-                *self.stars.csr(),
+                *self.full_stars.csr(),
             ],
             outputs=[m.node_mass, m.node_inv_mass, m.node_damping, m.node_motion, s.node_qd],
             device=d,

@@ -350,8 +350,10 @@ class FemContact:
             )
         self.node_faces = SkinnedList(kf.NODE_FACE_LIST, model.node_capacity, model.max_node_faces, d)
 
-    def rebuild(self) -> None:
-        """Rebuild the candidate lists now (launches only: usable inside a graph capture)."""
+    def rebuild_sphere_faces(self) -> None:
+        """Build the face grid and the sphere–face lists (the first part of :meth:`rebuild`; alone, it sizes the
+        sphere–face slots through ``state.sphere_face_needed`` for a few spheres before the node lists are built).
+        Launches only."""
         m, s, d = self.model, self.state, self.model.device
         wp.launch(
             kf.face_centers_kernel,
@@ -375,6 +377,11 @@ class FemContact:
             self.sphere_faces.rebuild(
                 inputs, self.grid, s.particle_count, s.particle_q, s.face_count, lists, s.sphere_face_needed
             )
+
+    def rebuild(self) -> None:
+        """Rebuild the candidate lists now (launches only: usable inside a graph capture)."""
+        m, s, d = self.model, self.state, self.model.device
+        self.rebuild_sphere_faces()
         if m.node_capacity:
             inputs = make_struct(
                 kf.NodeFaceInputs,

@@ -123,7 +123,8 @@ class Model:
             (kernels/fracture.py).
         ref_tet_face_nbr: the tet across each tet-face slot 4t + k in the unsplit mesh (faces matched by reference
             positions, so joints and cracks do not cut it), -1 on the outer surface, shape (4 tet_capacity,), int32
-            (warpdem.topology.reference_face_neighbors; tet slots never move, so it holds for the whole run).
+            (warpdem.topology.reference_face_neighbors, set by attach_fracture and attach_conversion; tet slots never
+            move, so it holds for the whole run).
 
     Adaptive FEM→DEM conversion (warpdem.conversion, warpdem.coupling; CIMNE §4–5):
         conversion_interval: steps between two conversion passes; 0: conversion is off.
@@ -134,6 +135,9 @@ class Model:
             int32.
         conversion_material_table: criterion, fraction and strengths of every material id, shape (num_materials,),
             ConversionMaterial (kernels/conversion.py).
+        tet_edge_degree: Z_t, the live tets sharing an edge with each tet (converted or not: the bonds' V_b = V_t /
+            Z_t + V_n / Z_n, warpdem.lattice), 0 past the live tets, shape (tet_capacity,), int32; set at attach
+            (the mesh's topology then; a conversion pass recomputes what it reads where nodes may split).
     """
 
     device: wp.context.Device
@@ -219,6 +223,7 @@ class Model:
     coupling_capacity: int = 0
     tet_may_convert: wp.array | None = None
     conversion_material_table: wp.array | None = None
+    tet_edge_degree: wp.array | None = None
 
     @property
     def max_radius(self) -> float:

@@ -220,6 +220,12 @@ class Simulation:
             # scene and are zeroed again (a no-op at t = 0).
             drop_converted_load_faces(model)
         self._setup()
+        # The conversion pass's scratch and the stars of all live tets live as long as the simulation (grown with
+        # the capacities): made here, not at the first pass.
+        self._conversion: ConversionPass | None = None
+        if model.tet_may_convert is not None:
+            self._conversion = ConversionPass(model)
+            self._conversion.build_stars(model, state)
         if not primed:
             self.evaluate_forces()
             # The set-up build is checked like any other: a list that overflowed here would be the snapshot the
@@ -236,7 +242,6 @@ class Simulation:
         self.cohesive_compactor = Compactor(self.model.cohesive_capacity, self.model.device)
         self.coupling_compactor = Compactor(self.model.coupling_capacity, self.model.device)
         self._fracture: FracturePass | None = None
-        self._conversion: ConversionPass | None = None
         self._face_slot: wp.array | None = None
         self._snapshot: State | None = None
         self._graphs: tuple | None = None
@@ -616,7 +621,7 @@ class Simulation:
         """After a pass that converted tets: rebuild the surface on the device (the faces of converted tets'
         neighbours become contact faces), carry the face ids of the contact state over, set the stages up again
         (new spheres, possibly the first: sphere contact comes alive; graphs re-captured) and re-evaluate the forces
-        at dt = 0 (the contact lists rebuilt)."""
+        at dt = 0 (the contact lists rebuilt once: the new spheres' face slots are sized first)."""
         m, s = self.model, self.state
         if m.face_capacity:
             model, slot_to_face = rebuild_surface(m, s)
@@ -624,6 +629,21 @@ class Simulation:
             self.model = model
             drop_converted_load_faces(model)
         self._setup()
+        if self.fem_contact is not None and self.has_spheres:
+            # The new spheres' face lists, sized first: an overflowing build would redo the whole force evaluation
+            # and every list (the node lists, the bulk of it, twice), where this builds the few spheres' lists once
+            # more (the lists the evaluation then builds are the same).
+            s = self.state
+            kept = [wp.clone(a) for a in (s.sphere_face_count, s.sphere_face_index, s.sphere_face_shear)]
+            self.fem_contact.rebuild_sphere_faces()
+            fem = fem_contact_growth(self.model, s)
+            if fem is not None:
+                # The lists as they were (an overflowing build dropped candidates, and their shear with them).
+                for a, old in zip((s.sphere_face_count, s.sphere_face_index, s.sphere_face_shear), kept, strict=True):
+                    wp.copy(a, old)
+                self.model, self.state = regrow_fem_contacts(self.model, s, *fem)
+                self.growths += 1
+                self._setup()
         self.evaluate_forces()
         while self._grow_if_overflowed(self.state):
             self.evaluate_forces()

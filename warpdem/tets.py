@@ -236,10 +236,12 @@ def eval_tet_stresses(model: Model, state: State) -> None:
     )
 
 
-def tet_energies(model: Model, state: State) -> wp.array:
+def tet_energies(model: Model, state: State, active: wp.array | None = None, out: wp.array | None = None) -> wp.array:
     """Strain energy of every tet slot [J] (0 past the count and for inactive tets), shape (tet_capacity,), float64.
-    Allocates: call between steps."""
-    out = wp.zeros(model.tet_capacity, dtype=wp.float64, device=model.device)
+    ``active``: the tets to evaluate, 1 where wanted (int per tet slot; None: ``state.tet_active``); ``out``: where to
+    write (None: allocated here, so call between steps)."""
+    if out is None:
+        out = wp.zeros(model.tet_capacity, dtype=wp.float64, device=model.device)
     if model.tet_capacity:
         m, s = model, state
         wp.launch(
@@ -254,7 +256,7 @@ def tet_energies(model: Model, state: State) -> wp.array:
                 m.tet_material_table,
                 # State in:
                 s.tet_count,
-                s.tet_active,
+                s.tet_active if active is None else active,
                 s.node_u,
             ],
             outputs=[out],
