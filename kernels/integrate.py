@@ -224,7 +224,8 @@ def drift_node(
         dissipated = dissipated + 0.5 * alpha * node_mass[i] * wp.dot(v, v) * dt
     if dissipated != 0.0:
         node_energy_damping[i] = node_energy_damping[i] + wp.float64(dissipated)
-    node_f_viscous[i] = f0
+    if alpha > 0.0 or wp.length_sq(f_viscous) > 0.0:  # a node no compressed tet touched keeps its zero unwritten
+        node_f_viscous[i] = f0
     node_f[i] = f0
 
 
