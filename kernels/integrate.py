@@ -190,6 +190,7 @@ def drift_node(
     node_q: wp.array(dtype=wp.vec3),
     node_f: wp.array(dtype=wp.vec3),
     node_energy_damping: wp.array(dtype=wp.float64),
+    node_f_viscous: wp.array(dtype=wp.vec3),
     fem_rebuild_flag: wp.array(dtype=int),
 ):
     """Drift a node by dt with v_{n+1/2}, start its force accumulator, and flag an FEM contact-list rebuild when a
@@ -199,6 +200,11 @@ def drift_node(
     The drift goes into the displacement, small next to the coordinates, so float32 keeps the increment. The force
     accumulator starts from the mass-proportional damping force -α m v at the half-step velocity (the
     central-difference choice), which then acts in both half kicks around the new forces.
+
+    The viscous books follow Verlet's trapezoid ½ dt f_n·(v_{n-1/2} + v_{n+1/2}) of each dissipative force f_n: first
+    the half ahead of the last evaluation's bulk-viscosity and damping forces (``node_f_viscous``), -½ dt f_n·v_{n+1/2}
+    with v = v_{n+1/2} just kicked; then the half behind of the new damping force, ½ dt α m |v|², which starts the
+    sums again (the tets add their viscous forces and book their half behind, kernels/tets.py).
     """
     u = node_u[i] + dt * v
     node_u[i] = u
@@ -210,10 +216,16 @@ def drift_node(
             if wp.dot(moved, moved) > half_fem_skin * half_fem_skin:
                 fem_rebuild_flag[0] = 1
     alpha = node_damping[i]
+    f_viscous = node_f_viscous[i]
+    dissipated = -0.5 * dt * wp.dot(f_viscous, v)
     f0 = wp.vec3(0.0)
     if alpha > 0.0:
         f0 = -alpha * node_mass[i] * v
-        node_energy_damping[i] = node_energy_damping[i] + wp.float64(alpha * node_mass[i] * wp.dot(v, v) * dt)
+        dissipated = dissipated + 0.5 * alpha * node_mass[i] * wp.dot(v, v) * dt
+    if dissipated != 0.0:
+        node_energy_damping[i] = node_energy_damping[i] + wp.float64(dissipated)
+    if alpha > 0.0 or wp.length_sq(f_viscous) > 0.0:  # a node no compressed tet touched keeps its zero unwritten
+        node_f_viscous[i] = f0
     node_f[i] = f0
 
 
@@ -371,6 +383,7 @@ def make_node_drift_kernel(after_second_half: bool) -> wp.Kernel:
         node_qd: wp.array(dtype=wp.vec3),
         node_f: wp.array(dtype=wp.vec3),
         node_energy_damping: wp.array(dtype=wp.float64),
+        node_f_viscous: wp.array(dtype=wp.vec3),
         node_energy_boundary_work: wp.array(dtype=wp.float64),
         fem_rebuild_flag: wp.array(dtype=int),
     ):
@@ -406,6 +419,7 @@ def make_node_drift_kernel(after_second_half: bool) -> wp.Kernel:
             node_q,
             node_f,
             node_energy_damping,
+            node_f_viscous,
             fem_rebuild_flag,
         )
 

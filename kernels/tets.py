@@ -21,7 +21,7 @@ crushed or inverted tet yields finite forces and never NaN (the inversion-safe i
 Shock capture: a linear + quadratic bulk viscosity in compression (von Neumann–Richtmyer / Landshoff, as LS-DYNA and
 other explicit shock codes), q = ρ₀ ℓ (c_quad ℓ ε̇_v² - c_lin c_p ε̇_v) for ε̇_v < 0, added to the stress as the
 pressure q, with the reference density and a reference length of the tet; its work is booked as dissipated energy on
-the tet's nodes.
+the tet's nodes, half at evaluation and half in the next kick (the trapezoid Verlet does), as the sphere contacts'.
 """
 
 from __future__ import annotations
@@ -226,6 +226,7 @@ def eval_tet_forces_kernel(
     # State out:
     node_f: wp.array(dtype=wp.vec3),
     node_energy_damping: wp.array(dtype=wp.float64),
+    node_f_viscous: wp.array(dtype=wp.vec3),
 ):
     t = wp.tid()  # one thread per tet slot
     if t >= tet_count[0]:
@@ -258,9 +259,17 @@ def eval_tet_forces_kernel(
     wp.atomic_add(node_f, n[2], f2)
     wp.atomic_add(node_f, n[3], f3)
     if q > 0.0:
-        # Work of the viscous pressure, q (-J̇) V₀ dt ≥ 0, booked on the tet's first node (only the sum over nodes is
-        # read: one float64 update instead of four).
-        wp.atomic_add(node_energy_damping, n[0], wp.float64(-q * j_rate * volume0 * dt))
+        # Verlet does the viscous forces' work as the trapezoid ½ dt f_{n+1}·(v_{n+1/2} + v_{n+3/2}), as every force's
+        # (warpdem.simulation.EnergyBalance). The half behind, ½ q (-J̇) V₀ dt ≥ 0 at v_{n+1/2}, is booked here, on the
+        # tet's first node (only the sum over nodes is read: one float64 update instead of four); the forces
+        # q V₀ A_i go to node_f_viscous, whose half ahead the integrator books once v_{n+3/2} is known. A tet that
+        # stops carrying forces between steps (converted) then leaves nothing booked that Verlet did not do.
+        wp.atomic_add(node_energy_damping, n[0], wp.float64(-0.5 * q * j_rate * volume0 * dt))
+        fv = (q * volume0) * a
+        wp.atomic_add(node_f_viscous, n[0], -(fv[0] + fv[1] + fv[2]))
+        wp.atomic_add(node_f_viscous, n[1], fv[0])
+        wp.atomic_add(node_f_viscous, n[2], fv[1])
+        wp.atomic_add(node_f_viscous, n[3], fv[2])
 
 
 @wp.kernel

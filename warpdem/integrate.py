@@ -164,6 +164,7 @@ def _node_drift_outputs(s: State) -> list:
         s.node_qd,
         s.node_f,
         s.node_energy_damping,
+        s.node_f_viscous,
         s.node_energy_boundary_work,
         s.fem_rebuild_flag,
     ]

@@ -298,6 +298,9 @@ class State:
             (node_capacity,), vec3.
         node_energy_damping: energy dissipated by bulk viscosity and mass-proportional damping [J], per node, shape
             (node_capacity,), float64.
+        node_f_viscous: the bulk-viscosity and mass-proportional damping forces on each node at the last evaluation
+            [N] (part of ``node_f``), for the integrator's booking of the half of their work that lies ahead, as the
+            sphere contacts' sums (kernels/integrate.py ``drift_node``), shape (node_capacity,), vec3.
         node_energy_absorbed: energy the non-reflecting boundaries' dashpots took out of the model [J], per node,
             shape (node_capacity,), float64.
         tet_active: 1 for a tet that carries forces, 0 for one taken out (converted), shape (tet_capacity,), int32.
@@ -429,6 +432,7 @@ class State:
     node_qd: wp.array
     node_f: wp.array
     node_energy_damping: wp.array
+    node_f_viscous: wp.array
     node_energy_absorbed: wp.array
     tet_active: wp.array
     tet_stress: wp.array

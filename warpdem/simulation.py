@@ -290,6 +290,9 @@ class Simulation:
         s.contact_f_tangential.zero_()
         s.contact_t_tangential.zero_()
         s.node_f.zero_()
+        # The next kick books the half ahead of exactly the viscous forces evaluated here (none of the damping: it
+        # starts with the next drift), whatever a pass took out since the last step (warpdem.integrate).
+        s.node_f_viscous.zero_()
         eval_tets(m, s, dt=0.0)
         if m.cohesive_capacity:
             eval_cohesive(m, s, dt=0.0, track_energy=self.track_energy)

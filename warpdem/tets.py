@@ -183,7 +183,8 @@ def eval_tets(model: Model, state: State, dt: float | None = None) -> None:
     """Accumulate the forces of the live tets into ``state.node_f`` (the step's tet stage; the Cauchy stresses are
     :func:`eval_tet_stresses`'s).
 
-    ``dt`` overrides the model step for the dissipation bookkeeping; 0 evaluates forces without booking any.
+    ``dt`` overrides the model step for the dissipation bookkeeping; 0 evaluates forces without booking any. The
+    bulk-viscosity forces also go to ``state.node_f_viscous`` (the integrator books the half of their work ahead).
     """
     if model.tet_capacity == 0:
         return
@@ -206,7 +207,7 @@ def eval_tets(model: Model, state: State, dt: float | None = None) -> None:
             s.node_u,
             s.node_qd,
         ],
-        outputs=[s.node_f, s.node_energy_damping],
+        outputs=[s.node_f, s.node_energy_damping, s.node_f_viscous],
         device=m.device,
     )
 
