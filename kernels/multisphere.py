@@ -22,7 +22,6 @@ from .conversion import (
     clear_radius,
     couples_to,
     lattice_stiffness,
-    shared_nodes,
     tet_spin,
 )
 from .coupling import current_barycentric
@@ -50,7 +49,15 @@ def edge_neighbor_through(tet_nodes: wp.array(dtype=wp.vec4i), star_tets: wp.arr
     n = star_tets[e]
     if n == t:
         return -1
-    if shared_nodes(tet_nodes[t], tet_nodes[n])[0] < 2:
+    # n holds v (it is in v's star): it shares an edge through v when it holds another node of t too.
+    nodes = tet_nodes[t]
+    other = tet_nodes[n]
+    held = int(0)
+    for i in range(4):
+        for j in range(4):
+            if nodes[i] == other[j]:
+                held += 1
+    if held < 2:
         return -1
     return n
 
