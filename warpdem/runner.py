@@ -73,7 +73,19 @@ def _restore_loads(model: Model, arrays: dict[str, np.ndarray]) -> Model:
     return model
 
 
-NOT_PER_PARTICLE = ("node_", "tet_", "face_", "star_", "joint_", "cohesive_", "ref_", "bond_", "coupling_")
+NOT_PER_PARTICLE = (
+    "node_",
+    "tet_",
+    "face_",
+    "star_",
+    "joint_",
+    "cohesive_",
+    "ref_",
+    "bond_",
+    "coupling_",
+    "body_",
+    "rigid_",
+)
 """Array names that are never sized by the particle capacity (nodes, tets, faces, joints, cohesive elements and bonds
 grow by their own capacities, which may equal it by chance)."""
 

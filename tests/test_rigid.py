@@ -1,0 +1,260 @@
+"""Rigid blocks (kernels/rigid.py, warpdem/rigid.py) and the switch from deformable tets (Simulation.switch_to_rigid).
+
+Oracles:
+- inertia: a box block meshed by tets has the principal moments M (b² + c²)/12 … of the uniform box (the tet second
+  moment is exact, so only the float32 node positions and masses round it: INERTIA_RTOL);
+- free flight (no gravity, no contact): linear and angular momentum of the body stay exactly what they were (no force,
+  no torque), the nodes keep their mutual distances (a rigid motion, to float32 rounding of u over the block size),
+  and the nodes' momentum is the body's;
+- an asymmetric box (three distinct moments) spun about an axis near its intermediate axis tumbles as Euler's
+  equations dL/dt = L × I⁻¹L (body frame) integrated in float64 by RK4 at a quarter of the step: the error of ω(t)
+  over two tumbling flips shrinks by ≥ 3× when dt halves (the splitting is second order: 4× in exact arithmetic;
+  the exponential divergence of the intermediate-axis instability makes the constant large, not the order), and is
+  a small fraction of |ω| at the finer step;
+- a block on a joint inclined beyond atan μ (the base held) slides with a = g (sin θ − μ cos θ) in both modes (the
+  deformable case is tests/test_fem_contact.py's, with the same SLIDE_RTOL);
+- the switch: each block takes the total mass, momentum and angular momentum of its nodes (float64 sums of what was
+  there, to 1e-12 relative), the energy books do not jump across it (SWITCH_RTOL of the energy in play: float64 sums
+  of float32 terms) and close afterwards as Verlet closes them (BOOKS_RTOL);
+- restart: a run checkpointed after the switch continues bit for bit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from test_fem_contact import FRICTION, GRAVITY, SLIDE_RTOL, centre_of_mass_motion, two_blocks
+
+from warpdem.builder import ModelBuilder
+from warpdem.joints import JointProps
+from warpdem.mesh import box_mesh
+from warpdem.rigid import angular_velocities, body_frames, box_inertia
+from warpdem.simulation import Simulation
+
+DENSITY = 2000.0  # [kg/m³]
+YOUNG = 1.0e8  # [Pa]
+POISSON = 0.25
+F32_EPS = float(np.finfo(np.float32).eps)
+INERTIA_RTOL = 8.0 * F32_EPS  # float32 node masses and positions, summed in float64
+SWITCH_RTOL = 1.0e-9
+BOOKS_RTOL = 1.0e-3
+
+
+def box_block(device, size=(1.0, 0.6, 0.3), divisions=(3, 2, 1), velocity=(0.0, 0.0, 0.0), gravity=(0.0, 0.0, 0.0)):
+    points, tets = box_mesh((0.0, 0.0, 0.0), size, divisions)
+    b = ModelBuilder(gravity=gravity)
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    b.add_tet_mesh(points, tets, "rock", velocity=velocity)
+    return b.finalize(device, safety_factor=0.5)
+
+
+def test_box_block_has_the_inertia_of_a_box(device):
+    size = (1.0, 0.6, 0.3)
+    model, state = box_block(device, size)
+    sim = Simulation(model, state)
+    report = sim.switch_to_rigid()
+    assert (report.bodies, report.fixed, report.tets) == (1, 0, 36)
+    mass = DENSITY * np.prod(size)
+    np.testing.assert_allclose(sim.state.body_mass.numpy(), [mass], rtol=INERTIA_RTOL)
+    np.testing.assert_allclose(sim.state.body_inertia.numpy()[0], box_inertia(mass, size), rtol=INERTIA_RTOL)
+    # Principal axes along the box's edges, right-handed.
+    axes = sim.state.body_axes.numpy()[0]
+    np.testing.assert_allclose(np.abs(axes), np.eye(3), atol=1e-6)
+    assert np.linalg.det(axes) > 0.0
+
+
+def test_free_flight_conserves_momentum_and_angular_momentum(device):
+    model, state = box_block(device, velocity=(1.0, -0.5, 0.2))
+    sim = Simulation(model, state)
+    sim.switch_to_rigid()
+    sim.state.body_l.assign(np.array([[0.7, 5.0, -1.2]]))
+    n = int(sim.state.node_count.numpy()[0])
+    mass = model.node_mass.numpy()[:n].astype(np.float64)
+
+    def positions() -> np.ndarray:
+        return model.node_ref_q.numpy()[:n].astype(np.float64) + sim.state.node_u.numpy()[:n].astype(np.float64)
+
+    x0 = positions()
+    p0, l0 = sim.state.body_v.numpy() * sim.state.body_mass.numpy()[:, None], sim.state.body_l.numpy().copy()
+    e0 = sim.energy()
+    sim.advance(400)
+    # No force and no torque: the body's momenta are exactly what they were.
+    np.testing.assert_array_equal(sim.state.body_v.numpy() * sim.state.body_mass.numpy()[:, None], p0)
+    np.testing.assert_array_equal(sim.state.body_l.numpy(), l0)
+    # The nodes moved rigidly: their mutual distances are kept to the float32 rounding of u (size of the block).
+    x1 = positions()
+    d0 = np.linalg.norm(x0[:, None] - x0[None], axis=2)
+    d1 = np.linalg.norm(x1[:, None] - x1[None], axis=2)
+    np.testing.assert_allclose(d1, d0, atol=8.0 * F32_EPS * (1.0 + np.abs(x1).max()))
+    assert np.abs(x1 - x0).max() > 0.1  # it did fly and turn
+    # The nodes carry the body's momentum (their velocities are its rigid field v + ω × r, float32).
+    v = sim.state.node_qd.numpy()[:n].astype(np.float64)
+    np.testing.assert_allclose(
+        (mass[:, None] * v).sum(axis=0), p0[0], atol=8.0 * F32_EPS * np.abs(mass[:, None] * v).sum()
+    )
+    # The free rotor conserves the energy to O((ω dt)²) (bounded, symplectic), here below 1e-6.
+    omega = np.linalg.norm(angular_velocities(sim.state))
+    assert (omega * model.dt) ** 2 < 1e-6
+    np.testing.assert_allclose(sim.energy().total, e0.total, rtol=1e-6)
+
+
+def euler_reference(moments: np.ndarray, l_body: np.ndarray, times: np.ndarray, h: float) -> np.ndarray:
+    """Body-frame ω(t) of a free asymmetric top: Euler's equations dL/dt = L × (L / I) by RK4 in float64 at step h
+    (plain floats: a numpy call per component would cost more than the whole simulated run)."""
+    i1, i2, i3 = (float(x) for x in moments)
+
+    def rate(a: float, b: float, c: float) -> tuple[float, float, float]:
+        wa, wb, wc = a / i1, b / i2, c / i3
+        return b * wc - c * wb, c * wa - a * wc, a * wb - b * wa
+
+    out, (a, b, c), t = [], (float(x) for x in l_body), 0.0
+    for target in times:
+        while t < target - 1e-12:
+            k = min(h, target - t)
+            p1 = rate(a, b, c)
+            p2 = rate(a + 0.5 * k * p1[0], b + 0.5 * k * p1[1], c + 0.5 * k * p1[2])
+            p3 = rate(a + 0.5 * k * p2[0], b + 0.5 * k * p2[1], c + 0.5 * k * p2[2])
+            p4 = rate(a + k * p3[0], b + k * p3[1], c + k * p3[2])
+            a += k / 6.0 * (p1[0] + 2.0 * p2[0] + 2.0 * p3[0] + p4[0])
+            b += k / 6.0 * (p1[1] + 2.0 * p2[1] + 2.0 * p3[1] + p4[1])
+            c += k / 6.0 * (p1[2] + 2.0 * p2[2] + 2.0 * p3[2] + p4[2])
+            t += k
+        out.append((a / i1, b / i2, c / i3))
+    return np.array(out)
+
+
+def tumble_error(device, dt: float) -> tuple[float, float]:
+    """Largest |ω_body(t) − ω_Euler(t)| over two flips of a box spun near its intermediate axis, and max |ω|."""
+    model, state = box_block(device, size=(1.0, 0.6, 0.3), divisions=(2, 1, 1))
+    model = dataclasses.replace(model, dt=dt)  # no contact: any step is stable
+    sim = Simulation(model, state)
+    sim.switch_to_rigid()
+    axes0, moments = body_frames(sim.state)
+    l_body = np.array([0.1, 8.0, 0.1]) * moments[0, 1]  # 8 rad/s about the intermediate axis, perturbed
+    sim.state.body_l.assign((axes0[0] @ l_body)[None])
+    period = 4.0  # [s]: two flips of this box (the reference shows them, at 1.2 s and 3.45 s)
+    samples = 40
+    times = np.linspace(period / samples, period, samples)
+    per = round(times[0] / dt)
+    got = []
+    for _ in times:
+        sim.advance(per)
+        axes, _ = body_frames(sim.state)
+        got.append(axes[0].T @ angular_velocities(sim.state)[0])
+    ref = euler_reference(moments[0], l_body, times, dt / 4.0)  # RK4's O(h⁴) ≪ the splitting's O(dt²)
+    flips = np.count_nonzero(np.diff(np.sign(ref[:, 1])))
+    assert flips >= 2  # it does tumble: ω about the intermediate axis changes sign
+    return float(np.abs(np.array(got) - ref).max()), float(np.abs(ref).max())
+
+
+def test_asymmetric_block_tumbles_as_euler_equations_say(device):
+    # Measured: 2.35e-3, 5.9e-4, 1.5e-4 rad/s at dt = 4, 2, 1 ms (|ω| = 8 rad/s): second order.
+    coarse, scale = tumble_error(device, 4.0e-3)
+    fine, _ = tumble_error(device, 2.0e-3)
+    assert fine < coarse / 3.0  # second order (4× in exact arithmetic)
+    assert fine < 1e-3 * scale
+
+
+@pytest.mark.parametrize("mode", ["deformable", "rigid"])
+def test_block_slides_above_friction_angle_in_both_modes(device, mode):
+    """The block of tests/test_fem_contact.py on a joint at 30° > atan μ, its base held: a = g (sin θ − μ cos θ). In
+    rigid mode the base is one held body, the top one free body, and the joint's node–face contacts act between
+    them."""
+    theta = 30.0
+    model, state, upper = two_blocks(device, theta, 2)
+    sim = Simulation(model, state)
+    if mode == "rigid":
+        report = sim.switch_to_rigid()
+        assert (report.bodies, report.fixed) == (2, 1)
+    total, chunks = 0.1, 40
+    per = max(int(total / model.dt) // chunks, 1)
+    times, speeds = [], []
+    for _ in range(chunks):
+        sim.advance(per)
+        times.append(sim.time)
+        speeds.append(centre_of_mass_motion(sim, upper)[1][0])
+    times, speeds = np.array(times), np.array(speeds)
+    late = times > 0.3 * times[-1]
+    a = np.polyfit(times[late], speeds[late], 1)[0]
+    expected = GRAVITY * (math.sin(math.radians(theta)) - FRICTION * math.cos(math.radians(theta)))
+    np.testing.assert_allclose(a, expected, rtol=SLIDE_RTOL)
+
+
+def jointed_pair(device, velocity_noise: float = 0.05):
+    """Two blocks of a 1 m box cut by a joint at z = 0.5, free in space (no gravity), with random node velocities
+    (element modes) and a random strain: what a blast leaves before the switch."""
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (2, 2, 2))
+    from test_fem_contact import plane_faces
+
+    b = ModelBuilder(gravity=(0.0, 0.0, -GRAVITY))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    js = b.add_joint_set(JointProps(friction=FRICTION, restitution=0.5))
+    b.add_tet_mesh(points, tets, "rock", joint_faces=plane_faces(points, tets, 2, 0.5), joint_set=js)
+    model, state = b.finalize(device, safety_factor=0.5)
+    rng = np.random.default_rng(1)
+    cap = model.node_capacity
+    state.node_qd.assign((rng.normal(scale=velocity_noise, size=(cap, 3)) + [0.3, 0.0, 0.1]).astype(np.float32))
+    return model, state
+
+
+def test_switch_conserves_mass_momentum_and_closes_the_books(device):
+    model, state = jointed_pair(device)
+    sim = Simulation(model, state)
+    sim.advance(50)  # strain the tets and the joint
+    n = int(sim.state.node_count.numpy()[0])
+    mass = model.node_mass.numpy()[:n].astype(np.float64)
+    x = model.node_ref_q.numpy()[:n].astype(np.float64) + sim.state.node_u.numpy()[:n].astype(np.float64)
+    v = sim.state.node_qd.numpy()[:n].astype(np.float64)
+    before = sim.energy()
+    in_play = before.in_play
+    report = sim.switch_to_rigid()
+    after = sim.energy()
+    assert report.bodies == 2 and report.released > 0.0
+    s = sim.state
+    body_of = s.node_body.numpy()[:n]
+    for b in range(2):
+        mine = body_of == b
+        m = mass[mine]
+        com = (m[:, None] * x[mine]).sum(axis=0) / m.sum()
+        np.testing.assert_allclose(s.body_mass.numpy()[b], m.sum(), rtol=1e-15)
+        np.testing.assert_allclose(
+            s.body_mass.numpy()[b] * s.body_v.numpy()[b], (m[:, None] * v[mine]).sum(axis=0), rtol=1e-12, atol=1e-12
+        )
+        l_nodes = (m[:, None] * np.cross(x[mine] - com, v[mine])).sum(axis=0)
+        np.testing.assert_allclose(s.body_l.numpy()[b], l_nodes, rtol=1e-12, atol=1e-12 * np.abs(l_nodes).max())
+    # The joint separates the blocks: the tets above it make one body, those below the other.
+    nt = int(s.tet_count.numpy()[0])
+    tets = model.tet_nodes.numpy()[:nt]
+    above = model.node_ref_q.numpy()[tets].mean(axis=1)[:, 2] > 0.5
+    assert len(set(body_of[tets[above]].ravel())) == 1 and len(set(body_of[tets[~above]].ravel())) == 1
+    assert body_of[tets[above][0, 0]] != body_of[tets[~above][0, 0]]
+    # The books do not jump: what the tets and element modes held is booked as released.
+    assert abs(after.total - before.total) < SWITCH_RTOL * in_play
+    np.testing.assert_allclose(after.strain, 0.0)
+    # And close afterwards: the blocks fall, touch and rub on the joint.
+    sim.advance(400)
+    later = sim.energy()
+    assert abs(later.total - after.total) < BOOKS_RTOL * max(in_play, later.in_play)
+
+
+def test_rigid_restart_continues_bit_for_bit(device, tmp_path):
+    from warpdem.runner import restore_checkpoint, save_checkpoint
+
+    model, state = jointed_pair(device)
+    template = state.clone()
+    sim = Simulation(model, state)
+    sim.advance(20)
+    sim.switch_to_rigid()
+    sim.advance(30)
+    path = save_checkpoint(tmp_path / "c.h5", sim, 1, {})
+    sim.advance(100)
+    fresh_model, fresh_state = jointed_pair(device)
+    model2, state2, attrs = restore_checkpoint(path, fresh_model, template)
+    again = Simulation(model2, state2, primed=True, step=int(attrs["step"]), time=float(attrs["time"]))
+    assert again.rigid
+    again.advance(100)
+    for name, a in sim.state.arrays().items():
+        np.testing.assert_array_equal(getattr(again.state, name).numpy(), a.numpy(), err_msg=name)
