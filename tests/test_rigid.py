@@ -196,7 +196,8 @@ def jointed_pair(device, velocity_noise: float = 0.05):
     model, state = b.finalize(device, safety_factor=0.5)
     rng = np.random.default_rng(1)
     cap = model.node_capacity
-    state.node_qd.assign((rng.normal(scale=velocity_noise, size=(cap, 3)) + [0.3, 0.0, 0.1]).astype(np.float32))
+    drift = np.array([0.3, 0.0, 0.1])
+    state.node_qd.assign((rng.normal(scale=velocity_noise, size=(cap, 3)) + drift).astype(np.float32))
     return model, state
 
 
@@ -251,7 +252,7 @@ def test_rigid_restart_continues_bit_for_bit(device, tmp_path):
     sim.advance(30)
     path = save_checkpoint(tmp_path / "c.h5", sim, 1, {})
     sim.advance(100)
-    fresh_model, fresh_state = jointed_pair(device)
+    fresh_model, _ = jointed_pair(device)
     model2, state2, attrs = restore_checkpoint(path, fresh_model, template)
     again = Simulation(model2, state2, primed=True, step=int(attrs["step"]), time=float(attrs["time"]))
     assert again.rigid

@@ -136,12 +136,15 @@ class Model:
             ConversionMaterial (kernels/conversion.py).
 
     Rigid blocks (warpdem.rigid; LDEC §2–§4):
-        rigid_switch: whether the blocks turn rigid at step ``rigid_switch_step`` (0: from the start).
-        rigid_switch_step: the step of that switch.
+        rigid_switch: whether the blocks turn rigid at ``rigid_switch_time``.
+        rigid_switch_time: the time of that switch [s] (0: from the start); it falls on the first step at or after
+            it (warpdem.simulation).
         rigid_energy_fraction: turn rigid once the kinetic energy of the element modes (the nodes' kinetic energy
             beyond each block's rigid motion) is below this fraction of the nodes' kinetic energy, checked every
             ``rigid_check_interval`` steps; 0: off.
         rigid_check_interval: steps between two checks of ``rigid_energy_fraction``.
+        deformable_critical_dt: the builder's critical step of the deformable model where a rigid-from-start run took
+            the rigid blocks' step instead (warpdem.rigid.rigid_time_step) [s]; nan otherwise (``critical_dt`` is it).
         tet_may_rigid: 1 where a tet may turn rigid (the scene's region or materials), else 0, shape
             (tet_capacity,), int32; None: every tet.
     """
@@ -230,9 +233,10 @@ class Model:
     tet_may_convert: wp.array | None = None
     conversion_material_table: wp.array | None = None
     rigid_switch: bool = False
-    rigid_switch_step: int = 0
+    rigid_switch_time: float = 0.0
     rigid_energy_fraction: float = 0.0
     rigid_check_interval: int = 100
+    deformable_critical_dt: float = math.nan
     tet_may_rigid: wp.array | None = None
 
     @property

@@ -51,12 +51,14 @@ __all__ = [
     "RigidReport",
     "body_energy",
     "box_inertia",
+    "contact_damping_ratio",
     "drift_bodies",
     "element_mode_energy",
     "kick_bodies",
     "make_bodies",
     "reduce_body_forces",
     "rigid_critical_step",
+    "rigid_time_step",
     "tet_inertia",
 ]
 
@@ -67,7 +69,10 @@ class RigidReport:
 
     Attributes:
         bodies: rigid bodies made; fixed: of which held in place; nodes: nodes that follow a body; tets: tets made
-        rigid; released: energy booked as ``released_rigid_switch`` [J] (set by the Simulation).
+        rigid; released: energy booked as ``released_rigid_switch`` [J]; critical_dt: the stable step of the
+        rigid blocks on their contacts (:func:`rigid_critical_step`, before the safety factor) [s]; deformable_dt:
+        the builder's critical step of the deformable model (``Model.critical_dt`` at the switch) [s] (both set by
+        the Simulation).
     """
 
     bodies: int
@@ -75,11 +80,14 @@ class RigidReport:
     nodes: int
     tets: int
     released: float = 0.0
+    critical_dt: float = math.inf
+    deformable_dt: float = math.nan
 
     def format(self) -> str:
         return (
             f"rigid switch: {self.bodies} blocks ({self.fixed} held), {self.nodes} nodes, {self.tets} tets; "
-            f"{self.released:.6g} J released"
+            f"{self.released:.6g} J released; stable step {self.critical_dt:.4g} s rigid against "
+            f"{self.deformable_dt:.4g} s deformable ({self.critical_dt / self.deformable_dt:.3g}×)"
         )
 
 
@@ -369,6 +377,40 @@ def element_mode_energy(model: Model, state: State) -> tuple[float, float]:
     rigid = 0.5 * np.sum(np.sum(p * p, axis=1) / body_mass) + 0.5 * np.sum(spin)
     nodes = 0.5 * float(np.sum(m * np.sum(v * v, axis=1)))
     return max(nodes - float(rigid), 0.0), total
+
+
+def contact_damping_ratio(model: Model) -> float:
+    """The largest damping ratio ζ of the FEM contacts and joints of a model [-] (0 without any)."""
+    ratios = [0.0]
+    if model.fem_pair_table is not None:
+        ratios += model.fem_pair_table.numpy()["damp_n"].tolist()
+    if model.joint_material_table is not None and model.joint_set_props:
+        ratios += model.joint_material_table.numpy()["contact"]["damp_n"].tolist()
+    return float(max(ratios))
+
+
+def rigid_time_step(model: Model, state: State, safety_factor: float) -> Model:
+    """The model with the time step of rigid blocks from the start: ``safety_factor`` × :func:`rigid_critical_step` of
+    the bodies the switch will make (made on copies, so the model and state are left as they are). Only where the
+    rigid bodies are all there is: every tet may turn rigid, no sphere and no non-reflecting dashpot (their own steps,
+    which the builder folded into ``critical_dt``, would still hold); else the model as it is.
+    """
+    if model.tet_may_rigid is not None or model.max_radius > 0.0:
+        return model
+    if model.loads is not None and getattr(model.loads, "dashpots", None) is not None:
+        return model
+    probe = dataclasses.replace(model, node_motion=wp.clone(model.node_motion))
+    bodies, _, _ = make_bodies(probe, state.clone())
+    step = rigid_critical_step(probe, bodies, contact_damping_ratio(model))
+    if not math.isfinite(step):
+        return model
+    return dataclasses.replace(
+        model,
+        dt=safety_factor * step,
+        critical_dt=step,
+        critical_dt_source="the contact springs of the rigid blocks (warpdem.rigid.rigid_critical_step)",
+        deformable_critical_dt=model.critical_dt,
+    )
 
 
 def rigid_critical_step(model: Model, state: State, damping_ratio: float = 0.0) -> float:

@@ -28,6 +28,7 @@ overflow redo, and the passes due after each (:meth:`Simulation.conversion_pass`
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 from dataclasses import dataclass
 
@@ -65,6 +66,7 @@ from .model import NEIGHBOR_FIELDS, Model, State
 from .rigid import (
     RigidReport,
     body_energy,
+    contact_damping_ratio,
     drift_bodies,
     element_mode_energy,
     has_bodies,
@@ -72,6 +74,7 @@ from .rigid import (
     make_bodies,
     pose_nodes,
     reduce_body_forces,
+    rigid_critical_step,
 )
 from .tets import eval_tet_stresses, eval_tets, tet_energy
 from .topology import regrow_nodes
@@ -237,6 +240,7 @@ class Simulation:
         self.time = time
         self.growths = 0
         self.guard = StabilityGuard(model.device)
+        self.rigid_report: RigidReport | None = None
         if model.tet_may_convert is not None:
             # A restart: the checkpoint keeps dropped load faces as collapsed node triples; their edges come from the
             # scene and are zeroed again (a no-op at t = 0).
@@ -248,7 +252,7 @@ class Simulation:
             # first advance restores, so grow until it fits and evaluate again.
             while self._grow_if_overflowed(self.state):
                 self.evaluate_forces()
-            self.rigid_report = self._switch_if_due()
+            self._switch_if_due()
 
     def _setup(self) -> None:
         # A model of tets alone has no sphere to size the contact grid by: its sphere contact stages are skipped.
@@ -393,7 +397,7 @@ class Simulation:
         while remaining > 0:
             kc, kf = self.model.conversion_interval, self.model.fracture_interval
             intervals = [k for k in (kc, kf, self._rigid_check_interval()) if k > 0]
-            switch = self.model.rigid_switch_step
+            switch = self._rigid_switch_step()
             if self.model.rigid_switch and not self.rigid and switch > self.step_count:
                 intervals.append(switch)  # a chunk ends on the switch step (counted from step 0, as the passes)
             chunk = min(remaining, *(k - self.step_count % k for k in intervals)) if intervals else remaining
@@ -404,6 +408,11 @@ class Simulation:
             if kf > 0 and self.step_count % kf == 0:
                 self.fracture_pass()
             self._switch_if_due()
+
+    def _rigid_switch_step(self) -> int:
+        """The step on which the scene's rigid switch falls: the first at or after ``rigid_switch_time`` (a relative
+        1e-9 of slack, so a time that is a whole number of steps in decimal is not pushed one step on by rounding)."""
+        return max(0, math.ceil(self.model.rigid_switch_time / self.model.dt * (1.0 - 1e-9)))
 
     def _rigid_check_interval(self) -> int:
         """Steps between two checks of the kinetic-energy criterion of the rigid switch (0: none due)."""
@@ -417,7 +426,7 @@ class Simulation:
         m = self.model
         if self.rigid or m.node_capacity == 0:
             return None
-        due = m.rigid_switch and m.rigid_switch_step <= self.step_count
+        due = m.rigid_switch and self._rigid_switch_step() <= self.step_count
         every = self._rigid_check_interval()
         if not due and every > 0 and self.step_count % every == 0:
             element, total = element_mode_energy(m, self.state)
@@ -452,6 +461,10 @@ class Simulation:
             released = before.strain - after.strain + before.kinetic - after.kinetic - (before.shadow - after.shadow)
             self.state.energy_released_rigid.assign(np.array([released], dtype=np.float64))
             report.released = released
+        report.critical_dt = rigid_critical_step(self.model, self.state, contact_damping_ratio(self.model))
+        m = self.model
+        report.deformable_dt = m.critical_dt if math.isnan(m.deformable_critical_dt) else m.deformable_critical_dt
+        self.rigid_report = report
         return report
 
     def _advance_chunk(self, n_steps: int) -> None:
