@@ -29,9 +29,10 @@ import pytest
 from test_fem_contact import FRICTION, GRAVITY, SLIDE_RTOL, centre_of_mass_motion, two_blocks
 
 from warpdem.builder import ModelBuilder
+from warpdem.fragments import block_labels
 from warpdem.joints import JointProps
 from warpdem.mesh import box_mesh
-from warpdem.rigid import angular_velocities, body_frames, box_inertia
+from warpdem.rigid import angular_velocities, body_frames, box_inertia, element_mode_energy
 from warpdem.simulation import Simulation
 
 DENSITY = 2000.0  # [kg/m³]
@@ -259,3 +260,73 @@ def test_rigid_restart_continues_bit_for_bit(device, tmp_path):
     again.advance(100)
     for name, a in sim.state.arrays().items():
         np.testing.assert_array_equal(getattr(again.state, name).numpy(), a.numpy(), err_msg=name)
+
+
+def test_switch_at_a_time_is_the_switch_at_that_step(device):
+    """A model told to switch at t = 10 dt (``rigid_switch_time``) and run 25 steps in one advance ends bit for bit
+    where 10 steps, an explicit switch and 15 steps end: the advance ends a chunk on the switch step."""
+    model, state = jointed_pair(device)
+    timed = Simulation(dataclasses.replace(model, rigid_switch=True, rigid_switch_time=10 * model.dt), state.clone())
+    assert not timed.rigid
+    timed.advance(25)
+    assert timed.rigid and timed.rigid_report is not None
+    model2, state2 = jointed_pair(device)
+    manual = Simulation(model2, state2)
+    manual.advance(10)
+    manual.switch_to_rigid()
+    manual.advance(15)
+    for name, a in manual.state.arrays().items():
+        np.testing.assert_array_equal(getattr(timed.state, name).numpy(), a.numpy(), err_msg=name)
+
+
+def test_element_mode_energy_of_rigid_and_deforming_motion(device):
+    """The criterion's element-mode energy (the nodes' kinetic energy beyond each block's rigid motion): zero for a
+    rigid field v + ω × r (to float32 rounding of the node velocities); for a random field, what a least-squares
+    rigid fit leaves over; and a switch by ``rigid_energy_fraction`` happens on the first check where the fraction
+    is below it, never where it is above."""
+    model, state = jointed_pair(device, velocity_noise=0.0)
+    n = int(state.node_count.numpy()[0])
+    x = model.node_ref_q.numpy()[:n].astype(np.float64)
+    spin = np.array([0.2, -0.5, 1.0])
+    centre = x.mean(axis=0)
+    rigid = np.zeros((model.node_capacity, 3), dtype=np.float32)
+    rigid[:n] = np.array([0.3, 0.0, 0.1]) + np.cross(spin, x - centre)
+    state.node_qd.assign(rigid)
+    element, total = element_mode_energy(model, state)
+    assert total > 0.0 and element < 16.0 * F32_EPS * total
+    # Equal and opposite velocities on the two joint faces of each block's bottom and top: no momentum, no spin.
+    # A random field: the element-mode energy is what a least-squares fit of a rigid field V + Ω × (x − x̄) per block
+    # (in the mass metric, numpy lstsq: an independent route to the same projection) leaves over.
+    rng = np.random.default_rng(3)
+    noisy = np.zeros_like(rigid)
+    noisy[:n] = rng.normal(size=(n, 3))
+    state.node_qd.assign(noisy)
+    element, total = element_mode_energy(model, state)
+    label, count = block_labels(model, state)
+    mass = model.node_mass.numpy()[:n].astype(np.float64)
+    v = noisy[:n].astype(np.float64)
+    residual = 0.0
+    for b in range(count):
+        mine = label == b
+        m, r = mass[mine], x[mine] - (mass[mine, None] * x[mine]).sum(axis=0) / mass[mine].sum()
+        rows = np.zeros((3 * len(m), 6))
+        for k in range(3):
+            e = np.eye(3)[k]
+            rows[k::3, :3] = e
+            rows[k::3, 3:] = np.cross(r, e)  # (Ω × r)_k = Ω · (r × e_k): a row in Ω
+        w = np.repeat(np.sqrt(m), 3)
+        fit, *_ = np.linalg.lstsq(rows * w[:, None], v[mine].ravel() * w, rcond=None)
+        left = v[mine].ravel() - rows @ fit
+        residual += 0.5 * np.sum(np.repeat(m, 3) * left * left)
+    np.testing.assert_allclose(element, residual, rtol=1e-9)
+    assert element < total
+    # The switch by the criterion: the rigid field switches at once (step 0 is a check), the stretch never does.
+    state.node_qd.assign(rigid)
+    switched = Simulation(dataclasses.replace(model, rigid_energy_fraction=0.5, rigid_check_interval=5), state)
+    assert switched.rigid
+    _, fresh = jointed_pair(device, velocity_noise=0.0)
+    fresh.node_qd.assign(noisy)
+    kept = Simulation(dataclasses.replace(model, rigid_energy_fraction=0.5, rigid_check_interval=5), fresh)
+    assert element > 0.5 * total  # the random field is mostly element modes: no switch
+    kept.advance(5)
+    assert not kept.rigid
