@@ -330,3 +330,53 @@ def test_element_mode_energy_of_rigid_and_deforming_motion(device):
     assert element > 0.5 * total  # the random field is mostly element modes: no switch
     kept.advance(5)
     assert not kept.rigid
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The [rigid] scene table
+
+
+def test_rigid_scene_keys_and_the_tets_they_pick(tmp_path):
+    """Defaults off; a switch time with a region and a material picks exactly the tets whose centroid is inside
+    (brute force over the built tets) and sets the model's switch."""
+    from test_scene import MESH_BASE, write
+
+    from warpdem.scene import load_scene
+    from warpdem.scene_build import finalize_scene, scene_builder, tet_centroids
+
+    scene = load_scene(write(tmp_path, MESH_BASE))
+    assert not scene.rigid.active and scene.rigid.check_interval == 100
+    text = MESH_BASE + (
+        '\n[rigid]\nswitch_time = 0.004\nmaterials = ["rock"]\nregion = { box = { lo = [0, 0, 1], hi = [1, 1, 3] } }\n'
+    )
+    scene = load_scene(write(tmp_path, text))
+    model, state = finalize_scene(scene, scene_builder(scene), "cpu")
+    assert model.rigid_switch and model.rigid_switch_time == 0.004 and model.rigid_energy_fraction == 0.0
+    nt = int(state.tet_count.numpy()[0])
+    c = tet_centroids(model, state)
+    inside = np.all((c >= [0, 0, 1]) & (c <= [1, 1, 3]), axis=1)
+    np.testing.assert_array_equal(model.tet_may_rigid.numpy()[:nt] != 0, inside)
+    assert 0 < inside.sum() < nt
+
+
+@pytest.mark.parametrize(
+    ("table", "phrase"),
+    [
+        ("enabled = true\nswitch_time = 0.001", "rigid: takes at most one of 'enabled', 'switch_time'"),
+        ("energy_fraction = 1.5", "rigid.energy_fraction"),
+        ('enabled = true\nmaterials = ["granite"]', "rigid.materials: 'granite' is not a material"),
+        ("enabled = true\nregion = { box = { lo = [5, 5, 5], hi = [6, 6, 6] } }", "rigid: no tet of the mesh"),
+    ],
+)
+def test_bad_rigid_table_is_a_one_line_scene_error(tmp_path, table, phrase):
+    from test_scene import MESH_BASE, write
+
+    from warpdem.scene import SceneError, load_scene
+    from warpdem.scene_build import finalize_scene, scene_builder
+
+    path = write(tmp_path, MESH_BASE + f"\n[rigid]\n{table}\n")
+    with pytest.raises(SceneError) as info:
+        scene = load_scene(path)
+        finalize_scene(scene, scene_builder(scene), "cpu")
+    message = str(info.value)
+    assert phrase in message and "\n" not in message and str(path) in message
