@@ -12,7 +12,8 @@ Oracles:
   the exponential divergence of the intermediate-axis instability makes the constant large, not the order), and is
   a small fraction of |ω| at the finer step;
 - a block on a joint inclined beyond atan μ (the base held) slides with a = g (sin θ − μ cos θ) in both modes (the
-  deformable case is tests/test_fem_contact.py's, with the same SLIDE_RTOL);
+  deformable case is tests/test_fem_contact.py's, with the same SLIDE_RTOL), and the onset of sliding is the same
+  in both: it holds at 15°, slides at 18° (atan 0.3 = 16.7°);
 - the switch: each block takes the total mass, momentum and angular momentum of its nodes (float64 sums of what was
   there, to 1e-12 relative), the energy books do not jump across it (SWITCH_RTOL of the energy in play: float64 sums
   of float32 terms) and close afterwards as Verlet closes them (BOOKS_RTOL);
@@ -159,19 +160,18 @@ def test_asymmetric_block_tumbles_as_euler_equations_say(device):
     assert fine < 1e-3 * scale
 
 
-@pytest.mark.parametrize("mode", ["deformable", "rigid"])
-def test_block_slides_above_friction_angle_in_both_modes(device, mode):
-    """The block of tests/test_fem_contact.py on a joint at 30° > atan μ, its base held: a = g (sin θ − μ cos θ). In
-    rigid mode the base is one held body, the top one free body, and the joint's node–face contacts act between
-    them."""
-    theta = 30.0
+def slide(device, theta: float, mode: str) -> tuple[float, float]:
+    """The block of tests/test_fem_contact.py on a joint at θ [°], its base held, for 0.1 s in ``mode``: the
+    acceleration of the top block's centre of mass along the slope, fitted over the last 70 % of the run (after the
+    first touch) [m/s²], and its displacement then [m]. In rigid mode the base is one held body, the top one free
+    body, and the joint's node–face contacts act between them."""
     model, state, upper = two_blocks(device, theta, 2)
     sim = Simulation(model, state)
     if mode == "rigid":
         report = sim.switch_to_rigid()
         assert (report.bodies, report.fixed) == (2, 1)
-    total, chunks = 0.1, 40
-    per = max(int(total / model.dt) // chunks, 1)
+    chunks = 40
+    per = max(int(0.1 / model.dt) // chunks, 1)
     times, speeds = [], []
     for _ in range(chunks):
         sim.advance(per)
@@ -179,9 +179,31 @@ def test_block_slides_above_friction_angle_in_both_modes(device, mode):
         speeds.append(centre_of_mass_motion(sim, upper)[1][0])
     times, speeds = np.array(times), np.array(speeds)
     late = times > 0.3 * times[-1]
-    a = np.polyfit(times[late], speeds[late], 1)[0]
+    return float(np.polyfit(times[late], speeds[late], 1)[0]), float(centre_of_mass_motion(sim, upper)[0][0])
+
+
+@pytest.mark.parametrize("mode", ["deformable", "rigid"])
+def test_block_slides_above_friction_angle_in_both_modes(device, mode):
+    """θ = 30° > atan μ: a = g (sin θ − μ cos θ) to SLIDE_RTOL (the deformable case is test_fem_contact.py's)."""
+    theta = 30.0
+    a, _ = slide(device, theta, mode)
     expected = GRAVITY * (math.sin(math.radians(theta)) - FRICTION * math.cos(math.radians(theta)))
     np.testing.assert_allclose(a, expected, rtol=SLIDE_RTOL)
+
+
+@pytest.mark.parametrize("mode", ["deformable", "rigid"])
+def test_sliding_onset_is_the_same_in_both_modes(device, mode):
+    """Either side of the friction angle atan 0.3 = 16.7°: at 15° the block holds (it moves less than 5 % of a free
+    slide's g sin θ t²/2), at 18° it slides with g (sin θ − μ cos θ) = 0.23 m/s², to SLIDE_RTOL of the driving
+    g sin θ (the net acceleration is a small difference). Measured: 0.239 (deformable) and 0.2323 (rigid)."""
+    _, u = slide(device, 15.0, mode)
+    assert abs(u) < 0.05 * 0.5 * GRAVITY * math.sin(math.radians(15.0)) * 0.1**2  # measured 2.1e-4, 1.1e-5 m
+    theta = 18.0
+    a, _ = slide(device, theta, mode)
+    drive = GRAVITY * math.sin(math.radians(theta))
+    expected = drive - GRAVITY * FRICTION * math.cos(math.radians(theta))
+    assert expected > 0.0
+    np.testing.assert_allclose(a, expected, atol=SLIDE_RTOL * drive)
 
 
 def jointed_pair(device, velocity_noise: float = 0.05):
