@@ -1077,11 +1077,8 @@ def jointed_cube(cells: int, device: str) -> Simulation:
     velocity[tets.ravel()] = np.repeat(kick, 4, axis=0)
     b.add_tet_mesh(points, tets, "granite", joint_faces=joint_faces, joint_set=js, velocity=velocity)
     model, state = b.finalize(device, safety_factor=0.5)
-    deformable = model.critical_dt
-    model = rigid_time_step(model, state, 0.5)
-    sim = Simulation(model, state, track_energy=False)
+    sim = Simulation(rigid_time_step(model, state, 0.5), state, track_energy=False)
     sim.switch_to_rigid()
-    sim.deformable_dt = deformable
     return sim
 
 
@@ -1116,7 +1113,7 @@ def bench_blocks(blocks_wanted: int, steps: int = 50, device: str = "cpu", repea
         tets=int(s.tet_count.numpy()[0]),
         steps=steps,
         dt=sim.model.dt,
-        deformable_dt=0.5 * sim.deformable_dt,
+        deformable_dt=0.5 * sim.model.deformable_critical_dt,
         build_time=build,
         wall_time=wall,
         block_steps_per_second=blocks * steps / wall,
