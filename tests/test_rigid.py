@@ -402,3 +402,17 @@ def test_bad_rigid_table_is_a_one_line_scene_error(tmp_path, table, phrase):
         finalize_scene(scene, scene_builder(scene), "cpu")
     message = str(info.value)
     assert phrase in message and "\n" not in message and str(path) in message
+
+
+def test_rigid_blocks_keep_their_surface_in_the_output(device):
+    """The rock surface written to USD/VTU (warpdem.output.RockFrames) is the same set of faces before and after the
+    switch: rigid tets (tet_active 2) are still material, only their elastic force is off."""
+    from warpdem.output import RockFrames
+
+    model, state = jointed_pair(device)
+    sim = Simulation(model, state)
+    before = RockFrames().surface(sim.model, sim.state).faces
+    sim.switch_to_rigid()
+    after = RockFrames().surface(sim.model, sim.state).faces
+    assert len(before) > 0
+    np.testing.assert_array_equal(np.sort(np.sort(after, axis=1), axis=0), np.sort(np.sort(before, axis=1), axis=0))
