@@ -27,6 +27,7 @@ import math
 
 import numpy as np
 import pytest
+import warp as wp
 from test_fem_contact import FRICTION, GRAVITY, SLIDE_RTOL, centre_of_mass_motion, two_blocks
 
 from warpdem.builder import ModelBuilder
@@ -35,6 +36,7 @@ from warpdem.joints import JointProps
 from warpdem.mesh import box_mesh
 from warpdem.rigid import angular_velocities, body_frames, box_inertia, element_mode_energy
 from warpdem.simulation import Simulation
+from warpdem.tets import TetProps
 
 DENSITY = 2000.0  # [kg/m³]
 YOUNG = 1.0e8  # [Pa]
@@ -416,3 +418,49 @@ def test_rigid_blocks_keep_their_surface_in_the_output(device):
     after = RockFrames().surface(sim.model, sim.state).faces
     assert len(before) > 0
     np.testing.assert_array_equal(np.sort(np.sort(after, axis=1), axis=0), np.sort(np.sort(before, axis=1), axis=0))
+
+
+def test_rigid_region_next_to_deformable_tets_conserves_momentum(device):
+    """A box whose upper half turns rigid (``tet_may_rigid``) while its lower half stays deformable, with no joint
+    between them: the nodes they share follow the body, the deformable tets' forces on them act on the body. No
+    external force: the total momentum (deformable nodes + body) is conserved to float32 rounding of the nodes'
+    updates (a random walk, MOMENTUM_ROUNDOFF ε₃₂ √steps of Σ m |v|), and the books close."""
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (2, 2, 2))
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    # Bulk viscosity books its power half a step ahead (README, Known limitations): 2 % of the energy in play in this
+    # violently vibrating box with the tets deformable, 1.2 % with the upper half rigid; off, the books close to
+    # 3e-4 (measured) with or without the rigid half.
+    b.set_tet_properties("rock", TetProps(bulk_viscosity_linear=0.0, bulk_viscosity_quadratic=0.0))
+    rng = np.random.default_rng(5)
+    b.add_tet_mesh(points, tets, "rock", velocity=rng.normal(scale=0.05, size=points.shape))
+    model, state = b.finalize(device, safety_factor=0.5)
+    upper = np.zeros(model.tet_capacity, dtype=np.int32)
+    upper[: len(tets)] = points[tets].mean(axis=1)[:, 2] > 0.5
+    model = dataclasses.replace(model, tet_may_rigid=wp.array(upper, dtype=int, device=model.device))
+    sim = Simulation(model, state)
+    sim.advance(20)
+    n = sim.node_count
+    mass = model.node_mass.numpy()[:n].astype(np.float64)
+
+    def momentum() -> tuple[np.ndarray, float]:
+        free = sim.model.node_motion.numpy()[:n] != 8
+        v = sim.state.node_qd.numpy()[:n].astype(np.float64)
+        p = (mass[free, None] * v[free]).sum(axis=0)
+        scale = float((mass[:, None] * np.abs(v)).sum())
+        if sim.rigid:
+            p += (sim.state.body_mass.numpy()[:, None] * sim.state.body_v.numpy()).sum(axis=0)
+        return p, scale
+
+    p0, _ = momentum()
+    report = sim.switch_to_rigid()
+    assert (report.bodies, report.tets) == (1, int(upper.sum()))
+    p1, _ = momentum()
+    e1 = sim.energy()
+    steps = 300
+    sim.advance(steps)
+    p2, scale = momentum()
+    np.testing.assert_allclose(p1, p0, atol=8.0 * F32_EPS * scale)
+    np.testing.assert_allclose(p2, p1, atol=4.0 * F32_EPS * math.sqrt(steps) * scale)
+    assert e1.strain > 0.0  # the deformable half still strains
+    assert abs(sim.energy().total - e1.total) < BOOKS_RTOL * e1.in_play
