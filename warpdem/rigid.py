@@ -49,13 +49,17 @@ from .model import RIGID_BODY_FIELDS, RIGID_NODE_FIELDS, Model, State
 
 __all__ = [
     "RigidReport",
+    "angular_velocities",
     "body_energy",
+    "body_frames",
     "box_inertia",
     "contact_damping_ratio",
     "drift_bodies",
     "element_mode_energy",
+    "has_bodies",
     "kick_bodies",
     "make_bodies",
+    "pose_nodes",
     "reduce_body_forces",
     "rigid_critical_step",
     "rigid_time_step",
@@ -266,6 +270,7 @@ def pose_nodes(model: Model, state: State, move: bool) -> None:
         dim=m.node_capacity,
         inputs=[
             m.node_ref_q,
+            # Without FEM contact (half skin < 0) the stiffness is never read: any float array of the nodes stands in.
             m.node_contact_stiffness if m.node_contact_stiffness is not None else m.node_mass,
             0.5 * m.fem_skin if m.face_capacity else -1.0,
             s.node_count,
