@@ -463,7 +463,7 @@ class Simulation:
             report.released = released
         report.critical_dt = rigid_critical_step(self.model, self.state, contact_damping_ratio(self.model))
         m = self.model
-        report.deformable_dt = m.critical_dt if math.isnan(m.deformable_critical_dt) else m.deformable_critical_dt
+        report.deformable_dt = m.deformable_critical_dt if m.deformable_critical_dt > 0.0 else m.critical_dt
         self.rigid_report = report
         return report
 
