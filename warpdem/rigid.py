@@ -117,15 +117,14 @@ def box_inertia(mass: float, size: tuple[float, float, float]) -> np.ndarray:
     return mass / 12.0 * np.array([b * b + c * c, a * a + c * c, a * a + b * b])
 
 
-def make_bodies(model: Model, state: State) -> tuple[State, RigidReport, np.ndarray]:
+def make_bodies(model: Model, state: State) -> tuple[State, RigidReport]:
     """Turn every block (module docstring) into a rigid body: the body arrays of the state filled, the nodes' motion
     set to ``NODE_RIGID`` (a Model array, changed in place) and the tets' ``tet_active`` to ``TET_RIGID``. Positions
     do not move; the nodes' velocities become the body's rigid field at the next pose (:func:`pose_nodes`). Between
     steps; reads back.
 
     Returns:
-        The state with its rigid fields, what was done, and the mask of the tet slots made rigid (bool, shape
-        (tet_capacity,)).
+        The state with its rigid fields, and what was done.
     """
     device = model.device
     nn = int(state.node_count.numpy()[0])
@@ -214,10 +213,8 @@ def make_bodies(model: Model, state: State) -> tuple[State, RigidReport, np.ndar
     state.tet_active.assign(tet_active)
     state.rigid_switched.fill_(1)
     state = dataclasses.replace(state, **fields)
-    mask = np.zeros(model.tet_capacity, dtype=bool)
-    mask[:nt] = rigid_tet
     report = RigidReport(count, int(fixed.sum()), int(in_body.sum()), int(rigid_tet.sum()))
-    return state, report, mask
+    return state, report
 
 
 def has_bodies(state: State) -> bool:
@@ -405,7 +402,7 @@ def rigid_time_step(model: Model, state: State, safety_factor: float) -> Model:
     if model.loads is not None and getattr(model.loads, "dashpots", None) is not None:
         return model
     probe = dataclasses.replace(model, node_motion=wp.clone(model.node_motion))
-    bodies, _, _ = make_bodies(probe, state.clone())
+    bodies, _ = make_bodies(probe, state.clone())
     step = rigid_critical_step(probe, bodies, contact_damping_ratio(model))
     if not math.isfinite(step):
         return model

@@ -23,6 +23,11 @@ cohesive elements) run there too. With nodal fracture or FEM→DEM conversion on
 end on multiples of ``model.fracture_interval`` and ``model.conversion_interval`` steps, each chunk with its own
 overflow redo, and the passes due after each (:meth:`Simulation.conversion_pass`, warpdem.conversion, then
 :meth:`Simulation.fracture_pass`, warpdem.fracture): a redo never crosses a topology pass.
+
+Rigid blocks (warpdem.rigid): once the blocks turned rigid (:meth:`Simulation.switch_to_rigid`, from the start, at a
+time, or by the kinetic energy of the element modes), each half of the integration is followed by the bodies' (kick,
+drift and free rotor, then their nodes' pose; the second half kick) and the forces by their reduction to a force and
+a torque per body; the tets of the blocks carry no force.
 """
 
 from __future__ import annotations
@@ -420,7 +425,7 @@ class Simulation:
         return m.rigid_check_interval if (m.rigid_energy_fraction > 0.0 and not self.rigid) else 0
 
     def _switch_if_due(self) -> RigidReport | None:
-        """Turn the blocks rigid now if the scene asks for it at this step (``rigid_switch_step``) or the kinetic
+        """Turn the blocks rigid now if the scene asks for it at this step (``rigid_switch_time``) or the kinetic
         energy of the element modes fell below ``rigid_energy_fraction`` of the nodes' (checked every
         ``rigid_check_interval`` steps). Returns what the switch did, None when not due."""
         m = self.model
@@ -447,7 +452,7 @@ class Simulation:
             raise ValueError("switch_to_rigid: the blocks are rigid already")
         m, s = self.model, self.state
         before = self.energy() if self.track_energy else None
-        s, report, _ = make_bodies(m, s)
+        s, report = make_bodies(m, s)
         self.model = dataclasses.replace(m, fracture_interval=0, conversion_interval=0)
         self.state = s
         self._setup()
@@ -459,7 +464,8 @@ class Simulation:
         if before is not None:
             after = self.energy()
             released = before.strain - after.strain + before.kinetic - after.kinetic - (before.shadow - after.shadow)
-            self.state.energy_released_rigid.assign(np.array([released], dtype=np.float64))
+            booked = self.state.energy_released_rigid
+            booked.assign(booked.numpy() + released)
             report.released = released
         report.critical_dt = rigid_critical_step(self.model, self.state, contact_damping_ratio(self.model))
         m = self.model
