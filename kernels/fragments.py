@@ -184,3 +184,27 @@ def fragment_labels_kernel(
     last = is_item.shape[0] - 1
     if i == last:
         fragment_count[0] = root_offset[last] + is_root[last]
+
+
+@wp.kernel
+def unite_masked_tets_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    tet_mask: wp.array(dtype=int),
+    # State in:
+    tet_count_in: wp.array(dtype=int),
+    tet_active_in: wp.array(dtype=int),
+    # In:
+    is_item: wp.array(dtype=int),
+    # Out:
+    parent: wp.array(dtype=int),
+):
+    """The blocks of rigid mode (warpdem.rigid): only deformable tets (``tet_active`` 1) where ``tet_mask`` is set
+    unite their nodes; no element, bond or coupling glues anything."""
+    t = wp.tid()  # one thread per tet slot
+    if t >= tet_count_in[0] or tet_active_in[t] != 1 or tet_mask[t] == 0:
+        return
+    nodes = tet_nodes[t]
+    for k in range(1, 4):
+        if is_item[nodes[0]] != 0 and is_item[nodes[k]] != 0:
+            unite(parent, nodes[0], nodes[k])

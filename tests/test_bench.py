@@ -139,3 +139,22 @@ def test_conversion_bench_converts_the_tets_due(tmp_path, device):
     assert off["interval"] == 0 and off["converted"] == 0 and off["spheres"] == 0  # the pass off
     assert 0 < r["converted"] <= r["may_convert"]
     assert r["spawned"] == r["spheres"] == r["converted"]
+
+
+def test_block_bench_makes_one_body_per_cell(tmp_path, device):
+    """``bench blocks`` at a tiny size: every cell of the jointed cube is one free rigid block of 6 tets, with the
+    mass ρ (1 m)³ and the moments ρ (1 m)⁵/6 of a unit cube (the exact tet inertia; float32 node masses), and the
+    command runs and writes its JSON."""
+    from warpdem.bench import GRANITE, jointed_cube
+    from warpdem.rigid import box_inertia
+
+    sim = jointed_cube(2, device)
+    s = sim.state
+    assert s.body_mass.shape[0] == 8 and int(s.body_fixed.numpy().sum()) == 0
+    np.testing.assert_array_equal(s.body_node_count.numpy(), 8)  # 8 corners each: the joints split every node
+    rho = GRANITE["density"]
+    np.testing.assert_allclose(s.body_mass.numpy(), rho, rtol=1e-6)
+    np.testing.assert_allclose(s.body_inertia.numpy(), np.tile(box_inertia(rho, (1, 1, 1)), (8, 1)), rtol=1e-6)
+    out = tmp_path / "blocks.json"
+    assert main(["bench", "blocks", "--blocks", "8", "--steps", "2", "--repeat", "1", "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["blocks"][0]["blocks"] == 8

@@ -60,6 +60,7 @@ def test_every_scene_kernel_compiles_for_cuda(tmp_path):
         "compaction",
         "guard",
         "fragments",  # labelled at every output frame of the scenes with bonds or joints
+        "rigid",  # rigid_slope
         *IMPORTED_STAGES,
     )
     assert {f"warpdem.kernels.{stage}" for stage in stages} <= defined_in

@@ -32,6 +32,7 @@ from .model import (
     conversion_state,
     fracture_state,
     pair_table_array,
+    rigid_state,
 )
 from .overlap import InitialOverlap, initial_overlap
 from .restitution import hertz_damping_coefficient, linear_damping_ratio
@@ -928,6 +929,7 @@ def new_state(
         **fem_contact_state(model),
         **fracture_state(model),
         **conversion_state(model),
+        **rigid_state(model),
     )
 
 

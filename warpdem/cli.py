@@ -104,7 +104,8 @@ def run_parser() -> argparse.ArgumentParser:
         description="Run a warpdem scene (TOML). Without SCENE, runs the embedded default scene. "
         "'python -m warpdem bench' prints the settling benchmark table, 'python -m warpdem bench tets' the "
         "tetrahedra one, 'python -m warpdem bench fracture' the fracture one, 'python -m warpdem bench conversion' "
-        "the conversion one; 'python -m warpdem plot RUN_DIR' plots a run's time series, 'python -m warpdem preview "
+        "the conversion one, 'python -m warpdem bench blocks' the rigid-block one; 'python -m warpdem plot RUN_DIR' "
+        "plots a run's time series, 'python -m warpdem preview "
         "STAGE' renders frames of its USD stage to PNG.",
     )
     p.add_argument("scene", nargs="?", help="scene file (.toml); default: the embedded default scene")
@@ -152,6 +153,22 @@ def tet_bench_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--sizes", type=_positive_int, nargs="+", default=[200_000, 1_000_000], help="tets wanted")
     p.add_argument("--steps", type=_positive_int, default=100, help="time steps per timed run")
+    p.add_argument("--device", default="cpu", help="Warp device")
+    p.add_argument("--json", type=Path, help="also write the results as JSON")
+    p.add_argument("--repeat", type=_positive_int, default=3, help="timed runs per size; the fastest counts")
+    return p
+
+
+def block_bench_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m warpdem bench blocks",
+        description="Rigid-block benchmark: a jointed cube of 1 m blocks (one Kuhn cell, 6 tets, each) on the ground, "
+        "in rigid mode (see benchmarks/README.md). The documented figure is '--blocks 100000'.",
+    )
+    p.add_argument(
+        "--blocks", type=_positive_int, nargs="+", default=[4096], help="blocks wanted (rounded up to a cube)"
+    )
+    p.add_argument("--steps", type=_positive_int, default=50, help="time steps per timed run")
     p.add_argument("--device", default="cpu", help="Warp device")
     p.add_argument("--json", type=Path, help="also write the results as JSON")
     p.add_argument("--repeat", type=_positive_int, default=3, help="timed runs per size; the fastest counts")
@@ -281,6 +298,12 @@ def main(argv: list[str] | None = None) -> int:
         args = tet_bench_parser().parse_args(argv[2:])
         init_warp()
         return run_tet_bench(args.sizes, args.steps, args.device, args.json, args.repeat)
+    if argv[:2] == ["bench", "blocks"]:
+        from .bench import run_block_bench
+
+        args = block_bench_parser().parse_args(argv[2:])
+        init_warp()
+        return run_block_bench(args.blocks, args.steps, args.device, args.json, args.repeat)
     if argv[:1] == ["bench"] and argv[1:2] and argv[1] in PASS_BENCH_TEXT:
         from .bench import run_pass_bench
 

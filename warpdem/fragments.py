@@ -40,6 +40,7 @@ __all__ = [
     "FragmentFile",
     "FragmentSeries",
     "FragmentStats",
+    "block_labels",
     "can_fragment",
     "fragment_colors",
     "label_fragments",
@@ -119,15 +120,7 @@ def label_fragments(model: Model, state: State) -> FragmentStats:
             np.zeros(0),
             np.zeros((0, 3)),
         )
-    is_item = wp.empty(items, dtype=int, device=device)
-    parent = wp.empty(items, dtype=int, device=device)
-    wp.launch(
-        kf.init_items_kernel,
-        dim=items,
-        inputs=[model.node_mass, model.particle_motion, state.node_count, state.particle_count],
-        outputs=[is_item, parent],
-        device=device,
-    )
+    is_item, parent = _init_items(model, state)
     if model.tet_capacity:
         wp.launch(
             kf.unite_tets_kernel,
@@ -167,6 +160,39 @@ def label_fragments(model: Model, state: State) -> FragmentStats:
             outputs=[parent],
             device=device,
         )
+    labels, count = _root_labels(is_item, parent)
+    node_label, particle_label = labels[:nn], labels[ncap : ncap + n]
+    return _stats(
+        node_label,
+        particle_label,
+        count,
+        model.node_mass.numpy()[:nn],
+        state.node_qd.numpy()[:nn],
+        model.particle_mass.numpy()[:n],
+        state.particle_qd.numpy()[:n],
+    )
+
+
+def _init_items(model: Model, state: State) -> tuple[wp.array, wp.array]:
+    """The union–find items (FEM nodes with mass, then free spheres), each its own parent: ``is_item`` and ``parent``,
+    shape (node_capacity + particle_capacity,)."""
+    items = model.node_capacity + model.particle_capacity
+    is_item = wp.empty(items, dtype=int, device=model.device)
+    parent = wp.empty(items, dtype=int, device=model.device)
+    wp.launch(
+        kf.init_items_kernel,
+        dim=items,
+        inputs=[model.node_mass, model.particle_motion, state.node_count, state.particle_count],
+        outputs=[is_item, parent],
+        device=model.device,
+    )
+    return is_item, parent
+
+
+def _root_labels(is_item: wp.array, parent: wp.array) -> tuple[np.ndarray, int]:
+    """Component ids of the items after the unions, numbered by their smallest items (an exclusive scan over the
+    roots), -1 for what is no item; and the number of components (reads back)."""
+    device, items = parent.device, parent.shape[0]
     is_root = wp.empty(items, dtype=int, device=device)
     wp.launch(kf.flag_roots_kernel, dim=items, inputs=[is_item], outputs=[parent, is_root], device=device)
     offset = wp.empty(items, dtype=int, device=device)
@@ -180,18 +206,43 @@ def label_fragments(model: Model, state: State) -> FragmentStats:
         outputs=[label, fragment_count],
         device=device,
     )
-    labels = label.numpy()
-    node_label, particle_label = labels[:nn], labels[ncap : ncap + n]
-    count = int(fragment_count.numpy()[0])
-    return _stats(
-        node_label,
-        particle_label,
-        count,
-        model.node_mass.numpy()[:nn],
-        state.node_qd.numpy()[:nn],
-        model.particle_mass.numpy()[:n],
-        state.particle_qd.numpy()[:n],
+    return label.numpy(), int(fragment_count.numpy()[0])
+
+
+def block_labels(model: Model, state: State) -> tuple[np.ndarray, int]:
+    """The blocks of rigid mode (warpdem.rigid): connected sets of the deformable tets that may turn rigid
+    (``Model.tet_may_rigid``, every tet when None), connected through shared nodes only — joint, cohesive and
+    coupling elements do not glue them (they act between the blocks). Labelled on the device as the fragments are.
+
+    Returns:
+        The block id of each live node (0..count-1 in the order of their smallest nodes; -1 for a node of no such
+        tet), shape (node_count,), int32; and the number of blocks.
+    """
+    nn = int(state.node_count.numpy()[0])
+    nt = int(state.tet_count.numpy()[0])
+    if nn == 0 or nt == 0:
+        return np.full(nn, -1, dtype=np.int32), 0
+    mask = model.tet_may_rigid
+    if mask is None:
+        mask = wp.full(model.tet_capacity, 1, dtype=int, device=model.device)
+    is_item, parent = _init_items(model, state)
+    wp.launch(
+        kf.unite_masked_tets_kernel,
+        dim=model.tet_capacity,
+        inputs=[model.tet_nodes, mask, state.tet_count, state.tet_active, is_item],
+        outputs=[parent],
+        device=model.device,
     )
+    labels, _ = _root_labels(is_item, parent)
+    tets = model.tet_nodes.numpy()[:nt]
+    used = (state.tet_active.numpy()[:nt] == 1) & (mask.numpy()[:nt] != 0)
+    touched = np.zeros(nn, dtype=bool)
+    touched[tets[used].ravel()] = True
+    touched &= labels[:nn] >= 0
+    label = np.full(nn, -1, dtype=np.int32)
+    roots, inverse = np.unique(labels[:nn][touched], return_inverse=True)
+    label[touched] = inverse.astype(np.int32)
+    return label, len(roots)
 
 
 def _stats(
@@ -231,7 +282,7 @@ def tets_per_fragment(model: Model, state: State, stats: FragmentStats) -> np.nd
     """Active tets in each fragment, indexed by fragment id, shape (count,), int64 (0 for a fragment of spheres only;
     a tet's nodes share one fragment, so its first node's label is the tet's). Reads back the tets."""
     nt = int(state.tet_count.numpy()[0]) if model.tet_capacity else 0
-    first = model.tet_nodes.numpy()[:nt, 0][state.tet_active.numpy()[:nt] == 1]
+    first = model.tet_nodes.numpy()[:nt, 0][state.tet_active.numpy()[:nt] != 0]  # rigid tets too
     return np.bincount(stats.node_label[first], minlength=stats.count).astype(np.int64)
 
 

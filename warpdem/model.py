@@ -138,6 +138,20 @@ class Model:
         tet_edge_degree: Z_t, the live tets sharing an edge with each tet (converted or not: the bonds' V_b = V_t /
             Z_t + V_n / Z_n, warpdem.lattice), 0 past the live tets, shape (tet_capacity,), int32; set at attach
             (the mesh's topology then; a conversion pass recomputes what it reads where nodes may split).
+
+    Rigid blocks (warpdem.rigid; LDEC §2–§4):
+        rigid_switch: whether the blocks turn rigid at ``rigid_switch_time``.
+        rigid_switch_time: the time of that switch [s] (0: from the start); it falls on the first step at or after
+            it (warpdem.simulation).
+        rigid_energy_fraction: turn rigid once the kinetic energy of the element modes (the nodes' kinetic energy
+            beyond each block's rigid motion) is below this fraction of the nodes' kinetic energy, checked every
+            ``rigid_check_interval`` steps; 0: off.
+        rigid_check_interval: steps between two checks of ``rigid_energy_fraction``.
+        deformable_critical_dt: the builder's critical step of the deformable model where a rigid-from-start run took
+            the rigid blocks' step instead (warpdem.rigid.rigid_time_step) [s]; 0 otherwise (``critical_dt`` is it; not
+            nan, which a checkpoint's attributes could not compare equal).
+        tet_may_rigid: 1 where a tet may turn rigid (the scene's region or materials), else 0, shape
+            (tet_capacity,), int32; None: every tet.
     """
 
     device: wp.context.Device
@@ -224,6 +238,12 @@ class Model:
     tet_may_convert: wp.array | None = None
     conversion_material_table: wp.array | None = None
     tet_edge_degree: wp.array | None = None
+    rigid_switch: bool = False
+    rigid_switch_time: float = 0.0
+    rigid_energy_fraction: float = 0.0
+    rigid_check_interval: int = 100
+    deformable_critical_dt: float = 0.0
+    tet_may_rigid: wp.array | None = None
 
     @property
     def max_radius(self) -> float:
@@ -382,6 +402,23 @@ class State:
         coupling_energy_prev: spring energy at the last evaluation [J] (for the Verlet books), float32.
         tet_sphere: the sphere spawned in place of each tet, -1 while it is a tet, shape (tet_capacity,), int32
             (the bonds of a later conversion find their partner spheres through it).
+
+    Rigid blocks (warpdem.rigid, kernels/rigid.py; body arrays of shape (bodies,), empty before the switch, all
+    float64 but the ints):
+        rigid_switched: 1 once the blocks turned rigid, shape (1,), int32.
+        energy_released_rigid: the strain energy of the tets and the kinetic energy of the element modes that left
+            the mechanical books at the switch, with the switch's change of the shadow term [J], shape (1,), float64.
+        body_mass: M [kg]; body_inertia: principal moments [kg m²], vec3d; body_axes: principal axes at the switch
+            (columns, world), mat33d; body_fixed: 1 for a block held in place (it has a held or driven node), int32.
+        body_dc: displacement of the centre of mass since the switch [m], vec3d; body_v: its velocity [m/s], vec3d;
+            body_q: rotation since the switch, quatd; body_l: angular momentum about the centre of mass [kg m²/s],
+            vec3d; body_f, body_t: force [N] (gravity excluded) and torque about the centre of mass [N m] of the
+            nodes' forces, vec3d.
+        body_node_start, body_node_count: the body's nodes are rigid_nodes[start .. start + count), int32.
+        rigid_nodes: the nodes of the bodies, grouped by body, ascending within one, shape (rigid nodes,), int32.
+        node_body: the body of each node, -1 for a deformable node, shape (node_capacity,) after the switch, int32.
+        node_rigid_r0: the node's offset from its body's centre of mass at the switch [m], vec3d; node_rigid_u0: its
+            displacement then [m], vec3; both shape (node_capacity,) after the switch.
     """
 
     particle_count: wp.array
@@ -488,6 +525,24 @@ class State:
     coupling_k: wp.array
     coupling_energy_prev: wp.array
     tet_sphere: wp.array
+    rigid_switched: wp.array
+    energy_released_rigid: wp.array
+    body_mass: wp.array
+    body_inertia: wp.array
+    body_axes: wp.array
+    body_fixed: wp.array
+    body_dc: wp.array
+    body_v: wp.array
+    body_q: wp.array
+    body_l: wp.array
+    body_f: wp.array
+    body_t: wp.array
+    body_node_start: wp.array
+    body_node_count: wp.array
+    rigid_nodes: wp.array
+    node_body: wp.array
+    node_rigid_r0: wp.array
+    node_rigid_u0: wp.array
 
     def arrays(self) -> dict[str, wp.array]:
         """All arrays of the state by field name."""
@@ -583,6 +638,40 @@ def conversion_state(model: Model) -> dict[str, wp.array]:
         "coupling_k": wp.zeros(cap, dtype=float, device=d),
         "coupling_energy_prev": wp.zeros(cap, dtype=float, device=d),
         "tet_sphere": wp.full(model.tet_capacity, -1, dtype=int, device=d),
+    }
+
+
+RIGID_BODY_FIELDS = {
+    "body_mass": wp.float64,
+    "body_inertia": wp.vec3d,
+    "body_axes": wp.mat33d,
+    "body_fixed": int,
+    "body_dc": wp.vec3d,
+    "body_v": wp.vec3d,
+    "body_q": wp.quatd,
+    "body_l": wp.vec3d,
+    "body_f": wp.vec3d,
+    "body_t": wp.vec3d,
+    "body_node_start": int,
+    "body_node_count": int,
+}
+"""State fields indexed by rigid body, with their types."""
+
+RIGID_NODE_FIELDS = {"node_body": int, "node_rigid_r0": wp.vec3d, "node_rigid_u0": wp.vec3}
+"""State fields indexed by node that exist once the blocks turned rigid (empty before)."""
+
+
+def rigid_state(model: Model) -> dict[str, wp.array]:
+    """The State fields of rigid blocks before the switch: no body, no rigid node (warpdem.rigid fills them)."""
+    d = model.device
+    fields = {
+        name: wp.empty(0, dtype=dtype, device=d) for name, dtype in {**RIGID_BODY_FIELDS, **RIGID_NODE_FIELDS}.items()
+    }
+    return {
+        "rigid_switched": wp.zeros(1, dtype=int, device=d),
+        "energy_released_rigid": wp.zeros(1, dtype=wp.float64, device=d),
+        "rigid_nodes": wp.empty(0, dtype=int, device=d),
+        **fields,
     }
 
 

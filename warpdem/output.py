@@ -421,7 +421,7 @@ class RockFrames:
     def _live(self, model: Model, state: State) -> tuple[int, np.ndarray, np.ndarray]:
         nn = int(state.node_count.numpy()[0])
         nt = int(state.tet_count.numpy()[0])
-        return nn, model.tet_nodes.numpy()[:nt], state.tet_active.numpy()[:nt] == 1
+        return nn, model.tet_nodes.numpy()[:nt], state.tet_active.numpy()[:nt] != 0  # rigid tets (2) too
 
     def surface(self, model: Model, state: State, fragment: np.ndarray | None = None) -> SurfaceFrame | None:
         """The rock surface now (reads back; call between steps), or None for a model without tets.
@@ -483,7 +483,7 @@ class RockFrames:
             return None
         if self._size == 0.0:
             nt = int(state.tet_count.numpy()[0])
-            volume = model.tet_volume.numpy()[:nt][state.tet_active.numpy()[:nt] == 1]
+            volume = model.tet_volume.numpy()[:nt][state.tet_active.numpy()[:nt] != 0]
             self._size = float(np.cbrt(volume.mean())) if len(volume) else 0.0
         nc = int(state.cohesive_count.numpy()[0])
         intact = state.cohesive_broken.numpy()[:nc] == 0

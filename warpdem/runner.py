@@ -20,6 +20,7 @@ from .checkpoint import CheckpointError, checkpoint_name, read_checkpoint, write
 from .guard import UnstableRunError
 from .limits import MAX_ELEMENTS, MAX_STEPS
 from .model import NEIGHBOR_FIELDS, Model, State
+from .rigid import rigid_time_step
 from .scene import Scene, SceneError
 from .scene_build import finalize_scene, scene_builder, start_as_spheres
 from .simulation import EnergyBalance, Simulation, balance_error
@@ -73,7 +74,19 @@ def _restore_loads(model: Model, arrays: dict[str, np.ndarray]) -> Model:
     return model
 
 
-NOT_PER_PARTICLE = ("node_", "tet_", "face_", "star_", "joint_", "cohesive_", "ref_", "bond_", "coupling_")
+NOT_PER_PARTICLE = (
+    "node_",
+    "tet_",
+    "face_",
+    "star_",
+    "joint_",
+    "cohesive_",
+    "ref_",
+    "bond_",
+    "coupling_",
+    "body_",
+    "rigid_",
+)
 """Array names that are never sized by the particle capacity (nodes, tets, faces, joints, cohesive elements and bonds
 grow by their own capacities, which may equal it by chance)."""
 
@@ -169,6 +182,8 @@ class RunSummary:
     ejecta_speed_median: float = 0.0
     """Largest and median centre-of-mass speed of the fragments other than the largest at the last frame [m/s]
     (0 with one fragment)."""
+    rigid: str = ""
+    """What the switch to rigid blocks did in this run (warpdem.rigid.RigidReport.format), empty without one."""
 
     def format(self) -> str:
         e0, e1 = self.energy_start, self.energy_end
@@ -186,6 +201,8 @@ class RunSummary:
         if self.nodes:
             rate = self.tet_steps_per_second / 1e6
             lines.append(f"rock mesh        {self.nodes} nodes, {self.tets} tets  ({rate:.3f} M tet-steps/s)")
+        if self.rigid:
+            lines.append(f"rigid blocks     {self.rigid.removeprefix('rigid switch: ')}")
         if self.fracture:
             lines += [
                 f"fracture         {self.splits} node splits; cohesive elements {self.cohesive_intact} intact, "
@@ -201,7 +218,11 @@ class RunSummary:
         lines += ["energy [J]       start          end", row("kinetic", e0.kinetic, e1.kinetic)]
         if self.nodes:
             lines.append(row("  of nodes", e0.kinetic_nodes, e1.kinetic_nodes))
+        if e0.kinetic_rigid or e1.kinetic_rigid:
+            lines.append(row("  of rigid bl.", e0.kinetic_rigid, e1.kinetic_rigid))
         lines.append(row("Verlet shadow", e0.shadow, e1.shadow))
+        if e1.released_rigid_switch:
+            lines.append(row("rigid switch", e0.released_rigid_switch, e1.released_rigid_switch))
         if self.nodes:
             lines += [
                 row("strain", e0.strain, e1.strain),
@@ -502,6 +523,9 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     if not options.quiet and builder.overlap is not None and builder.overlap.any:
         print(f"initial overlap: {builder.overlap.format()}")
 
+    if scene.rigid.enabled and run.dt == "auto":
+        # Rigid blocks from the start: no element modes, the contacts on the bodies set the step (warpdem.rigid).
+        model = rigid_time_step(model, state, run.safety_factor)
     fps = run.output_rate
     frame_period = 1.0 / fps
     if not (math.isfinite(model.dt) and model.dt > 0.0):
@@ -730,6 +754,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         fragment_mass=fragments.total_mass if fragments is not None else 0.0,
         ejecta_speed_max=float(ejecta.max(initial=0.0)),
         ejecta_speed_median=float(np.median(ejecta)) if len(ejecta) else 0.0,
+        rigid=sim.rigid_report.format() if sim.rigid_report is not None else "",
     )
 
 

@@ -1264,6 +1264,45 @@ class Conversion(_Model):
         return value
 
 
+class Rigid(_Model):
+    """Rigid blocks (LDEC §2–§4): each connected set of tets (what joints, cracks and conversion left in one piece)
+    turns into one rigid body whose nodes follow it; contacts and joints act between the blocks (warpdem.rigid). At
+    most one of ``enabled``, ``switch_time`` and ``energy_fraction``."""
+
+    enabled: Bool = Field(default=False, description="Rigid blocks from the start (t = 0).")
+    switch_time: Float | None = Field(
+        default=None, ge=0, description="Switch from deformable tets to rigid blocks at this time [s]."
+    )
+    energy_fraction: Float | None = Field(
+        default=None,
+        gt=0,
+        lt=1,
+        description="Switch once the kinetic energy of the element modes (the nodes' beyond each block's rigid "
+        "motion) is below this fraction of the nodes' kinetic energy [-].",
+    )
+    check_interval: Int = Field(default=100, ge=1, description="Steps between checks of energy_fraction [-].")
+    region: Region | None = Field(
+        default=None, description="Only tets whose centroid is inside turn rigid; omitted: every tet."
+    )
+    materials: list[Name] | None = Field(
+        default=None, description="Only tets of these materials turn rigid; omitted: every material."
+    )
+
+    @model_validator(mode="after")
+    def _one_trigger(self) -> Rigid:
+        given = [k for k in ("enabled", "switch_time", "energy_fraction") if getattr(self, k) not in (None, False)]
+        if len(given) > 1:
+            raise ValueError(
+                f"takes at most one of 'enabled', 'switch_time', 'energy_fraction' (got {', '.join(given)})"
+            )
+        return self
+
+    @property
+    def active(self) -> bool:
+        """Whether the blocks turn rigid at some point of the run."""
+        return self.enabled or self.switch_time is not None or self.energy_fraction is not None
+
+
 class MaterialRegion(_Model):
     """Tets of the mesh whose centroid lies in a region take another material (a second body, a lining)."""
 
@@ -1384,6 +1423,7 @@ class Scene(_Model):
     boundaries: list[Boundary] = Field(default_factory=list, description="Boundary conditions of the mesh.")
     fracture: Fracture = Field(default_factory=Fracture, description="Nodal fracture of the rock mesh.")
     conversion: Conversion = Field(default_factory=Conversion, description="Adaptive FEM→DEM conversion.")
+    rigid: Rigid = Field(default_factory=Rigid, description="Rigid blocks, from the start or by a switch.")
     material_regions: list[MaterialRegion] = Field(
         default_factory=list, description="Regions of the mesh made of another material than the mesh's."
     )
@@ -1404,6 +1444,15 @@ class Scene(_Model):
         if default is not None and isinstance(data, Mapping) and "name" not in data:
             return {**data, "name": default}
         return data
+
+    @model_validator(mode="after")
+    def _check_rigid(self) -> Scene:
+        unknown = [name for name in self.rigid.materials or [] if name not in self.materials]
+        if unknown:
+            raise ValueError(f"rigid.materials: {unknown[0]!r} is not a material of [materials]")
+        if self.rigid.active and self.mesh is None:
+            raise ValueError("rigid: rigid blocks need a [mesh] (they are made of its tets)")
+        return self
 
     @model_validator(mode="after")
     def _default_usd(self) -> Scene:

@@ -8,6 +8,7 @@ name the scene file and the key.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -222,7 +223,7 @@ def finalize_scene(scene: Scene, b: ModelBuilder, device: wp.context.DeviceLike 
     # Coincident bonded spheres (the more specific error, naming the source) were refused by finalize first.
     if overlapping:
         raise _overlap_error(scene, overlap)
-    return attach_scene_conversion(scene, *attach_scene_fracture(scene, *built))
+    return attach_scene_rigid(scene, *attach_scene_conversion(scene, *attach_scene_fracture(scene, *built)))
 
 
 def tet_centroids(model: Model, state: State) -> np.ndarray:
@@ -278,6 +279,40 @@ def attach_scene_conversion(scene: Scene, model: Model, state: State) -> tuple[M
         # Values the schema already checks; a direct caller's mistake still names the key.
         key = "conversion.spheres_per_tet" if "spheres_per_tet" in str(exc) else "conversion"
         raise SceneError(f"{scene.source}: {key}: {exc}") from None
+
+
+def attach_scene_rigid(scene: Scene, model: Model, state: State) -> tuple[Model, State]:
+    """The model with the scene's ``[rigid]`` settings (else as it is): when the blocks turn rigid (from the start, at
+    ``switch_time``, or by ``energy_fraction`` checked every ``check_interval`` steps) and which tets may (centroid in
+    ``region`` at the built positions, material among ``materials``). The switch itself is the Simulation's
+    (warpdem.simulation.Simulation.switch_to_rigid).
+
+    Raises:
+        SceneError: no tet lies in the region and materials given.
+    """
+    rigid = scene.rigid
+    if not rigid.active:
+        return model, state
+    count = int(state.tet_count.numpy()[0])
+    may = np.ones(count, dtype=bool)
+    if rigid.region is not None:
+        may &= rigid.region.contains(tet_centroids(model, state))
+    if rigid.materials is not None:
+        ids = [scene.material_index(name) for name in rigid.materials]
+        may &= np.isin(model.tet_material.numpy()[:count], ids)
+    if not may.any():
+        raise SceneError(f"{scene.source}: rigid: no tet of the mesh lies in the region and materials given")
+    flags = np.zeros(model.tet_capacity, dtype=np.int32)
+    flags[:count] = may
+    model = dataclasses.replace(
+        model,
+        rigid_switch=rigid.energy_fraction is None,
+        rigid_switch_time=0.0 if rigid.enabled else float(rigid.switch_time or 0.0),
+        rigid_energy_fraction=float(rigid.energy_fraction or 0.0),
+        rigid_check_interval=rigid.check_interval,
+        tet_may_rigid=None if may.all() else wp.array(flags, dtype=int, device=model.device),
+    )
+    return model, state
 
 
 def start_as_spheres(scene: Scene, sim) -> int:

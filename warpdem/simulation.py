@@ -23,11 +23,17 @@ cohesive elements) run there too. With nodal fracture or FEM→DEM conversion on
 end on multiples of ``model.fracture_interval`` and ``model.conversion_interval`` steps, each chunk with its own
 overflow redo, and the passes due after each (:meth:`Simulation.conversion_pass`, warpdem.conversion, then
 :meth:`Simulation.fracture_pass`, warpdem.fracture): a redo never crosses a topology pass.
+
+Rigid blocks (warpdem.rigid): once the blocks turned rigid (:meth:`Simulation.switch_to_rigid`, from the start, at a
+time, or by the kinetic energy of the element modes), each half of the integration is followed by the bodies' (kick,
+drift and free rotor, then their nodes' pose; the second half kick) and the forces by their reduction to a force and
+a torque per body; the tets of the blocks carry no force.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 from dataclasses import dataclass
 
@@ -59,10 +65,26 @@ from .fem_contact import (
 from .fracture import FracturePass, SplitReport
 from .guard import GuardReport, StabilityGuard, UnstableRunError
 from .integrate import integrate_first_half, integrate_second_half, kick_drift
+from .kernels import rigid as kernels_rigid
 from .loads import eval_loads, relax_to_equilibrium
 from .model import NEIGHBOR_FIELDS, Model, State
+from .rigid import (
+    RigidReport,
+    body_energy,
+    contact_damping_ratio,
+    drift_bodies,
+    element_mode_energy,
+    has_bodies,
+    kick_bodies,
+    make_bodies,
+    pose_nodes,
+    reduce_body_forces,
+    rigid_critical_step,
+)
 from .tets import eval_tet_stresses, eval_tets, tet_energy
 from .topology import regrow_nodes
+
+NODE_RIGID = int(kernels_rigid.NODE_RIGID)
 
 
 @dataclass
@@ -91,7 +113,10 @@ class EnergyBalance:
     (their strain energy and the kinetic energy of their motion about the centroid beyond the spheres' spin, the
     springs of released couplings and the pass's change of the shadow term; warpdem.conversion) and
     ``coupling_elastic`` the spring energy of the penalty couplings between converted spheres and the continuum (in
-    ``in_play``; warpdem.coupling).
+    ``in_play``; warpdem.coupling). ``kinetic_rigid`` is the rigid blocks' kinetic energy ½ M v² + ½ L·ω (their nodes
+    are not counted in ``kinetic_nodes``) and ``released_rigid_switch`` what left the books when blocks turned rigid:
+    the strain energy of their tets and the kinetic energy of the element modes, with the switch's change of the
+    shadow term (warpdem.rigid).
     """
 
     kinetic_translational: float
@@ -114,10 +139,12 @@ class EnergyBalance:
     dissipated_cohesive: float = 0.0
     released_conversion: float = 0.0
     coupling_elastic: float = 0.0
+    kinetic_rigid: float = 0.0
+    released_rigid_switch: float = 0.0
 
     @property
     def kinetic(self) -> float:
-        return self.kinetic_translational + self.kinetic_rotational + self.kinetic_nodes
+        return self.kinetic_translational + self.kinetic_rotational + self.kinetic_nodes + self.kinetic_rigid
 
     @property
     def in_play(self) -> float:
@@ -148,6 +175,7 @@ class EnergyBalance:
             + self.dissipated_cohesive
             + self.released_conversion
             + self.coupling_elastic
+            + self.released_rigid_switch
         )
 
 
@@ -159,9 +187,11 @@ def balance_error(start: EnergyBalance, now: EnergyBalance, in_play: float) -> f
 
 
 NODE_FREE_DIRECTIONS = np.array(
-    [[1, 1, 1], [0, 0, 0], [0, 0, 1], [0, 1, 1], [1, 0, 1], [1, 1, 0], [1, 0, 0], [0, 1, 0]], dtype=np.float64
+    [[1, 1, 1], [0, 0, 0], [0, 0, 1], [0, 1, 1], [1, 0, 1], [1, 1, 0], [1, 0, 0], [0, 1, 0], [0, 0, 0]],
+    dtype=np.float64,
 )
-"""Components of a node's velocity that move, by ``node_motion`` (kernels/tets.py ``node_free_directions``)."""
+"""Components of a node's velocity that move, by ``node_motion`` (kernels/tets.py ``node_free_directions``; the last
+row: a node of a rigid body, which the body moves, kernels/rigid.py ``NODE_RIGID``)."""
 
 
 def regrow_neighbors(model: Model, state: State, max_neighbors: int) -> tuple[Model, State]:
@@ -215,6 +245,7 @@ class Simulation:
         self.time = time
         self.growths = 0
         self.guard = StabilityGuard(model.device)
+        self.rigid_report: RigidReport | None = None
         if model.tet_may_convert is not None:
             # A restart: the checkpoint keeps dropped load faces as collapsed node triples; their edges come from the
             # scene and are zeroed again (a no-op at t = 0).
@@ -232,6 +263,7 @@ class Simulation:
             # first advance restores, so grow until it fits and evaluate again.
             while self._grow_if_overflowed(self.state):
                 self.evaluate_forces()
+            self._switch_if_due()
 
     def _setup(self) -> None:
         # A model of tets alone has no sphere to size the contact grid by: its sphere contact stages are skipped.
@@ -245,6 +277,7 @@ class Simulation:
         self._face_slot: wp.array | None = None
         self._snapshot: State | None = None
         self._graphs: tuple | None = None
+        self.rigid = has_bodies(self.state)
 
     # ------------------------------------------------------------------------------------------------------------
     def step(self) -> None:
@@ -266,20 +299,28 @@ class Simulation:
         eval_bonds(m, s, track_energy=self.track_energy)
         eval_coupling(m, s, track_energy=self.track_energy)
         eval_loads(m, s)
+        if self.rigid:
+            reduce_body_forces(m, s)
 
     def _head(self) -> None:
         """First half of the first step of a run, and its forces."""
         integrate_first_half(self.model, self.state, self.track_energy)
+        if self.rigid:
+            drift_bodies(self.model, self.state, after_second_half=False)
         self._forces()
 
     def _body(self) -> None:
         """Second half of a step, first half of the next (one pass: warpdem.integrate.kick_drift), its forces."""
         kick_drift(self.model, self.state, self.track_energy)
+        if self.rigid:
+            drift_bodies(self.model, self.state, after_second_half=True)
         self._forces()
 
     def _tail(self) -> None:
         """Second half of the last step of a run."""
         integrate_second_half(self.model, self.state)
+        if self.rigid:
+            kick_bodies(self.model, self.state)
 
     def evaluate_forces(self) -> None:
         """Forces at the current positions without advancing time or history (the set-up evaluation)."""
@@ -306,6 +347,8 @@ class Simulation:
         eval_bonds(m, s, dt=0.0, track_energy=self.track_energy)
         eval_coupling(m, s, dt=0.0, track_energy=self.track_energy)
         eval_loads(m, s, dt=0.0)
+        if self.rigid:
+            reduce_body_forces(m, s)
         eval_tet_stresses(m, s)
 
     def relax_to_equilibrium(self, **kwargs) -> int:
@@ -363,20 +406,80 @@ class Simulation:
             warpdem.guard.UnstableRunError: the state went non-finite or ran away (warpdem.guard); the simulation is
                 left at the first bad step.
         """
-        kc, kf = self.model.conversion_interval, self.model.fracture_interval
-        intervals = [k for k in (kc, kf) if k > 0]
-        if not intervals:
-            self._advance_chunk(n_steps)
-            return
         remaining = n_steps
         while remaining > 0:
-            chunk = min(remaining, *(k - self.step_count % k for k in intervals))
+            kc, kf = self.model.conversion_interval, self.model.fracture_interval
+            intervals = [k for k in (kc, kf, self._rigid_check_interval()) if k > 0]
+            switch = self._rigid_switch_step()
+            if self.model.rigid_switch and not self.rigid and switch > self.step_count:
+                intervals.append(switch)  # a chunk ends on the switch step (counted from step 0, as the passes)
+            chunk = min(remaining, *(k - self.step_count % k for k in intervals)) if intervals else remaining
             self._advance_chunk(chunk)
             remaining -= chunk
             if kc > 0 and self.step_count % kc == 0:
                 self.conversion_pass()
             if kf > 0 and self.step_count % kf == 0:
                 self.fracture_pass()
+            self._switch_if_due()
+
+    def _rigid_switch_step(self) -> int:
+        """The step on which the scene's rigid switch falls: the first at or after ``rigid_switch_time`` (a relative
+        1e-9 of slack, so a time that is a whole number of steps in decimal is not pushed one step on by rounding)."""
+        return max(0, math.ceil(self.model.rigid_switch_time / self.model.dt * (1.0 - 1e-9)))
+
+    def _rigid_check_interval(self) -> int:
+        """Steps between two checks of the kinetic-energy criterion of the rigid switch (0: none due)."""
+        m = self.model
+        return m.rigid_check_interval if (m.rigid_energy_fraction > 0.0 and not self.rigid) else 0
+
+    def _switch_if_due(self) -> RigidReport | None:
+        """Turn the blocks rigid now if the scene asks for it at this step (``rigid_switch_time``) or the kinetic
+        energy of the element modes fell below ``rigid_energy_fraction`` of the nodes' (checked every
+        ``rigid_check_interval`` steps). Returns what the switch did, None when not due."""
+        m = self.model
+        if self.rigid or m.node_capacity == 0:
+            return None
+        due = m.rigid_switch and self._rigid_switch_step() <= self.step_count
+        every = self._rigid_check_interval()
+        if not due and every > 0 and self.step_count % every == 0:
+            element, total = element_mode_energy(m, self.state)
+            due = total > 0.0 and element < m.rigid_energy_fraction * total
+        return self.switch_to_rigid() if due else None
+
+    def switch_to_rigid(self) -> RigidReport:
+        """Turn every block rigid now, between steps (warpdem.rigid.make_bodies): each takes the mass, momentum and
+        angular momentum of its nodes; the strain energy of its tets and the kinetic energy of its element modes are
+        booked as ``released_rigid_switch`` (with the change of the shadow term, as a conversion pass books it), so
+        the books stay closed across the switch. Fracture and conversion passes stop. Forces are re-evaluated at the
+        current positions (dt = 0) and the graphs re-captured.
+
+        Raises:
+            ValueError: the blocks already turned rigid.
+        """
+        if self.rigid:
+            raise ValueError("switch_to_rigid: the blocks are rigid already")
+        m, s = self.model, self.state
+        before = self.energy() if self.track_energy else None
+        s, report = make_bodies(m, s)
+        self.model = dataclasses.replace(m, fracture_interval=0, conversion_interval=0)
+        self.state = s
+        self._setup()
+        # The nodes take their bodies' velocity field (positions are unchanged: u = u0 at the switch).
+        pose_nodes(self.model, self.state, move=False)
+        self.evaluate_forces()
+        while self._grow_if_overflowed(self.state):
+            self.evaluate_forces()
+        if before is not None:
+            after = self.energy()
+            released = before.strain - after.strain + before.kinetic - after.kinetic - (before.shadow - after.shadow)
+            booked = self.state.energy_released_rigid
+            booked.assign(booked.numpy() + released)
+            report.released = released
+        report.critical_dt = rigid_critical_step(self.model, self.state, contact_damping_ratio(self.model))
+        m = self.model
+        report.deformable_dt = m.deformable_critical_dt if m.deformable_critical_dt > 0.0 else m.critical_dt
+        self.rigid_report = report
+        return report
 
     def _advance_chunk(self, n_steps: int) -> None:
         """:meth:`advance` without split passes."""
@@ -686,6 +789,9 @@ class Simulation:
         e_cohesive, d_cohesive = cohesive_energy(m, s) if m.cohesive_capacity else (0.0, 0.0)
         node_mass = m.node_mass.numpy()[:nn].astype(np.float64)
         node_v = s.node_qd.numpy()[:nn].astype(np.float64)
+        # The nodes of rigid bodies move with them: the bodies' own kinetic energy counts (kinetic_rigid).
+        node_v[m.node_motion.numpy()[:nn] == NODE_RIGID] = 0.0
+        kinetic_rigid, _ = body_energy(m, s)
         # X + u in float64 rather than the float32 sum node_q, so the potential keeps the displacements' precision.
         node_q = m.node_ref_q.numpy()[:nn].astype(np.float64) + s.node_u.numpy()[:nn].astype(np.float64)
         moving = m.node_inv_mass.numpy()[:nn] > 0.0
@@ -712,6 +818,8 @@ class Simulation:
             dissipated_cohesive=d_cohesive,
             released_conversion=float(s.energy_released_conversion.numpy()[0]),
             coupling_elastic=coupling_energy(m, s),
+            kinetic_rigid=kinetic_rigid,
+            released_rigid_switch=float(s.energy_released_rigid.numpy()[0]),
         )
 
     def shadow(self) -> float:
@@ -740,7 +848,7 @@ class Simulation:
             a *= NODE_FREE_DIRECTIONS[m.node_motion.numpy()[:nn]]
             node_mass = m.node_mass.numpy()[:nn].astype(np.float64)
             total += np.sum((node_mass * np.sum(a * a, axis=1))[kicked])
-        return float(m.dt**2 / 8.0 * total)
+        return float(m.dt**2 / 8.0 * total) + body_energy(m, s)[1]
 
     def contact_count(self) -> int:
         """Touching sphere–sphere pairs now (reads back)."""

@@ -1,0 +1,253 @@
+"""Rigid blocks (LDEC's original mode, ldec_fem_dem_fracture.txt §2–§4): each joint-bounded block of tets is one rigid
+body, its nodes follow it, and their forces reduce to a force and a torque on it.
+
+A body holds, in float64 (few bodies, and the pose arithmetic must keep the displacements' precision):
+
+- its mass M [kg], principal moments (I1, I2, I3) [kg m²] and the principal axes A at the switch (columns, world
+  frame);
+- the displacement of its centre of mass since the switch, dc [m], and its velocity v [m/s];
+- its rotation since the switch as a unit quaternion q (world frame: the principal axes now are R(q) A);
+- its angular momentum about the centre of mass L [kg m²/s] (world frame);
+- the force F [N] (gravity excluded) and torque T [N m] about the centre of mass of its nodes' forces.
+
+A node of a body keeps its offset from the centre of mass at the switch, r0 [m], and its displacement then, u0 [m];
+its displacement now is u = u0 + dc + (R(q) r0 − r0), formed in float64 and rounded once, so a body at rest in a
+1 km model has the same nodes, bit for bit, wherever the origin is, and an unrotated body keeps u0 exactly.
+
+Integration: velocity Verlet for the translation (the same half kicks as the nodes, gravity added as to the nodes);
+for the rotation, the torque kicks L by dt/2 on each side of a free-rotor flow over dt, split symmetrically over the
+principal axes (Dullweber, Leimkuhler & McLachlan 1997, J. Chem. Phys. 107, 5840; the NO_SQUISH scheme of Miller et
+al. 2002 is the same splitting in quaternion momenta): rotations about axis 1 by dt/2, axis 2 by dt/2, axis 3 by dt,
+axis 2 by dt/2, axis 1 by dt/2, each the exact flow of H_k = L_k²/(2 I_k) (the body turns by φ = h L_k / I_k about
+its current axis k; L is constant in the world frame during the free flow). The scheme is symplectic and
+time-reversible, keeps |L| exactly, bounds the energy error at O(dt²) and carries the gyroscopic term of a body with
+three different moments (the intermediate-axis instability) with O(dt²) error in ω(t); about a principal axis it is
+leapfrog exactly.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+NODE_RIGID = wp.constant(8)
+"""``node_motion`` of a node that follows a rigid body (kernels/tets.py ``node_free_directions`` gives it no free
+component, so the node kernels leave its velocity at zero and its displacement alone; the body kernels set both)."""
+
+TET_RIGID = wp.constant(2)
+"""``tet_active`` of a tet in a rigid block: present (surface, contact, fragments: ``tet_active != 0``) but carrying
+no elastic force, stress or strain energy (kernels/tets.py evaluates only ``tet_active == TET_ACTIVE``)."""
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Rigid-body physics.
+
+
+@wp.func
+def principal_axis_now(q: wp.quatd, axes: wp.mat33d, k: int) -> wp.vec3d:
+    """Principal axis k of a body now, world frame: R(q) A e_k (A: the axes at the switch, columns)."""
+    return wp.quat_rotate(q, wp.vec3d(axes[0, k], axes[1, k], axes[2, k]))
+
+
+@wp.func
+def angular_velocity(q: wp.quatd, axes: wp.mat33d, inertia: wp.vec3d, angular_momentum: wp.vec3d) -> wp.vec3d:
+    """ω = R I⁻¹ Rᵀ L = Σ_k (L·a_k / I_k) a_k [rad/s], a_k the principal axes now."""
+    w = wp.vec3d()
+    for k in range(3):
+        a = principal_axis_now(q, axes, k)
+        w = w + (wp.dot(angular_momentum, a) / inertia[k]) * a
+    return w
+
+
+@wp.func
+def rotate_about_axis(q: wp.quatd, axes: wp.mat33d, inertia: wp.vec3d, angular_momentum: wp.vec3d, k: int, h: float):
+    """Exact flow of H_k = L_k²/(2 I_k) over h [s]: the body turns by φ = h L_k / I_k about its principal axis k.
+    Body frame: Q ← Q R_k(φ); with Q = R(q) A that is q ← q ⊗ rot(A e_k, φ). Returns the normalised quaternion."""
+    a = principal_axis_now(q, axes, k)
+    phi = wp.float64(h) * wp.dot(angular_momentum, a) / inertia[k]
+    axis0 = wp.vec3d(axes[0, k], axes[1, k], axes[2, k])
+    return wp.normalize(q * wp.quat_from_axis_angle(axis0, phi))
+
+
+@wp.func
+def free_rotor(q: wp.quatd, axes: wp.mat33d, inertia: wp.vec3d, angular_momentum: wp.vec3d, dt: float) -> wp.quatd:
+    """Free-rotor flow over dt by the symmetric splitting 1(dt/2) 2(dt/2) 3(dt) 2(dt/2) 1(dt/2) (module docstring)."""
+    h = 0.5 * dt
+    q = rotate_about_axis(q, axes, inertia, angular_momentum, 0, h)
+    q = rotate_about_axis(q, axes, inertia, angular_momentum, 1, h)
+    q = rotate_about_axis(q, axes, inertia, angular_momentum, 2, dt)
+    q = rotate_about_axis(q, axes, inertia, angular_momentum, 1, h)
+    q = rotate_about_axis(q, axes, inertia, angular_momentum, 0, h)
+    return q
+
+
+@wp.func
+def kick_body(
+    b: int,
+    dt: float,
+    gravity: wp.vec3,
+    body_mass: wp.array(dtype=wp.float64),
+    body_f: wp.array(dtype=wp.vec3d),
+    body_t: wp.array(dtype=wp.vec3d),
+    v: wp.vec3d,
+    angular_momentum: wp.vec3d,
+):
+    """Half kick of a body: v + dt/2 (F/M + g) [m/s], L + dt/2 T [kg m²/s]."""
+    h = wp.float64(0.5 * dt)
+    return v + h * (body_f[b] / body_mass[b] + wp.vec3d(gravity)), angular_momentum + h * body_t[b]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Kernels.
+
+
+def make_body_drift_kernel(after_second_half: bool) -> wp.Kernel:
+    """The body kernel that ends a half step in a drift: kick by dt/2, translate by dt, free rotor over dt; with
+    ``after_second_half`` the second half kick of step n before it (the same forces twice, as the node kernels do),
+    the choice made at code generation."""
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def drift_bodies_kernel(
+        # Model:
+        gravity: wp.vec3,
+        dt: float,
+        # State in:
+        body_mass: wp.array(dtype=wp.float64),
+        body_inertia: wp.array(dtype=wp.vec3d),
+        body_axes: wp.array(dtype=wp.mat33d),
+        body_fixed: wp.array(dtype=int),
+        body_f: wp.array(dtype=wp.vec3d),
+        body_t: wp.array(dtype=wp.vec3d),
+        # State out:
+        body_dc: wp.array(dtype=wp.vec3d),
+        body_v: wp.array(dtype=wp.vec3d),
+        body_q: wp.array(dtype=wp.quatd),
+        body_l: wp.array(dtype=wp.vec3d),
+    ):
+        b = wp.tid()  # one thread per body
+        if body_fixed[b] != 0:
+            return
+        v = body_v[b]
+        angular_momentum = body_l[b]
+        if wp.static(after_second_half):
+            v, angular_momentum = kick_body(b, dt, gravity, body_mass, body_f, body_t, v, angular_momentum)
+        v, angular_momentum = kick_body(b, dt, gravity, body_mass, body_f, body_t, v, angular_momentum)
+        body_v[b] = v
+        body_l[b] = angular_momentum
+        body_dc[b] = body_dc[b] + wp.float64(dt) * v
+        body_q[b] = free_rotor(body_q[b], body_axes[b], body_inertia[b], angular_momentum, dt)
+
+    return drift_bodies_kernel
+
+
+drift_bodies_kernel = make_body_drift_kernel(after_second_half=False)
+kick_drift_bodies_kernel = make_body_drift_kernel(after_second_half=True)
+
+
+@wp.kernel
+def kick_bodies_kernel(
+    # Model:
+    gravity: wp.vec3,
+    dt: float,
+    # State in:
+    body_mass: wp.array(dtype=wp.float64),
+    body_fixed: wp.array(dtype=int),
+    body_f: wp.array(dtype=wp.vec3d),
+    body_t: wp.array(dtype=wp.vec3d),
+    # State out:
+    body_v: wp.array(dtype=wp.vec3d),
+    body_l: wp.array(dtype=wp.vec3d),
+):
+    b = wp.tid()  # one thread per body
+    if body_fixed[b] != 0:
+        return
+    v, angular_momentum = kick_body(b, dt, gravity, body_mass, body_f, body_t, body_v[b], body_l[b])
+    body_v[b] = v
+    body_l[b] = angular_momentum
+
+
+@wp.kernel
+def pose_nodes_kernel(
+    # Model:
+    node_ref_q: wp.array(dtype=wp.vec3),
+    node_contact_stiffness: wp.array(dtype=float),
+    half_fem_skin: float,
+    # State in:
+    node_count: wp.array(dtype=int),
+    node_body: wp.array(dtype=int),
+    node_rigid_r0: wp.array(dtype=wp.vec3d),
+    node_rigid_u0: wp.array(dtype=wp.vec3),
+    body_inertia: wp.array(dtype=wp.vec3d),
+    body_axes: wp.array(dtype=wp.mat33d),
+    body_dc: wp.array(dtype=wp.vec3d),
+    body_v: wp.array(dtype=wp.vec3d),
+    body_q: wp.array(dtype=wp.quatd),
+    body_l: wp.array(dtype=wp.vec3d),
+    node_q_at_fem_build: wp.array(dtype=wp.vec3),
+    # In:
+    move: int,
+    # State out:
+    node_u: wp.array(dtype=wp.vec3),
+    node_q: wp.array(dtype=wp.vec3),
+    node_qd: wp.array(dtype=wp.vec3),
+    fem_rebuild_flag: wp.array(dtype=int),
+):
+    """Nodes from their body's pose: with ``move`` the displacement u = u0 + dc + (R r0 − r0) and position X + u
+    (flagging an FEM contact-list rebuild when a surface node moved half the FEM skin, as kernels/integrate.py
+    ``drift_node`` does), and always the velocity v + ω × R r0."""
+    i = wp.tid()  # one thread per FEM node slot
+    if i >= node_count[0]:
+        return
+    b = node_body[i]
+    if b < 0:
+        return
+    q = body_q[b]
+    r = wp.quat_rotate(q, node_rigid_r0[i])
+    if move != 0:
+        u = wp.vec3(wp.vec3d(node_rigid_u0[i]) + body_dc[b] + (r - node_rigid_r0[i]))
+        node_u[i] = u
+        x = node_ref_q[i] + u
+        node_q[i] = x
+        if half_fem_skin >= 0.0:
+            if node_contact_stiffness[i] != 0.0:
+                moved = x - node_q_at_fem_build[i]
+                if wp.dot(moved, moved) > half_fem_skin * half_fem_skin:
+                    fem_rebuild_flag[0] = 1
+    w = angular_velocity(q, body_axes[b], body_inertia[b], body_l[b])
+    node_qd[i] = wp.vec3(body_v[b] + wp.cross(w, r))
+
+
+@wp.kernel
+def reduce_body_forces_kernel(
+    # State in:
+    body_fixed: wp.array(dtype=int),
+    body_node_start: wp.array(dtype=int),
+    body_node_count: wp.array(dtype=int),
+    rigid_nodes: wp.array(dtype=int),
+    node_rigid_r0: wp.array(dtype=wp.vec3d),
+    body_q: wp.array(dtype=wp.quatd),
+    node_f: wp.array(dtype=wp.vec3),
+    # State out:
+    body_f: wp.array(dtype=wp.vec3d),
+    body_t: wp.array(dtype=wp.vec3d),
+):
+    """F = Σ f_i and T = Σ r_i × f_i over the body's nodes (r_i = R r0_i, from the centre of mass, so the torque does
+    not depend on the origin), summed in float64 in node order: the same numbers on every device (no atomics). The
+    nodes' forces hold contacts, joint and cohesive elements, loads and any force of a neighbouring deformable tet,
+    not gravity (added in the kick; its torque about the centre of mass is zero) and no force of the body's own tets
+    (tet_active = TET_RIGID: not evaluated)."""
+    b = wp.tid()  # one thread per body
+    if body_fixed[b] != 0:
+        return
+    q = body_q[b]
+    f = wp.vec3d()
+    t = wp.vec3d()
+    start = body_node_start[b]
+    for k in range(body_node_count[b]):
+        i = rigid_nodes[start + k]
+        fi = wp.vec3d(node_f[i])
+        f = f + fi
+        t = t + wp.cross(wp.quat_rotate(q, node_rigid_r0[i]), fi)
+    body_f[b] = f
+    body_t[b] = t
