@@ -496,12 +496,15 @@ class Simulation:
         return SplitReport(splits, rounds, grew)
 
     def _contact_books(self) -> float:
-        """The FEM contacts' lines of the energy books now [J]: their stored energy plus what they dissipated (0 when
-        energy is not tracked). Reads back: call between steps."""
+        """The FEM contacts' lines of the energy books now [J]: their stored energy plus what they dissipated, with the
+        spheres' damping and friction lines (where the sphere–face springs book theirs); 0 when energy is not tracked.
+        Reads back: call between steps."""
         if not self.track_energy:
             return 0.0
         elastic, dissipated = fem_contact_energy(self.model, self.state)
-        return elastic + dissipated
+        n, s = self.particle_count, self.state
+        spheres = float(s.energy_damping.numpy()[:n].sum()) + float(s.energy_friction.numpy()[:n].sum())
+        return elastic + dissipated + spheres
 
     def _book_contact_topology(self, before: float) -> None:
         """Book what the FEM contacts' lines gained across a topology pass (``before``: :meth:`_contact_books` just
