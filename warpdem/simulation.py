@@ -466,8 +466,9 @@ class Simulation:
     def fracture_pass(self) -> SplitReport:
         """One split pass now, between steps (warpdem.fracture): candidates, capacities grown ×2 to hold them, rounds
         of independent sets; after splits the surface and contact lists are rebuilt and the forces re-evaluated at
-        the current positions (dt = 0, booking nothing). Captured graphs are kept unless an array they read was
-        reallocated. Reads back a few counts.
+        the current positions (dt = 0; what the rebuild gives the FEM contact springs is booked,
+        :meth:`_book_contact_topology`). Captured graphs are kept unless an array they read was reallocated. Reads
+        back a few counts.
 
         Returns:
             What the pass did (no-op report when fracture is off).
