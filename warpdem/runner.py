@@ -217,7 +217,7 @@ class RunSummary:
             ]
         if self.fracture or e1.contact_topology != 0.0:
             # What split and conversion passes put into the FEM contact springs (Simulation._book_contact_topology).
-            lines.append(row("pass contact gain", e0.contact_topology, e1.contact_topology))
+            lines.append(row("contact gain", e0.contact_topology, e1.contact_topology))
         lines.append(row("elastic", e0.elastic, e1.elastic))
         if e0.gravity_potential != 0.0 or e1.gravity_potential != 0.0:
             lines.append(row("gravity pot.", e0.gravity_potential, e1.gravity_potential))
