@@ -386,6 +386,9 @@ class State:
             the spring energy left at the break) [J], shape (node_capacity,), float64.
         node_splits_total: node splits since the start, shape (1,), int32.
         crack_area_total: Σ A_f of every cohesive element born [m²] (both faces), shape (1,), float64.
+        energy_contact_topology: energy the FEM contacts' springs gained without work at split and conversion passes
+            [J] (the penalty stiffness k of a node re-lumped over its new faces at the depth it holds, springs of
+            faces that appear inside an overlap), shape (1,), float64.
 
     Adaptive FEM→DEM conversion (arrays of shape (coupling_capacity,) unless said):
         tets_converted_total: tets converted since the start, shape (1,), int32.
@@ -515,6 +518,7 @@ class State:
     node_energy_cohesive: wp.array
     node_splits_total: wp.array
     crack_area_total: wp.array
+    energy_contact_topology: wp.array
     tets_converted_total: wp.array
     spheres_spawned_total: wp.array
     energy_released_conversion: wp.array
@@ -617,6 +621,7 @@ def fracture_state(model: Model) -> dict[str, wp.array]:
         "node_energy_cohesive": wp.zeros(ncap, dtype=wp.float64, device=d),
         "node_splits_total": wp.zeros(1, **one),
         "crack_area_total": wp.zeros(1, dtype=wp.float64, device=d),
+        "energy_contact_topology": wp.zeros(1, dtype=wp.float64, device=d),
     }
 
 

@@ -236,6 +236,9 @@ class RunSummary:
                 row("cohesive el.", e0.cohesive_elastic, e1.cohesive_elastic),
                 row("cohesive diss.", e0.dissipated_cohesive, e1.dissipated_cohesive),
             ]
+        if self.fracture or e1.contact_topology != 0.0:
+            # What split and conversion passes put into the FEM contact springs (Simulation._book_contact_topology).
+            lines.append(row("contact gain", e0.contact_topology, e1.contact_topology))
         lines.append(row("elastic", e0.elastic, e1.elastic))
         if e0.gravity_potential != 0.0 or e1.gravity_potential != 0.0:
             lines.append(row("gravity pot.", e0.gravity_potential, e1.gravity_potential))

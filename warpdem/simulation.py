@@ -116,7 +116,8 @@ class EnergyBalance:
     ``in_play``; warpdem.coupling). ``kinetic_rigid`` is the rigid blocks' kinetic energy ½ M v² + ½ L·ω (their nodes
     are not counted in ``kinetic_nodes``) and ``released_rigid_switch`` what left the books when blocks turned rigid:
     the strain energy of their tets and the kinetic energy of the element modes, with the switch's change of the
-    shadow term (warpdem.rigid).
+    shadow term (warpdem.rigid). ``contact_topology`` is the energy the FEM contacts' springs gained without work at
+    split and conversion passes (Simulation._book_contact_topology), which enters the total like work put in.
     """
 
     kinetic_translational: float
@@ -141,6 +142,7 @@ class EnergyBalance:
     coupling_elastic: float = 0.0
     kinetic_rigid: float = 0.0
     released_rigid_switch: float = 0.0
+    contact_topology: float = 0.0
 
     @property
     def kinetic(self) -> float:
@@ -176,6 +178,7 @@ class EnergyBalance:
             + self.released_conversion
             + self.coupling_elastic
             + self.released_rigid_switch
+            - self.contact_topology
         )
 
 
@@ -566,8 +569,9 @@ class Simulation:
     def fracture_pass(self) -> SplitReport:
         """One split pass now, between steps (warpdem.fracture): candidates, capacities grown ×2 to hold them, rounds
         of independent sets; after splits the surface and contact lists are rebuilt and the forces re-evaluated at
-        the current positions (dt = 0, booking nothing). Captured graphs are kept unless an array they read was
-        reallocated. Reads back a few counts.
+        the current positions (dt = 0; what the rebuild gives the FEM contact springs is booked,
+        :meth:`_book_contact_topology`). Captured graphs are kept unless an array they read was reallocated. Reads
+        back a few counts.
 
         Returns:
             What the pass did (no-op report when fracture is off).
@@ -588,10 +592,39 @@ class Simulation:
         old_faces = int(s.face_count.numpy()[0]) if m.face_capacity else 0
         if m.face_capacity:
             self._face_slot = face_slots(m, s, self._face_slot)
+        before = self._contact_books()
         splits, rounds = self._fracture.split(m, s)
         if splits:
             self._after_split(old_faces)
+            self._book_contact_topology(before)
         return SplitReport(splits, rounds, grew)
+
+    def _contact_books(self) -> float:
+        """The FEM contacts' lines of the energy books now [J]: their stored energy plus what they dissipated, with the
+        spheres' damping and friction lines (where the sphere–face springs book theirs); 0 when energy is not tracked.
+        Reads back: call between steps."""
+        if not self.track_energy:
+            return 0.0
+        elastic, dissipated = fem_contact_energy(self.model, self.state)
+        n, s = self.particle_count, self.state
+        spheres = float(s.energy_damping.numpy()[:n].sum()) + float(s.energy_friction.numpy()[:n].sum())
+        return elastic + dissipated + spheres
+
+    def _book_contact_topology(self, before: float) -> None:
+        """Book what the FEM contacts' lines gained across a topology pass (``before``: :meth:`_contact_books` just
+        before it) as energy put in without work (``energy_contact_topology``).
+
+        A pass moves nothing, so no contact force works across it, yet the springs' energy changes: the surface is
+        rebuilt, so the penalty stiffness k of a split node's daughters (and of a converted tet's neighbours) is
+        re-lumped over their new faces at the depth (wall gap, face spring) they hold, ½ Δk δ² created or destroyed,
+        and sphere–face springs appear on faces born inside an overlap. The dt = 0 re-evaluation books the springs
+        it lets go as dissipated. Left unbooked, such a gain shows up later as dissipation or kinetic energy that no
+        force accounted for (the boulder scene's 4 kJ of FEM contact dissipation across its cracking)."""
+        if not self.track_energy:
+            return
+        gained = self._contact_books() - before
+        books = self.state.energy_contact_topology
+        books.assign(books.numpy() + gained)
 
     def _grow_for_split(self, candidates: int) -> bool:
         """Grow the node and cohesive capacities ×2 until they hold ``candidates`` more of each (the most a pass can
@@ -687,8 +720,10 @@ class Simulation:
         if m.face_capacity:
             self._face_slot = face_slots(m, s, self._face_slot)
         before = self.shadow() - coupling_energy(m, s) if self.track_energy else 0.0
+        contacts_before = self._contact_books()
         self._conversion.convert(m, s, self.coupling_compactor)
         self._after_conversion(old_faces)
+        self._book_contact_topology(contacts_before)
         if self.track_energy:
             # The leapfrog kinetic energy the scheme conserves is kinetic − shadow; the pass changes the shadow term
             # (lighter nodes, new free faces, the spheres' forces) without any work, and releases the springs of
@@ -820,6 +855,7 @@ class Simulation:
             coupling_elastic=coupling_energy(m, s),
             kinetic_rigid=kinetic_rigid,
             released_rigid_switch=float(s.energy_released_rigid.numpy()[0]),
+            contact_topology=float(s.energy_contact_topology.numpy()[0]),
         )
 
     def shadow(self) -> float:
