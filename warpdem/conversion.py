@@ -158,12 +158,17 @@ class ConversionReport:
 
 
 def conversion_material_table(
-    model: Model, materials: Sequence[ConversionProps | None], device: wp.context.Device, spheres_per_tet: int = 1
+    model: Model,
+    materials: Sequence[ConversionProps | None],
+    device: wp.context.Device,
+    spheres_per_tet: int = 1,
+    factors: tuple[float, float] | None = None,
 ) -> wp.array:
     """ConversionMaterial of every material id (``converts`` = 0 for None), with the bond calibration from the
-    model's continuum properties (E, ν from the Lamé constants of ``tet_material_table``) and the lattice factors κ
-    and S of ``spheres_per_tet`` spheres per tet (warpdem.multisphere.lattice_factors)."""
-    stiffness_factor, strength_factor = multisphere.lattice_factors(spheres_per_tet)
+    model's continuum properties (E, ν from the Lamé constants of ``tet_material_table``) and the lattice factors
+    ``factors`` = (κ, S) (attach_conversion: calibrated on the mesh, warpdem.multisphere.mesh_lattice_factors; None:
+    the reference ones of ``spheres_per_tet`` spheres per tet, warpdem.multisphere.lattice_factors)."""
+    stiffness_factor, strength_factor = factors if factors is not None else multisphere.lattice_factors(spheres_per_tet)
     continuum = model.tet_material_table.numpy()
     table = []
     for mid, p in enumerate(materials):
@@ -259,8 +264,12 @@ def attach_conversion(
     if not _is_count(coupling_capacity, 1):
         raise ValueError(f"attach_conversion: coupling_capacity must be an integer >= 1, got {coupling_capacity!r}")
     d = model.device
-    table = conversion_material_table(model, materials, d, spheres_per_tet)
-    pairs = edge_pairs(model.tet_nodes.numpy()[:nt], np.ones(nt, dtype=bool))
+    # κ and S from a virtual tension test of the convertible tets' own network (warpdem.lattice, "Calibration").
+    converts = flags[:nt].astype(bool) & np.array([p is not None for p in materials])[model.tet_material.numpy()[:nt]]
+    tets = model.tet_nodes.numpy()[:nt]
+    kappa, strength, _ = multisphere.mesh_lattice_factors(tets, model.node_ref_q.numpy(), converts, spheres_per_tet)
+    table = conversion_material_table(model, materials, d, spheres_per_tet, (kappa, strength))
+    pairs = edge_pairs(tets, np.ones(nt, dtype=bool))
     critical, tet = conversion_critical_step(
         dataclasses.replace(model, conversion_material_table=table, spheres_per_tet=int(spheres_per_tet)),
         state,

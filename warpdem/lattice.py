@@ -133,3 +133,151 @@ def edge_bond_lattice(
     area = vb / length
     tensile = kn * length * np.minimum(strength[i], strength[j]) / (strength_factor * e * area)
     return LatticeBonds(pairs, length, kn, np.zeros_like(kn), area, tensile, tensile.copy())
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Calibration on the mesh's own network (a virtual uniaxial test, solved statically)
+
+CALIBRATION_WHOLE = 4_000
+"""Regions of at most this many tets are tested whole, larger ones through a bar-shaped sample (calibration_sample)."""
+
+CALIBRATION_SAMPLE = 2_304
+"""Tets of the bar-shaped sample of a larger region: as many as a bar of 24 × 4 × 4 Kuhn cells."""
+
+CALIBRATION_ASPECT = 6.0
+"""Length over width of the bar-shaped sample (the converted-bar test's 12 × 2 × 2 cells)."""
+
+CALIBRATION_RTOL = 1.0e-8
+"""Relative residual ‖r‖ / ‖r₀‖ at which the virtual test's conjugate gradients stop [-] (float64)."""
+
+
+@dataclass
+class NetworkTension:
+    """A bond network's response to a virtual uniaxial tension (:func:`network_tension`), per unit κ E.
+
+    Attributes:
+        modulus: E_net / (κ E), the nominal stress over the strain of the bar's middle half [-].
+        peak_strain: the largest bond strain Δ_b / L_b over the nominal stress, times κ E [-].
+        iterations: conjugate-gradient iterations taken.
+    """
+
+    modulus: float
+    peak_strain: float
+    iterations: int
+
+
+def network_tension(
+    centers: np.ndarray,
+    pairs: np.ndarray,
+    weight: np.ndarray,
+    volume: float,
+    bounds: np.ndarray,
+    cell: float,
+    strain: float = 1.0e-3,
+) -> NetworkTension | None:
+    """Pull a bonded network statically along the longest side of its bounding box, as tests/test_coupling.py pulls
+    a fully converted bar: the spheres within ``slab`` of either end are held (every component) and moved rigidly
+    apart, the rest relax to equilibrium (normal springs k_b = weight_b per unit κ E; matrix-free conjugate
+    gradients with a 3 × 3 block-Jacobi preconditioner, float64; small strain, so linear).
+    The modulus is the nominal stress (the reaction over volume / L) over the strain of the middle half (the slope
+    of the displacement along the pull there, away from the held ends); the peak strain is over every bond.
+
+    Args:
+        centers: sphere centres [m], shape (n, 3). pairs: bonded sphere pairs, shape (B, 2).
+        weight: k_b / (κ E) = V_b / L_b² [m], shape (B,). volume: the network's material volume [m³].
+        bounds: the material's bounding box (low and high corner) [m], shape (2, 3): the pull is along its longest
+            side, length L; the nominal cross-section is volume / L.
+        cell: the tets' size (6 V̄)^(1/3) [m]; the held slabs are max(L / 12, cell) thick (the bar test holds its
+            first and last of 12 cells).
+        strain: the pull, the held ends' separation over L [-] (linear: the response does not depend on it).
+
+    Returns:
+        The response, or None where there is no bar to pull (an end or the middle without spheres, no bond
+        between them, or no equilibrium found).
+    """
+    c = np.asarray(centers, dtype=np.float64)
+    i, j = pairs[:, 0], pairs[:, 1]
+    lo, hi = np.asarray(bounds, dtype=np.float64)
+    axis = int(np.argmax(hi - lo))
+    x = c[:, axis] - lo[axis]  # measured from the material's end, as the bar test's held cell x < CELL
+    span = float(hi[axis] - lo[axis])
+    slab = max(span / 12.0, cell)
+    held, pulled = x < slab, x > span - slab
+    free = ~(held | pulled)
+    middle = np.abs(x - 0.5 * span) < 0.25 * span
+    if not (held.any() and pulled.any() and (middle & free).sum() >= 2) or len(pairs) == 0:
+        return None
+    length = np.linalg.norm(c[j] - c[i], axis=1)
+    normal = (c[j] - c[i]) / length[:, None]
+    n = len(c)
+
+    def force(u: np.ndarray) -> np.ndarray:
+        """Spring forces on the spheres of displacement u, −K u, shape (n, 3)."""
+        f = (weight * np.einsum("bk,bk->b", u[j] - u[i], normal))[:, None] * normal
+        return np.stack([np.bincount(i, f[:, k], n) - np.bincount(j, f[:, k], n) for k in range(3)], axis=1)
+
+    # Block-Jacobi preconditioner: each free sphere's 3 × 3 stiffness Σ_b k_b n_b n_bᵀ (ridge for loose spheres).
+    outer = weight[:, None, None] * normal[:, :, None] * normal[:, None, :]
+    block = np.stack(
+        [np.bincount(i, outer[:, a, b], n) + np.bincount(j, outer[:, a, b], n) for a in range(3) for b in range(3)],
+        axis=1,
+    ).reshape(n, 3, 3)
+    scale = np.trace(block, axis1=1, axis2=2)[:, None, None] / 3.0
+    block += 1e-9 * (scale + (scale.max() if n else 0.0)) * np.eye(3)
+    inverse = np.linalg.inv(block)
+
+    u = np.zeros((n, 3))
+    u[pulled, axis] = strain * span
+    r = force(u)
+    r[~free] = 0.0
+    z = np.einsum("nij,nj->ni", inverse, r)
+    p, rz = z.copy(), float(np.sum(r * z))
+    r0 = float(np.sqrt(np.sum(r * r)))
+    du = np.zeros((n, 3))
+    iterations = 0
+    while r0 > 0.0 and float(np.sqrt(np.sum(r * r))) > CALIBRATION_RTOL * r0:
+        if iterations >= 20 * n + 100:
+            return None
+        kp = -force(p)
+        kp[~free] = 0.0
+        alpha = rz / float(np.sum(p * kp))
+        du += alpha * p
+        r -= alpha * kp
+        z = np.einsum("nij,nj->ni", inverse, r)
+        rz, rz_old = float(np.sum(r * z)), rz
+        p = z + (rz / rz_old) * p
+        iterations += 1
+    u += du
+    stress = -float(force(u)[pulled, axis].sum()) / (volume / span)  # the pull's reaction / nominal cross-section
+    inner = middle & free
+    slope = np.polyfit(x[inner], u[inner, axis], 1)[0]  # the strain of the middle half, away from the held ends
+    strain = np.einsum("bk,bk->b", u[j] - u[i], normal) / length
+    if not (stress > 0.0 and slope > 0.0):
+        return None
+    return NetworkTension(modulus=stress / slope, peak_strain=float(strain.max()) / stress, iterations=iterations)
+
+
+def calibration_sample(
+    centroids: np.ndarray, mask: np.ndarray, whole: int = CALIBRATION_WHOLE, size: int = CALIBRATION_SAMPLE
+) -> np.ndarray:
+    """The tets the virtual tension test takes, ids ascending, int64: all of ``mask`` when they are at most
+    ``whole``; else a bar along the longest side of their bounding box, about its centre: the ``size`` tets of
+    ``mask`` nearest that centre in the distance max(|d_long| / CALIBRATION_ASPECT, |d_other|) (a box 6 × 1 × 1;
+    nearest, so a region that is not convex still gives ``size`` tets)."""
+    ids = np.nonzero(np.asarray(mask, dtype=bool))[0]
+    if len(ids) <= whole:
+        return ids
+    c = np.asarray(centroids, dtype=np.float64)[ids]
+    lo, hi = c.min(axis=0), c.max(axis=0)
+    scale = np.ones(3)
+    scale[int(np.argmax(hi - lo))] = 1.0 / CALIBRATION_ASPECT
+    distance = np.max(np.abs(c - 0.5 * (lo + hi)) * scale, axis=1)
+    return np.sort(ids[np.argpartition(distance, size - 1)[:size]])
+
+
+def calibrated_factors(tension: NetworkTension) -> tuple[float, float]:
+    """(κ, S) that give a network with ``tension``'s response the continuum's E and make its first bond break at the
+    nominal stress T_f: κ = 1 / modulus (E_net = κ E modulus = E) and S = κ / peak_strain (a bond breaks at the strain
+    T_f / (S E), reached at the nominal stress σ = κ E T_f / (S E peak_strain) = T_f)."""
+    kappa = 1.0 / tension.modulus
+    return kappa, kappa / tension.peak_strain

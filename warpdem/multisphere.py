@@ -64,7 +64,16 @@ import numpy as np
 import warp as wp
 
 from .kernels import multisphere as kms
-from .lattice import STIFFNESS_FACTOR, STRENGTH_FACTOR, TET_EDGES, edge_pairs
+from .lattice import (
+    STIFFNESS_FACTOR,
+    STRENGTH_FACTOR,
+    TET_EDGES,
+    calibrated_factors,
+    calibration_sample,
+    edge_bond_lattice,
+    edge_pairs,
+    network_tension,
+)
 from .model import Model, State
 
 SPHERES_PER_TET = (1, 4)
@@ -189,3 +198,36 @@ def count_sub_links(model: Model, state: State, work) -> None:
         outputs=[work.bonds, work.couplings],
         device=d,
     )
+
+
+def mesh_lattice_factors(
+    tets: np.ndarray, points: np.ndarray, mask: np.ndarray, spheres_per_tet: int
+) -> tuple[float, float, int]:
+    """(κ, S) of ``spheres_per_tet`` spheres per tet calibrated on the mesh's own network (warpdem.lattice's
+    "Calibration on the mesh"), and the tets the virtual test took (0: none, the reference factors returned).
+
+    Args:
+        tets: node ids, shape (M, 4). points: reference node positions [m], shape (N, 3).
+        mask: bool per tet, the tets that may convert (the sample is drawn from them).
+    """
+    tets = np.asarray(tets, dtype=np.int64)
+    p = np.asarray(points, dtype=np.float64)
+    ids = calibration_sample(p[tets].mean(axis=1), mask)
+    if len(ids) < 2:
+        return (*lattice_factors(spheres_per_tet), 0)
+    sample = tets[ids]
+    every = np.ones(len(ids), dtype=bool)
+    x = p[sample]
+    volume = np.abs(np.linalg.det(x[:, 1:] - x[:, :1])) / 6.0
+    if spheres_per_tet == 1:
+        lat = edge_bond_lattice(sample, p, every, x.mean(axis=1), 1.0, 1.0, 1.0, 1.0)
+        centers, pairs, weight = x.mean(axis=1), lat.pairs, lat.kn  # κ = E = 1: k_b = V_b / L_b²
+    else:
+        sub = sub_lattice(sample, p, every, every)
+        centers, pairs, weight = sub.centers, sub.pairs, sub.volume / sub.length**2
+    corners = x.reshape(-1, 3)
+    bounds = np.stack([corners.min(axis=0), corners.max(axis=0)])
+    tension = network_tension(centers, pairs, weight, float(volume.sum()), bounds, float(np.cbrt(6.0 * volume.mean())))
+    if tension is None:
+        return (*lattice_factors(spheres_per_tet), 0)
+    return (*calibrated_factors(tension), len(ids))
