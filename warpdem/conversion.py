@@ -41,9 +41,10 @@ Rules of the conversion pass (others rely on them):
   springs alone. k_b = κ E V_b / L_b² (V_b = V_t / Z_t + V_n / Z_n, Z over all live tets, so a bond's stiffness does
   not depend on which of its neighbours have converted yet: counted once at attach, ``Model.tet_edge_degree``, and
   where nodes may split (fracture attached) found again at each pass for the converting tets and their edge
-  neighbours; L_b the centres' distance), k_s = 0, area V_b / L_b, tensile strength (κ / S) T_f (warpdem.lattice's
-  κ = STIFFNESS_FACTOR and S = STRENGTH_FACTOR, measured on a fully converted bar: bar-wave speed 0.998 sqrt(E/ρ),
-  tensile strength 0.987 T_f, tests/test_coupling.py), no dashpot, born relaxed (rest length = L_b).
+  neighbours; L_b the centres' distance), k_s = 0, area V_b / L_b, tensile strength (κ / S) T_f, no dashpot, born
+  relaxed (rest length = L_b). κ and S are calibrated at attach on the mesh's own network (a static virtual tension
+  test of the tets that may convert, warpdem.lattice "Calibration on the mesh"): fully converted bars measure 0.99 to
+  1.00 sqrt(E/ρ) and 0.99 to 1.00 T_f on Kuhn and Gmsh meshes (tests/test_coupling.py).
 - Couplings (warpdem.coupling, CIMNE eqs. 8–9): each new sphere is tied to every still-active tet sharing an edge
   with its tet (the adjacency of the bonds; ccoupling measured 4.3 % reflection at the first interface this way
   against 10.5 % with face neighbours alone) at its current barycentric coordinates there (born relaxed), with

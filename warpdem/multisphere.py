@@ -46,6 +46,9 @@ more than the bar), and S₄ = 0.775 puts it at T_f. Calibrated, that bar measur
 cells across, 1.033 sqrt(E/ρ) and 0.905 T_f (one sphere per tet there: 0.990 and 0.891). After the first bond breaks the
 four-sphere network still carries load through its other bonds, so the strength is taken at the onset of breaking
 (tests/test_coupling.py says why the later peak is dynamic).
+These are the reference factors (:func:`lattice_factors`); attach_conversion calibrates κ₄ and S₄ on the mesh's own
+sub-lattice (:func:`mesh_lattice_factors`, warpdem.lattice "Calibration on the mesh"): that Kuhn bar then measures
+0.978 sqrt(E/ρ) and 1.010 T_f.
 
 Couplings (warpdem.coupling): sphere a of a new tet is tied to every still-active tet sharing an edge through node a
 (the tets it would bond to), at its barycentric coordinates there, with the stiffness rule k = k_n min(1, 2 / (1 +
