@@ -230,7 +230,8 @@ def mesh_lattice_factors(
         centers, pairs, weight = sub.centers, sub.pairs, sub.volume / sub.length**2
     corners = x.reshape(-1, 3)
     bounds = np.stack([corners.min(axis=0), corners.max(axis=0)])
-    tension = network_tension(centers, pairs, weight, float(volume.sum()), bounds, float(np.cbrt(6.0 * volume.mean())))
+    cell = float(np.cbrt(6.0 * volume.mean()))
+    tension = network_tension(centers, pairs, weight, float(volume.sum()), bounds, cell, group=spheres_per_tet)
     if tension is None:
         return (*lattice_factors(spheres_per_tet), 0)
     return (*calibrated_factors(tension), len(ids))
