@@ -16,6 +16,7 @@ from warpdem.lattice import (
     STRENGTH_FACTOR,
     calibration_sample,
     edge_bond_lattice,
+    largest_body,
     network_tension,
 )
 from warpdem.mesh import box_mesh
@@ -99,8 +100,46 @@ def test_sample_is_a_bar_about_the_region_centre():
 
 
 def test_no_bar_to_pull_falls_back_to_the_reference_factors():
-    # One tet has no bonds: nothing to pull, so the reference factors (and 0 tets sampled).
+    # A mesh of one tet has no bond, in the region or out of it: nothing to pull, so the reference factors (and 0
+    # tets sampled).
+    points = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    tets = np.array([[0, 1, 2, 3]])
+    for spheres_per_tet, reference in (
+        (1, (STIFFNESS_FACTOR, STRENGTH_FACTOR)),
+        (4, (SUB_STIFFNESS_FACTOR, SUB_STRENGTH_FACTOR)),
+    ):
+        assert mesh_lattice_factors(tets, points, np.ones(1, dtype=bool), spheres_per_tet) == (*reference, 0)
+
+
+def test_largest_body_against_breadth_first_search():
+    # Brute force: a breadth-first search from every unlabelled item gives the components; the largest (ties: the
+    # one holding the lowest item) is the one returned.
+    rng = np.random.default_rng(3)
+    n = 60
+    pairs = np.sort(rng.integers(0, n, size=(45, 2)), axis=1)
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    neighbours = [[] for _ in range(n)]
+    for a, b in pairs:
+        neighbours[a].append(b)
+        neighbours[b].append(a)
+    component = -np.ones(n, dtype=int)
+    for start in range(n):
+        if component[start] < 0:
+            component[start], queue = start, [start]
+            while queue:
+                for b in neighbours[queue.pop()]:
+                    if component[b] < 0:
+                        component[b] = start
+                        queue.append(b)
+    sizes = np.bincount(component[component >= 0], minlength=n)
+    np.testing.assert_array_equal(largest_body(pairs, n), component == np.argmax(sizes))
+
+
+def test_scattered_region_is_calibrated_on_the_whole_mesh():
+    # Every 7th tet of the bar may convert: no two share an edge often enough to make a body, so the test takes the
+    # whole mesh's network and gives exactly what the whole bar gives (the same sample, the same solve).
     points, tets = kuhn_bar()
-    mask = np.zeros(len(tets), dtype=bool)
-    mask[0] = True
-    assert mesh_lattice_factors(tets, points, mask, 1) == (STIFFNESS_FACTOR, STRENGTH_FACTOR, 0)
+    scattered = np.zeros(len(tets), dtype=bool)
+    scattered[::7] = True
+    whole = mesh_lattice_factors(tets, points, np.ones(len(tets), dtype=bool), 1)
+    assert mesh_lattice_factors(tets, points, scattered, 1) == whole

@@ -309,6 +309,25 @@ def calibration_sample(
     return np.sort(ids[np.argpartition(distance, size - 1)[:size]])
 
 
+def largest_body(pairs: np.ndarray, n: int) -> np.ndarray:
+    """True for the items of the largest connected component of the graph ``pairs`` on ``n`` items (an item without
+    pairs is a component of its own), shape (n,), bool. Labels by repeated minimum over the pairs (as many sweeps as
+    the graph's diameter; the calibration's samples are a few dozen across)."""
+    label = np.arange(n)
+    if n == 0:
+        return np.zeros(0, dtype=bool)
+    i, j = pairs[:, 0], pairs[:, 1]
+    while True:
+        low = np.minimum(label[i], label[j])
+        new = label.copy()
+        np.minimum.at(new, i, low)
+        np.minimum.at(new, j, low)
+        new = new[new]  # jump to the label's own label: fewer sweeps
+        if np.array_equal(new, label):
+            return label == np.argmax(np.bincount(label, minlength=n))
+        label = new
+
+
 def calibrated_factors(tension: NetworkTension) -> tuple[float, float]:
     """(κ, S) that give a network with ``tension``'s response the continuum's E and make its first bond break at the
     nominal stress T_f: κ = 1 / modulus (E_net = κ E modulus = E) and S = κ / peak_strain (a bond breaks at the strain

@@ -75,6 +75,7 @@ from .lattice import (
     calibration_sample,
     edge_bond_lattice,
     edge_pairs,
+    largest_body,
     network_tension,
 )
 from .model import Model, State
@@ -209,14 +210,24 @@ def mesh_lattice_factors(
     """(κ, S) of ``spheres_per_tet`` spheres per tet calibrated on the mesh's own network (warpdem.lattice's
     "Calibration on the mesh"), and the tets the virtual test took (0: none, the reference factors returned).
 
+    The test takes the largest edge-connected body of the sample (warpdem.lattice.calibration_sample) of the tets
+    that may convert; when that body holds under half the sample (scattered tets, not a body to pull), the sample is
+    drawn from every tet instead, the same mesh's network.
+
     Args:
         tets: node ids, shape (M, 4). points: reference node positions [m], shape (N, 3).
-        mask: bool per tet, the tets that may convert (the sample is drawn from them).
+        mask: bool per tet, the tets that may convert.
     """
     tets = np.asarray(tets, dtype=np.int64)
     p = np.asarray(points, dtype=np.float64)
-    ids = calibration_sample(p[tets].mean(axis=1), mask)
-    if len(ids) < 2:
+    centroids = p[tets].mean(axis=1)
+    for region in (np.asarray(mask, dtype=bool), np.ones(len(tets), dtype=bool)):
+        ids = calibration_sample(centroids, region)
+        body = largest_body(edge_pairs(tets[ids], np.ones(len(ids), dtype=bool)), len(ids))
+        if len(ids) >= 2 and 2 * body.sum() >= len(ids):
+            ids = ids[body]
+            break
+    else:
         return (*lattice_factors(spheres_per_tet), 0)
     sample = tets[ids]
     every = np.ones(len(ids), dtype=bool)
