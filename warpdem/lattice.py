@@ -20,8 +20,8 @@ and stretch less than the bar, and with S = 1 a bar measured a peak nominal stre
 brings it to T_f. As bond arrays hold a strength per unit area: area A_b = V_b / L_b, tensile strength
 k_b L_b T_f / (S E A_b) = (κ / S) T_f. The shear springs are off (k_s = 0), so the shear strength never acts.
 
-Calibration on the mesh (what attach_conversion uses; the two constants above are the reference, kept where no test
-can run). κ and S measured on Kuhn cells 2 across do not hold for every mesh: an unstructured Gmsh mesh's edge network
+Calibration on the mesh (what attach_conversion uses; the two constants above are the reference, kept where no test can
+run). κ and S measured on Kuhn cells 2 across do not hold for every mesh: an unstructured Gmsh mesh's edge network
 relaxes less (E_net = 0.77 to 0.91 of the affine κ E / 6, against 0.615), and with the Kuhn constants a fully converted
 bar measured 1.07 to 1.22 sqrt(E/ρ) and 0.80 to 0.96 T_f (h = 0.025 to 0.04 m across 0.1 m); Kuhn cells 4 across gave
 0.869 T_f. The affine stiffness is about the same on both meshes; what differs is the non-affine relaxation, so it is
@@ -33,11 +33,13 @@ nominal cross-section volume / L, ε the strain of the middle half) and the larg
 (:func:`calibrated_factors`) κ = 1 / m makes E_net = E and S = κ / p puts the first bond break at the nominal stress
 T_f. A region of at most CALIBRATION_WHOLE tets is tested whole (a converted bar: its own network, ends and surface
 included); a larger one through a bar of CALIBRATION_SAMPLE tets, 6 × 1 × 1 along its longest side, about its centre
-(:func:`calibration_sample`), so attach stays fast at 1 M tets. Measured on the 0.6 × 0.1 × 0.1 m bar
-(tests/test_coupling.py), calibrated: Kuhn cells 2 across 0.992 sqrt(E/ρ) and 0.987 T_f (0.978 and 1.010 with four
-spheres per tet), 4 across 0.995 and 1.001; Gmsh h = 0.04 m 1.001 and 0.997, 0.035 m 0.999 and 1.002, 0.03 m 0.986 and
-0.999, 0.025 m 0.991 and 1.000. The static figures agree with the dynamic ones to about 2 %: the Kuhn constants above,
-measured dynamically, come back as κ = 9.63, S = 1.108 (tests/test_lattice.py).
+(:func:`calibration_sample`), so attach stays fast at 1 M tets; the test takes the sample's largest edge-connected body
+(:func:`largest_body`), and the whole mesh's network where the region's tets are scattered and make no body. Measured on
+the 0.6 × 0.1 × 0.1 m bar (tests/test_coupling.py), calibrated: Kuhn cells 2 across 0.992 sqrt(E/ρ) and 0.987 T_f (0.978
+and 1.010 with four spheres per tet), 4 across 0.995 and 1.001; Gmsh h = 0.04 m 1.001 and 0.997, 0.035 m 0.999 and
+1.002, 0.03 m 0.986 and 0.999, 0.025 m 0.991 and 1.000 (four spheres per tet at 0.04 m: 1.005 and 0.996). The static
+figures agree with the dynamic ones to about 2 %: the Kuhn constants above, measured dynamically, come back as κ = 9.63,
+S = 1.108 (tests/test_lattice.py).
 """
 
 from __future__ import annotations
