@@ -31,9 +31,10 @@ from warpdem.conversion import (
     regrow_particles,
 )
 from warpdem.fracture import FractureProps, attach_fracture
-from warpdem.lattice import STIFFNESS_FACTOR, edge_pairs
+from warpdem.lattice import edge_pairs
 from warpdem.mesh import TET_FACES, box_mesh
 from warpdem.model import NEIGHBOR_FIELDS
+from warpdem.multisphere import mesh_lattice_factors
 from warpdem.simulation import Simulation, balance_error
 from warpdem.tets import TetProps, eval_tet_stresses, set_node_displacements
 
@@ -535,6 +536,8 @@ def test_bond_and_coupling_stiffness_use_the_edge_degrees_of_the_current_mesh(de
     # and equals k_b where the ratio allows (checked on the bonds' V_b / L_b² through the neighbour's centroid).
     # Tolerance: a handful of float32 products and quotients, 16 ε₃₂.
     model, state, pts, tets = bar(device, may_convert="all")
+    # κ as attach calibrated it on this mesh's own network (warpdem.multisphere.mesh_lattice_factors; its own tests).
+    kappa = mesh_lattice_factors(tets, model.node_ref_q.numpy(), np.ones(len(tets), dtype=bool), 1)[0]
     if split_first:  # nodes left of the middle may split: Z changes there, the right side stays joined (couplings)
         model, state = attach_fracture(
             model, state, [FractureProps(1.0e5, 10.0)], check_interval=1, may_split=pts[:, 0] < LENGTH / 2
@@ -562,13 +565,13 @@ def test_bond_and_coupling_stiffness_use_the_edge_degrees_of_the_current_mesh(de
     length = np.linalg.norm(q[s.bond_i.numpy()[:nb]] - q[s.bond_j.numpy()[:nb]], axis=1)
     volume = m.tet_volume.numpy()[:nt].astype(np.float64)
     vb = volume[ti] / degree[ti] + volume[tj] / degree[tj]
-    np.testing.assert_allclose(s.bond_kn.numpy()[:nb], STIFFNESS_FACTOR * YOUNG * vb / length**2, rtol=16 * F32_EPS)
+    np.testing.assert_allclose(s.bond_kn.numpy()[:nb], kappa * YOUNG * vb / length**2, rtol=16 * F32_EPS)
     nc = int(s.coupling_count.numpy()[0])
     assert nc > 0
     tp, tn = sphere_tet[s.coupling_particle.numpy()[:nc]], s.coupling_tet.numpy()[:nc]
     x = m.node_ref_q.numpy().astype(np.float64) + s.node_u.numpy().astype(np.float64)
     gap = np.linalg.norm(x[m.tet_nodes.numpy()[tn]].mean(axis=1) - q[s.coupling_particle.numpy()[:nc]], axis=1)
-    kb = STIFFNESS_FACTOR * YOUNG * (volume[tp] / degree[tp] + volume[tn] / degree[tn]) / gap**2
+    kb = kappa * YOUNG * (volume[tp] / degree[tp] + volume[tn] / degree[tn]) / gap**2
     k = s.coupling_k.numpy()[:nc]
     assert np.all(k <= kb * (1 + 16 * F32_EPS))
     full = k >= kb * (1 - 16 * F32_EPS)

@@ -43,7 +43,7 @@ from test_conversion import (
 from warpdem.conversion import regrow_bonds
 from warpdem.coupling import regrow_coupling
 from warpdem.mesh import TET_FACES
-from warpdem.multisphere import SUB_STIFFNESS_FACTOR, SUB_STRENGTH_FACTOR, sub_lattice
+from warpdem.multisphere import mesh_lattice_factors, sub_lattice
 from warpdem.simulation import Simulation, balance_error
 
 SPT = 4
@@ -192,6 +192,8 @@ def test_bonds_and_couplings_are_the_sub_lattice(device):
     # an edge through node a (brute force).
     rng = np.random.default_rng(9)
     model, state, _, tets = bar(device, jitter=0.05, may_convert="all", spheres_per_tet=SPT)
+    # κ₄ and S₄ as attach calibrated them on this mesh's own sub-lattice (mesh_lattice_factors; its own tests).
+    kappa, factor, _ = mesh_lattice_factors(tets, model.node_ref_q.numpy(), np.ones(len(tets), dtype=bool), SPT)
     sim = Simulation(model, state)
     stretch(sim, 2e-4)
     done = np.zeros(len(tets), dtype=bool)
@@ -214,12 +216,8 @@ def test_bonds_and_couplings_are_the_sub_lattice(device):
     vol = sim.model.tet_volume.numpy()[: len(tets)].astype(np.float64)
     share = np.repeat(0.25 * vol, 4) / lat.degree
     vb = share[lat.pairs[:, 0]] + share[lat.pairs[:, 1]]
-    np.testing.assert_allclose(
-        s.bond_kn.numpy()[:nb][order], SUB_STIFFNESS_FACTOR * YOUNG * vb / lat.length**2, rtol=1e-5
-    )
-    np.testing.assert_allclose(
-        s.bond_tensile_strength.numpy()[:nb], SUB_STIFFNESS_FACTOR / SUB_STRENGTH_FACTOR * 2 * TRESCA, rtol=1e-6
-    )
+    np.testing.assert_allclose(s.bond_kn.numpy()[:nb][order], kappa * YOUNG * vb / lat.length**2, rtol=1e-5)
+    np.testing.assert_allclose(s.bond_tensile_strength.numpy()[:nb], kappa / factor * 2 * TRESCA, rtol=1e-6)
     assert np.all(s.bond_ks.numpy()[:nb] == 0.0) and not np.any(s.bond_broken.numpy()[:nb])
     nc = int(s.coupling_count.numpy()[0])
     found = {

@@ -41,9 +41,10 @@ Rules of the conversion pass (others rely on them):
   springs alone. k_b = κ E V_b / L_b² (V_b = V_t / Z_t + V_n / Z_n, Z over all live tets, so a bond's stiffness does
   not depend on which of its neighbours have converted yet: counted once at attach, ``Model.tet_edge_degree``, and
   where nodes may split (fracture attached) found again at each pass for the converting tets and their edge
-  neighbours; L_b the centres' distance), k_s = 0, area V_b / L_b, tensile strength (κ / S) T_f (warpdem.lattice's
-  κ = STIFFNESS_FACTOR and S = STRENGTH_FACTOR, measured on a fully converted bar: bar-wave speed 0.998 sqrt(E/ρ),
-  tensile strength 0.987 T_f, tests/test_coupling.py), no dashpot, born relaxed (rest length = L_b).
+  neighbours; L_b the centres' distance), k_s = 0, area V_b / L_b, tensile strength (κ / S) T_f, no dashpot, born
+  relaxed (rest length = L_b). κ and S are calibrated at attach on the mesh's own network (a static virtual tension
+  test of the tets that may convert, warpdem.lattice "Calibration on the mesh"): fully converted bars measure 0.99 to
+  1.00 sqrt(E/ρ) and 0.99 to 1.00 T_f on Kuhn and Gmsh meshes (tests/test_coupling.py).
 - Couplings (warpdem.coupling, CIMNE eqs. 8–9): each new sphere is tied to every still-active tet sharing an edge
   with its tet (the adjacency of the bonds; ccoupling measured 4.3 % reflection at the first interface this way
   against 10.5 % with face neighbours alone) at its current barycentric coordinates there (born relaxed), with
@@ -158,12 +159,17 @@ class ConversionReport:
 
 
 def conversion_material_table(
-    model: Model, materials: Sequence[ConversionProps | None], device: wp.context.Device, spheres_per_tet: int = 1
+    model: Model,
+    materials: Sequence[ConversionProps | None],
+    device: wp.context.Device,
+    spheres_per_tet: int = 1,
+    factors: tuple[float, float] | None = None,
 ) -> wp.array:
     """ConversionMaterial of every material id (``converts`` = 0 for None), with the bond calibration from the
-    model's continuum properties (E, ν from the Lamé constants of ``tet_material_table``) and the lattice factors κ
-    and S of ``spheres_per_tet`` spheres per tet (warpdem.multisphere.lattice_factors)."""
-    stiffness_factor, strength_factor = multisphere.lattice_factors(spheres_per_tet)
+    model's continuum properties (E, ν from the Lamé constants of ``tet_material_table``) and the lattice factors
+    ``factors`` = (κ, S) (attach_conversion: calibrated on the mesh, warpdem.multisphere.mesh_lattice_factors; None:
+    the reference ones of ``spheres_per_tet`` spheres per tet, warpdem.multisphere.lattice_factors)."""
+    stiffness_factor, strength_factor = factors if factors is not None else multisphere.lattice_factors(spheres_per_tet)
     continuum = model.tet_material_table.numpy()
     table = []
     for mid, p in enumerate(materials):
@@ -259,8 +265,12 @@ def attach_conversion(
     if not _is_count(coupling_capacity, 1):
         raise ValueError(f"attach_conversion: coupling_capacity must be an integer >= 1, got {coupling_capacity!r}")
     d = model.device
-    table = conversion_material_table(model, materials, d, spheres_per_tet)
-    pairs = edge_pairs(model.tet_nodes.numpy()[:nt], np.ones(nt, dtype=bool))
+    # κ and S from a virtual tension test of the convertible tets' own network (warpdem.lattice, "Calibration").
+    converts = flags[:nt].astype(bool) & np.array([p is not None for p in materials])[model.tet_material.numpy()[:nt]]
+    tets = model.tet_nodes.numpy()[:nt]
+    kappa, strength, _ = multisphere.mesh_lattice_factors(tets, model.node_ref_q.numpy(), converts, spheres_per_tet)
+    table = conversion_material_table(model, materials, d, spheres_per_tet, (kappa, strength))
+    pairs = edge_pairs(tets, np.ones(nt, dtype=bool))
     critical, tet = conversion_critical_step(
         dataclasses.replace(model, conversion_material_table=table, spheres_per_tet=int(spheres_per_tet)),
         state,

@@ -46,6 +46,9 @@ more than the bar), and S₄ = 0.775 puts it at T_f. Calibrated, that bar measur
 cells across, 1.033 sqrt(E/ρ) and 0.905 T_f (one sphere per tet there: 0.990 and 0.891). After the first bond breaks the
 four-sphere network still carries load through its other bonds, so the strength is taken at the onset of breaking
 (tests/test_coupling.py says why the later peak is dynamic).
+These are the reference factors (:func:`lattice_factors`); attach_conversion calibrates κ₄ and S₄ on the mesh's own
+sub-lattice (:func:`mesh_lattice_factors`, warpdem.lattice "Calibration on the mesh"): that Kuhn bar then measures
+0.978 sqrt(E/ρ) and 1.010 T_f.
 
 Couplings (warpdem.coupling): sphere a of a new tet is tied to every still-active tet sharing an edge through node a
 (the tets it would bond to), at its barycentric coordinates there, with the stiffness rule k = k_n min(1, 2 / (1 +
@@ -64,7 +67,17 @@ import numpy as np
 import warp as wp
 
 from .kernels import multisphere as kms
-from .lattice import STIFFNESS_FACTOR, STRENGTH_FACTOR, TET_EDGES, edge_pairs
+from .lattice import (
+    STIFFNESS_FACTOR,
+    STRENGTH_FACTOR,
+    TET_EDGES,
+    calibrated_factors,
+    calibration_sample,
+    edge_bond_lattice,
+    edge_pairs,
+    largest_body,
+    network_tension,
+)
 from .model import Model, State
 
 SPHERES_PER_TET = (1, 4)
@@ -189,3 +202,47 @@ def count_sub_links(model: Model, state: State, work) -> None:
         outputs=[work.bonds, work.couplings],
         device=d,
     )
+
+
+def mesh_lattice_factors(
+    tets: np.ndarray, points: np.ndarray, mask: np.ndarray, spheres_per_tet: int
+) -> tuple[float, float, int]:
+    """(κ, S) of ``spheres_per_tet`` spheres per tet calibrated on the mesh's own network (warpdem.lattice's
+    "Calibration on the mesh"), and the tets the virtual test took (0: none, the reference factors returned).
+
+    The test takes the largest edge-connected body of the sample (warpdem.lattice.calibration_sample) of the tets
+    that may convert; when that body holds under half the sample (scattered tets, not a body to pull), the sample is
+    drawn from every tet instead, the same mesh's network.
+
+    Args:
+        tets: node ids, shape (M, 4). points: reference node positions [m], shape (N, 3).
+        mask: bool per tet, the tets that may convert.
+    """
+    tets = np.asarray(tets, dtype=np.int64)
+    p = np.asarray(points, dtype=np.float64)
+    centroids = p[tets].mean(axis=1)
+    for region in (np.asarray(mask, dtype=bool), np.ones(len(tets), dtype=bool)):
+        ids = calibration_sample(centroids, region)
+        body = largest_body(edge_pairs(tets[ids], np.ones(len(ids), dtype=bool)), len(ids))
+        if len(ids) >= 2 and 2 * body.sum() >= len(ids):
+            ids = ids[body]
+            break
+    else:
+        return (*lattice_factors(spheres_per_tet), 0)
+    sample = tets[ids]
+    every = np.ones(len(ids), dtype=bool)
+    x = p[sample]
+    volume = np.abs(np.linalg.det(x[:, 1:] - x[:, :1])) / 6.0
+    if spheres_per_tet == 1:
+        lat = edge_bond_lattice(sample, p, every, x.mean(axis=1), 1.0, 1.0, 1.0, 1.0)
+        centers, pairs, weight = x.mean(axis=1), lat.pairs, lat.kn  # κ = E = 1: k_b = V_b / L_b²
+    else:
+        sub = sub_lattice(sample, p, every, every)
+        centers, pairs, weight = sub.centers, sub.pairs, sub.volume / sub.length**2
+    corners = x.reshape(-1, 3)
+    bounds = np.stack([corners.min(axis=0), corners.max(axis=0)])
+    cell = float(np.cbrt(6.0 * volume.mean()))
+    tension = network_tension(centers, pairs, weight, float(volume.sum()), bounds, cell, group=spheres_per_tet)
+    if tension is None:
+        return (*lattice_factors(spheres_per_tet), 0)
+    return (*calibrated_factors(tension), len(ids))
