@@ -13,7 +13,7 @@ in Python, sampling between steps (split passes run inside ``Simulation.advance`
   so σ_t = 2P/(πDt) at the first split and at the peak against T_f, and the lowest load after the peak (a disc that
   has split through drops its load); the split is told by the daughters' distance from the loaded diameter (at the
   peak and at the end), and whether the crack has let go by its cohesive elements (broken, and the opening d_max/δ_c
-  of those still intact).
+  of those still intact), the fragments (as for ``boulder_impact``) and the crack faces still held by a node.
 - ``boulder_impact``: fragments are the connected pieces of the rock: tets joined through shared nodes and through
   the cohesive elements not yet broken; pieces of at least MIN_FRAGMENT_TETS tets are counted as fragments.
 """
@@ -178,6 +178,13 @@ def brazilian_disc(scene, device: str, end_time: float | None) -> list[str]:
             f"intact (opening d_max/δ_c median {np.median(opening) if alive else 0.0:.2f}, largest "
             f"{opening.max() if alive else 0.0:.2f})"
         )
+        pieces = fragments(sim)
+        open_, one, two = crack_face_states(sim)
+        out.append(
+            f"brazilian_disc: at the end, {int(np.sum(pieces >= MIN_FRAGMENT_TETS))} fragment(s) of "
+            f">= {MIN_FRAGMENT_TETS} tets (largest {pieces[0]} of {pieces.sum()} tets); crack faces {open_} open, "
+            f"{one} held by one node, {two} by two"
+        )
     return out
 
 
@@ -192,6 +199,20 @@ def fragments(sim) -> np.ndarray:
         s.cohesive_b.numpy()[:count],
         s.cohesive_broken.numpy()[:count],
     )
+
+
+def crack_face_states(sim) -> np.ndarray:
+    """Faces of the unsplit mesh between two tets (``ref_tet_face_nbr``) by the nodes the two tets still share on
+    them: counts of (0: open, 1 and 2: held by one or two nodes, a hinge), the intact (3) left out."""
+    from warpdem.mesh import TET_FACES
+
+    nt = int(sim.state.tet_count.numpy()[0])
+    tets = sim.model.tet_nodes.numpy()[:nt].astype(np.int64)
+    nbr = sim.model.ref_tet_face_nbr.numpy()[: 4 * nt].reshape(nt, 4).astype(np.int64)
+    t, k = np.nonzero(nbr > np.arange(nt)[:, None])  # each interior face once, from its lower tet
+    faces = tets[t[:, None], np.asarray(TET_FACES)[k]]  # (F, 3)
+    shared = (faces[:, :, None] == tets[nbr[t, k]][:, None, :]).any(axis=2).sum(axis=1)
+    return np.bincount(shared, minlength=4)[:3]
 
 
 def fragment_sizes(
