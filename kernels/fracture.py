@@ -230,12 +230,10 @@ def nodal_stress_kernel(
     star_offset: wp.array(dtype=int),
     star_count: wp.array(dtype=int),
     star_tets: wp.array(dtype=int),
-    no_joints: wp.array(dtype=int),
     # Out:
     node_sigma1: wp.array(dtype=float),
     node_p1: wp.array(dtype=wp.vec3),
     candidate: wp.array(dtype=int),
-    star_comp: wp.array(dtype=int),
 ):
     v = wp.tid()  # one thread per node slot
     candidate[v] = 0
@@ -267,12 +265,7 @@ def nodal_stress_kernel(
     node_sigma1[v] = sigma1
     node_p1[v] = p
     if sigma1 < strength:
-        # Below T_f only a node whose star its neighbours' cracks already cut apart splits (rule of "Candidates"),
-        # if it still holds the pieces together in tension.
-        if sigma1 <= 0.0:
-            return
-        if label_star(tet_nodes, start, count, star_tets, v, ref_tet_face_nbr, no_joints, star_comp) < 2:
-            return
+        return
     # A candidate needs tets on both sides of the plane and a face between them that still holds it (a crack of
     # zero area would be born broken).
     x = node_q[v]
@@ -300,15 +293,12 @@ def tension_bound_kernel(
     tet_count: wp.array(dtype=int),
     tet_active: wp.array(dtype=int),
     tet_stress: wp.array(dtype=wp.mat33),
-    node_splits_total: wp.array(dtype=int),
     # In:
     threshold: float,
     # Out:
     reached: wp.array(dtype=int),
 ):
     t = wp.tid()  # one thread per tet slot: does any tet's stress bound reach the lowest T_f?
-    if t == 0 and node_splits_total[0] > 0:
-        reached[0] = 1  # once a crack exists, a node its neighbours have cut apart may split below T_f
     if t >= tet_count[0] or tet_active[t] == 0:
         return
     s = tet_stress[t]

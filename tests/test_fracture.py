@@ -495,35 +495,34 @@ def shared_across_faces(sim: Simulation) -> tuple[np.ndarray, np.ndarray]:
     return np.array(shared), np.array(where)
 
 
-def split_rows(device, first_rows, second_rows, second_ratio: float = 1.5, second_splits: bool = True):
+def split_rows(device, first_rows, second_rows):
     """The bar's mid-section (x = L/2, a 3 × 3 grid of nodes, rows y = 0, 0.5, 1): the rows ``first_rows`` split
-    under a load of 1.5 T_f along x (each cuts its star along x = L/2 exactly), then the rows ``second_rows`` may
-    split under a load of ``second_ratio`` T_f tilted by TILT, which alone the plane rule would cut elsewhere; they
-    all split once if ``second_splits``, else none. Returns the simulation and the faces' states."""
-    model, state, _ = bar(device, may_split="all")
+    under a load along x (each cuts its star along x = L/2 exactly), then the rows ``second_rows`` under a load
+    tilted by TILT, which alone the plane rule would cut elsewhere. Returns the simulation and the faces' states."""
+    model, state, pts = bar(device, may_split="all")
     sim = Simulation(model, state)
-    tilted = np.array([np.cos(TILT), np.sin(TILT), 0.0])
-    for rows, n, ratio, splits in (
-        (first_rows, np.array([1.0, 0.0, 0.0]), 1.5, True),
-        (second_rows, tilted, second_ratio, second_splits),
+    mid = np.isclose(pts[:, 0], LENGTH / 2)
+    for rows, n in (
+        (first_rows, np.array([1.0, 0.0, 0.0])),
+        (second_rows, np.array([np.cos(TILT), np.sin(TILT), 0.0])),
     ):
         ref = sim.model.node_ref_q.numpy()[: sim.node_count]
         flags = np.zeros(sim.model.node_capacity, dtype=np.int32)
         flags[: sim.node_count] = np.isclose(ref[:, 0], LENGTH / 2) & np.any(np.isclose(ref[:, 1:2], rows), axis=1)
         sim.model.node_may_split.assign(flags)
-        stretch_along(sim, ratio * STRENGTH / YOUNG, 0.25, n)
-        assert sim.fracture_pass().splits == (int(flags.sum()) if splits else 0)  # each allowed node once, or none
+        stretch_along(sim, 1.5 * STRENGTH / YOUNG, 0.25, n)
+        assert sim.fracture_pass().splits == int(flags.sum())  # each allowed node splits once
         check_topology(sim)
+    assert sim.node_count == len(pts) + int(mid.sum()) * (len(first_rows) + len(second_rows)) // 3
     return sim, *shared_across_faces(sim)
 
 
 def test_split_completes_the_cut_its_neighbours_made(device):
     # Rows y = 0 and y = 1 split first: every mid-section face holds one of their nodes, so the middle row's stars
-    # are cut into two components by half-open faces, and it must split along them (rule 1), whatever p1, and even
-    # below T_f (at 0.5 T_f: a star already cut holds its pieces by this node alone): the section opens fully (every
-    # face on x = L/2 open, no face anywhere held by one or two nodes, no other face opened), and the crack's area
-    # is both faces of the 1 m² section.
-    sim, shared, where = split_rows(device, (0.0, 1.0), (0.5,), second_ratio=0.5)
+    # are cut into two components by half-open faces, and it must split along them (rule 1), whatever p1: the
+    # section opens fully (every face on x = L/2 open, no face anywhere held by one or two nodes, no other face
+    # opened), the bar falls into two halves, and the crack's area is both faces of the 1 m² section.
+    sim, shared, where = split_rows(device, (0.0, 1.0), (0.5,))
     on_section = np.all(np.isclose(where[:, :, 0], LENGTH / 2), axis=1)
     assert on_section.sum() == 8  # the 2 × 2 grid of squares, two triangles each
     assert np.all(shared[on_section] == 0)
@@ -534,9 +533,7 @@ def test_split_completes_the_cut_its_neighbours_made(device):
 def test_split_runs_on_through_half_open_faces(device):
     # Row y = 0 splits first; then row y = 0.5 under the tilted load, its stars cut by half-open faces on one side
     # only (rule 2): the faces of the section between the two rows, all of whose nodes have now split, must be fully
-    # open (with the plane rule alone the tilted plane left them held by the first row's nodes). Below T_f such a
-    # star (not cut apart) does not split.
-    split_rows(device, (0.0,), (0.5,), second_ratio=0.5, second_splits=False)
+    # open (with the plane rule alone the tilted plane left them held by the first row's nodes).
     _, shared, where = split_rows(device, (0.0,), (0.5,))
     y = where[:, :, 1]
     between = np.all(np.isclose(where[:, :, 0], LENGTH / 2), axis=1) & np.all(y < 0.75, axis=1)

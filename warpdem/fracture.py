@@ -10,14 +10,7 @@ Rules of the split pass (others rely on them):
   same p1).
 - Candidates: σ1 ≥ T_f (the smallest of its tets' materials), ``node_may_split`` = 1, and its star has tets on
   both sides of the plane through the node normal to p1 with at least one face between the sides (so A_f > 0).
-  Also below T_f, if σ1 > 0, a node whose star its neighbours' cracks have already cut into ≥ 2 pieces (rule (1) of
-  the partition): the crack around it is open and bonded by the neighbours' cohesive elements, and the node alone
-  pins its faces together, a point strength the law does not have (on the Brazilian disc most nodes left holding
-  half-open faces were such nodes, at a median σ1 of 0.6 T_f, since their stars' tets are partly unloaded by the
-  open faces). Splitting it releases nothing: its element is born carrying eq. 4's force, the force the pin
-  carried, and needs Γ A_f to break like any other. So once any node has split (``node_splits_total`` > 0) every
-  pass evaluates the nodal stresses; before that, a pass in which no tet's stress bound reaches the lowest T_f stops
-  after one tet pass. Candidates are listed in node order (exclusive scan).
+  They are listed in node order (exclusive scan).
 - Partition (``partition_star``), made when the candidate wins its round, with the topology of that round's start:
   the + tets take the new daughter B, A keeps K's index, and the crack opens along the star's faces between + and −
   tets. Plane rule: a tet is + when (centroid − x_K)·p1 > 0 (current positions), so the faces that open are those
@@ -257,13 +250,12 @@ class FracturePass:
         if m.node_capacity == 0 or m.tet_capacity == 0:
             return 0
         eval_tet_stresses(m, s)
-        # The common case, no crack yet and no tet near its strength, costs one tet pass and one read-back (kernel
-        # tension_bound; once a node has split, a node cut apart by its neighbours may split below T_f).
+        # The common case, no tet near its strength, costs one tet pass and one read-back (kernel tension_bound).
         self.reached.zero_()
         wp.launch(
             kfr.tension_bound_kernel,
             dim=m.tet_capacity,
-            inputs=[s.tet_count, s.tet_active, s.tet_stress, s.node_splits_total, self.lowest_strength],
+            inputs=[s.tet_count, s.tet_active, s.tet_stress, self.lowest_strength],
             outputs=[self.reached],
             device=d,
         )
@@ -286,9 +278,8 @@ class FracturePass:
                 s.node_q,
                 s.tet_stress,
                 *stars.csr(),
-                self.no_joints,
             ],
-            outputs=[self.sigma1, self.p1, self.candidate, self.splitter.star_comp],
+            outputs=[self.sigma1, self.p1, self.candidate],
             device=d,
         )
         # Candidates in node order: Compactor.plan keeps the flagged slots (dead = not a candidate).
