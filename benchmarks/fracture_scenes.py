@@ -10,7 +10,10 @@ in Python, sampling between steps (split passes run inside ``Simulation.advance`
   Rayleigh wave speed c_R ≈ c_s (0.862 + 1.14 ν)/(1 + ν) (Freund's approximation), c_s = sqrt(G/ρ).
 - ``brazilian_disc``: the load P of the top platen is the sum of the elastic penalty forces of the nodes behind it,
   Σ k_v max(0, −gap_v) (the node–wall law of warpdem.fem_contact without its dashpot, which is small at this rate),
-  so σ_t = 2P/(πDt) of the peak against T_f; the split is told by the daughters' distance from the loaded diameter.
+  so σ_t = 2P/(πDt) at the first split and at the peak against T_f, and the lowest load after the peak (a disc that
+  has split through drops its load); the split is told by the daughters' distance from the loaded diameter (at the
+  peak and at the end), and whether the crack has let go by its cohesive elements (broken, and the opening d_max/δ_c
+  of those still intact), the fragments (as for ``boulder_impact``) and the crack faces still held by a node.
 - ``boulder_impact``: fragments are the connected pieces of the rock: tets joined through shared nodes and through
   the cohesive elements not yet broken; pieces of at least MIN_FRAGMENT_TETS tets are counted as fragments.
 """
@@ -106,25 +109,33 @@ def pmma_plate(scene, device: str, end_time: float | None) -> list[str]:
     return out
 
 
+def platen_load(sim, wall: int, normal: np.ndarray) -> float:
+    """Load P [N] on a platen (wall ``wall`` of unit ``normal``): the sum of the elastic penalty forces of the nodes
+    behind it, Σ k_v max(0, −gap_v) (the node–wall law of warpdem.fem_contact without its dashpot)."""
+    n = int(sim.state.node_count.numpy()[0])
+    q = sim.state.node_q.numpy()[:n].astype(np.float64)
+    k = sim.model.node_contact_stiffness.numpy()[:n].astype(np.float64)
+    gap = (q - sim.state.wall_point.numpy()[wall].astype(np.float64)) @ normal
+    return float(np.sum(k * np.maximum(-gap, 0.0)))
+
+
 def brazilian_disc(scene, device: str, end_time: float | None) -> list[str]:
-    """Peak platen load P and σ_t = 2P/(πDt) against T_f; where the split runs."""
+    """Peak platen load P, σ_t = 2P/(πDt) against T_f, the load after the peak, and where the split runs."""
     mesh = scene.mesh
     diameter, thickness = 2.0 * mesh.radius, mesh.height
     t_f = scene.materials[mesh.material].tensile_strength
     top = max(range(len(scene.walls)), key=lambda i: scene.walls[i].point[2])
-    peak, peak_t, lines, first = 0.0, 0.0, [], None
-    x = np.zeros((0, 3))
+    normal = np.asarray(scene.walls[top].normal, dtype=np.float64)
+    times, loads, born, lines = [], [], [], []
+    first = sim = None
     for t, sim, n0 in _stepped(scene, device, end_time):
-        n = int(sim.state.node_count.numpy()[0])
-        q = sim.state.node_q.numpy()[:n].astype(np.float64)
-        k = sim.model.node_contact_stiffness.numpy()[:n].astype(np.float64)
-        gap = (q - sim.state.wall_point.numpy()[top]) @ np.asarray(scene.walls[top].normal)
-        load = float(np.sum(k * np.maximum(-gap, 0.0)))
-        if load > peak:
-            peak, peak_t = load, t
+        load = platen_load(sim, top, normal)
         x = _daughters(sim, n0)
         if len(x) and first is None:
             first = (t, load, x.copy())
+        times.append(t)
+        loads.append(load)
+        born.append(x)
         lines.append(f"  t = {t * 1e6:7.1f} µs  P = {load / 1e3:7.2f} kN  splits {len(x)}")
     out = lines[:: max(1, len(lines) // 20)]
 
@@ -132,23 +143,47 @@ def brazilian_disc(scene, device: str, end_time: float | None) -> list[str]:
         value = 2.0 * p / (math.pi * diameter * thickness)
         return f"σ_t = 2P/(πDt) = {value / 1e6:.2f} MPa = {value / t_f:.2f} T_f"
 
+    def path(x: np.ndarray) -> str:
+        off = np.abs(x[:, 0])  # distance from the loaded (vertical, x = 0) diameter
+        return (
+            f"{len(x)} split nodes, distance from the loaded diameter: median {np.median(off) * 1e3:.1f} mm, "
+            f"90 % within {np.quantile(off, 0.9) * 1e3:.1f} mm, max {off.max() * 1e3:.1f} mm (D = "
+            f"{diameter * 1e3:.0f} mm); heights {x[:, 2].min() * 1e3:.1f} to {x[:, 2].max() * 1e3:.1f} mm"
+        )
+
     if first is not None:
         t1, p1, x1 = first
-        r1 = np.linalg.norm(x1[:, [0, 2]], axis=1)
         out.append(
             f"brazilian_disc: first splits at t = {t1 * 1e6:.0f} µs, P = {p1 / 1e3:.2f} kN, {sigma(p1)}; "
-            f"{len(x1)} nodes, {r1.max() * 1e3:.1f} mm or less from the disc's axis"
+            f"{len(x1)} nodes, {np.abs(x1[:, 2]).max() * 1e3:.1f} mm or less from the centre's height"
         )
+    i_peak = int(np.argmax(loads))
+    peak = loads[i_peak]
+    after = min(loads[i_peak:])
     out.append(
-        f"brazilian_disc: peak P = {peak / 1e3:.2f} kN at t = {peak_t * 1e6:.0f} µs, {sigma(peak)} "
-        f"(T_f = {t_f / 1e6:.1f} MPa)"
+        f"brazilian_disc: peak P = {peak / 1e3:.2f} kN at t = {times[i_peak] * 1e6:.0f} µs, {sigma(peak)} "
+        f"(T_f = {t_f / 1e6:.1f} MPa); lowest load after it {after / 1e3:.2f} kN = {after / peak:.2f} of the peak"
     )
-    if len(x):
-        off = np.abs(x[:, 0])  # distance from the loaded (vertical, x = 0) diameter
+    if len(born[i_peak]):
+        out.append(f"brazilian_disc: at the peak, {path(born[i_peak])}")
+    if len(born[-1]):
+        out.append(f"brazilian_disc: at the end, {path(born[-1])}")
+    if sim is not None:
+        # Whether the crack has let go: the halves separate only once its cohesive elements are broken (d_max ≥ δ_c).
+        s = sim.state
+        alive = int(s.cohesive_count.numpy()[0])
+        opening = s.cohesive_d_max.numpy()[:alive] / np.maximum(s.cohesive_delta_c.numpy()[:alive], 1e-30)
         out.append(
-            f"brazilian_disc: {len(x)} splits; distance from the loaded diameter: median {np.median(off) * 1e3:.1f} "
-            f"mm, 90 % within {np.quantile(off, 0.9) * 1e3:.1f} mm (D = {diameter * 1e3:.0f} mm); heights "
-            f"{x[:, 2].min() * 1e3:.1f} to {x[:, 2].max() * 1e3:.1f} mm"
+            f"brazilian_disc: cohesive elements at the end: {int(s.cohesive_broken_total.numpy()[0])} broken, {alive} "
+            f"intact (opening d_max/δ_c median {np.median(opening) if alive else 0.0:.2f}, largest "
+            f"{opening.max() if alive else 0.0:.2f})"
+        )
+        pieces = fragments(sim)
+        open_, one, two = crack_face_states(sim)
+        out.append(
+            f"brazilian_disc: at the end, {int(np.sum(pieces >= MIN_FRAGMENT_TETS))} fragment(s) of "
+            f">= {MIN_FRAGMENT_TETS} tets (largest {pieces[0]} of {pieces.sum()} tets); crack faces {open_} open, "
+            f"{one} held by one node, {two} by two"
         )
     return out
 
@@ -164,6 +199,20 @@ def fragments(sim) -> np.ndarray:
         s.cohesive_b.numpy()[:count],
         s.cohesive_broken.numpy()[:count],
     )
+
+
+def crack_face_states(sim) -> np.ndarray:
+    """Faces of the unsplit mesh between two tets (``ref_tet_face_nbr``) by the nodes the two tets still share on
+    them: counts of (0: open, 1 and 2: held by one or two nodes, a hinge), the intact (3) left out."""
+    from warpdem.mesh import TET_FACES
+
+    nt = int(sim.state.tet_count.numpy()[0])
+    tets = sim.model.tet_nodes.numpy()[:nt].astype(np.int64)
+    nbr = sim.model.ref_tet_face_nbr.numpy()[: 4 * nt].reshape(nt, 4).astype(np.int64)
+    t, k = np.nonzero(nbr > np.arange(nt)[:, None])  # each interior face once, from its lower tet
+    faces = tets[t[:, None], np.asarray(TET_FACES)[k]]  # (F, 3)
+    shared = (faces[:, :, None] == tets[nbr[t, k]][:, None, :]).any(axis=2).sum(axis=1)
+    return np.bincount(shared, minlength=4)[:3]
 
 
 def fragment_sizes(

@@ -11,7 +11,7 @@ import warp as wp
 
 from .cohesive import cohesive_force
 from .tets import TetMaterial, elastic_node_force
-from .topology import local_index, star_find, tet_face, triangle_area_vector
+from .topology import face_in_tet, label_star, local_index, star_find, tet_face, triangle_area_vector
 
 wp.set_module_options({"enable_backward": False})
 
@@ -66,14 +66,134 @@ def largest_principal(s: wp.mat33) -> wp.vec4:
 
 
 @wp.func
+def centroid_offset(
+    tet_nodes: wp.array(dtype=wp.vec4i), node_q: wp.array(dtype=wp.vec3), t: int, x: wp.vec3, p: wp.vec3
+) -> float:
+    """(centroid of tet t − x)·p [m]: how far the tet lies on the side p points to of the plane through x."""
+    n = tet_nodes[t]
+    c = 0.25 * (node_q[n[0]] + node_q[n[1]] + node_q[n[2]] + node_q[n[3]])
+    return wp.dot(c - x, p)
+
+
+@wp.func
 def star_side(tet_nodes: wp.array(dtype=wp.vec4i), node_q: wp.array(dtype=wp.vec3), t: int, x: wp.vec3, p: wp.vec3):
     """Side of tet t of a node at x cut by the plane through x normal to p: 1 (+, the new daughter B) when the
     tet's centroid lies on the side p points to, else 0 (−, A keeps the node)."""
-    n = tet_nodes[t]
-    c = 0.25 * (node_q[n[0]] + node_q[n[1]] + node_q[n[2]] + node_q[n[3]])
-    if wp.dot(c - x, p) > 0.0:
+    if centroid_offset(tet_nodes, node_q, t, x, p) > 0.0:
         return 1
     return 0
+
+
+@wp.func
+def faces_between_sides(
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    ref_tet_face_nbr: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    start: int,
+    count: int,
+    v: int,
+    star_comp: wp.array(dtype=int),
+) -> int:
+    """Faces of node v's star (holding v) between a − tet and a + tet in the unsplit adjacency: the faces that
+    open, whose area makes A_f."""
+    between = int(0)
+    for e in range(start, start + count):
+        if star_comp[e] != 0:
+            continue
+        t = star_tets[e]
+        k_v = local_index(tet_nodes[t], v)
+        for k in range(4):
+            if k == k_v:
+                continue
+            e2 = star_find(star_tets, start, count, ref_tet_face_nbr[4 * t + k])
+            if e2 >= 0:
+                if star_comp[e2] == 1:
+                    between += 1
+    return between
+
+
+@wp.func
+def partition_star(
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    node_q: wp.array(dtype=wp.vec3),
+    ref_tet_face_nbr: wp.array(dtype=int),
+    no_joints: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    start: int,
+    count: int,
+    v: int,
+    p: wp.vec3,
+    star_comp: wp.array(dtype=int),
+):
+    """Sides of node v's star tets (star_comp: 0 −, A keeps v; 1 +, the new daughter B) for a split normal to p,
+    face-consistent with the cracks its neighbours have opened (warpdem/fracture.py, "Partition")."""
+    x = node_q[v]
+    # Components through the faces no neighbour has opened (a half-open face: its ref neighbour no longer holds it).
+    components = label_star(tet_nodes, start, count, star_tets, v, ref_tet_face_nbr, no_joints, star_comp)
+    if components >= 2:
+        # The neighbours' cracks already cut the star: it splits along them. Each component goes to the side of its
+        # mean centroid offset along p; the highest (first of equals) is +, the lowest −, so both sides have tets.
+        hi = int(0)
+        lo = int(0)
+        best_hi = float(-NEVER)
+        best_lo = float(NEVER)
+        for c in range(components):
+            s = float(0.0)
+            m = float(0.0)
+            for e in range(start, start + count):
+                if star_comp[e] == c:
+                    s += centroid_offset(tet_nodes, node_q, star_tets[e], x, p)
+                    m += 1.0
+            s = s / m
+            if s > best_hi:
+                best_hi = s
+                hi = c
+            if s < best_lo:
+                best_lo = s
+                lo = c
+        for e in range(start, start + count):
+            c = star_comp[e]
+            side = int(0)
+            if c == hi:
+                side = 1
+            elif c != lo:
+                s = float(0.0)
+                for e2 in range(start, start + count):
+                    if star_comp[e2] == c:
+                        s += centroid_offset(tet_nodes, node_q, star_tets[e2], x, p)
+                if s > 0.0:
+                    side = 1
+            star_comp[e] = -1 - side  # negative while the other entries still hold component labels (>= 0)
+        for e in range(start, start + count):
+            star_comp[e] = -1 - star_comp[e]
+    else:
+        # One piece: the plane rule, except that a tet behind a half-open face takes the side that face's outward
+        # normal n points away from (+ when Σ -area n·p > 0 over its half-open faces), so the crack runs on through
+        # the faces its neighbours have half opened.
+        for e in range(start, start + count):
+            t = star_tets[e]
+            n = tet_nodes[t]
+            vote = float(0.0)
+            for k in range(4):
+                if n[k] == v:
+                    continue
+                t2 = ref_tet_face_nbr[4 * t + k]
+                if star_find(star_tets, start, count, t2) < 0:
+                    continue
+                f = tet_face(n, k)
+                if face_in_tet(tet_nodes[t2], f[0], f[1], f[2]) >= 0:
+                    continue
+                vote -= wp.dot(triangle_area_vector(node_q[f[0]], node_q[f[1]], node_q[f[2]]), p)
+            side = star_side(tet_nodes, node_q, t, x, p)
+            if vote > 0.0:
+                side = 1
+            elif vote < 0.0:
+                side = 0
+            star_comp[e] = side
+    if faces_between_sides(tet_nodes, ref_tet_face_nbr, star_tets, start, count, v, star_comp) == 0:
+        # No face would open (A_f = 0): the plane rule, which the candidate test has checked opens one.
+        for e in range(start, start + count):
+            star_comp[e] = star_side(tet_nodes, node_q, star_tets[e], x, p)
 
 
 @wp.func
@@ -270,6 +390,7 @@ def claim_node_kernel(
 def resolve_claims_kernel(
     # Model:
     tet_nodes: wp.array(dtype=wp.vec4i),
+    ref_tet_face_nbr: wp.array(dtype=int),
     # State in:
     node_q: wp.array(dtype=wp.vec3),
     # In:
@@ -280,6 +401,7 @@ def resolve_claims_kernel(
     star_count: wp.array(dtype=int),
     star_tets: wp.array(dtype=int),
     claim_node: wp.array(dtype=int),
+    no_joints: wp.array(dtype=int),
     # Out:
     pending: wp.array(dtype=int),
     won: wp.array(dtype=int),
@@ -298,11 +420,9 @@ def resolve_claims_kernel(
         if claim_node[star_tets[e]] != v:
             wp.atomic_add(pending_count, 0, 1)  # lost a tet: retry next round
             return
-    # Won: no other node of this round touches these tets. Partition the star (+ side: daughter B).
-    x = node_q[v]
-    p = node_p1[v]
-    for e in range(start, start + count):
-        star_comp[e] = star_side(tet_nodes, node_q, star_tets[e], x, p)
+    # Won: no other node of this round touches these tets. Partition the star (+ side: daughter B) with the
+    # topology of this round's start (this round's splits are applied after every partition is made).
+    partition_star(tet_nodes, node_q, ref_tet_face_nbr, no_joints, star_tets, start, count, v, node_p1[v], star_comp)
     copies[v] = 1
     won[i] = 1
     pending[i] = 0

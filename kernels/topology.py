@@ -83,6 +83,70 @@ def star_find(star_tets: wp.array(dtype=int), start: int, count: int, t: int) ->
 
 
 @wp.func
+def label_star(
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    start: int,
+    count: int,
+    star_tets: wp.array(dtype=int),
+    v: int,
+    tet_face_nbr: wp.array(dtype=int),
+    tet_face_joint: wp.array(dtype=int),
+    star_comp: wp.array(dtype=int),
+) -> int:
+    """Connected components of node v's star segment [start, start + count): star_comp[e] = 0, 1, 2, ... in order of
+    each component's lowest tet; returns the number of components. Two star tets are joined across a face that
+    holds v, that ``tet_face_nbr`` names, that is no joint face (``tet_face_joint`` >= 0; an empty array: none), and
+    that the tet across still holds (with an adjacency of the unsplit mesh, a face a split has opened is no join)."""
+    # Label propagation to a fixed point: every entry takes the smallest local index reachable through a joining
+    # face. Entries are sorted by tet index, so component labels follow the lowest tet.
+    for i in range(count):
+        star_comp[start + i] = i
+    changed = int(1)
+    while changed != 0:
+        changed = int(0)
+        for i in range(count):
+            t = star_tets[start + i]
+            n = tet_nodes[t]
+            for k in range(4):
+                if n[k] == v:
+                    continue  # the face opposite v does not hold v
+                if tet_face_joint.shape[0] > 0:
+                    if tet_face_joint[4 * t + k] >= 0:
+                        continue
+                t2 = tet_face_nbr[4 * t + k]
+                if t2 < 0:
+                    continue
+                e2 = star_find(star_tets, start, count, t2)
+                if e2 < 0:
+                    continue
+                f = tet_face(n, k)
+                if face_in_tet(tet_nodes[t2], f[0], f[1], f[2]) < 0:
+                    continue
+                a = star_comp[start + i]
+                b = star_comp[e2]
+                if b < a:
+                    star_comp[start + i] = b
+                    changed = 1
+                elif a < b:
+                    star_comp[e2] = a
+                    changed = 1
+    # Labels → ordinals 0, 1, 2, ... in order of each component's lowest tet. A component's root (label == own
+    # index) precedes its other entries, so one pass over the roots and one over the rest suffice.
+    ordinal = int(0)
+    for i in range(count):
+        if star_comp[start + i] == i:
+            star_comp[start + i] = -1 - ordinal  # marked, so that the second pass tells roots from members
+            ordinal += 1
+    for i in range(count):
+        c = star_comp[start + i]
+        if c >= 0:
+            star_comp[start + i] = star_comp[start + c]
+    for i in range(count):
+        star_comp[start + i] = -1 - star_comp[start + i]
+    return ordinal
+
+
+@wp.func
 def split_node_index(v: int, component: int, first_new: wp.array(dtype=int)) -> int:
     """Node that component c of node v's star holds after a split: v itself for c = 0, else v's (c-1)-th new slot."""
     if component == 0:
@@ -218,50 +282,9 @@ def label_star_components_kernel(
     v = wp.tid()  # one thread per node slot; it labels its own star (no other thread touches those entries)
     if v >= node_count[0]:
         return
-    start = star_offset[v]
-    count = star_count[v]
-    # Label propagation to a fixed point: every entry takes the smallest local index reachable through a face that
-    # holds v and is no joint face. Entries are sorted by tet index, so component labels follow the lowest tet.
-    for i in range(count):
-        star_comp[start + i] = i
-    changed = int(1)
-    while changed != 0:
-        changed = int(0)
-        for i in range(count):
-            t = star_tets[start + i]
-            n = tet_nodes[t]
-            for k in range(4):
-                if n[k] == v:
-                    continue  # the face opposite v does not hold v
-                if tet_face_joint[4 * t + k] >= 0:
-                    continue
-                t2 = tet_face_nbr[4 * t + k]
-                if t2 < 0:
-                    continue
-                e2 = star_find(star_tets, start, count, t2)
-                if e2 < 0:
-                    continue
-                a = star_comp[start + i]
-                b = star_comp[e2]
-                if b < a:
-                    star_comp[start + i] = b
-                    changed = 1
-                elif a < b:
-                    star_comp[e2] = a
-                    changed = 1
-    # Labels → ordinals 0, 1, 2, ... in order of each component's lowest tet. A component's root (label == own
-    # index) precedes its other entries, so one pass over the roots and one over the rest suffice.
-    ordinal = int(0)
-    for i in range(count):
-        if star_comp[start + i] == i:
-            star_comp[start + i] = -1 - ordinal  # marked, so that the second pass tells roots from members
-            ordinal += 1
-    for i in range(count):
-        c = star_comp[start + i]
-        if c >= 0:
-            star_comp[start + i] = star_comp[start + c]
-    for i in range(count):
-        star_comp[start + i] = -1 - star_comp[start + i]
+    ordinal = label_star(
+        tet_nodes, star_offset[v], star_count[v], star_tets, v, tet_face_nbr, tet_face_joint, star_comp
+    )
     copies[v] = wp.max(ordinal - 1, 0)
 
 

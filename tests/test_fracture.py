@@ -525,3 +525,81 @@ def test_split_passes_under_a_ball_keep_the_books(device):
     print(f"{len(jumps)} split passes: worst change of the books {worst:.2e}, re-lumping booked {max(gained):.3e} J")
     assert worst <= PASS_RTOL
     assert max(abs(g) for g in gained) > 1e2 * PASS_RTOL * in_play  # the case exercises the re-lumping
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Face-consistent partition: a node follows the faces its neighbours have half opened.
+
+TILT = np.radians(35.0)
+"""Angle of the second pass's load from x [rad]: the plane rule alone would cut the mid-nodes' stars off x = L/2."""
+
+
+def stretch_along(sim: Simulation, eps: float, poisson: float, n: np.ndarray) -> None:
+    """Uniaxial stress E ε along the unit vector n: u = ε ((1 + ν)(n·X) n − ν X), strain ε n⊗n − ν ε (I − n⊗n)."""
+    x = sim.model.node_ref_q.numpy()[: sim.node_count].astype(np.float64)
+    u = eps * ((1.0 + poisson) * (x @ n)[:, None] * n[None, :] - poisson * x)
+    set_node_displacements(sim.model, sim.state, u)
+
+
+def shared_across_faces(sim: Simulation) -> tuple[np.ndarray, np.ndarray]:
+    """Every face of the unsplit mesh between two tets (once): the nodes the two tets still share on it (3: intact,
+    0: fully open, 1-2: held by a node, a hinge), and the face's three reference positions, shape (F, 3, 3)."""
+    nt = int(sim.state.tet_count.numpy()[0])
+    tets = sim.model.tet_nodes.numpy()[:nt].astype(np.int64)
+    nbr = sim.model.ref_tet_face_nbr.numpy()[: 4 * nt].reshape(nt, 4)
+    ref = sim.model.node_ref_q.numpy().astype(np.float64)
+    shared, where = [], []
+    for t in range(nt):
+        for k in range(4):
+            t2 = nbr[t, k]
+            if t2 > t:
+                face = tets[t, TET_FACES[k]]
+                shared.append(int(np.isin(face, tets[t2]).sum()))
+                where.append(ref[face])
+    return np.array(shared), np.array(where)
+
+
+def split_rows(device, first_rows, second_rows):
+    """The bar's mid-section (x = L/2, a 3 × 3 grid of nodes, rows y = 0, 0.5, 1): the rows ``first_rows`` split
+    under a load along x (each cuts its star along x = L/2 exactly), then the rows ``second_rows`` under a load
+    tilted by TILT, which alone the plane rule would cut elsewhere. Returns the simulation and the faces' states."""
+    model, state, pts = bar(device, may_split="all")
+    sim = Simulation(model, state)
+    mid = np.isclose(pts[:, 0], LENGTH / 2)
+    for rows, n in (
+        (first_rows, np.array([1.0, 0.0, 0.0])),
+        (second_rows, np.array([np.cos(TILT), np.sin(TILT), 0.0])),
+    ):
+        ref = sim.model.node_ref_q.numpy()[: sim.node_count]
+        flags = np.zeros(sim.model.node_capacity, dtype=np.int32)
+        flags[: sim.node_count] = np.isclose(ref[:, 0], LENGTH / 2) & np.any(np.isclose(ref[:, 1:2], rows), axis=1)
+        sim.model.node_may_split.assign(flags)
+        stretch_along(sim, 1.5 * STRENGTH / YOUNG, 0.25, n)
+        assert sim.fracture_pass().splits == int(flags.sum())  # each allowed node splits once
+        check_topology(sim)
+    assert sim.node_count == len(pts) + int(mid.sum()) * (len(first_rows) + len(second_rows)) // 3
+    return sim, *shared_across_faces(sim)
+
+
+def test_split_completes_the_cut_its_neighbours_made(device):
+    # Rows y = 0 and y = 1 split first: every mid-section face holds one of their nodes, so the middle row's stars
+    # are cut into two components by half-open faces, and it must split along them (rule 1), whatever p1: the
+    # section opens fully (every face on x = L/2 open, no face anywhere held by one or two nodes, no other face
+    # opened), the bar falls into two halves, and the crack's area is both faces of the 1 m² section.
+    sim, shared, where = split_rows(device, (0.0, 1.0), (0.5,))
+    on_section = np.all(np.isclose(where[:, :, 0], LENGTH / 2), axis=1)
+    assert on_section.sum() == 8  # the 2 × 2 grid of squares, two triangles each
+    assert np.all(shared[on_section] == 0)
+    assert np.all(shared[~on_section] == 3)
+    np.testing.assert_allclose(float(sim.state.crack_area_total.numpy()[0]), 2.0, rtol=1e-6)
+
+
+def test_split_runs_on_through_half_open_faces(device):
+    # Row y = 0 splits first; then row y = 0.5 under the tilted load, its stars cut by half-open faces on one side
+    # only (rule 2): the faces of the section between the two rows, all of whose nodes have now split, must be fully
+    # open (with the plane rule alone the tilted plane left them held by the first row's nodes).
+    _, shared, where = split_rows(device, (0.0,), (0.5,))
+    y = where[:, :, 1]
+    between = np.all(np.isclose(where[:, :, 0], LENGTH / 2), axis=1) & np.all(y < 0.75, axis=1)
+    assert between.sum() == 4
+    assert np.all(shared[between] == 0)

@@ -11,14 +11,30 @@ Rules of the split pass (others rely on them):
 - Candidates: σ1 ≥ T_f (the smallest of its tets' materials), ``node_may_split`` = 1, and its star has tets on
   both sides of the plane through the node normal to p1 with at least one face between the sides (so A_f > 0).
   They are listed in node order (exclusive scan).
-- Partition: a star tet is on the + side when (centroid − x_K)·p1 > 0 (current positions); the + tets take the new
-  daughter B, A keeps K's index. The crack thus opens along the existing faces between + and − tets, those whose
-  normals lie closest to p1.
+- Partition (``partition_star``), made when the candidate wins its round, with the topology of that round's start:
+  the + tets take the new daughter B, A keeps K's index, and the crack opens along the star's faces between + and −
+  tets. Plane rule: a tet is + when (centroid − x_K)·p1 > 0 (current positions), so the faces that open are those
+  whose normals lie closest to p1. Each node would cut by its own plane, though, and on an unstructured mesh
+  neighbouring nodes along one crack would then cut different faces: a face only comes apart when all three of its
+  nodes split across it, and a face cut by one or two of them stays held by the rest (a hinge: on the Brazilian
+  disc, after 140 splits only 28 crack faces were open, 335 hinged, and the disc never came apart). So the
+  partition follows the cracks the neighbours have opened. A star face (holding K, between two star tets that were
+  face neighbours in the unsplit mesh, ``ref_tet_face_nbr``) is *half-open* when the tet across no longer holds
+  the face's other two nodes: a neighbour has split across it.
+  (1) If the star's tets, joined only across faces that are not half-open, fall into ≥ 2 components, the
+  neighbours' cracks already cut the star and K splits along them (the crack just completes, as the joint
+  pre-split follows its components): each component goes to the side of its tets' mean centroid offset along p1,
+  the highest +, the lowest −. (2) Otherwise the plane rule, except that a tet with half-open faces takes the side
+  their outward normals n point away from (+ when Σ −area n·p1 > 0 over them): both tets of a half-open face lie on
+  either side of it, so that face opens fully. Both rules give two sides with a face between them; where they would
+  not (a star split only through non-face contacts), the plane rule, which the candidate test has checked.
 - Races: rounds of independent sets. Each pending candidate claims its star tets: first an atomic max of σ1 per
   tet, then, among the candidates of that σ1, an atomic min of the node id; a candidate splits in this round only
   if it won every tet of its star (no tet then holds two splitting nodes, so each split node rewrites only its own
-  star). Losers retry in the next round of the same pass with the stress and partition of the pass's start (a split
-  changes neither the tets' stresses nor positions); after ``max_rounds`` rounds the rest wait for the next pass.
+  star; the three nodes of a face never split in the same round, so each sees the cuts the others made before).
+  Losers retry in the next round of the same pass with the stress of the pass's start (a split changes neither the
+  tets' stresses nor positions) and a partition made with the topology of their round; after ``max_rounds`` rounds
+  the rest wait for the next pass.
   The result does not depend on thread order: every claim is a max or min, and every sum runs in a fixed order.
 - Daughters: B's slot by exclusive scan over the round's split nodes (``Compactor.plan_append``), so numbering is
   deterministic; every per-node array is replicated into it (positions, displacements, velocities, motion kinds,
@@ -212,6 +228,8 @@ class FracturePass:
         self.claim_node = wp.zeros(t1, dtype=int, device=d)
         self.pending_count = wp.zeros(1, dtype=int, device=d)
         self.reached = wp.zeros(1, dtype=int, device=d)
+        # The partition finds the faces neighbours have opened through the tets across them, joint faces included.
+        self.no_joints = wp.zeros(0, dtype=int, device=d)
         table = model.fracture_material_table
         # The lowest T_f of any material (host copy, read once per capacity): the threshold of the tension bound.
         self.lowest_strength = float(table.numpy()["tensile_strength"].min()) if table is not None else 0.0
@@ -325,12 +343,14 @@ class FracturePass:
                 dim=ncap,
                 inputs=[
                     m.tet_nodes,
+                    m.ref_tet_face_nbr,
                     s.node_q,
                     self.candidate_count,
                     self.candidates,
                     self.p1,
                     *sp.stars.csr(),
                     self.claim_node,
+                    self.no_joints,
                 ],
                 outputs=[self.pending, self.won, sp.copies, sp.star_comp, self.pending_count],
                 device=d,
