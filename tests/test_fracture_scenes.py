@@ -145,7 +145,7 @@ def test_pmma_plate_books_close_while_its_crack_runs(device):
     resolve would work against the nodes instead, kernels/cohesive.py).
 
     Bound: ENERGY_BOUND of tests/test_fracture.py, 5e-3 of the energy in play (the tets' O(dt²) error around the
-    crack and the split passes' rounding; measured 4e-4 at 35 µs and 1.9e-3 over the scene's full 70 µs).
+    crack and the split passes' rounding; measured 4e-4 at 35 µs and 2.3e-3 over the scene's full 70 µs).
     """
     import pathlib
     import tomllib
