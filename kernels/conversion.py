@@ -434,6 +434,50 @@ def spawn_spheres_kernel(
     released[t] = strain_energy[t] + ke_tet - ke_sphere
 
 
+@wp.func
+def write_lattice_bond(
+    b: int,
+    i: int,
+    j: int,
+    particle_capacity: int,
+    ma: ConversionMaterial,
+    mb: ConversionMaterial,
+    vb: float,
+    length: float,
+    bond_i: wp.array(dtype=int),
+    bond_j: wp.array(dtype=int),
+    bond_key: wp.array(dtype=wp.int64),
+    bond_rest_length: wp.array(dtype=float),
+    bond_kn: wp.array(dtype=float),
+    bond_ks: wp.array(dtype=float),
+    bond_area: wp.array(dtype=float),
+    bond_tensile_strength: wp.array(dtype=float),
+    bond_shear_strength: wp.array(dtype=float),
+    bond_damping: wp.array(dtype=float),
+    bond_shear: wp.array(dtype=wp.vec3),
+    bond_broken: wp.array(dtype=int),
+    bond_energy_prev: wp.array(dtype=wp.vec2),
+):
+    """Write bond slot b between spheres i < j of the converted lattice (one or four spheres per tet): the share vb
+    [m³] of volume it carries, its length [m] and the conversion materials of its two ends. Born relaxed (rest length =
+    length: the strain energy the tets held is booked as released), normal springs alone (k_s = 0: the edge network
+    is rigid, warpdem.lattice), no dashpot, no history."""
+    bond_i[b] = i
+    bond_j[b] = j
+    bond_key[b] = wp.int64(i) * wp.int64(particle_capacity) + wp.int64(j)
+    bond_rest_length[b] = length
+    bond_kn[b] = lattice_stiffness(ma, mb, vb, length)
+    bond_ks[b] = 0.0
+    bond_area[b] = vb / length
+    # k_b L / (E A_b) = κ: a strength κ T_f / S per unit A_b breaks the bond at the stretch L T_f / (S E).
+    bond_tensile_strength[b] = wp.min(ma.bond_tensile_strength, mb.bond_tensile_strength)
+    bond_shear_strength[b] = wp.min(ma.bond_shear_strength, mb.bond_shear_strength)
+    bond_damping[b] = 0.0
+    bond_shear[b] = wp.vec3(0.0)
+    bond_broken[b] = 0
+    bond_energy_prev[b] = wp.vec2(0.0)
+
+
 @wp.kernel
 def write_conversion_bonds_kernel(
     # Model:
@@ -491,20 +535,29 @@ def write_conversion_bonds_kernel(
             vb = tet_volume[t] / float(degree[t]) + tet_volume[nbr] / float(degree[nbr])
             ma = conversion_material_table[tet_material[t]]
             mb = conversion_material_table[tet_material[nbr]]
-            bond_i[b] = i
-            bond_j[b] = j
-            bond_key[b] = wp.int64(i) * wp.int64(particle_capacity) + wp.int64(j)
-            bond_rest_length[b] = length  # born relaxed: the strain energy the tets held is booked as released
-            bond_kn[b] = lattice_stiffness(ma, mb, vb, length)
-            bond_ks[b] = 0.0  # normal springs alone: the edge network is rigid (warpdem.lattice)
-            bond_area[b] = vb / length
-            # k_b L / (E A_b) = κ: a strength κ T_f / S per unit A_b breaks the bond at the stretch L T_f / (S E).
-            bond_tensile_strength[b] = wp.min(ma.bond_tensile_strength, mb.bond_tensile_strength)
-            bond_shear_strength[b] = wp.min(ma.bond_shear_strength, mb.bond_shear_strength)
-            bond_damping[b] = 0.0
-            bond_shear[b] = wp.vec3(0.0)
-            bond_broken[b] = 0
-            bond_energy_prev[b] = wp.vec2(0.0)
+            write_lattice_bond(
+                b,
+                i,
+                j,
+                particle_capacity,
+                ma,
+                mb,
+                vb,
+                length,
+                bond_i,
+                bond_j,
+                bond_key,
+                bond_rest_length,
+                bond_kn,
+                bond_ks,
+                bond_area,
+                bond_tensile_strength,
+                bond_shear_strength,
+                bond_damping,
+                bond_shear,
+                bond_broken,
+                bond_energy_prev,
+            )
             b += 1
 
 

@@ -23,6 +23,7 @@ from .conversion import (
     couples_to,
     lattice_stiffness,
     tet_spin,
+    write_lattice_bond,
 )
 from .coupling import current_barycentric
 from .tets import TetMaterial
@@ -293,14 +294,29 @@ def write_sub_bonds_kernel(
             j = first + a2
             length = wp.length(wp.vec3(particle_q[i] - particle_q[j]))
             vb = sphere_volume_share(tet_volume, sub_degree, t, a) + sphere_volume_share(tet_volume, sub_degree, t, a2)
-            bond_i[b] = i
-            bond_j[b] = j
-            bond_key[b] = wp.int64(i) * wp.int64(particle_capacity) + wp.int64(j)
-            bond_rest_length[b] = length
-            bond_kn[b] = lattice_stiffness(ma, ma, vb, length)
-            bond_area[b] = vb / length
-            bond_tensile_strength[b] = ma.bond_tensile_strength
-            bond_shear_strength[b] = ma.bond_shear_strength
+            write_lattice_bond(
+                b,
+                i,
+                j,
+                particle_capacity,
+                ma,
+                ma,
+                vb,
+                length,
+                bond_i,
+                bond_j,
+                bond_key,
+                bond_rest_length,
+                bond_kn,
+                bond_ks,
+                bond_area,
+                bond_tensile_strength,
+                bond_shear_strength,
+                bond_damping,
+                bond_shear,
+                bond_broken,
+                bond_energy_prev,
+            )
             b += 1
     for a in range(4):
         v = nodes[a]
@@ -320,23 +336,30 @@ def write_sub_bonds_kernel(
                 tet_volume, sub_degree, nbr, a2
             )
             mb = conversion_material_table[tet_material[nbr]]
-            bond_i[b] = i
-            bond_j[b] = j
-            bond_key[b] = wp.int64(i) * wp.int64(particle_capacity) + wp.int64(j)
-            bond_rest_length[b] = length
-            bond_kn[b] = lattice_stiffness(ma, mb, vb, length)
-            bond_area[b] = vb / length
-            bond_tensile_strength[b] = wp.min(ma.bond_tensile_strength, mb.bond_tensile_strength)
-            bond_shear_strength[b] = wp.min(ma.bond_shear_strength, mb.bond_shear_strength)
+            write_lattice_bond(
+                b,
+                i,
+                j,
+                particle_capacity,
+                ma,
+                mb,
+                vb,
+                length,
+                bond_i,
+                bond_j,
+                bond_key,
+                bond_rest_length,
+                bond_kn,
+                bond_ks,
+                bond_area,
+                bond_tensile_strength,
+                bond_shear_strength,
+                bond_damping,
+                bond_shear,
+                bond_broken,
+                bond_energy_prev,
+            )
             b += 1
-    # Born relaxed (rest length = length), normal springs alone (k_s = 0), no dashpot, no history: the slots past
-    # this tet's first bond get the same zeros as in the one-sphere pass.
-    for k in range(bond_count[0] + offset[t], b):
-        bond_ks[k] = 0.0
-        bond_damping[k] = 0.0
-        bond_shear[k] = wp.vec3(0.0)
-        bond_broken[k] = 0
-        bond_energy_prev[k] = wp.vec2(0.0)
 
 
 @wp.kernel
