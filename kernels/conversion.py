@@ -344,6 +344,7 @@ def spawn_spheres_kernel(
     tet_material: wp.array(dtype=int),
     tet_material_table: wp.array(dtype=TetMaterial),
     conversion_part: int,
+    spheres_per_tet: int,
     # State in:
     tet_count: wp.array(dtype=int),
     particle_count: wp.array(dtype=int),
@@ -373,65 +374,86 @@ def spawn_spheres_kernel(
     node_touched: wp.array(dtype=int),
     released: wp.array(dtype=wp.float64),
 ):
-    t = wp.tid()  # one thread per tet slot: a converting tet writes its sphere at particle_count + its scan offset
+    """Spawn the spheres of each converting tet: ``spheres_per_tet`` = 1, one sphere at the centroid c with the tet's
+    ρ V₀, its mean velocity and its spin; = 4, sphere a (slot ``tet_sphere[t] + a``) at s_a = c + r_a / 2, the centroid
+    of the corner sub-tet of the 1:8 midpoint subdivision at node a, with node a's lumped share ρ V₀ / 4 and the linear
+    velocity field at s_a (kernels/multisphere.py has the four-sphere lattice)."""
+    t = wp.tid()  # one thread per tet slot: a converting tet writes its spheres at particle_count + k × its scan offset
     released[t] = wp.float64(0.0)
     if t >= tet_count[0] or flag[t] == 0:
         return
-    slot = particle_count[0] + offset[t]
+    first = particle_count[0] + spheres_per_tet * offset[t]
     n = tet_nodes[t]
     mat = tet_material_table[tet_material[t]]
-    mass = mat.density * tet_volume[t]  # exactly the ρ V₀ / 4 × 4 the nodes lose (lumped masses)
+    node_mass = 0.25 * mat.density * tet_volume[t]  # each node's lumped share ρ V₀ / 4 (×0.25 is exact)
+    # One sphere takes exactly the ρ V₀ the four nodes lose; four take one node's share each.
+    mass = mat.density * tet_volume[t]
+    share = 1.0  # the sphere's clearance from the faces, relative to the centroid's h_k / 4
+    if spheres_per_tet == 4:
+        mass = node_mass
+        share = 0.5
     c64 = centroid64(node_ref_q, node_u, n)
     c = wp.vec3(c64)
-    x0 = wp.vec3(wp.vec3d(node_ref_q[n[0]]) + wp.vec3d(node_u[n[0]]) - c64)
-    x1 = wp.vec3(wp.vec3d(node_ref_q[n[1]]) + wp.vec3d(node_u[n[1]]) - c64)
-    x2 = wp.vec3(wp.vec3d(node_ref_q[n[2]]) + wp.vec3d(node_u[n[2]]) - c64)
-    x3 = wp.vec3(wp.vec3d(node_ref_q[n[3]]) + wp.vec3d(node_u[n[3]]) - c64)
-    # Radius: the smallest distance from the centroid to a face (h_k / 4 of the tet's heights), less a float32
-    # margin, so the sphere touches its tet's nearest face and overlaps no neighbour (tet or sphere) at birth.
-    scale = wp.max(wp.max(wp.abs(c[0]), wp.max(wp.abs(c[1]), wp.abs(c[2]))), wp.length(x0))
-    radius = clear_radius(centroid_clearance(x0, x1, x2, x3), scale)
+    r0 = wp.vec3(wp.vec3d(node_ref_q[n[0]]) + wp.vec3d(node_u[n[0]]) - c64)
+    r1 = wp.vec3(wp.vec3d(node_ref_q[n[1]]) + wp.vec3d(node_u[n[1]]) - c64)
+    r2 = wp.vec3(wp.vec3d(node_ref_q[n[2]]) + wp.vec3d(node_u[n[2]]) - c64)
+    r3 = wp.vec3(wp.vec3d(node_ref_q[n[3]]) + wp.vec3d(node_u[n[3]]) - c64)
+    # Radius: the smallest distance from the centroid to a face (h_k / 4 of the tet's heights; a corner sub-tet's
+    # centroid lies h_k / 8 from its faces), less a float32 margin of 8 ulps of the larger of |c| and the tet's size,
+    # so each sphere touches its (sub-)tet's nearest face and overlaps no neighbour (tet or sphere) at birth.
+    scale = wp.max(wp.max(wp.abs(c[0]), wp.max(wp.abs(c[1]), wp.abs(c[2]))), wp.length(r0))
+    radius = clear_radius(share * centroid_clearance(r0, r1, r2, r3), scale)
     v0 = node_qd[n[0]]
     v1 = node_qd[n[1]]
     v2 = node_qd[n[2]]
     v3 = node_qd[n[3]]
-    # Each node carries ρ V₀ / 4 of this tet: the tet's momentum is ρ V₀ times the mean velocity.
-    v = 0.25 * (v0 + v1 + v2 + v3)
-    omega = tet_spin(x0, x1, x2, x3, v0, v1, v2, v3)
+    vbar = 0.25 * (v0 + v1 + v2 + v3)  # Σ_a (ρ V₀ / 4) v_a = ρ V₀ v̄: the tet's momentum
+    omega = tet_spin(r0, r1, r2, r3, v0, v1, v2, v3)  # every sphere of the tet
     inertia = 0.4 * mass * radius * radius
-    particle_radius[slot] = radius
-    particle_mass[slot] = mass
-    particle_inv_mass[slot] = 1.0 / mass
-    particle_inv_inertia[slot] = 1.0 / inertia
-    particle_material[slot] = tet_material[t]
-    particle_motion[slot] = 0
-    particle_part[slot] = conversion_part
-    particle_id[slot] = slot
-    particle_q[slot] = c64
-    particle_q_at_build[slot] = c64
-    particle_qd[slot] = v
-    particle_omega[slot] = omega
-    tet_active[t] = 0
-    tet_sphere[t] = slot
+    ke_spheres = wp.float64(0.0)
+    for a in range(spheres_per_tet):
+        slot = first + a
+        q = c64
+        v = vbar
+        if spheres_per_tet == 4:
+            r = r0
+            va = v0
+            if a == 1:
+                r = r1
+                va = v1
+            elif a == 2:
+                r = r2
+                va = v2
+            elif a == 3:
+                r = r3
+                va = v3
+            # The linear velocity field at s_a: v̄ + (v_a − v̄)/2. Σ_a (m/4) v(s_a) = m v̄ exactly (Σ_a v_a = 4 v̄).
+            q = c64 + wp.float64(0.5) * wp.vec3d(r)
+            v = 0.5 * (va + vbar)
+        particle_radius[slot] = radius
+        particle_mass[slot] = mass
+        particle_inv_mass[slot] = 1.0 / mass
+        particle_inv_inertia[slot] = 1.0 / inertia
+        particle_material[slot] = tet_material[t]
+        particle_motion[slot] = 0
+        particle_part[slot] = conversion_part
+        particle_id[slot] = slot
+        particle_q[slot] = q
+        particle_q_at_build[slot] = q
+        particle_qd[slot] = v
+        particle_omega[slot] = omega
+        ke_spheres += wp.float64(0.5) * wp.float64(mass) * wp.float64(wp.dot(v, v))
+        ke_spheres += wp.float64(0.5) * wp.float64(inertia) * wp.float64(wp.dot(omega, omega))
+    ke_nodes = wp.float64(0.0)
     for a in range(4):
         node_touched[n[a]] = 1
-    # Energy the mechanical books lose: the strain energy, and the kinetic energy of the nodes' shares (ρ V₀ / 4
-    # each) less the sphere's translational and spin energy (the motion relative to the centroid beyond the spin).
-    quarter = wp.float64(0.25) * wp.float64(mass)
-    ke_tet = (
-        wp.float64(0.5)
-        * quarter
-        * (
-            wp.float64(wp.dot(v0, v0))
-            + wp.float64(wp.dot(v1, v1))
-            + wp.float64(wp.dot(v2, v2))
-            + wp.float64(wp.dot(v3, v3))
-        )
-    )
-    ke_sphere = wp.float64(0.5) * wp.float64(mass) * wp.float64(wp.dot(v, v)) + wp.float64(0.5) * wp.float64(
-        inertia
-    ) * wp.float64(wp.dot(omega, omega))
-    released[t] = strain_energy[t] + ke_tet - ke_sphere
+        va = node_qd[n[a]]
+        ke_nodes += wp.float64(0.5) * wp.float64(node_mass) * wp.float64(wp.dot(va, va))
+    tet_active[t] = 0
+    tet_sphere[t] = first
+    # What the mechanical books lose: the strain energy, and the nodes' kinetic energy beyond the spheres' (the
+    # motion relative to the centroid that neither the spheres' orbits nor their spins carry).
+    released[t] = strain_energy[t] + ke_nodes - ke_spheres
 
 
 @wp.func

@@ -5,8 +5,9 @@ Sphere a of tet t (local node a) sits at s_a = (x_a + c) / 2, the centroid of th
 1:8 midpoint subdivision, and lives in slot ``tet_sphere[t] + a``. Its bonds: the six between the spheres of its own
 tet, and one to sphere a' of every converted tet t' that shares an edge through node a (t' holds node a as its
 local node a'). The pass runs ``sub_edge_degree_kernel`` and ``count_sub_links_kernel`` (after the flags' scan and
-the stars of all live tets) → exclusive scans → the host grows the capacities → ``spawn_sub_spheres_kernel`` →
-``write_sub_bonds_kernel`` → bonds re-sorted → nodes re-lumped → couplings released → ``write_sub_couplings_kernel``.
+the stars of all live tets) → exclusive scans → the host grows the capacities → kernels/conversion.py's
+``spawn_spheres_kernel`` (with ``spheres_per_tet`` = 4) → ``write_sub_bonds_kernel`` → bonds re-sorted → nodes
+re-lumped → couplings released → ``write_sub_couplings_kernel``.
 """
 
 from __future__ import annotations
@@ -18,15 +19,11 @@ from .conversion import (
     bonds_to,
     capped_coupling_stiffness,
     centroid64,
-    centroid_clearance,
-    clear_radius,
     couples_to,
     lattice_stiffness,
-    tet_spin,
     write_lattice_bond,
 )
 from .coupling import current_barycentric
-from .tets import TetMaterial
 
 wp.set_module_options({"enable_backward": False})
 
@@ -135,113 +132,6 @@ def count_sub_links_kernel(
                 nc += 1
     bonds[t] = nb
     couplings[t] = nc
-
-
-@wp.kernel
-def spawn_sub_spheres_kernel(
-    # Model:
-    node_ref_q: wp.array(dtype=wp.vec3),
-    tet_nodes: wp.array(dtype=wp.vec4i),
-    tet_volume: wp.array(dtype=float),
-    tet_material: wp.array(dtype=int),
-    tet_material_table: wp.array(dtype=TetMaterial),
-    conversion_part: int,
-    # State in:
-    tet_count: wp.array(dtype=int),
-    particle_count: wp.array(dtype=int),
-    node_u: wp.array(dtype=wp.vec3),
-    node_qd: wp.array(dtype=wp.vec3),
-    # In:
-    flag: wp.array(dtype=int),
-    offset: wp.array(dtype=int),
-    strain_energy: wp.array(dtype=wp.float64),
-    # Model out:
-    particle_radius: wp.array(dtype=float),
-    particle_mass: wp.array(dtype=float),
-    particle_inv_mass: wp.array(dtype=float),
-    particle_inv_inertia: wp.array(dtype=float),
-    particle_material: wp.array(dtype=int),
-    particle_motion: wp.array(dtype=int),
-    particle_part: wp.array(dtype=int),
-    particle_id: wp.array(dtype=int),
-    # State out:
-    particle_q: wp.array(dtype=wp.vec3d),
-    particle_qd: wp.array(dtype=wp.vec3),
-    particle_omega: wp.array(dtype=wp.vec3),
-    particle_q_at_build: wp.array(dtype=wp.vec3d),
-    tet_active: wp.array(dtype=int),
-    tet_sphere: wp.array(dtype=int),
-    # Out:
-    node_touched: wp.array(dtype=int),
-    released: wp.array(dtype=wp.float64),
-):
-    t = wp.tid()  # one thread per tet slot: a converting tet writes its four spheres at particle_count + 4 offset
-    released[t] = wp.float64(0.0)
-    if t >= tet_count[0] or flag[t] == 0:
-        return
-    first = particle_count[0] + SPHERES * offset[t]
-    n = tet_nodes[t]
-    mat = tet_material_table[tet_material[t]]
-    # Sphere a takes node a's lumped share ρ V₀ / 4: the four sum to the ρ V₀ the nodes lose (×0.25 is exact).
-    mass = 0.25 * mat.density * tet_volume[t]
-    c64 = centroid64(node_ref_q, node_u, n)
-    c = wp.vec3(c64)
-    r0 = wp.vec3(wp.vec3d(node_ref_q[n[0]]) + wp.vec3d(node_u[n[0]]) - c64)
-    r1 = wp.vec3(wp.vec3d(node_ref_q[n[1]]) + wp.vec3d(node_u[n[1]]) - c64)
-    r2 = wp.vec3(wp.vec3d(node_ref_q[n[2]]) + wp.vec3d(node_u[n[2]]) - c64)
-    r3 = wp.vec3(wp.vec3d(node_ref_q[n[3]]) + wp.vec3d(node_u[n[3]]) - c64)
-    # The corner sub-tet at node a is the tet halved about x_a: its centroid s_a = c + r_a / 2 lies h_k / 8 from its
-    # faces (half the tet's centroid-to-face distances h_k / 4). Radius: the smallest of them less a float32 margin
-    # of 8 ulps of the larger of |c| and the tet's size, so each sphere stays inside its corner sub-tet — clear of
-    # its tet's other spheres, of every neighbouring tet and sphere — and touches its sub-tet's nearest face.
-    scale = wp.max(wp.max(wp.abs(c[0]), wp.max(wp.abs(c[1]), wp.abs(c[2]))), wp.length(r0))
-    radius = clear_radius(0.5 * centroid_clearance(r0, r1, r2, r3), scale)
-    v0 = node_qd[n[0]]
-    v1 = node_qd[n[1]]
-    v2 = node_qd[n[2]]
-    v3 = node_qd[n[3]]
-    vbar = 0.25 * (v0 + v1 + v2 + v3)
-    omega = tet_spin(r0, r1, r2, r3, v0, v1, v2, v3)  # every sphere of the tet
-    inertia = 0.4 * mass * radius * radius
-    ke_spheres = wp.float64(0.0)
-    ke_nodes = wp.float64(0.0)
-    for a in range(4):
-        slot = first + a
-        r = r0
-        va = v0
-        if a == 1:
-            r = r1
-            va = v1
-        elif a == 2:
-            r = r2
-            va = v2
-        elif a == 3:
-            r = r3
-            va = v3
-        # The linear velocity field at s_a: v̄ + (v_a − v̄)/2. Σ_a (m/4) v(s_a) = m v̄ exactly (Σ_a v_a = 4 v̄).
-        v = 0.5 * (va + vbar)
-        particle_radius[slot] = radius
-        particle_mass[slot] = mass
-        particle_inv_mass[slot] = 1.0 / mass
-        particle_inv_inertia[slot] = 1.0 / inertia
-        particle_material[slot] = tet_material[t]
-        particle_motion[slot] = 0
-        particle_part[slot] = conversion_part
-        particle_id[slot] = slot
-        q = c64 + wp.float64(0.5) * wp.vec3d(r)
-        particle_q[slot] = q
-        particle_q_at_build[slot] = q
-        particle_qd[slot] = v
-        particle_omega[slot] = omega
-        node_touched[n[a]] = 1
-        ke_nodes += wp.float64(0.5) * wp.float64(mass) * wp.float64(wp.dot(va, va))
-        ke_spheres += wp.float64(0.5) * wp.float64(mass) * wp.float64(wp.dot(v, v))
-        ke_spheres += wp.float64(0.5) * wp.float64(inertia) * wp.float64(wp.dot(omega, omega))
-    tet_active[t] = 0
-    tet_sphere[t] = first
-    # What the mechanical books lose: the strain energy, and the nodes' kinetic energy beyond the spheres' (the
-    # motion relative to the centroid that neither the spheres' orbits nor their spins carry).
-    released[t] = strain_energy[t] + ke_nodes - ke_spheres
 
 
 @wp.kernel

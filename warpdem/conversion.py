@@ -594,7 +594,7 @@ class ConversionPass:
         wp.copy(self.was_sphere, s.tet_sphere)
         self.node_touched.zero_()
         wp.launch(
-            kms.spawn_sub_spheres_kernel if sub else kcv.spawn_spheres_kernel,
+            kcv.spawn_spheres_kernel,
             dim=m.tet_capacity,
             inputs=[
                 m.node_ref_q,
@@ -603,6 +603,7 @@ class ConversionPass:
                 m.tet_material,
                 m.tet_material_table,
                 m.conversion_part,
+                m.spheres_per_tet,
                 s.tet_count,
                 s.particle_count,
                 s.node_u,
