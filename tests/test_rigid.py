@@ -652,3 +652,152 @@ def test_roller_walls_keep_the_allowed_momentum_of_colliding_blocks(device):
     np.testing.assert_allclose(l1, l0, atol=roundoff * 1.0)  # lever arms below 1 m
     e1 = sim.energy()
     assert abs(e1.total - e0.total) < BOOKS_RTOL * max(e0.in_play, e1.in_play)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The rigid step after a later switch (Simulation.set_time_step, warpdem.runner.FrameGrid)
+
+
+def test_a_change_of_time_step_keeps_the_books_closed(device):
+    """Between two whole steps a change of dt moves nothing: only Verlet's shadow term S = dt²/8 Σ |f|²/m changes,
+    by (dt_new/dt_old)² at the same forces (float64 sums of the same float32 forces: 1e-12), and that is what the
+    ``step_change`` line books, so the total does not move (SWITCH_RTOL); afterwards the books close at the new step
+    as Verlet closes them (BOOKS_RTOL)."""
+    from warpdem.rigid import rigid_step_after_switch
+
+    model, state = jointed_pair(device)
+    sim = Simulation(model, state)
+    sim.advance(50)
+    sim.switch_to_rigid()
+    sim.advance(30)
+    before = sim.energy()
+    critical = rigid_step_after_switch(sim.model, sim.state)
+    new_dt = 0.5 * critical.value
+    ratio = new_dt / model.dt
+    assert abs(ratio - 1.0) > 0.1 and before.shadow > 0.0
+    booked = sim.set_time_step(new_dt, critical)
+    after = sim.energy()
+    assert sim.model.dt == new_dt and sim.model.critical_dt == critical.value
+    assert sim.model.deformable_critical_dt == model.critical_dt
+    np.testing.assert_allclose(after.shadow, before.shadow * ratio**2, rtol=1e-12)
+    np.testing.assert_allclose(booked, after.shadow - before.shadow, rtol=1e-12)
+    np.testing.assert_allclose(after.step_change, booked, rtol=1e-12)
+    assert abs(after.total - before.total) < SWITCH_RTOL * before.in_play
+    sim.advance(400)
+    later = sim.energy()
+    assert abs(later.total - after.total) < BOOKS_RTOL * max(after.in_play, later.in_play)
+    with pytest.raises(ValueError, match="positive finite"):
+        sim.set_time_step(0.0)
+
+
+SWITCH_SCENE = """\
+schema_version = 1
+name = "pushed_column"
+
+[run]
+end_time = 0.004
+output_rate = 5000.0
+safety_factor = 0.5
+
+[materials.rock]
+density = 2600.0
+youngs_modulus = 5e10
+poisson_ratio = 0.25
+bulk_viscosity_linear = 0.0
+bulk_viscosity_quadratic = 0.0
+
+[mesh]
+kind = "box"
+lo = [0.0, 0.0, 0.0]
+hi = [1.0, 1.0, 4.0]
+divisions = [3, 3, 12]
+material = "rock"
+
+[[loads]]
+kind = "pressure"
+faces = "x+"
+history = { kind = "table", times = [0.0, 1.0], values = [2.0e6, 2.0e6] }
+
+[[boundaries]]
+faces = "z-"
+kind = "roller"
+
+[rigid]
+switch_time = 0.0011
+
+[output]
+directory = "out"
+checkpoint_every = 0.0004
+"""
+"""A column on a roller floor pushed sideways by a constant pressure, deformable until 1.1 ms (inside frame 6 of 0.2
+ms frames), then one rigid body sliding on the floor."""
+
+
+@pytest.fixture(scope="module")
+def switch_run(tmp_path_factory):
+    from test_scene import write
+
+    from warpdem.runner import RunOptions, run_scene
+    from warpdem.scene import load_scene
+
+    folder = tmp_path_factory.mktemp("switch")
+    scene = load_scene(write(folder, SWITCH_SCENE))
+    summary = run_scene(scene, RunOptions(device="cpu", out_dir=folder / "out", quiet=True))
+    return scene, folder, summary
+
+
+def test_a_later_switch_takes_the_rigid_step_on_the_frame_grid(switch_run):
+    """With dt = "auto" the run takes period / n at the first frame boundary after the switch, n the fewest steps per
+    frame within safety × the critical step after it (warpdem.rigid.rigid_step_after_switch), and says so; frame k
+    still lands on k / rate (the device clock's float64 sum of steps: 1e-12 of the end time); the change books its
+    shadow term (``step_change``) and the balance closes across it (no bulk viscosity: the books of the deformable
+    phase close as Verlet closes them); the column slides on its floor with the load's impulse."""
+    import csv
+
+    from warpdem.checkpoint import read_checkpoint
+
+    summary = switch_run[2]
+    assert "time step" in summary.rigid and "after the switch" in summary.rigid
+    arrays, attrs = read_checkpoint(summary.checkpoints[-1])
+    dt_after, critical, substeps = attrs["dt"], attrs["critical_dt"], attrs["substeps"]
+    assert attrs["grid_frame"] == 6 and attrs["rigid_step_taken"]
+    period = 1.0 / 5000.0
+    assert substeps == math.ceil(period / (0.5 * critical)) and dt_after == period / substeps
+    first = read_checkpoint(summary.checkpoints[0])[1]
+    assert first["grid_frame"] == 0 and first["dt"] < dt_after  # a gain
+    with open(summary.series_path) as f:
+        rows = list(csv.DictReader(f))
+    times = np.array([float(r["time"]) for r in rows])
+    np.testing.assert_allclose(times, np.arange(len(times)) * period, rtol=0.0, atol=1e-12 * times[-1])
+    assert len(times) == 21
+    step_change = np.array([float(r["energy_step_change"]) for r in rows])
+    assert np.all(step_change[:6] == 0.0) and np.all(step_change[6:] != 0.0)
+    assert abs(summary.energy_error) < BOOKS_RTOL
+    # Momentum: the floor and gravity push along z only, so P_x is the load's impulse −p A t (A = 4 m², M = ρ 4 m³),
+    # to the change of the loaded area while the column strains (a follower load: O(p/E) = 4e-5; measured 9e-6).
+    v = arrays["state/body_v"][0]
+    impulse = -2.0e6 * 4.0 * attrs["time"] / (2600.0 * 4.0)
+    np.testing.assert_allclose(v[0], impulse, rtol=4.0 * 2.0e6 / 5.0e10)
+    assert v[2] == 0.0 and abs(v[1]) < 4.0 * 2.0e6 / 5.0e10 * abs(impulse)
+
+
+def test_restart_across_the_switch_and_the_step_change_is_bit_for_bit(switch_run):
+    """Restarts from a checkpoint before the switch (frame 4) and from one after the step change (frame 8) end with the
+    uninterrupted run's arrays and step, bit for bit (CPU)."""
+    import shutil
+
+    from warpdem.checkpoint import read_checkpoint
+    from warpdem.runner import RunOptions, run_scene
+
+    scene, folder, summary = switch_run
+    end_arrays, end_attrs = read_checkpoint(summary.checkpoints[-1])
+    for frame in (4, 8):
+        copy = folder / f"restart{frame}"
+        shutil.copytree(folder / "out", copy)
+        checkpoint = next(p for p in (copy / "checkpoints").iterdir() if read_checkpoint(p)[1]["frame"] == frame)
+        again = run_scene(scene, RunOptions(device="cpu", out_dir=copy, quiet=True, restart=checkpoint))
+        arrays, attrs = read_checkpoint(again.checkpoints[-1])
+        assert attrs["dt"] == end_attrs["dt"] and attrs["step"] == end_attrs["step"]
+        assert arrays.keys() == end_arrays.keys()
+        for name, a in end_arrays.items():
+            np.testing.assert_array_equal(arrays[name], a, err_msg=f"restart from frame {frame}: {name}")
