@@ -654,8 +654,8 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
 
     def adopt_rigid_step(frame: int) -> None:
         nonlocal grid, last_step, total_frames, rigid_step_due
-        if not (rigid_step_due and sim.rigid):
-            return
+        if not (rigid_step_due and sim.rigid) or frame >= total_frames:
+            return  # not due, or the run is over (a new grid would add a step past its end)
         rigid_step_due = False
         new = take_rigid_step(sim, run.safety_factor, frame_period, grid, frame)
         if new is not grid:
