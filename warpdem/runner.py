@@ -476,7 +476,7 @@ class FrameGrid:
 
     def last_step(self, end_time: float, frames: int | None, dt: float) -> int:
         """The run's last step: the end of frame ``frames``, or the step nearest ``end_time`` [s] (:func:`end_step`,
-        counted from the anchor at step ``dt``)."""
+        counted in steps of ``dt`` [s] from the grid's anchor)."""
         if frames is not None:
             return self.end_step(frames)
         return self.step + end_step(end_time - self.time, dt)
