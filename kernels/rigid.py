@@ -23,6 +23,17 @@ its current axis k; L is constant in the world frame during the free flow). The 
 time-reversible, keeps |L| exactly, bounds the energy error at O(dt²) and carries the gyroscopic term of a body with
 three different moments (the intermediate-axis instability) with O(dt²) error in ω(t); about a principal axis it is
 leapfrog exactly.
+
+Roller constraints (``body_constraint``, ``body_axis`` n): a body with nodes on one roller plane, or on two parallel
+ones (a slice between two roller walls), moves in the plane and turns about its normal only; a body on two roller
+planes that meet moves along their line d only (no rotation); rollers of three directions or a fixed node hold it
+whole (``body_fixed``). The constrained motion is integrated in its own coordinates, exactly: in-plane translation
+(velocity Verlet with F and g projected onto the plane: the mass matrix is isotropic, so the projection is its
+orthogonal one) and the angle θ about n, whose Lagrangian ½ I_n θ̇² has the constant I_n = n·I n (a rotation about
+n leaves n·R I₀ Rᵀ n unchanged), so I_n θ̈ = T·n: leapfrog on ℓ = I_n θ̇, the torque kicked by its n component, the
+body turned by φ = dt ℓ / I_n about n. ``body_l`` then holds ℓ n, the momentum conjugate to θ (the body's own I ω
+has components across n where I is not aligned with n; the rollers carry them). The dropped components of F and T
+are the rollers' reactions: they do no work on the allowed motion, so the books need no line for them.
 """
 
 from __future__ import annotations
@@ -34,6 +45,15 @@ wp.set_module_options({"enable_backward": False})
 NODE_RIGID = wp.constant(8)
 """``node_motion`` of a node that follows a rigid body (kernels/tets.py ``node_free_directions`` gives it no free
 component, so the node kernels leave its velocity at zero and its displacement alone; the body kernels set both)."""
+
+BODY_FREE = wp.constant(0)
+"""``body_constraint`` of a body no roller touches."""
+
+BODY_PLANE = wp.constant(1)
+"""``body_constraint`` of a body on a roller plane of normal ``body_axis``: it moves in the plane, turns about n."""
+
+BODY_LINE = wp.constant(2)
+"""``body_constraint`` of a body on two roller planes that meet: it moves along their line ``body_axis`` only."""
 
 TET_RIGID = wp.constant(2)
 """``tet_active`` of a tet in a rigid block: present (surface, contact, fragments: ``tet_active != 0``) but carrying
@@ -61,6 +81,50 @@ def angular_velocity(q: wp.quatd, axes: wp.mat33d, inertia: wp.vec3d, angular_mo
 
 
 @wp.func
+def allowed_translation(constraint: int, axis: wp.vec3d, x: wp.vec3d) -> wp.vec3d:
+    """The part of a translation (velocity, acceleration) the body's rollers allow: all of it when free, x − (x·n) n
+    on a plane (exactly zero along an axis-aligned n), (x·d) d on a line."""
+    if constraint == BODY_PLANE:
+        return x - wp.dot(x, axis) * axis
+    if constraint == BODY_LINE:
+        return wp.dot(x, axis) * axis
+    return x
+
+
+@wp.func
+def allowed_rotation(constraint: int, axis: wp.vec3d, x: wp.vec3d) -> wp.vec3d:
+    """The part of a torque or angular momentum the rollers allow: all of it when free, (x·n) n on a plane, none on a
+    line."""
+    if constraint == BODY_PLANE:
+        return wp.dot(x, axis) * axis
+    if constraint == BODY_LINE:
+        return wp.vec3d()
+    return x
+
+
+@wp.func
+def inertia_about(q: wp.quatd, axes: wp.mat33d, inertia: wp.vec3d, n: wp.vec3d) -> wp.float64:
+    """I_n = n·I n = Σ_k I_k (n·a_k)² [kg m²], a_k the principal axes now (constant under rotation about n)."""
+    s = wp.float64(0.0)
+    for k in range(3):
+        c = wp.dot(n, principal_axis_now(q, axes, k))
+        s = s + inertia[k] * c * c
+    return s
+
+
+@wp.func
+def body_angular_velocity(
+    constraint: int, axis: wp.vec3d, q: wp.quatd, axes: wp.mat33d, inertia: wp.vec3d, angular_momentum: wp.vec3d
+) -> wp.vec3d:
+    """ω of a body [rad/s]: R I⁻¹ Rᵀ L when free, (L·n / I_n) n on a roller plane, zero on a line."""
+    if constraint == BODY_PLANE:
+        return (wp.dot(angular_momentum, axis) / inertia_about(q, axes, inertia, axis)) * axis
+    if constraint == BODY_LINE:
+        return wp.vec3d()
+    return angular_velocity(q, axes, inertia, angular_momentum)
+
+
+@wp.func
 def rotate_about_axis(q: wp.quatd, axes: wp.mat33d, inertia: wp.vec3d, angular_momentum: wp.vec3d, k: int, h: float):
     """Exact flow of H_k = L_k²/(2 I_k) over h [s]: the body turns by φ = h L_k / I_k about its principal axis k.
     Body frame: Q ← Q R_k(φ); with Q = R(q) A that is q ← q ⊗ rot(A e_k, φ). Returns the normalised quaternion."""
@@ -83,19 +147,45 @@ def free_rotor(q: wp.quatd, axes: wp.mat33d, inertia: wp.vec3d, angular_momentum
 
 
 @wp.func
+def turn_body(
+    constraint: int,
+    axis: wp.vec3d,
+    q: wp.quatd,
+    axes: wp.mat33d,
+    inertia: wp.vec3d,
+    angular_momentum: wp.vec3d,
+    dt: float,
+) -> wp.quatd:
+    """The rotation of a body over dt: the free rotor when free; on a roller plane the exact turn by
+    φ = dt (L·n) / I_n about the world normal n (q ← rot(n, φ) q); none on a line."""
+    if constraint == BODY_PLANE:
+        phi = wp.float64(dt) * wp.dot(angular_momentum, axis) / inertia_about(q, axes, inertia, axis)
+        return wp.normalize(wp.quat_from_axis_angle(axis, phi) * q)
+    if constraint == BODY_LINE:
+        return q
+    return free_rotor(q, axes, inertia, angular_momentum, dt)
+
+
+@wp.func
 def kick_body(
     b: int,
     dt: float,
     gravity: wp.vec3,
     body_mass: wp.array(dtype=wp.float64),
+    body_constraint: wp.array(dtype=int),
+    body_axis: wp.array(dtype=wp.vec3d),
     body_f: wp.array(dtype=wp.vec3d),
     body_t: wp.array(dtype=wp.vec3d),
     v: wp.vec3d,
     angular_momentum: wp.vec3d,
 ):
-    """Half kick of a body: v + dt/2 (F/M + g) [m/s], L + dt/2 T [kg m²/s]."""
+    """Half kick of a body: v + dt/2 (F/M + g) [m/s], L + dt/2 T [kg m²/s], each in the part its rollers allow
+    (:func:`allowed_translation`, :func:`allowed_rotation`; the rest is the rollers' reaction)."""
     h = wp.float64(0.5 * dt)
-    return v + h * (body_f[b] / body_mass[b] + wp.vec3d(gravity)), angular_momentum + h * body_t[b]
+    c = body_constraint[b]
+    n = body_axis[b]
+    v = allowed_translation(c, n, v + h * (body_f[b] / body_mass[b] + wp.vec3d(gravity)))
+    return v, allowed_rotation(c, n, angular_momentum + h * body_t[b])
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -117,6 +207,8 @@ def make_body_drift_kernel(after_second_half: bool) -> wp.Kernel:
         body_inertia: wp.array(dtype=wp.vec3d),
         body_axes: wp.array(dtype=wp.mat33d),
         body_fixed: wp.array(dtype=int),
+        body_constraint: wp.array(dtype=int),
+        body_axis: wp.array(dtype=wp.vec3d),
         body_f: wp.array(dtype=wp.vec3d),
         body_t: wp.array(dtype=wp.vec3d),
         # State out:
@@ -130,13 +222,19 @@ def make_body_drift_kernel(after_second_half: bool) -> wp.Kernel:
             return
         v = body_v[b]
         angular_momentum = body_l[b]
+        c = body_constraint[b]
+        n = body_axis[b]
         if wp.static(after_second_half):
-            v, angular_momentum = kick_body(b, dt, gravity, body_mass, body_f, body_t, v, angular_momentum)
-        v, angular_momentum = kick_body(b, dt, gravity, body_mass, body_f, body_t, v, angular_momentum)
+            v, angular_momentum = kick_body(
+                b, dt, gravity, body_mass, body_constraint, body_axis, body_f, body_t, v, angular_momentum
+            )
+        v, angular_momentum = kick_body(
+            b, dt, gravity, body_mass, body_constraint, body_axis, body_f, body_t, v, angular_momentum
+        )
         body_v[b] = v
         body_l[b] = angular_momentum
         body_dc[b] = body_dc[b] + wp.float64(dt) * v
-        body_q[b] = free_rotor(body_q[b], body_axes[b], body_inertia[b], angular_momentum, dt)
+        body_q[b] = turn_body(c, n, body_q[b], body_axes[b], body_inertia[b], angular_momentum, dt)
 
     return drift_bodies_kernel
 
@@ -153,6 +251,8 @@ def kick_bodies_kernel(
     # State in:
     body_mass: wp.array(dtype=wp.float64),
     body_fixed: wp.array(dtype=int),
+    body_constraint: wp.array(dtype=int),
+    body_axis: wp.array(dtype=wp.vec3d),
     body_f: wp.array(dtype=wp.vec3d),
     body_t: wp.array(dtype=wp.vec3d),
     # State out:
@@ -162,7 +262,9 @@ def kick_bodies_kernel(
     b = wp.tid()  # one thread per body
     if body_fixed[b] != 0:
         return
-    v, angular_momentum = kick_body(b, dt, gravity, body_mass, body_f, body_t, body_v[b], body_l[b])
+    v, angular_momentum = kick_body(
+        b, dt, gravity, body_mass, body_constraint, body_axis, body_f, body_t, body_v[b], body_l[b]
+    )
     body_v[b] = v
     body_l[b] = angular_momentum
 
@@ -180,6 +282,8 @@ def pose_nodes_kernel(
     node_rigid_u0: wp.array(dtype=wp.vec3),
     body_inertia: wp.array(dtype=wp.vec3d),
     body_axes: wp.array(dtype=wp.mat33d),
+    body_constraint: wp.array(dtype=int),
+    body_axis: wp.array(dtype=wp.vec3d),
     body_dc: wp.array(dtype=wp.vec3d),
     body_v: wp.array(dtype=wp.vec3d),
     body_q: wp.array(dtype=wp.quatd),
@@ -195,7 +299,8 @@ def pose_nodes_kernel(
 ):
     """Nodes from their body's pose: with ``move`` the displacement u = u0 + dc + (R r0 − r0) and position X + u
     (flagging an FEM contact-list rebuild when a surface node moved half the FEM skin, as kernels/integrate.py
-    ``drift_node`` does), and always the velocity v + ω × R r0."""
+    ``drift_node`` does), and always the velocity v + ω × R r0. On a roller plane the normal component of R r0 − r0
+    (zero but for rounding: the body turns about n) is dropped, so a node on the plane stays on it exactly."""
     i = wp.tid()  # one thread per FEM node slot
     if i >= node_count[0]:
         return
@@ -203,9 +308,14 @@ def pose_nodes_kernel(
     if b < 0:
         return
     q = body_q[b]
+    c = body_constraint[b]
+    n = body_axis[b]
     r = wp.quat_rotate(q, node_rigid_r0[i])
     if move != 0:
-        u = wp.vec3(wp.vec3d(node_rigid_u0[i]) + body_dc[b] + (r - node_rigid_r0[i]))
+        turn = r - node_rigid_r0[i]
+        if c == BODY_PLANE:
+            turn = turn - wp.dot(turn, n) * n
+        u = wp.vec3(wp.vec3d(node_rigid_u0[i]) + body_dc[b] + turn)
         node_u[i] = u
         x = node_ref_q[i] + u
         node_q[i] = x
@@ -214,7 +324,7 @@ def pose_nodes_kernel(
                 moved = x - node_q_at_fem_build[i]
                 if wp.dot(moved, moved) > half_fem_skin * half_fem_skin:
                     fem_rebuild_flag[0] = 1
-    w = angular_velocity(q, body_axes[b], body_inertia[b], body_l[b])
+    w = body_angular_velocity(c, n, q, body_axes[b], body_inertia[b], body_l[b])
     node_qd[i] = wp.vec3(body_v[b] + wp.cross(w, r))
 
 

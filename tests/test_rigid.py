@@ -471,3 +471,333 @@ def test_rigid_region_next_to_deformable_tets_conserves_momentum(device):
     np.testing.assert_allclose(p2, p1, atol=4.0 * F32_EPS * math.sqrt(steps) * scale)
     assert e1.strain > 0.0  # the deformable half still strains
     assert abs(sim.energy().total - e1.total) < BOOKS_RTOL * e1.in_play
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Roller constraints on bodies (kernels/rigid.py: the allowed motions of a body on one roller plane, two, or three)
+
+
+def tilted_box(device, rotation: np.ndarray, velocity: np.ndarray, spin: np.ndarray, gravity=(0.0, 0.0, -9.81)):
+    """The asymmetric box (1 × 0.6 × 0.3 m, three distinct moments) turned by ``rotation``, its lowest node(s) on a
+    roller plane of normal z (held to z = its lowest point), with the rigid velocity field velocity + spin × (x − c).
+    Returns the model, the state and the box's inertia tensor in the world frame (from box_inertia)."""
+    size = (1.0, 0.6, 0.3)
+    points, tets = box_mesh((0.0, 0.0, 0.0), size, (3, 2, 1))
+    centre0 = 0.5 * np.array(size)
+    points = (points - centre0) @ rotation.T + np.array([0.0, 0.0, 2.0])
+    centre = np.array([0.0, 0.0, 2.0])
+    b = ModelBuilder(gravity=gravity)
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    b.add_tet_mesh(points, tets, "rock", velocity=velocity + np.cross(spin, points - centre))
+    low = np.flatnonzero(points[:, 2] < points[:, 2].min() + 1e-9)
+    b.add_boundary(low, "roller", normal=(0.0, 0.0, 1.0))
+    model, state = b.finalize(device, safety_factor=0.5)
+    mass = DENSITY * np.prod(size)
+    inertia = rotation @ np.diag(box_inertia(mass, size)) @ rotation.T
+    return model, state, inertia
+
+
+def rotation_matrix(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rodrigues: the rotation by ``angle`` [rad] about the unit ``axis``, (3, 3)."""
+    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
+
+
+def test_block_on_a_roller_plane_slides_and_turns_as_the_plane_allows(device):
+    """A tilted asymmetric box (no principal axis along z) with its lowest node on a roller plane z = const, under
+    gravity, thrown with a velocity and a spin that both leave the plane. The switch keeps the allowed part of the
+    nodes' momentum: P less its z component, and ℓ = L·z (L the nodes' angular momentum, numpy); the body then
+    moves as the constrained Lagrangian ½ M |v_xy|² + ½ I_z θ̇² says (I_z = z·I z from box_inertia turned, not
+    from the body's arrays): c(t) = c0 + v_xy t, θ = ℓ t / I_z about z, every node x(t) = c(t) + R_z(θ)(x0 − c0)
+    (to float32 rounding of u over the block: NODE_ATOL), its z exactly kept (gravity and the normal parts are the
+    rollers'), P_xy and ℓ exactly constant (no force), and the energy constant (the rollers do no work)."""
+    tilt = rotation_matrix(np.array([1.0, 0.4, 0.0]) / math.hypot(1.0, 0.4), 0.6)
+    velocity, spin = np.array([0.3, -0.2, 0.5]), np.array([0.4, -0.7, 1.5])
+    model, state, inertia = tilted_box(device, tilt, velocity, spin)
+    sim = Simulation(model, state)
+    n = sim.node_count
+    mass = model.node_mass.numpy()[:n].astype(np.float64)
+    x0 = model.node_ref_q.numpy()[:n].astype(np.float64)
+    v0 = sim.state.node_qd.numpy()[:n].astype(np.float64)
+    com = (mass[:, None] * x0).sum(axis=0) / mass.sum()
+    l_nodes = (mass[:, None] * np.cross(x0 - com, v0)).sum(axis=0)
+    report = sim.switch_to_rigid()
+    assert (report.bodies, report.fixed, report.planar, report.lines) == (1, 0, 1, 0)
+    s = sim.state
+    np.testing.assert_array_equal(s.body_axis.numpy()[0], [0.0, 0.0, 1.0])
+    p_xy = (mass[:, None] * v0).sum(axis=0) * np.array([1.0, 1.0, 0.0])
+    np.testing.assert_allclose(s.body_v.numpy()[0] * s.body_mass.numpy()[0], p_xy, rtol=1e-12, atol=1e-12)
+    assert s.body_v.numpy()[0, 2] == 0.0
+    ell = l_nodes[2]
+    np.testing.assert_allclose(s.body_l.numpy()[0], [0.0, 0.0, ell], rtol=1e-12, atol=1e-12 * abs(ell))
+    u0 = s.node_u.numpy()[:n].copy()
+    e0 = sim.energy()
+    p0, l0 = s.body_v.numpy().copy(), s.body_l.numpy().copy()
+    steps = 600
+    sim.advance(steps)
+    t = sim.time
+    np.testing.assert_array_equal(s.body_v.numpy(), p0)
+    np.testing.assert_array_equal(s.body_l.numpy(), l0)
+    np.testing.assert_array_equal(s.node_u.numpy()[:n, 2], u0[:, 2])  # every node stays at its height
+    theta = ell * t / inertia[2, 2]
+    assert abs(theta) > 0.3 and np.linalg.norm(p0[0, :2]) * t > 0.05  # it did slide and turn
+    c = com + p0[0] * t
+    expected = c + (x0 - com) @ rotation_matrix(np.array([0.0, 0.0, 1.0]), theta).T
+    x1 = x0 + s.node_u.numpy()[:n].astype(np.float64)
+    NODE_ATOL = 16.0 * F32_EPS * (1.0 + np.abs(x1).max())  # float32 u of the nodes, the float64 pose rounded once
+    np.testing.assert_allclose(x1, expected, atol=NODE_ATOL)
+    np.testing.assert_allclose(sim.energy().total, e0.total, rtol=1e-9)
+
+
+def pushed_box(device, rollers: list[tuple[str, tuple[float, float, float]]], pressure: float = 2.0e4):
+    """A 1 m box (2³ Kuhn cells) under gravity −z, a constant pressure on its x+ face, its faces named in ``rollers``
+    on roller planes (face name, normal). Returns model, state, the pressure's force [N] and the box mass [kg]."""
+    from warpdem.loads import PressureHistory
+
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (2, 2, 2))
+    b = ModelBuilder(gravity=(0.0, 0.0, -GRAVITY))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    b.add_tet_mesh(points, tets, "rock")
+    faces = {}
+    for name, axis, value in (("x+", 0, 1.0), ("x-", 0, 0.0), ("y+", 1, 1.0), ("y-", 1, 0.0), ("z-", 2, 0.0)):
+        faces[name] = np.flatnonzero(np.abs(points[:, axis] - value) < 1e-9)
+    from test_fem_contact import plane_faces
+
+    loaded = plane_faces(points, tets, 0, 1.0)
+    b.add_face_pressure(loaded, PressureHistory.table([0.0, 10.0], [pressure, pressure]))
+    for name, normal in rollers:
+        b.add_boundary(faces[name], "roller", normal=normal)
+    model, state = b.finalize(device, safety_factor=0.5)
+    return model, state, np.array([-pressure * 1.0, 0.0, 0.0]), DENSITY * 1.0
+
+
+@pytest.mark.parametrize(
+    ("rollers", "allowed", "kind"),
+    [
+        ([("y-", (0, -1, 0)), ("y+", (0, 1, 0))], np.diag([1.0, 0.0, 1.0]), "planar"),
+        ([("x-", (-1, 0, 0)), ("y-", (0, -1, 0))], np.diag([0.0, 0.0, 1.0]), "lines"),
+        ([("x-", (-1, 0, 0)), ("y-", (0, -1, 0)), ("z-", (0, 0, -1))], np.zeros((3, 3)), "fixed"),
+    ],
+    ids=["between-two-walls", "two-planes", "three-planes"],
+)
+def test_block_on_rollers_moves_as_its_planes_allow(device, rollers, allowed, kind):
+    """A rigid box under gravity and a constant pressure on its x+ face (its force through the centre of mass: no
+    torque): between two parallel roller walls (y− and y+) it accelerates with a = P (F/M + g) in the xz plane; on two
+    planes that meet (x−, y−) along their line, z, only (the push is the x− roller's); on three it is held. Velocity
+    Verlet is exact for a constant acceleration: v = a t and c − c0 = ½ a t² to the float32 rounding of g and of the
+    load's force (4 ε₃₂; the body sums in float64); no spin; the books close (the rollers do no work: BOOKS_RTOL)."""
+    model, state, force, mass = pushed_box(device, rollers)
+    sim = Simulation(model, state)
+    report = sim.switch_to_rigid()
+    assert getattr(report, kind) == 1
+    e0 = sim.energy()
+    steps = 400
+    sim.advance(steps)
+    t = sim.time
+    a = allowed @ (force / mass + np.array([0.0, 0.0, -GRAVITY]))
+    s = sim.state
+    np.testing.assert_allclose(s.body_v.numpy()[0], a * t, rtol=4.0 * F32_EPS, atol=1e-12)
+    np.testing.assert_allclose(s.body_dc.numpy()[0], 0.5 * a * t * t, rtol=4.0 * F32_EPS, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(angular_velocities(s)), 0.0, atol=1e-9)
+    e1 = sim.energy()
+    assert abs(e1.total - e0.total) < BOOKS_RTOL * max(e1.in_play, 1e-12) + 1e-9
+
+
+def test_roller_walls_keep_the_allowed_momentum_of_colliding_blocks(device):
+    """The jointed pair (two blocks, a frictionless joint) between roller walls y− and y+, thrown together in the xz
+    plane with spin about y, no gravity: the contacts are internal and frictionless (a normal force pair on one line
+    has no torque), so the total momentum in the plane (P_x, P_z) and the angular momentum about y
+    (ℓ_A + ℓ_B + (c_A × P_A + c_B × P_B)·y) stay constant to float rounding of the summed float32 contact forces
+    (MOMENTUM_ROUNDOFF ε₃₂ √steps of the impulse scale), and the books close."""
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (2, 2, 2))
+    from test_fem_contact import plane_faces
+
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    js = b.add_joint_set(JointProps(friction=0.0, restitution=1.0))
+    centre = np.array([0.5, 0.5, 0.5])
+    upper = points[:, 2] > 0.5
+    velocity = np.where(upper[:, None], [0.2, 0.0, -0.6], [-0.1, 0.0, 0.4]) + np.cross([0.0, 1.5, 0.0], points - centre)
+    b.add_tet_mesh(points, tets, "rock", velocity=velocity, joint_faces=plane_faces(points, tets, 2, 0.5), joint_set=js)
+    b.add_boundary(np.flatnonzero(points[:, 1] < 1e-9), "roller", normal=(0.0, -1.0, 0.0))
+    b.add_boundary(np.flatnonzero(points[:, 1] > 1.0 - 1e-9), "roller", normal=(0.0, 1.0, 0.0))
+    model, state = b.finalize(device, safety_factor=0.5)
+    sim = Simulation(model, state)
+    report = sim.switch_to_rigid()
+    assert (report.bodies, report.planar) == (2, 2)
+
+    def momenta() -> tuple[np.ndarray, float, float]:
+        s = sim.state
+        m = s.body_mass.numpy()
+        p = m[:, None] * s.body_v.numpy()
+        n = sim.node_count
+        x = sim.model.node_ref_q.numpy()[:n].astype(np.float64) + s.node_u.numpy()[:n].astype(np.float64)
+        nm = sim.model.node_mass.numpy()[:n].astype(np.float64)
+        body = s.node_body.numpy()[:n]
+        c = np.array([(nm[body == k, None] * x[body == k]).sum(axis=0) / nm[body == k].sum() for k in range(2)])
+        ell = s.body_l.numpy()[:, 1].sum() + np.cross(c, p)[:, 1].sum()
+        return p.sum(axis=0), float(ell), float(np.abs(p).sum())
+
+    p0, l0, scale = momenta()
+    e0 = sim.energy()
+    pa0 = sim.state.body_v.numpy()[0].copy()
+    steps = 600
+    sim.advance(steps)
+    p1, l1, _ = momenta()
+    assert np.abs(sim.state.body_v.numpy()[0] - pa0).max() > 0.1  # they did collide
+    assert sim.energy().dissipated_fem_contact >= 0.0
+    roundoff = 8.0 * F32_EPS * math.sqrt(steps) * scale
+    np.testing.assert_allclose(p1[[0, 2]], p0[[0, 2]], atol=roundoff)
+    assert p1[1] == 0.0
+    np.testing.assert_allclose(l1, l0, atol=roundoff * 1.0)  # lever arms below 1 m
+    e1 = sim.energy()
+    assert abs(e1.total - e0.total) < BOOKS_RTOL * max(e0.in_play, e1.in_play)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The rigid step after a later switch (Simulation.set_time_step, warpdem.runner.FrameGrid)
+
+
+def test_a_change_of_time_step_keeps_the_books_closed(device):
+    """Between two whole steps a change of dt moves nothing: only Verlet's shadow term S = dt²/8 Σ |f|²/m changes,
+    by (dt_new/dt_old)² at the same forces (float64 sums of the same float32 forces: 1e-12), and that is what the
+    ``step_change`` line books, so the total does not move (SWITCH_RTOL); afterwards the books close at the new step
+    as Verlet closes them (BOOKS_RTOL)."""
+    from warpdem.rigid import rigid_step_after_switch
+
+    model, state = jointed_pair(device)
+    sim = Simulation(model, state)
+    sim.advance(50)
+    sim.switch_to_rigid()
+    sim.advance(30)
+    before = sim.energy()
+    critical = rigid_step_after_switch(sim.model, sim.state)
+    new_dt = 0.5 * critical.value
+    ratio = new_dt / model.dt
+    assert abs(ratio - 1.0) > 0.1 and before.shadow > 0.0
+    booked = sim.set_time_step(new_dt, critical)
+    after = sim.energy()
+    assert sim.model.dt == new_dt and sim.model.critical_dt == critical.value
+    assert sim.model.deformable_critical_dt == model.critical_dt
+    np.testing.assert_allclose(after.shadow, before.shadow * ratio**2, rtol=1e-12)
+    np.testing.assert_allclose(booked, after.shadow - before.shadow, rtol=1e-12)
+    np.testing.assert_allclose(after.step_change, booked, rtol=1e-12)
+    assert abs(after.total - before.total) < SWITCH_RTOL * before.in_play
+    sim.advance(400)
+    later = sim.energy()
+    assert abs(later.total - after.total) < BOOKS_RTOL * max(after.in_play, later.in_play)
+    with pytest.raises(ValueError, match="positive finite"):
+        sim.set_time_step(0.0)
+
+
+SWITCH_SCENE = """\
+schema_version = 1
+name = "pushed_column"
+
+[run]
+end_time = 0.004
+output_rate = 5000.0
+safety_factor = 0.5
+
+[materials.rock]
+density = 2600.0
+youngs_modulus = 5e10
+poisson_ratio = 0.25
+bulk_viscosity_linear = 0.0
+bulk_viscosity_quadratic = 0.0
+
+[mesh]
+kind = "box"
+lo = [0.0, 0.0, 0.0]
+hi = [1.0, 1.0, 4.0]
+divisions = [3, 3, 12]
+material = "rock"
+
+[[loads]]
+kind = "pressure"
+faces = "x+"
+history = { kind = "table", times = [0.0, 1.0], values = [2.0e6, 2.0e6] }
+
+[[boundaries]]
+faces = "z-"
+kind = "roller"
+
+[rigid]
+switch_time = 0.0011
+
+[output]
+directory = "out"
+checkpoint_every = 0.0004
+"""
+"""A column on a roller floor pushed sideways by a constant pressure, deformable until 1.1 ms (inside frame 6 of 0.2
+ms frames), then one rigid body sliding on the floor."""
+
+
+@pytest.fixture(scope="module")
+def switch_run(tmp_path_factory):
+    from test_scene import write
+
+    from warpdem.runner import RunOptions, run_scene
+    from warpdem.scene import load_scene
+
+    folder = tmp_path_factory.mktemp("switch")
+    scene = load_scene(write(folder, SWITCH_SCENE))
+    summary = run_scene(scene, RunOptions(device="cpu", out_dir=folder / "out", quiet=True))
+    return scene, folder, summary
+
+
+def test_a_later_switch_takes_the_rigid_step_on_the_frame_grid(switch_run):
+    """With dt = "auto" the run takes period / n at the first frame boundary after the switch, n the fewest steps per
+    frame within safety × the critical step after it (warpdem.rigid.rigid_step_after_switch), and says so; frame k
+    still lands on k / rate (the device clock's float64 sum of steps: 1e-12 of the end time); the change books its
+    shadow term (``step_change``) and the balance closes across it (no bulk viscosity: the books of the deformable
+    phase close as Verlet closes them); the column slides on its floor with the load's impulse."""
+    import csv
+
+    from warpdem.checkpoint import read_checkpoint
+
+    summary = switch_run[2]
+    assert "time step" in summary.rigid and "after the switch" in summary.rigid
+    arrays, attrs = read_checkpoint(summary.checkpoints[-1])
+    dt_after, critical, substeps = attrs["dt"], attrs["critical_dt"], attrs["substeps"]
+    assert attrs["grid_frame"] == 6 and attrs["rigid_step_taken"]
+    period = 1.0 / 5000.0
+    assert substeps == math.ceil(period / (0.5 * critical)) and dt_after == period / substeps
+    first = read_checkpoint(summary.checkpoints[0])[1]
+    assert first["grid_frame"] == 0 and first["dt"] < dt_after  # a gain
+    with open(summary.series_path) as f:
+        rows = list(csv.DictReader(f))
+    times = np.array([float(r["time"]) for r in rows])
+    np.testing.assert_allclose(times, np.arange(len(times)) * period, rtol=0.0, atol=1e-12 * times[-1])
+    assert len(times) == 21
+    step_change = np.array([float(r["energy_step_change"]) for r in rows])
+    assert np.all(step_change[:6] == 0.0) and np.all(step_change[6:] != 0.0)
+    assert abs(summary.energy_error) < BOOKS_RTOL
+    # Momentum: the floor and gravity push along z only, so P_x is the load's impulse −p A t (A = 4 m², M = ρ 4 m³),
+    # to the change of the loaded area while the column strains (a follower load: O(p/E) = 4e-5; measured 9e-6).
+    v = arrays["state/body_v"][0]
+    impulse = -2.0e6 * 4.0 * attrs["time"] / (2600.0 * 4.0)
+    np.testing.assert_allclose(v[0], impulse, rtol=4.0 * 2.0e6 / 5.0e10)
+    assert v[2] == 0.0 and abs(v[1]) < 4.0 * 2.0e6 / 5.0e10 * abs(impulse)
+
+
+def test_restart_across_the_switch_and_the_step_change_is_bit_for_bit(switch_run):
+    """Restarts from a checkpoint before the switch (frame 4) and from one after the step change (frame 8) end with the
+    uninterrupted run's arrays and step, bit for bit (CPU)."""
+    import shutil
+
+    from warpdem.checkpoint import read_checkpoint
+    from warpdem.runner import RunOptions, run_scene
+
+    scene, folder, summary = switch_run
+    end_arrays, end_attrs = read_checkpoint(summary.checkpoints[-1])
+    for frame in (4, 8):
+        copy = folder / f"restart{frame}"
+        shutil.copytree(folder / "out", copy)
+        checkpoint = next(p for p in (copy / "checkpoints").iterdir() if read_checkpoint(p)[1]["frame"] == frame)
+        again = run_scene(scene, RunOptions(device="cpu", out_dir=copy, quiet=True, restart=checkpoint))
+        arrays, attrs = read_checkpoint(again.checkpoints[-1])
+        assert attrs["dt"] == end_attrs["dt"] and attrs["step"] == end_attrs["step"]
+        assert arrays.keys() == end_arrays.keys()
+        for name, a in end_arrays.items():
+            np.testing.assert_array_equal(arrays[name], a, err_msg=f"restart from frame {frame}: {name}")

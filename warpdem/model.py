@@ -411,8 +411,14 @@ class State:
         rigid_switched: 1 once the blocks turned rigid, shape (1,), int32.
         energy_released_rigid: the strain energy of the tets and the kinetic energy of the element modes that left
             the mechanical books at the switch, with the switch's change of the shadow term [J], shape (1,), float64.
+        energy_step_change: what changes of the time step between steps (the rigid step taken after a switch,
+            warpdem.simulation.Simulation.set_time_step) changed Verlet's shadow term by, S(dt_new) − S(dt_old) at
+            the forces then [J], shape (1,), float64 (a line of the books: no force works across the change).
         body_mass: M [kg]; body_inertia: principal moments [kg m²], vec3d; body_axes: principal axes at the switch
-            (columns, world), mat33d; body_fixed: 1 for a block held in place (it has a held or driven node), int32.
+            (columns, world), mat33d; body_fixed: 1 for a block held in place (a fixed or driven node, or rollers of
+            three directions), int32; body_constraint: 0 free, 1 on a roller plane (moves in the plane, turns about
+            its normal ``body_axis``), 2 between two roller planes (moves along their line ``body_axis``), int32;
+            body_axis: that normal or line, unit [-], vec3d (warpdem.rigid: roller constraints).
         body_dc: displacement of the centre of mass since the switch [m], vec3d; body_v: its velocity [m/s], vec3d;
             body_q: rotation since the switch, quatd; body_l: angular momentum about the centre of mass [kg m²/s],
             vec3d; body_f, body_t: force [N] (gravity excluded) and torque about the centre of mass [N m] of the
@@ -531,10 +537,13 @@ class State:
     tet_sphere: wp.array
     rigid_switched: wp.array
     energy_released_rigid: wp.array
+    energy_step_change: wp.array
     body_mass: wp.array
     body_inertia: wp.array
     body_axes: wp.array
     body_fixed: wp.array
+    body_constraint: wp.array
+    body_axis: wp.array
     body_dc: wp.array
     body_v: wp.array
     body_q: wp.array
@@ -651,6 +660,8 @@ RIGID_BODY_FIELDS = {
     "body_inertia": wp.vec3d,
     "body_axes": wp.mat33d,
     "body_fixed": int,
+    "body_constraint": int,
+    "body_axis": wp.vec3d,
     "body_dc": wp.vec3d,
     "body_v": wp.vec3d,
     "body_q": wp.quatd,
@@ -675,6 +686,7 @@ def rigid_state(model: Model) -> dict[str, wp.array]:
     return {
         "rigid_switched": wp.zeros(1, dtype=int, device=d),
         "energy_released_rigid": wp.zeros(1, dtype=wp.float64, device=d),
+        "energy_step_change": wp.zeros(1, dtype=wp.float64, device=d),
         "rigid_nodes": wp.empty(0, dtype=int, device=d),
         **fields,
     }

@@ -19,7 +19,15 @@ The switch (:func:`make_bodies`, called by :meth:`warpdem.simulation.Simulation.
   s = Σ_a r_a, m_t = ρ V₀ (the second moment of a uniform tet), plus, as point masses, whatever part of a node's
   mass its block's tets do not account for (the share of a neighbouring deformable tet). A box block gives
   M (b² + c²)/12 whatever its tet mesh. The principal axes come from numpy's ``eigh`` in float64;
-- a block with a held node (fixed, roller, velocity driver, or no inverse mass) is held in place whole;
+- roller constraints: the held components of its nodes (``node_motion``: a roller holds the component along its
+  normal, an edge of two rollers two, a fixed node all three), joined over the block, say how it may move: none held,
+  free; one direction n (nodes on one roller plane, or on two parallel ones: a slice between two roller walls), in
+  the plane and about n (kernels/rigid.py integrates that motion exactly, I_n = n·I n); two, along the line of the
+  third axis, without turning; three, or a fixed or driven node (or one without inverse mass), held in place whole.
+  The body keeps the allowed part of its nodes' momentum (P less its held components, L·n about the plane's normal);
+  the rest goes to the rollers, and the kinetic energy it took is booked with the switch's release. A block that
+  touches a plane at one node or along one edge is held to it as if a face lay on it (the subspace above, rather
+  than the larger one that a point or edge on a bilateral roller would leave, which changes as the block turns);
 - the nodes get ``node_motion = NODE_RIGID`` (the node kernels leave them alone) and the tets ``tet_active =
   TET_RIGID`` (no elastic force, stress or strain energy; still surface, contact and fragment material);
 - the strain energy of the block's tets and the kinetic energy of the element modes (the nodes' kinetic energy
@@ -30,7 +38,8 @@ bodies and sets their nodes' displacements and velocities; after the forces, :fu
 nodes' forces into a force and torque per body; the second half kick is :func:`kick_bodies`. Fracture and
 conversion passes stop at the switch: a rigid block neither splits nor converts.
 
-Stable step (:func:`rigid_critical_step`): with no element modes left, the contact springs on the bodies set it.
+Stable step (:func:`rigid_critical_step`): with no element modes left, the contact springs and the non-reflecting
+dashpots on the bodies set it; :func:`rigid_step_after_switch` adds what still bounds the deformable parts left.
 """
 
 from __future__ import annotations
@@ -43,11 +52,12 @@ import numpy as np
 import warp as wp
 
 from .fragments import block_labels
+from .guard import CriticalStep
 from .kernels import rigid as kr
-from .kernels.tets import NODE_FREE
 from .model import RIGID_BODY_FIELDS, RIGID_NODE_FIELDS, Model, State
 
 __all__ = [
+    "NODE_FREE_DIRECTIONS",
     "RigidReport",
     "angular_velocities",
     "body_energy",
@@ -62,9 +72,19 @@ __all__ = [
     "pose_nodes",
     "reduce_body_forces",
     "rigid_critical_step",
+    "rigid_step_after_switch",
     "rigid_time_step",
+    "roller_constraints",
     "tet_inertia",
 ]
+
+
+NODE_FREE_DIRECTIONS = np.array(
+    [[1, 1, 1], [0, 0, 0], [0, 0, 1], [0, 1, 1], [1, 0, 1], [1, 1, 0], [1, 0, 0], [0, 1, 0], [0, 0, 0]],
+    dtype=np.float64,
+)
+"""Components of a node's velocity that move, by ``node_motion`` (kernels/tets.py ``node_free_directions``; the last
+row: a node of a rigid body, which the body moves, kernels/rigid.py ``NODE_RIGID``)."""
 
 
 @dataclass
@@ -72,27 +92,42 @@ class RigidReport:
     """What a switch to rigid blocks did.
 
     Attributes:
-        bodies: rigid bodies made; fixed: of which held in place; nodes: nodes that follow a body; tets: tets made
-        rigid; released: energy booked as ``released_rigid_switch`` [J]; critical_dt: the stable step of the
-        rigid blocks on their contacts (:func:`rigid_critical_step`, before the safety factor) [s]; deformable_dt:
-        the builder's critical step of the deformable model (``Model.critical_dt`` at the switch) [s] (both set by
-        the Simulation).
+        bodies: rigid bodies made; fixed: of which held in place; planar: of which on a roller plane (moving in it);
+        lines: of which between two roller planes (moving along their line); nodes: nodes that follow a body; tets:
+        tets made rigid; released: energy booked as ``released_rigid_switch`` [J]; critical_dt: the stable step after
+        the switch (:func:`rigid_step_after_switch`, before the safety factor) [s]; deformable_dt: the builder's
+        critical step of the deformable model (``Model.critical_dt`` at the switch) [s]; dt_before, dt_after: the
+        run's time step at the switch and after it (the runner takes the rigid step at the next frame with
+        ``dt = "auto"``) [s] (all set by the Simulation and the runner).
     """
 
     bodies: int
     fixed: int
     nodes: int
     tets: int
+    planar: int = 0
+    lines: int = 0
     released: float = 0.0
     critical_dt: float = math.inf
     deformable_dt: float = math.nan
+    dt_before: float = math.nan
+    dt_after: float = math.nan
 
     def format(self) -> str:
-        return (
-            f"rigid switch: {self.bodies} blocks ({self.fixed} held), {self.nodes} nodes, {self.tets} tets; "
+        rollers = f", {self.planar} on a roller plane, {self.lines} on two" if self.planar or self.lines else ""
+        text = (
+            f"rigid switch: {self.bodies} blocks ({self.fixed} held{rollers}), {self.nodes} nodes, {self.tets} tets; "
             f"{self.released:.6g} J released; stable step {self.critical_dt:.4g} s rigid against "
             f"{self.deformable_dt:.4g} s deformable ({self.critical_dt / self.deformable_dt:.3g}×)"
         )
+        if math.isfinite(self.dt_after) and self.dt_after != self.dt_before:
+            text += (
+                f"; time step {self.dt_after:.4g} s after the switch ({self.dt_after / self.dt_before:.3g}× "
+                f"the {self.dt_before:.4g} s before)"
+            )
+        elif math.isfinite(self.dt_before):
+            text += f"; time step kept at {self.dt_before:.4g} s"
+        return text
 
 
 def tet_inertia(vertices: np.ndarray, mass: np.ndarray) -> np.ndarray:
@@ -167,18 +202,15 @@ def make_bodies(model: Model, state: State) -> tuple[State, RigidReport]:
     # Right-handed axes, so that a body's frame is a rotation of the world's.
     axes[:, :, 2] *= np.sign(np.linalg.det(axes))[:, None]
 
-    motion = model.node_motion.numpy()[:nn]
-    held = (motion != NODE_FREE) | (model.node_inv_mass.numpy()[:nn] <= 0.0)
-    if model.loads is not None and model.loads.num_drivers:
-        held |= model.loads.node_driver.numpy()[:nn] >= 0
-    fixed = np.bincount(body_of, weights=held[in_body], minlength=count) > 0
+    constraint, axis, fixed = roller_constraints(model, label, count)
 
     order = np.argsort(body_of, kind="stable")
     rigid_nodes = np.flatnonzero(in_body)[order].astype(np.int32)
     node_count = np.bincount(body_of, minlength=count).astype(np.int32)
     start = (np.cumsum(node_count) - node_count).astype(np.int32)
-    velocity = np.where(fixed[:, None], 0.0, momentum / body_mass[:, None])
-    angular = np.where(fixed[:, None], 0.0, angular)
+    # The allowed part of the nodes' momentum (the rest is the rollers' impulse at the switch).
+    velocity = np.where(fixed[:, None], 0.0, _allowed(constraint, axis, momentum / body_mass[:, None], False))
+    angular = np.where(fixed[:, None], 0.0, _allowed(constraint, axis, angular, True))
     r0 = np.zeros((model.node_capacity, 3))
     r0[:nn][in_body] = r
     u0 = np.zeros((model.node_capacity, 3), dtype=np.float32)
@@ -190,6 +222,8 @@ def make_bodies(model: Model, state: State) -> tuple[State, RigidReport]:
         "body_inertia": moments,
         "body_axes": axes,
         "body_fixed": fixed.astype(np.int32),
+        "body_constraint": constraint,
+        "body_axis": axis,
         "body_dc": np.zeros((count, 3)),
         "body_v": velocity,
         "body_q": identity,
@@ -213,8 +247,54 @@ def make_bodies(model: Model, state: State) -> tuple[State, RigidReport]:
     state.tet_active.assign(tet_active)
     state.rigid_switched.fill_(1)
     state = dataclasses.replace(state, **fields)
-    report = RigidReport(count, int(fixed.sum()), int(in_body.sum()), int(rigid_tet.sum()))
+    free = ~fixed
+    report = RigidReport(
+        count,
+        int(fixed.sum()),
+        int(in_body.sum()),
+        int(rigid_tet.sum()),
+        planar=int(np.sum(free & (constraint == int(kr.BODY_PLANE)))),
+        lines=int(np.sum(free & (constraint == int(kr.BODY_LINE)))),
+    )
     return state, report
+
+
+def roller_constraints(model: Model, label: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How each block may move under the held components of its nodes (module docstring): the held axes of its nodes
+    joined (``NODE_FREE_DIRECTIONS``), a node without inverse mass or with a velocity driver holding all three.
+
+    Args:
+        label: block of each live node, -1 for none, shape (node_count,). count: blocks.
+
+    Returns:
+        ``body_constraint`` (0 free, 1 plane, 2 line), shape (count,), int32; ``body_axis`` (the plane's normal or
+        the line, a unit axis; zero when free), shape (count, 3), float64; held whole, shape (count,), bool.
+    """
+    nn = len(label)
+    held_axes = 1.0 - NODE_FREE_DIRECTIONS[model.node_motion.numpy()[:nn]]
+    pinned = model.node_inv_mass.numpy()[:nn] <= 0.0
+    if model.loads is not None and model.loads.num_drivers:
+        pinned |= model.loads.node_driver.numpy()[:nn] >= 0
+    held_axes[pinned] = 1.0
+    mine = label >= 0
+    body_of = label[mine].astype(np.int64)
+    union = np.stack([np.bincount(body_of, weights=held_axes[mine, k], minlength=count) > 0 for k in range(3)], axis=1)
+    held = union.sum(axis=1)
+    constraint = np.where(held == 1, int(kr.BODY_PLANE), np.where(held == 2, int(kr.BODY_LINE), int(kr.BODY_FREE)))
+    # The plane's normal is its held axis; the line is the one axis left free.
+    axis = np.where((held == 1)[:, None], union, np.where((held == 2)[:, None], ~union, False)).astype(np.float64)
+    return constraint.astype(np.int32), axis, held == 3
+
+
+def _allowed(constraint: np.ndarray, axis: np.ndarray, x: np.ndarray, rotation: bool) -> np.ndarray:
+    """The part of per-body vectors x, shape (B, 3), the rollers allow (kernels/rigid.py ``allowed_translation`` and
+    ``allowed_rotation``, float64)."""
+    along = np.sum(x * axis, axis=1, keepdims=True) * axis
+    plane = constraint[:, None] == int(kr.BODY_PLANE)
+    line = constraint[:, None] == int(kr.BODY_LINE)
+    if rotation:
+        return np.where(plane, along, np.where(line, 0.0, x))
+    return np.where(plane, x - along, np.where(line, along, x))
 
 
 def has_bodies(state: State) -> bool:
@@ -237,6 +317,8 @@ def drift_bodies(model: Model, state: State, after_second_half: bool) -> None:
             s.body_inertia,
             s.body_axes,
             s.body_fixed,
+            s.body_constraint,
+            s.body_axis,
             s.body_f,
             s.body_t,
         ],
@@ -252,7 +334,16 @@ def kick_bodies(model: Model, state: State) -> None:
     wp.launch(
         kr.kick_bodies_kernel,
         dim=s.body_mass.shape[0],
-        inputs=[wp.vec3(*m.gravity), m.dt, s.body_mass, s.body_fixed, s.body_f, s.body_t],
+        inputs=[
+            wp.vec3(*m.gravity),
+            m.dt,
+            s.body_mass,
+            s.body_fixed,
+            s.body_constraint,
+            s.body_axis,
+            s.body_f,
+            s.body_t,
+        ],
         outputs=[s.body_v, s.body_l],
         device=m.device,
     )
@@ -276,6 +367,8 @@ def pose_nodes(model: Model, state: State, move: bool) -> None:
             s.node_rigid_u0,
             s.body_inertia,
             s.body_axes,
+            s.body_constraint,
+            s.body_axis,
             s.body_dc,
             s.body_v,
             s.body_q,
@@ -320,30 +413,57 @@ def body_frames(state: State) -> tuple[np.ndarray, np.ndarray]:
     return axes, state.body_inertia.numpy()
 
 
+def _about_axis(state: State, axes: np.ndarray, moments: np.ndarray) -> np.ndarray:
+    """I_n = n·I n of every body about its ``body_axis`` [kg m²], shape (B,) (nan where the axis is zero)."""
+    n = state.body_axis.numpy()
+    along = np.einsum("bik,bi->bk", axes, n)
+    with np.errstate(invalid="ignore"):
+        return np.where(np.sum(n * n, axis=1) > 0.0, np.sum(moments * along * along, axis=1), np.nan)
+
+
+def _inverse_inertia_times(state: State, axes: np.ndarray, moments: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """I⁻¹ x of every body in the metric of its allowed rotations [rad/s per kg m²/s], shape (B, 3): R I⁻¹ Rᵀ x when
+    free, (x·n / I_n) n on a roller plane, zero on a line (kernels/rigid.py ``body_angular_velocity``)."""
+    body_x = np.einsum("bik,bi->bk", axes, x)
+    free = np.einsum("bik,bk->bi", axes, body_x / moments)
+    n = state.body_axis.numpy()
+    constraint = state.body_constraint.numpy()
+    with np.errstate(invalid="ignore", divide="ignore"):
+        plane = (np.sum(x * n, axis=1) / _about_axis(state, axes, moments))[:, None] * n
+    return np.where(
+        (constraint == int(kr.BODY_PLANE))[:, None],
+        plane,
+        np.where((constraint == int(kr.BODY_LINE))[:, None], 0.0, free),
+    )
+
+
 def angular_velocities(state: State) -> np.ndarray:
-    """ω = R I⁻¹ Rᵀ L of every body [rad/s], shape (B, 3), float64 (reads back)."""
+    """ω of every body [rad/s], shape (B, 3), float64 (reads back): R I⁻¹ Rᵀ L, or on roller constraints what
+    kernels/rigid.py ``body_angular_velocity`` gives."""
     axes, moments = body_frames(state)
-    body_l = np.einsum("bik,bi->bk", axes, state.body_l.numpy())
-    return np.einsum("bik,bk->bi", axes, body_l / moments)
+    return _inverse_inertia_times(state, axes, moments, state.body_l.numpy())
 
 
 def body_energy(model: Model, state: State) -> tuple[float, float]:
     """Kinetic energy of the bodies ½ M v² + ½ L·ω, and their Verlet shadow term dt²/8 (|F + M g|²/M + T·I⁻¹T)
     (as warpdem.simulation.EnergyBalance has it for spheres and nodes: kinetic − shadow is the leapfrog kinetic energy
-    the translation conserves), held bodies excluded [J] (reads back)."""
+    the translation conserves), held bodies excluded [J] (reads back). On roller constraints, of the allowed motion:
+    F + M g and T projected as the kicks project them, ω and I⁻¹ of the allowed rotation."""
     if not has_bodies(state):
         return 0.0, 0.0
     free = state.body_fixed.numpy() == 0
-    mass = state.body_mass.numpy()[free]
-    v = state.body_v.numpy()[free]
+    mass = state.body_mass.numpy()
+    v = state.body_v.numpy()
     axes, moments = body_frames(state)
-    axes, moments = axes[free], moments[free]
-    body_l = np.einsum("bik,bi->bk", axes, state.body_l.numpy()[free])
-    kinetic = 0.5 * np.sum(mass * np.sum(v * v, axis=1)) + 0.5 * np.sum(body_l * body_l / moments)
+    constraint, axis = state.body_constraint.numpy(), state.body_axis.numpy()
+    omega = _inverse_inertia_times(state, axes, moments, state.body_l.numpy())
+    spin = np.sum(state.body_l.numpy() * omega, axis=1)
+    kinetic = 0.5 * np.sum((mass * np.sum(v * v, axis=1) + spin)[free])
     g = np.asarray(model.gravity, dtype=np.float64)
-    f = state.body_f.numpy()[free] + mass[:, None] * g
-    body_t = np.einsum("bik,bi->bk", axes, state.body_t.numpy()[free])
-    shadow = model.dt**2 / 8.0 * (np.sum(np.sum(f * f, axis=1) / mass) + np.sum(body_t * body_t / moments))
+    f = _allowed(constraint, axis, state.body_f.numpy() + mass[:, None] * g, False)
+    t = _allowed(constraint, axis, state.body_t.numpy(), True)
+    turn = np.sum(t * _inverse_inertia_times(state, axes, moments, t), axis=1)
+    shadow = model.dt**2 / 8.0 * np.sum((np.sum(f * f, axis=1) / mass + turn)[free])
     return float(kinetic), float(shadow)
 
 
@@ -392,38 +512,133 @@ def contact_damping_ratio(model: Model) -> float:
 
 
 def rigid_time_step(model: Model, state: State, safety_factor: float) -> Model:
-    """The model with the time step of rigid blocks from the start: ``safety_factor`` × :func:`rigid_critical_step` of
-    the bodies the switch will make (made on copies, so the model and state are left as they are). Only where the
-    rigid bodies are all there is: every tet may turn rigid, no sphere and no non-reflecting dashpot (their own steps,
-    which the builder folded into ``critical_dt``, would still hold); else the model as it is.
+    """The model with the time step of rigid blocks from the start: ``safety_factor`` × :func:`rigid_step_after_switch`
+    of the bodies the switch will make (made on copies, so the model and state are left as they are), where that is
+    finite; else the model as it is.
     """
-    if model.tet_may_rigid is not None or model.max_radius > 0.0:
-        return model
-    if model.loads is not None and getattr(model.loads, "dashpots", None) is not None:
-        return model
     probe = dataclasses.replace(model, node_motion=wp.clone(model.node_motion))
     bodies, _ = make_bodies(probe, state.clone())
-    step = rigid_critical_step(probe, bodies, contact_damping_ratio(model))
-    if not math.isfinite(step):
+    step = rigid_step_after_switch(probe, bodies)
+    if not math.isfinite(step.value):
         return model
     return dataclasses.replace(
         model,
-        dt=safety_factor * step,
-        critical_dt=step,
-        critical_dt_source="the contact springs of the rigid blocks (warpdem.rigid.rigid_critical_step)",
+        dt=safety_factor * step.value,
+        critical_dt=step.value,
+        critical_dt_source=step.source,
         deformable_critical_dt=model.critical_dt,
     )
 
 
+def rigid_step_after_switch(model: Model, state: State) -> CriticalStep:
+    """The critical step of a model whose blocks turned rigid [s], before the safety factor, and what sets it: the
+    bodies' own (:func:`rigid_critical_step`: their contact springs and dashpots), and, where deformable tets or
+    spheres are left, the builder's step of the deformable model (``deformable_critical_dt``, else ``critical_dt``),
+    which still bounds them (their own steps are not measured apart from the rest: a mixed model gains nothing beyond
+    the deformable step, and may lose). Reads back."""
+    rigid = CriticalStep(
+        rigid_critical_step(model, state, contact_damping_ratio(model)),
+        "the contact springs and dashpots of the rigid blocks (warpdem.rigid.rigid_critical_step)",
+    )
+    nt = int(state.tet_count.numpy()[0])
+    deformable = bool(np.any(state.tet_active.numpy()[:nt] == 1)) or int(state.particle_count.numpy()[0]) > 0
+    if not deformable:
+        return rigid
+    before = model.deformable_critical_dt if model.deformable_critical_dt > 0.0 else model.critical_dt
+    if before < rigid.value:
+        return CriticalStep(before, f"{model.critical_dt_source} (deformable tets or spheres are left)")
+    return rigid
+
+
+def _plane_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors that span the plane normal to each unit n, shape (B, 3) each."""
+    helper = np.where((np.abs(n[:, 0]) < 0.9)[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    t1 = np.cross(n, helper)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    return t1, np.cross(n, t1)
+
+
+def _allowed_basis(state: State, axes: np.ndarray, moments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The motions each body's rollers allow as columns of a (B, 6, 6) basis in body-frame coordinates (translation,
+    rotation), zero columns where fewer than six are allowed, and the diagonal mass of those coordinates, shape
+    (B, 6) (1 on the zero columns): M and the principal moments when free; M, M, I_n on a plane; M on a line."""
+    count = len(moments)
+    mass = state.body_mass.numpy()
+    constraint, n = state.body_constraint.numpy(), state.body_axis.numpy()
+    basis = np.zeros((count, 6, 6))
+    diag = np.ones((count, 6))
+    free = constraint == int(kr.BODY_FREE)
+    basis[free] = np.eye(6)
+    diag[free] = np.concatenate([np.repeat(mass[free, None], 3, axis=1), moments[free]], axis=1)
+    to_body = np.swapaxes(axes, 1, 2)  # world → body frame: the principal axes now, as rows
+    plane = np.flatnonzero(constraint == int(kr.BODY_PLANE))
+    if len(plane):
+        t1, t2 = _plane_basis(n[plane])
+        basis[plane, :3, 0] = np.einsum("bij,bj->bi", to_body[plane], t1)
+        basis[plane, :3, 1] = np.einsum("bij,bj->bi", to_body[plane], t2)
+        nb = np.einsum("bij,bj->bi", to_body[plane], n[plane])
+        basis[plane, 3:, 2] = nb
+        diag[plane, :2] = mass[plane, None]
+        diag[plane, 2] = np.sum(moments[plane] * nb * nb, axis=1)
+    line = np.flatnonzero(constraint == int(kr.BODY_LINE))
+    if len(line):
+        basis[line, :3, 0] = np.einsum("bij,bj->bi", to_body[line], n[line])
+        diag[line, 0] = mass[line]
+    return basis, diag
+
+
+def _body_jacobians(rb: np.ndarray) -> np.ndarray:
+    """J = [1, −[r]×] of nodes at body-frame offsets r, shape (n, 3, 6): a node's velocity from its body's."""
+    cross = np.zeros((len(rb), 3, 3))
+    cross[:, 0, 1], cross[:, 0, 2], cross[:, 1, 2] = -rb[:, 2], rb[:, 1], -rb[:, 0]
+    cross[:, 1, 0], cross[:, 2, 0], cross[:, 2, 1] = rb[:, 2], -rb[:, 1], rb[:, 0]
+    return np.concatenate([np.broadcast_to(np.eye(3), (len(rb), 3, 3)), -cross], axis=2)
+
+
+def _dashpot_matrices(
+    model: Model, state: State, axes: np.ndarray, frame_of: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The non-reflecting dashpots on the bodies' nodes (warpdem.loads: a third of each face's area times ρ c_p along
+    its normal and ρ c_s across it, at the faces' current positions): the node of each dashpot corner and its damping
+    matrix in its body's frame [N s/m], shapes (k,) and (k, 3, 3); empty without dashpots or where no corner is a
+    body's node."""
+    loads = model.loads
+    if loads is None or loads.dashpots is None:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 3, 3))
+    d = loads.dashpots
+    faces = d.nodes.numpy().astype(np.int64)
+    impedance = d.impedance.numpy().astype(np.float64)
+    x = model.node_ref_q.numpy().astype(np.float64) + state.node_u.numpy().astype(np.float64)
+    xf = x[faces]
+    a = 0.5 * np.cross(xf[:, 1] - xf[:, 0], xf[:, 2] - xf[:, 0])
+    area = np.linalg.norm(a, axis=1)
+    normal = a / np.maximum(area, 1e-300)[:, None]
+    nn = np.einsum("fi,fj->fij", normal, normal)
+    c = (area / 3.0)[:, None, None] * (
+        impedance[:, 0, None, None] * nn + impedance[:, 1, None, None] * (np.eye(3) - nn)
+    )
+    nodes = faces.ravel()
+    c = np.repeat(c, 3, axis=0)
+    body = frame_of[nodes]
+    keep = body >= 0
+    nodes, c, body = nodes[keep], c[keep], body[keep]
+    to_body = np.swapaxes(axes[body], 1, 2)
+    return nodes, np.einsum("nia,nab,njb->nij", to_body, c, to_body)
+
+
 def rigid_critical_step(model: Model, state: State, damping_ratio: float = 0.0) -> float:
-    """Stable step of the rigid bodies on their contact springs [s], before the safety factor (reads back).
+    """Stable step of the rigid bodies on their contact springs and dashpots [s], before the safety factor (reads
+    back).
 
     Every surface node i of a body (penalty stiffness k_i = ``node_contact_stiffness``, warpdem.fem_contact) pressed
     by a contact at once gives the body the stiffness K = Σ k_i J_iᵀ J_i on its six velocities (J_i = [1, −[r_i]×],
     the node's velocity from the body's), against its mass matrix diag(M, M, M, I). A spring between two bodies
-    stores ½ k |u_A − u_B|² ≤ k (|u_A|² + |u_B|²), so no mode of the assembly exceeds ω² = 2 max_b λ_max(M_b⁻¹ K_b),
-    the largest over the bodies; dt = 2/ω (sqrt(1 + ζ²) − ζ) as for the nodes. Held bodies, and deformable nodes and
-    tets (whose own steps still hold where some remain), are not counted.
+    stores ½ k |u_A − u_B|² ≤ k (|u_A|² + |u_B|²), so no mode of the assembly exceeds ω² = 2 max_b λ_max(M_b⁻¹ K_b).
+    The non-reflecting dashpots on its nodes (C_i, warpdem.loads) give it D = Σ J_iᵀ C_i J_i, explicit at the
+    half-step velocity: c = λ_max(M_b⁻¹ D_b), ζ = ζ_contact + c / (2ω). On roller constraints K, D and the mass are
+    those of the allowed motions (:func:`_allowed_basis`). dt = min_b 2/ω (sqrt(1 + ζ²) − ζ) (2/c without
+    springs), as for the nodes. Held bodies, and deformable nodes and tets (whose own steps still hold where some
+    remain), are not counted.
     """
     if not has_bodies(state) or model.node_contact_stiffness is None:
         return math.inf
@@ -431,23 +646,37 @@ def rigid_critical_step(model: Model, state: State, damping_ratio: float = 0.0) 
     if len(free) == 0:
         return math.inf
     nodes = state.rigid_nodes.numpy()
-    body = state.node_body.numpy()[nodes].astype(np.int64)
+    node_body = state.node_body.numpy()
+    body = node_body[nodes].astype(np.int64)
     k = model.node_contact_stiffness.numpy()[nodes].astype(np.float64)
     axes, moments = body_frames(state)
-    r = np.einsum("bij,bj->bi", _rotations(state.body_q.numpy())[body], state.node_rigid_r0.numpy()[nodes])
+    r0 = state.node_rigid_r0.numpy()
+    rotations = _rotations(state.body_q.numpy())
     # Body-frame offsets, so that the rotational block of the mass matrix is diagonal.
-    rb = np.einsum("nik,ni->nk", axes[body], r)
-    cross = np.zeros((len(nodes), 3, 3))
-    cross[:, 0, 1], cross[:, 0, 2], cross[:, 1, 2] = -rb[:, 2], rb[:, 1], -rb[:, 0]
-    cross[:, 1, 0], cross[:, 2, 0], cross[:, 2, 1] = rb[:, 2], -rb[:, 1], rb[:, 0]
-    jac = np.concatenate([np.broadcast_to(np.eye(3), (len(nodes), 3, 3)), -cross], axis=2)  # (n, 3, 6)
-    stiff = np.zeros((len(moments), 6, 6))
+    r = np.einsum("bij,bj->bi", rotations[body], r0[nodes])
+    jac = _body_jacobians(np.einsum("nik,ni->nk", axes[body], r))  # (n, 3, 6)
+    count = len(moments)
+    stiff = np.zeros((count, 6, 6))
     np.add.at(stiff, body, k[:, None, None] * np.einsum("nia,nib->nab", jac, jac))
-    mass = state.body_mass.numpy()
-    inv_sqrt = 1.0 / np.sqrt(np.concatenate([np.repeat(mass[:, None], 3, axis=1), moments], axis=1))
-    scaled = inv_sqrt[:, :, None] * stiff * inv_sqrt[:, None, :]
-    lam = np.linalg.eigvalsh(scaled[free])[:, -1].max()
-    if lam <= 0.0:
-        return math.inf
-    omega = math.sqrt(2.0 * lam)
-    return 2.0 / omega * (math.sqrt(1.0 + damping_ratio**2) - damping_ratio)
+    damp_nodes, c = _dashpot_matrices(model, state, axes, node_body.astype(np.int64))
+    damp = np.zeros((count, 6, 6))
+    if len(damp_nodes):
+        damp_body = node_body[damp_nodes].astype(np.int64)
+        rd = np.einsum("bij,bj->bi", rotations[damp_body], r0[damp_nodes])
+        jd = _body_jacobians(np.einsum("nik,ni->nk", axes[damp_body], rd))
+        np.add.at(damp, damp_body, np.einsum("nia,nij,njb->nab", jd, c, jd))
+    basis, diag = _allowed_basis(state, axes, moments)
+    inv_sqrt = 1.0 / np.sqrt(diag)
+    transform = basis * inv_sqrt[:, None, :]  # columns scaled: the allowed coordinates in the mass metric
+
+    def largest(matrix: np.ndarray) -> np.ndarray:
+        reduced = np.einsum("bia,bij,bjc->bac", transform[free], matrix[free], transform[free])
+        return np.maximum(np.linalg.eigvalsh(reduced)[:, -1], 0.0)
+
+    omega = np.sqrt(2.0 * largest(stiff))
+    c_max = largest(damp)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        zeta = damping_ratio + np.where(omega > 0.0, c_max / (2.0 * omega), 0.0)
+        springs = 2.0 / omega * (np.sqrt(1.0 + zeta**2) - zeta)
+        step = np.where(omega > 0.0, springs, np.where(c_max > 0.0, 2.0 / c_max, np.inf))
+    return float(step.min())

@@ -20,7 +20,7 @@ from .checkpoint import CheckpointError, checkpoint_name, read_checkpoint, write
 from .guard import UnstableRunError
 from .limits import MAX_ELEMENTS, MAX_STEPS
 from .model import NEIGHBOR_FIELDS, Model, State
-from .rigid import rigid_time_step
+from .rigid import rigid_step_after_switch, rigid_time_step
 from .scene import Scene, SceneError
 from .scene_build import finalize_scene, scene_builder, start_as_spheres
 from .simulation import EnergyBalance, Simulation, balance_error
@@ -223,6 +223,9 @@ class RunSummary:
         lines.append(row("Verlet shadow", e0.shadow, e1.shadow))
         if e1.released_rigid_switch:
             lines.append(row("rigid switch", e0.released_rigid_switch, e1.released_rigid_switch))
+        if e0.step_change or e1.step_change:
+            # What taking another time step changed Verlet's shadow term by (Simulation.set_time_step).
+            lines.append(row("step change", e0.step_change, e1.step_change))
         if self.nodes:
             lines += [
                 row("strain", e0.strain, e1.strain),
@@ -447,6 +450,76 @@ class _StopRequest:
             )
 
 
+@dataclass
+class FrameGrid:
+    """Where the frames end, in steps: frame k ≥ ``frame`` ends at step ``step`` + (k − ``frame``) × ``substeps``.
+
+    A run starts on one grid (frame 0 at step 0). A change of the time step (the rigid step taken after a switch,
+    :func:`take_rigid_step`) starts a new grid at the frame boundary where it happens: the frames keep their period
+    (substeps × dt = frame period, dt = period / substeps), so frame k still falls at k × period, to the rounding of
+    the device clock's sum of steps. Checkpoints hold the grid (``substeps``, ``grid_step``, ``grid_frame``,
+    ``grid_time``), so a restart continues on it.
+
+    Attributes:
+        substeps: steps per frame. step, frame: the step at which frame ``frame`` ends (the grid's anchor).
+        time: the simulated time then [s].
+    """
+
+    substeps: int
+    step: int = 0
+    frame: int = 0
+    time: float = 0.0
+
+    def end_step(self, frame: int) -> int:
+        """The step frame ``frame`` ends at."""
+        return self.step + (frame - self.frame) * self.substeps
+
+    def last_step(self, end_time: float, frames: int | None, dt: float) -> int:
+        """The run's last step: the end of frame ``frames``, or the step nearest ``end_time`` [s] (:func:`end_step`,
+        counted in steps of ``dt`` [s] from the grid's anchor)."""
+        if frames is not None:
+            return self.end_step(frames)
+        return self.step + end_step(end_time - self.time, dt)
+
+    def frames(self, last_step: int) -> int:
+        """The frames a run that ends at ``last_step`` writes (the last one short when it is not a whole frame)."""
+        return self.frame + -(-(last_step - self.step) // self.substeps)
+
+    def attrs(self) -> dict[str, int | float]:
+        """The checkpoint attributes of the grid."""
+        return {"substeps": self.substeps, "grid_step": self.step, "grid_frame": self.frame, "grid_time": self.time}
+
+    @staticmethod
+    def from_attrs(attrs: dict, substeps: int) -> FrameGrid:
+        """The grid a checkpoint holds (one written before grids were kept: frame 0 at step 0 with its ``substeps``,
+        else ``substeps``)."""
+        return FrameGrid(
+            int(attrs.get("substeps", substeps)),
+            int(attrs.get("grid_step", 0)),
+            int(attrs.get("grid_frame", 0)),
+            float(attrs.get("grid_time", 0.0)),
+        )
+
+
+def take_rigid_step(
+    sim: Simulation, safety_factor: float, frame_period: float, grid: FrameGrid, frame: int
+) -> FrameGrid:
+    """After the blocks turned rigid, at the end of frame ``frame`` (a run with ``dt = "auto"``): the time step
+    becomes period / n for the fewest n steps per frame that keep it within ``safety_factor`` × the critical step
+    after the switch (warpdem.rigid.rigid_step_after_switch; larger or smaller than the step before), taken by
+    :meth:`warpdem.simulation.Simulation.set_time_step` (which books the shadow term's change). Returns the new grid,
+    anchored at this frame; the same one when the step per frame does not change (no change is made).
+    """
+    critical = rigid_step_after_switch(sim.model, sim.state)
+    if not (math.isfinite(critical.value) and critical.value > 0.0):
+        return grid
+    substeps = max(1, math.ceil(frame_period / (safety_factor * critical.value)))
+    if substeps == grid.substeps:
+        return grid
+    sim.set_time_step(frame_period / substeps, critical)
+    return FrameGrid(substeps, sim.step_count, frame, sim.time)
+
+
 def end_step(end_time: float, dt: float) -> int:
     """The step a run to ``end_time`` [s] ends at: the nearest one (at least 1), so it ends within dt/2 of the time
     asked, never a frame beyond."""
@@ -544,29 +617,52 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         substeps = max(1, round(frame_period / model.dt))
 
     step, sim_time, first_frame, primed, attrs = 0, 0.0, 0, False, {}
+    grid = FrameGrid(substeps)
     if options.restart is not None:
         model, state, attrs = restore_checkpoint(Path(options.restart), model, state, scene.name)
         step, sim_time, first_frame, primed = int(attrs["step"]), float(attrs["time"]), int(attrs["frame"]), True
-        # Frame k ends at step k × substeps on the original run's grid, whatever the scene says now.
-        substeps = int(attrs.get("substeps", substeps))
-    frame_period = substeps * model.dt
+        # The frames end on the original run's grid, whatever the scene says now (its step is the checkpoint's).
+        grid = FrameGrid.from_attrs(attrs, substeps)
+        substeps = grid.substeps
+    # The frame period stays that of the first grid (a later one divides it into other steps, to rounding).
+    frame_period = float(attrs.get("frame_period", substeps * model.dt))
 
-    # Frame k ends at step k × substeps; the run ends at last_step (a short last frame when that is not a multiple).
+    # The run ends at last_step (a short last frame when that is not a multiple of the frame's steps).
     end_time = options.end_time if options.end_time is not None else run.end_time
-    last_step = options.frames * substeps if options.frames is not None else end_step(end_time, model.dt)
-    total_frames = -(-last_step // substeps)
+    last_step = grid.last_step(end_time, options.frames, model.dt)
+    total_frames = grid.frames(last_step)
     if step >= last_step:
         raise NothingToDo(
             f"nothing to do: the checkpoint is at t = {sim_time:.9g} s (frame {first_frame}), the run ends at "
-            f"t = {last_step * model.dt:.9g} s (frame {total_frames})"
+            f"t = {grid.time + (last_step - grid.step) * model.dt:.9g} s (frame {total_frames})"
         )
-    note = end_time_note(end_time, fps, model.dt, substeps, last_step) if options.frames is None else None
+    # The note counts frames from step 0: on the first grid only.
+    note = (
+        end_time_note(end_time, fps, model.dt, substeps, last_step)
+        if options.frames is None and grid.step == 0
+        else None
+    )
     if note is not None and not options.quiet:
         print(note)
     sim = Simulation(model, state, primed=primed, step=step, time=sim_time)
     if options.restart is None:
         # A new run converts its start_as_spheres region here, before frame 0; a restart's checkpoint holds them.
         start_as_spheres(scene, sim)
+    # With dt = "auto" a run takes the rigid blocks' step at the first frame boundary after the switch (a switch
+    # from the start took it above: the same step, no change); a restart knows from its checkpoint whether it did.
+    rigid_step_due = run.dt == "auto" and not bool(attrs.get("rigid_step_taken", primed and sim.rigid))
+
+    def adopt_rigid_step(frame: int) -> None:
+        nonlocal grid, last_step, total_frames, rigid_step_due
+        if not (rigid_step_due and sim.rigid) or frame >= total_frames:
+            return  # not due, or the run is over (a new grid would add a step past its end)
+        rigid_step_due = False
+        new = take_rigid_step(sim, run.safety_factor, frame_period, grid, frame)
+        if new is not grid:
+            grid = new
+            last_step = grid.last_step(end_time, options.frames, sim.model.dt)
+            total_frames = grid.frames(last_step)
+
     _check_steps(scene, float(substeps), options, total_frames - first_frame)
 
     out_dir = Path(options.out_dir) if options.out_dir is not None else Path(scene.output.directory)
@@ -605,7 +701,9 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     def checkpoint(frame: int) -> None:
         extra = {
             "scene": scene.name,
-            "substeps": substeps,
+            **grid.attrs(),
+            "frame_period": frame_period,
+            "rigid_step_taken": not rigid_step_due,
             "seed": run.seed,
             "speed_scale": speed_scale[0],
             "rock_color_scale": rock.color_scale,
@@ -671,7 +769,11 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         from tqdm import tqdm
 
         progress = tqdm(
-            total=round((last_step - step) * model.dt, 9), unit="s", unit_scale=False, desc=scene.name, file=sys.stderr
+            total=round(grid.time + (last_step - grid.step) * model.dt - sim_time, 9),
+            unit="s",
+            unit_scale=False,
+            desc=scene.name,
+            file=sys.stderr,
         )
     wall0 = time.perf_counter()
     steps0 = sim.step_count
@@ -691,21 +793,23 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
             where = f"{scene.source}: output.directory / output.usd"
         raise _output_error(where, usd_path, exc) from None
     with stop, writer:
+        adopt_rigid_step(frame)
         energy_start = energy_end = write_frame(writer, frame)
         in_play = energy_start.in_play
         while frame < total_frames and stop.signum is None:
-            steps_before = sim.step_count
+            time_before = sim.time
             try:
-                sim.advance(min((frame + 1) * substeps, last_step) - steps_before)
+                sim.advance(min(grid.end_step(frame + 1), last_step) - sim.step_count)
             except UnstableRunError as exc:
                 # The bad state is neither written nor checkpointed; the good frames are published below.
                 unstable = exc
                 break
             frame += 1
+            adopt_rigid_step(frame)
             energy_end = write_frame(writer, frame)
             in_play = max(in_play, energy_end.in_play)
             if progress is not None:
-                progress.update(round((sim.step_count - steps_before) * model.dt, 9))
+                progress.update(round(sim.time - time_before, 9))
             if frames_per_checkpoint and frame % frames_per_checkpoint == 0 and frame < total_frames:
                 checkpoint(frame)
         wall = time.perf_counter() - wall0

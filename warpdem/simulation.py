@@ -63,15 +63,15 @@ from .fem_contact import (
     remap_face_ids,
 )
 from .fracture import FracturePass, SplitReport
-from .guard import GuardReport, StabilityGuard, UnstableRunError
+from .guard import CriticalStep, GuardReport, StabilityGuard, UnstableRunError
 from .integrate import integrate_first_half, integrate_second_half, kick_drift
 from .kernels import rigid as kernels_rigid
 from .loads import eval_loads, relax_to_equilibrium
 from .model import NEIGHBOR_FIELDS, Model, State
 from .rigid import (
+    NODE_FREE_DIRECTIONS,
     RigidReport,
     body_energy,
-    contact_damping_ratio,
     drift_bodies,
     element_mode_energy,
     has_bodies,
@@ -79,7 +79,7 @@ from .rigid import (
     make_bodies,
     pose_nodes,
     reduce_body_forces,
-    rigid_critical_step,
+    rigid_step_after_switch,
 )
 from .tets import eval_tet_stresses, eval_tets, tet_energy
 from .topology import regrow_nodes
@@ -118,6 +118,10 @@ class EnergyBalance:
     the strain energy of their tets and the kinetic energy of the element modes, with the switch's change of the
     shadow term (warpdem.rigid). ``contact_topology`` is the energy the FEM contacts' springs gained without work at
     split and conversion passes (Simulation._book_contact_topology), which enters the total like work put in.
+    ``step_change`` is what changes of the time step between steps changed the shadow term by, S(dt_new) − S(dt_old)
+    (:meth:`Simulation.set_time_step`): each step books its own trapezoid and shadow term at its own dt, so the
+    leapfrog kinetic energy of the steps before a change (kinetic − S(dt_old)) and after it (kinetic − S(dt_new))
+    differ by that, with no force working.
     """
 
     kinetic_translational: float
@@ -143,6 +147,7 @@ class EnergyBalance:
     kinetic_rigid: float = 0.0
     released_rigid_switch: float = 0.0
     contact_topology: float = 0.0
+    step_change: float = 0.0
 
     @property
     def kinetic(self) -> float:
@@ -179,6 +184,7 @@ class EnergyBalance:
             + self.coupling_elastic
             + self.released_rigid_switch
             - self.contact_topology
+            + self.step_change
         )
 
 
@@ -187,14 +193,6 @@ def balance_error(start: EnergyBalance, now: EnergyBalance, in_play: float) -> f
     largest :attr:`EnergyBalance.in_play` over the frames so far (no gravity potential, so no arbitrary datum scales
     it). The summary and the time series (warpdem.timeseries) both print this number."""
     return (now.total - start.total) / max(in_play, 1e-300)
-
-
-NODE_FREE_DIRECTIONS = np.array(
-    [[1, 1, 1], [0, 0, 0], [0, 0, 1], [0, 1, 1], [1, 0, 1], [1, 1, 0], [1, 0, 0], [0, 1, 0], [0, 0, 0]],
-    dtype=np.float64,
-)
-"""Components of a node's velocity that move, by ``node_motion`` (kernels/tets.py ``node_free_directions``; the last
-row: a node of a rigid body, which the body moves, kernels/rigid.py ``NODE_RIGID``)."""
 
 
 def regrow_neighbors(model: Model, state: State, max_neighbors: int) -> tuple[Model, State]:
@@ -478,11 +476,49 @@ class Simulation:
             booked = self.state.energy_released_rigid
             booked.assign(booked.numpy() + released)
             report.released = released
-        report.critical_dt = rigid_critical_step(self.model, self.state, contact_damping_ratio(self.model))
+        report.critical_dt = rigid_step_after_switch(self.model, self.state).value
         m = self.model
         report.deformable_dt = m.deformable_critical_dt if m.deformable_critical_dt > 0.0 else m.critical_dt
+        report.dt_before = report.dt_after = m.dt
         self.rigid_report = report
         return report
+
+    def set_time_step(self, dt: float, critical: CriticalStep | None = None) -> float:
+        """Take a new time step from the next step on, between steps (the rigid step after a switch: the runner,
+        warpdem.runner). Velocity Verlet books each step's trapezoid of work and its shadow term S = dt²/8 Σ |f|²/m at
+        that step's own dt, and a change between two whole steps leaves positions, velocities and forces as they
+        are: only the shadow term changes, S(dt_new) − S(dt_old) at the forces now, booked as ``step_change`` so the
+        books stay closed across the change. The stages are set up again (the step is a launch argument: graphs are
+        re-captured). With ``critical`` the model's critical step and its source become it (the guard's messages),
+        the step before kept as ``deformable_critical_dt``. Reads back.
+
+        Returns:
+            The energy booked [J] (0 when energy is not tracked).
+
+        Raises:
+            ValueError: dt is not a positive finite number.
+        """
+        if not (math.isfinite(dt) and dt > 0.0):
+            raise ValueError(f"set_time_step: the time step must be a positive finite number of seconds, got {dt!r}")
+        m = self.model
+        before = self.shadow() if self.track_energy else 0.0
+        changes: dict = {"dt": float(dt)}
+        if critical is not None:
+            changes.update(
+                critical_dt=critical.value,
+                critical_dt_source=critical.source,
+                deformable_critical_dt=m.deformable_critical_dt if m.deformable_critical_dt > 0.0 else m.critical_dt,
+            )
+        self.model = dataclasses.replace(m, **changes)
+        self._setup()
+        booked = 0.0
+        if self.track_energy:
+            booked = self.shadow() - before
+            line = self.state.energy_step_change
+            line.assign(line.numpy() + booked)
+        if self.rigid_report is not None:
+            self.rigid_report.dt_after = float(dt)
+        return booked
 
     def _advance_chunk(self, n_steps: int) -> None:
         """:meth:`advance` without split passes."""
@@ -856,6 +892,7 @@ class Simulation:
             kinetic_rigid=kinetic_rigid,
             released_rigid_switch=float(s.energy_released_rigid.numpy()[0]),
             contact_topology=float(s.energy_contact_topology.numpy()[0]),
+            step_change=float(s.energy_step_change.numpy()[0]),
         )
 
     def shadow(self) -> float:
