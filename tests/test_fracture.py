@@ -465,10 +465,11 @@ def test_face_ids_follow_their_tet_face_slots(device):
     np.testing.assert_array_equal(new_slots[new_ids], old_slots[np.arange(old_count)[::-1]])
 
 
-def ball_on_cracking_slab(device) -> Simulation:
+def ball_on_cracking_slab(device, far_wall: bool = False) -> Simulation:
     """A steel ball (r = 0.1 m, 33 kg) at 40 m/s onto a granite slab 1 × 1 × 0.4 m resting on the ground under
     gravity, T_f = 4 MPa: the boulder scene in small. The impact presses the slab's bottom into the ground while its
-    nodes split there and under the ball, so split nodes hold wall and face springs."""
+    nodes split there and under the ball, so split nodes hold wall and face springs. ``far_wall``: a second wall that
+    nothing reaches (each node then has a row of two wall springs)."""
     pts, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 0.4), (4, 4, 2))
     b = ModelBuilder(gravity=(0.0, 0.0, -9.81))
     b.add_material("granite", 2650.0, 3.0e10, 0.25)
@@ -479,6 +480,8 @@ def ball_on_cracking_slab(device) -> Simulation:
     r = 0.1
     b.add_sphere((0.43, 0.47, 0.4 + r + 0.002), r, "steel", velocity=(0.0, 0.0, -40.0))
     b.add_plane_wall((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "granite")
+    if far_wall:
+        b.add_plane_wall((3.0, 0.0, 0.0), (-1.0, 0.0, 0.0), "granite")
     model, state = b.finalize(device, safety_factor=0.5, node_capacity=400)
     model, state = attach_fracture(
         model, state, [FractureProps(4.0e6, 40.0), FractureProps(None, None)], cohesive_capacity=256
@@ -562,14 +565,16 @@ def static_contact_forces(sim: Simulation, reevaluate: bool) -> np.ndarray:
     return s.node_f.numpy()[: sim.node_count].astype(np.float64)
 
 
-def test_split_keeps_every_contact_force(device):
+@pytest.mark.parametrize("far_wall", [False, True])
+def test_split_keeps_every_contact_force(device, far_wall):
     # A pass moves nothing, so no contact force may change across it (kernels/fem_contact.py, "Held stiffness"): a
     # node it leaves alone keeps its force, and a split node's daughters share the parent's by mass,
     # F_A + F_B = ω² (m_A + m_B) δ = k_K δ = F_K, each with the parent's contact acceleration F/m (eq. 3's demand on
     # the element forces). The springs' energy ½ (k_A + k_B) δ² is then the parent's, and the pass books no gain.
     # Oracle: the forces at rest (springs only) just before and just after each pass of the ball-on-slab impact,
-    # nodes of one reference position summed (daughters share their parent's bit for bit).
-    sim = ball_on_cracking_slab(device)
+    # nodes of one reference position summed (daughters share their parent's bit for bit). With a second wall the
+    # daughter must get its parent's whole row of wall springs.
+    sim = ball_on_cracking_slab(device, far_wall)
     split_pass = sim.fracture_pass
     held_in_contact = 0
     worst_force, worst_gain = 0.0, 0.0
