@@ -30,6 +30,7 @@ from warpdem.conversion import (
     regrow_bonds,
     regrow_particles,
 )
+from warpdem.fem_contact import contact_stiffness_in_use
 from warpdem.fracture import FractureProps, attach_fracture
 from warpdem.lattice import edge_pairs
 from warpdem.mesh import TET_FACES, box_mesh
@@ -751,6 +752,10 @@ def test_a_conversion_lowers_the_contact_springs_by_the_mass_that_left(device):
     share = np.divide(m1, m0, out=np.zeros(n), where=m0 > 0.0)
     scale = np.abs(f0).max()
     np.testing.assert_allclose(f1, f0 * share[:, None], rtol=0.0, atol=CONTACT_RTOL * scale)
+    # The stiffness in use, as the host reads it, is the held k₀ m₁/m₀ (the lumped one of nodes that press nothing).
+    in_use = contact_stiffness_in_use(sim.model, sim.state)
+    np.testing.assert_allclose(in_use[pressed], (k0 * share)[pressed], rtol=CONTACT_RTOL)
+    np.testing.assert_array_equal(in_use[~pressed], k1[~pressed])
     # ½ k δ² per pressed node (δ the float32 depth of its position, as the kernels take it).
     delta = -sim.state.node_q.numpy()[:n, 2].astype(np.float64)
     lost = np.sum(np.where(pressed, 0.5 * k0 * (1.0 - share) * delta**2, 0.0))

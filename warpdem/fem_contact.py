@@ -568,6 +568,17 @@ def hold_contact_stiffness(model: Model, state: State) -> None:
     )
 
 
+def contact_stiffness_in_use(model: Model, state: State) -> np.ndarray:
+    """The penalty stiffness each live node's contact springs use now [N/m], shape (node_count,), float64: the
+    stiffness per unit mass it holds times its mass where it holds one (since a split or conversion pass, until it
+    touches nothing), else the lumped stiffness of its faces (kernels/fem_contact.py ``held_stiffness``). Reads back."""
+    n = int(state.node_count.numpy()[0])
+    lumped = model.node_contact_stiffness.numpy()[:n].astype(np.float64)
+    hold = state.node_contact_hold.numpy()[:n]
+    held = (hold * model.node_mass.numpy()[:n].astype(np.float64)).astype(np.float32).astype(np.float64)
+    return np.where((hold > 0.0) & (lumped != 0.0), held, lumped)
+
+
 def fem_contact_growth(model: Model, state: State) -> tuple[int, int] | None:
     """New (max_sphere_faces, max_node_faces), ×2 until the largest counts seen fit, or None when both fit."""
     if model.node_capacity == 0:
