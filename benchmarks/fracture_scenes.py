@@ -111,10 +111,13 @@ def pmma_plate(scene, device: str, end_time: float | None) -> list[str]:
 
 def platen_load(sim, wall: int, normal: np.ndarray) -> float:
     """Load P [N] on a platen (wall ``wall`` of unit ``normal``): the sum of the elastic penalty forces of the nodes
-    behind it, Σ k_v max(0, −gap_v) (the node–wall law of warpdem.fem_contact without its dashpot)."""
+    behind it, Σ k_v max(0, −gap_v) (the node–wall law of warpdem.fem_contact without its dashpot; k_v the stiffness
+    in use, which a node pressed across a split keeps)."""
+    from warpdem.fem_contact import contact_stiffness_in_use
+
     n = int(sim.state.node_count.numpy()[0])
     q = sim.state.node_q.numpy()[:n].astype(np.float64)
-    k = sim.model.node_contact_stiffness.numpy()[:n].astype(np.float64)
+    k = contact_stiffness_in_use(sim.model, sim.state)
     gap = (q - sim.state.wall_point.numpy()[wall].astype(np.float64)) @ normal
     return float(np.sum(k * np.maximum(-gap, 0.0)))
 

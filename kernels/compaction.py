@@ -124,14 +124,17 @@ def replicate_kernel(
     count: wp.array(dtype=int),
     copies: wp.array(dtype=int),
     first_new: wp.array(dtype=int),
+    per_row: int,
     # State out:
     a: wp.array(dtype=Any),
 ):
-    k = wp.tid()  # one thread per parent slot; it writes its own appended slots
+    k = wp.tid()  # one thread per parent slot; it writes its own appended slots (a row of per_row entries each)
     if k >= count[0]:
         return
     first = first_new[k]
     for c in range(copies[k]):
         dst = first + c
-        if dst < a.shape[0]:  # past capacity: the host grows and redoes the pass, nothing is written out of bounds
-            a[dst] = a[k]
+        # Past capacity: the host grows and redoes the pass, nothing is written out of bounds.
+        if (dst + 1) * per_row <= a.shape[0]:
+            for r in range(per_row):
+                a[dst * per_row + r] = a[k * per_row + r]

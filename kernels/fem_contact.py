@@ -34,6 +34,26 @@ continuous. An intact joint element's pair is excluded too (the element carries 
 
 Node–wall: as sphere–wall, with the node's penalty stiffness.
 
+Held stiffness. A split or conversion pass moves no node, but the surface rebuild re-lumps the penalty stiffness of
+every node whose faces changed (a daughter gains the crack faces, a converted tet's neighbours its inner faces): a
+node pressed by δ into the ground or a face would gain ½ Δk δ² with no work done, and its contact force would jump.
+So before a pass every surface node holds its stiffness per unit mass, ω² = k / m (``node_contact_hold``, float64),
+and its springs use k = ω² m (the node's current mass) until it touches nothing; then, with no spring stretched,
+the lumped stiffness takes over at no cost in energy. Why per unit mass:
+
+- a split copies ω² into both daughters (the pass replicates every per-node array), so k_A + k_B = ω² (m_A + m_B)
+  = k_K: the sum of the daughters' forces is the parent's, their springs' energy ½ (k_A + k_B) δ² the parent's,
+  and each daughter has the parent's contact acceleration k δ / m, as eq. 3 asks of the element forces (node–wall
+  dashpots too: c = 2ζ √(m k) = 2ζ ω m shares by mass as well);
+- a conversion pass that moves a tet's mass into a sphere leaves the node ω² m_new ≤ k: its springs' energy can
+  only fall (the share of the node that left no longer presses), never rise;
+- the contact's frequency ω is the parent's, so no pass raises a node's k / m above what the stable step
+  (warpdem.fem_contact.contact_critical_step_at) was taken for; holding k itself on a node that lost most of its
+  mass to spheres would.
+
+Float64 makes the hold exact for a node whose mass the pass leaves alone: f32(f64(k) / m × m) = k, the two
+float64 roundings (2.2e-16 relative) lying far inside half a float32 spacing.
+
 Skins: the lists are rebuilt when a node has moved half of ``fem_skin`` since the last build or the sphere list was
 rebuilt (a sphere moved half its skin since the sphere build, which may precede the FEM build by another half: up
 to a whole skin since the FEM build). A candidate is kept at a build when it is within r + skin + fem_skin/2
@@ -318,6 +338,34 @@ def node_contact_stiffness_kernel(
             # f E / h per unit area over A / 3, with h = 3 V₀ / A.
             k_sum += factor * youngs_modulus(tet_material_table[tet_material[t]]) * area * area / (9.0 * tet_volume[t])
     node_contact_stiffness[v] = k_sum
+
+
+@wp.func
+def held_stiffness(k_lumped: float, hold: wp.float64, mass: float) -> float:
+    """Penalty stiffness a node's springs use [N/m]: its held ω² [1/s²] times its mass [kg], or the lumped stiffness
+    of its faces when none is held ("Held stiffness")."""
+    if hold > wp.float64(0.0):
+        return float(hold * wp.float64(mass))
+    return k_lumped
+
+
+@wp.kernel
+def hold_contact_stiffness_kernel(
+    # Model:
+    node_contact_stiffness: wp.array(dtype=float),
+    node_mass: wp.array(dtype=float),
+    # State in:
+    node_count: wp.array(dtype=int),
+    # State out:
+    node_contact_hold: wp.array(dtype=wp.float64),
+):
+    v = wp.tid()  # one thread per node slot: before a topology pass, hold the stiffness in use as ω² = k / m
+    if v >= node_count[0] or node_contact_hold[v] > wp.float64(0.0):
+        return  # a node that holds one already uses it
+    k = node_contact_stiffness[v]
+    m = node_mass[v]
+    if k > 0.0 and m > 0.0:
+        node_contact_hold[v] = wp.float64(k) / wp.float64(m)
 
 
 @wp.kernel
@@ -954,6 +1002,7 @@ def make_node_contact_kernel(track_energy: bool):
     def eval_node_contacts_kernel(
         # Model:
         node_inv_mass: wp.array(dtype=float),
+        node_mass: wp.array(dtype=float),
         node_contact_stiffness: wp.array(dtype=float),
         node_contact_material: wp.array(dtype=int),
         tet_nodes: wp.array(dtype=wp.vec4i),
@@ -984,11 +1033,13 @@ def make_node_contact_kernel(track_energy: bool):
         wall_point: wp.array(dtype=wp.vec3d),
         # In:
         face_normal: wp.array(dtype=wp.vec3),
+        born_relaxed: int,
         # State out:
         node_face_spring: wp.array(dtype=int),
         node_face_offset: wp.array(dtype=float),
         node_face_shear: wp.array(dtype=wp.vec3),
         node_wall_shear: wp.array(dtype=wp.vec3),
+        node_contact_hold: wp.array(dtype=wp.float64),
         node_f: wp.array(dtype=wp.vec3),
         node_energy_contact: wp.array(dtype=wp.float64),
         node_energy_boundary_work: wp.array(dtype=wp.float64),
@@ -996,9 +1047,9 @@ def make_node_contact_kernel(track_energy: bool):
         v = wp.tid()  # one thread per node slot
         if v >= node_count[0]:
             return
-        kn = node_contact_stiffness[v]
-        if kn == 0.0:
+        if node_contact_stiffness[v] == 0.0:
             return  # a node inside the rock
+        kn = held_stiffness(node_contact_stiffness[v], node_contact_hold[v], node_mass[v])
         x = node_q[v]
         xv = node_qd[v]
         inv_mv = node_inv_mass[v]
@@ -1049,6 +1100,11 @@ def make_node_contact_kernel(track_energy: bool):
                 before = moved_plane_depth(x - dt * xv, face_nodes[best_f], node_q, node_qd, dt)
                 offset = wp.min(wp.max(before, 0.0), best_d)
                 delta = best_d - offset
+            elif born_relaxed != 0:
+                # The re-evaluation after a topology pass: nothing moved, so no depth was gained. A node that finds
+                # itself behind a face only now (a new crack face, or its own surface turned by the faces it gained)
+                # carries that depth as its offset.
+                offset = best_d
         elif best_f >= 0:
             # The relaxed depth follows a node that backs out (no work: the spring is slack meanwhile).
             offset = wp.min(offset, best_d)
@@ -1086,10 +1142,15 @@ def make_node_contact_kernel(track_energy: bool):
                 wp.atomic_add(node_f, fn[2], -w[2] * force)
                 e_v += out[2, 0]
         w_wall = float(0.0)
+        touching = int(0)
+        if best_f >= 0:
+            touching = 1
         for wall in range(num_walls):
             nw = wall_normal[wall]
             slot = v * num_walls + wall
             gap = wp.dot(wp.vec3(wp.vec3d(x) - wall_point[wall]), nw)
+            if gap < 0.0:
+                touching = 1
             if gap >= 0.0 or inv_mv == 0.0:
                 node_wall_shear[slot] = wp.vec3(0.0)
                 continue
@@ -1101,6 +1162,10 @@ def make_node_contact_kernel(track_energy: bool):
             e_v += out[2, 0]
             w_wall += wp.dot(out[0], vw) * dt  # work of a moving wall on the node
         wp.atomic_add(node_f, v, f_v)
+        if touching == 0:
+            # No spring of the node is stretched now (its face spring was let go above, and no wall gap is
+            # negative), so the lumped stiffness takes over from a held one without changing any energy.
+            node_contact_hold[v] = wp.float64(0.0)
         if wp.static(track_energy):
             node_energy_contact[v] = node_energy_contact[v] + wp.float64(e_v)
             node_energy_boundary_work[v] = node_energy_boundary_work[v] + wp.float64(w_wall)
@@ -1112,6 +1177,7 @@ def make_node_contact_kernel(track_energy: bool):
 def fem_contact_energy_kernel(
     # Model:
     node_contact_stiffness: wp.array(dtype=float),
+    node_mass: wp.array(dtype=float),
     tet_nodes: wp.array(dtype=wp.vec4i),
     tet_face_nbr: wp.array(dtype=int),
     star_offset: wp.array(dtype=int),
@@ -1137,6 +1203,7 @@ def fem_contact_energy_kernel(
     node_face_offset: wp.array(dtype=float),
     node_face_shear: wp.array(dtype=wp.vec3),
     node_wall_shear: wp.array(dtype=wp.vec3),
+    node_contact_hold: wp.array(dtype=wp.float64),
     wall_point: wp.array(dtype=wp.vec3d),
     # Out:
     energy: wp.array(dtype=wp.float64),
@@ -1145,9 +1212,9 @@ def fem_contact_energy_kernel(
     energy[v] = wp.float64(0.0)
     if v >= node_count[0]:
         return
-    kn = node_contact_stiffness[v]
-    if kn == 0.0:
+    if node_contact_stiffness[v] == 0.0:
         return
+    kn = held_stiffness(node_contact_stiffness[v], node_contact_hold[v], node_mass[v])
     x = node_q[v]
     mat_v = node_contact_material[v]
     best_f = node_face_spring[v]  # the target of the last force evaluation

@@ -30,6 +30,7 @@ from warpdem.conversion import (
     regrow_bonds,
     regrow_particles,
 )
+from warpdem.fem_contact import contact_stiffness_in_use
 from warpdem.fracture import FractureProps, attach_fracture
 from warpdem.lattice import edge_pairs
 from warpdem.mesh import TET_FACES, box_mesh
@@ -706,3 +707,58 @@ def test_attach_conversion_refuses_a_step_the_bonded_spheres_cannot_take():
     model, state = b.finalize("cpu", safety_factor=0.5)
     model, _ = attach_conversion(model, state, [ConversionProps(tresca_strength=TRESCA)])
     assert model.dt < model.critical_dt and "bonded spheres" in model.critical_dt_source
+
+
+CONTACT_RTOL = 16 * F32_EPS
+"""Bound on the change of a node's contact force across a conversion pass beyond its mass share, relative to the
+largest contact force [-]: k = ω² m is one float32 rounding from k₀ m/m₀ (the held ω² = k₀/m₀ is float64), and the
+re-lumped masses are float32 sums of a handful of ρV/4 (MASS_RTOL)."""
+
+
+def test_a_conversion_lowers_the_contact_springs_by_the_mass_that_left(device):
+    # A block pressed δ into the ground; a pass converts two of its bottom tets. Every node keeps the stiffness per
+    # unit mass it held, ω² = k₀/m₀ (kernels/fem_contact.py, "Held stiffness"), so its wall force becomes
+    # F₀ m₁/m₀ (its contact acceleration unchanged, and k/m never above the stable step's) and the springs' energy
+    # falls by exactly Σ ½ k₀ (1 − m₁/m₀) δ², which the pass books as contact gain: never a gain of ½ Δk δ² from the
+    # faces the converted tets leave to their neighbours.
+    depth = 1.0e-4
+    pts, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 0.5), (2, 2, 1))
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    b.add_tet_mesh(pts, tets, "rock")
+    b.add_plane_wall((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "rock")
+    model, state = b.finalize(device, safety_factor=0.5)
+    model, state = attach_conversion(model, state, [ConversionProps(criterion="tresca", tresca_strength=TRESCA)])
+    set_node_displacements(model, state, np.tile([0.0, 0.0, -depth], (len(pts), 1)))
+    sim = Simulation(model, state)
+    n = sim.node_count
+    k0 = sim.model.node_contact_stiffness.numpy()[:n].astype(np.float64)
+    m0 = sim.model.node_mass.numpy()[:n].astype(np.float64)
+    f0 = sim.state.node_f.numpy()[:n].astype(np.float64)
+    gain0 = sim.energy().contact_topology
+    centroid = pts[tets].mean(axis=1)
+    mask = np.zeros(len(tets), dtype=bool)
+    mask[np.argsort(centroid[:, 2] + 1e-3 * centroid[:, 0], kind="stable")[:2]] = True  # two of the lowest tets
+    report = sim.convert_tets(mask)
+    assert report.converted == 2
+    m1 = sim.model.node_mass.numpy()[:n].astype(np.float64)
+    k1 = sim.model.node_contact_stiffness.numpy()[:n].astype(np.float64)
+    f1 = sim.state.node_f.numpy()[:n].astype(np.float64)
+    pressed = pts[:, 2] == 0.0
+    changed = m1 != m0
+    assert np.any(pressed & changed & (m1 > 0.0)), "the pass must lighten nodes that press the ground"
+    assert np.any(pressed & changed & (np.abs(k1 - k0) > 1e-3 * k0)), "and change their faces"
+    # Wall forces (no strain, no velocity: node_f is the wall springs alone) scale with the mass share.
+    share = np.divide(m1, m0, out=np.zeros(n), where=m0 > 0.0)
+    scale = np.abs(f0).max()
+    np.testing.assert_allclose(f1, f0 * share[:, None], rtol=0.0, atol=CONTACT_RTOL * scale)
+    # The stiffness in use, as the host reads it, is the held k₀ m₁/m₀ (the lumped one of nodes that press nothing).
+    in_use = contact_stiffness_in_use(sim.model, sim.state)
+    np.testing.assert_allclose(in_use[pressed], (k0 * share)[pressed], rtol=CONTACT_RTOL)
+    np.testing.assert_array_equal(in_use[~pressed], k1[~pressed])
+    # ½ k δ² per pressed node (δ the float32 depth of its position, as the kernels take it).
+    delta = -sim.state.node_q.numpy()[:n, 2].astype(np.float64)
+    lost = np.sum(np.where(pressed, 0.5 * k0 * (1.0 - share) * delta**2, 0.0))
+    stored = np.sum(np.where(pressed, 0.5 * k0 * delta**2, 0.0))
+    gain = sim.energy().contact_topology - gain0
+    np.testing.assert_allclose(gain, -lost, rtol=0.0, atol=CONTACT_RTOL * stored)

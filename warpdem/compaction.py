@@ -149,15 +149,16 @@ class Compactor:
         """Appended slots of each slot after :meth:`plan_append` (0 past the count), shape (capacity,), int32."""
         return self.keep
 
-    def replicate(self, count: wp.array, arrays: Sequence[wp.array]) -> None:
-        """Copy every live slot of each array into its appended slots (after :meth:`plan_append`), in place."""
+    def replicate(self, count: wp.array, arrays: Sequence[wp.array], per_row: int = 1) -> None:
+        """Copy every live slot of each array into its appended slots (after :meth:`plan_append`), in place; with
+        ``per_row`` > 1 each slot is a row of that many entries (e.g. a node's wall springs, one per wall)."""
         if self.capacity == 0:
             return
         for a in arrays:
             wp.launch(
                 kc.replicate_kernel,
                 dim=self.capacity,
-                inputs=[count, self.keep, self.old_to_new],
+                inputs=[count, self.keep, self.old_to_new, per_row],
                 outputs=[a],
                 device=self.device,
             )

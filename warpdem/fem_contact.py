@@ -71,6 +71,7 @@ def fem_contact_state(model: Model) -> dict[str, wp.array]:
         "node_face_offset": wp.zeros(ncap, dtype=float, device=d),
         "node_face_shear": wp.zeros(ncap, dtype=wp.vec3, device=d),
         "node_wall_shear": wp.zeros(ncap * model.num_walls, dtype=wp.vec3, device=d),
+        "node_contact_hold": wp.zeros(ncap, dtype=wp.float64, device=d),
         "node_energy_contact": wp.zeros(ncap, dtype=wp.float64, device=d),
         "joint_count": one(model.joint_capacity),
         "joint_broken": wp.zeros(model.joint_capacity, dtype=int, device=d),
@@ -416,13 +417,14 @@ class FemContact:
         )
         wp.capture_if(s.fem_rebuild_flag, on_true=self.rebuild)
 
-    def eval(self, track_energy: bool, dt: float | None = None) -> None:
+    def eval(self, track_energy: bool, dt: float | None = None, born_relaxed: bool = False) -> None:
         """Rebuild if needed, then accumulate sphere–face, node–face, node–wall and joint-element forces.
 
         ``dt`` overrides the model step for the history increments; 0 evaluates forces without advancing any.
+        ``born_relaxed``: node–face springs that start now start relaxed (the evaluation after a topology pass).
         """
         self.rebuild_if_needed()
-        eval_fem_contacts(self.model, self.state, track_energy, self.has_spheres, dt, self.face_normal)
+        eval_fem_contacts(self.model, self.state, track_energy, self.has_spheres, dt, self.face_normal, born_relaxed)
         eval_joints(self.model, self.state, dt)
 
 
@@ -433,12 +435,16 @@ def eval_fem_contacts(
     has_spheres: bool,
     dt: float | None,
     face_normal: wp.array,
+    born_relaxed: bool = False,
 ) -> None:
     """Sphere–face, node–face and node–wall forces into ``particle_f/t`` and ``node_f`` (launches only).
 
     Args:
         face_normal: scratch for the faces' unit normals of this evaluation, shape (face_capacity,), vec3
             (``FemContact`` holds one).
+        born_relaxed: a node–face spring that starts in this evaluation starts relaxed, its depth carried as an
+            offset: the re-evaluation after a topology pass, where nothing moved, so no depth was gained (at set-up
+            an initial penetration pushes, and in a step a new spring takes the depth gained in it).
     """
     m, s = model, state
     step = m.dt if dt is None else dt
@@ -495,6 +501,7 @@ def eval_fem_contacts(
             inputs=[
                 # Model:
                 m.node_inv_mass,
+                m.node_mass,
                 m.node_contact_stiffness,
                 m.node_contact_material,
                 m.tet_nodes,
@@ -525,12 +532,14 @@ def eval_fem_contacts(
                 s.wall_point,
                 # In:
                 face_normal,
+                int(born_relaxed),
             ],
             outputs=[
                 s.node_face_spring,
                 s.node_face_offset,
                 s.node_face_shear,
                 s.node_wall_shear,
+                s.node_contact_hold,
                 s.node_f,
                 s.node_energy_contact,
                 s.node_energy_boundary_work,
@@ -541,6 +550,33 @@ def eval_fem_contacts(
 
 # ----------------------------------------------------------------------------------------------------------------
 # Growth, energy, time step
+
+
+def hold_contact_stiffness(model: Model, state: State) -> None:
+    """Before a topology pass (split or conversion): every surface node that holds no stiffness yet holds the one in
+    use as ω² = k / m, so that the pass changes neither the force nor the energy of its contact springs
+    (kernels/fem_contact.py, "Held stiffness"); the force evaluation lets go of it once the node touches nothing.
+    Launches only."""
+    if model.node_capacity == 0 or model.node_contact_stiffness is None:
+        return
+    wp.launch(
+        kf.hold_contact_stiffness_kernel,
+        dim=model.node_capacity,
+        inputs=[model.node_contact_stiffness, model.node_mass, state.node_count],
+        outputs=[state.node_contact_hold],
+        device=model.device,
+    )
+
+
+def contact_stiffness_in_use(model: Model, state: State) -> np.ndarray:
+    """The penalty stiffness each live node's contact springs use now [N/m], shape (node_count,), float64: the
+    stiffness per unit mass it holds times its mass where it holds one (since a split or conversion pass, until it
+    touches nothing), else the lumped stiffness of its faces (kernels/fem_contact.py ``held_stiffness``). Reads back."""
+    n = int(state.node_count.numpy()[0])
+    lumped = model.node_contact_stiffness.numpy()[:n].astype(np.float64)
+    hold = state.node_contact_hold.numpy()[:n]
+    held = (hold * model.node_mass.numpy()[:n].astype(np.float64)).astype(np.float32).astype(np.float64)
+    return np.where((hold > 0.0) & (lumped != 0.0), held, lumped)
 
 
 def fem_contact_growth(model: Model, state: State) -> tuple[int, int] | None:
@@ -591,6 +627,7 @@ def fem_contact_energy(model: Model, state: State) -> tuple[float, float]:
         dim=m.node_capacity,
         inputs=[
             m.node_contact_stiffness,
+            m.node_mass,
             m.tet_nodes,
             m.tet_face_nbr,
             m.star_offset,
@@ -615,6 +652,7 @@ def fem_contact_energy(model: Model, state: State) -> tuple[float, float]:
             s.node_face_offset,
             s.node_face_shear,
             s.node_wall_shear,
+            s.node_contact_hold,
             s.wall_point,
         ],
         outputs=[node_e],

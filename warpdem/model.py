@@ -352,6 +352,10 @@ class State:
         node_face_shear: tangential spring of each node's face contact [m] (a node touches one face at a time; the
             spring follows it from face to face), shape (node_capacity,), vec3.
         node_wall_shear: tangential spring of each node–wall pair [m], shape (node_capacity * num_walls,), vec3.
+        node_contact_hold: penalty stiffness per unit mass [1/s²] that a node's contact springs keep across topology
+            passes while it touches (k = hold × node_mass; 0: none held, k = ``node_contact_stiffness``), held at each
+            split or conversion pass and let go once the node touches nothing (kernels/fem_contact.py, "Held
+            stiffness"), shape (node_capacity,), float64.
         node_energy_contact: energy dissipated by the FEM contacts and joint elements of each node [J] (dashpots,
             friction, released by failed joints), shape (node_capacity,), float64.
         joint_count: joint interface elements, shape (1,), int32.
@@ -500,6 +504,7 @@ class State:
     node_face_offset: wp.array
     node_face_shear: wp.array
     node_wall_shear: wp.array
+    node_contact_hold: wp.array
     node_energy_contact: wp.array
     joint_count: wp.array
     joint_broken: wp.array

@@ -58,6 +58,7 @@ from .fem_contact import (
     face_slots,
     fem_contact_energy,
     fem_contact_growth,
+    hold_contact_stiffness,
     rebuild_surface,
     regrow_fem_contacts,
     remap_face_ids,
@@ -323,8 +324,9 @@ class Simulation:
         if self.rigid:
             kick_bodies(self.model, self.state)
 
-    def evaluate_forces(self) -> None:
-        """Forces at the current positions without advancing time or history (the set-up evaluation)."""
+    def evaluate_forces(self, after_pass: bool = False) -> None:
+        """Forces at the current positions without advancing time or history (the set-up evaluation; ``after_pass``:
+        the re-evaluation after a topology pass, where node–face springs that start start relaxed: nothing moved)."""
         m, s = self.model, self.state
         s.particle_f.zero_()
         s.particle_t.zero_()
@@ -344,7 +346,7 @@ class Simulation:
             eval_contacts(m, s, self.track_energy, dt=0.0)
         if self.fem_contact is not None:
             s.fem_rebuild_flag.fill_(1)
-            self.fem_contact.eval(self.track_energy, dt=0.0)
+            self.fem_contact.eval(self.track_energy, dt=0.0, born_relaxed=after_pass)
         eval_bonds(m, s, dt=0.0, track_energy=self.track_energy)
         eval_coupling(m, s, dt=0.0, track_energy=self.track_energy)
         eval_loads(m, s, dt=0.0)
@@ -628,6 +630,7 @@ class Simulation:
         old_faces = int(s.face_count.numpy()[0]) if m.face_capacity else 0
         if m.face_capacity:
             self._face_slot = face_slots(m, s, self._face_slot)
+        hold_contact_stiffness(m, s)
         before = self._contact_books()
         splits, rounds = self._fracture.split(m, s)
         if splits:
@@ -650,12 +653,15 @@ class Simulation:
         """Book what the FEM contacts' lines gained across a topology pass (``before``: :meth:`_contact_books` just
         before it) as energy put in without work (``energy_contact_topology``).
 
-        A pass moves nothing, so no contact force works across it, yet the springs' energy changes: the surface is
-        rebuilt, so the penalty stiffness k of a split node's daughters (and of a converted tet's neighbours) is
-        re-lumped over their new faces at the depth (wall gap, face spring) they hold, ½ Δk δ² created or destroyed,
-        and sphere–face springs appear on faces born inside an overlap. The dt = 0 re-evaluation books the springs
-        it lets go as dissipated. Left unbooked, such a gain shows up later as dissipation or kinetic energy that no
-        force accounted for (the boulder scene's 4 kJ of FEM contact dissipation across its cracking)."""
+        A pass moves nothing, so no contact force works across it. The surface is rebuilt, and the penalty stiffness
+        of a split node's daughters (and of a converted tet's neighbours) is re-lumped over their new faces, but a
+        node in contact keeps the stiffness per unit mass it held before the pass
+        (warpdem.fem_contact.hold_contact_stiffness): the daughters' springs sum to the parent's, so a split leaves
+        them as they were to float32 rounding, and a conversion can only lower them (a node that lost mass to spheres
+        presses with ω² m_new ≤ k). What is left to book: that loss, sphere–face springs on faces born inside an
+        overlap, springs the dt = 0 re-evaluation starts or lets go of on the new faces, and rounding. Before the
+        hold, each pass created ½ Δk δ² at every split node pressed by δ into the ground or a face: 8.8 kJ by 4.5 ms
+        on the boulder scene, a third of its energy in play, which its dashpots then took out."""
         if not self.track_energy:
             return
         gained = self._contact_books() - before
@@ -702,9 +708,9 @@ class Simulation:
             else:
                 # A face array grew or the faces' extent (baked into the launches) changed: new stage, new graphs.
                 self._setup()
-        self.evaluate_forces()
+        self.evaluate_forces(after_pass=True)
         while self._grow_if_overflowed(self.state):
-            self.evaluate_forces()
+            self.evaluate_forces(after_pass=True)
 
     # ------------------------------------------------------------------------------------------------------------
     def conversion_pass(self) -> ConversionReport:
@@ -756,6 +762,7 @@ class Simulation:
         if m.face_capacity:
             self._face_slot = face_slots(m, s, self._face_slot)
         before = self.shadow() - coupling_energy(m, s) if self.track_energy else 0.0
+        hold_contact_stiffness(m, s)
         contacts_before = self._contact_books()
         self._conversion.convert(m, s, self.coupling_compactor)
         self._after_conversion(old_faces)
@@ -821,9 +828,9 @@ class Simulation:
                 self.model, self.state = regrow_fem_contacts(self.model, s, *fem)
                 self.growths += 1
                 self._setup()
-        self.evaluate_forces()
+        self.evaluate_forces(after_pass=True)
         while self._grow_if_overflowed(self.state):
-            self.evaluate_forces()
+            self.evaluate_forces(after_pass=True)
 
     @property
     def bond_count(self) -> int:

@@ -123,6 +123,18 @@ def node_arrays(obj: object, node_capacity: int) -> list[wp.array]:
     return out
 
 
+def node_rows(model: Model, state: State) -> list[tuple[wp.array, int]]:
+    """Per-node rows of a State to carry into new node slots, with their row length: the fields of
+    :data:`NODE_ROW_FIELDS` with more than one slot per node (a node's wall springs with several walls; a row of one
+    slot is a per-node array, which :func:`node_arrays` lists)."""
+    out = []
+    for name, per in NODE_ROW_FIELDS.items():
+        a, k = getattr(state, name, None), int(getattr(model, per))
+        if isinstance(a, wp.array) and k > 1 and a.shape[0] == k * model.node_capacity:
+            out.append((a, k))
+    return out
+
+
 class NodeSplitter:
     """Splits nodes whose star the tagged faces cut into several components (module docstring, steps 1–5).
 
@@ -194,6 +206,8 @@ class NodeSplitter:
         m, s = model, state
         arrays = node_arrays(m, m.node_capacity) + node_arrays(s, m.node_capacity) + list(extra_node_arrays)
         self.compactor.replicate(s.node_count, arrays)
+        for rows, per_row in node_rows(m, s):
+            self.compactor.replicate(s.node_count, [rows], per_row)
         if m.node_capacity:
             wp.launch(
                 kt.relump_split_nodes_kernel,
@@ -273,6 +287,8 @@ class NodeSplitter:
         m, s = model, state
         arrays = node_arrays(m, m.node_capacity) + node_arrays(s, m.node_capacity) + list(extra_node_arrays)
         self.compactor.replicate(s.node_count, arrays)
+        for rows, per_row in node_rows(m, s):
+            self.compactor.replicate(s.node_count, [rows], per_row)
         if m.node_capacity == 0:
             return
         wp.launch(
