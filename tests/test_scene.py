@@ -509,6 +509,24 @@ MESH_BAD_SCENES = [
         "greater than or equal to 0 (got -0.1)",
     ),
     (
+        "joint_set_both_stiffness_keys",
+        edit("spacing = 3.0", "spacing = 3.0\nstiffness_factor = 2.0\nnormal_stiffness = 1.0e10", base=GEOLOGY_BASE),
+        "mesh.joint_sets[0]",
+        "takes one of 'stiffness_factor' and 'normal_stiffness', not both",
+    ),
+    (
+        "joint_defaults_both_stiffness_keys",
+        GEOLOGY_BASE + "\n[joints]\nstiffness_factor = 2.0\nnormal_stiffness = 1.0e10\n",
+        "joints",
+        "takes one of 'stiffness_factor' and 'normal_stiffness', not both",
+    ),
+    (
+        "negative_normal_stiffness",
+        edit("spacing = 3.0", "spacing = 3.0\nnormal_stiffness = -1.0e10", base=GEOLOGY_BASE),
+        "mesh.joint_sets[0].normal_stiffness",
+        "greater than 0 (got -10000000000.0)",
+    ),
+    (
         "layers_out_of_order",
         GEOLOGY_BASE.replace(
             "h = 2.0\n",

@@ -423,6 +423,12 @@ class ContactSettings(_Model):
     skin: AutoOrNonNegative = Field(
         default="auto", description="Verlet skin of the neighbour list [m], or 'auto' (chosen from the radii)."
     )
+    surface_normal_stiffness: Float | None = Field(
+        default=None,
+        gt=0,
+        description="Normal stiffness k_n per unit area [Pa/m] of the FEM contacts between faces that are no joint "
+        "faces (outer surfaces, cracks), as a joint's normal_stiffness; omitted: the rock's E / h behind each face.",
+    )
 
 
 class Part(_Model):
@@ -795,6 +801,12 @@ Opening = Annotated[TunnelOpening | ShaftOpening | RoomOpening, Field(discrimina
 """One ``[[mesh.openings]]`` entry, selected by ``kind``."""
 
 
+def _check_one_stiffness(model: Any) -> None:
+    # A joint's normal spring is either relative to the rock behind it or a physical k_n: both would be ambiguous.
+    if model.stiffness_factor is not None and model.normal_stiffness is not None:
+        raise ValueError("takes one of 'stiffness_factor' and 'normal_stiffness', not both")
+
+
 class JointProperties(_Model):
     """Properties of the joints of one joint set (geology) or joint group (mesh file); omitted ones come from
     ``[joints]``."""
@@ -807,12 +819,23 @@ class JointProperties(_Model):
     stiffness_factor: Float | None = Field(
         default=None, gt=0, description="Joint penalty stiffness relative to the rock's (E / h) [-]; default [joints]."
     )
+    normal_stiffness: Float | None = Field(
+        default=None,
+        gt=0,
+        description="Joint normal stiffness k_n per unit area [Pa/m], independent of the mesh (instead of "
+        "stiffness_factor); default [joints].",
+    )
     restitution: Float | None = Field(
         default=None, gt=0, le=1, description="Restitution (0, 1] of the joint's normal dashpot [-]; default [joints]."
     )
     shear_stiffness_ratio: Float | None = Field(
         default=None, gt=0, description="Tangential to normal stiffness ratio k_t / k_n [-]; default [joints]."
     )
+
+    @model_validator(mode="after")
+    def _one_stiffness(self) -> JointProperties:
+        _check_one_stiffness(self)
+        return self
 
 
 class JointSetSpec(JointProperties):
@@ -1017,8 +1040,17 @@ class JointDefaults(_Model):
     friction: Float = Field(default=0.6, ge=0, description="Coulomb friction coefficient of the joints [-].")
     cohesion: Float = Field(default=0.0, ge=0, description="Cohesion of the joints [Pa].")
     tensile_strength: Float = Field(default=0.0, ge=0, description="Tensile strength of the joints [Pa].")
-    stiffness_factor: Float = Field(
-        default=1.0, gt=0, description="Joint contact stiffness relative to the rock's (E / h) [-]."
+    stiffness_factor: Float | None = Field(
+        default=None,
+        gt=0,
+        description="Joint contact stiffness relative to the rock's (E / h) [-]; 1 when neither it nor "
+        "normal_stiffness is given.",
+    )
+    normal_stiffness: Float | None = Field(
+        default=None,
+        gt=0,
+        description="Joint normal stiffness k_n per unit area [Pa/m], independent of the mesh (instead of "
+        "stiffness_factor).",
     )
     restitution: Float = Field(
         default=0.5, gt=0, le=1, description="Coefficient of restitution (0, 1] of the joints' normal dashpot [-]."
@@ -1026,6 +1058,11 @@ class JointDefaults(_Model):
     shear_stiffness_ratio: Float = Field(
         default=0.5, gt=0, description="Tangential to normal stiffness ratio k_t / k_n of the joints [-]."
     )
+
+    @model_validator(mode="after")
+    def _one_stiffness(self) -> JointDefaults:
+        _check_one_stiffness(self)
+        return self
 
 
 def _faces_field() -> Any:

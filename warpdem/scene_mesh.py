@@ -400,10 +400,16 @@ def joint_set_properties(scene: Scene, mesh: GeologyMesh) -> list[JointProps]:
     props = []
     for entry in own:
         given = entry.model_dump(exclude_none=True) if entry is not None else {}
-        props.append(
-            JointProps(**{key: given.get(key, getattr(defaults, key)) for key in JointProperties.model_fields})
-        )
+        merged = {key: given.get(key, getattr(defaults, key)) for key in JointProperties.model_fields}
+        if _STIFFNESS_KEYS & given.keys():
+            # The set's own stiffness (either key) replaces [joints]' choice whole: the two keys exclude each other.
+            merged.update({key: given.get(key) for key in _STIFFNESS_KEYS})
+        props.append(JointProps(**merged))
     return props
+
+
+_STIFFNESS_KEYS = frozenset({"stiffness_factor", "normal_stiffness"})
+"""The joint keys that set the normal spring, one of which a joint takes (warpdem.joints.JointProps)."""
 
 
 def _joint_faces(builder: ModelBuilder, scene: Scene, mesh: GeologyMesh) -> dict[str, np.ndarray]:
@@ -424,6 +430,7 @@ def _joint_faces(builder: ModelBuilder, scene: Scene, mesh: GeologyMesh) -> dict
         props = JointProps(
             friction=crack.friction,
             stiffness_factor=defaults.stiffness_factor,
+            normal_stiffness=defaults.normal_stiffness,
             restitution=defaults.restitution,
             shear_stiffness_ratio=defaults.shear_stiffness_ratio,
         )
