@@ -1028,8 +1028,47 @@ class ArchMesh(_Model):
         return self
 
 
+class BrickMeshSpec(_Model):
+    """Rock laid in courses of equal blocks (warpdem.bricks): bedding joints between the courses, head joints between
+    the blocks, every other course shifted (running bond), on a structured grid of cells no longer than h."""
+
+    kind: Literal["bricks"] = Field(description="Mesh kind.")
+    lo: Vec3 = Field(description="Lower corner of the box [m].")
+    hi: Vec3 = Field(description="Upper corner of the box [m] (rounded to whole cells); greater than lo.")
+    material: Str = Field(description="Name of a material defined in [materials].")
+    brick: Vec3 = Field(description="Block length along x, depth along y and height along z [m], each > 0.")
+    stagger: Float = Field(
+        default=0.5, ge=0, lt=1, description="Shift of each course against the one below, in block lengths [-]."
+    )
+    h: Float = Field(gt=0, description="Largest cell edge [m] (run.resolution divides it).")
+    openings: list[Opening] = Field(
+        default_factory=list, description="Tunnels, shafts and rooms: every cell whose centre is inside is removed."
+    )
+    bedding: JointProperties | None = Field(
+        default=None, description="Properties of the joints between the courses; omitted ones from [joints]."
+    )
+    head: JointProperties | None = Field(
+        default=None, description="Properties of the joints between the blocks of a course; omitted ones from [joints]."
+    )
+    fixed: Bool = _fixed_field()
+    velocity: Vec3 = _velocity_field()
+
+    @field_validator("hi")
+    @classmethod
+    def _check_hi(cls, value: tuple[float, float, float], info: ValidationInfo) -> tuple[float, float, float]:
+        return _hi_above_lo(value, info)
+
+    @field_validator("brick")
+    @classmethod
+    def _check_brick(cls, value: tuple[float, float, float]) -> tuple[float, float, float]:
+        if not all(v > 0 for v in value):
+            raise ValueError(f"every size must be > 0 (got {list(value)})")
+        return value
+
+
 Mesh = Annotated[
-    BoxMesh | GeologyMeshSpec | FileMesh | CylinderMesh | EllipsoidMesh | ArchMesh, Field(discriminator="kind")
+    BoxMesh | GeologyMeshSpec | FileMesh | CylinderMesh | EllipsoidMesh | ArchMesh | BrickMeshSpec,
+    Field(discriminator="kind"),
 ]
 """The ``[mesh]`` section, selected by ``kind``."""
 
@@ -1760,7 +1799,7 @@ class Scene(_Model):
         if mesh.kind == "arch":
             return list(ARCH_FACE_NAMES)
         names = list(BOX_FACE_NAMES)
-        if mesh.kind == "geology" and mesh.openings:
+        if mesh.kind in ("geology", "bricks") and mesh.openings:
             names.append(OPENING_FACE_NAME)
         return names
 
@@ -1788,7 +1827,7 @@ class Scene(_Model):
         if self.fracture.enabled:
             problems += self.fracture_material_problems(self.mesh_material_names() or [])
         problems += self.conversion_material_problems(self.mesh_material_names() or [])
-        if mesh.kind in ("box", "geology", "cylinder", "ellipsoid", "arch"):
+        if mesh.kind in ("box", "geology", "cylinder", "ellipsoid", "arch", "bricks"):
             check("mesh.material", mesh.material, materials, "material")
         if mesh.kind == "file":
             if mesh.material is not None:
