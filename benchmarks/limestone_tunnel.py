@@ -28,14 +28,17 @@ RUBBLE_SOLID_FRACTION = 0.6
 """Solid fraction of a loose rubble pile: the fill fraction at which the tunnel counts as filled [-]."""
 
 
-def tunnel_section(scene, points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(lo, hi) [m] of the tunnel's cut-out: the box spanned by the opening faces within one cell of the first
-    opening's nominal rectangle (the charge's borehole, the second opening, lies elsewhere)."""
+def tunnel_section(scene) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) [m] of the tunnel's cut-out: the box spanned by the mesh's opening faces within half a block of the
+    first opening's nominal rectangle (the charge's borehole, the second opening, lies elsewhere)."""
+    from warpdem.scene_mesh import rock_mesh
+
     mesh = scene.mesh
     tunnel = mesh.openings[0]
+    rock = rock_mesh(scene)
     centre = np.array([tunnel.center[0], 0.0, tunnel.center[1]])
     half = np.array([0.5 * tunnel.width, np.inf, 0.5 * tunnel.height]) + max(mesh.brick) / 2.0
-    x = points[faces].reshape(-1, 3)
+    x = rock.points[rock.boundary_faces["opening"]].reshape(-1, 3)
     near = np.all(np.abs(x - centre) <= half, axis=1)
     return x[near].min(axis=0), x[near].max(axis=0)
 
@@ -46,11 +49,10 @@ def report(scene, device: str, end_time: float | None, samples: int, csv_path: P
 
     model, state = build_scene(scene, device)
     sim = Simulation(model, state)
-    faces = sim.model.face_nodes.numpy()[: int(sim.state.face_count.numpy()[0])]
-    lo, hi = tunnel_section(scene, sim.model.node_ref_q.numpy().astype(np.float64), faces)
+    lo, hi = tunnel_section(scene)
     tunnel_volume = float(np.prod(hi - lo))
     steps = max(1, round((end_time or scene.run.end_time) / sim.model.dt))
-    per = max(1, steps // samples)
+    per = max(1, -(-steps // samples))  # ceil: samples + 1 rows
     out = [
         f"{scene.name}: {int(sim.state.tet_count.numpy()[0])} tets, {int(sim.state.node_count.numpy()[0])} nodes, "
         f"dt = {sim.model.dt * 1e6:.3f} µs, {steps} steps; tunnel {hi[0] - lo[0]:.3f} m × {hi[2] - lo[2]:.3f} m "

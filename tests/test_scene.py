@@ -560,6 +560,20 @@ MESH_BAD_SCENES = [
         "give 'material' or 'material_map', not both",
     ),
     (
+        "bricks_zero_height",
+        MINIMAL + '\n[mesh]\nkind = "bricks"\nlo = [0, 0, 0]\nhi = [4, 1, 2]\nmaterial = "rock"\n'
+        "brick = [1.0, 1.0, 0.0]\nh = 0.5\n",
+        "mesh.brick",
+        "every size must be > 0 (got [1.0, 1.0, 0.0])",
+    ),
+    (
+        "bricks_stagger_one",
+        MINIMAL + '\n[mesh]\nkind = "bricks"\nlo = [0, 0, 0]\nhi = [4, 1, 2]\nmaterial = "rock"\n'
+        "brick = [1.0, 1.0, 0.5]\nh = 0.5\nstagger = 1.0\n",
+        "mesh.stagger",
+        "less than 1",
+    ),
+    (
         "file_joint_group_negative_friction",
         MINIMAL + '\n[mesh]\nkind = "file"\npath = "rock.msh"\n[mesh.joint_groups.bedding]\nfriction = -0.2\n',
         "mesh.joint_groups.bedding.friction",

@@ -1062,7 +1062,7 @@ class BrickMeshSpec(_Model):
     @classmethod
     def _check_brick(cls, value: tuple[float, float, float]) -> tuple[float, float, float]:
         if not all(v > 0 for v in value):
-            raise ValueError(f"every size must be > 0 (got {list(value)})")
+            raise ValueError("every size must be > 0")
         return value
 
 
