@@ -74,7 +74,7 @@ from .contact import (
     make_pair_laws,
     rotate_into_plane,
 )
-from .joints import JointMaterial, youngs_modulus
+from .joints import JointMaterial, face_stiffness_per_area, joint_face_spring
 from .neighbors import ListSpec, make_list_kernels
 from .tets import TetMaterial
 from .topology import local_index, tet_face, triangle_area_vector
@@ -305,6 +305,7 @@ def node_contact_stiffness_kernel(
     tet_face_joint: wp.array(dtype=int),
     joint_material_table: wp.array(dtype=JointMaterial),
     stiffness_factor: float,
+    face_normal_stiffness: float,
     star_offset: wp.array(dtype=int),
     star_count: wp.array(dtype=int),
     star_tets: wp.array(dtype=int),
@@ -331,12 +332,14 @@ def node_contact_stiffness_kernel(
                 continue  # the face opposite v does not hold v; a face with a neighbour is inside the rock
             f = tet_face(n, k)
             area = wp.length(triangle_area_vector(node_ref_q[f[0]], node_ref_q[f[1]], node_ref_q[f[2]]))
-            factor = stiffness_factor
+            mat = tet_material_table[tet_material[t]]
             js = tet_face_joint[4 * t + k]
+            # The face's spring per unit area (f E / h, h = 3 V₀ / A, or k_n / 2; a joint's own: joint_face_spring)
+            # over A / 3.
+            per_area = stiffness_factor * face_stiffness_per_area(t, area, tet_volume, mat) + face_normal_stiffness
             if js >= 0:
-                factor = joint_material_table[js].stiffness_factor
-            # f E / h per unit area over A / 3, with h = 3 V₀ / A.
-            k_sum += factor * youngs_modulus(tet_material_table[tet_material[t]]) * area * area / (9.0 * tet_volume[t])
+                per_area = joint_face_spring(joint_material_table[js], t, area, tet_volume, mat)
+            k_sum += per_area * area / 3.0
     node_contact_stiffness[v] = k_sum
 
 

@@ -40,7 +40,9 @@ class JointMaterial:
         cohesion: cohesion c of an intact joint [Pa].
         tensile_strength: tensile strength σ_t of an intact joint [Pa].
         stiffness_factor: penalty factor f of the joint's faces: a face of a tet of Young's modulus E and height h
-            over the face is a spring of f E / h per unit area [-].
+            over the face is a spring of f E / h per unit area [-] (0 for a joint given a normal stiffness).
+        face_normal_stiffness: the mesh-independent part of each face's spring, k_n / 2 per unit area for a joint
+            of normal stiffness k_n [Pa/m] (both faces together make k_n); 0 for a joint given a penalty factor.
         bonded: 1 when the joint starts intact (c > 0 or σ_t > 0), 0 for a purely frictional joint.
     """
 
@@ -48,6 +50,7 @@ class JointMaterial:
     cohesion: float
     tensile_strength: float
     stiffness_factor: float
+    face_normal_stiffness: float
     bonded: int
 
 
@@ -107,6 +110,15 @@ def face_stiffness_per_area(t: int, area: float, tet_volume: wp.array(dtype=floa
     return youngs_modulus(mat) * area / (3.0 * tet_volume[t])
 
 
+@wp.func
+def joint_face_spring(
+    jm: JointMaterial, t: int, area: float, tet_volume: wp.array(dtype=float), mat: TetMaterial
+) -> float:
+    """Normal spring per unit area of one face of a joint, on tet t's side [Pa/m]: f E / h + k_n / 2 (one of the
+    two terms is 0: a joint takes a penalty factor f or a normal stiffness k_n)."""
+    return jm.stiffness_factor * face_stiffness_per_area(t, area, tet_volume, mat) + jm.face_normal_stiffness
+
+
 @wp.kernel
 def emit_joint_pairs_kernel(
     # Model:
@@ -163,14 +175,15 @@ def emit_joint_pairs_kernel(
             b = tmp
             ta = sides[1]
             tb = sides[0]
-        # Two-sided penalty per unit area f (E_A/h_A + E_B/h_B): the same interface stiffness as the two passes of
-        # the frictional node–face contact, so a joint's stiffness does not jump when it fails.
-        ka = face_stiffness_per_area(ta, area, tet_volume, tet_material_table[tet_material[ta]])
-        kb = face_stiffness_per_area(tb, area, tet_volume, tet_material_table[tet_material[tb]])
+        # Two-sided penalty per unit area f (E_A/h_A + E_B/h_B), or k_n: the same interface stiffness as the two
+        # passes of the frictional node–face contact, so a joint's stiffness does not jump when it fails.
+        jm = joint_material_table[s]
+        ka = joint_face_spring(jm, ta, area, tet_volume, tet_material_table[tet_material[ta]])
+        kb = joint_face_spring(jm, tb, area, tet_volume, tet_material_table[tet_material[tb]])
         share = area / 3.0
         pair_key[slot] = wp.int64(a) * wp.int64(node_ref_q.shape[0]) + wp.int64(b)
         pair_area[slot] = share
-        pair_kn[slot] = joint_material_table[s].stiffness_factor * (ka + kb) * share
+        pair_kn[slot] = (ka + kb) * share
         pair_tet_face[slot] = 4 * ta + face_in_tet(tet_nodes[ta], f[0], f[1], f[2])
         pair_set[slot] = s
 

@@ -341,3 +341,116 @@ def test_bonded_joint_lets_go_above_its_strength(device):
     v1 = (mass[:, None] * sim.state.node_qd.numpy()[hanging]).sum(axis=0) / mass.sum()
     np.testing.assert_allclose((v1[2] - v0[2]) / (sim.time - t0), -GRAVITY, rtol=FALL_RTOL)
     assert math.isclose(v1[0], 0.0, abs_tol=1e-3) and math.isclose(v1[1], 0.0, abs_tol=1e-3)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Joint normal stiffness per unit area (JointProps.normal_stiffness)
+
+K_N = 1.0e7  # [Pa/m] joint normal stiffness: a 1 m block of 2000 kg/m³ presses it closed by about 1 mm
+TINY_FACTOR = 1.0e-7  # penalty factor of the faces that are no joint faces. Their springs (f E / h per unit area
+# over the joint nodes' share of the half-block's outer faces: under 5 m², tet heights ≥ 0.25 m) add at most
+# 20 f E [N/m] to a side's Σ k = k_n A / 2: RIM_RTOL of it, and of the closure and the contact step.
+RIM_RTOL = 20.0 * TINY_FACTOR * YOUNG / (0.5 * K_N)
+CLOSURE_SETTLE = 1.0e-3  # the dashpot (restitution 0.2, ζ ≈ 0.46) leaves e^(-ζ ω t) ≈ 1e-9 of the first swing after
+# 0.5 s (ω = sqrt(K_N A / M) = 100 rad/s); the tets' own modes, damped by damping_alpha, leave less than this
+
+
+def stacked_blocks(device, props: JointProps, mode: str):
+    """The 1 × 1 × 1 m box cut by a horizontal joint at z = 0.5 into two blocks, the lower one held, under gravity,
+    run 0.5 s until it rests. Returns (model, sim, upper-side joint nodes, lower-side joint nodes)."""
+    from test_fem_contact import hold
+
+    from warpdem.tets import TetProps
+
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (2, 2, 2))
+    b = ModelBuilder(gravity=(0.0, 0.0, -GRAVITY), contact_stiffness_factor=TINY_FACTOR)
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    b.set_tet_properties("rock", TetProps(damping_alpha=50.0))
+    js = b.add_joint_set(props)
+    b.add_tet_mesh(points, tets, "rock", joint_faces=plane_faces(points, tets, 2, 0.5), joint_set=js)
+    model, state = b.finalize(device, safety_factor=0.5)
+    new_tets = model.tet_nodes.numpy()[: len(tets)]
+    above = points[tets].mean(axis=1)[:, 2] > 0.5
+    upper, lower = np.unique(new_tets[above]), np.unique(new_tets[~above])
+    hold(model, lower)
+    sim = Simulation(model, state)
+    if mode == "rigid":
+        report = sim.switch_to_rigid()
+        assert (report.bodies, report.fixed) == (2, 1)
+    sim.advance(int(0.5 / model.dt))
+    on_joint = np.isclose(model.node_ref_q.numpy()[: int(sim.state.node_count.numpy()[0]), 2], 0.5)
+    return model, sim, upper[on_joint[upper]], lower[on_joint[lower]]
+
+
+@pytest.mark.parametrize("mode", ["deformable", "rigid"])
+def test_normal_stiffness_closes_by_stress_over_k_n(device, mode):
+    """A joint of normal stiffness k_n under the upper block's weight: σ = ρ g H closes it by σ / k_n, the same in
+    both modes. The node springs are k_n/2 × each face's area share on either side (Σ = k_n A/2 per side, to float32
+    rounding of the face areas); at rest the upper block's nodes sit σ / k_n below the lower block's (within
+    CLOSURE_SETTLE of what is left of the drop's swing and RIM_RTOL of the rim's other faces)."""
+    model, sim, upper, lower = stacked_blocks(
+        device, JointProps(friction=0.5, restitution=0.2, normal_stiffness=K_N), mode
+    )
+    k = model.node_contact_stiffness.numpy().astype(np.float64)
+    for nodes in (upper, lower):  # k_n / 2 × the joint's area (1 m²) on each side
+        np.testing.assert_allclose(k[nodes].sum(), K_N / 2.0, rtol=RIM_RTOL + 16.0 * F32_EPS)
+    sigma = DENSITY * GRAVITY * 0.5
+    u = sim.state.node_u.numpy().astype(np.float64)
+    ref = model.node_ref_q.numpy()
+    upper, lower = (n[np.lexsort(ref[n][:, :2].T)] for n in (upper, lower))  # pairs that started at the same point
+    np.testing.assert_allclose(ref[upper], ref[lower])
+    closure = u[lower, 2] - u[upper, 2]
+    # The upper node i presses into the lower faces at lower node i (they coincide) by closure_i, and so does lower
+    # node i into the upper faces: at rest Σ (k_i^U + k_i^L) closure_i = ρ g H A, the stiffness-weighted mean is σ/k_n.
+    weight = k[upper] + k[lower]
+    np.testing.assert_allclose((weight * closure).sum() / weight.sum(), sigma / K_N, rtol=CLOSURE_SETTLE + RIM_RTOL)
+    # Rigid blocks close evenly; deformable ones unevenly by at most the rock's own compression σ H / E.
+    spread = CLOSURE_SETTLE * sigma / K_N + (sigma * 0.5 / YOUNG if mode == "deformable" else 0.0)
+    np.testing.assert_allclose(closure, sigma / K_N, atol=spread)
+
+
+def test_normal_stiffness_sets_bonded_elements_and_the_contact_step(device):
+    """The bonded joint's interface elements carry k_n × their area share (Σ = k_n A exactly as float32 sums); the
+    builder's contact step follows the joint's springs: ω² ∝ k_n, so 4 k_n halves it (to the rim's TINY_FACTOR
+    faces), and it names the joint set."""
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (2, 2, 2))
+    props = JointProps(friction=0.5, tensile_strength=1e6, normal_stiffness=K_N)
+    model, _ = build(device, points, tets, plane_faces(points, tets, 2, 0.5), props)
+    np.testing.assert_allclose(model.joint_kn.numpy().astype(np.float64).sum(), K_N * 1.0, rtol=16.0 * F32_EPS)
+
+    def contact_step(k_n: float) -> tuple[float, str]:
+        b = ModelBuilder(gravity=(0.0, 0.0, 0.0), contact_stiffness_factor=TINY_FACTOR)
+        b.add_material("rock", DENSITY, YOUNG, POISSON)
+        js = b.add_joint_set(JointProps(friction=0.5, restitution=1.0, normal_stiffness=k_n), name="bed")
+        b.add_tet_mesh(points, tets, "rock", joint_faces=plane_faces(points, tets, 2, 0.5), joint_set=js)
+        step = b.contact_critical_step(b.tet_mesh_data())
+        return step.value, step.source
+
+    (one, source), (four, _) = contact_step(1e3 * K_N), contact_step(4e3 * K_N)
+    assert "joint set bed" in source
+    np.testing.assert_allclose(four / one, 0.5, rtol=RIM_RTOL)
+
+
+def test_surface_normal_stiffness_sums_to_half_k_n_per_area(device):
+    """ModelBuilder.contact_normal_stiffness k_s: every face that is no joint face is a spring of k_s / 2 per unit area
+    whatever the tets behind it, a joint face k_n / 2; so the nodes' springs sum to k_s/2 × the box's 6 m² plus
+    k_n/2 × both sides of the 1 m² joint (float32 sums of the area shares)."""
+    k_s = 3.0 * K_N
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (2, 3, 2))
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0), contact_normal_stiffness=k_s)
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    js = b.add_joint_set(JointProps(friction=0.5, normal_stiffness=K_N))
+    b.add_tet_mesh(points, tets, "rock", joint_faces=plane_faces(points, tets, 2, 0.5), joint_set=js)
+    model, state = b.finalize(device, safety_factor=0.5)
+    k = model.node_contact_stiffness.numpy()[: int(state.node_count.numpy()[0])].astype(np.float64)
+    np.testing.assert_allclose(k.sum(), k_s / 2.0 * 6.0 + K_N / 2.0 * 2.0, rtol=16.0 * F32_EPS)
+    with pytest.raises(ValueError, match="contact_normal_stiffness must be > 0"):
+        ModelBuilder(contact_normal_stiffness=-1.0)._surface_spring()
+
+
+def test_normal_stiffness_bad_input():
+    with pytest.raises(ValueError, match="not both"):
+        JointProps(friction=0.5, stiffness_factor=2.0, normal_stiffness=K_N)
+    with pytest.raises(ValueError, match="normal_stiffness > 0"):
+        JointProps(friction=0.5, normal_stiffness=-K_N)
+    assert JointProps(friction=0.5).stiffness_factor == 1.0  # neither given: the rock-relative default

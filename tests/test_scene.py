@@ -509,6 +509,24 @@ MESH_BAD_SCENES = [
         "greater than or equal to 0 (got -0.1)",
     ),
     (
+        "joint_set_both_stiffness_keys",
+        edit("spacing = 3.0", "spacing = 3.0\nstiffness_factor = 2.0\nnormal_stiffness = 1.0e10", base=GEOLOGY_BASE),
+        "mesh.joint_sets[0]",
+        "takes one of 'stiffness_factor' and 'normal_stiffness', not both",
+    ),
+    (
+        "joint_defaults_both_stiffness_keys",
+        GEOLOGY_BASE + "\n[joints]\nstiffness_factor = 2.0\nnormal_stiffness = 1.0e10\n",
+        "joints",
+        "takes one of 'stiffness_factor' and 'normal_stiffness', not both",
+    ),
+    (
+        "negative_normal_stiffness",
+        edit("spacing = 3.0", "spacing = 3.0\nnormal_stiffness = -1.0e10", base=GEOLOGY_BASE),
+        "mesh.joint_sets[0].normal_stiffness",
+        "greater than 0 (got -10000000000.0)",
+    ),
+    (
         "layers_out_of_order",
         GEOLOGY_BASE.replace(
             "h = 2.0\n",
@@ -540,6 +558,20 @@ MESH_BAD_SCENES = [
         MINIMAL + '\n[mesh]\nkind = "file"\npath = "rock.msh"\nmaterial = "rock"\nmaterial_map = { 1 = "rock" }\n',
         "mesh",
         "give 'material' or 'material_map', not both",
+    ),
+    (
+        "bricks_zero_height",
+        MINIMAL + '\n[mesh]\nkind = "bricks"\nlo = [0, 0, 0]\nhi = [4, 1, 2]\nmaterial = "rock"\n'
+        "brick = [1.0, 1.0, 0.0]\nh = 0.5\n",
+        "mesh.brick",
+        "every size must be > 0 (got [1.0, 1.0, 0.0])",
+    ),
+    (
+        "bricks_stagger_one",
+        MINIMAL + '\n[mesh]\nkind = "bricks"\nlo = [0, 0, 0]\nhi = [4, 1, 2]\nmaterial = "rock"\n'
+        "brick = [1.0, 1.0, 0.5]\nh = 0.5\nstagger = 1.0\n",
+        "mesh.stagger",
+        "less than 1",
     ),
     (
         "file_joint_group_negative_friction",

@@ -202,7 +202,14 @@ def test_file_joint_groups_get_their_own_properties(tmp_path: Path):
     defaults = {"friction": 0.6, "cohesion": 0.0, "tensile_strength": 0.0, "stiffness_factor": 1.0}
     defaults |= {"restitution": 0.5, "shear_stiffness_ratio": 0.5}
     groups = {
-        "bedding": {"friction": 0.2, "cohesion": 1.0e5, "tensile_strength": 2.0e5, "restitution": 0.9},
+        # A normal stiffness [Pa/m] replaces [joints]' stiffness_factor for this group (the keys exclude each other).
+        "bedding": {
+            "friction": 0.2,
+            "cohesion": 1.0e5,
+            "tensile_strength": 2.0e5,
+            "restitution": 0.9,
+            "normal_stiffness": 5e9,
+        },
         "fault": {"friction": 0.9, "stiffness_factor": 2.0, "shear_stiffness_ratio": 0.3},
     }
     mesh = {"kind": "file", "path": str(path), "material": "rock", "joint_groups": groups}
@@ -226,7 +233,9 @@ def test_file_joint_groups_get_their_own_properties(tmp_path: Path):
         np.testing.assert_allclose(restitution_linear(float(got["contact"]["damp_n"])), want["restitution"], rtol=1e-5)
         np.testing.assert_allclose(got["cohesion"], want["cohesion"], rtol=1e-6)
         np.testing.assert_allclose(got["tensile_strength"], want["tensile_strength"], rtol=1e-6)
-        np.testing.assert_allclose(got["stiffness_factor"], want["stiffness_factor"], rtol=1e-6)
+        own_kn = "normal_stiffness" in want
+        np.testing.assert_allclose(got["stiffness_factor"], 0.0 if own_kn else want["stiffness_factor"], rtol=1e-6)
+        np.testing.assert_allclose(got["face_normal_stiffness"], 0.5 * want.get("normal_stiffness", 0.0), rtol=1e-6)
         assert got["bonded"] == int(want["cohesion"] > 0 or want["tensile_strength"] > 0)
         seen.add(group[0])
     assert seen == set(PLANES)  # both sides of both joints are surface faces after the pre-split

@@ -157,6 +157,11 @@ class ModelBuilder:
         tangential: tangential law, "mindlin" or "linear".
         rolling: rolling resistance, "none" or "constant_torque".
         gravity: gravitational acceleration [m/s²].
+        contact_stiffness_factor: penalty factor f of the FEM contact faces that are no joint faces [-] (a spring of
+            f E / h per unit area, E and h of the tet behind the face).
+        contact_normal_stiffness: instead, a normal stiffness k_n per unit area of those faces [Pa/m], independent of
+            the mesh (k_n / 2 on each face: two of them pressed together close by σ / k_n, as a joint's
+            ``normal_stiffness``); None to use ``contact_stiffness_factor``.
     """
 
     normal: str = "hertz"
@@ -177,6 +182,7 @@ class ModelBuilder:
     joint_set_names: list[str] = field(default_factory=list)
     _joint_faces: list[tuple] = field(default_factory=list)
     contact_stiffness_factor: float = 1.0
+    contact_normal_stiffness: float | None = None
     load_specs: LoadSpecs = field(default_factory=LoadSpecs)
     overlap: InitialOverlap | None = None
 
@@ -330,6 +336,18 @@ class ModelBuilder:
             face_set=np.concatenate([k for _, k in self._joint_faces]).astype(np.int32),
         )
 
+    def _surface_spring(self) -> tuple[float, float]:
+        """(penalty factor f, k_n / 2 [Pa/m]) of the faces that are no joint faces: ``contact_normal_stiffness`` k_n,
+        when given, replaces ``contact_stiffness_factor`` (the spring is then k_n / 2 per unit area on each face, as a
+        joint's: warpdem.joints.JointProps.normal_stiffness)."""
+        if self.contact_normal_stiffness is None:
+            return self.contact_stiffness_factor, 0.0
+        if not self.contact_normal_stiffness > 0.0:
+            raise ValueError(
+                f"ModelBuilder.contact_normal_stiffness must be > 0 [Pa/m], got {self.contact_normal_stiffness}"
+            )
+        return 0.0, 0.5 * self.contact_normal_stiffness
+
     def contact_critical_time_step(self, mesh: TetMeshData) -> float:
         """Stable step of the FEM contacts and joints [s] before the safety factor (:meth:`contact_critical_step`)."""
         return self.contact_critical_step(mesh).value
@@ -348,6 +366,7 @@ class ModelBuilder:
         zeta = [p.damping_ratio for p in self.joint_sets]
         names = list(self.materials)
         zeta += [linear_damping_ratio(self.interaction(a, b).restitution) for a in names for b in names]
+        factor, face_normal_stiffness = self._surface_spring()
         step, node, joint_set = contact_critical_step_at(
             mesh.points,
             mesh.tets,
@@ -355,8 +374,9 @@ class ModelBuilder:
             density[mesh.material],
             joints,
             self.joint_sets,
-            self.contact_stiffness_factor,
+            factor,
             max(zeta),
+            face_normal_stiffness,
         )
         where = f"joint set {self.joint_set_names[joint_set]}" if joint_set >= 0 else "the rock surface"
         return CriticalStep(step, f"the contact penalty springs of {where} at mesh node {node}")
@@ -804,7 +824,8 @@ class ModelBuilder:
             fem_skin=fem_skin,
             max_sphere_faces=max_sphere_faces,
             max_node_faces=max_node_faces,
-            contact_stiffness_factor=self.contact_stiffness_factor,
+            contact_stiffness_factor=self._surface_spring()[0],
+            contact_face_normal_stiffness=self._surface_spring()[1],
         )
         return model, state
 

@@ -169,6 +169,7 @@ def rebuild_surface(model: Model, state: State) -> tuple[Model, wp.array]:
                 m.tet_face_joint,
                 m.joint_material_table,
                 m.contact_stiffness_factor,
+                m.contact_face_normal_stiffness,
                 *stars.csr(),
                 s.node_count,
             ],
@@ -266,6 +267,7 @@ def attach_fem_contact(
     max_sphere_faces: int = 8,
     max_node_faces: int = 8,
     contact_stiffness_factor: float = 1.0,
+    contact_face_normal_stiffness: float = 0.0,
 ) -> tuple[Model, State]:
     """Give a freshly built model its joints and FEM contact: pre-split the joint faces (warpdem.joints), build the
     surface, and allocate the contact lists. Build time.
@@ -278,6 +280,7 @@ def attach_fem_contact(
             over a boundary face.
         max_sphere_faces, max_node_faces: initial candidate slots (grown on overflow).
         contact_stiffness_factor: penalty factor of faces that are no joint faces [-].
+        contact_face_normal_stiffness: mesh-independent spring of those faces, k_n / 2 per unit area [Pa/m].
     """
     d = model.device
     nj = len(joints)
@@ -289,6 +292,7 @@ def attach_fem_contact(
         max_sphere_faces=max_sphere_faces,
         max_node_faces=max_node_faces,
         contact_stiffness_factor=contact_stiffness_factor,
+        contact_face_normal_stiffness=contact_face_normal_stiffness,
         tet_face_joint=wp.full(4 * model.tet_capacity, -1, dtype=int, device=d),
         fem_pair_table=fem_pair_table(pairs, d),
         joint_material_table=joint_material_table(joint_props, d),
@@ -701,12 +705,14 @@ def contact_critical_step_at(
     joint_props: list[JointProps],
     stiffness_factor: float,
     damping_ratio: float,
+    face_normal_stiffness: float = 0.0,
 ) -> tuple[float, int, int]:
     """Stable step of the FEM contacts and joint elements [s] (before the safety factor), from the unsplit mesh, and
     the node that sets it with its joint set (-1 off the joints).
 
     A node on a surface (boundary faces and both sides of every joint) has the penalty stiffness
-    k = Σ f E A / (3 h) over its surface faces (h = 3 V₀ / A) and mass m = Σ ρ V₀ / 4 over the tets on its side. Off
+    k = Σ (f E / h + k_n / 2) A / 3 over its surface faces (h = 3 V₀ / A; a joint takes f or its normal stiffness
+    k_n, kernels.joints.joint_face_spring) and mass m = Σ ρ V₀ / 4 over the tets on its side. Off
     the joints that is the whole star; on a joint the side is not known before the split, but by the mediant
     inequality k / m is at most the largest ratio, over the tets t at the node, of t's share of k to ρ V₀ / 4. Two
     such nodes pressed together by both passes of the contact (or a joint element, of the same stiffness) form the
@@ -717,7 +723,8 @@ def contact_critical_step_at(
     Args:
         points: (N, 3) [m]. tets: (M, 4), positively oriented. young: E per tet [Pa], (M,). density: ρ per tet
         [kg/m³], (M,). joints: joint faces and sets. joint_props: per set. stiffness_factor: f of other faces.
-        damping_ratio: the largest ζ of the contact dashpots [-].
+        damping_ratio: the largest ζ of the contact dashpots [-]. face_normal_stiffness: k_n / 2 of other faces
+        [Pa/m] (Model.contact_face_normal_stiffness).
 
     Returns:
         The step [s] (inf without tets), the node of the mesh that sets it (-1 for none), its joint set (-1 for none).
@@ -731,9 +738,11 @@ def contact_critical_step_at(
     _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
     surface = counts[inverse.ravel()] == 1
     factor = np.full(len(key), float(stiffness_factor))
+    per_area = np.full(len(key), float(face_normal_stiffness))  # k_n / 2 [Pa/m] (JointProps.normal_stiffness)
     if len(joints):
         jkey = np.sort(np.asarray(joints.faces, dtype=np.int64), axis=1)
-        jfactor = np.array([joint_props[k].stiffness_factor for k in joints.face_set], dtype=np.float64)
+        jfactor = np.array([joint_props[k].penalty_factor for k in joints.face_set], dtype=np.float64)
+        jper_area = np.array([joint_props[k].face_normal_stiffness for k in joints.face_set], dtype=np.float64)
         both = np.concatenate([key, jkey])
         _, inv = np.unique(both, axis=0, return_inverse=True)
         inv = inv.ravel()
@@ -742,11 +751,13 @@ def contact_critical_step_at(
         hit = lookup[inv[: len(key)]]
         surface |= hit >= 0
         factor = np.where(hit >= 0, jfactor[np.maximum(hit, 0)], factor)
+        per_area = np.where(hit >= 0, jper_area[np.maximum(hit, 0)], per_area)
     xf = x[faces]
     area = 0.5 * np.linalg.norm(np.cross(xf[:, :, 1] - xf[:, :, 0], xf[:, :, 2] - xf[:, :, 0]), axis=2).reshape(-1)
     volume = np.abs(np.linalg.det(x[tets][:, 1:] - x[tets][:, :1])) / 6.0
     tet_of = np.repeat(np.arange(len(tets)), 4)
-    k_face = np.where(surface, factor * young[tet_of] * area**2 / (9.0 * volume[tet_of]), 0.0).reshape(-1, 4)
+    spring = factor * young[tet_of] * area / (3.0 * volume[tet_of]) + per_area  # [Pa/m], kernels.joints
+    k_face = np.where(surface, spring * area / 3.0, 0.0).reshape(-1, 4)
     # Node a of a tet lies on faces k != a: its share of the penalty is the sum of those faces' springs.
     share = k_face.sum(axis=1)[:, None] - k_face  # (M, 4): node a gets every face but the one opposite it
     quarter = 0.25 * density * volume

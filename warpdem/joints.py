@@ -74,6 +74,12 @@ class JointProps:
             2 f E / h for equal sides. The default 1 makes the joint about as stiff as the elements behind it: the
             contact's stable step is then h / (2 c_bar sqrt(f)) with c_bar = sqrt(E/ρ), close to the tets' own
             (:func:`warpdem.fem_contact.contact_critical_step_at`); a stiffer joint shortens the step by sqrt(f).
+            None when ``normal_stiffness`` is given; 1 when neither is.
+        normal_stiffness: joint normal stiffness k_n per unit area [Pa/m] (LDEC / UDEC / 3DEC style), instead of
+            ``stiffness_factor``: the interface is a normal spring of k_n per unit area whatever the mesh, k_n / 2
+            on each of its two faces (the node–face contact presses both ways at once), so a joint under a normal
+            stress σ closes by σ / k_n, in deformable and rigid mode alike. The shear spring is
+            ``shear_stiffness_ratio`` × k_n. None to use ``stiffness_factor``.
         restitution: coefficient of restitution (0, 1] of the joint's normal dashpot, as InteractionProps [-].
         shear_stiffness_ratio: tangential / normal stiffness k_t / k_n of the joint [-].
     """
@@ -81,15 +87,34 @@ class JointProps:
     friction: float
     cohesion: float = 0.0
     tensile_strength: float = 0.0
-    stiffness_factor: float = 1.0
+    stiffness_factor: float | None = None
     restitution: float = 0.5
     shear_stiffness_ratio: float = 0.5
+    normal_stiffness: float | None = None
 
     def __post_init__(self) -> None:
         if self.friction < 0.0 or self.cohesion < 0.0 or self.tensile_strength < 0.0:
             raise ValueError(f"JointProps: friction, cohesion and tensile_strength must be >= 0, got {self}")
-        if not self.stiffness_factor > 0.0 or not 0.0 < self.restitution <= 1.0 or not self.shear_stiffness_ratio > 0:
-            raise ValueError(f"JointProps: need stiffness_factor > 0, 0 < restitution <= 1, k_t/k_n > 0, got {self}")
+        if self.stiffness_factor is not None and self.normal_stiffness is not None:
+            raise ValueError(f"JointProps: give stiffness_factor or normal_stiffness, not both, got {self}")
+        if self.normal_stiffness is None and self.stiffness_factor is None:
+            self.stiffness_factor = 1.0
+        spring = self.stiffness_factor if self.normal_stiffness is None else self.normal_stiffness
+        if not spring > 0.0 or not 0.0 < self.restitution <= 1.0 or not self.shear_stiffness_ratio > 0:
+            raise ValueError(
+                "JointProps: need stiffness_factor > 0 (or normal_stiffness > 0 [Pa/m]), 0 < restitution <= 1, "
+                f"k_t/k_n > 0, got {self}"
+            )
+
+    @property
+    def penalty_factor(self) -> float:
+        """f of the rock-relative part of a joint face's spring [-]: 0 when the joint has a ``normal_stiffness``."""
+        return self.stiffness_factor if self.stiffness_factor is not None else 0.0
+
+    @property
+    def face_normal_stiffness(self) -> float:
+        """The mesh-independent part of a joint face's spring per unit area, k_n / 2 [Pa/m] (0 without one)."""
+        return 0.5 * self.normal_stiffness if self.normal_stiffness is not None else 0.0
 
     @property
     def bonded(self) -> bool:
@@ -114,7 +139,8 @@ def joint_material(props: JointProps) -> kj.JointMaterial:
     m.contact = p
     m.cohesion = props.cohesion
     m.tensile_strength = props.tensile_strength
-    m.stiffness_factor = props.stiffness_factor
+    m.stiffness_factor = props.penalty_factor
+    m.face_normal_stiffness = props.face_normal_stiffness
     m.bonded = 1 if props.bonded else 0
     return m
 

@@ -90,6 +90,9 @@ class Model:
         face_depth_max: largest face_depth [m].
         contact_stiffness_factor: penalty factor f of faces that are no joint faces [-] (a face of a tet of modulus
             E and height h is a spring of f E / h per unit area).
+        contact_face_normal_stiffness: the mesh-independent part of the spring of faces that are no joint faces,
+            k_n / 2 per unit area for a surface normal stiffness k_n [Pa/m] (ModelBuilder.contact_normal_stiffness;
+            ``contact_stiffness_factor`` is then 0); 0 otherwise.
         tet_face_joint: joint set of each tet-face slot 4t + k (face k opposite node k), -1 for none, shape
             (4 tet_capacity,), int32.
         star_offset, star_count: the node → tet adjacency: node n's tets are star_tets[star_offset[n] ..
@@ -103,7 +106,8 @@ class Model:
         face_depth: deepest penetration a node may have into the face and still be pushed back out of it: half the
             tet's height over the face [m], shape (face_capacity,), float32.
         node_contact_stiffness: penalty stiffness of each node, Σ over its boundary faces of f E A / (3 h) [N/m]
-            (0 for a node inside the rock), shape (node_capacity,), float32.
+            (k_n A / 6 on the faces of a joint given a normal stiffness k_n; 0 for a node inside the rock), shape
+            (node_capacity,), float32.
         node_contact_material: material id of each node (of its lowest tet), shape (node_capacity,), int32.
         fem_pair_table: node–face and node–wall interaction of a material pair, as pair_table with damp_n the
             linear damping ratio ζ, shape (num_materials²,), ContactPair.
@@ -205,6 +209,7 @@ class Model:
     face_radius: float = 0.0
     face_depth_max: float = 0.0
     contact_stiffness_factor: float = 1.0
+    contact_face_normal_stiffness: float = 0.0
     tet_face_joint: wp.array | None = None
     star_offset: wp.array | None = None
     star_count: wp.array | None = None

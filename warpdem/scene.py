@@ -423,6 +423,12 @@ class ContactSettings(_Model):
     skin: AutoOrNonNegative = Field(
         default="auto", description="Verlet skin of the neighbour list [m], or 'auto' (chosen from the radii)."
     )
+    surface_normal_stiffness: Float | None = Field(
+        default=None,
+        gt=0,
+        description="Normal stiffness k_n per unit area [Pa/m] of the FEM contacts between faces that are no joint "
+        "faces (outer surfaces, cracks), as a joint's normal_stiffness; omitted: the rock's E / h behind each face.",
+    )
 
 
 class Part(_Model):
@@ -795,6 +801,12 @@ Opening = Annotated[TunnelOpening | ShaftOpening | RoomOpening, Field(discrimina
 """One ``[[mesh.openings]]`` entry, selected by ``kind``."""
 
 
+def _check_one_stiffness(model: Any) -> None:
+    # A joint's normal spring is either relative to the rock behind it or a physical k_n: both would be ambiguous.
+    if model.stiffness_factor is not None and model.normal_stiffness is not None:
+        raise ValueError("takes one of 'stiffness_factor' and 'normal_stiffness', not both")
+
+
 class JointProperties(_Model):
     """Properties of the joints of one joint set (geology) or joint group (mesh file); omitted ones come from
     ``[joints]``."""
@@ -807,12 +819,23 @@ class JointProperties(_Model):
     stiffness_factor: Float | None = Field(
         default=None, gt=0, description="Joint penalty stiffness relative to the rock's (E / h) [-]; default [joints]."
     )
+    normal_stiffness: Float | None = Field(
+        default=None,
+        gt=0,
+        description="Joint normal stiffness k_n per unit area [Pa/m], independent of the mesh (instead of "
+        "stiffness_factor); default [joints].",
+    )
     restitution: Float | None = Field(
         default=None, gt=0, le=1, description="Restitution (0, 1] of the joint's normal dashpot [-]; default [joints]."
     )
     shear_stiffness_ratio: Float | None = Field(
         default=None, gt=0, description="Tangential to normal stiffness ratio k_t / k_n [-]; default [joints]."
     )
+
+    @model_validator(mode="after")
+    def _one_stiffness(self) -> JointProperties:
+        _check_one_stiffness(self)
+        return self
 
 
 class JointSetSpec(JointProperties):
@@ -1005,8 +1028,47 @@ class ArchMesh(_Model):
         return self
 
 
+class BrickMeshSpec(_Model):
+    """Rock laid in courses of equal blocks (warpdem.bricks): bedding joints between the courses, head joints between
+    the blocks, every other course shifted (running bond), on a structured grid of cells no longer than h."""
+
+    kind: Literal["bricks"] = Field(description="Mesh kind.")
+    lo: Vec3 = Field(description="Lower corner of the box [m].")
+    hi: Vec3 = Field(description="Upper corner of the box [m] (rounded to whole cells); greater than lo.")
+    material: Str = Field(description="Name of a material defined in [materials].")
+    brick: Vec3 = Field(description="Block length along x, depth along y and height along z [m], each > 0.")
+    stagger: Float = Field(
+        default=0.5, ge=0, lt=1, description="Shift of each course against the one below, in block lengths [-]."
+    )
+    h: Float = Field(gt=0, description="Largest cell edge [m] (run.resolution divides it).")
+    openings: list[Opening] = Field(
+        default_factory=list, description="Tunnels, shafts and rooms: every cell whose centre is inside is removed."
+    )
+    bedding: JointProperties | None = Field(
+        default=None, description="Properties of the joints between the courses; omitted ones from [joints]."
+    )
+    head: JointProperties | None = Field(
+        default=None, description="Properties of the joints between the blocks of a course; omitted ones from [joints]."
+    )
+    fixed: Bool = _fixed_field()
+    velocity: Vec3 = _velocity_field()
+
+    @field_validator("hi")
+    @classmethod
+    def _check_hi(cls, value: tuple[float, float, float], info: ValidationInfo) -> tuple[float, float, float]:
+        return _hi_above_lo(value, info)
+
+    @field_validator("brick")
+    @classmethod
+    def _check_brick(cls, value: tuple[float, float, float]) -> tuple[float, float, float]:
+        if not all(v > 0 for v in value):
+            raise ValueError("every size must be > 0")
+        return value
+
+
 Mesh = Annotated[
-    BoxMesh | GeologyMeshSpec | FileMesh | CylinderMesh | EllipsoidMesh | ArchMesh, Field(discriminator="kind")
+    BoxMesh | GeologyMeshSpec | FileMesh | CylinderMesh | EllipsoidMesh | ArchMesh | BrickMeshSpec,
+    Field(discriminator="kind"),
 ]
 """The ``[mesh]`` section, selected by ``kind``."""
 
@@ -1017,8 +1079,17 @@ class JointDefaults(_Model):
     friction: Float = Field(default=0.6, ge=0, description="Coulomb friction coefficient of the joints [-].")
     cohesion: Float = Field(default=0.0, ge=0, description="Cohesion of the joints [Pa].")
     tensile_strength: Float = Field(default=0.0, ge=0, description="Tensile strength of the joints [Pa].")
-    stiffness_factor: Float = Field(
-        default=1.0, gt=0, description="Joint contact stiffness relative to the rock's (E / h) [-]."
+    stiffness_factor: Float | None = Field(
+        default=None,
+        gt=0,
+        description="Joint contact stiffness relative to the rock's (E / h) [-]; 1 when neither it nor "
+        "normal_stiffness is given.",
+    )
+    normal_stiffness: Float | None = Field(
+        default=None,
+        gt=0,
+        description="Joint normal stiffness k_n per unit area [Pa/m], independent of the mesh (instead of "
+        "stiffness_factor).",
     )
     restitution: Float = Field(
         default=0.5, gt=0, le=1, description="Coefficient of restitution (0, 1] of the joints' normal dashpot [-]."
@@ -1026,6 +1097,11 @@ class JointDefaults(_Model):
     shear_stiffness_ratio: Float = Field(
         default=0.5, gt=0, description="Tangential to normal stiffness ratio k_t / k_n of the joints [-]."
     )
+
+    @model_validator(mode="after")
+    def _one_stiffness(self) -> JointDefaults:
+        _check_one_stiffness(self)
+        return self
 
 
 def _faces_field() -> Any:
@@ -1723,7 +1799,7 @@ class Scene(_Model):
         if mesh.kind == "arch":
             return list(ARCH_FACE_NAMES)
         names = list(BOX_FACE_NAMES)
-        if mesh.kind == "geology" and mesh.openings:
+        if mesh.kind in ("geology", "bricks") and mesh.openings:
             names.append(OPENING_FACE_NAME)
         return names
 
@@ -1751,7 +1827,7 @@ class Scene(_Model):
         if self.fracture.enabled:
             problems += self.fracture_material_problems(self.mesh_material_names() or [])
         problems += self.conversion_material_problems(self.mesh_material_names() or [])
-        if mesh.kind in ("box", "geology", "cylinder", "ellipsoid", "arch"):
+        if mesh.kind in ("box", "geology", "cylinder", "ellipsoid", "arch", "bricks"):
             check("mesh.material", mesh.material, materials, "material")
         if mesh.kind == "file":
             if mesh.material is not None:

@@ -62,7 +62,13 @@ def scene_builder(scene: Scene) -> ModelBuilder:
     """
     source = scene.source
     c = scene.contact
-    b = ModelBuilder(normal=c.normal, tangential=c.tangential, rolling=c.rolling, gravity=tuple(scene.gravity.vector))
+    b = ModelBuilder(
+        normal=c.normal,
+        tangential=c.tangential,
+        rolling=c.rolling,
+        gravity=tuple(scene.gravity.vector),
+        contact_normal_stiffness=c.surface_normal_stiffness,
+    )
     for name, mat in scene.materials.items():
         b.add_material(name, mat.density, mat.youngs_modulus, mat.poisson_ratio)
     names = scene.material_names()

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .bricks import mesh_bricks
 from .geology import (
     BOX_FACE_NAMES,
     Geology,
@@ -39,6 +40,7 @@ from .scene import (
     ARCH_FACE_NAMES,
     ArchMesh,
     BoxMesh,
+    BrickMeshSpec,
     FileMesh,
     GeologyMeshSpec,
     JointProperties,
@@ -100,7 +102,7 @@ def box_face_sets(points: np.ndarray, tets: np.ndarray) -> dict[str, np.ndarray]
     return sets
 
 
-def _geology(spec: GeologyMeshSpec, seed: int) -> Geology:
+def _openings(spec: GeologyMeshSpec | BrickMeshSpec) -> list[Tunnel | Shaft | Room]:
     openings = []
     for o in spec.openings:
         if o.kind == "tunnel":
@@ -109,6 +111,11 @@ def _geology(spec: GeologyMeshSpec, seed: int) -> Geology:
             openings.append(Shaft(o.center, o.radius, o.bottom, o.top))
         else:
             openings.append(Room(o.lo, o.hi))
+    return openings
+
+
+def _geology(spec: GeologyMeshSpec, seed: int) -> Geology:
+    openings = _openings(spec)
     joint_sets = [
         JointSet(
             dip=js.dip,
@@ -258,6 +265,8 @@ def _rock_mesh(scene: Scene) -> GeologyMesh:
             return mesh_cylinder(spec.center, axis, spec.radius, spec.height, spec.h, spec.material)
         if spec.kind == "ellipsoid":
             return mesh_ellipsoid(spec.center, spec.radii, spec.h, spec.material)
+        if spec.kind == "bricks":
+            return mesh_bricks(spec.lo, spec.hi, spec.brick, spec.h, spec.material, spec.stagger, _openings(spec))
         return _file(spec, scene)
     except (ValueError, RuntimeError, MeshError) as exc:
         if isinstance(exc, SceneError):
@@ -392,6 +401,8 @@ def joint_set_properties(scene: Scene, mesh: GeologyMesh) -> list[JointProps]:
     own: list[JointProperties | None]
     if spec is not None and spec.kind == "geology":
         own = list(spec.joint_sets)  # mesh_geology names every set, in order
+    elif spec is not None and spec.kind == "bricks":
+        own = [spec.bedding, spec.head]
     elif spec is not None and spec.kind == "file" and spec.joint_groups is not None:
         own = [spec.joint_groups.get(name) for name in mesh.joint_set_names]
     else:
@@ -400,10 +411,16 @@ def joint_set_properties(scene: Scene, mesh: GeologyMesh) -> list[JointProps]:
     props = []
     for entry in own:
         given = entry.model_dump(exclude_none=True) if entry is not None else {}
-        props.append(
-            JointProps(**{key: given.get(key, getattr(defaults, key)) for key in JointProperties.model_fields})
-        )
+        merged = {key: given.get(key, getattr(defaults, key)) for key in JointProperties.model_fields}
+        if _STIFFNESS_KEYS & given.keys():
+            # The set's own stiffness (either key) replaces [joints]' choice whole: the two keys exclude each other.
+            merged.update({key: given.get(key) for key in _STIFFNESS_KEYS})
+        props.append(JointProps(**merged))
     return props
+
+
+_STIFFNESS_KEYS = frozenset({"stiffness_factor", "normal_stiffness"})
+"""The joint keys that set the normal spring, one of which a joint takes (warpdem.joints.JointProps)."""
 
 
 def _joint_faces(builder: ModelBuilder, scene: Scene, mesh: GeologyMesh) -> dict[str, np.ndarray]:
@@ -424,6 +441,7 @@ def _joint_faces(builder: ModelBuilder, scene: Scene, mesh: GeologyMesh) -> dict
         props = JointProps(
             friction=crack.friction,
             stiffness_factor=defaults.stiffness_factor,
+            normal_stiffness=defaults.normal_stiffness,
             restitution=defaults.restitution,
             shear_stiffness_ratio=defaults.shear_stiffness_ratio,
         )

@@ -1,0 +1,146 @@
+"""Report of the LDEC §4 limestone tunnel (scenes/limestone_tunnel.toml): ``python benchmarks/limestone_tunnel.py
+[--device cpu] [--end-time T] [--resolution R] [--samples N] [--csv PATH]``.
+
+The scene is built as ``warpdem run`` builds it (:func:`warpdem.scene_build.build_scene`) and stepped in Python,
+sampling between steps (the fracture passes and the switch to rigid blocks run inside ``Simulation.advance``).
+
+Rubble: the volume of the tets (and of the spheres, were any converted) whose centroid lies inside the tunnel's
+original cross-section (the rectangle its cut-out cells span, through the slab's depth), at the current positions;
+0 at the start by construction (no centroid lies in the opening). The fill fraction is that solid volume over the
+tunnel's volume; a loose pile fills the tunnel once its solid fraction nears that of rubble (≈ 0.6), which is what
+"fills" means below. Per sample: time, rubble volume and fill fraction, the rubble's pieces (distinct rigid bodies or
+fragments among those tets), node splits, and the phase (deformable or rigid). At the end: the switch's RigidReport
+(the rigid step's gain over the deformable step), the energy balance and the wall time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+SCENE = Path(__file__).resolve().parent.parent / "scenes" / "limestone_tunnel.toml"
+RUBBLE_SOLID_FRACTION = 0.6
+"""Solid fraction of a loose rubble pile: the fill fraction at which the tunnel counts as filled [-]."""
+
+
+def tunnel_section(scene) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) [m] of the tunnel's cut-out: the box spanned by the mesh's opening faces within half a block of the
+    first opening's nominal rectangle (the charge's borehole, the second opening, lies elsewhere)."""
+    from warpdem.scene_mesh import rock_mesh
+
+    mesh = scene.mesh
+    tunnel = mesh.openings[0]
+    rock = rock_mesh(scene)
+    centre = np.array([tunnel.center[0], 0.0, tunnel.center[1]])
+    half = np.array([0.5 * tunnel.width, np.inf, 0.5 * tunnel.height]) + max(mesh.brick) / 2.0
+    x = rock.points[rock.boundary_faces["opening"]].reshape(-1, 3)
+    near = np.all(np.abs(x - centre) <= half, axis=1)
+    return x[near].min(axis=0), x[near].max(axis=0)
+
+
+def report(scene, device: str, end_time: float | None, samples: int, csv_path: Path | None) -> list[str]:
+    from warpdem.scene_build import build_scene
+    from warpdem.simulation import Simulation, balance_error
+
+    model, state = build_scene(scene, device)
+    sim = Simulation(model, state)
+    lo, hi = tunnel_section(scene)
+    tunnel_volume = float(np.prod(hi - lo))
+    steps = max(1, round((end_time or scene.run.end_time) / sim.model.dt))
+    per = max(1, -(-steps // samples))  # ceil: samples + 1 rows
+    out = [
+        f"{scene.name}: {int(sim.state.tet_count.numpy()[0])} tets, {int(sim.state.node_count.numpy()[0])} nodes, "
+        f"dt = {sim.model.dt * 1e6:.3f} µs, {steps} steps; tunnel {hi[0] - lo[0]:.3f} m × {hi[2] - lo[2]:.3f} m "
+        f"(x {lo[0]:.3f}..{hi[0]:.3f}, z {lo[2]:.3f}..{hi[2]:.3f}), volume {tunnel_volume:.4f} m³",
+        f"{'t [ms]':>8} {'phase':>10} {'rubble [m³]':>12} {'fill':>7} {'pieces':>7} {'splits':>7}",
+    ]
+    rows = []
+    e0 = sim.energy()
+    in_play = e0.in_play
+    wall = time.perf_counter()
+    done = 0
+    while True:
+        rubble, pieces = rubble_volume(sim, lo, hi)
+        splits = int(sim.state.node_splits_total.numpy()[0])
+        in_play = max(in_play, sim.energy().in_play)
+        phase = "rigid" if sim.rigid else "deformable"
+        rows.append((sim.time, phase, rubble, rubble / tunnel_volume, pieces, splits))
+        out.append(
+            f"{sim.time * 1e3:8.2f} {phase:>10} {rubble:12.5f} {rubble / tunnel_volume:7.3f} {pieces:7d} {splits:7d}"
+        )
+        if done >= steps:
+            break
+        n = min(per, steps - done)
+        sim.advance(n)
+        done += n
+    wall = time.perf_counter() - wall
+    if sim.rigid_report is not None:
+        out.append(sim.rigid_report.format())
+    error = balance_error(e0, sim.energy(), in_play)
+    out.append(f"balance error {error:+.3e} of {in_play:.4g} J in play; wall time {wall:.1f} s (sampling included)")
+    fill = rows[-1][3]
+    verdict = "fills" if fill >= RUBBLE_SOLID_FRACTION else "does not fill"
+    out.append(
+        f"rubble at {rows[-1][0] * 1e3:.1f} ms: {rows[-1][2]:.4f} m³ = {fill:.3f} of the tunnel's volume: the tunnel "
+        f"{verdict} (a loose pile fills it at a solid fraction of about {RUBBLE_SOLID_FRACTION})"
+    )
+    if csv_path is not None:
+        tmp = csv_path.with_suffix(csv_path.suffix + ".tmp")
+        with tmp.open("w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["time_s", "phase", "rubble_m3", "fill_fraction", "pieces", "splits"])
+            w.writerows(rows)
+        tmp.replace(csv_path)
+    return out
+
+
+def rubble_volume(sim, lo: np.ndarray, hi: np.ndarray) -> tuple[float, int]:
+    """Volume [m³] of the live tets (and spheres) whose centroid lies in the tunnel's cross-section [lo, hi] (x, z;
+    the whole depth along y), and how many pieces (rigid bodies, else fragments) they belong to."""
+    m, s = sim.model, sim.state
+    nt = int(s.tet_count.numpy()[0])
+    tets = m.tet_nodes.numpy()[:nt]
+    active = s.tet_active.numpy()[:nt] != 0  # deformable or rigid; 0 = converted to a sphere
+    x = s.node_q.numpy().astype(np.float64)[tets].mean(axis=1)
+    inside = active & np.all((x[:, [0, 2]] > lo[[0, 2]]) & (x[:, [0, 2]] < hi[[0, 2]]), axis=1)
+    volume = float(m.tet_volume.numpy()[:nt][inside].astype(np.float64).sum())
+    if sim.rigid and getattr(s, "node_body", None) is not None:
+        pieces = len(np.unique(s.node_body.numpy()[tets[inside, 0]]))
+    else:
+        pieces = len(np.unique(tets[inside, 0])) if np.any(inside) else 0
+    npart = int(s.particle_count.numpy()[0]) if getattr(s, "particle_count", None) is not None else 0
+    if npart:
+        q = s.particle_q.numpy()[:npart].astype(np.float64)
+        r = m.particle_radius.numpy()[:npart].astype(np.float64)
+        hit = np.all((q[:, [0, 2]] > lo[[0, 2]]) & (q[:, [0, 2]] < hi[[0, 2]]), axis=1)
+        volume += float((4.0 / 3.0 * np.pi * r[hit] ** 3).sum())
+    return volume, pieces
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--end-time", type=float, default=None, help="simulated time [s]; default the scene's")
+    parser.add_argument("--resolution", type=float, default=None, help="[run] resolution; default the scene's")
+    parser.add_argument("--samples", type=int, default=20)
+    parser.add_argument("--csv", type=Path, default=None, help="write the samples to this CSV file")
+    args = parser.parse_args(argv)
+    from warpdem.cli import init_warp
+    from warpdem.scene import load_scene
+
+    init_warp(quiet=True)
+    scene = load_scene(SCENE)
+    if args.resolution is not None:
+        scene = scene.model_copy(update={"run": scene.run.model_copy(update={"resolution": args.resolution})})
+    for line in report(scene, args.device, args.end_time, args.samples, args.csv):
+        print(line, flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
