@@ -113,6 +113,66 @@ def faces_between_sides(
 
 
 @wp.func
+def ref_copy(n: wp.vec4i, node_ref_q: wp.array(dtype=wp.vec3), x: wp.vec3) -> int:
+    """The node of a tet at reference position x (daughters of a split share their parent's), -1 if none."""
+    for i in range(4):
+        if wp.length_sq(node_ref_q[n[i]] - x) == 0.0:
+            return n[i]
+    return -1
+
+
+@wp.func
+def freed_hinge(
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    node_ref_q: wp.array(dtype=wp.vec3),
+    ref_tet_face_nbr: wp.array(dtype=int),
+    no_joints: wp.array(dtype=int),
+    node_bonded: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    start: int,
+    count: int,
+    v: int,
+    star_comp: wp.array(dtype=int),
+) -> int:
+    """1 when node v is a freed hinge (warpdem/fracture.py, "Candidates"): its neighbours' cracks cut its star into
+    ≥ 2 pieces (components through the faces no neighbour has opened, :func:`label_star`, written to star_comp) and
+    every half-open face of the star is traction-free: each of its other nodes that split across it left daughters
+    of which at least one holds no intact cohesive or joint element (``node_bonded`` = 0), so no element joins the
+    two copies. Else 0."""
+    half_open = int(0)
+    # Cheap test first (most nodes in tension have no half-open face): the faces' bonds, then the components.
+    for e in range(start, start + count):
+        t = star_tets[e]
+        n = tet_nodes[t]
+        for k in range(4):
+            if n[k] == v:
+                continue
+            t2 = ref_tet_face_nbr[4 * t + k]
+            if t2 < 0:
+                continue
+            if star_find(star_tets, start, count, t2) < 0:
+                continue
+            f = tet_face(n, k)
+            n2 = tet_nodes[t2]
+            if face_in_tet(n2, f[0], f[1], f[2]) >= 0:
+                continue  # the face still holds both tets
+            half_open += 1
+            for j in range(3):
+                a = f[j]
+                if a == v:
+                    continue
+                b = ref_copy(n2, node_ref_q, node_ref_q[a])
+                if b >= 0 and b != a:
+                    if node_bonded[a] > 0 and node_bonded[b] > 0:
+                        return 0  # an element may still join a's copies across this face: it carries traction
+    if half_open == 0:
+        return 0
+    if label_star(tet_nodes, start, count, star_tets, v, ref_tet_face_nbr, no_joints, star_comp) < 2:
+        return 0
+    return 1
+
+
+@wp.func
 def partition_star(
     tet_nodes: wp.array(dtype=wp.vec4i),
     node_q: wp.array(dtype=wp.vec3),
@@ -216,6 +276,7 @@ def cohesive_force_at_split(m_a: float, m_b: float, f_a: wp.vec3, f_b: wp.vec3) 
 @wp.kernel
 def nodal_stress_kernel(
     # Model:
+    node_ref_q: wp.array(dtype=wp.vec3),
     tet_nodes: wp.array(dtype=wp.vec4i),
     tet_volume: wp.array(dtype=float),
     tet_material: wp.array(dtype=int),
@@ -230,10 +291,13 @@ def nodal_stress_kernel(
     star_offset: wp.array(dtype=int),
     star_count: wp.array(dtype=int),
     star_tets: wp.array(dtype=int),
+    no_joints: wp.array(dtype=int),
+    node_bonded: wp.array(dtype=int),
     # Out:
     node_sigma1: wp.array(dtype=float),
     node_p1: wp.array(dtype=wp.vec3),
     candidate: wp.array(dtype=int),
+    star_comp: wp.array(dtype=int),
 ):
     v = wp.tid()  # one thread per node slot
     candidate[v] = 0
@@ -265,6 +329,13 @@ def nodal_stress_kernel(
     node_sigma1[v] = sigma1
     node_p1[v] = p
     if sigma1 < strength:
+        # Below T_f only a freed hinge in tension splits: the cut around it is open and traction-free, and the node
+        # alone pins its two pieces together (warpdem/fracture.py, "Candidates"). Its star's components make the
+        # partition, so there is a face between the sides.
+        if sigma1 > 0.0:
+            candidate[v] = freed_hinge(
+                tet_nodes, node_ref_q, ref_tet_face_nbr, no_joints, node_bonded, star_tets, start, count, v, star_comp
+            )
         return
     # A candidate needs tets on both sides of the plane and a face between them that still holds it (a crack of
     # zero area would be born broken).
@@ -293,12 +364,15 @@ def tension_bound_kernel(
     tet_count: wp.array(dtype=int),
     tet_active: wp.array(dtype=int),
     tet_stress: wp.array(dtype=wp.mat33),
+    cohesive_broken_total: wp.array(dtype=int),
     # In:
     threshold: float,
     # Out:
     reached: wp.array(dtype=int),
 ):
     t = wp.tid()  # one thread per tet slot: does any tet's stress bound reach the lowest T_f?
+    if t == 0 and cohesive_broken_total[0] > 0:
+        reached[0] = 1  # a crack has let go somewhere: a freed hinge may split below T_f
     if t >= tet_count[0] or tet_active[t] == 0:
         return
     s = tet_stress[t]
@@ -311,6 +385,23 @@ def tension_bound_kernel(
     )
     if bound >= threshold:
         reached[0] = 1
+
+
+@wp.kernel
+def count_bonds_kernel(
+    # State in:
+    element_count: wp.array(dtype=int),
+    element_a: wp.array(dtype=int),
+    element_b: wp.array(dtype=int),
+    element_broken: wp.array(dtype=int),
+    # Out:
+    node_bonded: wp.array(dtype=int),
+):
+    i = wp.tid()  # one thread per cohesive (or joint) element slot: its intact element counts at both its nodes
+    if i >= element_count[0] or element_broken[i] != 0:
+        return
+    wp.atomic_add(node_bonded, element_a[i], 1)
+    wp.atomic_add(node_bonded, element_b[i], 1)
 
 
 @wp.kernel

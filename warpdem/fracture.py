@@ -10,7 +10,18 @@ Rules of the split pass (others rely on them):
   same p1).
 - Candidates: σ1 ≥ T_f (the smallest of its tets' materials), ``node_may_split`` = 1, and its star has tets on
   both sides of the plane through the node normal to p1 with at least one face between the sides (so A_f > 0).
-  They are listed in node order (exclusive scan).
+  Also a *freed hinge* in tension (0 < σ1 < T_f, ``node_may_split`` = 1): its neighbours' cracks already cut its
+  star into ≥ 2 pieces (rule (1) of the partition), and every half-open face of its star is traction-free: of the
+  two copies that each of the face's other nodes left across it, at least one holds no intact cohesive or joint
+  element, so no element joins them. The crack around such a node has let go and the node alone pins two free
+  faces together, a point strength the continuum has not (the tension around a point bridge between traction-free
+  faces is unbounded); its σ1 is low only because its star's tets are unloaded by those faces (on the Brazilian disc
+  most nodes left holding cut faces, median σ1 0.6 T_f). It splits along the cut with an element of its own (eq. 4's
+  force, eq. 10's δ_c), so its share of the crack area still costs Γ A_f and nothing is released at the split. A
+  node at a crack front or on a crack still bridged by intact elements does not qualify (the notched plate's crack
+  does not run ahead, tests/test_fracture_scenes.py). Once an element has broken (``cohesive_broken_total`` > 0)
+  every pass evaluates the nodal stresses; before that, a pass in which no tet's stress bound reaches the lowest
+  T_f stops after one tet pass. Candidates are listed in node order (exclusive scan).
 - Partition (``partition_star``), made when the candidate wins its round, with the topology of that round's start:
   the + tets take the new daughter B, A keeps K's index, and the crack opens along the star's faces between + and −
   tets. Plane rule: a tet is + when (centroid − x_K)·p1 > 0 (current positions), so the faces that open are those
@@ -228,6 +239,7 @@ class FracturePass:
         self.claim_node = wp.zeros(t1, dtype=int, device=d)
         self.pending_count = wp.zeros(1, dtype=int, device=d)
         self.reached = wp.zeros(1, dtype=int, device=d)
+        self.bonded = wp.zeros(n1, dtype=int, device=d)
         # The partition finds the faces neighbours have opened through the tets across them, joint faces included.
         self.no_joints = wp.zeros(0, dtype=int, device=d)
         table = model.fracture_material_table
@@ -250,12 +262,13 @@ class FracturePass:
         if m.node_capacity == 0 or m.tet_capacity == 0:
             return 0
         eval_tet_stresses(m, s)
-        # The common case, no tet near its strength, costs one tet pass and one read-back (kernel tension_bound).
+        # The common case, no tet near its strength and no crack let go, costs one tet pass and one read-back (kernel
+        # tension_bound; once an element has broken, a freed hinge may split below T_f).
         self.reached.zero_()
         wp.launch(
             kfr.tension_bound_kernel,
             dim=m.tet_capacity,
-            inputs=[s.tet_count, s.tet_active, s.tet_stress, self.lowest_strength],
+            inputs=[s.tet_count, s.tet_active, s.tet_stress, s.cohesive_broken_total, self.lowest_strength],
             outputs=[self.reached],
             device=d,
         )
@@ -264,10 +277,12 @@ class FracturePass:
         stars = self.splitter.stars
         # The pass reads the unsplit adjacency (ref_tet_face_nbr), not the current face neighbours.
         stars.build(m.tet_nodes, s.tet_count, s.tet_active, s.node_count, face_neighbors=False)
+        self.count_bonds(model, state)
         wp.launch(
             kfr.nodal_stress_kernel,
             dim=m.node_capacity,
             inputs=[
+                m.node_ref_q,
                 m.tet_nodes,
                 m.tet_volume,
                 m.tet_material,
@@ -278,8 +293,10 @@ class FracturePass:
                 s.node_q,
                 s.tet_stress,
                 *stars.csr(),
+                self.no_joints,
+                self.bonded,
             ],
-            outputs=[self.sigma1, self.p1, self.candidate],
+            outputs=[self.sigma1, self.p1, self.candidate, self.splitter.star_comp],
             device=d,
         )
         # Candidates in node order: Compactor.plan keeps the flagged slots (dead = not a candidate).
@@ -293,6 +310,27 @@ class FracturePass:
             device=d,
         )
         return int(self.select.new_count.numpy()[0])
+
+    def count_bonds(self, model: Model, state: State) -> None:
+        """``bonded``: the intact cohesive and joint elements at each node (the freed-hinge test, "Candidates")."""
+        m, s, d = model, state, self.device
+        self.bonded.zero_()
+        if m.cohesive_capacity:
+            wp.launch(
+                kfr.count_bonds_kernel,
+                dim=m.cohesive_capacity,
+                inputs=[s.cohesive_count, s.cohesive_a, s.cohesive_b, s.cohesive_broken],
+                outputs=[self.bonded],
+                device=d,
+            )
+        if m.joint_capacity:
+            wp.launch(
+                kfr.count_bonds_kernel,
+                dim=m.joint_capacity,
+                inputs=[s.joint_count, m.joint_a, m.joint_b, s.joint_broken],
+                outputs=[self.bonded],
+                device=d,
+            )
 
     def candidate_dead(self) -> wp.array:
         """1 - candidate (the Compactor's removal flag), in the ``won`` buffer (free until the rounds)."""
