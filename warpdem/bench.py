@@ -1081,7 +1081,9 @@ def jointed_cube(cells: int, device: str) -> Simulation:
     velocity = np.zeros((len(points), 3))
     velocity[tets.ravel()] = np.repeat(kick, 4, axis=0)
     b.add_tet_mesh(points, tets, "granite", joint_faces=joint_faces, joint_set=js, velocity=velocity)
-    model, state = b.finalize(device, safety_factor=0.5)
+    # A block corner inside the cube is a corner of eight blocks: some thirty faces of the seven others touch it, all
+    # node–face candidates. Slots for them from the start spare the set-up a list build that overflows and is redone.
+    model, state = b.finalize(device, safety_factor=0.5, max_node_faces=32)
     sim = Simulation(rigid_time_step(model, state, 0.5), state, track_energy=False)
     sim.switch_to_rigid()
     return sim

@@ -337,6 +337,7 @@ class FemContact:
         self.grid = wp.HashGrid(*(hash_grid_dims(fcap),) * 3, device=d)
         self.grid.reserve(fcap)  # so that a rebuild inside a captured graph never allocates
         self.face_center = wp.zeros(fcap, dtype=wp.vec3, device=d)
+        self.face_bound = wp.zeros(fcap, dtype=float, device=d)
         self.face_normal = wp.zeros(fcap, dtype=wp.vec3, device=d)
         # A sphere moves at most its whole skin between FEM builds (kernels/fem_contact.py, "Skins"), a face half ours.
         self.sphere_margin = model.skin + 0.5 * model.fem_skin
@@ -359,7 +360,7 @@ class FemContact:
             kf.face_centers_kernel,
             dim=self.face_center.shape[0],
             inputs=[m.face_nodes, s.face_count, s.node_q],
-            outputs=[self.face_center],
+            outputs=[self.face_center, self.face_bound],
             device=d,
         )
         self.grid.build(self.face_center, self.cell)
@@ -392,8 +393,11 @@ class FemContact:
                 star_tets=m.star_tets,
                 face_nodes=m.face_nodes,
                 face_depth=m.face_depth,
+                face_center=self.face_center,
+                face_bound=self.face_bound,
                 joint_a=m.joint_a,
                 joint_b=m.joint_b,
+                node_body=s.node_body,
                 node_q=s.node_q,
                 joint_count=s.joint_count,
                 joint_broken=s.joint_broken,
