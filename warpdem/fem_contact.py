@@ -30,7 +30,7 @@ from .contact import hash_grid_dims
 from .joints import JointData, JointProps, eval_joints, joint_energy, joint_material_table, split_joints
 from .kernels import fem_contact as kf
 from .kernels.contact import ContactPair
-from .mesh import TET_FACES
+from .mesh import TET_FACES, row_groups
 from .model import Model, State
 from .neighbors import SkinnedList, SlotArrays, finish_rebuild, make_struct
 from .topology import NodeStars
@@ -694,15 +694,14 @@ def contact_critical_step_at(
     x = np.asarray(points, dtype=np.float64)
     faces = tets[:, TET_FACES]  # (M, 4, 3)
     key = np.sort(faces, axis=2).reshape(-1, 3)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    surface = counts[inverse.ravel()] == 1
+    group, size = row_groups(key)
+    surface = size[group] == 1
     factor = np.full(len(key), float(stiffness_factor))
     if len(joints):
         jkey = np.sort(np.asarray(joints.faces, dtype=np.int64), axis=1)
         jfactor = np.array([joint_props[k].stiffness_factor for k in joints.face_set], dtype=np.float64)
         both = np.concatenate([key, jkey])
-        _, inv = np.unique(both, axis=0, return_inverse=True)
-        inv = inv.ravel()
+        inv, _ = row_groups(both)
         lookup = np.full(inv.max() + 1, -1, dtype=np.int64)
         lookup[inv[len(key) :]] = np.arange(len(jkey))
         hit = lookup[inv[: len(key)]]
