@@ -501,3 +501,38 @@ def test_sphere_list_rebuilds_once_per_half_skin_next_to_mesh(device, count):
     np.testing.assert_array_equal(
         sim.state.particle_q_at_build.numpy()[:count] != q0, np.ones((count, 3), bool) & (v != 0)
     )
+
+
+def test_rigid_lists_drop_exactly_own_body_faces(device):
+    """A joint that cuts a block only part-way (the plane x = 1 for y < 0.5 of a 2 × 1 × 1 m box) leaves one block
+    whose two lips face each other: node–face candidates at distance 0 within one body. Once the block is rigid the
+    lips never move against each other, so the lists must lose exactly those pairs (a face all of whose nodes follow
+    the node's own body) and keep every other: the rigid lists equal the deformable lists, built at the same
+    positions, less the own-body pairs."""
+    points, tets = box_mesh((0.0, 0.0, 0.0), (2.0, 1.0, 1.0), (4, 2, 2))
+    on_plane = plane_faces(points, tets, 0, 1.0)
+    cut = on_plane[points[on_plane].mean(axis=1)[:, 1] < 0.5]
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    js = b.add_joint_set(JointProps(friction=0.5))
+    b.add_tet_mesh(points, tets, "rock", joint_faces=cut, joint_set=js)
+    model, state = b.finalize(device, max_node_faces=16)
+    sim = Simulation(model, state)
+
+    def lists(s, k: int) -> list[set[int]]:
+        count = s.node_face_count.numpy()
+        index = s.node_face_index.numpy().reshape(-1, k)
+        return [set(index[v, : count[v]].tolist()) for v in range(sim.node_count)]
+
+    deformable = lists(sim.state, sim.model.max_node_faces)
+    report = sim.switch_to_rigid()
+    assert report.bodies == 1  # the part-way joint does not cut the box in two
+    rigid = lists(sim.state, sim.model.max_node_faces)
+    body = sim.state.node_body.numpy()
+    faces = sim.model.face_nodes.numpy()
+    own = 0
+    for v, listed in enumerate(deformable):
+        mine = {f for f in listed if body[v] >= 0 and np.all(body[faces[f]] == body[v])}
+        own += len(mine)
+        assert rigid[v] == listed - mine, f"node {v}"
+    assert own > 0  # the lips did list each other before the switch

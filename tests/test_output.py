@@ -134,14 +134,14 @@ def test_split_faces_drawn_only_once_open():
 def test_face_grouping_equals_numpy_unique_rows():
     """The packed-key grouping of the surface search against np.unique(rows, axis=0) (exact), below and above the
     largest node index a packed key holds."""
-    from warpdem.output import _PACKED_ROW_LIMIT, _row_groups
+    from warpdem.mesh import PACKED_ROW_LIMIT, row_groups
 
     rng = np.random.default_rng(3)
-    for high in (1, 7, 1000, 3 * _PACKED_ROW_LIMIT):
+    for high in (1, 7, 1000, 3 * PACKED_ROW_LIMIT):
         for count in (0, 1, 2000):
             rows = np.sort(rng.integers(0, high, size=(count, 3)), axis=1)
             rows[count - count // 4 :] = rows[: count // 4]  # a quarter repeated: groups of one and of more
-            group, size = _row_groups(rows)
+            group, size = row_groups(rows)
             if count == 0:
                 assert len(group) == 0 and len(size) == 0
                 continue

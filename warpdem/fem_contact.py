@@ -30,7 +30,7 @@ from .contact import hash_grid_dims
 from .joints import JointData, JointProps, eval_joints, joint_energy, joint_material_table, split_joints
 from .kernels import fem_contact as kf
 from .kernels.contact import ContactPair
-from .mesh import TET_FACES
+from .mesh import TET_FACES, row_groups
 from .model import Model, State
 from .neighbors import SkinnedList, SlotArrays, finish_rebuild, make_struct
 from .topology import NodeStars
@@ -342,6 +342,7 @@ class FemContact:
         self.grid = wp.HashGrid(*(hash_grid_dims(fcap),) * 3, device=d)
         self.grid.reserve(fcap)  # so that a rebuild inside a captured graph never allocates
         self.face_center = wp.zeros(fcap, dtype=wp.vec3, device=d)
+        self.face_bound = wp.zeros(fcap, dtype=float, device=d)
         self.face_normal = wp.zeros(fcap, dtype=wp.vec3, device=d)
         # A sphere moves at most its whole skin between FEM builds (kernels/fem_contact.py, "Skins"), a face half ours.
         self.sphere_margin = model.skin + 0.5 * model.fem_skin
@@ -364,7 +365,7 @@ class FemContact:
             kf.face_centers_kernel,
             dim=self.face_center.shape[0],
             inputs=[m.face_nodes, s.face_count, s.node_q],
-            outputs=[self.face_center],
+            outputs=[self.face_center, self.face_bound],
             device=d,
         )
         self.grid.build(self.face_center, self.cell)
@@ -397,8 +398,11 @@ class FemContact:
                 star_tets=m.star_tets,
                 face_nodes=m.face_nodes,
                 face_depth=m.face_depth,
+                face_center=self.face_center,
+                face_bound=self.face_bound,
                 joint_a=m.joint_a,
                 joint_b=m.joint_b,
+                node_body=s.node_body,
                 node_q=s.node_q,
                 joint_count=s.joint_count,
                 joint_broken=s.joint_broken,
@@ -735,8 +739,8 @@ def contact_critical_step_at(
     x = np.asarray(points, dtype=np.float64)
     faces = tets[:, TET_FACES]  # (M, 4, 3)
     key = np.sort(faces, axis=2).reshape(-1, 3)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    surface = counts[inverse.ravel()] == 1
+    group, size = row_groups(key)
+    surface = size[group] == 1
     factor = np.full(len(key), float(stiffness_factor))
     per_area = np.full(len(key), float(face_normal_stiffness))  # k_n / 2 [Pa/m] (JointProps.normal_stiffness)
     if len(joints):
@@ -744,8 +748,7 @@ def contact_critical_step_at(
         jfactor = np.array([joint_props[k].penalty_factor for k in joints.face_set], dtype=np.float64)
         jper_area = np.array([joint_props[k].face_normal_stiffness for k in joints.face_set], dtype=np.float64)
         both = np.concatenate([key, jkey])
-        _, inv = np.unique(both, axis=0, return_inverse=True)
-        inv = inv.ravel()
+        inv, _ = row_groups(both)
         lookup = np.full(inv.max() + 1, -1, dtype=np.int64)
         lookup[inv[len(key) :]] = np.arange(len(jkey))
         hit = lookup[inv[: len(key)]]

@@ -22,7 +22,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from .fragments import fragment_colors
-from .mesh import TET_FACES
+from .mesh import TET_FACES, row_groups
 from .usd import CurveSet, SurfaceFrame
 
 if TYPE_CHECKING:
@@ -165,36 +165,9 @@ def _single_faces(tet_nodes: np.ndarray, active: np.ndarray) -> tuple[np.ndarray
         return np.zeros((0, 3), np.int32), np.zeros(0, np.int64)
     # Each face's nodes in increasing order (min, middle, max: cheaper than np.sort along rows of three).
     lo, hi = faces.min(axis=1), faces.max(axis=1)
-    group, size = _row_groups(np.stack([lo, faces.sum(axis=1) - lo - hi, hi], axis=1))
+    group, size = row_groups(np.stack([lo, faces.sum(axis=1) - lo - hi, hi], axis=1))
     single = size[group] == 1
     return faces[single].astype(np.int32), owner[single]
-
-
-def _row_groups(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Groups equal rows of non-negative integer triples, shape (F, 3): the group of each row, shape (F,), and the
-    size of each group, groups numbered in the lexicographic order of their rows (as ``np.unique(rows, axis=0)``).
-
-    A row is packed into one int64 key (a b c in base n, n the largest entry + 1) where n³ fits, so the sort is one
-    of F integers rather than ``np.unique``'s sort of F row records, about ten times slower: this runs on every frame
-    in which a crack grows."""
-    rows = np.asarray(rows, dtype=np.int64).reshape(-1, 3)
-    n = int(rows.max()) + 1 if len(rows) else 1
-    if n > _PACKED_ROW_LIMIT:
-        _, group, size = np.unique(rows, axis=0, return_inverse=True, return_counts=True)
-        return group.reshape(-1), size
-    key = (rows[:, 0] * n + rows[:, 1]) * n + rows[:, 2]
-    # np.unique's inverse costs a stable sort and an unsort; equal keys need no stable order, so group by hand.
-    order = np.argsort(key)
-    sorted_key = key[order]
-    first = np.ones(len(key), dtype=bool)  # the first row of each group in sorted order
-    first[1:] = sorted_key[1:] != sorted_key[:-1]
-    group = np.empty(len(key), dtype=np.int64)
-    group[order] = np.cumsum(first) - 1
-    return group, np.diff(np.append(np.flatnonzero(first), len(key)))
-
-
-_PACKED_ROW_LIMIT = 2_000_000
-"""Largest entry + 1 of rows packed into one int64 key by :func:`_row_groups`: 2e6³ = 8e18 < 2⁶³ ≈ 9.2e18."""
 
 
 def split_face_pairs(faces: np.ndarray, node_root: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -214,7 +187,7 @@ def split_face_pairs(faces: np.ndarray, node_root: np.ndarray) -> tuple[np.ndarr
     if len(faces) == 0:
         empty = np.zeros((0, 3), np.int64)
         return np.zeros((0, 2), np.int64), empty, empty
-    group, group_size = _row_groups(sorted_roots)
+    group, group_size = row_groups(sorted_roots)
     twins = np.nonzero(group_size[group] == 2)[0]
     pairs = twins[np.argsort(group[twins], kind="stable")].reshape(-1, 2)
     return pairs, sorted_nodes[pairs[:, 0]], sorted_nodes[pairs[:, 1]]
