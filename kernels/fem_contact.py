@@ -43,8 +43,8 @@ the lumped stiffness takes over at no cost in energy. Why per unit mass:
 
 - a split copies ω² into both daughters (the pass replicates every per-node array), so k_A + k_B = ω² (m_A + m_B)
   = k_K: the sum of the daughters' forces is the parent's, their springs' energy ½ (k_A + k_B) δ² the parent's,
-  and each daughter has the parent's contact acceleration k δ / m, as eq. 3 asks of the element forces (node–wall
-  dashpots too: c = 2ζ √(m k) = 2ζ ω m shares by mass as well);
+  and each daughter has the parent's contact acceleration k δ / m, as eq. 3 asks of the element forces (the
+  tangential springs ξ are copied too, so k_t ξ shares alike; node–wall dashpots too: c = 2ζ √(m k) = 2ζ ω m);
 - a conversion pass that moves a tet's mass into a sphere leaves the node ω² m_new ≤ k: its springs' energy can
   only fall (the share of the node that left no longer presses), never rise;
 - the contact's frequency ω is the parent's, so no pass raises a node's k / m above what the stable step
@@ -52,7 +52,9 @@ the lumped stiffness takes over at no cost in energy. Why per unit mass:
   mass to spheres would.
 
 Float64 makes the hold exact for a node whose mass the pass leaves alone: f32(f64(k) / m × m) = k, the two
-float64 roundings (2.2e-16 relative) lying far inside half a float32 spacing.
+float64 roundings (2.2e-16 relative) lying far inside half a float32 spacing. A node–face spring that first forms
+at the re-evaluation after a pass (``born_relaxed``) starts relaxed, its depth carried as an offset: nothing moved,
+so no depth was gained.
 
 Skins: the lists are rebuilt when a node has moved half of ``fem_skin`` since the last build or the sphere list was
 rebuilt (a sphere moved half its skin since the sphere build, which may precede the FEM build by another half: up
