@@ -4,7 +4,7 @@
 Oracles:
 - the mesh of a 4 × 4 running-bond wall against counting by hand: 4 full blocks in the even courses, 3 full and 2 half
   ones in the odd; 2 × 24 triangles on each of the 3 bedding planes and 2 per head joint; the volume of the box
-  less a room of whole cells; the rooms's face set covers its walls (area of the cut-out's surface); every tet's
+  less a room of whole cells; the room's face set covers its walls (area of the cut-out's surface); every tet's
   block is one brick (its cells' extent is one block length or the half ones at the ends);
 - the rigid step on the scene's joints: each free block is a box of mass M = ρ L W H and principal moments
   M (b² + c²)/12, on node springs k_n/2 × the nodes' area shares of its surface (k_n the scene's normal stiffness,
