@@ -2,7 +2,9 @@
 [--device cpu] [--end-time T] [--resolution R] [--samples N] [--csv PATH]``.
 
 The scene is built as ``warpdem run`` builds it (:func:`warpdem.scene_build.build_scene`) and stepped in Python,
-sampling between steps (the fracture passes and the switch to rigid blocks run inside ``Simulation.advance``).
+sampling between steps (the fracture passes and the switch to rigid blocks run inside ``Simulation.advance``). At the
+first sample after the switch the run takes the rigid blocks' step, ``safety_factor`` × the critical step after the
+switch (warpdem.rigid.rigid_step_after_switch), as ``warpdem run`` does at its first frame after it.
 
 Rubble: the volume of the tets (and of the spheres, were any converted) whose centroid lies inside the tunnel's
 original cross-section (the rectangle its cut-out cells span, through the slab's depth), at the current positions;
@@ -44,6 +46,7 @@ def tunnel_section(scene) -> tuple[np.ndarray, np.ndarray]:
 
 
 def report(scene, device: str, end_time: float | None, samples: int, csv_path: Path | None) -> list[str]:
+    from warpdem.rigid import rigid_step_after_switch
     from warpdem.scene_build import build_scene
     from warpdem.simulation import Simulation, balance_error
 
@@ -51,11 +54,12 @@ def report(scene, device: str, end_time: float | None, samples: int, csv_path: P
     sim = Simulation(model, state)
     lo, hi = tunnel_section(scene)
     tunnel_volume = float(np.prod(hi - lo))
-    steps = max(1, round((end_time or scene.run.end_time) / sim.model.dt))
-    per = max(1, -(-steps // samples))  # ceil: samples + 1 rows
+    end = end_time or scene.run.end_time
+    steps = max(1, round(end / sim.model.dt))
+    period = end / samples  # a sample every period [s] (samples + 1 rows)
     out = [
         f"{scene.name}: {int(sim.state.tet_count.numpy()[0])} tets, {int(sim.state.node_count.numpy()[0])} nodes, "
-        f"dt = {sim.model.dt * 1e6:.3f} µs, {steps} steps; tunnel {hi[0] - lo[0]:.3f} m × {hi[2] - lo[2]:.3f} m "
+        f"dt = {sim.model.dt * 1e6:.3f} µs, {steps} steps at it; tunnel {hi[0] - lo[0]:.3f} m × {hi[2] - lo[2]:.3f} m "
         f"(x {lo[0]:.3f}..{hi[0]:.3f}, z {lo[2]:.3f}..{hi[2]:.3f}), volume {tunnel_volume:.4f} m³",
         f"{'t [ms]':>8} {'phase':>10} {'rubble [m³]':>12} {'fill':>7} {'pieces':>7} {'splits':>7}",
     ]
@@ -63,7 +67,7 @@ def report(scene, device: str, end_time: float | None, samples: int, csv_path: P
     e0 = sim.energy()
     in_play = e0.in_play
     wall = time.perf_counter()
-    done = 0
+    taken = False
     while True:
         rubble, pieces = rubble_volume(sim, lo, hi)
         splits = int(sim.state.node_splits_total.numpy()[0])
@@ -73,11 +77,13 @@ def report(scene, device: str, end_time: float | None, samples: int, csv_path: P
         out.append(
             f"{sim.time * 1e3:8.2f} {phase:>10} {rubble:12.5f} {rubble / tunnel_volume:7.3f} {pieces:7d} {splits:7d}"
         )
-        if done >= steps:
+        if sim.time >= end - 0.5 * sim.model.dt:
             break
-        n = min(per, steps - done)
-        sim.advance(n)
-        done += n
+        if sim.rigid and not taken and scene.run.dt == "auto":
+            critical = rigid_step_after_switch(sim.model, sim.state)
+            sim.set_time_step(scene.run.safety_factor * critical.value, critical)
+            taken = True
+        sim.advance(max(1, min(round(period / sim.model.dt), round((end - sim.time) / sim.model.dt))))
     wall = time.perf_counter() - wall
     if sim.rigid_report is not None:
         out.append(sim.rigid_report.format())
