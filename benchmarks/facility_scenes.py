@@ -7,7 +7,8 @@ t = 0) and stepped in Python, read back every SAMPLE_STEPS steps. What LDEC §3 
 
 - wave speed by direction: probes on three rays from ground zero (the centre of the loaded patch on the surface):
   straight down, 45° and 75° from the vertical. A probe is the mesh node nearest each point 2, 4, ... m along the
-  ray; its first arrival is the first sample at which its speed exceeds ARRIVAL_FRACTION of its own peak. The
+  ray; its first arrival is the first sample at which its speed exceeds ARRIVAL_FRACTION of its own peak (and
+  ARRIVAL_FLOOR, above the settling under gravity; a probe that never exceeds it is not reached). The
   distance travelled is the distance from the loaded patch (a disc of the load's radius on the surface), and the
   ray's speed the least-squares slope of distance against arrival time (anisotropy: the ratio of the slopes), set
   against the granite's P-wave speed c_p = sqrt((λ + 2μ)/ρ);
@@ -38,7 +39,10 @@ SCENES = ("facility_persistent", "facility_nonpersistent")
 SAMPLE_STEPS = 4
 """Steps between read-backs of the probes' velocities (4 steps of ~15 µs: arrival times to ~0.06 ms)."""
 ARRIVAL_FRACTION = 0.1
-"""A probe's first arrival: its speed first exceeds this fraction of its own peak speed."""
+"""A probe's first arrival: its speed first exceeds this fraction of its own peak speed, and ARRIVAL_FLOOR."""
+ARRIVAL_FLOOR = 0.05
+"""Least speed of a first arrival [m/s]: the rock starts unstressed and settles under gravity at up to g t (0.05 m/s
+by 5 ms), which far probes of small peak speed would otherwise take for the wave."""
 RAYS = {"down": 0.0, "45°": 45.0, "75°": 75.0}
 """Probe rays from ground zero: angle from the vertical [deg], in the y-z plane (towards −y), away from the
 openings' footprints along y = 12 m where the angle allows."""
@@ -320,7 +324,8 @@ def report(scene, device: str, end_time: float | None) -> dict:
         for d, i in pts:
             v = speed[:, column[i]]
             peak = float(v.max())
-            arrival = float(t[np.argmax(v > ARRIVAL_FRACTION * peak)]) if peak > 0 else math.nan
+            threshold = max(ARRIVAL_FRACTION * peak, ARRIVAL_FLOOR)
+            arrival = float(t[np.argmax(v > threshold)]) if peak > threshold else math.nan
             rows.append({"distance": d, "node": i, "arrival": arrival, "ppv": peak})
         d = np.array([r["distance"] for r in rows])
         ta = np.array([r["arrival"] for r in rows])

@@ -764,7 +764,7 @@ def _used_nodes(coords: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.nd
     return points, _orient_tets(points, renumber[tets]), renumber
 
 
-MESH_CACHE_SIZE = 4
+MESH_CACHE_SIZE = 16
 """Geology meshes :func:`mesh_geology_cached` keeps (the most recently used)."""
 
 _mesh_cache: dict[str, GeologyMesh] = {}
