@@ -249,7 +249,8 @@ def draw_sections(results: list[dict], path: Path) -> None:
             ),
             strict=True,
         ):
-            polygons, tet = plane_section(x, pic["tets"], 1, pic["y"])
+            # A hair off the plane: nodes lying on it exactly would leave their tets out of the section.
+            polygons, tet = plane_section(x, pic["tets"], 1, pic["y"] + 1e-3)
             values = np.maximum(value[tet], lo)
             collection = PolyCollection(
                 polygons, array=values, cmap="inferno", norm=LogNorm(lo, max(values.max(), lo * 10))
