@@ -38,6 +38,7 @@ from warpdem.geology import (
     Tunnel,
     joint_normal,
     mesh_geology,
+    mesh_geology_cached,
     read_mesh,
     write_mesh,
 )
@@ -382,6 +383,28 @@ def jittered(seed: int) -> Geology:
         h=0.3,
         seed=seed,
     )
+
+
+def test_cached_mesh_equals_a_fresh_one_and_is_the_callers() -> None:
+    """mesh_geology_cached: the same arrays as Gmsh makes afresh (equal inputs give identical meshes), a copy the caller
+    may change without changing the next one, and a geology that differs in one field (the seed of the jitter) is
+    meshed anew."""
+    import warpdem.geology as geology_module
+
+    fresh = mesh_geology(jittered(7))
+    first = mesh_geology_cached(jittered(7))
+    first.points[:] = 0.0
+    first.boundary_faces.clear()
+    again = mesh_geology_cached(jittered(7))
+    assert repr(jittered(7)) in geology_module._mesh_cache
+    for name in ("points", "tets", "tet_block", "tet_material", "joint_faces", "joint_face_set"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(fresh, name), err_msg=name)
+    assert sorted(again.boundary_faces) == sorted(fresh.boundary_faces)
+    for name, faces in fresh.boundary_faces.items():
+        np.testing.assert_array_equal(again.boundary_faces[name], faces, err_msg=name)
+    other = mesh_geology_cached(jittered(8))
+    assert other.points.shape != fresh.points.shape or not np.array_equal(other.points, fresh.points)
+    assert len(geology_module._mesh_cache) <= geology_module.MESH_CACHE_SIZE
 
 
 def test_seed_jitter_reproducible_and_bounded() -> None:

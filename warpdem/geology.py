@@ -57,6 +57,7 @@ __all__ = [
     "mesh_cylinder",
     "mesh_ellipsoid",
     "mesh_geology",
+    "mesh_geology_cached",
     "read_mesh",
     "write_mesh",
 ]
@@ -761,6 +762,48 @@ def _used_nodes(coords: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.nd
     renumber[used] = np.arange(len(used))
     points = np.ascontiguousarray(coords[used], dtype=np.float64)
     return points, _orient_tets(points, renumber[tets]), renumber
+
+
+MESH_CACHE_SIZE = 16
+"""Geology meshes :func:`mesh_geology_cached` keeps (the most recently used)."""
+
+_mesh_cache: dict[str, GeologyMesh] = {}
+
+
+def mesh_geology_cached(geology: Geology) -> GeologyMesh:
+    """:func:`mesh_geology`, remembered for the process: a geology equal to one of the last MESH_CACHE_SIZE meshed
+    (equal ``repr``: every field, floats exactly) gets a copy of that mesh without Gmsh. Equal inputs give identical
+    meshes (single-threaded Delaunay, every Gmsh option pinned), so the copy is the mesh Gmsh would make. A shipped
+    scene of a few thousand blocks takes Gmsh half a minute to a minute; its run, restart and half-step tests, and a
+    report that builds it again, mesh it once.
+
+    Returns:
+        A fresh copy (its arrays and face-set dict are the caller's to change).
+    """
+    key = repr(geology)
+    mesh = _mesh_cache.pop(key, None)
+    if mesh is None:
+        mesh = mesh_geology(geology)
+    _mesh_cache[key] = mesh  # (re)inserted last: the dict's order is the order of use
+    while len(_mesh_cache) > MESH_CACHE_SIZE:
+        del _mesh_cache[next(iter(_mesh_cache))]
+    return _copy_mesh(mesh)
+
+
+def _copy_mesh(mesh: GeologyMesh) -> GeologyMesh:
+    """A deep copy of a mesh: its arrays, names and face-set dict."""
+    return GeologyMesh(
+        points=mesh.points.copy(),
+        tets=mesh.tets.copy(),
+        tet_block=mesh.tet_block.copy(),
+        tet_material=mesh.tet_material.copy(),
+        material_names=list(mesh.material_names),
+        joint_faces=mesh.joint_faces.copy(),
+        joint_face_set=mesh.joint_face_set.copy(),
+        joint_set_names=list(mesh.joint_set_names),
+        boundary_faces={name: faces.copy() for name, faces in mesh.boundary_faces.items()},
+        num_blocks=mesh.num_blocks,
+    )
 
 
 def mesh_geology(geology: Geology) -> GeologyMesh:

@@ -32,7 +32,7 @@ from .geology import (
     interior_faces,
     mesh_cylinder,
     mesh_ellipsoid,
-    mesh_geology,
+    mesh_geology_cached,
     read_mesh,
 )
 from .mesh import MeshError, boundary_faces, box_mesh
@@ -259,7 +259,7 @@ def _rock_mesh(scene: Scene) -> GeologyMesh:
             return arch_mesh(spec)
         if spec.kind == "geology":
             seed = spec.seed if spec.seed is not None else scene.run.seed
-            return mesh_geology(_geology(spec, seed))
+            return mesh_geology_cached(_geology(spec, seed))
         if spec.kind == "cylinder":
             axis = np.eye(3)["xyz".index(spec.axis)]
             return mesh_cylinder(spec.center, axis, spec.radius, spec.height, spec.h, spec.material)
