@@ -72,6 +72,8 @@ def fem_contact_state(model: Model) -> dict[str, wp.array]:
         "node_face_shear": wp.zeros(ncap, dtype=wp.vec3, device=d),
         "node_wall_shear": wp.zeros(ncap * model.num_walls, dtype=wp.vec3, device=d),
         "node_contact_hold": wp.zeros(ncap, dtype=wp.float64, device=d),
+        "node_f_contact": wp.zeros(ncap, dtype=wp.vec3, device=d),
+        "node_contact_energy_prev": wp.zeros(ncap, dtype=wp.float64, device=d),
         "node_energy_contact": wp.zeros(ncap, dtype=wp.float64, device=d),
         "joint_count": one(model.joint_capacity),
         "joint_broken": wp.zeros(model.joint_capacity, dtype=int, device=d),
@@ -496,6 +498,19 @@ def eval_fem_contacts(
             device=m.device,
         )
     if m.node_capacity:
+        if step > 0.0:
+            # The half ahead of the last evaluation's node contact forces, at the velocities this one sees.
+            wp.launch(
+                kf.book_node_contact_ahead_kernel,
+                dim=m.node_capacity,
+                inputs=[step, s.node_count, s.node_qd],
+                outputs=[s.node_f_contact, s.node_energy_contact],
+                device=m.device,
+            )
+        else:
+            # Set-up or re-evaluation after a pass: the next kick works with the forces evaluated now, so the next
+            # step books the half ahead of exactly these, whatever the forces before the pass were.
+            s.node_f_contact.zero_()
         wp.launch(
             kf.face_normals_kernel,
             dim=m.face_capacity,
@@ -549,6 +564,8 @@ def eval_fem_contacts(
                 s.node_wall_shear,
                 s.node_contact_hold,
                 s.node_f,
+                s.node_f_contact,
+                s.node_contact_energy_prev,
                 s.node_energy_contact,
                 s.node_energy_boundary_work,
             ],

@@ -361,6 +361,12 @@ class State:
             passes while it touches (k = hold × node_mass; 0: none held, k = ``node_contact_stiffness``), held at each
             split or conversion pass and let go once the node touches nothing (kernels/fem_contact.py, "Held
             stiffness"), shape (node_capacity,), float64.
+        node_f_contact: the node–face and node–wall forces on each node at the last evaluation [N] (the node's own
+            and its share as a face node), whose work over the half step ahead the next evaluation books (kernels/
+            fem_contact.py ``book_node_contact_ahead_kernel``; zero without energy tracking), shape (node_capacity,),
+            vec3.
+        node_contact_energy_prev: elastic energy of each node's face and wall springs at the last evaluation [J]
+            (ΔU of the contact dissipation D = -W - ΔU), shape (node_capacity,), float64.
         node_energy_contact: energy dissipated by the FEM contacts and joint elements of each node [J] (dashpots,
             friction, released by failed joints), shape (node_capacity,), float64.
         joint_count: joint interface elements, shape (1,), int32.
@@ -510,6 +516,8 @@ class State:
     node_face_shear: wp.array
     node_wall_shear: wp.array
     node_contact_hold: wp.array
+    node_f_contact: wp.array
+    node_contact_energy_prev: wp.array
     node_energy_contact: wp.array
     joint_count: wp.array
     joint_broken: wp.array
