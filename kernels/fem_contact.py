@@ -71,6 +71,7 @@ import warp as wp
 
 from .contact import (
     ContactPair,
+    book_contact_force,
     coulomb_tangential,
     linear_normal_force,
     make_pair_laws,
@@ -656,12 +657,20 @@ def sphere_face_contact(x: wp.vec3d, r: float, fn: wp.vec3i, node_q: wp.array(dt
 def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_energy: bool):
     """The sphere–face kernels for one choice of the sphere contact laws (kernels/contact.py).
 
+    Energy books (``track_energy``) as for the sphere contacts (kernels/contact.py ``make_contact_kernels``): each
+    pair books the half of its work that lies behind, ½ dt f·v_rel (with the rolling torque's ½ dt M·ω), and adds
+    its forces to the sphere's sums (``contact_f_normal`` …) and to the face nodes' ``node_f_contact``, whose half
+    ahead the integrator and ``book_node_contact_ahead_kernel`` book against v_{n+1/2} (the sphere's share to
+    ``energy_damping`` / ``energy_friction``, the nodes' to ``node_energy_contact``). The dissipation is then
+    D = -W - ΔU exactly, ΔU from the sphere's sphere–face spring energies at the last evaluation,
+    ``sphere_face_energy_prev`` (normal → ``energy_damping``, tangential → ``energy_friction``; the change of a
+    tangential spring's energy with k_t at fixed ξ → ``energy_stiffness_change``).
+
     Returns:
         (eval_sphere_faces_kernel, sphere_face_energy_kernel).
     """
     laws = make_pair_laws(normal, tangential, rolling)
     pair_interaction = laws.pair_interaction
-    pair_dissipation = laws.pair_dissipation
     normal_force = laws.normal_force
     tangential_stiffness = laws.tangential_stiffness
     elastic_energy = laws.elastic_energy
@@ -728,14 +737,27 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
         particle_f: wp.array(dtype=wp.vec3),
         particle_t: wp.array(dtype=wp.vec3),
         node_f: wp.array(dtype=wp.vec3),
+        contact_f_normal: wp.array(dtype=wp.vec3),
+        contact_f_tangential: wp.array(dtype=wp.vec3),
+        contact_t_tangential: wp.array(dtype=wp.vec3),
+        node_f_contact: wp.array(dtype=wp.vec3),
+        sphere_face_energy_prev: wp.array(dtype=wp.vec2),
         energy_damping: wp.array(dtype=wp.float64),
         energy_friction: wp.array(dtype=wp.float64),
+        energy_stiffness_change: wp.array(dtype=wp.float64),
     ):
         i = wp.tid()  # one thread per particle slot; it owns its sphere–face pairs
         if i >= particle_count[0]:
             return
         count = wp.min(sphere_face_count[i], max_sphere_faces)
         if count == 0:
+            if wp.static(track_energy):
+                prev = sphere_face_energy_prev[i]
+                if prev[0] != 0.0 or prev[1] != 0.0:  # the last springs went with the lists: their energy dissipated
+                    sphere_face_energy_prev[i] = wp.vec2(0.0)
+                    if dt > 0.0:
+                        energy_damping[i] = energy_damping[i] + wp.float64(prev[0])
+                        energy_friction[i] = energy_friction[i] + wp.float64(prev[1])
             return
         x = particle_q[i]
         r = particle_radius[i]
@@ -745,6 +767,9 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
         # Pass 2: springs of pairs that no longer count are handed to a pair that starts counting (the contact
         # point slid from one face onto the next).
         orphan = wp.vec3(0.0)
+        a_t = float(0.0)  # the tangential springs' energy at their old ξ under the new stiffness, ½ k_t |ξ_n|² [J]
+        a_orphan = float(0.0)  # the orphan's share of a_t, until a pair takes it over
+        mat_i = particle_material[i]
         for s in range(count):
             slot = i * max_sphere_faces + s
             f = sphere_face_index[slot]
@@ -752,17 +777,29 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
             w, n, dist, touching, interior = sphere_face_contact(x, r, fn, node_q)
             if not (touching and (interior or f == best_f)):
                 sh = sphere_face_shear[slot]
+                if wp.static(track_energy):
+                    # A spring let go of is released at k_t(0) (zero where k_t follows the overlap).
+                    p = pair_table[mat_i * num_materials + tet_material[face_tet[f]]]
+                    a = 0.5 * tangential_stiffness(0.0, r, normal_force(0.0, 0.0, r, r, r, 1.0, p)[2], p)
+                    a = a * wp.dot(sh, sh)
+                    a_t += a
+                    if wp.dot(sh, sh) > wp.dot(orphan, orphan):
+                        a_orphan = a
                 if wp.dot(sh, sh) > wp.dot(orphan, orphan):
                     orphan = sh
                 sphere_face_shear[slot] = wp.vec3(0.0)
         # Pass 3: forces.
         vi = particle_qd[i]
         wi = particle_omega[i]
-        mat_i = particle_material[i]
         f_i = wp.vec3(0.0)
         t_i = wp.vec3(0.0)
-        d_damp = float(0.0)
-        d_fric = float(0.0)
+        d_damp = float(0.0)  # minus the work behind [J]
+        d_fric = float(0.0)  # the same, tangential and rolling [J]
+        e_n = float(0.0)  # normal spring energy of the sphere's face pairs [J]
+        e_t = float(0.0)  # tangential spring energy, ½ k_t(δ_{n+1}) |ξ_{n+1}|² [J]
+        fn_i = wp.vec3(0.0)  # the sphere's contact force sums
+        ft_i = wp.vec3(0.0)
+        tt_i = wp.vec3(0.0)
         for s in range(count):
             slot = i * max_sphere_faces + s
             f = sphere_face_index[slot]
@@ -779,6 +816,8 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
             if wp.dot(shear_old, shear_old) == 0.0:
                 shear_old = orphan
                 orphan = wp.vec3(0.0)
+                a_t -= a_orphan  # handed over, not let go of
+                a_orphan = 0.0
             delta = r - dist
             ci = r - delta  # lever arm to the contact point
             v_face = w[0] * node_qd[fn[0]] + w[1] * node_qd[fn[1]] + w[2] * node_qd[fn[2]]
@@ -798,14 +837,32 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
             wp.atomic_add(node_f, fn[1], -w[1] * force)
             wp.atomic_add(node_f, fn[2], -w[2] * force)
             if wp.static(track_energy):
-                dd = pair_dissipation(n, delta, r, r, r, mstar, v_rel, wi, shear_old, out[2], force, roll, p, dt)
-                d_damp += dd[0]
-                d_fric += dd[1]
+                fnv = normal_force(delta, 0.0, r, r, r, 1.0, p)
+                kt = tangential_stiffness(delta, r, fnv[2], p)
+                e_n += elastic_energy(delta, fnv[2])
+                e_t += 0.5 * kt * wp.dot(out[2], out[2])
+                a_t += 0.5 * kt * wp.dot(shear_old, shear_old)
+                f_normal = wp.dot(force, n)
+                d_damp -= 0.5 * dt * f_normal * wp.dot(v_rel, n)
+                d_fric -= 0.5 * dt * (wp.dot(ft, v_rel) + wp.dot(roll, wi))
+                fn_i += f_normal * n
+                ft_i += ft
+                tt_i += wp.cross(-ci * n, ft) + roll
+                wp.atomic_add(node_f_contact, fn[0], -w[0] * force)
+                wp.atomic_add(node_f_contact, fn[1], -w[1] * force)
+                wp.atomic_add(node_f_contact, fn[2], -w[2] * force)
         wp.atomic_add(particle_f, i, f_i)
         wp.atomic_add(particle_t, i, t_i)
         if wp.static(track_energy):
-            energy_damping[i] = energy_damping[i] + wp.float64(d_damp)
-            energy_friction[i] = energy_friction[i] + wp.float64(d_fric)
+            book_contact_force(i, fn_i, ft_i, tt_i, contact_f_normal, contact_f_tangential, contact_t_tangential)
+            prev = sphere_face_energy_prev[i]
+            sphere_face_energy_prev[i] = wp.vec2(e_n, e_t)
+            if dt > 0.0:  # the set-up evaluation (dt = 0) only records the springs' energies
+                d_n = wp.float64(d_damp) - (wp.float64(e_n) - wp.float64(prev[0]))
+                d_t = wp.float64(d_fric) - (wp.float64(e_t) - wp.float64(a_t))
+                energy_damping[i] = energy_damping[i] + d_n
+                energy_friction[i] = energy_friction[i] + d_t
+                energy_stiffness_change[i] = energy_stiffness_change[i] + (wp.float64(a_t) - wp.float64(prev[1]))
 
     @wp.kernel(enable_backward=False, module="unique")
     def sphere_face_energy_kernel(

@@ -345,8 +345,10 @@ class State:
         sphere_face_needed: the most candidate faces a sphere had at a build (overflow when > max_sphere_faces),
             shape (1,); sphere_face_count: candidate faces of each sphere, shape (particle_capacity,);
             sphere_face_index: candidate face of each slot, shape (particle_capacity * max_sphere_faces,), int32;
-            sphere_face_shear: tangential spring of each slot [m], same shape, vec3. In a model without boundary faces
-            (face_capacity 0) the three per-sphere arrays are empty (warpdem.fem_contact.sphere_face_rows).
+            sphere_face_shear: tangential spring of each slot [m], same shape, vec3; sphere_face_energy_prev: (normal,
+            tangential) spring energy of each sphere's face contacts at the last evaluation [J] (ΔU of their
+            dissipation D = -W - ΔU), shape (particle_capacity,), vec2. In a model without boundary faces
+            (face_capacity 0) the four per-sphere arrays are empty (warpdem.fem_contact.sphere_face_rows).
         node_face_needed: the most candidate faces a node had at a build (overflow when > max_node_faces), shape
             (1,); node_face_count: candidate faces of each node, shape (node_capacity,); node_face_index: candidate
             face of each slot, shape (node_capacity * max_node_faces,), int32.
@@ -508,6 +510,7 @@ class State:
     sphere_face_count: wp.array
     sphere_face_index: wp.array
     sphere_face_shear: wp.array
+    sphere_face_energy_prev: wp.array
     node_face_needed: wp.array
     node_face_count: wp.array
     node_face_index: wp.array
