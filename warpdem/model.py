@@ -430,7 +430,9 @@ class State:
             the mechanical books at the switch, with the switch's change of the shadow term [J], shape (1,), float64.
         energy_step_change: what changes of the time step between steps (the rigid step taken after a switch,
             warpdem.simulation.Simulation.set_time_step) changed Verlet's shadow term by, S(dt_new) − S(dt_old) at
-            the forces then [J], shape (1,), float64 (a line of the books: no force works across the change).
+            the forces then, and what split passes changed it by at the step, S(f_new) − S(f_old) (the forces the
+            next kick uses, re-evaluated after the split) [J], shape (1,), float64 (a line of the books: no force
+            works across either change).
         body_mass: M [kg]; body_inertia: principal moments [kg m²], vec3d; body_axes: principal axes at the switch
             (columns, world), mat33d; body_fixed: 1 for a block held in place (a fixed or driven node, or rollers of
             three directions), int32; body_constraint: 0 free, 1 on a roller plane (moves in the plane, turns about
