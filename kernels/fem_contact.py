@@ -1239,7 +1239,8 @@ def make_node_contact_kernel(track_energy: bool):
     of the face's nodes, which ``book_node_contact_ahead_kernel`` dots with v_{n+1/2} before the next evaluation (the
     half ahead). The dissipation is then D = -W - ΔU exactly (dashpots, friction, a spring let go of or handed to a
     shallower face), ΔU from the springs' energy at the last evaluation, ``node_contact_energy_prev``. An evaluation
-    at dt = 0 (set-up, the re-evaluation after a topology pass) only records the springs' energy.
+    at dt = 0 (set-up, the re-evaluation after a topology pass) records the springs' energy and books what it lets go
+    of at the same positions.
     """
 
     @wp.kernel(enable_backward=False, module="unique")
@@ -1325,6 +1326,9 @@ def make_node_contact_kernel(track_energy: bool):
             )
         f_v = wp.vec3(0.0)
         d_v = float(0.0)  # minus the work behind [J] (the wall's share of the work ahead included)
+        # What a re-evaluation at dt = 0 lets go of at the same positions [J]: a spring handed to a shallower face,
+        # one left with no target, tangential springs cut back to their Coulomb limit (its D = -ΔU, W = 0).
+        r_v = float(0.0)
         # The spring is continuous across a change of target: the new face takes over the old spring's compression
         # at the current positions (at most its own depth: the excess is dissipated), and carries the rest of its
         # depth as an offset, so that ½ k δ² never jumps up without work. A spring left with no target is
@@ -1338,6 +1342,7 @@ def make_node_contact_kernel(track_energy: bool):
             if old_f >= 0:
                 delta = wp.min(best_d, old_delta)
                 offset = best_d - delta
+                r_v += 0.5 * kn * (old_delta * old_delta - delta * delta)
             elif dt > 0.0:
                 # A new spring takes only the depth gained in this step: a node that was already behind the face's
                 # plane at the last positions x - dt v (it slid in past an edge, or the face turned towards it)
@@ -1357,6 +1362,12 @@ def make_node_contact_kernel(track_energy: bool):
         node_face_spring[v] = best_f
         node_face_offset[v] = offset
         if best_f < 0:
+            if old_f >= 0 and old_f < face_nodes.shape[0]:
+                p_old = fem_pair_table[mat_v * num_materials + tet_material[face_tet[old_f]]]
+                if face_joint[old_f] >= 0:
+                    p_old = joint_material_table[face_joint[old_f]].contact
+                sh = node_face_shear[v]
+                r_v += 0.5 * p_old.kt_ratio * kn * wp.dot(sh, sh)
             node_face_shear[v] = wp.vec3(0.0)  # history lives only as long as the node touches
         else:
             fn = face_nodes[best_f]
@@ -1372,8 +1383,10 @@ def make_node_contact_kernel(track_energy: bool):
                 if js >= 0:
                     p = joint_material_table[js].contact
                 v_face = w[0] * node_qd[fn[0]] + w[1] * node_qd[fn[1]] + w[2] * node_qd[fn[2]]
-                force, shear = penalty_contact(best_n, delta, kn, 1.0 / inv_sum, xv - v_face, node_face_shear[v], p, dt)
+                sh = node_face_shear[v]
+                force, shear = penalty_contact(best_n, delta, kn, 1.0 / inv_sum, xv - v_face, sh, p, dt)
                 node_face_shear[v] = shear
+                r_v -= 0.5 * p.kt_ratio * kn * (wp.dot(shear, shear) - wp.dot(sh, sh))
                 f_v += force
                 wp.atomic_add(node_f, fn[0], -w[0] * force)
                 wp.atomic_add(node_f, fn[1], -w[1] * force)
@@ -1398,8 +1411,10 @@ def make_node_contact_kernel(track_energy: bool):
                 continue
             vw = wall_velocity[wall]
             p = fem_pair_table[mat_v * num_materials + wall_material[wall]]
-            force, shear = penalty_contact(nw, -gap, kn, 1.0 / inv_mv, xv - vw, node_wall_shear[slot], p, dt)
+            sh = node_wall_shear[slot]
+            force, shear = penalty_contact(nw, -gap, kn, 1.0 / inv_mv, xv - vw, sh, p, dt)
             node_wall_shear[slot] = shear
+            r_v -= 0.5 * p.kt_ratio * kn * (wp.dot(shear, shear) - wp.dot(sh, sh))
             f_v += force
             # The half ahead is booked against the node's own velocity, -½ dt f·v_{n+1/2}; against the wall's it is
             # -½ dt f·(v_{n+1/2} - v_w): the wall's share, +½ dt f·v_w, is booked here (v_w is constant), with the
@@ -1438,13 +1453,16 @@ def make_node_contact_kernel(track_energy: bool):
             )
             prev = node_contact_energy_prev[v]
             node_contact_energy_prev[v] = wp.float64(e_now)
+            # ΔU in float64, so that its sum over the steps telescopes to U_now - U_start exactly. At dt = 0 the
+            # springs' energy before is not at hand for a split node's daughters, whose slots are new: what the
+            # evaluation lets go of is booked from the springs it changes (r_v) instead.
+            dissipated = wp.float64(r_v)
             if dt > 0.0:
-                # ΔU in float64, so that its sum over the steps telescopes to U_now - U_start exactly.
                 dissipated = wp.float64(d_v) - (wp.float64(e_now) - prev)
-                if dissipated != wp.float64(0.0):
-                    node_energy_contact[v] = node_energy_contact[v] + dissipated
-                if w_wall != 0.0:
-                    node_energy_boundary_work[v] = node_energy_boundary_work[v] + wp.float64(w_wall)
+            if dissipated != wp.float64(0.0):
+                node_energy_contact[v] = node_energy_contact[v] + dissipated
+            if w_wall != 0.0:
+                node_energy_boundary_work[v] = node_energy_boundary_work[v] + wp.float64(w_wall)
 
     return eval_node_contacts_kernel
 
