@@ -107,7 +107,9 @@ class EnergyBalance:
     ``absorbed_boundaries`` what the non-reflecting boundaries' dashpots took out of the model, ``load_work`` the work
     of pressure loads and velocity drivers on the FEM nodes. ``elastic`` is the energy of the springs of the sphere
     contacts, the bonds, the FEM contacts and intact joint elements; ``dissipated_fem_contact`` is what the FEM
-    contacts' dashpots and friction took, and the springs of failed joints. ``cohesive_elastic`` is the spring
+    contacts' dashpots and friction took (as Verlet does their work, kernels/fem_contact.py; a sphere–face contact
+    books the half ahead of its work on the face's nodes here and on the sphere in the sphere's lines, so only the sum
+    of the lines is its dissipation), and the springs of failed joints. ``cohesive_elastic`` is the spring
     energy stored in the intact cohesive elements of split nodes (½ k d², counted in ``in_play``) and
     ``dissipated_cohesive`` what they dissipated (½ f_c per unit growth of δ_max, and what a breaking element still
     held; warpdem.cohesive). ``released_conversion`` is what left the mechanical books when tets turned into spheres
