@@ -71,6 +71,7 @@ import warp as wp
 
 from .contact import (
     ContactPair,
+    book_contact_force,
     coulomb_tangential,
     linear_normal_force,
     make_pair_laws,
@@ -656,12 +657,20 @@ def sphere_face_contact(x: wp.vec3d, r: float, fn: wp.vec3i, node_q: wp.array(dt
 def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_energy: bool):
     """The sphere–face kernels for one choice of the sphere contact laws (kernels/contact.py).
 
+    Energy books (``track_energy``) as for the sphere contacts (kernels/contact.py ``make_contact_kernels``): each
+    pair books the half of its work that lies behind, ½ dt f·v_rel (with the rolling torque's ½ dt M·ω), and adds
+    its forces to the sphere's sums (``contact_f_normal`` …) and to the face nodes' ``node_f_contact``, whose half
+    ahead the integrator and ``book_node_contact_ahead_kernel`` book against v_{n+1/2} (the sphere's share to
+    ``energy_damping`` / ``energy_friction``, the nodes' to ``node_energy_contact``). The dissipation is then
+    D = -W - ΔU exactly, ΔU from the sphere's sphere–face spring energies at the last evaluation,
+    ``sphere_face_energy_prev`` (normal → ``energy_damping``, tangential → ``energy_friction``; the change of a
+    tangential spring's energy with k_t at fixed ξ → ``energy_stiffness_change``).
+
     Returns:
         (eval_sphere_faces_kernel, sphere_face_energy_kernel).
     """
     laws = make_pair_laws(normal, tangential, rolling)
     pair_interaction = laws.pair_interaction
-    pair_dissipation = laws.pair_dissipation
     normal_force = laws.normal_force
     tangential_stiffness = laws.tangential_stiffness
     elastic_energy = laws.elastic_energy
@@ -728,14 +737,27 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
         particle_f: wp.array(dtype=wp.vec3),
         particle_t: wp.array(dtype=wp.vec3),
         node_f: wp.array(dtype=wp.vec3),
+        contact_f_normal: wp.array(dtype=wp.vec3),
+        contact_f_tangential: wp.array(dtype=wp.vec3),
+        contact_t_tangential: wp.array(dtype=wp.vec3),
+        node_f_contact: wp.array(dtype=wp.vec3),
+        sphere_face_energy_prev: wp.array(dtype=wp.vec2),
         energy_damping: wp.array(dtype=wp.float64),
         energy_friction: wp.array(dtype=wp.float64),
+        energy_stiffness_change: wp.array(dtype=wp.float64),
     ):
         i = wp.tid()  # one thread per particle slot; it owns its sphere–face pairs
         if i >= particle_count[0]:
             return
         count = wp.min(sphere_face_count[i], max_sphere_faces)
         if count == 0:
+            if wp.static(track_energy):
+                prev = sphere_face_energy_prev[i]
+                if prev[0] != 0.0 or prev[1] != 0.0:  # the last springs went with the lists: their energy dissipated
+                    sphere_face_energy_prev[i] = wp.vec2(0.0)
+                    if dt > 0.0:
+                        energy_damping[i] = energy_damping[i] + wp.float64(prev[0])
+                        energy_friction[i] = energy_friction[i] + wp.float64(prev[1])
             return
         x = particle_q[i]
         r = particle_radius[i]
@@ -745,6 +767,9 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
         # Pass 2: springs of pairs that no longer count are handed to a pair that starts counting (the contact
         # point slid from one face onto the next).
         orphan = wp.vec3(0.0)
+        a_t = float(0.0)  # the tangential springs' energy at their old ξ under the new stiffness, ½ k_t |ξ_n|² [J]
+        a_orphan = float(0.0)  # the orphan's share of a_t, until a pair takes it over
+        mat_i = particle_material[i]
         for s in range(count):
             slot = i * max_sphere_faces + s
             f = sphere_face_index[slot]
@@ -752,17 +777,29 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
             w, n, dist, touching, interior = sphere_face_contact(x, r, fn, node_q)
             if not (touching and (interior or f == best_f)):
                 sh = sphere_face_shear[slot]
+                if wp.static(track_energy):
+                    # A spring let go of is released at k_t(0) (zero where k_t follows the overlap).
+                    p = pair_table[mat_i * num_materials + tet_material[face_tet[f]]]
+                    a = 0.5 * tangential_stiffness(0.0, r, normal_force(0.0, 0.0, r, r, r, 1.0, p)[2], p)
+                    a = a * wp.dot(sh, sh)
+                    a_t += a
+                    if wp.dot(sh, sh) > wp.dot(orphan, orphan):
+                        a_orphan = a
                 if wp.dot(sh, sh) > wp.dot(orphan, orphan):
                     orphan = sh
                 sphere_face_shear[slot] = wp.vec3(0.0)
         # Pass 3: forces.
         vi = particle_qd[i]
         wi = particle_omega[i]
-        mat_i = particle_material[i]
         f_i = wp.vec3(0.0)
         t_i = wp.vec3(0.0)
-        d_damp = float(0.0)
-        d_fric = float(0.0)
+        d_damp = float(0.0)  # minus the work behind [J]
+        d_fric = float(0.0)  # the same, tangential and rolling [J]
+        e_n = float(0.0)  # normal spring energy of the sphere's face pairs [J]
+        e_t = float(0.0)  # tangential spring energy, ½ k_t(δ_{n+1}) |ξ_{n+1}|² [J]
+        fn_i = wp.vec3(0.0)  # the sphere's contact force sums
+        ft_i = wp.vec3(0.0)
+        tt_i = wp.vec3(0.0)
         for s in range(count):
             slot = i * max_sphere_faces + s
             f = sphere_face_index[slot]
@@ -779,6 +816,8 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
             if wp.dot(shear_old, shear_old) == 0.0:
                 shear_old = orphan
                 orphan = wp.vec3(0.0)
+                a_t -= a_orphan  # handed over, not let go of
+                a_orphan = 0.0
             delta = r - dist
             ci = r - delta  # lever arm to the contact point
             v_face = w[0] * node_qd[fn[0]] + w[1] * node_qd[fn[1]] + w[2] * node_qd[fn[2]]
@@ -798,14 +837,32 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
             wp.atomic_add(node_f, fn[1], -w[1] * force)
             wp.atomic_add(node_f, fn[2], -w[2] * force)
             if wp.static(track_energy):
-                dd = pair_dissipation(n, delta, r, r, r, mstar, v_rel, wi, shear_old, out[2], force, roll, p, dt)
-                d_damp += dd[0]
-                d_fric += dd[1]
+                fnv = normal_force(delta, 0.0, r, r, r, 1.0, p)
+                kt = tangential_stiffness(delta, r, fnv[2], p)
+                e_n += elastic_energy(delta, fnv[2])
+                e_t += 0.5 * kt * wp.dot(out[2], out[2])
+                a_t += 0.5 * kt * wp.dot(shear_old, shear_old)
+                f_normal = wp.dot(force, n)
+                d_damp -= 0.5 * dt * f_normal * wp.dot(v_rel, n)
+                d_fric -= 0.5 * dt * (wp.dot(ft, v_rel) + wp.dot(roll, wi))
+                fn_i += f_normal * n
+                ft_i += ft
+                tt_i += wp.cross(-ci * n, ft) + roll
+                wp.atomic_add(node_f_contact, fn[0], -w[0] * force)
+                wp.atomic_add(node_f_contact, fn[1], -w[1] * force)
+                wp.atomic_add(node_f_contact, fn[2], -w[2] * force)
         wp.atomic_add(particle_f, i, f_i)
         wp.atomic_add(particle_t, i, t_i)
         if wp.static(track_energy):
-            energy_damping[i] = energy_damping[i] + wp.float64(d_damp)
-            energy_friction[i] = energy_friction[i] + wp.float64(d_fric)
+            book_contact_force(i, fn_i, ft_i, tt_i, contact_f_normal, contact_f_tangential, contact_t_tangential)
+            prev = sphere_face_energy_prev[i]
+            sphere_face_energy_prev[i] = wp.vec2(e_n, e_t)
+            if dt > 0.0:  # the set-up evaluation (dt = 0) only records the springs' energies
+                d_n = wp.float64(d_damp) - (wp.float64(e_n) - wp.float64(prev[0]))
+                d_t = wp.float64(d_fric) - (wp.float64(e_t) - wp.float64(a_t))
+                energy_damping[i] = energy_damping[i] + d_n
+                energy_friction[i] = energy_friction[i] + d_t
+                energy_stiffness_change[i] = energy_stiffness_change[i] + (wp.float64(a_t) - wp.float64(prev[1]))
 
     @wp.kernel(enable_backward=False, module="unique")
     def sphere_face_energy_kernel(
@@ -1091,12 +1148,13 @@ def penalty_contact(
     shear: wp.vec3,
     p: ContactPair,
     dt: float,
-) -> wp.mat33:
+):
     """Linear penalty contact of a node (kernels/contact.py laws): normal k δ with the dashpot of ζ = p.damp_n,
     tangential spring k_t = kt_ratio k with Coulomb limit and ζ = p.damp_t.
 
     Returns:
-        Rows: (force on the node [N], new tangential spring [m], (energy dissipated in the step [J], 0, 0)).
+        (force on the node [N], new tangential spring [m]); its dissipation is booked as Verlet does the work
+        (``make_node_contact_kernel``).
     """
     vn = wp.dot(v_rel, n)
     fnv = linear_normal_force(delta, vn, kn, mstar, p)
@@ -1104,19 +1162,86 @@ def penalty_contact(
     kt = p.kt_ratio * kn
     s_old = rotate_into_plane(shear, n)
     tang = coulomb_tangential(s_old, vt, kt, 2.0 * p.damp_t * wp.sqrt(mstar * kt), fnv[0], p.friction, dt)
-    ft = tang[0]
-    s_new = tang[1]
-    # Dashpot work plus the tangential force's work on the sliding less the spring's change of energy.
-    dissipated = (
-        -(fnv[0] - fnv[1]) * vn * dt - wp.dot(ft, vt) * dt - 0.5 * kt * (wp.dot(s_new, s_new) - wp.dot(s_old, s_old))
-    )
-    force = fnv[0] * n + ft
-    return wp.mat33(force[0], force[1], force[2], s_new[0], s_new[1], s_new[2], dissipated, 0.0, 0.0)
+    return fnv[0] * n + tang[0], tang[1]
+
+
+@wp.func
+def node_spring_energy(
+    v: int,
+    x: wp.vec3,
+    kn: float,
+    mat_v: int,
+    f: int,
+    offset: float,
+    face_nodes: wp.array(dtype=wp.vec3i),
+    face_joint: wp.array(dtype=int),
+    face_tet: wp.array(dtype=int),
+    tet_material: wp.array(dtype=int),
+    fem_pair_table: wp.array(dtype=ContactPair),
+    joint_material_table: wp.array(dtype=JointMaterial),
+    num_materials: int,
+    wall_normal: wp.array(dtype=wp.vec3),
+    wall_material: wp.array(dtype=int),
+    num_walls: int,
+    node_q: wp.array(dtype=wp.vec3),
+    node_face_shear: wp.array(dtype=wp.vec3),
+    node_wall_shear: wp.array(dtype=wp.vec3),
+    wall_point: wp.array(dtype=wp.vec3d),
+) -> float:
+    """Elastic energy [J] of node v's springs at x: its face spring (target f, carrying ``offset``) and its wall
+    springs, normal ½ k δ² and tangential ½ k_t |ξ|² (the same sum in the force evaluation and the energy books)."""
+    e = float(0.0)
+    if f >= 0 and f < face_nodes.shape[0]:
+        p = fem_pair_table[mat_v * num_materials + tet_material[face_tet[f]]]
+        if face_joint[f] >= 0:
+            p = joint_material_table[face_joint[f]].contact
+        d = spring_depth(x, f, offset, face_nodes, node_q)
+        sh = node_face_shear[v]
+        e += 0.5 * kn * d * d + 0.5 * p.kt_ratio * kn * wp.dot(sh, sh)
+    for wall in range(num_walls):
+        gap = wp.dot(wp.vec3(wp.vec3d(x) - wall_point[wall]), wall_normal[wall])
+        if gap < 0.0:
+            p = fem_pair_table[mat_v * num_materials + wall_material[wall]]
+            sh = node_wall_shear[v * num_walls + wall]
+            e += 0.5 * kn * gap * gap + 0.5 * p.kt_ratio * kn * wp.dot(sh, sh)
+    return e
+
+
+@wp.kernel
+def book_node_contact_ahead_kernel(
+    dt: float,
+    node_count: wp.array(dtype=int),
+    node_qd: wp.array(dtype=wp.vec3),
+    node_f_contact: wp.array(dtype=wp.vec3),
+    node_energy_contact: wp.array(dtype=wp.float64),
+):
+    """Book minus the half of the last evaluation's FEM contact work that lies ahead of it, -½ dt f_n·v_{n+1/2} [J],
+    now that v_{n+1/2} is known (node_qd before the new evaluation, set by the drift and, for a rigid block's node,
+    by its pose), and clear the sums for the new evaluation (the other half: ``make_node_contact_kernel``)."""
+    i = wp.tid()  # one thread per node slot
+    if i >= node_count[0]:
+        return
+    f = node_f_contact[i]
+    if wp.length_sq(f) > 0.0:  # a node no contact touched keeps its zero unwritten
+        w = 0.5 * dt * wp.dot(f, node_qd[i])
+        node_energy_contact[i] = node_energy_contact[i] - wp.float64(w)
+        node_f_contact[i] = wp.vec3(0.0)
 
 
 @functools.cache
 def make_node_contact_kernel(track_energy: bool):
-    """The node–face and node–wall force kernel."""
+    """The node–face and node–wall force kernel.
+
+    Energy books (``track_energy``), as for the sphere contacts (kernels/contact.py ``make_contact_kernels``):
+    velocity Verlet works a force f_n over ½ dt f_n·(v_{n-1/2} + v_{n+1/2}), and v_{n-1/2} is the velocity during the
+    evaluation of f_n. So each node books here the half of its springs' work that lies behind, ½ dt f·v_rel (against
+    the face's velocity at the contact point, or the wall's), and adds its forces to ``node_f_contact`` of itself and
+    of the face's nodes, which ``book_node_contact_ahead_kernel`` dots with v_{n+1/2} before the next evaluation (the
+    half ahead). The dissipation is then D = -W - ΔU exactly (dashpots, friction, a spring let go of or handed to a
+    shallower face), ΔU from the springs' energy at the last evaluation, ``node_contact_energy_prev``. An evaluation
+    at dt = 0 (set-up, the re-evaluation after a topology pass) records the springs' energy and books what it lets go
+    of at the same positions.
+    """
 
     @wp.kernel(enable_backward=False, module="unique")
     def eval_node_contacts_kernel(
@@ -1161,6 +1286,8 @@ def make_node_contact_kernel(track_energy: bool):
         node_wall_shear: wp.array(dtype=wp.vec3),
         node_contact_hold: wp.array(dtype=wp.float64),
         node_f: wp.array(dtype=wp.vec3),
+        node_f_contact: wp.array(dtype=wp.vec3),
+        node_contact_energy_prev: wp.array(dtype=wp.float64),
         node_energy_contact: wp.array(dtype=wp.float64),
         node_energy_boundary_work: wp.array(dtype=wp.float64),
     ):
@@ -1198,7 +1325,10 @@ def make_node_contact_kernel(track_energy: bool):
                 old_f,
             )
         f_v = wp.vec3(0.0)
-        e_v = float(0.0)
+        d_v = float(0.0)  # minus the work behind [J] (the wall's share of the work ahead included)
+        # What a re-evaluation at dt = 0 lets go of at the same positions [J]: a spring handed to a shallower face,
+        # one left with no target, tangential springs cut back to their Coulomb limit (its D = -ΔU, W = 0).
+        r_v = float(0.0)
         # The spring is continuous across a change of target: the new face takes over the old spring's compression
         # at the current positions (at most its own depth: the excess is dissipated), and carries the rest of its
         # depth as an offset, so that ½ k δ² never jumps up without work. A spring left with no target is
@@ -1212,7 +1342,7 @@ def make_node_contact_kernel(track_energy: bool):
             if old_f >= 0:
                 delta = wp.min(best_d, old_delta)
                 offset = best_d - delta
-                e_v += 0.5 * kn * (old_delta * old_delta - delta * delta)
+                r_v += 0.5 * kn * (old_delta * old_delta - delta * delta)
             elif dt > 0.0:
                 # A new spring takes only the depth gained in this step: a node that was already behind the face's
                 # plane at the last positions x - dt v (it slid in past an edge, or the face turned towards it)
@@ -1237,7 +1367,7 @@ def make_node_contact_kernel(track_energy: bool):
                 if face_joint[old_f] >= 0:
                     p_old = joint_material_table[face_joint[old_f]].contact
                 sh = node_face_shear[v]
-                e_v += 0.5 * p_old.kt_ratio * kn * wp.dot(sh, sh)
+                r_v += 0.5 * p_old.kt_ratio * kn * wp.dot(sh, sh)
             node_face_shear[v] = wp.vec3(0.0)  # history lives only as long as the node touches
         else:
             fn = face_nodes[best_f]
@@ -1253,14 +1383,19 @@ def make_node_contact_kernel(track_energy: bool):
                 if js >= 0:
                     p = joint_material_table[js].contact
                 v_face = w[0] * node_qd[fn[0]] + w[1] * node_qd[fn[1]] + w[2] * node_qd[fn[2]]
-                out = penalty_contact(best_n, delta, kn, 1.0 / inv_sum, xv - v_face, node_face_shear[v], p, dt)
-                force = out[0]
-                node_face_shear[v] = out[1]
+                sh = node_face_shear[v]
+                force, shear = penalty_contact(best_n, delta, kn, 1.0 / inv_sum, xv - v_face, sh, p, dt)
+                node_face_shear[v] = shear
+                r_v -= 0.5 * p.kt_ratio * kn * (wp.dot(shear, shear) - wp.dot(sh, sh))
                 f_v += force
                 wp.atomic_add(node_f, fn[0], -w[0] * force)
                 wp.atomic_add(node_f, fn[1], -w[1] * force)
                 wp.atomic_add(node_f, fn[2], -w[2] * force)
-                e_v += out[2, 0]
+                if wp.static(track_energy):
+                    d_v -= 0.5 * dt * wp.dot(force, xv - v_face)
+                    wp.atomic_add(node_f_contact, fn[0], -w[0] * force)
+                    wp.atomic_add(node_f_contact, fn[1], -w[1] * force)
+                    wp.atomic_add(node_f_contact, fn[2], -w[2] * force)
         w_wall = float(0.0)
         touching = int(0)
         if best_f >= 0:
@@ -1276,19 +1411,58 @@ def make_node_contact_kernel(track_energy: bool):
                 continue
             vw = wall_velocity[wall]
             p = fem_pair_table[mat_v * num_materials + wall_material[wall]]
-            out = penalty_contact(nw, -gap, kn, 1.0 / inv_mv, xv - vw, node_wall_shear[slot], p, dt)
-            node_wall_shear[slot] = out[1]
-            f_v += out[0]
-            e_v += out[2, 0]
-            w_wall += wp.dot(out[0], vw) * dt  # work of a moving wall on the node
+            sh = node_wall_shear[slot]
+            force, shear = penalty_contact(nw, -gap, kn, 1.0 / inv_mv, xv - vw, sh, p, dt)
+            node_wall_shear[slot] = shear
+            r_v -= 0.5 * p.kt_ratio * kn * (wp.dot(shear, shear) - wp.dot(sh, sh))
+            f_v += force
+            # The half ahead is booked against the node's own velocity, -½ dt f·v_{n+1/2}; against the wall's it is
+            # -½ dt f·(v_{n+1/2} - v_w): the wall's share, +½ dt f·v_w, is booked here (v_w is constant), with the
+            # half behind against the relative velocity: -½ dt f·(xv - 2 v_w) in all (as for a sphere on a wall).
+            d_v -= 0.5 * dt * wp.dot(force, xv - 2.0 * vw)
+            w_wall += wp.dot(force, vw) * dt  # work of a moving wall on the node
         wp.atomic_add(node_f, v, f_v)
         if touching == 0:
             # No spring of the node is stretched now (its face spring was let go above, and no wall gap is
             # negative), so the lumped stiffness takes over from a held one without changing any energy.
             node_contact_hold[v] = wp.float64(0.0)
         if wp.static(track_energy):
-            node_energy_contact[v] = node_energy_contact[v] + wp.float64(e_v)
-            node_energy_boundary_work[v] = node_energy_boundary_work[v] + wp.float64(w_wall)
+            if wp.length_sq(f_v) > 0.0:
+                wp.atomic_add(node_f_contact, v, f_v)
+            e_now = node_spring_energy(
+                v,
+                x,
+                kn,
+                mat_v,
+                best_f,
+                offset,
+                face_nodes,
+                face_joint,
+                face_tet,
+                tet_material,
+                fem_pair_table,
+                joint_material_table,
+                num_materials,
+                wall_normal,
+                wall_material,
+                num_walls,
+                node_q,
+                node_face_shear,
+                node_wall_shear,
+                wall_point,
+            )
+            prev = node_contact_energy_prev[v]
+            node_contact_energy_prev[v] = wp.float64(e_now)
+            # ΔU in float64, so that its sum over the steps telescopes to U_now - U_start exactly. At dt = 0 the
+            # springs' energy before is not at hand for a split node's daughters, whose slots are new: what the
+            # evaluation lets go of is booked from the springs it changes (r_v) instead.
+            dissipated = wp.float64(r_v)
+            if dt > 0.0:
+                dissipated = wp.float64(d_v) - (wp.float64(e_now) - prev)
+            if dissipated != wp.float64(0.0):
+                node_energy_contact[v] = node_energy_contact[v] + dissipated
+            if w_wall != 0.0:
+                node_energy_boundary_work[v] = node_energy_boundary_work[v] + wp.float64(w_wall)
 
     return eval_node_contacts_kernel
 
@@ -1335,23 +1509,28 @@ def fem_contact_energy_kernel(
     if node_contact_stiffness[v] == 0.0:
         return
     kn = held_stiffness(node_contact_stiffness[v], node_contact_hold[v], node_mass[v])
-    x = node_q[v]
-    mat_v = node_contact_material[v]
-    best_f = node_face_spring[v]  # the target of the last force evaluation
-    best_d = spring_depth(x, best_f, node_face_offset[v], face_nodes, node_q)
-    e = float(0.0)
-    if best_f >= 0 and best_f < face_nodes.shape[0]:
-        p = fem_pair_table[mat_v * num_materials + tet_material[face_tet[best_f]]]
-        if face_joint[best_f] >= 0:
-            p = joint_material_table[face_joint[best_f]].contact
-        sh = node_face_shear[v]
-        e += 0.5 * kn * best_d * best_d + 0.5 * p.kt_ratio * kn * wp.dot(sh, sh)
-    for wall in range(num_walls):
-        gap = wp.dot(wp.vec3(wp.vec3d(x) - wall_point[wall]), wall_normal[wall])
-        if gap < 0.0:
-            p = fem_pair_table[mat_v * num_materials + wall_material[wall]]
-            sh = node_wall_shear[v * num_walls + wall]
-            e += 0.5 * kn * gap * gap + 0.5 * p.kt_ratio * kn * wp.dot(sh, sh)
+    e = node_spring_energy(
+        v,
+        node_q[v],
+        kn,
+        node_contact_material[v],
+        node_face_spring[v],  # the target of the last force evaluation
+        node_face_offset[v],
+        face_nodes,
+        face_joint,
+        face_tet,
+        tet_material,
+        fem_pair_table,
+        joint_material_table,
+        num_materials,
+        wall_normal,
+        wall_material,
+        num_walls,
+        node_q,
+        node_face_shear,
+        node_wall_shear,
+        wall_point,
+    )
     energy[v] = wp.float64(e)
 
 

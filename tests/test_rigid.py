@@ -645,7 +645,8 @@ def test_roller_walls_keep_the_allowed_momentum_of_colliding_blocks(device):
     sim.advance(steps)
     p1, l1, _ = momenta()
     assert np.abs(sim.state.body_v.numpy()[0] - pa0).max() > 0.1  # they did collide
-    assert sim.energy().dissipated_fem_contact >= 0.0
+    # No dashpot (restitution 1): the contacts' line holds only what Verlet's trapezoid does across the springs'
+    # closings and openings, of either sign (D = -W - ΔU); the books closing is the check.
     roundoff = 8.0 * F32_EPS * math.sqrt(steps) * scale
     np.testing.assert_allclose(p1[[0, 2]], p0[[0, 2]], atol=roundoff)
     assert p1[1] == 0.0

@@ -436,7 +436,8 @@ def regrow_particles(model: Model, state: State, capacity: int) -> tuple[Model, 
         )
     sfields["wall_shear"] = _grow_rows(state.wall_shear, old, model.num_walls, capacity)
     if model.face_capacity:  # warpdem.fem_contact.sphere_face_rows: per-sphere FEM lists only with faces
-        sfields["sphere_face_count"] = _grow_rows(state.sphere_face_count, old, 1, capacity)
+        for name in ("sphere_face_count", "sphere_face_energy_prev"):
+            sfields[name] = _grow_rows(getattr(state, name), old, 1, capacity)
         for name in ("sphere_face_index", "sphere_face_shear"):
             sfields[name] = _grow_rows(getattr(state, name), old, model.max_sphere_faces, capacity)
     if model.bond_capacity:

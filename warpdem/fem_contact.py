@@ -64,6 +64,7 @@ def fem_contact_state(model: Model) -> dict[str, wp.array]:
         "sphere_face_count": wp.zeros(pcap, dtype=int, device=d),
         "sphere_face_index": wp.zeros(pcap * model.max_sphere_faces, dtype=int, device=d),
         "sphere_face_shear": wp.zeros(pcap * model.max_sphere_faces, dtype=wp.vec3, device=d),
+        "sphere_face_energy_prev": wp.zeros(pcap, dtype=wp.vec2, device=d),
         "node_face_needed": one(),
         "node_face_count": wp.zeros(ncap, dtype=int, device=d),
         "node_face_index": wp.zeros(ncap * model.max_node_faces, dtype=int, device=d),
@@ -72,6 +73,8 @@ def fem_contact_state(model: Model) -> dict[str, wp.array]:
         "node_face_shear": wp.zeros(ncap, dtype=wp.vec3, device=d),
         "node_wall_shear": wp.zeros(ncap * model.num_walls, dtype=wp.vec3, device=d),
         "node_contact_hold": wp.zeros(ncap, dtype=wp.float64, device=d),
+        "node_f_contact": wp.zeros(ncap, dtype=wp.vec3, device=d),
+        "node_contact_energy_prev": wp.zeros(ncap, dtype=wp.float64, device=d),
         "node_energy_contact": wp.zeros(ncap, dtype=wp.float64, device=d),
         "joint_count": one(model.joint_capacity),
         "joint_broken": wp.zeros(model.joint_capacity, dtype=int, device=d),
@@ -456,6 +459,20 @@ def eval_fem_contacts(
     """
     m, s = model, state
     step = m.dt if dt is None else dt
+    if m.node_capacity:
+        if step > 0.0:
+            # The half ahead of the last evaluation's node contact forces, at the velocities this one sees.
+            wp.launch(
+                kf.book_node_contact_ahead_kernel,
+                dim=m.node_capacity,
+                inputs=[step, s.node_count, s.node_qd],
+                outputs=[s.node_f_contact, s.node_energy_contact],
+                device=m.device,
+            )
+        else:
+            # Set-up or re-evaluation after a pass: the next kick works with the forces evaluated now, so the next
+            # step books the half ahead of exactly these, whatever the forces before the pass were.
+            s.node_f_contact.zero_()
     if has_spheres and m.face_capacity:
         kernel, _ = kf.make_sphere_face_kernel(m.normal_model, m.tangential_model, m.rolling_model, track_energy)
         wp.launch(
@@ -490,8 +507,14 @@ def eval_fem_contacts(
                 s.particle_f,
                 s.particle_t,
                 s.node_f,
+                s.contact_f_normal,
+                s.contact_f_tangential,
+                s.contact_t_tangential,
+                s.node_f_contact,
+                s.sphere_face_energy_prev,
                 s.energy_damping,
                 s.energy_friction,
+                s.energy_stiffness_change,
             ],
             device=m.device,
         )
@@ -549,6 +572,8 @@ def eval_fem_contacts(
                 s.node_wall_shear,
                 s.node_contact_hold,
                 s.node_f,
+                s.node_f_contact,
+                s.node_contact_energy_prev,
                 s.node_energy_contact,
                 s.node_energy_boundary_work,
             ],

@@ -345,8 +345,10 @@ class State:
         sphere_face_needed: the most candidate faces a sphere had at a build (overflow when > max_sphere_faces),
             shape (1,); sphere_face_count: candidate faces of each sphere, shape (particle_capacity,);
             sphere_face_index: candidate face of each slot, shape (particle_capacity * max_sphere_faces,), int32;
-            sphere_face_shear: tangential spring of each slot [m], same shape, vec3. In a model without boundary faces
-            (face_capacity 0) the three per-sphere arrays are empty (warpdem.fem_contact.sphere_face_rows).
+            sphere_face_shear: tangential spring of each slot [m], same shape, vec3; sphere_face_energy_prev: (normal,
+            tangential) spring energy of each sphere's face contacts at the last evaluation [J] (ΔU of their
+            dissipation D = -W - ΔU), shape (particle_capacity,), vec2. In a model without boundary faces
+            (face_capacity 0) the four per-sphere arrays are empty (warpdem.fem_contact.sphere_face_rows).
         node_face_needed: the most candidate faces a node had at a build (overflow when > max_node_faces), shape
             (1,); node_face_count: candidate faces of each node, shape (node_capacity,); node_face_index: candidate
             face of each slot, shape (node_capacity * max_node_faces,), int32.
@@ -361,6 +363,12 @@ class State:
             passes while it touches (k = hold × node_mass; 0: none held, k = ``node_contact_stiffness``), held at each
             split or conversion pass and let go once the node touches nothing (kernels/fem_contact.py, "Held
             stiffness"), shape (node_capacity,), float64.
+        node_f_contact: the node–face and node–wall forces on each node at the last evaluation [N] (the node's own
+            and its share as a face node), whose work over the half step ahead the next evaluation books (kernels/
+            fem_contact.py ``book_node_contact_ahead_kernel``; zero without energy tracking), shape (node_capacity,),
+            vec3.
+        node_contact_energy_prev: elastic energy of each node's face and wall springs at the last evaluation [J]
+            (ΔU of the contact dissipation D = -W - ΔU), shape (node_capacity,), float64.
         node_energy_contact: energy dissipated by the FEM contacts and joint elements of each node [J] (dashpots,
             friction, released by failed joints), shape (node_capacity,), float64.
         joint_count: joint interface elements, shape (1,), int32.
@@ -422,7 +430,9 @@ class State:
             the mechanical books at the switch, with the switch's change of the shadow term [J], shape (1,), float64.
         energy_step_change: what changes of the time step between steps (the rigid step taken after a switch,
             warpdem.simulation.Simulation.set_time_step) changed Verlet's shadow term by, S(dt_new) − S(dt_old) at
-            the forces then [J], shape (1,), float64 (a line of the books: no force works across the change).
+            the forces then, and what split passes changed it by at the step, S(f_new) − S(f_old) (the forces the
+            next kick uses, re-evaluated after the split) [J], shape (1,), float64 (a line of the books: no force
+            works across either change).
         body_mass: M [kg]; body_inertia: principal moments [kg m²], vec3d; body_axes: principal axes at the switch
             (columns, world), mat33d; body_fixed: 1 for a block held in place (a fixed or driven node, or rollers of
             three directions), int32; body_constraint: 0 free, 1 on a roller plane (moves in the plane, turns about
@@ -502,6 +512,7 @@ class State:
     sphere_face_count: wp.array
     sphere_face_index: wp.array
     sphere_face_shear: wp.array
+    sphere_face_energy_prev: wp.array
     node_face_needed: wp.array
     node_face_count: wp.array
     node_face_index: wp.array
@@ -510,6 +521,8 @@ class State:
     node_face_shear: wp.array
     node_wall_shear: wp.array
     node_contact_hold: wp.array
+    node_f_contact: wp.array
+    node_contact_energy_prev: wp.array
     node_energy_contact: wp.array
     joint_count: wp.array
     joint_broken: wp.array

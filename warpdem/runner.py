@@ -224,7 +224,8 @@ class RunSummary:
         if e1.released_rigid_switch:
             lines.append(row("rigid switch", e0.released_rigid_switch, e1.released_rigid_switch))
         if e0.step_change or e1.step_change:
-            # What taking another time step changed Verlet's shadow term by (Simulation.set_time_step).
+            # What taking another time step, or the forces of a split pass, changed Verlet's shadow term by
+            # (Simulation.set_time_step, Simulation.fracture_pass).
             lines.append(row("step change", e0.step_change, e1.step_change))
         if self.nodes:
             lines += [

@@ -107,7 +107,9 @@ class EnergyBalance:
     ``absorbed_boundaries`` what the non-reflecting boundaries' dashpots took out of the model, ``load_work`` the work
     of pressure loads and velocity drivers on the FEM nodes. ``elastic`` is the energy of the springs of the sphere
     contacts, the bonds, the FEM contacts and intact joint elements; ``dissipated_fem_contact`` is what the FEM
-    contacts' dashpots and friction took, and the springs of failed joints. ``cohesive_elastic`` is the spring
+    contacts' dashpots and friction took (as Verlet does their work, kernels/fem_contact.py; a sphere–face contact
+    books the half ahead of its work on the face's nodes here and on the sphere in the sphere's lines, so only the sum
+    of the lines is its dissipation), and the springs of failed joints. ``cohesive_elastic`` is the spring
     energy stored in the intact cohesive elements of split nodes (½ k d², counted in ``in_play``) and
     ``dissipated_cohesive`` what they dissipated (½ f_c per unit growth of δ_max, and what a breaking element still
     held; warpdem.cohesive). ``released_conversion`` is what left the mechanical books when tets turned into spheres
@@ -122,7 +124,9 @@ class EnergyBalance:
     ``step_change`` is what changes of the time step between steps changed the shadow term by, S(dt_new) − S(dt_old)
     (:meth:`Simulation.set_time_step`): each step books its own trapezoid and shadow term at its own dt, so the
     leapfrog kinetic energy of the steps before a change (kinetic − S(dt_old)) and after it (kinetic − S(dt_new))
-    differ by that, with no force working.
+    differ by that, with no force working. A split pass changes the forces instead (lighter daughters, a face's
+    share of a contact force on one daughter, the re-evaluation at dt = 0) at the same velocities: its
+    S(f_new) − S(f_old) goes to the same line.
     """
 
     kinetic_translational: float
@@ -608,8 +612,8 @@ class Simulation:
         """One split pass now, between steps (warpdem.fracture): candidates, capacities grown ×2 to hold them, rounds
         of independent sets; after splits the surface and contact lists are rebuilt and the forces re-evaluated at
         the current positions (dt = 0; what the rebuild gives the FEM contact springs is booked,
-        :meth:`_book_contact_topology`). Captured graphs are kept unless an array they read was reallocated. Reads
-        back a few counts.
+        :meth:`_book_contact_topology`, and the change of Verlet's shadow term goes to ``energy_step_change``).
+        Captured graphs are kept unless an array they read was reallocated. Reads back a few counts.
 
         Returns:
             What the pass did (no-op report when fracture is off).
@@ -632,10 +636,17 @@ class Simulation:
             self._face_slot = face_slots(m, s, self._face_slot)
         hold_contact_stiffness(m, s)
         before = self._contact_books()
+        shadow_before = self.shadow() if self.track_energy else 0.0
         splits, rounds = self._fracture.split(m, s)
         if splits:
             self._after_split(old_faces)
             self._book_contact_topology(before)
+            if self.track_energy:
+                # The pass changes the forces the next kick uses (daughters lighter than their parent, a face's share
+                # of a contact force on one daughter, the re-evaluation at dt = 0) with the velocities as they were:
+                # Verlet's shadow term moves by S(f_new) - S(f_old) with no force working, as at a change of step.
+                line = self.state.energy_step_change
+                line.assign(line.numpy() + (self.shadow() - shadow_before))
         return SplitReport(splits, rounds, grew)
 
     def _contact_books(self) -> float:
