@@ -318,6 +318,7 @@ def eval_joints_kernel(
     joints_broken_total: wp.array(dtype=int),
     fem_rebuild_flag: wp.array(dtype=int),
     node_f: wp.array(dtype=wp.vec3),
+    node_f_contact: wp.array(dtype=wp.vec3),
     node_energy_contact: wp.array(dtype=wp.float64),
 ):
     i = wp.tid()  # one thread per joint element slot
@@ -347,5 +348,10 @@ def eval_joints_kernel(
     f = out[0] + out[1]
     wp.atomic_add(node_f, b, f)
     wp.atomic_add(node_f, a, -f)
-    # Work of the dashpots on the relative motion, -F_damp · v_rel dt ≥ 0.
-    wp.atomic_add(node_energy_contact, a, wp.float64(-wp.dot(out[1], v_rel) * dt))
+    # The dashpots' work as Verlet does it, ½ dt F_damp·(v_{n-1/2} + v_{n+1/2}) on the relative motion (v_rel is
+    # v_{n-1/2} here): the half behind is booked now, and the force joins node_f_contact, whose half ahead the next
+    # evaluation books against v_{n+1/2} (kernels/fem_contact.py book_node_contact_ahead_kernel). The springs need no
+    # booking: their energy is read at the current positions.
+    wp.atomic_add(node_energy_contact, a, wp.float64(-0.5 * wp.dot(out[1], v_rel) * dt))
+    wp.atomic_add(node_f_contact, b, out[1])
+    wp.atomic_add(node_f_contact, a, -out[1])

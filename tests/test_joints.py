@@ -343,6 +343,44 @@ def test_bonded_joint_lets_go_above_its_strength(device):
     assert math.isclose(v1[0], 0.0, abs_tol=1e-3) and math.isclose(v1[1], 0.0, abs_tol=1e-3)
 
 
+def test_bonded_joint_dashpots_book_what_verlet_works(device):
+    """Two blocks joined by a strong bonded joint of soft springs (k_n = K_N per unit area) and dashpots of
+    restitution 0.2 bounce apart and back from a relative velocity, no gravity, no bulk viscosity: the joint does all
+    the dissipating. The dashpots book Verlet's trapezoid ½ dt F·(v_{n-1/2} + v_{n+1/2}) (half at the evaluation,
+    half at the next from node_f_contact), the springs are linear in the gap (their trapezoid is -ΔU), so the total
+    is Verlet's conserved energy: it swings about zero within the largest shadow term dt²/8 Σ |f|²/m the motion has
+    had (VERLET_MARGIN: the shadow is read at whole frames only). Booked at the half-step velocity alone, the
+    dashpots' line leads by about ½ dt c v², first order in dt where the shadow is second: at a fifth of the stable
+    step that lead is 9× the bound (measured), and the test fails on it."""
+    from test_loads import VERLET_MARGIN, shadow_energy
+
+    from warpdem.tets import TetProps
+
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (2, 2, 2))
+    strong = 1.0e3 * YOUNG  # never reached: the joint stays intact
+    props = JointProps(friction=0.5, tensile_strength=strong, cohesion=strong, restitution=0.2, normal_stiffness=K_N)
+    upper = points[:, 2] > 0.75  # the joint's nodes split later; the upper block's own nodes move
+    velocity = np.where(upper[:, None], [0.01, -0.02, 0.05], 0.0)
+    b = ModelBuilder()
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    b.set_tet_properties("rock", TetProps(bulk_viscosity_linear=0.0, bulk_viscosity_quadratic=0.0))  # joint only
+    js = b.add_joint_set(props)
+    b.add_tet_mesh(points, tets, "rock", joint_faces=plane_faces(points, tets, 2, 0.5), joint_set=js, velocity=velocity)
+    # A fifth of the stable step: the shadow term shrinks as dt², the old booking's lead only as dt.
+    model, state = b.finalize(device, safety_factor=0.1)
+    sim = Simulation(model, state)
+    e0 = sim.energy()
+    errors, shadow = [], []
+    for _ in range(30):
+        sim.advance(20)
+        errors.append(sim.energy().total - e0.total)
+        shadow.append(shadow_energy(model, sim.state))
+    e = sim.energy()
+    assert not np.any(sim.state.joint_broken.numpy())
+    assert e.dissipated_fem_contact > 0.1 * e0.kinetic  # the dashpots took a good part of the motion
+    np.testing.assert_array_less(np.abs(errors), VERLET_MARGIN * np.maximum.accumulate(shadow))
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # Joint normal stiffness per unit area (JointProps.normal_stiffness)
 

@@ -362,11 +362,10 @@ def test_non_reflecting_boundary_absorbs_a_p_pulse(device, bottom):
         assert absorbed >= ABSORBED_MIN and left <= 1.0 - ABSORBED_MIN
     else:
         assert absorbed == 0.0 and abs(1.0 - left) < REFLECTED_MAX
-    # Energy balance: the work brought in is in the column or gone through the dashpots, to Verlet's (ω dt)²/4
-    # oscillation at the pulse's frequency ω = 2π/T; the dashpots book their power at the half-step velocity,
-    # v_{n+1/2}² rather than v_{n-1/2} · v_{n+1/2}, which overstates the dissipation D by as much.
+    # Energy balance: the work brought in is in the column or gone through the dashpots (booked as Verlet works
+    # them, the trapezoid), to Verlet's (ω dt)²/4 oscillation of the kinetic energy at the pulse's frequency ω = 2π/T.
     omega_dt = 2.0 * math.pi / duration * sim.model.dt
-    tol = VERLET_MARGIN * omega_dt**2 / 4.0 * (e.load_work + e.dissipated_viscous + e.absorbed_boundaries)
+    tol = VERLET_MARGIN * omega_dt**2 / 4.0 * e.load_work
     np.testing.assert_allclose(e.total, 0.0, atol=tol)
 
 
@@ -473,22 +472,20 @@ def test_energy_balance_with_dashpots_pressure_and_viscosity(device):
     model, state = b.finalize(device, safety_factor=0.5)
     assert model.loads.pressure_names == ["charge"]
     sim = Simulation(model, state)
-    errors, shadow, dissipated = [], [], []
+    errors, shadow = [], []
     for _ in range(30):
         sim.advance(20)
-        e = sim.energy()
-        errors.append(e.total)
+        errors.append(sim.energy().total)
         shadow.append(shadow_energy(model, state))
-        dissipated.append(e.dissipated_viscous + e.absorbed_boundaries)
     e = sim.energy()
     assert e.absorbed_boundaries > 0.5 * e.load_work  # the dashpots took most of it out
-    # Against the shadow term of the motion, the viscosity and the dashpots book their power at the half-step
-    # velocity: their dissipation runs ahead by about ½ dt P (P the dissipated power, here from the frame's average)
-    # and overstates the dissipation by (ω dt)²/4 (ω ≈ 2π / (t_rise + t_decay), the blast's main frequency).
-    frame = 20 * model.dt
-    power = np.diff(np.concatenate([[0.0], dissipated])) / frame
-    omega_dt = 2.0 * math.pi / (rise + decay) * model.dt
-    tol = VERLET_MARGIN * (np.array(shadow) + 0.5 * model.dt * power + omega_dt**2 / 4.0 * np.array(dissipated))
+    # Viscosity, dashpots and loads all book the trapezoid ½ dt (f_n + f_{n+1})·v_{n+1/2} that Verlet works them
+    # over (kernels/loads.py, kernels/tets.py), so the total is Verlet's conserved energy: it stays within the largest
+    # shadow term the motion has had, dt²/8 Σ |f|²/m (the strain energy is read at the positions, against the
+    # trapezoid of the tets' forces; they differ only at third order in the step for these small strains). Booked at
+    # the half-step velocity alone, the dashpots missed it by about ½ dt P (P their power): 0.05–0.17 J here, 2–8×
+    # this bound at every frame, so the test fails on that booking.
+    tol = VERLET_MARGIN * np.maximum.accumulate(shadow)
     np.testing.assert_array_less(np.abs(errors), tol)
     assert tol.max() < 0.02 * e.load_work
 

@@ -386,7 +386,14 @@ def eval_joints(model: Model, state: State, dt: float | None = None) -> None:
             s.node_q,
             s.node_qd,
         ],
-        outputs=[s.joint_broken, s.joints_broken_total, s.fem_rebuild_flag, s.node_f, s.node_energy_contact],
+        outputs=[
+            s.joint_broken,
+            s.joints_broken_total,
+            s.fem_rebuild_flag,
+            s.node_f,
+            s.node_f_contact,
+            s.node_energy_contact,
+        ],
         device=m.device,
     )
 
