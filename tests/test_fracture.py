@@ -704,3 +704,46 @@ def test_split_runs_on_through_half_open_faces(device):
     between = np.all(np.isclose(where[:, :, 0], LENGTH / 2), axis=1) & np.all(y < 0.75, axis=1)
     assert between.sum() == 4
     assert np.all(shared[between] == 0)
+
+
+@pytest.mark.parametrize("outer", ["broken", "intact"])
+def test_freed_hinge_splits_below_strength_only_where_the_cut_is_traction_free(device, outer):
+    # The freed-hinge rule (warpdem/fracture.py, "Candidates"): rows y = 0 and y = 1 of the mid-section split above
+    # T_f, so every section face holds one of their nodes and the middle row's stars are cut into two components by
+    # half-open faces. Under a load of only half T_f the middle row then splits, and opens the section fully, exactly
+    # when no element joins the outer rows' daughters across those faces (their cohesive elements broken): the cut
+    # is traction-free and the middle node alone pins it. With the elements intact the faces carry traction and no
+    # node below T_f may split. (In both cases the pass is made to evaluate the nodal stresses as after any broken
+    # element: cohesive_broken_total > 0; with it 0 a pass below T_f stops at the tension bound.)
+    model, state, pts = bar(device, may_split="all")
+    sim = Simulation(model, state)
+    x_axis = np.array([1.0, 0.0, 0.0])
+    mid = np.isclose(pts[:, 0], LENGTH / 2)
+
+    def allow(rows) -> np.ndarray:
+        ref = sim.model.node_ref_q.numpy()[: sim.node_count]
+        flags = np.zeros(sim.model.node_capacity, dtype=np.int32)
+        flags[: sim.node_count] = np.isclose(ref[:, 0], LENGTH / 2) & np.any(np.isclose(ref[:, 1:2], rows), axis=1)
+        sim.model.node_may_split.assign(flags)
+        return flags
+
+    first = allow((0.0, 1.0))
+    stretch_along(sim, 1.5 * STRENGTH / YOUNG, 0.25, x_axis)
+    assert sim.fracture_pass().splits == int(first.sum())
+    elements = int(sim.state.cohesive_count.numpy()[0])
+    assert elements == int(first.sum())
+    if outer == "broken":
+        sim.state.cohesive_broken.fill_(1)
+    sim.state.cohesive_broken_total.fill_(1)
+    middle = allow((0.5,))
+    stretch_along(sim, 0.5 * STRENGTH / YOUNG, 0.25, x_axis)
+    splits = sim.fracture_pass().splits
+    check_topology(sim)
+    shared, where = shared_across_faces(sim)
+    on_section = np.all(np.isclose(where[:, :, 0], LENGTH / 2), axis=1)
+    if outer == "broken":
+        assert splits == int(middle.sum()) == int(mid.sum()) // 3
+        assert np.all(shared[on_section] == 0) and np.all(shared[~on_section] == 3)  # the section is open
+    else:
+        assert splits == 0
+        assert np.all(shared[on_section] > 0)  # every section face still held by a middle-row node
