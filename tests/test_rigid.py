@@ -748,11 +748,14 @@ def switch_run(tmp_path_factory):
 
 
 def test_a_later_switch_takes_the_rigid_step_on_the_frame_grid(switch_run):
-    """With dt = "auto" the run takes period / n at the first frame boundary after the switch, n the fewest steps per
-    frame within safety × the critical step after it (warpdem.rigid.rigid_step_after_switch), and says so; frame k
-    still lands on k / rate (the device clock's float64 sum of steps: 1e-12 of the end time); the change books its
-    shadow term (``step_change``) and the balance closes across it (no bulk viscosity: the books of the deformable
-    phase close as Verlet closes them); the column slides on its floor with the load's impulse."""
+    """With dt = "auto" the run takes the rigid step at the switch itself: the rest of the frame the switch falls in
+    (steps s..E of the old step, s = ⌈t_switch / dt_old⌉, E = 6 n_old) as m = ⌈(E − s) dt_old / dt_new⌉ bridge steps of
+    (E − s) dt_old / m ≤ dt_new, then period / n from that frame's end on, n the fewest steps per frame within safety ×
+    the critical step after the switch (warpdem.rigid.rigid_step_after_switch); the run says so. The step count is
+    that arithmetic exactly; frame k still lands on k / rate (the device clock's float64 sum of steps: 1e-12 of the
+    end time); the changes book their shadow term (``step_change``) and the balance closes across them (no bulk
+    viscosity: the books of the deformable phase close as Verlet closes them); the column slides on its floor with
+    the load's impulse."""
     import csv
 
     from warpdem.checkpoint import read_checkpoint
@@ -766,6 +769,12 @@ def test_a_later_switch_takes_the_rigid_step_on_the_frame_grid(switch_run):
     assert substeps == math.ceil(period / (0.5 * critical)) and dt_after == period / substeps
     first = read_checkpoint(summary.checkpoints[0])[1]
     assert first["grid_frame"] == 0 and first["dt"] < dt_after  # a gain
+    dt_before, n_before = first["dt"], first["substeps"]
+    switch = math.ceil(0.0011 / dt_before * (1.0 - 1e-9))
+    frame_end = 6 * n_before
+    assert 5 * n_before < switch < frame_end  # inside frame 6: a bridge
+    bridge = math.ceil((frame_end - switch) * dt_before / dt_after * (1.0 - 1e-9))
+    assert attrs["grid_step"] == switch + bridge and attrs["step"] == switch + bridge + 14 * substeps
     with open(summary.series_path) as f:
         rows = list(csv.DictReader(f))
     times = np.array([float(r["time"]) for r in rows])
@@ -783,8 +792,9 @@ def test_a_later_switch_takes_the_rigid_step_on_the_frame_grid(switch_run):
 
 
 def test_restart_across_the_switch_and_the_step_change_is_bit_for_bit(switch_run):
-    """Restarts from a checkpoint before the switch (frame 4) and from one after the step change (frame 8) end with the
-    uninterrupted run's arrays and step, bit for bit (CPU)."""
+    """Restarts from a checkpoint before the switch (frame 4), from the end of the frame the switch bridged (frame 6,
+    where the grid's step took over from the bridge's) and from one after (frame 8) end with the uninterrupted run's
+    arrays and step, bit for bit (CPU)."""
     import shutil
 
     from warpdem.checkpoint import read_checkpoint
@@ -792,7 +802,7 @@ def test_restart_across_the_switch_and_the_step_change_is_bit_for_bit(switch_run
 
     scene, folder, summary = switch_run
     end_arrays, end_attrs = read_checkpoint(summary.checkpoints[-1])
-    for frame in (4, 8):
+    for frame in (4, 6, 8):
         copy = folder / f"restart{frame}"
         shutil.copytree(folder / "out", copy)
         checkpoint = next(p for p in (copy / "checkpoints").iterdir() if read_checkpoint(p)[1]["frame"] == frame)
@@ -802,3 +812,22 @@ def test_restart_across_the_switch_and_the_step_change_is_bit_for_bit(switch_run
         assert arrays.keys() == end_arrays.keys()
         for name, a in end_arrays.items():
             np.testing.assert_array_equal(arrays[name], a, err_msg=f"restart from frame {frame}: {name}")
+
+
+def test_an_explicit_time_step_is_kept_across_the_switch(tmp_path):
+    """A scene's own dt is the user's choice: the run keeps it across the switch (no bridge, no new grid, nothing
+    booked as a step change) and says so; the frames stay those of that dt, so the run ends at step T / dt."""
+    from test_scene import write
+
+    from warpdem.checkpoint import read_checkpoint
+    from warpdem.runner import RunOptions, run_scene
+    from warpdem.scene import load_scene
+
+    dt = 2.0e-5  # 10 steps per 0.2 ms frame; below both stable steps (3.5e-5 s deformable, 4.8e-5 s rigid)
+    text = SWITCH_SCENE.replace("safety_factor = 0.5", f"dt = {dt!r}").replace("end_time = 0.004", "end_time = 0.0016")
+    scene = load_scene(write(tmp_path, text))
+    summary = run_scene(scene, RunOptions(device="cpu", out_dir=tmp_path / "out", quiet=True))
+    assert f"time step kept at {dt:.4g} s" in summary.rigid
+    arrays, attrs = read_checkpoint(summary.checkpoints[-1])
+    assert attrs["dt"] == dt and attrs["step"] == 80 and attrs["grid_step"] == 0 and attrs["substeps"] == 10
+    assert arrays["state/rigid_switched"][0] == 1 and arrays["state/energy_step_change"][0] == 0.0

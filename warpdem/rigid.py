@@ -97,8 +97,9 @@ class RigidReport:
         tets made rigid; released: energy booked as ``released_rigid_switch`` [J]; critical_dt: the stable step after
         the switch (:func:`rigid_step_after_switch`, before the safety factor) [s]; deformable_dt: the builder's
         critical step of the deformable model (``Model.critical_dt`` at the switch) [s]; dt_before, dt_after: the
-        run's time step at the switch and after it (the runner takes the rigid step at the next frame with
-        ``dt = "auto"``) [s] (all set by the Simulation and the runner).
+        run's time step at the switch and after it (with ``dt = "auto"`` the runner takes the rigid step at the
+        switch, warpdem.runner.take_rigid_step; an explicit dt is kept) [s] (all set by the Simulation and the
+        runner).
     """
 
     bodies: int
@@ -127,6 +128,9 @@ class RigidReport:
             )
         elif math.isfinite(self.dt_before):
             text += f"; time step kept at {self.dt_before:.4g} s"
+            if self.dt_before > self.critical_dt:
+                # An explicit run.dt is kept as the user set it; say so where it is past the new stable step.
+                text += ' (above the stable step after the switch: lower run.dt or use dt = "auto")'
         return text
 
 

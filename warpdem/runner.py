@@ -455,11 +455,11 @@ class _StopRequest:
 class FrameGrid:
     """Where the frames end, in steps: frame k ≥ ``frame`` ends at step ``step`` + (k − ``frame``) × ``substeps``.
 
-    A run starts on one grid (frame 0 at step 0). A change of the time step (the rigid step taken after a switch,
-    :func:`take_rigid_step`) starts a new grid at the frame boundary where it happens: the frames keep their period
-    (substeps × dt = frame period, dt = period / substeps), so frame k still falls at k × period, to the rounding of
-    the device clock's sum of steps. Checkpoints hold the grid (``substeps``, ``grid_step``, ``grid_frame``,
-    ``grid_time``), so a restart continues on it.
+    A run starts on one grid (frame 0 at step 0). A change of the time step (the rigid step taken at a switch,
+    :func:`take_rigid_step`) starts a new grid at the frame boundary where the new step takes over: the frames keep
+    their period (substeps × dt = frame period, dt = period / substeps), so frame k still falls at k × period, to the
+    rounding of the device clock's sum of steps. Checkpoints hold the grid (``substeps``, ``grid_step``,
+    ``grid_frame``, ``grid_time``), so a restart continues on it.
 
     Attributes:
         substeps: steps per frame. step, frame: the step at which frame ``frame`` ends (the grid's anchor).
@@ -502,23 +502,55 @@ class FrameGrid:
         )
 
 
+@dataclass
+class RigidStepChange:
+    """The rigid step taken at a switch (:func:`take_rigid_step`).
+
+    Attributes:
+        grid: the frame grid from the next frame boundary on (anchored there).
+        dt: the time step of that grid, period / substeps [s]; ``pending``: whether it is still to be set at that
+            boundary (a switch inside a frame runs the rest of the frame at a bridge step first).
+    """
+
+    grid: FrameGrid
+    dt: float
+    pending: bool
+
+
 def take_rigid_step(
-    sim: Simulation, safety_factor: float, frame_period: float, grid: FrameGrid, frame: int
-) -> FrameGrid:
-    """After the blocks turned rigid, at the end of frame ``frame`` (a run with ``dt = "auto"``): the time step
-    becomes period / n for the fewest n steps per frame that keep it within ``safety_factor`` × the critical step
-    after the switch (warpdem.rigid.rigid_step_after_switch; larger or smaller than the step before), taken by
-    :meth:`warpdem.simulation.Simulation.set_time_step` (which books the shadow term's change). Returns the new grid,
-    anchored at this frame; the same one when the step per frame does not change (no change is made).
+    sim: Simulation, safety_factor: float, frame_period: float, grid: FrameGrid, frame: int, end: int
+) -> RigidStepChange | None:
+    """The rigid step, taken at the step of the switch (a run with ``dt = "auto"``; the blocks turned rigid at
+    ``sim.step_count``, inside frame ``frame`` or at its end, ``end``: the step that frame ends at, or the run's last
+    step where that comes first).
+
+    From the next frame boundary on, the step is period / n for the fewest n steps per frame that keep it within
+    ``safety_factor`` × the critical step after the switch (warpdem.rigid.rigid_step_after_switch; larger or smaller
+    than the step before), so frames keep landing on k × period. A switch inside a frame leaves the time
+    r = (end − step) × dt_old to the frame's end: it is run as m = ⌈r / dt_new⌉ steps of r / m ≤ dt_new (the bridge),
+    so the rigid step holds from the switch itself and the frame still ends on its time, to the rounding of the
+    device clock. Each change is :meth:`warpdem.simulation.Simulation.set_time_step` (which books the shadow term's
+    change): the bridge step now, the grid's step at the boundary (by the caller, ``pending``).
+
+    Returns:
+        The new grid, anchored at ``end`` (moved to step + m), and its step; None when the step per frame does not
+        change (nothing is changed) or the critical step is not a positive number.
     """
     critical = rigid_step_after_switch(sim.model, sim.state)
     if not (math.isfinite(critical.value) and critical.value > 0.0):
-        return grid
+        return None
     substeps = max(1, math.ceil(frame_period / (safety_factor * critical.value)))
     if substeps == grid.substeps:
-        return grid
-    sim.set_time_step(frame_period / substeps, critical)
-    return FrameGrid(substeps, sim.step_count, frame, sim.time)
+        return None
+    dt = frame_period / substeps
+    left = (end - sim.step_count) * sim.model.dt
+    if end == sim.step_count:
+        sim.set_time_step(dt, critical)
+        return RigidStepChange(FrameGrid(substeps, sim.step_count, frame, sim.time), dt, pending=False)
+    # The 1e-9 of slack keeps a remainder that is a whole number of new steps from gaining one by rounding.
+    bridge = max(1, math.ceil(left / dt * (1.0 - 1e-9)))
+    sim.set_time_step(left / bridge, critical)
+    return RigidStepChange(FrameGrid(substeps, sim.step_count + bridge, frame, sim.time + left), dt, pending=True)
 
 
 def end_step(end_time: float, dt: float) -> int:
@@ -649,20 +681,43 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     if options.restart is None:
         # A new run converts its start_as_spheres region here, before frame 0; a restart's checkpoint holds them.
         start_as_spheres(scene, sim)
-    # With dt = "auto" a run takes the rigid blocks' step at the first frame boundary after the switch (a switch
-    # from the start took it above: the same step, no change); a restart knows from its checkpoint whether it did.
+    # With dt = "auto" a run takes the rigid blocks' step at the step of the switch (a switch from the start took it
+    # above: the same step, no change); a restart knows from its checkpoint whether it did (one written at a run's
+    # end by an earlier warpdem, which took it at the next frame boundary, may not have). An explicit dt is the
+    # user's: it is kept across the switch.
     rigid_step_due = run.dt == "auto" and not bool(attrs.get("rigid_step_taken", primed and sim.rigid))
+    pending_dt: list[float] = []  # the grid's step, set at the frame boundary that ends a bridge (take_rigid_step)
 
-    def adopt_rigid_step(frame: int) -> None:
+    def adopt_rigid_step(frame: int, end: int) -> None:
+        """Takes the rigid step now if it is due: the blocks are rigid, ``end`` is the step the frame ``frame`` in
+        progress (or just ended) ends at."""
         nonlocal grid, last_step, total_frames, rigid_step_due
-        if not (rigid_step_due and sim.rigid) or frame >= total_frames:
-            return  # not due, or the run is over (a new grid would add a step past its end)
+        if not (rigid_step_due and sim.rigid):
+            return
         rigid_step_due = False
-        new = take_rigid_step(sim, run.safety_factor, frame_period, grid, frame)
-        if new is not grid:
-            grid = new
-            last_step = grid.last_step(end_time, options.frames, sim.model.dt)
-            total_frames = grid.frames(last_step)
+        change = take_rigid_step(sim, run.safety_factor, frame_period, grid, frame, end)
+        if change is None:
+            return
+        runs_on = end != last_step  # a bridge to the run's last step ends the run: no step is added past it
+        grid = change.grid
+        if change.pending:
+            pending_dt.append(change.dt)
+        last_step = grid.last_step(end_time, options.frames, change.dt) if runs_on else grid.step
+        total_frames = grid.frames(last_step)
+
+    def advance_frame(frame: int) -> None:
+        """Runs the steps of frame ``frame`` (to its end on the grid, or the run's last step), taking the rigid step
+        at a switch inside it, then the grid's step at its end after a bridge."""
+        while True:
+            end = min(grid.end_step(frame), last_step)
+            if sim.step_count >= end:
+                break
+            rigid = sim.rigid
+            sim.advance(end - sim.step_count, stop_at_switch=rigid_step_due)
+            if sim.rigid and not rigid:
+                adopt_rigid_step(frame, end)
+        if pending_dt:
+            sim.set_time_step(pending_dt.pop())
 
     _check_steps(scene, float(substeps), options, total_frames - first_frame)
 
@@ -794,19 +849,18 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
             where = f"{scene.source}: output.directory / output.usd"
         raise _output_error(where, usd_path, exc) from None
     with stop, writer:
-        adopt_rigid_step(frame)
+        adopt_rigid_step(frame, sim.step_count)  # blocks rigid from the start, or a restart that did not take it
         energy_start = energy_end = write_frame(writer, frame)
         in_play = energy_start.in_play
         while frame < total_frames and stop.signum is None:
             time_before = sim.time
             try:
-                sim.advance(min(grid.end_step(frame + 1), last_step) - sim.step_count)
+                advance_frame(frame + 1)
             except UnstableRunError as exc:
                 # The bad state is neither written nor checkpointed; the good frames are published below.
                 unstable = exc
                 break
             frame += 1
-            adopt_rigid_step(frame)
             energy_end = write_frame(writer, frame)
             in_play = max(in_play, energy_end.in_play)
             if progress is not None:
