@@ -831,3 +831,72 @@ def test_an_explicit_time_step_is_kept_across_the_switch(tmp_path):
     arrays, attrs = read_checkpoint(summary.checkpoints[-1])
     assert attrs["dt"] == dt and attrs["step"] == 80 and attrs["grid_step"] == 0 and attrs["substeps"] == 10
     assert arrays["state/rigid_switched"][0] == 1 and arrays["state/energy_step_change"][0] == 0.0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The step of a mixed model after a switch (warpdem.rigid.deformable_critical_step)
+
+
+def two_material_column(device, lower: bool = False, dashpots: bool = True, wall: bool = True):
+    """A 1 × 1 × 2 m column of 2 × 2 × 4 Kuhn cells: the upper half of a stiff, dense rock (E 10×, ρ 4×: its tets and
+    surface springs need 1/1.6 of the soft ones' step, its body a longer one), the lower half soft; non-reflecting
+    dashpots on the bottom face and a wall 1 m below (so the builder counts the contact springs), each optional.
+    ``lower``: the lower half built alone (the same tets and nodes); else the upper half may turn rigid."""
+    from warpdem.mesh import boundary_faces
+
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 2.0), (2, 2, 4))
+    upper = points[tets].mean(axis=1)[:, 2] > 1.0
+    if lower:
+        used = np.unique(tets[~upper])
+        renumber = np.full(len(points), -1)
+        renumber[used] = np.arange(len(used))
+        points, tets, upper = points[used], renumber[tets[~upper]], upper[~upper]
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("soft", DENSITY, YOUNG, POISSON)
+    b.add_material("stiff", 4.0 * DENSITY, 10.0 * YOUNG, POISSON)
+    b.add_tet_mesh(points, tets, ["stiff" if u else "soft" for u in upper])
+    if dashpots:
+        faces = boundary_faces(tets)
+        b.add_boundary(faces[np.all(points[faces][:, :, 2] == 0.0, axis=1)], "non_reflecting")
+    if wall:
+        b.add_plane_wall((0.0, 0.0, -1.0), (0.0, 0.0, 1.0), "soft")
+    model, state = b.finalize(device, safety_factor=0.5)
+    if not lower:
+        may = np.zeros(model.tet_capacity, dtype=np.int32)
+        may[: len(tets)] = upper
+        model = dataclasses.replace(model, tet_may_rigid=wp.array(may, dtype=int, device=model.device))
+    return model, state
+
+
+@pytest.mark.parametrize(
+    ("dashpots", "wall", "setter"),
+    [(True, True, "dashpots"), (False, True, "contact penalty springs"), (False, False, "tet")],
+)
+def test_step_after_a_partial_switch_is_that_of_what_is_left(device, dashpots, wall, setter):
+    """After the stiff upper half of the column turns rigid, the step is min(the bodies' step, the builder's step of
+    the soft lower half built alone); the soft half's own is set by its dashpots, by the contact springs of its
+    surface nodes (no dashpots; here the soft half sets the run's step in both), or by its tets (no dashpots, no
+    wall: one body, no contact can engage; the bodies then set the run's). None of these
+    does the rigid half change (its nodes on the shared face follow the body). The whole model's step (set by the
+    stiff half) no longer bounds the run. Both sides are float64 numpy sums of the same numbers, float32 on the
+    model's side (the material table, reference positions): 1e-6 relative."""
+    from warpdem.rigid import (
+        contact_damping_ratio,
+        deformable_critical_step,
+        rigid_critical_step,
+        rigid_step_after_switch,
+    )
+
+    model, state = two_material_column(device, dashpots=dashpots, wall=wall)
+    alone, _ = two_material_column(device, lower=True, dashpots=dashpots, wall=wall)
+    sim = Simulation(model, state)
+    sim.switch_to_rigid()
+    left = deformable_critical_step(sim.model, sim.state)
+    np.testing.assert_allclose(left.value, alone.critical_dt, rtol=1e-6)
+    assert setter in left.source and setter in alone.critical_dt_source
+    after = rigid_step_after_switch(sim.model, sim.state)
+    bodies = rigid_critical_step(sim.model, sim.state, contact_damping_ratio(sim.model))
+    np.testing.assert_allclose(after.value, min(bodies, alone.critical_dt), rtol=1e-6)
+    assert (
+        after.value > 1.2 * model.critical_dt
+    )  # the stiff half's step (1.4× smaller in tets, 1.6× in springs) is gone
