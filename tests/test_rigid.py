@@ -900,3 +900,84 @@ def test_step_after_a_partial_switch_is_that_of_what_is_left(device, dashpots, w
     assert (
         after.value > 1.2 * model.critical_dt
     )  # the stiff half's step (1.4× smaller in tets, 1.6× in springs) is gone
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Checkpoints of an older format (warpdem.runner.FIELD_MIGRATIONS)
+
+
+def as_old_checkpoint(source, target, keys):
+    """A copy of a checkpoint as format version 1 wrote it: without ``keys`` (``state/<name>``, ``model/<name>``,
+    ``attribute <name>``) and with its version attribute set to 1."""
+    import shutil
+
+    import h5py
+
+    if source != target:
+        shutil.copyfile(source, target)
+    with h5py.File(target, "r+") as f:
+        for key in keys:
+            if key.startswith("attribute "):
+                del f.attrs[key.removeprefix("attribute ")]
+            else:
+                del f[key]
+        f.attrs["warpdem_format_version"] = 1
+    return target
+
+
+def test_an_old_checkpoint_resumes_bit_for_bit_where_its_fields_fill_exactly(switch_run):
+    """A checkpoint of format 1 lacks the fields added since (warpdem.runner.FIELD_MIGRATIONS). Before the switch
+    (frame 4) every one of them has its fresh value in the run (no contact, no pass, no viscosity, no change of
+    step, no body): a restart fills them and ends with the uninterrupted run's arrays, bit for bit (CPU)."""
+    import shutil
+
+    from warpdem.checkpoint import read_checkpoint
+    from warpdem.runner import FIELD_MIGRATIONS, RunOptions, run_scene
+
+    scene, folder, summary = switch_run
+    end_arrays, _ = read_checkpoint(summary.checkpoints[-1])
+    copy = folder / "old4"
+    shutil.copytree(folder / "out", copy)
+    path = next(p for p in (copy / "checkpoints").iterdir() if read_checkpoint(p)[1]["frame"] == 4)
+    arrays, attrs = read_checkpoint(path)
+    keys = [k for k in FIELD_MIGRATIONS if k in arrays or k.removeprefix("attribute ") in attrs]
+    assert len(keys) >= 30  # every state field of the table, tet_may_rigid and the five scalars
+    as_old_checkpoint(path, path, keys)
+    again = run_scene(scene, RunOptions(device="cpu", out_dir=copy, quiet=True, restart=path))
+    arrays, _ = read_checkpoint(again.checkpoints[-1])
+    assert arrays.keys() == end_arrays.keys()
+    for name, a in end_arrays.items():
+        np.testing.assert_array_equal(arrays[name], a, err_msg=f"restart from an old frame-4 checkpoint: {name}")
+
+
+@pytest.mark.parametrize(
+    ("key", "why"),
+    [
+        ("state/body_constraint", "its blocks had turned rigid"),
+        ("state/energy_step_change", "the time step had changed"),
+        ("attribute deformable_critical_dt", "the time step had changed"),
+    ],
+)
+def test_an_old_checkpoint_is_refused_where_a_field_would_not_fill_exactly(switch_run, tmp_path, key, why):
+    """After the switch and the change of step (frame 8) the bodies' roller constraints, the step-change line and the
+    deformable step are the run's own, not a fresh model's: a format-1 checkpoint without one of them is refused with
+    one line naming the file, the field and why. A format-2 file must hold every field: one that lacks it is refused
+    as incomplete."""
+    import h5py
+
+    from warpdem.checkpoint import CheckpointError, read_checkpoint
+    from warpdem.runner import RunOptions, run_scene
+
+    scene, _, summary = switch_run
+    source = next(p for p in summary.checkpoints if read_checkpoint(p)[1]["frame"] == 8)
+    path = as_old_checkpoint(source, tmp_path / source.name, [key])
+    name = key.removeprefix("attribute ").removeprefix("state/")
+    options = RunOptions(device="cpu", out_dir=tmp_path / "out", quiet=True, restart=path)
+    with pytest.raises(CheckpointError) as info:
+        run_scene(scene, options)
+    message = str(info.value)
+    assert str(path) in message and name in message and why in message and "\n" not in message
+    with h5py.File(path, "r+") as f:
+        f.attrs["warpdem_format_version"] = 2
+    with pytest.raises(CheckpointError, match=r"missing .*written by an older warpdem"):
+        run_scene(scene, options)

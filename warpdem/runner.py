@@ -9,6 +9,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,10 +17,10 @@ import numpy as np
 import warp as wp
 
 from . import __version__
-from .checkpoint import CheckpointError, checkpoint_name, read_checkpoint, write_checkpoint
+from .checkpoint import CheckpointError, checkpoint_name, read_checkpoint_version, write_checkpoint
 from .guard import UnstableRunError
 from .limits import MAX_ELEMENTS, MAX_STEPS
-from .model import NEIGHBOR_FIELDS, Model, State
+from .model import NEIGHBOR_FIELDS, RIGID_BODY_FIELDS, RIGID_NODE_FIELDS, Model, State
 from .rigid import rigid_step_after_switch, rigid_time_step
 from .scene import Scene, SceneError
 from .scene_build import finalize_scene, scene_builder, start_as_spheres
@@ -345,17 +346,181 @@ def _check_attrs(path: Path, attrs: dict, capacities: list[str]) -> None:
         raise CheckpointError(f"{path}: particle_capacity × max_neighbors exceeds {MAX_ELEMENTS} slots")
 
 
+def _total(arrays: dict[str, np.ndarray], name: str) -> int:
+    """A counter of the checkpoint's state (shape (1,)); 0 where it does not hold it."""
+    held = arrays.get(f"state/{name}")
+    return int(held.reshape(-1)[0]) if held is not None and held.size else 0
+
+
+def _no_pass(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    if _total(arrays, "node_splits_total") or _total(arrays, "tets_converted_total"):
+        return "split or conversion passes had run, and what they booked is not in it"
+    return None
+
+
+def _no_bodies(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    bodies = arrays.get("state/body_mass")
+    if (bodies is not None and len(bodies)) or _total(arrays, "rigid_switched"):
+        return "its blocks had turned rigid, and their state is not all in it"
+    return None
+
+
+def _no_node_contact(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    spring = arrays.get("state/node_face_spring")
+    if spring is None or np.any(spring >= 0):
+        return "nodes were touching faces, and their contact forces at the last step are not in it"
+    if int(attrs.get("num_walls", 0)):
+        return "the scene has walls, and whether nodes touched them at the last step is not in it"
+    return None
+
+
+def _no_sphere_face(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    candidates = arrays.get("state/sphere_face_count")
+    if _total(arrays, "particle_count") and (candidates is None or np.any(candidates > 0)):
+        return "spheres were near faces, and their contact energies at the last step are not in it"
+    return None
+
+
+def _no_cohesive(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    if _total(arrays, "cohesive_count") or _total(arrays, "cohesive_broken_total"):
+        return "cohesive elements had been born, and their forces at the last evaluation are not in it"
+    return None
+
+
+def _no_viscous_force(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    table = model.tet_material_table.numpy() if model.tet_material_table is not None else None
+    damped = table is not None and any(np.any(table[name] != 0.0) for name in ("c_lin", "c_quad", "alpha"))
+    moving = arrays.get("state/node_qd")
+    if damped and (moving is None or np.any(moving != 0.0)):
+        return "bulk viscosity or mass damping acted on moving nodes, and their forces at the last step are not in it"
+    return None
+
+
+def _no_step_change(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    if int(attrs.get("grid_step", 0)):
+        return "the time step had changed, and the shadow term it booked is not in it"
+    return _no_pass(arrays, attrs, model)
+
+
+def _always(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    """A scene setting no run changes: the scene's value is the run's."""
+    return None
+
+
+@dataclass(frozen=True)
+class FieldMigration:
+    """How a restart fills a field that a checkpoint of an older format lacks (:func:`restore_checkpoint`).
+
+    Attributes:
+        since: the first format version whose files hold it (warpdem.checkpoint.FORMAT_VERSION); a file of that
+            version or newer that lacks it is refused as incomplete.
+        exact: (arrays, attrs, fresh model) -> None where the fresh model's or state's value (a constant per item,
+            sized as the checkpoint's other arrays of its kind, ``like``) is exactly what the run would hold, else
+            why not (one clause).
+        like: the checkpoint key whose length the filled array takes (None: the fresh value's own length).
+    """
+
+    since: int
+    exact: object
+    like: str | None = None
+
+
+_RIGID_FIELDS = ("rigid_nodes", *RIGID_BODY_FIELDS, *RIGID_NODE_FIELDS)
+FIELD_MIGRATIONS: dict[str, FieldMigration] = {
+    # Bulk viscosity and mass damping book Verlet's trapezoid (cea7fdb).
+    "state/node_f_viscous": FieldMigration(2, _no_viscous_force, "state/node_u"),
+    # FEM node and sphere–face contacts book Verlet's trapezoid (1e8395f, d830a52); held stiffness (6e2930a).
+    "state/node_f_contact": FieldMigration(2, _no_node_contact, "state/node_u"),
+    "state/node_contact_energy_prev": FieldMigration(2, _no_node_contact, "state/node_u"),
+    "state/node_contact_hold": FieldMigration(2, _no_pass, "state/node_u"),
+    "state/sphere_face_energy_prev": FieldMigration(2, _no_sphere_face, "state/sphere_face_count"),
+    # Cohesive elements book Verlet's trapezoid (bd9f694).
+    "state/cohesive_f_prev": FieldMigration(2, _no_cohesive, "state/cohesive_a"),
+    "state/cohesive_energy_prev": FieldMigration(2, _no_cohesive, "state/cohesive_a"),
+    # Energy lines of split and conversion passes and of changes of the step (f56645e, 5aa6f7b, 7241212).
+    "state/energy_contact_topology": FieldMigration(2, _no_pass),
+    "state/energy_step_change": FieldMigration(2, _no_step_change),
+    # Rigid blocks (498b672, 5aa6f7b): empty before a switch.
+    "state/rigid_switched": FieldMigration(2, _no_bodies),
+    "state/energy_released_rigid": FieldMigration(2, _no_bodies),
+    **{f"state/{name}": FieldMigration(2, _no_bodies) for name in _RIGID_FIELDS},
+    "model/tet_may_rigid": FieldMigration(2, _always, "model/tet_nodes"),
+    # Conversion's edge degree (19e0e61): as attached until a pass converts or splits.
+    "model/tet_edge_degree": FieldMigration(2, _no_pass, "model/tet_nodes"),
+    # Model scalars (attributes): scene settings, and the deformable step kept by a change of step.
+    "attribute contact_face_normal_stiffness": FieldMigration(2, _always),
+    "attribute rigid_switch_time": FieldMigration(2, _always),
+    "attribute rigid_energy_fraction": FieldMigration(2, _always),
+    "attribute rigid_check_interval": FieldMigration(2, _always),
+    "attribute deformable_critical_dt": FieldMigration(2, _no_step_change),
+}
+"""The fields added since checkpoint format 1, by checkpoint key (``state/<name>``, ``model/<name>``, ``attribute
+<name>`` for a model scalar), and when a restart may fill them from the fresh model and state
+(warpdem.checkpoint, "Versions")."""
+
+
+def _migrate(
+    path: Path,
+    version: int,
+    arrays: dict[str, np.ndarray],
+    attrs: dict,
+    missing: list[str],
+    fresh: Callable[[str], object],
+    model: Model,
+) -> list[str]:
+    """Fills, in ``arrays`` and ``attrs``, the fields of :data:`FIELD_MIGRATIONS` that a checkpoint of format
+    ``version`` lacks, with the fresh value (``fresh``: key -> the fresh model's or state's value) where that is exact.
+
+    Returns:
+        The keys still missing: not in the table, or lacking in a file whose version should hold them.
+
+    Raises:
+        CheckpointError: one line naming the file, the field and why the fresh value would not be the run's.
+    """
+    left = []
+    for key in missing:
+        rule = FIELD_MIGRATIONS.get(key)
+        if rule is None or version >= rule.since:
+            left.append(key)
+            continue
+        why = rule.exact(arrays, attrs, model)
+        value = fresh(key)
+        if why is None and key.startswith("attribute "):
+            attrs[key.removeprefix("attribute ")] = value
+            continue
+        if why is None:
+            size = len(arrays[rule.like]) if rule.like is not None and rule.like in arrays else len(value)
+            if size != len(value):
+                # A grown capacity: the fresh value is one constant per item (an empty slot) or it cannot be resized.
+                flat = value.reshape(len(value), -1)
+                if len(value) == 0 or np.any(flat != flat[:1]):
+                    why = f"its fresh value is not one constant to resize to the checkpoint's {size} items"
+                else:
+                    value = np.repeat(value[:1], size, axis=0)
+        if why is not None:
+            name = key.removeprefix("attribute ")
+            raise CheckpointError(
+                f"{path}: {name} is missing (format version {version}, before {rule.since}) and cannot be filled "
+                f"exactly: {why}; restart from an earlier checkpoint of this run, or run it again with this warpdem"
+            )
+        arrays[key] = value
+    return left
+
+
 def restore_checkpoint(
     path: Path, model: Model, template: State, scene: str | None = None
 ) -> tuple[Model, State, dict]:
     """Model and state of a checkpoint, on the device of ``model`` (built from the same scene; ``template`` is its
     initial state and gives each array's type). Every model array but the struct tables and every model scalar
-    (:func:`model_scalars`: capacities as grown by the run) come from the checkpoint.
+    (:func:`model_scalars`: capacities as grown by the run) come from the checkpoint. A checkpoint of an older format
+    that lacks fields added since has them filled from the fresh model and state where that is exact
+    (:data:`FIELD_MIGRATIONS`), so a run can always be resumed from its last checkpoint, or is refused saying why.
 
     Raises:
-        CheckpointError: unreadable file, or one that belongs to another scene (``scene``: this scene's name).
+        CheckpointError: unreadable file, one that belongs to another scene (``scene``: this scene's name), or one
+            that lacks a field that cannot be filled exactly (one line: the file, the field, why).
     """
-    arrays, attrs = read_checkpoint(path)
+    arrays, attrs, version = read_checkpoint_version(path)
     if scene is not None and "scene" in attrs and attrs["scene"] != scene:
         raise CheckpointError(f"checkpoint {path} belongs to scene {attrs['scene']!r}, not {scene!r}")
     for key in SCENE_FIXED_SCALARS:
@@ -365,12 +530,21 @@ def restore_checkpoint(
         if key in attrs and attrs[key] != expected:
             raise CheckpointError(f"{path}: {key} is {attrs[key]} but the scene builds {expected}; wrong scene?")
     scalars = model_scalars(model)
-    _check_attrs(path, attrs, [name for name, value in scalars.items() if isinstance(value, int)])
     missing = [
         k
         for k in [f"model/{n}" for n in model_checkpoint_arrays(model)] + [f"state/{n}" for n in template.arrays()]
         if k not in arrays
     ] + [f"attribute {n}" for n in scalars if n not in attrs]
+
+    def fresh(key: str) -> object:
+        """The fresh model's or state's value of a checkpoint key."""
+        kind, name = key.split("/", 1) if "/" in key else ("attribute", key.removeprefix("attribute "))
+        if kind == "attribute":
+            return scalars[name]
+        return (getattr(model, name) if kind == "model" else getattr(template, name)).numpy()
+
+    missing = _migrate(path, version, arrays, attrs, missing, fresh, model)
+    _check_attrs(path, attrs, [name for name, value in scalars.items() if isinstance(value, int)])
     if missing:
         raise CheckpointError(f"{path}: missing {', '.join(missing)} (written by an older warpdem?)")
     device = model.device
