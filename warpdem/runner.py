@@ -353,12 +353,14 @@ def _total(arrays: dict[str, np.ndarray], name: str) -> int:
 
 
 def _no_pass(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    """Exact where no split or conversion pass changed anything (what such passes book and hold is then zero)."""
     if _total(arrays, "node_splits_total") or _total(arrays, "tets_converted_total"):
         return "split or conversion passes had run, and what they booked is not in it"
     return None
 
 
 def _no_bodies(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    """Exact where the blocks have not turned rigid (the rigid fields are then empty, their lines zero)."""
     bodies = arrays.get("state/body_mass")
     if (bodies is not None and len(bodies)) or _total(arrays, "rigid_switched"):
         return "its blocks had turned rigid, and their state is not all in it"
@@ -366,6 +368,8 @@ def _no_bodies(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str 
 
 
 def _no_node_contact(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    """Exact where no node's contact spring held a face (``node_face_spring`` all -1) and there are no walls: the
+    nodes' contact forces and spring energies at the last evaluation were then zero."""
     spring = arrays.get("state/node_face_spring")
     if spring is None or np.any(spring >= 0):
         return "nodes were touching faces, and their contact forces at the last step are not in it"
@@ -375,6 +379,7 @@ def _no_node_contact(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -
 
 
 def _no_sphere_face(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    """Exact where no sphere had a candidate face (so none touched one) or there are no spheres."""
     candidates = arrays.get("state/sphere_face_count")
     if _total(arrays, "particle_count") and (candidates is None or np.any(candidates > 0)):
         return "spheres were near faces, and their contact energies at the last step are not in it"
@@ -382,21 +387,25 @@ def _no_sphere_face(arrays: dict[str, np.ndarray], attrs: dict, model: Model) ->
 
 
 def _no_cohesive(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    """Exact where no cohesive element was ever born (none alive, none broken and removed)."""
     if _total(arrays, "cohesive_count") or _total(arrays, "cohesive_broken_total"):
         return "cohesive elements had been born, and their forces at the last evaluation are not in it"
     return None
 
 
 def _no_viscous_force(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    """Exact where no material has bulk viscosity or mass damping (c_lin, c_quad, alpha all 0), or at step 0: the
+    viscous forces at the last evaluation were then zero."""
     table = model.tet_material_table.numpy() if model.tet_material_table is not None else None
     damped = table is not None and any(np.any(table[name] != 0.0) for name in ("c_lin", "c_quad", "alpha"))
-    moving = arrays.get("state/node_qd")
-    if damped and (moving is None or np.any(moving != 0.0)):
-        return "bulk viscosity or mass damping acted on moving nodes, and their forces at the last step are not in it"
+    if damped and int(attrs.get("step", 0)) > 0:
+        return "bulk viscosity or mass damping acted, and their forces at the last step are not in it"
     return None
 
 
 def _no_step_change(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    """Exact where the time step never changed (the frame grid never moved: ``grid_step`` 0) and no pass ran (a split
+    pass books its change of the shadow term as a step change too)."""
     if int(attrs.get("grid_step", 0)):
         return "the time step had changed, and the shadow term it booked is not in it"
     return _no_pass(arrays, attrs, model)
@@ -421,7 +430,7 @@ class FieldMigration:
     """
 
     since: int
-    exact: object
+    exact: Callable[[dict[str, np.ndarray], dict, Model], str | None]
     like: str | None = None
 
 
