@@ -748,11 +748,14 @@ def switch_run(tmp_path_factory):
 
 
 def test_a_later_switch_takes_the_rigid_step_on_the_frame_grid(switch_run):
-    """With dt = "auto" the run takes period / n at the first frame boundary after the switch, n the fewest steps per
-    frame within safety × the critical step after it (warpdem.rigid.rigid_step_after_switch), and says so; frame k
-    still lands on k / rate (the device clock's float64 sum of steps: 1e-12 of the end time); the change books its
-    shadow term (``step_change``) and the balance closes across it (no bulk viscosity: the books of the deformable
-    phase close as Verlet closes them); the column slides on its floor with the load's impulse."""
+    """With dt = "auto" the run takes the rigid step at the switch itself: the rest of the frame the switch falls in
+    (steps s..E of the old step, s = ⌈t_switch / dt_old⌉, E = 6 n_old) as m = ⌈(E − s) dt_old / dt_new⌉ bridge steps of
+    (E − s) dt_old / m ≤ dt_new, then period / n from that frame's end on, n the fewest steps per frame within safety ×
+    the critical step after the switch (warpdem.rigid.rigid_step_after_switch); the run says so. The step count is
+    that arithmetic exactly; frame k still lands on k / rate (the device clock's float64 sum of steps: 1e-12 of the
+    end time); the changes book their shadow term (``step_change``) and the balance closes across them (no bulk
+    viscosity: the books of the deformable phase close as Verlet closes them); the column slides on its floor with
+    the load's impulse."""
     import csv
 
     from warpdem.checkpoint import read_checkpoint
@@ -766,6 +769,12 @@ def test_a_later_switch_takes_the_rigid_step_on_the_frame_grid(switch_run):
     assert substeps == math.ceil(period / (0.5 * critical)) and dt_after == period / substeps
     first = read_checkpoint(summary.checkpoints[0])[1]
     assert first["grid_frame"] == 0 and first["dt"] < dt_after  # a gain
+    dt_before, n_before = first["dt"], first["substeps"]
+    switch = math.ceil(0.0011 / dt_before * (1.0 - 1e-9))
+    frame_end = 6 * n_before
+    assert 5 * n_before < switch < frame_end  # inside frame 6: a bridge
+    bridge = math.ceil((frame_end - switch) * dt_before / dt_after * (1.0 - 1e-9))
+    assert attrs["grid_step"] == switch + bridge and attrs["step"] == switch + bridge + 14 * substeps
     with open(summary.series_path) as f:
         rows = list(csv.DictReader(f))
     times = np.array([float(r["time"]) for r in rows])
@@ -783,8 +792,9 @@ def test_a_later_switch_takes_the_rigid_step_on_the_frame_grid(switch_run):
 
 
 def test_restart_across_the_switch_and_the_step_change_is_bit_for_bit(switch_run):
-    """Restarts from a checkpoint before the switch (frame 4) and from one after the step change (frame 8) end with the
-    uninterrupted run's arrays and step, bit for bit (CPU)."""
+    """Restarts from a checkpoint before the switch (frame 4), from the end of the frame the switch bridged (frame 6,
+    where the grid's step took over from the bridge's) and from one after (frame 8) end with the uninterrupted run's
+    arrays and step, bit for bit (CPU)."""
     import shutil
 
     from warpdem.checkpoint import read_checkpoint
@@ -792,7 +802,7 @@ def test_restart_across_the_switch_and_the_step_change_is_bit_for_bit(switch_run
 
     scene, folder, summary = switch_run
     end_arrays, end_attrs = read_checkpoint(summary.checkpoints[-1])
-    for frame in (4, 8):
+    for frame in (4, 6, 8):
         copy = folder / f"restart{frame}"
         shutil.copytree(folder / "out", copy)
         checkpoint = next(p for p in (copy / "checkpoints").iterdir() if read_checkpoint(p)[1]["frame"] == frame)
@@ -802,3 +812,176 @@ def test_restart_across_the_switch_and_the_step_change_is_bit_for_bit(switch_run
         assert arrays.keys() == end_arrays.keys()
         for name, a in end_arrays.items():
             np.testing.assert_array_equal(arrays[name], a, err_msg=f"restart from frame {frame}: {name}")
+
+
+def test_an_explicit_time_step_is_kept_across_the_switch(tmp_path):
+    """A scene's own dt is the user's choice: the run keeps it across the switch (no bridge, no new grid, nothing
+    booked as a step change) and says so; the frames stay those of that dt, so the run ends at step T / dt."""
+    from test_scene import write
+
+    from warpdem.checkpoint import read_checkpoint
+    from warpdem.runner import RunOptions, run_scene
+    from warpdem.scene import load_scene
+
+    dt = 2.0e-5  # 10 steps per 0.2 ms frame; below both stable steps (3.5e-5 s deformable, 4.8e-5 s rigid)
+    text = SWITCH_SCENE.replace("safety_factor = 0.5", f"dt = {dt!r}").replace("end_time = 0.004", "end_time = 0.0016")
+    scene = load_scene(write(tmp_path, text))
+    summary = run_scene(scene, RunOptions(device="cpu", out_dir=tmp_path / "out", quiet=True))
+    assert f"time step kept at {dt:.4g} s" in summary.rigid
+    arrays, attrs = read_checkpoint(summary.checkpoints[-1])
+    assert attrs["dt"] == dt and attrs["step"] == 80 and attrs["grid_step"] == 0 and attrs["substeps"] == 10
+    assert arrays["state/rigid_switched"][0] == 1 and arrays["state/energy_step_change"][0] == 0.0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The step of a mixed model after a switch (warpdem.rigid.deformable_critical_step)
+
+STEP_RTOL = 16.0 * F32_EPS
+"""The step of what is left from the model's float32 numbers (material table, reference positions, node masses and
+contact stiffnesses) against the builder's float64 ones: a few ε₃₂ through the square roots (measured ≤ 1.2e-8)."""
+
+
+def two_material_column(device, lower: bool = False, dashpots: bool = True, wall: bool = True):
+    """A 1 × 1 × 2 m column of 2 × 2 × 4 Kuhn cells: the upper half of a stiff, dense rock (E 10×, ρ 4×: its tets and
+    surface springs need 1/1.6 of the soft ones' step, its body a longer one), the lower half soft; non-reflecting
+    dashpots on the bottom face and a wall 1 m below (so the builder counts the contact springs), each optional.
+    ``lower``: the lower half built alone (the same tets and nodes); else the upper half may turn rigid."""
+    from warpdem.mesh import boundary_faces
+
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 2.0), (2, 2, 4))
+    upper = points[tets].mean(axis=1)[:, 2] > 1.0
+    if lower:
+        used = np.unique(tets[~upper])
+        renumber = np.full(len(points), -1)
+        renumber[used] = np.arange(len(used))
+        points, tets, upper = points[used], renumber[tets[~upper]], upper[~upper]
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("soft", DENSITY, YOUNG, POISSON)
+    b.add_material("stiff", 4.0 * DENSITY, 10.0 * YOUNG, POISSON)
+    b.add_tet_mesh(points, tets, ["stiff" if u else "soft" for u in upper])
+    if dashpots:
+        faces = boundary_faces(tets)
+        b.add_boundary(faces[np.all(points[faces][:, :, 2] == 0.0, axis=1)], "non_reflecting")
+    if wall:
+        b.add_plane_wall((0.0, 0.0, -1.0), (0.0, 0.0, 1.0), "soft")
+    model, state = b.finalize(device, safety_factor=0.5)
+    if not lower:
+        may = np.zeros(model.tet_capacity, dtype=np.int32)
+        may[: len(tets)] = upper
+        model = dataclasses.replace(model, tet_may_rigid=wp.array(may, dtype=int, device=model.device))
+    return model, state
+
+
+@pytest.mark.parametrize(
+    ("dashpots", "wall", "setter"),
+    [(True, True, "dashpots"), (False, True, "contact penalty springs"), (False, False, "tet")],
+)
+def test_step_after_a_partial_switch_is_that_of_what_is_left(device, dashpots, wall, setter):
+    """After the stiff upper half of the column turns rigid, the step is min(the bodies' step, the builder's step of
+    the soft lower half built alone); the soft half's own is set by its dashpots, by the contact springs of its
+    surface nodes (no dashpots; here the soft half sets the run's step in both), or by its tets (no dashpots, no
+    wall: one body, no contact can engage; the bodies then set the run's). None of these
+    does the rigid half change (its nodes on the shared face follow the body). The whole model's step (set by the
+    stiff half) no longer bounds the run. Both sides are float64 numpy sums of the same numbers, float32 on the
+    model's side (STEP_RTOL)."""
+    from warpdem.rigid import (
+        contact_damping_ratio,
+        deformable_critical_step,
+        rigid_critical_step,
+        rigid_step_after_switch,
+    )
+
+    model, state = two_material_column(device, dashpots=dashpots, wall=wall)
+    alone, _ = two_material_column(device, lower=True, dashpots=dashpots, wall=wall)
+    sim = Simulation(model, state)
+    sim.switch_to_rigid()
+    left = deformable_critical_step(sim.model, sim.state)
+    np.testing.assert_allclose(left.value, alone.critical_dt, rtol=STEP_RTOL)
+    assert setter in left.source and setter in alone.critical_dt_source
+    after = rigid_step_after_switch(sim.model, sim.state)
+    bodies = rigid_critical_step(sim.model, sim.state, contact_damping_ratio(sim.model))
+    np.testing.assert_allclose(after.value, min(bodies, alone.critical_dt), rtol=STEP_RTOL)
+    assert (
+        after.value > 1.2 * model.critical_dt
+    )  # the stiff half's step (1.4× smaller in tets, 1.6× in springs) is gone
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Checkpoints of an older format (warpdem.runner.FIELD_MIGRATIONS)
+
+
+def as_old_checkpoint(source, target, keys):
+    """A copy of a checkpoint as format version 1 wrote it: without ``keys`` (``state/<name>``, ``model/<name>``,
+    ``attribute <name>``) and with its version attribute set to 1."""
+    import shutil
+
+    import h5py
+
+    if source != target:
+        shutil.copyfile(source, target)
+    with h5py.File(target, "r+") as f:
+        for key in keys:
+            if key.startswith("attribute "):
+                del f.attrs[key.removeprefix("attribute ")]
+            else:
+                del f[key]
+        f.attrs["warpdem_format_version"] = 1
+    return target
+
+
+def test_an_old_checkpoint_resumes_bit_for_bit_where_its_fields_fill_exactly(switch_run):
+    """A checkpoint of format 1 lacks the fields added since (warpdem.runner.FIELD_MIGRATIONS). Before the switch
+    (frame 4) every one of them has its fresh value in the run (no contact, no pass, no viscosity, no change of
+    step, no body): a restart fills them and ends with the uninterrupted run's arrays, bit for bit (CPU)."""
+    import shutil
+
+    from warpdem.checkpoint import read_checkpoint
+    from warpdem.runner import FIELD_MIGRATIONS, RunOptions, run_scene
+
+    scene, folder, summary = switch_run
+    end_arrays, _ = read_checkpoint(summary.checkpoints[-1])
+    copy = folder / "old4"
+    shutil.copytree(folder / "out", copy)
+    path = next(p for p in (copy / "checkpoints").iterdir() if read_checkpoint(p)[1]["frame"] == 4)
+    arrays, attrs = read_checkpoint(path)
+    keys = [k for k in FIELD_MIGRATIONS if k in arrays or k.removeprefix("attribute ") in attrs]
+    assert len(keys) >= 30  # every state field of the table, tet_may_rigid and the five scalars
+    as_old_checkpoint(path, path, keys)
+    again = run_scene(scene, RunOptions(device="cpu", out_dir=copy, quiet=True, restart=path))
+    arrays, _ = read_checkpoint(again.checkpoints[-1])
+    assert arrays.keys() == end_arrays.keys()
+    for name, a in end_arrays.items():
+        np.testing.assert_array_equal(arrays[name], a, err_msg=f"restart from an old frame-4 checkpoint: {name}")
+
+
+@pytest.mark.parametrize(
+    ("key", "why"),
+    [
+        ("state/body_constraint", "its blocks had turned rigid"),
+        ("state/energy_step_change", "the time step had changed"),
+        ("attribute deformable_critical_dt", "the time step had changed"),
+    ],
+)
+def test_an_old_checkpoint_is_refused_where_a_field_would_not_fill_exactly(switch_run, tmp_path, key, why):
+    """After the switch and the change of step (frame 8) the bodies' roller constraints, the step-change line and the
+    deformable step are the run's own, not a fresh model's: a format-1 checkpoint without one of them is refused with
+    one line naming the file, the field and why. A format-2 file must hold every field: one that lacks it is refused
+    as incomplete."""
+    import h5py
+
+    from warpdem.checkpoint import CheckpointError, read_checkpoint
+    from warpdem.runner import RunOptions, run_scene
+
+    scene, _, summary = switch_run
+    source = next(p for p in summary.checkpoints if read_checkpoint(p)[1]["frame"] == 8)
+    path = as_old_checkpoint(source, tmp_path / source.name, [key])
+    name = key.removeprefix("attribute ").removeprefix("state/")
+    options = RunOptions(device="cpu", out_dir=tmp_path / "out", quiet=True, restart=path)
+    with pytest.raises(CheckpointError) as info:
+        run_scene(scene, options)
+    message = str(info.value)
+    assert str(path) in message and name in message and why in message and "\n" not in message
+    with h5py.File(path, "r+") as f:
+        f.attrs["warpdem_format_version"] = 2
+    with pytest.raises(CheckpointError, match=r"missing .*written by an older warpdem"):
+        run_scene(scene, options)

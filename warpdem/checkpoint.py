@@ -10,6 +10,13 @@ A checkpoint is one HDF5 file holding
 - the root attributes ``warpdem_format`` (= :data:`FORMAT_NAME`) and ``warpdem_format_version``
   (= :data:`FORMAT_VERSION`), checked on read.
 
+Versions: 1, the layout above; 2, the same layout, with a promise: a version-2 file holds every State and Model field
+its writer had, including all those added since version 1 (warpdem.runner.FIELD_MIGRATIONS lists them). A version-1
+file may lack some of them: a restart fills each one it lacks with a fresh model's value where that is exactly what
+the run would hold (an energy line of a pass that never ran, the contact books of a run with no contact), and refuses
+otherwise, naming the file, the field and why (warpdem.runner.restore_checkpoint). A field added later bumps the
+version again and adds its rows to that table, with the version it appeared in.
+
 Files are written to ``<name>.tmp-<pid>`` in the target directory and moved over the final name with
 ``os.replace``, so a crash or an error mid-write never damages the previous checkpoint.
 """
@@ -32,6 +39,7 @@ __all__ = [
     "checkpoint_name",
     "latest_checkpoint",
     "read_checkpoint",
+    "read_checkpoint_version",
     "remove_stale_temporaries",
     "write_checkpoint",
 ]
@@ -39,8 +47,9 @@ __all__ = [
 FORMAT_NAME = "warpdem-checkpoint"
 """Value of the root attribute ``warpdem_format`` identifying a warpdem checkpoint."""
 
-FORMAT_VERSION = 1
-"""Newest checkpoint layout this module writes and reads; bump when the layout changes incompatibly."""
+FORMAT_VERSION = 2
+"""Newest checkpoint format this module writes and reads (module docstring, "Versions"); bump when the layout changes
+or fields are added, and list what older files may lack in warpdem.runner.FIELD_MIGRATIONS."""
 
 _FORMAT_NAME_ATTR = "warpdem_format"
 _FORMAT_VERSION_ATTR = "warpdem_format_version"
@@ -215,6 +224,16 @@ def read_checkpoint(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dic
         CheckpointError: With a one-line message naming the file, if it is missing, not an HDF5 file, corrupt,
             not a warpdem checkpoint, or written by a newer format version.
     """
+    arrays, attrs, _ = read_checkpoint_version(path)
+    return arrays, attrs
+
+
+def read_checkpoint_version(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, Any], int]:
+    """:func:`read_checkpoint`, and the file's format version (1 .. :data:`FORMAT_VERSION`: what it may lack).
+
+    Raises:
+        CheckpointError: as :func:`read_checkpoint`.
+    """
     import h5py
 
     file_path = pathlib.Path(path)
@@ -231,7 +250,7 @@ def read_checkpoint(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dic
 
     try:
         with h5py.File(file_path, "r") as f:
-            _check_format(file_path, f.attrs)
+            version = _check_format(file_path, f.attrs)
             attrs = _decode_attrs(file_path, f.attrs)
             arrays: dict[str, np.ndarray] = {}
 
@@ -245,7 +264,7 @@ def read_checkpoint(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dic
         raise
     except (OSError, KeyError, ValueError, TypeError) as exc:
         raise CheckpointError(f"checkpoint {str(file_path)!r}: corrupt HDF5 file ({_one_line(exc)})") from exc
-    return arrays, attrs
+    return arrays, attrs, version
 
 
 def _prepare_arrays(arrays: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -355,12 +374,15 @@ def _decode_attrs(file_path: pathlib.Path, stored: Any) -> dict[str, Any]:
     return out
 
 
-def _check_format(file_path: pathlib.Path, stored: Any) -> None:
+def _check_format(file_path: pathlib.Path, stored: Any) -> int:
     """Checks the format name and version attributes.
 
     Args:
         file_path: Checkpoint file, for error messages.
         stored: The root ``h5py.AttributeManager``.
+
+    Returns:
+        The format version.
 
     Raises:
         CheckpointError: If the file is not a warpdem checkpoint or its version is unsupported.
@@ -387,6 +409,7 @@ def _check_format(file_path: pathlib.Path, stored: Any) -> None:
         )
     if version < 1:
         raise CheckpointError(f"checkpoint {str(file_path)!r}: unsupported format version {version}")
+    return version
 
 
 def _fsync_directory(directory: pathlib.Path) -> None:

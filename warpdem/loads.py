@@ -406,42 +406,23 @@ class LoadSpecs:
         return np.concatenate(faces), np.asarray(np.concatenate(impedance), dtype=np.float64)
 
     def critical_time_step(self, mesh: TetMeshData, table: list[kt.TetMaterial]) -> float:
-        """Stable step [s] of the nodes with dashpots (inf without any), before the safety factor.
-
-        A node of mass m under a dashpot C (Σ a third of each adjacent face's area times ρ c_p) and the stiffness of
-        its tets is a damped oscillator; the explicit dashpot (at the half-step velocity) is stable for
-        dt ≤ (2/ω)(sqrt(1 + ζ²) - ζ). ω is bounded by the largest element frequency of its tets (2/dt_e without
-        viscosity, warpdem.tets.tet_stable_time_steps), and ζ = C / (2 m ω) plus the largest viscous damping ratio
-        of those tets. On a Kuhn box mesh the corner nodes of the faces (mass ρ V_cell / 24) set the step; the
-        bound was found about 20 % below the step at which a dashpot column starts to blow up.
-        """
+        """Stable step [s] of the nodes with dashpots (inf without any), before the safety factor
+        (:func:`dashpot_critical_step` on the scene's non-reflecting faces)."""
         dashpots = self.dashpot_faces(mesh, table)
         if dashpots is None or len(mesh.tets) == 0:
             return math.inf
-        faces, impedance = dashpots
-        n = len(mesh.points)
-        x = mesh.points[faces]
-        third = np.linalg.norm(np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), axis=1) / 6.0
-        coefficient = np.bincount(faces.ravel(), weights=np.repeat(third * impedance.max(axis=1), 3), minlength=n)
 
         def per_tet(attr: str) -> np.ndarray:
             return np.array([getattr(m, attr) for m in table], dtype=np.float64)[mesh.material]
 
-        inv_ref, volume = reference_geometry(mesh.points, mesh.tets)
-        mu, lam, density = per_tet("mu"), per_tet("lam"), per_tet("density")
-        undamped = tet_stable_time_steps(inv_ref, mu, lam, density, np.zeros(len(mu)))
-        damped = tet_stable_time_steps(inv_ref, mu, lam, density, per_tet("c_lin"), per_tet("alpha"))
-        # Back from (2/ω)(sqrt(1 + ζ²) - ζ) = r (2/ω) to the element's damping ratio ζ = (1 - r²) / (2r).
-        r = damped / undamped
-        nodes = np.asarray(mesh.tets, dtype=np.int64).ravel()
-        omega, zeta_tets = np.zeros(n), np.zeros(n)
-        np.maximum.at(omega, nodes, np.repeat(2.0 / undamped, 4))
-        np.maximum.at(zeta_tets, nodes, np.repeat((1.0 - r**2) / (2.0 * r), 4))
-        mass, _ = lumped_node_masses(n, mesh.tets, volume, density, np.zeros(len(mu)))
-        held = (coefficient > 0.0) & (mass > 0.0) & (omega > 0.0)
-        w = omega[held]
-        zeta = coefficient[held] / (2.0 * mass[held] * w) + zeta_tets[held]
-        return float(np.min(2.0 / w * (np.sqrt(1.0 + zeta**2) - zeta)))
+        faces, impedance = dashpots
+        return dashpot_critical_step(
+            mesh.points,
+            mesh.tets,
+            {name: per_tet(name) for name in ("mu", "lam", "density", "c_lin", "alpha")},
+            faces,
+            impedance,
+        )
 
     def build_dashpots(self, mesh: TetMeshData, table: list[kt.TetMaterial], device) -> FaceSet | None:
         dashpots = self.dashpot_faces(mesh, table)
@@ -782,3 +763,56 @@ def relax_to_equilibrium(
     s.time.fill_(sim.time)
     sim.evaluate_forces()
     return steps
+
+
+def dashpot_critical_step(
+    points: np.ndarray,
+    tets: np.ndarray,
+    tet_props: dict[str, np.ndarray],
+    faces: np.ndarray,
+    impedance: np.ndarray,
+    moving: np.ndarray | None = None,
+) -> float:
+    """Stable step [s] of the nodes with dashpots (inf without any), before the safety factor.
+
+    A node of mass m under a dashpot C (Σ a third of each adjacent face's area times ρ c_p) and the stiffness of
+    its tets is a damped oscillator; the explicit dashpot (at the half-step velocity) is stable for
+    dt ≤ (2/ω)(sqrt(1 + ζ²) - ζ). ω is bounded by the largest element frequency of its tets (2/dt_e without
+    viscosity, warpdem.tets.tet_stable_time_steps), and ζ = C / (2 m ω) plus the largest viscous damping ratio
+    of those tets. On a Kuhn box mesh the corner nodes of the faces (mass ρ V_cell / 24) set the step; the
+    bound was found about 20 % below the step at which a dashpot column starts to blow up.
+
+    Args:
+        points: reference node positions [m], (N, 3). tets: the tets that give the nodes their mass and stiffness,
+        (M, 4). tet_props: ``mu``, ``lam`` [Pa], ``density`` [kg/m³], ``c_lin`` [-] and ``alpha`` [1/s] per tet,
+        (M,) each (kernels/tets.py TetMaterial). faces: the dashpot faces' nodes, (F, 3). impedance: their ρ c_p and
+        ρ c_s [Pa s/m], (F, 2). moving: bool per node, the nodes whose step counts (None: every node; the nodes of
+        rigid blocks have the bodies' step instead, warpdem.rigid).
+    """
+    if len(faces) == 0 or len(tets) == 0:
+        return math.inf
+    points = np.asarray(points, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    n = len(points)
+    x = points[faces]
+    third = np.linalg.norm(np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), axis=1) / 6.0
+    coefficient = np.bincount(faces.ravel(), weights=np.repeat(third * impedance.max(axis=1), 3), minlength=n)
+    inv_ref, volume = reference_geometry(points, tets)
+    mu, lam, density = tet_props["mu"], tet_props["lam"], tet_props["density"]
+    undamped = tet_stable_time_steps(inv_ref, mu, lam, density, np.zeros(len(mu)))
+    damped = tet_stable_time_steps(inv_ref, mu, lam, density, tet_props["c_lin"], tet_props["alpha"])
+    # Back from (2/ω)(sqrt(1 + ζ²) - ζ) = r (2/ω) to the element's damping ratio ζ = (1 - r²) / (2r).
+    r = damped / undamped
+    nodes = np.asarray(tets, dtype=np.int64).ravel()
+    omega, zeta_tets = np.zeros(n), np.zeros(n)
+    np.maximum.at(omega, nodes, np.repeat(2.0 / undamped, 4))
+    np.maximum.at(zeta_tets, nodes, np.repeat((1.0 - r**2) / (2.0 * r), 4))
+    mass, _ = lumped_node_masses(n, tets, volume, density, np.zeros(len(mu)))
+    held = (coefficient > 0.0) & (mass > 0.0) & (omega > 0.0)
+    if moving is not None:
+        held &= np.asarray(moving, dtype=bool)
+    if not held.any():
+        return math.inf
+    w = omega[held]
+    zeta = coefficient[held] / (2.0 * mass[held] * w) + zeta_tets[held]
+    return float(np.min(2.0 / w * (np.sqrt(1.0 + zeta**2) - zeta)))

@@ -64,6 +64,7 @@ __all__ = [
     "body_frames",
     "box_inertia",
     "contact_damping_ratio",
+    "deformable_critical_step",
     "drift_bodies",
     "element_mode_energy",
     "has_bodies",
@@ -97,8 +98,9 @@ class RigidReport:
         tets made rigid; released: energy booked as ``released_rigid_switch`` [J]; critical_dt: the stable step after
         the switch (:func:`rigid_step_after_switch`, before the safety factor) [s]; deformable_dt: the builder's
         critical step of the deformable model (``Model.critical_dt`` at the switch) [s]; dt_before, dt_after: the
-        run's time step at the switch and after it (the runner takes the rigid step at the next frame with
-        ``dt = "auto"``) [s] (all set by the Simulation and the runner).
+        run's time step at the switch and after it (with ``dt = "auto"`` the runner takes the rigid step at the
+        switch, warpdem.runner.take_rigid_step; an explicit dt is kept) [s] (all set by the Simulation and the
+        runner).
     """
 
     bodies: int
@@ -127,6 +129,9 @@ class RigidReport:
             )
         elif math.isfinite(self.dt_before):
             text += f"; time step kept at {self.dt_before:.4g} s"
+            if self.dt_before > self.critical_dt:
+                # An explicit run.dt is kept as the user set it; say so where it is past the new stable step.
+                text += ' (above the stable step after the switch: lower run.dt or use dt = "auto")'
         return text
 
 
@@ -532,22 +537,92 @@ def rigid_time_step(model: Model, state: State, safety_factor: float) -> Model:
 
 def rigid_step_after_switch(model: Model, state: State) -> CriticalStep:
     """The critical step of a model whose blocks turned rigid [s], before the safety factor, and what sets it: the
-    bodies' own (:func:`rigid_critical_step`: their contact springs and dashpots), and, where deformable tets or
-    spheres are left, the builder's step of the deformable model (``deformable_critical_dt``, else ``critical_dt``),
-    which still bounds them (their own steps are not measured apart from the rest: a mixed model gains nothing beyond
-    the deformable step, and may lose). Reads back."""
+    least of the bodies' own (:func:`rigid_critical_step`: their contact springs and dashpots) and that of what is
+    left deformable (:func:`deformable_critical_step`: its tets, dashpots, contact springs and spheres). Reads back."""
     rigid = CriticalStep(
         rigid_critical_step(model, state, contact_damping_ratio(model)),
         "the contact springs and dashpots of the rigid blocks (warpdem.rigid.rigid_critical_step)",
     )
+    left = deformable_critical_step(model, state)
+    return left if left.value < rigid.value else rigid
+
+
+def deformable_critical_step(model: Model, state: State) -> CriticalStep:
+    """The critical step of what a switch left deformable [s], before the safety factor, and what sets it (inf when
+    nothing is left). Host, reference configuration; reads back.
+
+    The builder's bounds (warpdem.builder.ModelBuilder.critical_step), restricted to the active tets that did not
+    turn rigid (``tet_active`` = 1) and the nodes that follow no body — a node shared with a rigid tet moves with its
+    block, whose step :func:`rigid_critical_step` bounds (a body's effective mass at a node is at least the node's own
+    share, so the tets next to it are bounded by their own element steps):
+
+    - each tet's element step (warpdem.tets.tet_stable_time_steps, with its bulk viscosity and mass damping);
+    - the nodes under non-reflecting dashpots (warpdem.loads.dashpot_critical_step);
+    - the contact springs of the deformable surface nodes, where contacts can engage (as the builder: walls, spheres,
+      joints, cohesive elements, or more than one tet body): ω² = 4 k/m with the node's penalty stiffness
+      k = ``node_contact_stiffness`` and lumped mass m (two such nodes pressed together by both passes of the
+      contact, warpdem.fem_contact.contact_critical_step_at), dt = 2/ω (sqrt(1 + ζ²) − ζ). After the joints' split
+      the side of each node is known, so k/m is the node's own, not the builder's bound over its tets;
+    - spheres left (scene spheres, converted tets): their steps are not measured apart from the rest; they keep the
+      builder's step of the whole deformable model (``deformable_critical_dt``, else ``critical_dt``) as a bound.
+    """
+    from .loads import dashpot_critical_step
+    from .tets import reference_geometry, tet_stable_time_steps
+
     nt = int(state.tet_count.numpy()[0])
-    deformable = bool(np.any(state.tet_active.numpy()[:nt] == 1)) or int(state.particle_count.numpy()[0]) > 0
-    if not deformable:
-        return rigid
-    before = model.deformable_critical_dt if model.deformable_critical_dt > 0.0 else model.critical_dt
-    if before < rigid.value:
-        return CriticalStep(before, f"{model.critical_dt_source} (deformable tets or spheres are left)")
-    return rigid
+    nn = int(state.node_count.numpy()[0])
+    active = state.tet_active.numpy()[:nt]
+    tets = model.tet_nodes.numpy()[:nt][active == 1].astype(np.int64)
+    steps = [CriticalStep(math.inf, "nothing deformable is left")]
+    if int(state.particle_count.numpy()[0]) > 0:
+        whole = model.deformable_critical_dt if model.deformable_critical_dt > 0.0 else model.critical_dt
+        steps.append(CriticalStep(whole, f"{model.critical_dt_source} (spheres are left)"))
+    if len(tets):
+        points = model.node_ref_q.numpy()[:nn].astype(np.float64)
+        table = model.tet_material_table.numpy()
+        material = model.tet_material.numpy()[:nt][active == 1]
+        props = {name: table[name].astype(np.float64)[material] for name in ("mu", "lam", "density", "c_lin", "alpha")}
+        inv_ref, _ = reference_geometry(points, tets)
+        per_tet = tet_stable_time_steps(
+            inv_ref, props["mu"], props["lam"], props["density"], props["c_lin"], props["alpha"]
+        )
+        k = int(np.argmin(per_tet))
+        tet = int(np.flatnonzero(active == 1)[k])
+        steps.append(CriticalStep(float(per_tet[k]), f"deformable tet {tet} left after the rigid switch"))
+        moving = model.node_motion.numpy()[:nn] != int(kr.NODE_RIGID)
+        dashpots = model.loads.dashpots if model.loads is not None else None
+        if dashpots is not None:
+            dashpot = dashpot_critical_step(
+                points, tets, props, dashpots.nodes.numpy(), dashpots.impedance.numpy().astype(np.float64), moving
+            )
+            steps.append(CriticalStep(dashpot, "the non-reflecting dashpots on the deformable nodes left"))
+        if model.node_contact_stiffness is not None and _contacts_can_engage(model, state):
+            spring = model.node_contact_stiffness.numpy()[:nn].astype(np.float64)
+            mass = model.node_mass.numpy()[:nn].astype(np.float64)
+            ratio = np.where(moving & (spring > 0.0) & (mass > 0.0), spring / np.where(mass > 0.0, mass, 1.0), 0.0)
+            node = int(np.argmax(ratio))
+            if ratio[node] > 0.0:
+                omega = 2.0 * math.sqrt(ratio[node])
+                zeta = contact_damping_ratio(model)
+                contact = 2.0 / omega * (math.sqrt(1.0 + zeta**2) - zeta)
+                steps.append(CriticalStep(contact, f"the contact penalty springs of deformable node {node}"))
+    return min(steps, key=lambda c: c.value)
+
+
+def _contacts_can_engage(model: Model, state: State) -> bool:
+    """Whether the FEM contacts of a model can engage, as the builder decides it for its contact step
+    (warpdem.builder.ModelBuilder.contact_critical_step): walls, spheres, joints or cohesive elements (cracks), or
+    more than one tet body (rigid or not, connected through shared nodes; warpdem.fragments.block_labels)."""
+    if model.num_walls > 0 or model.max_radius > 0.0 or model.joint_set_props or model.cohesive_capacity > 0:
+        return True
+    nt = int(state.tet_count.numpy()[0])
+    live = np.zeros(model.tet_capacity, dtype=np.int32)
+    live[:nt] = state.tet_active.numpy()[:nt] != 0
+    every = dataclasses.replace(model, tet_may_rigid=None)
+    _, bodies = block_labels(
+        every, dataclasses.replace(state, tet_active=wp.array(live, dtype=int, device=model.device))
+    )
+    return bodies > 1
 
 
 def _plane_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -9,6 +9,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,10 +17,10 @@ import numpy as np
 import warp as wp
 
 from . import __version__
-from .checkpoint import CheckpointError, checkpoint_name, read_checkpoint, write_checkpoint
+from .checkpoint import CheckpointError, checkpoint_name, read_checkpoint_version, write_checkpoint
 from .guard import UnstableRunError
 from .limits import MAX_ELEMENTS, MAX_STEPS
-from .model import NEIGHBOR_FIELDS, Model, State
+from .model import NEIGHBOR_FIELDS, RIGID_BODY_FIELDS, RIGID_NODE_FIELDS, Model, State
 from .rigid import rigid_step_after_switch, rigid_time_step
 from .scene import Scene, SceneError
 from .scene_build import finalize_scene, scene_builder, start_as_spheres
@@ -345,17 +346,190 @@ def _check_attrs(path: Path, attrs: dict, capacities: list[str]) -> None:
         raise CheckpointError(f"{path}: particle_capacity × max_neighbors exceeds {MAX_ELEMENTS} slots")
 
 
+def _total(arrays: dict[str, np.ndarray], name: str) -> int:
+    """A counter of the checkpoint's state (shape (1,)); 0 where it does not hold it."""
+    held = arrays.get(f"state/{name}")
+    return int(held.reshape(-1)[0]) if held is not None and held.size else 0
+
+
+def _no_pass(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    """Exact where no split or conversion pass changed anything (what such passes book and hold is then zero)."""
+    if _total(arrays, "node_splits_total") or _total(arrays, "tets_converted_total"):
+        return "split or conversion passes had run, and what they booked is not in it"
+    return None
+
+
+def _no_bodies(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    """Exact where the blocks have not turned rigid (the rigid fields are then empty, their lines zero)."""
+    bodies = arrays.get("state/body_mass")
+    if (bodies is not None and len(bodies)) or _total(arrays, "rigid_switched"):
+        return "its blocks had turned rigid, and their state is not all in it"
+    return None
+
+
+def _no_node_contact(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    """Exact where no node's contact spring held a face (``node_face_spring`` all -1) and there are no walls: the
+    nodes' contact forces and spring energies at the last evaluation were then zero."""
+    spring = arrays.get("state/node_face_spring")
+    if spring is None or np.any(spring >= 0):
+        return "nodes were touching faces, and their contact forces at the last step are not in it"
+    if int(attrs.get("num_walls", 0)):
+        return "the scene has walls, and whether nodes touched them at the last step is not in it"
+    return None
+
+
+def _no_sphere_face(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    """Exact where no sphere had a candidate face (so none touched one) or there are no spheres."""
+    candidates = arrays.get("state/sphere_face_count")
+    if _total(arrays, "particle_count") and (candidates is None or np.any(candidates > 0)):
+        return "spheres were near faces, and their contact energies at the last step are not in it"
+    return None
+
+
+def _no_cohesive(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    """Exact where no cohesive element was ever born (none alive, none broken and removed)."""
+    if _total(arrays, "cohesive_count") or _total(arrays, "cohesive_broken_total"):
+        return "cohesive elements had been born, and their forces at the last evaluation are not in it"
+    return None
+
+
+def _no_viscous_force(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    """Exact where no material has bulk viscosity or mass damping (c_lin, c_quad, alpha all 0), or at step 0: the
+    viscous forces at the last evaluation were then zero."""
+    table = model.tet_material_table.numpy() if model.tet_material_table is not None else None
+    damped = table is not None and any(np.any(table[name] != 0.0) for name in ("c_lin", "c_quad", "alpha"))
+    if damped and int(attrs.get("step", 0)) > 0:
+        return "bulk viscosity or mass damping acted, and their forces at the last step are not in it"
+    return None
+
+
+def _no_step_change(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    """Exact where the time step never changed (the frame grid never moved: ``grid_step`` 0) and no pass ran (a split
+    pass books its change of the shadow term as a step change too)."""
+    if int(attrs.get("grid_step", 0)):
+        return "the time step had changed, and the shadow term it booked is not in it"
+    return _no_pass(arrays, attrs, model)
+
+
+def _always(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    """A scene setting no run changes: the scene's value is the run's."""
+    return None
+
+
+@dataclass(frozen=True)
+class FieldMigration:
+    """How a restart fills a field that a checkpoint of an older format lacks (:func:`restore_checkpoint`).
+
+    Attributes:
+        since: the first format version whose files hold it (warpdem.checkpoint.FORMAT_VERSION); a file of that
+            version or newer that lacks it is refused as incomplete.
+        exact: (arrays, attrs, fresh model) -> None where the fresh model's or state's value (a constant per item,
+            sized as the checkpoint's other arrays of its kind, ``like``) is exactly what the run would hold, else
+            why not (one clause).
+        like: the checkpoint key whose length the filled array takes (None: the fresh value's own length).
+    """
+
+    since: int
+    exact: Callable[[dict[str, np.ndarray], dict, Model], str | None]
+    like: str | None = None
+
+
+_RIGID_FIELDS = ("rigid_nodes", *RIGID_BODY_FIELDS, *RIGID_NODE_FIELDS)
+FIELD_MIGRATIONS: dict[str, FieldMigration] = {
+    # Bulk viscosity and mass damping book Verlet's trapezoid (cea7fdb).
+    "state/node_f_viscous": FieldMigration(2, _no_viscous_force, "state/node_u"),
+    # FEM node and sphere–face contacts book Verlet's trapezoid (1e8395f, d830a52); held stiffness (6e2930a).
+    "state/node_f_contact": FieldMigration(2, _no_node_contact, "state/node_u"),
+    "state/node_contact_energy_prev": FieldMigration(2, _no_node_contact, "state/node_u"),
+    "state/node_contact_hold": FieldMigration(2, _no_pass, "state/node_u"),
+    "state/sphere_face_energy_prev": FieldMigration(2, _no_sphere_face, "state/sphere_face_count"),
+    # Cohesive elements book Verlet's trapezoid (bd9f694).
+    "state/cohesive_f_prev": FieldMigration(2, _no_cohesive, "state/cohesive_a"),
+    "state/cohesive_energy_prev": FieldMigration(2, _no_cohesive, "state/cohesive_a"),
+    # Energy lines of split and conversion passes and of changes of the step (f56645e, 5aa6f7b, 7241212).
+    "state/energy_contact_topology": FieldMigration(2, _no_pass),
+    "state/energy_step_change": FieldMigration(2, _no_step_change),
+    # Rigid blocks (498b672, 5aa6f7b): empty before a switch.
+    "state/rigid_switched": FieldMigration(2, _no_bodies),
+    "state/energy_released_rigid": FieldMigration(2, _no_bodies),
+    **{f"state/{name}": FieldMigration(2, _no_bodies) for name in _RIGID_FIELDS},
+    "model/tet_may_rigid": FieldMigration(2, _always, "model/tet_nodes"),
+    # Conversion's edge degree (19e0e61): as attached until a pass converts or splits.
+    "model/tet_edge_degree": FieldMigration(2, _no_pass, "model/tet_nodes"),
+    # Model scalars (attributes): scene settings, and the deformable step kept by a change of step.
+    "attribute contact_face_normal_stiffness": FieldMigration(2, _always),
+    "attribute rigid_switch_time": FieldMigration(2, _always),
+    "attribute rigid_energy_fraction": FieldMigration(2, _always),
+    "attribute rigid_check_interval": FieldMigration(2, _always),
+    "attribute deformable_critical_dt": FieldMigration(2, _no_step_change),
+}
+"""The fields added since checkpoint format 1, by checkpoint key (``state/<name>``, ``model/<name>``, ``attribute
+<name>`` for a model scalar), and when a restart may fill them from the fresh model and state
+(warpdem.checkpoint, "Versions")."""
+
+
+def _migrate(
+    path: Path,
+    version: int,
+    arrays: dict[str, np.ndarray],
+    attrs: dict,
+    missing: list[str],
+    fresh: Callable[[str], object],
+    model: Model,
+) -> list[str]:
+    """Fills, in ``arrays`` and ``attrs``, the fields of :data:`FIELD_MIGRATIONS` that a checkpoint of format
+    ``version`` lacks, with the fresh value (``fresh``: key -> the fresh model's or state's value) where that is exact.
+
+    Returns:
+        The keys still missing: not in the table, or lacking in a file whose version should hold them.
+
+    Raises:
+        CheckpointError: one line naming the file, the field and why the fresh value would not be the run's.
+    """
+    left = []
+    for key in missing:
+        rule = FIELD_MIGRATIONS.get(key)
+        if rule is None or version >= rule.since:
+            left.append(key)
+            continue
+        why = rule.exact(arrays, attrs, model)
+        value = fresh(key)
+        if why is None and key.startswith("attribute "):
+            attrs[key.removeprefix("attribute ")] = value
+            continue
+        if why is None:
+            size = len(arrays[rule.like]) if rule.like is not None and rule.like in arrays else len(value)
+            if size != len(value):
+                # A grown capacity: the fresh value is one constant per item (an empty slot) or it cannot be resized.
+                flat = value.reshape(len(value), -1)
+                if len(value) == 0 or np.any(flat != flat[:1]):
+                    why = f"its fresh value is not one constant to resize to the checkpoint's {size} items"
+                else:
+                    value = np.repeat(value[:1], size, axis=0)
+        if why is not None:
+            name = key.removeprefix("attribute ")
+            raise CheckpointError(
+                f"{path}: {name} is missing (format version {version}, before {rule.since}) and cannot be filled "
+                f"exactly: {why}; restart from an earlier checkpoint of this run, or run it again with this warpdem"
+            )
+        arrays[key] = value
+    return left
+
+
 def restore_checkpoint(
     path: Path, model: Model, template: State, scene: str | None = None
 ) -> tuple[Model, State, dict]:
     """Model and state of a checkpoint, on the device of ``model`` (built from the same scene; ``template`` is its
     initial state and gives each array's type). Every model array but the struct tables and every model scalar
-    (:func:`model_scalars`: capacities as grown by the run) come from the checkpoint.
+    (:func:`model_scalars`: capacities as grown by the run) come from the checkpoint. A checkpoint of an older format
+    that lacks fields added since has them filled from the fresh model and state where that is exact
+    (:data:`FIELD_MIGRATIONS`), so a run can always be resumed from its last checkpoint, or is refused saying why.
 
     Raises:
-        CheckpointError: unreadable file, or one that belongs to another scene (``scene``: this scene's name).
+        CheckpointError: unreadable file, one that belongs to another scene (``scene``: this scene's name), or one
+            that lacks a field that cannot be filled exactly (one line: the file, the field, why).
     """
-    arrays, attrs = read_checkpoint(path)
+    arrays, attrs, version = read_checkpoint_version(path)
     if scene is not None and "scene" in attrs and attrs["scene"] != scene:
         raise CheckpointError(f"checkpoint {path} belongs to scene {attrs['scene']!r}, not {scene!r}")
     for key in SCENE_FIXED_SCALARS:
@@ -365,12 +539,21 @@ def restore_checkpoint(
         if key in attrs and attrs[key] != expected:
             raise CheckpointError(f"{path}: {key} is {attrs[key]} but the scene builds {expected}; wrong scene?")
     scalars = model_scalars(model)
-    _check_attrs(path, attrs, [name for name, value in scalars.items() if isinstance(value, int)])
     missing = [
         k
         for k in [f"model/{n}" for n in model_checkpoint_arrays(model)] + [f"state/{n}" for n in template.arrays()]
         if k not in arrays
     ] + [f"attribute {n}" for n in scalars if n not in attrs]
+
+    def fresh(key: str) -> object:
+        """The fresh model's or state's value of a checkpoint key."""
+        kind, name = key.split("/", 1) if "/" in key else ("attribute", key.removeprefix("attribute "))
+        if kind == "attribute":
+            return scalars[name]
+        return (getattr(model, name) if kind == "model" else getattr(template, name)).numpy()
+
+    missing = _migrate(path, version, arrays, attrs, missing, fresh, model)
+    _check_attrs(path, attrs, [name for name, value in scalars.items() if isinstance(value, int)])
     if missing:
         raise CheckpointError(f"{path}: missing {', '.join(missing)} (written by an older warpdem?)")
     device = model.device
@@ -455,11 +638,11 @@ class _StopRequest:
 class FrameGrid:
     """Where the frames end, in steps: frame k ≥ ``frame`` ends at step ``step`` + (k − ``frame``) × ``substeps``.
 
-    A run starts on one grid (frame 0 at step 0). A change of the time step (the rigid step taken after a switch,
-    :func:`take_rigid_step`) starts a new grid at the frame boundary where it happens: the frames keep their period
-    (substeps × dt = frame period, dt = period / substeps), so frame k still falls at k × period, to the rounding of
-    the device clock's sum of steps. Checkpoints hold the grid (``substeps``, ``grid_step``, ``grid_frame``,
-    ``grid_time``), so a restart continues on it.
+    A run starts on one grid (frame 0 at step 0). A change of the time step (the rigid step taken at a switch,
+    :func:`take_rigid_step`) starts a new grid at the frame boundary where the new step takes over: the frames keep
+    their period (substeps × dt = frame period, dt = period / substeps), so frame k still falls at k × period, to the
+    rounding of the device clock's sum of steps. Checkpoints hold the grid (``substeps``, ``grid_step``,
+    ``grid_frame``, ``grid_time``), so a restart continues on it.
 
     Attributes:
         substeps: steps per frame. step, frame: the step at which frame ``frame`` ends (the grid's anchor).
@@ -502,23 +685,55 @@ class FrameGrid:
         )
 
 
+@dataclass
+class RigidStepChange:
+    """The rigid step taken at a switch (:func:`take_rigid_step`).
+
+    Attributes:
+        grid: the frame grid from the next frame boundary on (anchored there).
+        dt: the time step of that grid, period / substeps [s]; ``pending``: whether it is still to be set at that
+            boundary (a switch inside a frame runs the rest of the frame at a bridge step first).
+    """
+
+    grid: FrameGrid
+    dt: float
+    pending: bool
+
+
 def take_rigid_step(
-    sim: Simulation, safety_factor: float, frame_period: float, grid: FrameGrid, frame: int
-) -> FrameGrid:
-    """After the blocks turned rigid, at the end of frame ``frame`` (a run with ``dt = "auto"``): the time step
-    becomes period / n for the fewest n steps per frame that keep it within ``safety_factor`` × the critical step
-    after the switch (warpdem.rigid.rigid_step_after_switch; larger or smaller than the step before), taken by
-    :meth:`warpdem.simulation.Simulation.set_time_step` (which books the shadow term's change). Returns the new grid,
-    anchored at this frame; the same one when the step per frame does not change (no change is made).
+    sim: Simulation, safety_factor: float, frame_period: float, grid: FrameGrid, frame: int, end: int
+) -> RigidStepChange | None:
+    """The rigid step, taken at the step of the switch (a run with ``dt = "auto"``; the blocks turned rigid at
+    ``sim.step_count``, inside frame ``frame`` or at its end, ``end``: the step that frame ends at, or the run's last
+    step where that comes first).
+
+    From the next frame boundary on, the step is period / n for the fewest n steps per frame that keep it within
+    ``safety_factor`` × the critical step after the switch (warpdem.rigid.rigid_step_after_switch; larger or smaller
+    than the step before), so frames keep landing on k × period. A switch inside a frame leaves the time
+    r = (end − step) × dt_old to the frame's end: it is run as m = ⌈r / dt_new⌉ steps of r / m ≤ dt_new (the bridge),
+    so the rigid step holds from the switch itself and the frame still ends on its time, to the rounding of the
+    device clock. Each change is :meth:`warpdem.simulation.Simulation.set_time_step` (which books the shadow term's
+    change): the bridge step now, the grid's step at the boundary (by the caller, ``pending``).
+
+    Returns:
+        The new grid, anchored at ``end`` (moved to step + m), and its step; None when the step per frame does not
+        change (nothing is changed) or the critical step is not a positive number.
     """
     critical = rigid_step_after_switch(sim.model, sim.state)
     if not (math.isfinite(critical.value) and critical.value > 0.0):
-        return grid
+        return None
     substeps = max(1, math.ceil(frame_period / (safety_factor * critical.value)))
     if substeps == grid.substeps:
-        return grid
-    sim.set_time_step(frame_period / substeps, critical)
-    return FrameGrid(substeps, sim.step_count, frame, sim.time)
+        return None
+    dt = frame_period / substeps
+    left = (end - sim.step_count) * sim.model.dt
+    if end == sim.step_count:
+        sim.set_time_step(dt, critical)
+        return RigidStepChange(FrameGrid(substeps, sim.step_count, frame, sim.time), dt, pending=False)
+    # The 1e-9 of slack keeps a remainder that is a whole number of new steps from gaining one by rounding.
+    bridge = max(1, math.ceil(left / dt * (1.0 - 1e-9)))
+    sim.set_time_step(left / bridge, critical)
+    return RigidStepChange(FrameGrid(substeps, sim.step_count + bridge, frame, sim.time + left), dt, pending=True)
 
 
 def end_step(end_time: float, dt: float) -> int:
@@ -649,20 +864,43 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     if options.restart is None:
         # A new run converts its start_as_spheres region here, before frame 0; a restart's checkpoint holds them.
         start_as_spheres(scene, sim)
-    # With dt = "auto" a run takes the rigid blocks' step at the first frame boundary after the switch (a switch
-    # from the start took it above: the same step, no change); a restart knows from its checkpoint whether it did.
+    # With dt = "auto" a run takes the rigid blocks' step at the step of the switch (a switch from the start took it
+    # above: the same step, no change); a restart knows from its checkpoint whether it did (one written at a run's
+    # end by an earlier warpdem, which took it at the next frame boundary, may not have). An explicit dt is the
+    # user's: it is kept across the switch.
     rigid_step_due = run.dt == "auto" and not bool(attrs.get("rigid_step_taken", primed and sim.rigid))
+    pending_dt: list[float] = []  # the grid's step, set at the frame boundary that ends a bridge (take_rigid_step)
 
-    def adopt_rigid_step(frame: int) -> None:
+    def adopt_rigid_step(frame: int, end: int) -> None:
+        """Takes the rigid step now if it is due: the blocks are rigid, ``end`` is the step the frame ``frame`` in
+        progress (or just ended) ends at."""
         nonlocal grid, last_step, total_frames, rigid_step_due
-        if not (rigid_step_due and sim.rigid) or frame >= total_frames:
-            return  # not due, or the run is over (a new grid would add a step past its end)
+        if not (rigid_step_due and sim.rigid):
+            return
         rigid_step_due = False
-        new = take_rigid_step(sim, run.safety_factor, frame_period, grid, frame)
-        if new is not grid:
-            grid = new
-            last_step = grid.last_step(end_time, options.frames, sim.model.dt)
-            total_frames = grid.frames(last_step)
+        change = take_rigid_step(sim, run.safety_factor, frame_period, grid, frame, end)
+        if change is None:
+            return
+        runs_on = end != last_step  # a bridge to the run's last step ends the run: no step is added past it
+        grid = change.grid
+        if change.pending:
+            pending_dt.append(change.dt)
+        last_step = grid.last_step(end_time, options.frames, change.dt) if runs_on else grid.step
+        total_frames = grid.frames(last_step)
+
+    def advance_frame(frame: int) -> None:
+        """Runs the steps of frame ``frame`` (to its end on the grid, or the run's last step), taking the rigid step
+        at a switch inside it, then the grid's step at its end after a bridge."""
+        while True:
+            end = min(grid.end_step(frame), last_step)
+            if sim.step_count >= end:
+                break
+            rigid = sim.rigid
+            sim.advance(end - sim.step_count, stop_at_switch=rigid_step_due)
+            if sim.rigid and not rigid:
+                adopt_rigid_step(frame, end)
+        if pending_dt:
+            sim.set_time_step(pending_dt.pop())
 
     _check_steps(scene, float(substeps), options, total_frames - first_frame)
 
@@ -794,19 +1032,18 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
             where = f"{scene.source}: output.directory / output.usd"
         raise _output_error(where, usd_path, exc) from None
     with stop, writer:
-        adopt_rigid_step(frame)
+        adopt_rigid_step(frame, sim.step_count)  # blocks rigid from the start, or a restart that did not take it
         energy_start = energy_end = write_frame(writer, frame)
         in_play = energy_start.in_play
         while frame < total_frames and stop.signum is None:
             time_before = sim.time
             try:
-                sim.advance(min(grid.end_step(frame + 1), last_step) - sim.step_count)
+                advance_frame(frame + 1)
             except UnstableRunError as exc:
                 # The bad state is neither written nor checkpointed; the good frames are published below.
                 unstable = exc
                 break
             frame += 1
-            adopt_rigid_step(frame)
             energy_end = write_frame(writer, frame)
             in_play = max(in_play, energy_end.in_play)
             if progress is not None:

@@ -396,18 +396,23 @@ class Simulation:
                 else:
                     parts[index]()
 
-    def advance(self, n_steps: int) -> None:
+    def advance(self, n_steps: int, stop_at_switch: bool = False) -> int:
         """Run ``n_steps`` steps, then the between-step work: overflow check (grow and redo), stability guard, bond
         and cohesive compaction. With conversion or nodal fracture on, the steps run in chunks ending on multiples of
         ``model.conversion_interval`` and of ``model.fracture_interval`` (counted from step 0), each followed by the
         passes due there: first the conversion pass (:meth:`conversion_pass`), then the split pass
-        (:meth:`fracture_pass`).
+        (:meth:`fracture_pass`). A rigid switch due (:meth:`_switch_if_due`) ends a chunk too; with ``stop_at_switch``
+        the call returns right after it, so that the caller can take another time step from the switch on (the
+        runner's rigid step, warpdem.runner.take_rigid_step) before the next step is taken at the old one.
 
         Why conversion first: a tet that qualifies for both has failed as a whole; converting it hands its mass and
         momentum to a sphere and takes its stress out of the nodal averages, so the split pass that follows sees only
         the continuum that remains. Splitting first would create cohesive elements (and crack area, booked at birth)
         across faces of a tet that then stops existing as a continuum, and split nodes whose stars the conversion
         would empty at once.
+
+        Returns:
+            The steps run: ``n_steps``, or fewer when ``stop_at_switch`` stopped at a switch.
 
         Raises:
             warpdem.guard.UnstableRunError: the state went non-finite or ran away (warpdem.guard); the simulation is
@@ -427,7 +432,9 @@ class Simulation:
                 self.conversion_pass()
             if kf > 0 and self.step_count % kf == 0:
                 self.fracture_pass()
-            self._switch_if_due()
+            if self._switch_if_due() is not None and stop_at_switch:
+                break
+        return n_steps - remaining
 
     def _rigid_switch_step(self) -> int:
         """The step on which the scene's rigid switch falls: the first at or after ``rigid_switch_time`` (a relative
