@@ -814,6 +814,52 @@ def test_restart_across_the_switch_and_the_step_change_is_bit_for_bit(switch_run
             np.testing.assert_array_equal(arrays[name], a, err_msg=f"restart from frame {frame}: {name}")
 
 
+def test_a_switch_on_a_frame_end_or_in_a_short_last_frame_keeps_the_frames_on_the_grid(tmp_path):
+    """A switch on a frame's end (t = 1.2 ms, frame 6 at step 72) takes the rigid step there, with no bridge: the
+    grid is anchored at step 72. A switch in a run's short last frame (t = 1.1 ms, the run ending at 1.15 ms, step
+    69 of the 72 that frame 6 would have) leaves the step to a restart that continues the run (the checkpoint says it
+    is not taken): the restart bridges from step 69 to the end of frame 7 on the grid, so every frame after it still
+    lands on k × period (the device clock: 1e-12 of the end time)."""
+    import csv
+
+    from test_scene import write
+
+    from warpdem.checkpoint import read_checkpoint
+    from warpdem.runner import RunOptions, run_scene
+    from warpdem.scene import load_scene
+
+    period = 2.0e-4
+    text = SWITCH_SCENE.replace("switch_time = 0.0011", "switch_time = 0.0012").replace(
+        "end_time = 0.004", "end_time = 0.0016"
+    )
+    scene = load_scene(write(tmp_path, text))
+    summary = run_scene(scene, RunOptions(device="cpu", out_dir=tmp_path / "boundary", quiet=True))
+    attrs = read_checkpoint(summary.checkpoints[-1])[1]
+    first = read_checkpoint(summary.checkpoints[0])[1]
+    assert attrs["grid_step"] == 6 * first["substeps"] == 72 and attrs["grid_frame"] == 6
+    assert attrs["step"] == 72 + 2 * attrs["substeps"] and attrs["dt"] == period / attrs["substeps"] > first["dt"]
+
+    short = tmp_path / "short"
+    short.mkdir()
+    text = SWITCH_SCENE.replace("end_time = 0.004", "end_time = 0.00115")
+    scene = load_scene(write(short, text))
+    summary = run_scene(scene, RunOptions(device="cpu", out_dir=short / "out", quiet=True))
+    attrs = read_checkpoint(summary.checkpoints[-1])[1]
+    assert attrs["step"] == 69 and attrs["frame"] == 6 and not attrs["rigid_step_taken"]
+    assert attrs["dt"] == first["dt"] and attrs["grid_step"] == 0
+    again = run_scene(
+        scene,
+        RunOptions(device="cpu", out_dir=short / "out", quiet=True, restart=summary.checkpoints[-1], end_time=0.0016),
+    )
+    attrs = read_checkpoint(again.checkpoints[-1])[1]
+    assert attrs["grid_frame"] == 7 and attrs["rigid_step_taken"] and attrs["dt"] > first["dt"]
+    with open(again.series_path) as f:
+        times = np.array([float(r["time"]) for r in csv.DictReader(f)])
+    assert len(times) == 9  # frames 0 … 8; frame 6 at the short run's end, 1.15 ms
+    on_grid = np.r_[np.arange(6), np.arange(7, 9)]
+    np.testing.assert_allclose(times[on_grid], on_grid * period, rtol=0.0, atol=1e-12 * times[-1])
+
+
 def test_an_explicit_time_step_is_kept_across_the_switch(tmp_path):
     """A scene's own dt is the user's choice: the run keeps it across the switch (no bridge, no new grid, nothing
     booked as a step change) and says so; the frames stay those of that dt, so the run ends at step T / dt."""

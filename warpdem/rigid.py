@@ -54,7 +54,9 @@ import warp as wp
 from .fragments import block_labels
 from .guard import CriticalStep
 from .kernels import rigid as kr
+from .loads import dashpot_critical_step
 from .model import RIGID_BODY_FIELDS, RIGID_NODE_FIELDS, Model, State
+from .tets import reference_geometry, tet_stable_time_steps
 
 __all__ = [
     "NODE_FREE_DIRECTIONS",
@@ -566,9 +568,6 @@ def deformable_critical_step(model: Model, state: State) -> CriticalStep:
     - spheres left (scene spheres, converted tets): their steps are not measured apart from the rest; they keep the
       builder's step of the whole deformable model (``deformable_critical_dt``, else ``critical_dt``) as a bound.
     """
-    from .loads import dashpot_critical_step
-    from .tets import reference_geometry, tet_stable_time_steps
-
     nt = int(state.tet_count.numpy()[0])
     nn = int(state.node_count.numpy()[0])
     active = state.tet_active.numpy()[:nt]

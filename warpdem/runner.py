@@ -704,8 +704,7 @@ def take_rigid_step(
     sim: Simulation, safety_factor: float, frame_period: float, grid: FrameGrid, frame: int, end: int
 ) -> RigidStepChange | None:
     """The rigid step, taken at the step of the switch (a run with ``dt = "auto"``; the blocks turned rigid at
-    ``sim.step_count``, inside frame ``frame`` or at its end, ``end``: the step that frame ends at, or the run's last
-    step where that comes first).
+    ``sim.step_count``, inside frame ``frame`` or at its end, ``end``: the step that frame ends at on ``grid``).
 
     From the next frame boundary on, the step is period / n for the fewest n steps per frame that keep it within
     ``safety_factor`` × the critical step after the switch (warpdem.rigid.rigid_step_after_switch; larger or smaller
@@ -871,11 +870,15 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     rigid_step_due = run.dt == "auto" and not bool(attrs.get("rigid_step_taken", primed and sim.rigid))
     pending_dt: list[float] = []  # the grid's step, set at the frame boundary that ends a bridge (take_rigid_step)
 
-    def adopt_rigid_step(frame: int, end: int) -> None:
-        """Takes the rigid step now if it is due: the blocks are rigid, ``end`` is the step the frame ``frame`` in
-        progress (or just ended) ends at."""
+    def adopt_rigid_step(frame: int) -> None:
+        """Takes the rigid step now if it is due (the blocks are rigid), ``frame`` being the frame in progress: the
+        one whose end on the grid is the next frame boundary at or after the current step."""
         nonlocal grid, last_step, total_frames, rigid_step_due
-        if not (rigid_step_due and sim.rigid):
+        end = grid.end_step(frame)
+        if not (rigid_step_due and sim.rigid) or end > last_step:
+            # A switch in the run's short last frame: the frames after it would leave the grid (k × period), so the
+            # rigid step waits for a restart that continues the run, which takes it at its start (to the next
+            # boundary on the grid); the checkpoint says it is not taken.
             return
         rigid_step_due = False
         change = take_rigid_step(sim, run.safety_factor, frame_period, grid, frame, end)
@@ -898,7 +901,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
             rigid = sim.rigid
             sim.advance(end - sim.step_count, stop_at_switch=rigid_step_due)
             if sim.rigid and not rigid:
-                adopt_rigid_step(frame, end)
+                adopt_rigid_step(frame)
         if pending_dt:
             sim.set_time_step(pending_dt.pop())
 
@@ -1032,7 +1035,9 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
             where = f"{scene.source}: output.directory / output.usd"
         raise _output_error(where, usd_path, exc) from None
     with stop, writer:
-        adopt_rigid_step(frame, sim.step_count)  # blocks rigid from the start, or a restart that did not take it
+        # Blocks rigid from the start, or a restart that did not take the step (from a short last frame: to the end
+        # of the next frame on the grid).
+        adopt_rigid_step(frame if sim.step_count == grid.end_step(frame) else frame + 1)
         energy_start = energy_end = write_frame(writer, frame)
         in_play = energy_start.in_play
         while frame < total_frames and stop.signum is None:
