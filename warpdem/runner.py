@@ -368,13 +368,25 @@ def _no_bodies(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str 
 
 
 def _no_node_contact(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
-    """Exact where no node's contact spring held a face (``node_face_spring`` all -1) and there are no walls: the
-    nodes' contact forces and spring energies at the last evaluation were then zero."""
+    """Exact where no node's contact spring held a face (``node_face_spring`` all -1), there are no walls, and after
+    step 0 no joint element is intact (their dashpot forces join ``node_f_contact``): the nodes' contact forces and
+    spring energies at the last evaluation were then zero."""
     spring = arrays.get("state/node_face_spring")
     if spring is None or np.any(spring >= 0):
         return "nodes were touching faces, and their contact forces at the last step are not in it"
     if int(attrs.get("num_walls", 0)):
         return "the scene has walls, and whether nodes touched them at the last step is not in it"
+    broken = arrays.get("state/joint_broken")
+    if int(attrs.get("step", 0)) > 0 and broken is not None and np.any(broken[: _total(arrays, "joint_count")] == 0):
+        return "intact joint elements' dashpots acted, and their forces at the last step are not in it"
+    return None
+
+
+def _no_dashpot_force(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    """Exact where the model has no non-reflecting boundary, or at step 0: the dashpots' forces at the last evaluation
+    were then zero (the set-up evaluation leaves them out)."""
+    if model.loads is not None and model.loads.dashpots is not None and int(attrs.get("step", 0)) > 0:
+        return "non-reflecting dashpots acted, and their forces at the last step are not in it"
     return None
 
 
@@ -438,6 +450,8 @@ _RIGID_FIELDS = ("rigid_nodes", *RIGID_BODY_FIELDS, *RIGID_NODE_FIELDS)
 FIELD_MIGRATIONS: dict[str, FieldMigration] = {
     # Bulk viscosity and mass damping book Verlet's trapezoid (cea7fdb).
     "state/node_f_viscous": FieldMigration(2, _no_viscous_force, "state/node_u"),
+    # Non-reflecting dashpots and joint dashpots book Verlet's trapezoid (lead4: node_f_absorbed, node_f_contact).
+    "state/node_f_absorbed": FieldMigration(2, _no_dashpot_force, "state/node_u"),
     # FEM node and sphere–face contacts book Verlet's trapezoid (1e8395f, d830a52); held stiffness (6e2930a).
     "state/node_f_contact": FieldMigration(2, _no_node_contact, "state/node_u"),
     "state/node_contact_energy_prev": FieldMigration(2, _no_node_contact, "state/node_u"),
