@@ -34,6 +34,13 @@ continuous. An intact joint element's pair is excluded too (the element carries 
 
 Node–wall: as sphere–wall, with the node's penalty stiffness.
 
+Rigid normals. A node of a rigid block whose star holds rigid tets only moves rigidly with every face of its star, so
+its outward normal n_v is its normal at the switch turned by the body's rotation, R(q) n_v0 (``rest_normals_kernel``
+computes n_v0 by the star walk at the switch positions X + u0, which the state keeps, so a restart computes the same
+bits). It differs from the star walk at the posed positions by float32 rounding (~1e-6), and n_v enters only the sign
+of the facing test n_f · n_v < 0, so the two paths decide alike unless a face is within that of perpendicular to the
+node's normal. A node next to a deformable tet walks its star, as every node before the switch.
+
 Held stiffness. A split or conversion pass moves no node, but the surface rebuild re-lumps the penalty stiffness of
 every node whose faces changed (a daughter gains the crack faces, a converted tet's neighbours its inner faces): a
 node pressed by δ into the ground or a face would gain ½ Δk δ² with no work done, and its contact force would jump.
@@ -1140,8 +1147,10 @@ def rest_positions_kernel(
     # Out:
     x_rest: wp.array(dtype=wp.vec3),
 ):
-    i = wp.tid()  # one thread per node slot: a rigid block's node where the switch left it, X + u0, in the float32
-    if i >= node_count[0]:  # sum of kernels/rigid.py pose_nodes_kernel for an unturned body (bit for bit)
+    """A rigid block's node where the switch left it, X + u0: the float32 sum the pose forms (kernels/rigid.py
+    ``pose_nodes_kernel``, x = X + u), so a body that has not moved gets its star walk's normal bit for bit."""
+    i = wp.tid()  # one thread per node slot
+    if i >= node_count[0]:
         return
     if node_body[i] >= 0:
         x_rest[i] = node_ref_q[i] + node_rigid_u0[i]
@@ -1380,8 +1389,6 @@ def make_node_contact_kernel(track_energy: bool):
         normal_body: wp.array(dtype=int),
         rest_normal: wp.array(dtype=wp.vec3),
         born_relaxed: int,
-        # Out:
-        node_target_slot: wp.array(dtype=int),
         # State out:
         node_face_spring: wp.array(dtype=int),
         node_face_offset: wp.array(dtype=float),
@@ -1393,6 +1400,8 @@ def make_node_contact_kernel(track_energy: bool):
         node_contact_energy_prev: wp.array(dtype=wp.float64),
         node_energy_contact: wp.array(dtype=wp.float64),
         node_energy_boundary_work: wp.array(dtype=wp.float64),
+        # Out:
+        node_target_slot: wp.array(dtype=int),  # read too: the last evaluation's slot, a hint (kept_face_holds)
     ):
         v = wp.tid()  # one thread per node slot
         if v >= node_count[0]:

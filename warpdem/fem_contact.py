@@ -639,7 +639,6 @@ def eval_fem_contacts(
                 int(born_relaxed),
             ],
             outputs=[
-                target_slot,
                 s.node_face_spring,
                 s.node_face_offset,
                 s.node_face_shear,
@@ -650,6 +649,7 @@ def eval_fem_contacts(
                 s.node_contact_energy_prev,
                 s.node_energy_contact,
                 s.node_energy_boundary_work,
+                target_slot,
             ],
             device=m.device,
         )
