@@ -34,6 +34,13 @@ continuous. An intact joint element's pair is excluded too (the element carries 
 
 Node–wall: as sphere–wall, with the node's penalty stiffness.
 
+Rigid normals. A node of a rigid block whose star holds rigid tets only moves rigidly with every face of its star, so
+its outward normal n_v is its normal at the switch turned by the body's rotation, R(q) n_v0 (``rest_normals_kernel``
+computes n_v0 by the star walk at the switch positions X + u0, which the state keeps, so a restart computes the same
+bits). It differs from the star walk at the posed positions by float32 rounding (~1e-6), and n_v enters only the sign
+of the facing test n_f · n_v < 0, so the two paths decide alike unless a face is within that of perpendicular to the
+node's normal. A node next to a deformable tet walks its star, as every node before the switch.
+
 Held stiffness. A split or conversion pass moves no node, but the surface rebuild re-lumps the penalty stiffness of
 every node whose faces changed (a daughter gains the crack faces, a converted tet's neighbours its inner faces): a
 node pressed by δ into the ground or a face would gain ½ Δk δ² with no work done, and its contact force would jump.
@@ -79,6 +86,7 @@ from .contact import (
 )
 from .joints import JointMaterial, face_stiffness_per_area, joint_face_spring
 from .neighbors import ListSpec, make_list_kernels
+from .rigid import TET_RIGID
 from .tets import TetMaterial
 from .topology import local_index, tet_face, triangle_area_vector
 
@@ -948,10 +956,32 @@ def node_surface_normal(
 
 
 @wp.func
+def node_normal(
+    v: int,
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    tet_face_nbr: wp.array(dtype=int),
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    node_q: wp.array(dtype=wp.vec3),
+    normal_body: wp.array(dtype=int),
+    rest_normal: wp.array(dtype=wp.vec3),
+    body_q: wp.array(dtype=wp.quatd),
+) -> wp.vec3:
+    """n_v of node v: for a node of a rigid block whose star is all rigid (``normal_body`` its body, -1 otherwise) its
+    normal at the switch turned with the body, R(q) n_v0 ("Rigid normals"); otherwise :func:`node_surface_normal`."""
+    b = normal_body[v]
+    if b >= 0:
+        return wp.vec3(wp.quat_rotate(body_q[b], wp.vec3d(rest_normal[v])))
+    return node_surface_normal(v, tet_nodes, tet_face_nbr, star_offset, star_count, star_tets, node_q)
+
+
+@wp.func
 def kept_face_holds(
     v: int,
     x: wp.vec3,
     keep: int,
+    hint: int,
     max_node_faces: int,
     node_face_count: wp.array(dtype=int),
     node_face_index: wp.array(dtype=int),
@@ -963,30 +993,38 @@ def kept_face_holds(
 ):
     """Whether the kept face ``keep`` is still node v's target: a candidate of v that v lies behind (less deep than
     face_depth), that faces v's normal n_v (``normal``) and that v projects into within KEEP_EPS; the tests of
-    :func:`node_face_target` for that face, in its arithmetic.
+    :func:`node_face_target` for that face, in its arithmetic. Whether it is a candidate is read at the list slot
+    ``hint`` where the last evaluation found it; only when it is not there (the list was rebuilt since, or no hint)
+    is the list searched: the same answer, without a pass over some thirty slots for nearly every node.
 
     Returns:
-        (holds, depth δ [m], barycentric weights of the projection, the face's unit normal).
+        (holds, its list slot (-1 when not listed), depth δ [m], barycentric weights of the projection, the face's
+        unit normal).
     """
-    listed = bool(False)
-    for s in range(wp.min(node_face_count[v], max_node_faces)):
-        if node_face_index[v * max_node_faces + s] == keep:
-            listed = True
-            break
-    if not listed:
-        return False, 0.0, wp.vec3(0.0), wp.vec3(0.0)
+    count = wp.min(node_face_count[v], max_node_faces)
+    slot = int(-1)
+    if hint >= 0 and hint < count:
+        if node_face_index[v * max_node_faces + hint] == keep:
+            slot = hint
+    if slot < 0:
+        for s in range(count):
+            if node_face_index[v * max_node_faces + s] == keep:
+                slot = s
+                break
+    if slot < 0:
+        return False, -1, 0.0, wp.vec3(0.0), wp.vec3(0.0)
     fn = face_nodes[keep]
     a = node_q[fn[0]]
     nf = face_normal[keep]
     depth = -wp.dot(x - a, nf)
     if depth <= 0.0 or depth >= face_depth[keep] or wp.dot(nf, normal) >= 0.0:
-        return False, 0.0, wp.vec3(0.0), wp.vec3(0.0)
+        return False, slot, 0.0, wp.vec3(0.0), wp.vec3(0.0)
     b = node_q[fn[1]]
     c = node_q[fn[2]]
     w = projection_barycentric(x, a, b, c, wp.cross(b - a, c - a))
     if min3(w) < -KEEP_EPS:
-        return False, 0.0, wp.vec3(0.0), wp.vec3(0.0)
-    return True, depth, w, nf
+        return False, slot, 0.0, wp.vec3(0.0), wp.vec3(0.0)
+    return True, slot, depth, w, nf
 
 
 @wp.func
@@ -1005,7 +1043,11 @@ def node_face_target(
     star_count: wp.array(dtype=int),
     star_tets: wp.array(dtype=int),
     node_q: wp.array(dtype=wp.vec3),
+    normal_body: wp.array(dtype=int),
+    rest_normal: wp.array(dtype=wp.vec3),
+    body_q: wp.array(dtype=wp.quatd),
     keep: int,
+    hint: int,
 ):
     """The face node v (at x, its own surface's outward normal n_v) is pushed out of: of the candidate faces
     that face it (n_f · n_v < 0) and that it lies behind (less deep than face_depth) and projects into, the
@@ -1028,17 +1070,21 @@ def node_face_target(
     result bit for bit, at a fraction of the cost.
 
     Returns:
-        (face or -1, depth δ [m], barycentric weights of the projection, the face's unit normal).
+        (face or -1, its slot in v's candidate list (-1 with no face), depth δ [m], barycentric weights of the
+        projection, the face's unit normal).
     """
     normal = wp.vec3(0.0)
     has_normal = int(0)
     if keep >= 0:
-        normal = node_surface_normal(v, tet_nodes, tet_face_nbr, star_offset, star_count, star_tets, node_q)
+        normal = node_normal(
+            v, tet_nodes, tet_face_nbr, star_offset, star_count, star_tets, node_q, normal_body, rest_normal, body_q
+        )
         has_normal = 1
-        holds, keep_d, keep_w, keep_n = kept_face_holds(
+        holds, keep_slot, keep_d, keep_w, keep_n = kept_face_holds(
             v,
             x,
             keep,
+            hint,
             max_node_faces,
             node_face_count,
             node_face_index,
@@ -1049,11 +1095,12 @@ def node_face_target(
             node_q,
         )
         if holds:
-            return keep, keep_d, keep_w, keep_n
+            return keep, keep_slot, keep_d, keep_w, keep_n
     tol = TIE_EPS * wp.length(x)
     best_d = float(0.0)
     best_interior = int(0)
     best_f = int(-1)
+    best_slot = int(-1)
     best_w = wp.vec3(0.0)
     best_n = wp.vec3(0.0)
     for s in range(wp.min(node_face_count[v], max_node_faces)):
@@ -1067,7 +1114,9 @@ def node_face_target(
         if depth <= 0.0 or depth >= face_depth[f]:
             continue
         if has_normal == 0:
-            normal = node_surface_normal(v, tet_nodes, tet_face_nbr, star_offset, star_count, star_tets, node_q)
+            normal = node_normal(
+                v, tet_nodes, tet_face_nbr, star_offset, star_count, star_tets, node_q, normal_body, rest_normal, body_q
+            )
             has_normal = 1
         if wp.dot(nf, normal) >= 0.0:
             continue
@@ -1081,9 +1130,67 @@ def node_face_target(
             best_d = depth
             best_interior = inside
             best_f = f
+            best_slot = s
             best_w = w
             best_n = nf
-    return best_f, best_d, best_w, best_n
+    return best_f, best_slot, best_d, best_w, best_n
+
+
+@wp.kernel
+def rest_positions_kernel(
+    # Model:
+    node_ref_q: wp.array(dtype=wp.vec3),
+    # State in:
+    node_count: wp.array(dtype=int),
+    node_body: wp.array(dtype=int),
+    node_rigid_u0: wp.array(dtype=wp.vec3),
+    # Out:
+    x_rest: wp.array(dtype=wp.vec3),
+):
+    """A rigid block's node where the switch left it, X + u0: the float32 sum the pose forms (kernels/rigid.py
+    ``pose_nodes_kernel``, x = X + u), so a body that has not moved gets its star walk's normal bit for bit."""
+    i = wp.tid()  # one thread per node slot
+    if i >= node_count[0]:
+        return
+    if node_body[i] >= 0:
+        x_rest[i] = node_ref_q[i] + node_rigid_u0[i]
+
+
+@wp.kernel
+def rest_normals_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    tet_face_nbr: wp.array(dtype=int),
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    # State in:
+    node_count: wp.array(dtype=int),
+    node_body: wp.array(dtype=int),
+    tet_active: wp.array(dtype=int),
+    # In:
+    x_rest: wp.array(dtype=wp.vec3),
+    # Out:
+    normal_body: wp.array(dtype=int),
+    rest_normal: wp.array(dtype=wp.vec3),
+):
+    """Rigid normals: a node of a rigid block whose star holds rigid tets only (all of its block: a tet shares the
+    node, so it is connected to it) moves with every face of its star rigidly, so n_v = R(q) n_v0 with n_v0 its
+    :func:`node_surface_normal` at the switch positions X + u0; ``normal_body`` says which body turns it (-1: the
+    star walk each evaluation, as for a deformable node or one next to a deformable tet, whose faces deform)."""
+    v = wp.tid()  # one thread per node slot
+    normal_body[v] = -1
+    if v >= node_count[0]:
+        return
+    b = node_body[v]
+    if b < 0:
+        return
+    start = star_offset[v]
+    for e in range(start, start + star_count[v]):
+        if tet_active[star_tets[e]] != TET_RIGID:
+            return
+    rest_normal[v] = node_surface_normal(v, tet_nodes, tet_face_nbr, star_offset, star_count, star_tets, x_rest)
+    normal_body[v] = b
 
 
 @wp.kernel
@@ -1276,8 +1383,11 @@ def make_node_contact_kernel(track_energy: bool):
         node_face_count: wp.array(dtype=int),
         node_face_index: wp.array(dtype=int),
         wall_point: wp.array(dtype=wp.vec3d),
+        body_q: wp.array(dtype=wp.quatd),
         # In:
         face_normal: wp.array(dtype=wp.vec3),
+        normal_body: wp.array(dtype=int),
+        rest_normal: wp.array(dtype=wp.vec3),
         born_relaxed: int,
         # State out:
         node_face_spring: wp.array(dtype=int),
@@ -1290,6 +1400,8 @@ def make_node_contact_kernel(track_energy: bool):
         node_contact_energy_prev: wp.array(dtype=wp.float64),
         node_energy_contact: wp.array(dtype=wp.float64),
         node_energy_boundary_work: wp.array(dtype=wp.float64),
+        # Out:
+        node_target_slot: wp.array(dtype=int),  # read too: the last evaluation's slot, a hint (kept_face_holds)
     ):
         v = wp.tid()  # one thread per node slot
         if v >= node_count[0]:
@@ -1306,8 +1418,9 @@ def make_node_contact_kernel(track_energy: bool):
         best_w = wp.vec3(0.0)
         best_n = wp.vec3(0.0)
         old_f = node_face_spring[v]
+        best_slot = int(-1)
         if node_face_count[v] > 0:
-            best_f, best_d, best_w, best_n = node_face_target(
+            best_f, best_slot, best_d, best_w, best_n = node_face_target(
                 v,
                 x,
                 max_node_faces,
@@ -1322,8 +1435,13 @@ def make_node_contact_kernel(track_energy: bool):
                 star_count,
                 star_tets,
                 node_q,
+                normal_body,
+                rest_normal,
+                body_q,
                 old_f,
+                node_target_slot[v],
             )
+        node_target_slot[v] = best_slot
         f_v = wp.vec3(0.0)
         d_v = float(0.0)  # minus the work behind [J] (the wall's share of the work ahead included)
         # What a re-evaluation at dt = 0 lets go of at the same positions [J]: a spring handed to a shallower face,
@@ -1333,13 +1451,13 @@ def make_node_contact_kernel(track_energy: bool):
         # at the current positions (at most its own depth: the excess is dissipated), and carries the rest of its
         # depth as an offset, so that ½ k δ² never jumps up without work. A spring left with no target is
         # dissipated with its tangential part.
-        old_delta = spring_depth(x, old_f, node_face_offset[v], face_nodes, node_q)
         offset = node_face_offset[v]
         delta = float(0.0)
         if best_f != old_f:
             offset = float(0.0)
             delta = best_d
             if old_f >= 0:
+                old_delta = spring_depth(x, old_f, node_face_offset[v], face_nodes, node_q)
                 delta = wp.min(best_d, old_delta)
                 offset = best_d - delta
                 r_v += 0.5 * kn * (old_delta * old_delta - delta * delta)

@@ -21,6 +21,7 @@ import warp as wp
 
 from .contact import MOTION_FREE
 from .loads import NodeDriver, drive_first_half, drive_second_half
+from .rigid import NODE_RIGID
 from .tets import node_free_directions
 
 wp.set_module_options({"enable_backward": False})
@@ -390,7 +391,17 @@ def make_node_drift_kernel(after_second_half: bool) -> wp.Kernel:
         i = wp.tid()  # one thread per FEM node slot
         if i >= node_count[0]:
             return
-        free = node_free_directions(node_motion[i])
+        motion = node_motion[i]
+        if motion == NODE_RIGID:
+            if num_drivers == 0 or node_driver[i] < 0:
+                # A rigid block's node: its body's pose sets its displacement, position and velocity right after
+                # this kernel (kernels/rigid.py), and checks its skin; what is left of the drift below for a node
+                # with no free direction is its accumulators started at zero (v = 0: no damping force, no work).
+                if node_damping[i] > 0.0 or wp.length_sq(node_f_viscous[i]) > 0.0:
+                    node_f_viscous[i] = wp.vec3(0.0)
+                node_f[i] = wp.vec3(0.0)
+                return
+        free = node_free_directions(motion)
         v = node_qd[i]
         t_step = time[0]
         work = float(0.0)

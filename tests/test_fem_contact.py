@@ -21,6 +21,9 @@ Oracles:
   contacts book their dissipation as velocity Verlet does their work (D = -W - ΔU, the trapezoid), so the total
   of the energy balance is constant up to rounding at any step (checked at two steps), once the bodies are apart;
 - overflow: one candidate slot per sphere and node grows and reproduces the run with ample slots bit for bit;
+- the rigid fast path (rigid normals n_v = R(q) n_v0, the kept target's list slot as a hint) against the general
+  path: the normals agree with the star walk at randomly turned poses to NORMAL_ROUNDOFF, and a rattling jointed
+  cube runs bit for bit the same 100 steps with the fast path on, with scrambled hints and with the star walk;
 - the stable step of the penalty springs (ModelBuilder.contact_critical_time_step) scales as 1/sqrt(f) with the
   stiffness factor, and is a bound: a bonded two-block model whose step the joint controls runs at it with its
   energy conserved, and blows up at STEP_BLOWUP times it, where the stability guard stops the run (so the bound is
@@ -50,6 +53,7 @@ import math
 import numpy as np
 import pytest
 import warp as wp
+from warpdem.kernels import fem_contact as kf
 
 from warpdem.builder import InteractionProps, ModelBuilder
 from warpdem.guard import UnstableRunError
@@ -77,6 +81,10 @@ STEP_BLOWUP = 2.5  # the joint-controlled model measured unstable from 1.7× its
 STABLE_RTOL = 0.1  # at the stable step velocity Verlet's energy oscillates by O((ω dt)²/4) of the fastest modes
 BOOKS_ROUNDOFF = 8.0
 BAND = 1.0e-4  # relative band around a cut-off inside which float32 may decide either way
+# Rigid normals against the star walk: the walk sums area vectors of faces whose float32 vertices carry an error of
+# ε₃₂ |x| (|x| ≤ 2√3 m in a 2 m cube of posed nodes, after the float64 pose is rounded once), over edges h = 1 m: the
+# direction errs by a few ε₃₂ |x| / h ≈ 1e-6; the turned normal rounds R(q) n_v0 once (ε₃₂). Bound: 8 ε₃₂ |x| / h.
+NORMAL_ROUNDOFF = 8.0 * 1.19e-7 * 2.0 * math.sqrt(3.0)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -585,3 +593,97 @@ def test_rigid_lists_drop_exactly_own_body_faces(device):
         own += len(mine)
         assert rigid[v] == listed - mine, f"node {v}"
     assert own > 0  # the lips did list each other before the switch
+
+
+@wp.kernel
+def both_normals_kernel(
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    tet_face_nbr: wp.array(dtype=int),
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    node_q: wp.array(dtype=wp.vec3),
+    normal_body: wp.array(dtype=int),
+    rest_normal: wp.array(dtype=wp.vec3),
+    body_q: wp.array(dtype=wp.quatd),
+    turned: wp.array(dtype=wp.vec3),
+    walked: wp.array(dtype=wp.vec3),
+):
+    v = wp.tid()  # one thread per node: n_v by the body's pose (rigid normals) and by the star walk
+    turned[v] = kf.node_normal(
+        v, tet_nodes, tet_face_nbr, star_offset, star_count, star_tets, node_q, normal_body, rest_normal, body_q
+    )
+    walked[v] = kf.node_surface_normal(v, tet_nodes, tet_face_nbr, star_offset, star_count, star_tets, node_q)
+
+
+def both_normals(sim: Simulation) -> tuple[np.ndarray, np.ndarray]:
+    """Each node's n_v by its body's pose (the rigid normals in use) and by the star walk, shape (nodes, 3)."""
+    m, s, fc, nn = sim.model, sim.state, sim.fem_contact, sim.node_count
+    turned = wp.zeros(nn, dtype=wp.vec3, device=m.device)
+    walked = wp.zeros(nn, dtype=wp.vec3, device=m.device)
+    wp.launch(
+        both_normals_kernel,
+        dim=nn,
+        inputs=[
+            *(m.tet_nodes, m.tet_face_nbr, m.star_offset, m.star_count, m.star_tets),
+            *(s.node_q, fc.normal_body, fc.rest_normal, s.body_q),
+        ],
+        outputs=[turned, walked],
+        device=m.device,
+    )
+    return turned.numpy(), walked.numpy()
+
+
+def test_rigid_normals_turn_with_bodies(device):
+    """Rigid normals: a rigid block's node takes n_v = R(q) n_v0, its switch normal turned with the body, instead of
+    walking its star. Oracle: the star walk at the posed positions (the general path). Every block of a jointed cube
+    is turned by a random rotation (far from the rattling of a run) and its nodes posed; the two normals agree to
+    NORMAL_ROUNDOFF (derivation at its definition), and every block node takes the fast path (its star is all rigid)."""
+    from warpdem.bench import jointed_cube
+    from warpdem.rigid import pose_nodes
+
+    sim = jointed_cube(2, device)
+    m, s, fc = sim.model, sim.state, sim.fem_contact
+    nn = sim.node_count
+    q = np.random.default_rng(3).normal(size=(s.body_q.shape[0], 4))
+    s.body_q.assign(q / np.linalg.norm(q, axis=1, keepdims=True))
+    pose_nodes(m, s, move=True)
+    turned, walked = both_normals(sim)
+    np.testing.assert_array_equal(fc.normal_body.numpy()[:nn], s.node_body.numpy()[:nn])
+    np.testing.assert_allclose(np.linalg.norm(walked, axis=1), 1.0, atol=1e-6)  # every node is on the surface
+    assert np.max(np.abs(turned - walked)) < NORMAL_ROUNDOFF
+
+
+def test_rigid_fast_path_runs_as_general_path(device):
+    """The rigid fast path of the node–face stage against its general path on a rattling jointed cube of 27 blocks
+    (100 steps, half its nodes on a face): (1) the target's list slot is a hint only: scrambling it before every
+    step (a stale or wrong hint sends the node to search its list) changes nothing, bit for bit; (2) rigid normals
+    change nothing either, bit for bit: n_v enters only the facing test's sign (n_f · n_v < 0), and no contact of the
+    cube comes near n_f ⟂ n_v (its least |n_f · n_v| is checked to stay far above NORMAL_ROUNDOFF), so both paths
+    take the same decisions and compute the same forces."""
+    from warpdem.bench import jointed_cube
+
+    fast, scrambled, general = (jointed_cube(3, device) for _ in range(3))
+    general.fem_contact.rigid_normals(False)
+    rng = np.random.default_rng(5)
+    for _ in range(100):
+        slots = rng.integers(-1, scrambled.model.max_node_faces, size=scrambled.fem_contact.target_slot.shape[0])
+        scrambled.fem_contact.target_slot.assign(slots.astype(np.int32))
+        for sim in (fast, scrambled, general):
+            sim.advance(1)
+    nn = fast.node_count
+    spring = fast.state.node_face_spring.numpy()[:nn]
+    assert np.count_nonzero(spring >= 0) > nn // 3  # the nodes on inner joints (the top and bottom ones: wall, air)
+    for other in (scrambled, general):
+        np.testing.assert_array_equal(other.state.node_face_spring.numpy()[:nn], spring)
+        for name in ("node_u", "node_qd", "node_f", "body_q", "body_l", "body_dc", "body_v"):
+            np.testing.assert_array_equal(getattr(other.state, name).numpy(), getattr(fast.state, name).numpy(), name)
+    # The margin of the facing test over the contacts held now: |n_f · n_v| with n_v from the star walk.
+    s, m = fast.state, fast.model
+    held = np.flatnonzero(spring >= 0)
+    x = s.node_q.numpy()
+    fn = m.face_nodes.numpy()[spring[held]]
+    nf = np.cross(x[fn[:, 1]] - x[fn[:, 0]], x[fn[:, 2]] - x[fn[:, 0]])
+    nf /= np.linalg.norm(nf, axis=1, keepdims=True)
+    margin = np.abs(np.sum(nf * both_normals(fast)[1][held], axis=1)).min()
+    assert margin > 1e3 * NORMAL_ROUNDOFF

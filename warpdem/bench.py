@@ -1033,8 +1033,9 @@ def run_pass_bench(
 class BlockBenchResult:
     """One rigid-block benchmark row: blocks, steps, throughput [block-steps/s] per second of wall time and per second
     of the process's CPU time (on the CPU device the steps run on one core, so the CPU time is what the steps cost
-    whatever else shares the machine; a CUDA device's steps do not show in it), engaged contacts, device memory per
-    block [B] (every Model and State array), the stable steps [s] and whether the energy stayed finite."""
+    whatever else shares the machine; a CUDA device's steps do not show in it), engaged contacts, the FEM contact-list
+    builds during the timed steps (the hash-grid rebuild a node's half-skin move flags), device memory per block [B]
+    (every Model and State array), the stable steps [s] and whether the energy stayed finite."""
 
     device: str
     blocks: int
@@ -1050,6 +1051,7 @@ class BlockBenchResult:
     cpu_time: float
     block_steps_per_cpu_second: float
     contacts: int
+    list_builds: int
     bytes_per_block: float
     peak_rss_mb: float
     finite: bool
@@ -1105,6 +1107,7 @@ def bench_blocks(blocks_wanted: int, steps: int = 50, device: str = "cpu", repea
     sim = jointed_cube(cells, device)
     build = time.perf_counter() - t0
     sim.advance(2)  # compile and capture outside the clock
+    builds = int(sim.state.fem_rebuild_total.numpy()[0])
     wall = cpu = float("inf")
     for _ in range(repeat):
         wp.synchronize_device(sim.model.device)
@@ -1132,6 +1135,7 @@ def bench_blocks(blocks_wanted: int, steps: int = 50, device: str = "cpu", repea
         cpu_time=cpu,
         block_steps_per_cpu_second=blocks * steps / cpu if cpu > 0.0 else math.inf,
         contacts=int(np.count_nonzero(s.node_face_spring.numpy()[:nn] >= 0)),
+        list_builds=int(s.fem_rebuild_total.numpy()[0]) - builds,
         bytes_per_block=total_bytes / blocks,
         peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         finite=bool(np.all(np.isfinite(s.body_v.numpy())) and np.all(np.isfinite(s.node_u.numpy()[:nn]))),
@@ -1142,14 +1146,15 @@ def format_block_row(r: BlockBenchResult, header: bool) -> str:
     line = (
         f"{r.device:<8}{r.blocks:>9}{r.held:>7}{r.tets:>9}{r.steps:>7}{r.dt:>11.3g}{r.deformable_dt:>11.3g}"
         f"{r.build_time:>9.1f}{r.wall_time:>9.3f}{r.block_steps_per_second / 1e6:>17.3f}"
-        f"{r.block_steps_per_cpu_second / 1e6:>13.3f}{r.contacts:>10}"
+        f"{r.block_steps_per_cpu_second / 1e6:>13.3f}{r.contacts:>10}{r.list_builds:>8}"
         f"{r.bytes_per_block:>9.0f}{r.peak_rss_mb:>9.0f}" + ("" if r.finite else "   NON-FINITE")
     )
     if not header:
         return line
     head = (
         f"{'device':<8}{'blocks':>9}{'held':>7}{'tets':>9}{'steps':>7}{'dt s':>11}{'deform. dt':>11}{'build s':>9}"
-        f"{'wall s':>9}{'M block-steps/s':>17}{'M per cpu-s':>13}{'contacts':>10}{'B/block':>9}{'RSS MB':>9}"
+        f"{'wall s':>9}{'M block-steps/s':>17}{'M per cpu-s':>13}{'contacts':>10}{'builds':>8}{'B/block':>9}"
+        f"{'RSS MB':>9}"
     )
     return "\n".join([head, "-" * len(head), line])
 

@@ -33,6 +33,7 @@ from .kernels.contact import ContactPair
 from .mesh import TET_FACES, row_groups
 from .model import Model, State
 from .neighbors import SkinnedList, SlotArrays, finish_rebuild, make_struct
+from .rigid import has_bodies
 from .topology import NodeStars
 
 DEFAULT_SKIN_FRACTION = 0.25
@@ -358,6 +359,50 @@ class FemContact:
                 kf.SPHERE_FACE_LIST, model.particle_capacity, model.max_sphere_faces, d, {"shear": wp.vec3}
             )
         self.node_faces = SkinnedList(kf.NODE_FACE_LIST, model.node_capacity, model.max_node_faces, d)
+        self.normal_body = wp.full(max(model.node_capacity, 1), -1, dtype=int, device=d)
+        self.rest_normal = wp.zeros(max(model.node_capacity, 1), dtype=wp.vec3, device=d)
+        # Where each node found its target in its candidate list at the last evaluation (a hint only: a stale one
+        # costs a search, never a different answer; kernels/fem_contact.py kept_face_holds).
+        self.target_slot = wp.full(max(model.node_capacity, 1), -1, dtype=int, device=d)
+        self.rigid_normals(True)
+
+    def rigid_normals(self, on: bool) -> None:
+        """Turn the nodes of rigid blocks by their bodies' pose instead of walking their stars each evaluation
+        (kernels/fem_contact.py ``rest_normals_kernel``; ``on`` False: every node walks its star, the general path
+        the fast one is tested against). A no-op before the blocks turned rigid. Launches only; the arrays keep
+        their addresses, so a captured graph sees the choice."""
+        m, s, d = self.model, self.state, self.model.device
+        self.normal_body.fill_(-1)
+        if not (on and has_bodies(s) and m.node_capacity):
+            return
+        x_rest = wp.zeros(m.node_capacity, dtype=wp.vec3, device=d)
+        wp.launch(
+            kf.rest_positions_kernel,
+            dim=m.node_capacity,
+            inputs=[m.node_ref_q, s.node_count, s.node_body, s.node_rigid_u0],
+            outputs=[x_rest],
+            device=d,
+        )
+        wp.launch(
+            kf.rest_normals_kernel,
+            dim=m.node_capacity,
+            inputs=[
+                # Model:
+                m.tet_nodes,
+                m.tet_face_nbr,
+                m.star_offset,
+                m.star_count,
+                m.star_tets,
+                # State in:
+                s.node_count,
+                s.node_body,
+                s.tet_active,
+                # In:
+                x_rest,
+            ],
+            outputs=[self.normal_body, self.rest_normal],
+            device=d,
+        )
 
     def rebuild_sphere_faces(self) -> None:
         """Build the face grid and the sphere–face lists (the first part of :meth:`rebuild`; alone, it sizes the
@@ -435,7 +480,18 @@ class FemContact:
         ``born_relaxed``: node–face springs that start now start relaxed (the evaluation after a topology pass).
         """
         self.rebuild_if_needed()
-        eval_fem_contacts(self.model, self.state, track_energy, self.has_spheres, dt, self.face_normal, born_relaxed)
+        eval_fem_contacts(
+            self.model,
+            self.state,
+            track_energy,
+            self.has_spheres,
+            dt,
+            self.face_normal,
+            born_relaxed,
+            self.normal_body,
+            self.rest_normal,
+            self.target_slot,
+        )
         eval_joints(self.model, self.state, dt)
 
 
@@ -447,6 +503,9 @@ def eval_fem_contacts(
     dt: float | None,
     face_normal: wp.array,
     born_relaxed: bool = False,
+    normal_body: wp.array | None = None,
+    rest_normal: wp.array | None = None,
+    target_slot: wp.array | None = None,
 ) -> None:
     """Sphere–face, node–face and node–wall forces into ``particle_f/t`` and ``node_f`` (launches only).
 
@@ -456,8 +515,19 @@ def eval_fem_contacts(
         born_relaxed: a node–face spring that starts in this evaluation starts relaxed, its depth carried as an
             offset: the re-evaluation after a topology pass, where nothing moved, so no depth was gained (at set-up
             an initial penetration pushes, and in a step a new spring takes the depth gained in it).
+        normal_body, rest_normal: the rigid normals (``FemContact.rigid_normals``), shape (node_capacity,); None:
+            every node walks its star.
+        target_slot: each node's list slot of its target at the last evaluation, a hint (``FemContact``), shape
+            (node_capacity,), int32; None: none.
+        The three are allocated here when None (a direct call outside a step).
     """
     m, s = model, state
+    n = max(m.node_capacity, 1)
+    if normal_body is None or rest_normal is None:
+        normal_body = wp.full(n, -1, dtype=int, device=m.device)
+        rest_normal = wp.zeros(n, dtype=wp.vec3, device=m.device)
+    if target_slot is None:
+        target_slot = wp.full(n, -1, dtype=int, device=m.device)
     step = m.dt if dt is None else dt
     if m.node_capacity:
         if step > 0.0:
@@ -561,8 +631,11 @@ def eval_fem_contacts(
                 s.node_face_count,
                 s.node_face_index,
                 s.wall_point,
+                s.body_q,
                 # In:
                 face_normal,
+                normal_body,
+                rest_normal,
                 int(born_relaxed),
             ],
             outputs=[
@@ -576,6 +649,7 @@ def eval_fem_contacts(
                 s.node_contact_energy_prev,
                 s.node_energy_contact,
                 s.node_energy_boundary_work,
+                target_slot,
             ],
             device=m.device,
         )
