@@ -1,6 +1,6 @@
 """Report of the LDEC §3 facility scenes (issue 11 §4): ``python benchmarks/facility_scenes.py [SCENE ...]
-[--device cpu] [--end-time T] [--json FILE]`` with SCENE among facility_persistent, facility_nonpersistent (default:
-both, printed side by side).
+[--device cpu] [--end-time T] [--json FILE] [--picture PNG]`` with SCENE among facility_persistent,
+facility_nonpersistent (default: both, printed side by side).
 
 Each scene is built as ``python -m warpdem`` builds it (:func:`warpdem.scene_build.build_scene`, rigid blocks from
 t = 0) and stepped in Python, read back every SAMPLE_STEPS steps. What LDEC §3 reports, measured:
@@ -14,17 +14,24 @@ t = 0) and stepped in Python, read back every SAMPLE_STEPS steps. What LDEC §3 
   against the granite's P-wave speed c_p = sqrt((λ + 2μ)/ρ);
 - attenuation with depth: the peak particle speed (PPV) of the probes straight down, and the exponent n of a
   least-squares fit PPV ∝ d⁻ⁿ;
-- rubble: the volume of block material inside each opening's original cross-section at the end (each tet sampled at
-  the four points of the degree-2 Keast rule, each carrying a quarter of its volume, at the blocks' current pose),
-  section by section: the plain tunnel sections, the two junctions, the shaft;
+- rubble: the volume of block material inside each opening's original cross-section (each tet sampled at the four
+  points of the degree-2 Keast rule, each carrying a quarter of its volume, at the blocks' current pose), every
+  RUBBLE_INTERVAL, section by section: the largest room, the plain tunnel stretches, the junctions (main tunnel with
+  the shaft and with the access tunnel), the access tunnel's arms, the shaft; and summed by kind (room, junctions,
+  straight stretches);
+- the largest room's roof over time: the blocks over its footprint within one 2 m layer above its roof, their mean
+  and largest drop and mean sinking speed, against free fall from rest (½ g t², g t);
 - chimney: above each opening section, the blocks whose centre lies over its footprint and above its roof, by 2 m
   layer up from the roof: the largest displacement of a block in each layer; the chimney is the height above the roof
   up to which every layer holds a block displaced more than CHIMNEY_DISPLACEMENT.
+
+Wave figures are read within WAVE_WINDOW; the rest at the end (the scene's end_time unless ``--end-time``).
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import sys
@@ -55,6 +62,13 @@ LAYER = 2.0
 ENERGY_SAMPLES = 25
 """Samples between readings of the energy in play (the balance's scale, its largest value over the run)."""
 SNAPSHOT_TIME = 0.01
+WAVE_WINDOW = 0.01
+"""The probes' speeds are read up to this time [s]: the direct wave has passed every probe by 5 ms, and later the
+blocks over the room fall freely (g t), which is not the wave's PPV."""
+RUBBLE_INTERVAL = 0.005
+"""Time between readings of the rubble in each section and of the room's roof [s]."""
+REPORT_EVERY = 2
+"""The side-by-side table prints every this many readings of the room (and the last)."""
 """Time of the velocity-field section [s]: LDEC's Fig. 7 compares the velocity fields at 30 ms, 10 ms at 1:3."""
 KEAST_2 = np.array(
     [
@@ -70,11 +84,13 @@ KEAST_2 = np.array(
 @dataclass(frozen=True)
 class Section:
     """A part of an opening's original cross-section: an axis-aligned box [m], and the footprint its chimney is
-    counted over (the box's x-y extent) from its roof (``hi[2]``) up."""
+    counted over (the box's x-y extent) from its roof (``hi[2]``) up. ``kind``: "room" (the largest room),
+    "junction" (where two openings cross), "tunnel" (a straight stretch) or "shaft"."""
 
     name: str
     lo: tuple[float, float, float]
     hi: tuple[float, float, float]
+    kind: str = "tunnel"
 
     @property
     def volume(self) -> float:
@@ -85,13 +101,18 @@ class Section:
 
 
 def facility_sections(scene) -> list[Section]:
-    """The openings of a facility scene cut into sections: the main tunnel (axis x) into its plain stretches and its
-    two junctions (with the shaft and with the access tunnel), the access tunnel (axis y) into its two arms, and the
-    shaft above the main tunnel's roof. Read from the scene's ``[[mesh.openings]]`` (rectangular tunnels and a room)."""
+    """The openings of a facility scene cut into sections: the largest room; the main tunnel (axis x) into its
+    straight stretches and its junctions (with the lift shaft and with the access tunnel; the stretch inside the
+    room is the room's); the access tunnel (axis y) into its two arms; the shaft above the main tunnel's roof. Read
+    from the scene's ``[[mesh.openings]]``: rectangular tunnels along x and y, and two rooms, the one that reaches the
+    surface being the shaft."""
     tunnels = [o for o in scene.mesh.openings if o.kind == "tunnel"]
     main = next(o for o in tunnels if o.axis == "x")
     access = next(o for o in tunnels if o.axis == "y")
-    shaft = next(o for o in scene.mesh.openings if o.kind == "room")
+    top = scene.mesh.hi[2]
+    rooms = [o for o in scene.mesh.openings if o.kind == "room"]
+    shaft = next(o for o in rooms if o.hi[2] >= top)
+    room = next(o for o in rooms if o.hi[2] < top)
 
     def box(t, start: float, end: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
         c, zc = t.center
@@ -101,22 +122,28 @@ def facility_sections(scene) -> list[Section]:
         return (lo_t[0], start, lo_t[1]), (hi_t[0], end, hi_t[1])
 
     (m0, m1), (a0, a1) = main.span, access.span
-    sx0, sx1 = shaft.lo[0], shaft.hi[0]
-    ax0, ax1 = access.center[0] - 0.5 * access.width, access.center[0] + 0.5 * access.width
+    crossings = {
+        (shaft.lo[0], shaft.hi[0]): "main tunnel x shaft (junction)",
+        (
+            access.center[0] - 0.5 * access.width,
+            access.center[0] + 0.5 * access.width,
+        ): "main tunnel x access (junction)",
+        (room.lo[0], room.hi[0]): None,  # inside the room: the room's section
+    }
+    cuts = sorted({m0, m1, *(x for pair in crossings for x in pair if m0 < x < m1)})
+    out = [Section("largest room", tuple(room.lo), tuple(room.hi), "room")]
+    for x0, x1 in itertools.pairwise(cuts):
+        name = next(
+            (n for (c0, c1), n in crossings.items() if c0 <= x0 and x1 <= c1), f"main tunnel, x {x0:g}-{x1:g} m"
+        )
+        if name is not None:
+            out.append(Section(name, *box(main, x0, x1), "junction" if "junction" in name else "tunnel"))
     my0, my1 = main.center[0] - 0.5 * main.width, main.center[0] + 0.5 * main.width
+    out.append(Section("access tunnel, south arm", *box(access, a0, my0)))
+    out.append(Section("access tunnel, north arm", *box(access, my1, a1)))
     roof = main.center[1] + 0.5 * main.height
-    out = [
-        Section("main tunnel, west end", *box(main, m0, sx0)),
-        Section("main tunnel x shaft (junction)", *box(main, sx0, sx1)),
-        Section("main tunnel, middle", *box(main, sx1, ax0)),
-        Section("main tunnel x access (junction)", *box(main, ax0, ax1)),
-        Section("main tunnel, east end", *box(main, ax1, m1)),
-        Section("access tunnel, south arm", *box(access, a0, my0)),
-        Section("access tunnel, north arm", *box(access, my1, a1)),
-        Section("lift shaft (above the tunnel)", (shaft.lo[0], shaft.lo[1], roof), tuple(shaft.hi)),
-    ]
-    top = scene.mesh.hi[2]
-    return [Section(s.name, s.lo, (s.hi[0], s.hi[1], min(s.hi[2], top))) for s in out]
+    out.append(Section("lift shaft (above the tunnel)", (shaft.lo[0], shaft.lo[1], roof), tuple(shaft.hi), "shaft"))
+    return [Section(s.name, s.lo, (s.hi[0], s.hi[1], min(s.hi[2], top)), s.kind) for s in out]
 
 
 def p_wave_speed(scene) -> float:
@@ -133,15 +160,21 @@ def load_patch(scene) -> tuple[np.ndarray, float]:
 
 
 def probe_points(scene) -> dict[str, list[tuple[float, np.ndarray]]]:
-    """(distance along the ray [m], point [m]) of the probes of each ray that lie inside the rock box."""
+    """(distance along the ray [m], point [m]) of the probes of each ray that lie in the rock: inside the box, in
+    none of the openings."""
     gz, _ = load_patch(scene)
     lo, hi = np.asarray(scene.mesh.lo), np.asarray(scene.mesh.hi)
+    sections = facility_sections(scene)
     out = {}
     for name, angle in RAYS.items():
         a = math.radians(angle)
         direction = np.array([0.0, -math.sin(a), -math.cos(a)])
         pts = [(r, gz + r * direction) for r in PROBE_DISTANCES]
-        out[name] = [(r, p) for r, p in pts if np.all(p >= lo + 0.5) and np.all(p <= hi - 0.5)]
+        out[name] = [
+            (r, p)
+            for r, p in pts
+            if np.all(p >= lo + 0.5) and np.all(p <= hi - 0.5) and not any(sec.contains(p) for sec in sections)
+        ]
     return out
 
 
@@ -184,6 +217,16 @@ def block_centres(sim) -> np.ndarray:
         np.stack([np.bincount(body, weights=volume * centroid[:, k], minlength=count) for k in range(3)], 1)
         / (weight[:, None])
     )
+
+
+def roof_motion(sim, centres: np.ndarray, room: Section) -> tuple[float, float, float]:
+    """The largest room's roof: the blocks whose centre lies over the room's footprint and within LAYER above its
+    roof. Their mean and largest downward displacement [m] and their mean downward speed [m/s]."""
+    over = np.all((centres[:, :2] > room.lo[:2]) & (centres[:, :2] < room.hi[:2]), axis=1)
+    roof = over & (centres[:, 2] > room.hi[2]) & (centres[:, 2] <= room.hi[2] + LAYER)
+    drop = -sim.state.body_dc.numpy()[roof, 2]
+    sink = -sim.state.body_v.numpy()[roof, 2]
+    return float(drop.mean()), float(drop.max()), float(sink.mean())
 
 
 def chimneys(sim, sections: list[Section], top: float) -> list[tuple[float, list[float]]]:
@@ -295,25 +338,43 @@ def report(scene, device: str, end_time: float | None) -> dict:
     tets = model.tet_nodes.numpy()[:nt].astype(np.int64)
     tet_body = sim.state.node_body.numpy()[tets[:, 0]].astype(np.int64)
     snap_step = min(steps, round(SNAPSHOT_TIME / model.dt))
-    pictures = {"tets": tets, "y": float(facility_sections(scene)[0].lo[1] + facility_sections(scene)[0].hi[1]) / 2}
+    wave_steps = min(steps, round(WAVE_WINDOW / model.dt))
+    rubble_steps = max(1, round(RUBBLE_INTERVAL / model.dt))
+    sections = facility_sections(scene)
+    room = next(sec for sec in sections if sec.kind == "room")
+    pictures = {"tets": tets, "y": 0.5 * (room.lo[1] + room.hi[1])}
     pictures.update(lo=np.asarray(scene.mesh.lo), hi=np.asarray(scene.mesh.hi))
     from warpdem.simulation import balance_error
 
     start_energy = sim.energy()
     in_play = start_energy.in_play
-    done = 0
+    history = {"time": [0.0], "rubble": [[0.0] * len(sections)], "roof": [(0.0, 0.0, 0.0)]}
+    centres = None
+    done, samples = 0, 0
     while done < steps:
-        n = min(SAMPLE_STEPS, steps - done, snap_step - done if done < snap_step else steps)
+        # Stop at every read-back the run needs: the probes (every SAMPLE_STEPS steps within WAVE_WINDOW), the
+        # snapshot, the rubble and roof (every rubble_steps steps), the end.
+        marks = [steps, snap_step, rubble_steps * (done // rubble_steps + 1)]
+        if done < wave_steps:
+            marks.append(min(done + SAMPLE_STEPS, wave_steps))
+        n = min(m for m in marks if m > done) - done
         sim.advance(n)
         done += n
+        samples += 1
         if done == snap_step:
             pictures["t_snap"] = done * model.dt
             pictures["x_snap"] = current_positions(sim)
             pictures["speed_snap"] = np.linalg.norm(sim.state.body_v.numpy(), axis=1)[tet_body]
-        v = sim.state.node_qd.numpy()[nodes].astype(np.float64)
-        times.append(done * model.dt)
-        speeds.append(np.linalg.norm(v, axis=1))
-        if len(times) % ENERGY_SAMPLES == 0 or done == steps:
+        if done <= wave_steps:
+            v = sim.state.node_qd.numpy()[nodes].astype(np.float64)
+            times.append(done * model.dt)
+            speeds.append(np.linalg.norm(v, axis=1))
+        if done % rubble_steps == 0 or done == steps:
+            centres = block_centres(sim) if centres is None else centres
+            history["time"].append(done * model.dt)
+            history["rubble"].append(rubble(sim, sections))
+            history["roof"].append(roof_motion(sim, centres, room))
+        if samples % ENERGY_SAMPLES == 0 or done == steps:
             in_play = max(in_play, sim.energy().in_play)
     run = time.perf_counter() - start - built
     t, speed = np.asarray(times), np.stack(speeds)
@@ -339,8 +400,7 @@ def report(scene, device: str, end_time: float | None) -> dict:
     exponent = float(-np.polyfit(np.log(d), np.log(ppv), 1)[0]) if np.all(ppv > 0) else math.nan
     pictures["x_end"] = current_positions(sim)
     pictures["moved_end"] = np.linalg.norm(sim.state.body_dc.numpy(), axis=1)[tet_body]
-    sections = facility_sections(scene)
-    volumes = rubble(sim, sections)
+    volumes = history["rubble"][-1]
     chimney = chimneys(sim, sections, float(scene.mesh.hi[2]))
     return {
         "scene": scene.name,
@@ -358,9 +418,11 @@ def report(scene, device: str, end_time: float | None) -> dict:
         "waves": waves,
         "attenuation_exponent": exponent,
         "sections": [
-            {"name": s.name, "volume": s.volume, "rubble": v, "chimney": c[0], "layers": c[1]}
+            {"name": s.name, "kind": s.kind, "volume": s.volume, "rubble": v, "chimney": c[0], "layers": c[1]}
             for s, v, c in zip(sections, volumes, chimney, strict=True)
         ],
+        "history": history,
+        "gravity": float(-scene.gravity.vector[2]) if scene.gravity is not None else 0.0,
     }
 
 
@@ -429,6 +491,32 @@ def format_side_by_side(results: list[dict]) -> list[str]:
                 ],
             )
         )
+    lines.append("rubble at the end by kind of section [m³] (share of their volume):")
+    for kind, label in (("room", "largest room"), ("junction", "junctions"), ("tunnel", "straight tunnel stretches")):
+        cells = []
+        for r in results:
+            parts = [s for s in r["sections"] if s["kind"] == kind]
+            total, volume = sum(s["rubble"] for s in parts), sum(s["volume"] for s in parts)
+            cells.append(f"{total:.2f} ({total / volume:.1%})")
+        lines.append(row(f"  {label}", cells))
+    lines.append(
+        "largest room over time: rubble [m³]; its roof blocks' mean / largest drop [cm] and mean sinking speed [m/s] "
+        "(free fall from rest: ½ g t², g t):"
+    )
+    for k, when in enumerate(results[0]["history"]["time"]):
+        if k == 0 or (k % REPORT_EVERY and k != len(results[0]["history"]["time"]) - 1):
+            continue
+        g = results[0]["gravity"]
+        cells = []
+        for r in results:
+            h = r["history"]
+            if k >= len(h["time"]):
+                cells.append("")
+                continue
+            room = next(i for i, s in enumerate(r["sections"]) if s["kind"] == "room")
+            mean, most, sink = h["roof"][k]
+            cells.append(f"{h['rubble'][k][room]:.2f}; {mean * 100:.1f} / {most * 100:.1f}, {sink:.2f}")
+        lines.append(row(f"  t = {when * 1e3:5.1f} ms ({0.5 * g * when**2 * 100:.1f} cm, {g * when:.2f} m/s)", cells))
     lines.append("largest block displacement [cm] by 2 m layer above each section's roof, bottom up:")
     for k, sec in enumerate(results[0]["sections"]):
         for r in results:
