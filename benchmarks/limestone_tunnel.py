@@ -1,5 +1,5 @@
 """Report of the LDEC §4 limestone tunnel (scenes/limestone_tunnel.toml): ``python benchmarks/limestone_tunnel.py
-[--device cpu] [--end-time T] [--resolution R] [--samples N] [--csv PATH]``.
+[--scene PATH] [--device cpu] [--end-time T] [--resolution R] [--samples N] [--csv PATH]``.
 
 The scene is built as ``warpdem run`` builds it (:func:`warpdem.scene_build.build_scene`) and stepped in Python,
 sampling between steps (the fracture passes and the switch to rigid blocks run inside ``Simulation.advance``). At the
@@ -21,6 +21,7 @@ import argparse
 import csv
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -45,7 +46,11 @@ def tunnel_section(scene) -> tuple[np.ndarray, np.ndarray]:
     return x[near].min(axis=0), x[near].max(axis=0)
 
 
-def report(scene, device: str, end_time: float | None, samples: int, csv_path: Path | None) -> list[str]:
+def report(
+    scene, device: str, end_time: float | None, samples: int, csv_path: Path | None, emit: Callable[[str], None] = print
+) -> list[str]:
+    """Run the scene to ``end_time`` (default its own), sampling ``samples`` times; each report line goes to ``emit``
+    as it is made (a long run shows its progress) and all are returned."""
     from warpdem.rigid import rigid_step_after_switch
     from warpdem.scene_build import build_scene
     from warpdem.simulation import Simulation, balance_error
@@ -57,12 +62,19 @@ def report(scene, device: str, end_time: float | None, samples: int, csv_path: P
     end = end_time or scene.run.end_time
     steps = max(1, round(end / sim.model.dt))
     period = end / samples  # a sample every period [s] (samples + 1 rows)
-    out = [
+    out: list[str] = []
+
+    def say(line: str) -> None:
+        out.append(line)
+        emit(line)
+
+    for line in (
         f"{scene.name}: {int(sim.state.tet_count.numpy()[0])} tets, {int(sim.state.node_count.numpy()[0])} nodes, "
         f"dt = {sim.model.dt * 1e6:.3f} µs, {steps} steps at it; tunnel {hi[0] - lo[0]:.3f} m × {hi[2] - lo[2]:.3f} m "
         f"(x {lo[0]:.3f}..{hi[0]:.3f}, z {lo[2]:.3f}..{hi[2]:.3f}), volume {tunnel_volume:.4f} m³",
-        f"{'t [ms]':>8} {'phase':>10} {'rubble [m³]':>12} {'fill':>7} {'pieces':>7} {'splits':>7}",
-    ]
+        f"{'t [ms]':>8} {'phase':>10} {'rubble [m³]':>12} {'fill':>7} {'pieces':>7} {'splits':>7} {'wall [s]':>9}",
+    ):
+        say(line)
     rows = []
     e0 = sim.energy()
     in_play = e0.in_play
@@ -74,8 +86,9 @@ def report(scene, device: str, end_time: float | None, samples: int, csv_path: P
         in_play = max(in_play, sim.energy().in_play)
         phase = "rigid" if sim.rigid else "deformable"
         rows.append((sim.time, phase, rubble, rubble / tunnel_volume, pieces, splits))
-        out.append(
-            f"{sim.time * 1e3:8.2f} {phase:>10} {rubble:12.5f} {rubble / tunnel_volume:7.3f} {pieces:7d} {splits:7d}"
+        say(
+            f"{sim.time * 1e3:8.2f} {phase:>10} {rubble:12.5f} {rubble / tunnel_volume:7.3f} {pieces:7d} {splits:7d} "
+            f"{time.perf_counter() - wall:9.1f}"
         )
         if sim.time >= end - 0.5 * sim.model.dt:
             break
@@ -86,12 +99,12 @@ def report(scene, device: str, end_time: float | None, samples: int, csv_path: P
         sim.advance(max(1, min(round(period / sim.model.dt), round((end - sim.time) / sim.model.dt))))
     wall = time.perf_counter() - wall
     if sim.rigid_report is not None:
-        out.append(sim.rigid_report.format())
+        say(sim.rigid_report.format())
     error = balance_error(e0, sim.energy(), in_play)
-    out.append(f"balance error {error:+.3e} of {in_play:.4g} J in play; wall time {wall:.1f} s (sampling included)")
+    say(f"balance error {error:+.3e} of {in_play:.4g} J in play; wall time {wall:.1f} s (sampling included)")
     fill = rows[-1][3]
     verdict = "fills" if fill >= RUBBLE_SOLID_FRACTION else "does not fill"
-    out.append(
+    say(
         f"rubble at {rows[-1][0] * 1e3:.1f} ms: {rows[-1][2]:.4f} m³ = {fill:.3f} of the tunnel's volume: the tunnel "
         f"{verdict} (a loose pile fills it at a solid fraction of about {RUBBLE_SOLID_FRACTION})"
     )
@@ -130,6 +143,7 @@ def rubble_volume(sim, lo: np.ndarray, hi: np.ndarray) -> tuple[float, int]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", type=Path, default=SCENE, help="scene file; default scenes/limestone_tunnel.toml")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--end-time", type=float, default=None, help="simulated time [s]; default the scene's")
     parser.add_argument("--resolution", type=float, default=None, help="[run] resolution; default the scene's")
@@ -140,11 +154,10 @@ def main(argv: list[str] | None = None) -> int:
     from warpdem.scene import load_scene
 
     init_warp(quiet=True)
-    scene = load_scene(SCENE)
+    scene = load_scene(args.scene)
     if args.resolution is not None:
         scene = scene.model_copy(update={"run": scene.run.model_copy(update={"resolution": args.resolution})})
-    for line in report(scene, args.device, args.end_time, args.samples, args.csv):
-        print(line, flush=True)
+    report(scene, args.device, args.end_time, args.samples, args.csv, emit=lambda line: print(line, flush=True))
     return 0
 
 
