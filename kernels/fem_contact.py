@@ -668,8 +668,9 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
     Energy books (``track_energy``) as for the sphere contacts (kernels/contact.py ``make_contact_kernels``): each
     pair books the half of its work that lies behind, ½ dt f·v_rel (with the rolling torque's ½ dt M·ω), and adds
     its forces to the sphere's sums (``contact_f_normal`` …) and to the face nodes' ``node_f_contact``, whose half
-    ahead the integrator and ``book_node_contact_ahead_kernel`` book against v_{n+1/2} (the sphere's share to
-    ``energy_damping`` / ``energy_friction``, the nodes' to ``node_energy_contact``). The dissipation is then
+    ahead the integrator and ``book_half_ahead_kernel`` (kernels/integrate.py) book against v_{n+1/2} (the
+    sphere's share to ``energy_damping`` / ``energy_friction``, the nodes' to ``node_energy_contact``). The
+    dissipation is then
     D = -W - ΔU exactly, ΔU from the sphere's sphere–face spring energies at the last evaluation,
     ``sphere_face_energy_prev`` (normal → ``energy_damping``, tangential → ``energy_friction``; the change of a
     tangential spring's energy with k_t at fixed ξ → ``energy_stiffness_change``).
@@ -1314,27 +1315,6 @@ def node_spring_energy(
     return e
 
 
-@wp.kernel
-def book_node_contact_ahead_kernel(
-    dt: float,
-    node_count: wp.array(dtype=int),
-    node_qd: wp.array(dtype=wp.vec3),
-    node_f_contact: wp.array(dtype=wp.vec3),
-    node_energy_contact: wp.array(dtype=wp.float64),
-):
-    """Book minus the half of the last evaluation's FEM contact work that lies ahead of it, -½ dt f_n·v_{n+1/2} [J],
-    now that v_{n+1/2} is known (node_qd before the new evaluation, set by the drift and, for a rigid block's node,
-    by its pose), and clear the sums for the new evaluation (the other half: ``make_node_contact_kernel``)."""
-    i = wp.tid()  # one thread per node slot
-    if i >= node_count[0]:
-        return
-    f = node_f_contact[i]
-    if wp.length_sq(f) > 0.0:  # a node no contact touched keeps its zero unwritten
-        w = 0.5 * dt * wp.dot(f, node_qd[i])
-        node_energy_contact[i] = node_energy_contact[i] - wp.float64(w)
-        node_f_contact[i] = wp.vec3(0.0)
-
-
 @functools.cache
 def make_node_contact_kernel(track_energy: bool):
     """The node–face and node–wall force kernel.
@@ -1343,11 +1323,11 @@ def make_node_contact_kernel(track_energy: bool):
     velocity Verlet works a force f_n over ½ dt f_n·(v_{n-1/2} + v_{n+1/2}), and v_{n-1/2} is the velocity during the
     evaluation of f_n. So each node books here the half of its springs' work that lies behind, ½ dt f·v_rel (against
     the face's velocity at the contact point, or the wall's), and adds its forces to ``node_f_contact`` of itself and
-    of the face's nodes, which ``book_node_contact_ahead_kernel`` dots with v_{n+1/2} before the next evaluation (the
-    half ahead). The dissipation is then D = -W - ΔU exactly (dashpots, friction, a spring let go of or handed to a
-    shallower face), ΔU from the springs' energy at the last evaluation, ``node_contact_energy_prev``. An evaluation
-    at dt = 0 (set-up, the re-evaluation after a topology pass) records the springs' energy and books what it lets go
-    of at the same positions.
+    of the face's nodes, which ``book_half_ahead_kernel`` (kernels/integrate.py) dots with v_{n+1/2} before the
+    next evaluation (the half ahead). The dissipation is then D = -W - ΔU exactly (dashpots, friction, a spring let
+    go of or handed to a shallower face), ΔU from the springs' energy at the last evaluation,
+    ``node_contact_energy_prev``. An evaluation at dt = 0 (set-up, the re-evaluation after a topology pass) records the
+    springs' energy and books what it lets go of at the same positions.
     """
 
     @wp.kernel(enable_backward=False, module="unique")

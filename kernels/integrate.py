@@ -230,6 +230,29 @@ def drift_node(
     node_f[i] = f0
 
 
+@wp.kernel
+def book_half_ahead_kernel(
+    dt: float,
+    node_count: wp.array(dtype=int),
+    node_qd: wp.array(dtype=wp.vec3),
+    node_f_kind: wp.array(dtype=wp.vec3),
+    node_energy_kind: wp.array(dtype=wp.float64),
+):
+    """Book minus the half of the last evaluation's work of one kind of force that lies ahead of it,
+    -½ dt f_n·v_{n+1/2} [J], now that v_{n+1/2} is known (node_qd before the new evaluation, set by the drift and,
+    for a rigid block's node, by its pose), and clear the kind's sums for the new evaluation. The kinds: the FEM
+    contacts and joint dashpots (``node_f_contact`` into ``node_energy_contact``; the half behind:
+    kernels/fem_contact.py, kernels/joints.py), the non-reflecting dashpots (``node_f_absorbed`` into
+    ``node_energy_absorbed``; kernels/loads.py)."""
+    i = wp.tid()  # one thread per node slot
+    if i >= node_count[0]:
+        return
+    f = node_f_kind[i]
+    if wp.length_sq(f) > 0.0:  # a node no such force touched keeps its zero unwritten
+        node_energy_kind[i] = node_energy_kind[i] - wp.float64(0.5 * dt * wp.dot(f, node_qd[i]))
+        node_f_kind[i] = wp.vec3(0.0)
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # Kernels: the first and the second half of a step, and the two fused across a step boundary.
 

@@ -350,7 +350,7 @@ def eval_joints_kernel(
     wp.atomic_add(node_f, a, -f)
     # The dashpots' work as Verlet does it, ½ dt F_damp·(v_{n-1/2} + v_{n+1/2}) on the relative motion (v_rel is
     # v_{n-1/2} here): the half behind is booked now, and the force joins node_f_contact, whose half ahead the next
-    # evaluation books against v_{n+1/2} (kernels/fem_contact.py book_node_contact_ahead_kernel). The springs need no
+    # evaluation books against v_{n+1/2} (kernels/integrate.py book_half_ahead_kernel). The springs need no
     # booking: their energy is read at the current positions.
     wp.atomic_add(node_energy_contact, a, wp.float64(-0.5 * wp.dot(out[1], v_rel) * dt))
     wp.atomic_add(node_f_contact, b, out[1])

@@ -323,29 +323,9 @@ def apply_dashpots_kernel(
         wp.atomic_add(node_f, node, force)
         # Absorbed as Verlet does the work, -½ dt f_n·(v_{n-1/2} + v_{n+1/2}) ≥ 0 on the whole (v = v_{n-1/2}, the
         # half-step velocity the force is made from): the half behind now, the half ahead at the next evaluation from
-        # node_f_absorbed (book_dashpots_ahead_kernel).
+        # node_f_absorbed (kernels/integrate.py book_half_ahead_kernel).
         wp.atomic_add(node_energy_absorbed, node, wp.float64(-0.5 * wp.dot(force, v) * dt))
         wp.atomic_add(node_f_absorbed, node, force)
-
-
-@wp.kernel
-def book_dashpots_ahead_kernel(
-    dt: float,
-    node_count: wp.array(dtype=int),
-    node_qd: wp.array(dtype=wp.vec3),
-    node_f_absorbed: wp.array(dtype=wp.vec3),
-    node_energy_absorbed: wp.array(dtype=wp.float64),
-):
-    """Book the half of the last evaluation's dashpot work that lies ahead of it, -½ dt f_n·v_{n+1/2} [J], now that
-    v_{n+1/2} is known (node_qd before the new evaluation), and clear the sums for the new evaluation (the half behind:
-    ``apply_dashpots_kernel``)."""
-    i = wp.tid()  # one thread per node slot
-    if i >= node_count[0]:
-        return
-    f = node_f_absorbed[i]
-    if wp.length_sq(f) > 0.0:  # a node on no non-reflecting face keeps its zero unwritten
-        node_energy_absorbed[i] = node_energy_absorbed[i] - wp.float64(0.5 * dt * wp.dot(f, node_qd[i]))
-        node_f_absorbed[i] = wp.vec3(0.0)
 
 
 @wp.func

@@ -29,6 +29,7 @@ from .compaction import Compactor
 from .contact import hash_grid_dims
 from .joints import JointData, JointProps, eval_joints, joint_energy, joint_material_table, split_joints
 from .kernels import fem_contact as kf
+from .kernels import integrate as ki
 from .kernels.contact import ContactPair
 from .mesh import TET_FACES, row_groups
 from .model import Model, State
@@ -533,7 +534,7 @@ def eval_fem_contacts(
         if step > 0.0:
             # The half ahead of the last evaluation's node contact forces, at the velocities this one sees.
             wp.launch(
-                kf.book_node_contact_ahead_kernel,
+                ki.book_half_ahead_kernel,
                 dim=m.node_capacity,
                 inputs=[step, s.node_count, s.node_qd],
                 outputs=[s.node_f_contact, s.node_energy_contact],

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
+from .kernels import integrate as ki
 from .kernels import loads as kl
 from .kernels import tets as kt
 from .mesh import TET_FACES
@@ -616,7 +617,7 @@ def eval_loads(model: Model, state: State, dt: float | None = None) -> None:
     if loads.dashpots is not None and dt > 0.0:
         d = loads.dashpots
         wp.launch(
-            kl.book_dashpots_ahead_kernel,
+            ki.book_half_ahead_kernel,
             dim=m.node_capacity,
             inputs=[dt, s.node_count, s.node_qd],
             outputs=[s.node_f_absorbed, s.node_energy_absorbed],

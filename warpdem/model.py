@@ -330,7 +330,7 @@ class State:
             shape (node_capacity,), float64.
         node_f_absorbed: the non-reflecting boundaries' dashpot forces on each node at the last evaluation [N] (part
             of ``node_f``), whose work over the half step ahead the next evaluation books (kernels/loads.py
-            ``book_dashpots_ahead_kernel``), shape (node_capacity,), vec3.
+            ``book_half_ahead_kernel`` in kernels/integrate.py), shape (node_capacity,), vec3.
         tet_active: 1 for a tet that carries forces, 0 for one taken out (converted), shape (tet_capacity,), int32.
         tet_stress: Cauchy stress at the current displacements (elastic, without bulk viscosity; 0 for inactive
             tets) [Pa], tension positive, shape (tet_capacity,), mat33. Refreshed between steps (after every
@@ -368,7 +368,7 @@ class State:
             stiffness"), shape (node_capacity,), float64.
         node_f_contact: the node–face and node–wall forces on each node at the last evaluation [N] (the node's own
             and its share as a face node; with the dashpot forces of the intact joint elements), whose work over the
-            half step ahead the next evaluation books (kernels/fem_contact.py ``book_node_contact_ahead_kernel``; the
+            half step ahead the next evaluation books (kernels/integrate.py ``book_half_ahead_kernel``; the
             contacts' part is zero without energy tracking), shape (node_capacity,), vec3.
         node_contact_energy_prev: elastic energy of each node's face and wall springs at the last evaluation [J]
             (ΔU of the contact dissipation D = -W - ΔU), shape (node_capacity,), float64.
