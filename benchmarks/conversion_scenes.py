@@ -12,7 +12,6 @@ the pressure load's region); the tets converted by the passes (not the start_as_
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
@@ -93,20 +92,17 @@ def report(scene, device: str, end_time: float | None) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("scenes", nargs="*", metavar="SCENE", help=f"one of {', '.join(SCENES)} [all]")
-    parser.add_argument("--device", default="cpu", help="Warp device [cpu]")
-    parser.add_argument("--end-time", type=float, help="simulated end time [s] (default: the scene's)")
+    from scene_reports import chosen_scenes, scene_parser  # beside this script, in benchmarks/
+
+    parser = scene_parser(__doc__, SCENES)
     parser.add_argument("--resolution", type=float, help="run.resolution (default: the scene's)")
     args = parser.parse_args(argv)
-    unknown = [name for name in args.scenes if name not in SCENES]
-    if unknown:
-        parser.error(f"unknown scene {unknown[0]!r}; allowed: {', '.join(SCENES)}")
+    names = chosen_scenes(parser, args, SCENES)
     from warpdem.cli import init_warp
     from warpdem.scene import load_scene
 
     init_warp()
-    for name in args.scenes or list(SCENES):
+    for name in names:
         scene = load_scene(SCENES_DIR / f"{name}.toml")
         if args.resolution is not None:
             scene = scene.model_copy(update={"run": scene.run.model_copy(update={"resolution": args.resolution})})

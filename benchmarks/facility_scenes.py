@@ -30,7 +30,6 @@ Wave figures are read within WAVE_WINDOW; the rest at the end (the scene's end_t
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import json
 import math
@@ -526,22 +525,19 @@ def format_side_by_side(results: list[dict]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("scenes", nargs="*", metavar="SCENE", help=f"one of {', '.join(SCENES)} [both]")
-    parser.add_argument("--device", default="cpu", help="Warp device [cpu]")
-    parser.add_argument("--end-time", type=float, help="simulated end time [s] (default: the scene's)")
+    from scene_reports import chosen_scenes, scene_parser  # beside this script, in benchmarks/
+
+    parser = scene_parser(__doc__, SCENES, every="both")
     parser.add_argument("--json", type=Path, help="also write the figures to this JSON file")
     parser.add_argument("--picture", type=Path, help="also draw the sections of the scenes to this PNG file")
     args = parser.parse_args(argv)
-    unknown = [name for name in args.scenes if name not in SCENES]
-    if unknown:
-        parser.error(f"unknown scene {unknown[0]!r}; allowed: {', '.join(SCENES)}")
+    names = chosen_scenes(parser, args, SCENES)
     from warpdem.cli import init_warp
     from warpdem.scene import load_scene
 
     init_warp()
     results = []
-    for name in args.scenes or SCENES:
+    for name in names:
         results.append(report(load_scene(SCENES_DIR / f"{name}.toml"), args.device, args.end_time))
         print(f"{name}: built in {results[-1]['build_s']:.0f} s, ran in {results[-1]['run_s']:.0f} s", flush=True)
     print("\n".join(format_side_by_side(results)))

@@ -20,7 +20,6 @@ in Python, sampling between steps (split passes run inside ``Simulation.advance`
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 import time
@@ -283,23 +282,20 @@ REPORTS: dict[str, Callable[..., list[str]]] = {
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("scenes", nargs="*", metavar="SCENE", help=f"one of {', '.join(REPORTS)} [all]")
-    parser.add_argument("--device", default="cpu", help="Warp device [cpu]")
-    parser.add_argument("--end-time", type=float, help="simulated end time [s] (default: the scene's)")
+    from scene_reports import chosen_scenes, scene_parser  # beside this script, in benchmarks/
+
+    parser = scene_parser(__doc__, REPORTS)
     parser.add_argument("--checkpoint", type=Path, help="only count the rock fragments in this checkpoint of a run")
     args = parser.parse_args(argv)
     if args.checkpoint is not None:
         print(checkpoint_fragments(args.checkpoint))
         return 0
-    unknown = [name for name in args.scenes if name not in REPORTS]
-    if unknown:
-        parser.error(f"unknown scene {unknown[0]!r}; allowed: {', '.join(REPORTS)}")
+    names = chosen_scenes(parser, args, REPORTS)
     from warpdem.cli import init_warp
     from warpdem.scene import load_scene
 
     init_warp()
-    for name in args.scenes or list(REPORTS):
+    for name in names:
         start = time.perf_counter()
         lines = REPORTS[name](load_scene(SCENES_DIR / f"{name}.toml"), args.device, args.end_time)
         print("\n".join(lines))
