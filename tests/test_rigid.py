@@ -267,6 +267,12 @@ def test_switch_conserves_mass_momentum_and_closes_the_books(device):
     # The books do not jump: what the tets and element modes held is booked as released.
     assert abs(after.total - before.total) < SWITCH_RTOL * in_play
     np.testing.assert_allclose(after.strain, 0.0)
+    # The release's parts as the report says them: strain + element-mode kinetic energy (the nodes' kinetic energy
+    # beyond the bodies') and the change of Verlet's shadow term, each from the two energy tallies (float64 sums).
+    np.testing.assert_allclose(report.shadow, after.shadow - before.shadow, rtol=1e-12)
+    np.testing.assert_allclose(
+        report.released - report.shadow, before.strain + before.kinetic - after.kinetic, rtol=1e-9
+    )
     # And close afterwards: the blocks fall, touch and rub on the joint.
     sim.advance(400)
     later = sim.energy()

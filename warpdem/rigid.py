@@ -97,7 +97,9 @@ class RigidReport:
     Attributes:
         bodies: rigid bodies made; fixed: of which held in place; planar: of which on a roller plane (moving in it);
         lines: of which between two roller planes (moving along their line); nodes: nodes that follow a body; tets:
-        tets made rigid; released: energy booked as ``released_rigid_switch`` [J]; critical_dt: the stable step after
+        tets made rigid; released: energy booked as ``released_rigid_switch`` [J]; shadow: of which the change of
+        Verlet's shadow term (the forces re-made on the bodies' masses: a switch at rest releases no strain or element
+        kinetic energy, only this) [J]; critical_dt: the stable step after
         the switch (:func:`rigid_step_after_switch`, before the safety factor) [s]; deformable_dt: the builder's
         critical step of the deformable model (``Model.critical_dt`` at the switch) [s]; dt_before, dt_after: the
         run's time step at the switch and after it (with ``dt = "auto"`` the runner takes the rigid step at the
@@ -112,6 +114,7 @@ class RigidReport:
     planar: int = 0
     lines: int = 0
     released: float = 0.0
+    shadow: float = 0.0
     critical_dt: float = math.inf
     deformable_dt: float = math.nan
     dt_before: float = math.nan
@@ -121,7 +124,7 @@ class RigidReport:
         rollers = f", {self.planar} on a roller plane, {self.lines} on two" if self.planar or self.lines else ""
         text = (
             f"rigid switch: {self.bodies} blocks ({self.fixed} held{rollers}), {self.nodes} nodes, {self.tets} tets; "
-            f"{self.released:.6g} J released; stable step {self.critical_dt:.4g} s rigid against "
+            f"{self.released:.6g} J released{self._shadow_part()}; stable step {self.critical_dt:.4g} s rigid against "
             f"{self.deformable_dt:.4g} s deformable ({self.critical_dt / self.deformable_dt:.3g}×)"
         )
         if math.isfinite(self.dt_after) and self.dt_after != self.dt_before:
@@ -135,6 +138,15 @@ class RigidReport:
                 # An explicit run.dt is kept as the user set it; say so where it is past the new stable step.
                 text += ' (above the stable step after the switch: lower run.dt or use dt = "auto")'
         return text
+
+    def _shadow_part(self) -> str:
+        """The shadow term's share of the release, said where there is one: without it a switch at rest would read as
+        a negative release of strain energy."""
+        if self.shadow == 0.0:
+            return ""
+        return (
+            f" ({self.released - self.shadow:.6g} J strain and element modes, {self.shadow:.6g} J Verlet's shadow term)"
+        )
 
 
 def tet_inertia(vertices: np.ndarray, mass: np.ndarray) -> np.ndarray:

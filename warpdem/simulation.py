@@ -489,6 +489,7 @@ class Simulation:
             booked = self.state.energy_released_rigid
             booked.assign(booked.numpy() + released)
             report.released = released
+            report.shadow = after.shadow - before.shadow
         report.critical_dt = rigid_step_after_switch(self.model, self.state).value
         m = self.model
         report.deformable_dt = m.deformable_critical_dt if m.deformable_critical_dt > 0.0 else m.critical_dt
