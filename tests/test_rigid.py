@@ -1000,6 +1000,36 @@ def test_an_old_checkpoint_resumes_bit_for_bit_where_its_fields_fill_exactly(swi
         np.testing.assert_array_equal(arrays[name], a, err_msg=f"restart from an old frame-4 checkpoint: {name}")
 
 
+def test_a_format_2_checkpoint_after_the_switch_resumes_bit_for_bit(switch_run):
+    """Format 3 added the pressure loads' forces kept per node (``node_f_load``) and the bodies' drift scratch
+    (``body_q_before``, ``body_omega_ahead``). A format-2 checkpoint after the switch and the change of step (frame 8:
+    the rigid column pushed by its load) lacks them: a restart makes the load's forces again at the checkpoint's time
+    and positions and zeroes the scratch (the next drift writes it before anything reads it), and ends with the
+    uninterrupted run's arrays, bit for bit (CPU)."""
+    import shutil
+
+    import h5py
+
+    from warpdem.checkpoint import read_checkpoint
+    from warpdem.runner import RunOptions, run_scene
+
+    scene, folder, summary = switch_run
+    end_arrays, _ = read_checkpoint(summary.checkpoints[-1])
+    copy = folder / "old8"
+    shutil.copytree(folder / "out", copy)
+    path = next(p for p in (copy / "checkpoints").iterdir() if read_checkpoint(p)[1]["frame"] == 8)
+    arrays, _ = read_checkpoint(path)
+    assert np.any(arrays["state/node_f_load"] != 0.0) and len(arrays["state/body_q_before"]) == 1
+    as_old_checkpoint(path, path, ["state/node_f_load", "state/body_q_before", "state/body_omega_ahead"])
+    with h5py.File(path, "r+") as f:
+        f.attrs["warpdem_format_version"] = 2
+    again = run_scene(scene, RunOptions(device="cpu", out_dir=copy, quiet=True, restart=path))
+    arrays, _ = read_checkpoint(again.checkpoints[-1])
+    assert arrays.keys() == end_arrays.keys()
+    for name, a in end_arrays.items():
+        np.testing.assert_array_equal(arrays[name], a, err_msg=f"restart from a format-2 frame-8 checkpoint: {name}")
+
+
 @pytest.mark.parametrize(
     ("key", "why"),
     [
