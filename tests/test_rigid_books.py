@@ -12,23 +12,28 @@ books is constant to rounding: the balance of warpdem.simulation.EnergyBalance c
 
 Before the half ahead of each evaluation was booked at the next pose, V + ω(q_{n+1}, L_{n+1/2}) × R(q_{n+1}) r0: an
 error of relative size ω dt per step in the work of any force with a torque (measured, in the cases below: 5.6e-4
-for the blast, 1.4e-4 on the roller plane, 5.7e-5 against the dashpots, 8.0e-6 on the rough plane).
+for the blast, 1.4e-4 on the roller plane, 5.7e-5 against the dashpots, 8.0e-6 on the rough plane; the cohesive
+elements, which book both halves of their trapezoid at the evaluation, 3.7e-6 with the others' books right).
 
 Tolerance BOOKS_RTOL: the booked halves are float32 products f·v of float32 forces and float32 velocities rounded
 once from the body's float64 motion (a relative error of a few ε₃₂ per term), summed in float64; the kinetic energy
 is float64 of the same float32 forces. The terms of one force mostly share a sign, so the error stays below a few
 ε₃₂ of the work in play however many steps: 2 ε₃₂ = 2.4e-7. The free rotor adds its splitting error off a principal
 axis, O((ω dt)²) of the spin energy and bounded (the dashpot block, whose drag tips L off its axis: 2e-8). Measured
-after the fix: 1.4e-9, 1.4e-9, 2.2e-8, 1.6e-9.
+after the fix: 2.9e-9, 3.8e-9, 2.2e-8, 1.6e-9, 1.3e-9.
 """
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
+from test_cohesive import set_elements
 from test_fem_contact import two_blocks
 
 from warpdem.builder import ModelBuilder
+from warpdem.fracture import fracture_state
 from warpdem.loads import PressureHistory
 from warpdem.mesh import boundary_faces, box_mesh
 from warpdem.simulation import Simulation, balance_error
@@ -48,9 +53,9 @@ def spin_nodes(model, state, omega, velocity=(0.0, 0.0, 0.0), nodes=None) -> Non
     state.node_qd.assign(v)
 
 
-def worst_balance(model, state, frames: int, steps: int) -> tuple[float, np.ndarray, np.ndarray]:
+def worst_balance(model, state, frames: int, steps: int) -> tuple[float, np.ndarray, np.ndarray, Simulation]:
     """Switch every block rigid at once, run ``frames`` × ``steps`` steps and return the largest |balance error|
-    over the frames [-], and the last body's angular momentum at the switch and at the end [kg m²/s]."""
+    over the frames [-], the last body's angular momentum at the switch and at the end [kg m²/s], and the run."""
     sim = Simulation(model, state)
     sim.switch_to_rigid()
     start = sim.energy()
@@ -62,7 +67,7 @@ def worst_balance(model, state, frames: int, steps: int) -> tuple[float, np.ndar
         now = sim.energy()
         in_play = max(in_play, now.in_play)
         worst = max(worst, abs(balance_error(start, now, in_play)))
-    return worst, l0, sim.state.body_l.numpy()[-1]
+    return worst, l0, sim.state.body_l.numpy()[-1], sim
 
 
 @pytest.mark.parametrize("roller", [False, True])
@@ -84,7 +89,7 @@ def test_block_turned_by_an_off_centre_blast_closes_its_books(device, roller):
         loaded = faces[np.isclose(c[:, 2], 0.5) & (c[:, 0] > 1.0)]
     b.add_face_pressure(loaded, PressureHistory.blast(3.0e8, 1.0e-4, 2.0e-3), "charge")
     model, state = b.finalize(device, safety_factor=0.5)
-    worst, _, spin = worst_balance(model, state, 10, 20)
+    worst, _, spin, _ = worst_balance(model, state, 10, 20)
     axis = 2 if roller else 1
     assert abs(spin[axis]) > 1.0e4  # it turns: |L| 3.5e4 (roller), 2.8e5 kg m²/s (free) measured
     assert worst < BOOKS_RTOL
@@ -101,7 +106,7 @@ def test_spinning_block_slowed_by_dashpots_closes_its_books(device):
     b.add_boundary(boundary_faces(tets), "non_reflecting")
     model, state = b.finalize(device, safety_factor=0.5)
     spin_nodes(model, state, (0.0, 0.0, 200.0), (1.0, 0.5, 0.0))
-    worst, start, end = worst_balance(model, state, 10, 2)
+    worst, start, end, _ = worst_balance(model, state, 10, 2)
     assert np.linalg.norm(end) < 0.01 * np.linalg.norm(start)  # the dashpots took the spin (measured to 1e-4)
     assert worst < BOOKS_RTOL
 
@@ -112,6 +117,29 @@ def test_spinning_block_on_a_rough_plane_closes_its_books(device):
     hops. The node–face contacts' dissipation (booked from ``node_f_contact``) closes the books to BOOKS_RTOL."""
     model, state, upper = two_blocks(device, 10.0, 2)
     spin_nodes(model, state, (0.0, 0.0, 12.0), nodes=upper)
-    worst, start, end = worst_balance(model, state, 10, 30)
+    worst, start, end, _ = worst_balance(model, state, 10, 30)
     assert end[2] < 0.98 * start[2]  # friction braked the spin (measured to 0.96 of it)
+    assert worst < BOOKS_RTOL
+
+
+def test_block_spun_off_its_cohesive_elements_closes_its_books(device):
+    """The same upper block glued to its held base by cohesive elements at its nine joint nodes (each pair of
+    daughters across the joint; f_c 200 kN, Γ 50 J/m², 0.25 m² each, p1 along the normal) and spun at 4 rad/s about
+    the normal: the spin tears the elements (their opening grows as ω t r) and then friction brakes it. The elements'
+    books (their trapezoid, with f_n's half at the pose it was made at) close the balance to BOOKS_RTOL."""
+    model, state, upper = two_blocks(device, 0.0, 2)
+    x = model.node_ref_q.numpy()
+    nodes = np.arange(int(state.node_count.numpy()[0]))
+    joint = nodes[np.isclose(x[nodes, 2], 0.5)]
+    above = np.isin(joint, upper)
+    pairs = [(a, b) for a in joint[~above] for b in joint[above] if np.array_equal(x[a], x[b])]
+    assert len(pairs) == 9
+    model = dataclasses.replace(model, cohesive_capacity=len(pairs))
+    state = dataclasses.replace(state, **fracture_state(model))
+    a, b = zip(*pairs, strict=True)
+    set_elements(state, list(a), list(b), 1.0, (0.0, 0.0, 1.0), fc=2.0e5, gamma=50.0, area=0.25)
+    spin_nodes(model, state, (0.0, 0.0, 4.0), nodes=upper)
+    worst, start, end, sim = worst_balance(model, state, 10, 20)
+    assert int(sim.state.cohesive_broken_total.numpy()[0]) == len(pairs)  # all torn
+    assert end[2] < 0.97 * start[2]  # the elements and friction braked the spin (measured to 0.94 of it)
     assert worst < BOOKS_RTOL
