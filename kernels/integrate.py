@@ -245,6 +245,7 @@ def book_half_ahead_kernel(
     body_omega_ahead: wp.array(dtype=wp.vec3d),
     # In:
     sign: float,
+    rigid_only: int,
     # State out:
     node_f_kind: wp.array(dtype=wp.vec3),
     node_energy_kind: wp.array(dtype=wp.float64),
@@ -256,10 +257,17 @@ def book_half_ahead_kernel(
     empty before a switch: no node follows a body). The kinds: the FEM contacts and joint dashpots (``node_f_contact``
     into ``node_energy_contact``, sign −1: what they take out; the half behind: kernels/fem_contact.py,
     kernels/joints.py), the non-reflecting dashpots (``node_f_absorbed`` into ``node_energy_absorbed``, −1) and the
-    pressure loads (``node_f_load`` into ``node_energy_boundary_work``, +1: work put in; kernels/loads.py)."""
+    pressure loads (``node_f_load`` into ``node_energy_boundary_work``, +1: work put in; kernels/loads.py), and with
+    ``rigid_only`` the viscous forces of deformable tets on rigid blocks' nodes (``node_f_viscous`` into
+    ``node_energy_damping``, −1; the other nodes' are booked in the drift, :func:`drift_node`)."""
     i = wp.tid()  # one thread per node slot
     if i >= node_count[0]:
         return
+    if rigid_only != 0:
+        if node_body.shape[0] == 0:
+            return
+        if node_body[i] < 0:
+            return
     f = node_f_kind[i]
     if wp.length_sq(f) > 0.0:  # a node no such force touched keeps its zero unwritten
         v = node_qd[i]
@@ -437,9 +445,9 @@ def make_node_drift_kernel(after_second_half: bool) -> wp.Kernel:
             if num_drivers == 0 or node_driver[i] < 0:
                 # A rigid block's node: its body's pose sets its displacement, position and velocity right after
                 # this kernel (kernels/rigid.py), and checks its skin; what is left of the drift below for a node
-                # with no free direction is its accumulators started at zero (v = 0: no damping force, no work).
-                if node_damping[i] > 0.0 or wp.length_sq(node_f_viscous[i]) > 0.0:
-                    node_f_viscous[i] = wp.vec3(0.0)
+                # with no free direction is its force accumulator started at zero (v = 0: no damping force). The
+                # viscous forces of deformable tets next to it are booked and cleared after the body's drift, at the
+                # pose they were made at (warpdem.rigid.drift_bodies).
                 node_f[i] = wp.vec3(0.0)
                 return
         free = node_free_directions(motion)
