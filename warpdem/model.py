@@ -325,7 +325,9 @@ class State:
             (node_capacity,), float64.
         node_f_viscous: the bulk-viscosity and mass-proportional damping forces on each node at the last evaluation
             [N] (part of ``node_f``), for the integrator's booking of the half of their work that lies ahead, as the
-            sphere contacts' sums (kernels/integrate.py ``drift_node``), shape (node_capacity,), vec3.
+            sphere contacts' sums (kernels/integrate.py ``drift_node``; on a rigid block's node, the forces of the
+            deformable tets next to it, booked after the body's drift: warpdem.rigid.drift_bodies), shape
+            (node_capacity,), vec3.
         node_energy_absorbed: energy the non-reflecting boundaries' dashpots took out of the model [J], per node,
             shape (node_capacity,), float64.
         node_f_absorbed: the non-reflecting boundaries' dashpot forces on each node at the last evaluation [N] (part
