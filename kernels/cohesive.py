@@ -52,7 +52,9 @@ over a step the nodes do on it the trapezoid
 
     ΔW = ½ dt (f_n + f_{n+1}) · (v_B − v_A)_{n+1/2}                       (x_{n+1} − x_n = dt v_{n+1/2})
 
-(f the force on A, −f on B, v_{n+1/2} the velocities during the evaluation of f_{n+1}), of which its spring now holds
+(f the force on A, −f on B, v_{n+1/2} the velocities during the evaluation of f_{n+1}; for a node of a rigid block
+the half of f_n is taken at the pose f_n was made at, as the body's kick works it: kernels/rigid.py
+``node_velocity_ahead``), of which its spring now holds
 U_{n+1} = ½ k d²; dissipated += ΔW − (U_{n+1} − U_n), half on A and half on B (``node_energy_cohesive``), with f_n
 and U_n kept per element (``cohesive_f_prev``, ``cohesive_energy_prev``). Stored + dissipated is then the work done
 on the element exactly, and the energy balance closes however coarsely the step resolves δ_c; on a resolved opening
@@ -65,6 +67,8 @@ applies no force from then on, so nothing is left ahead. A split gives the new e
 from __future__ import annotations
 
 import warp as wp
+
+from .rigid import node_velocity_ahead
 
 wp.set_module_options({"enable_backward": False})
 
@@ -149,20 +153,45 @@ def book_step(
     energy: float,
     track_energy: int,
     node_qd: wp.array(dtype=wp.vec3),
+    v_rel_ahead: wp.vec3,
     cohesive_f_prev: wp.array(dtype=wp.vec3),
     cohesive_energy_prev: wp.array(dtype=float),
     node_energy_cohesive: wp.array(dtype=wp.float64),
 ):
     """Book element i's dissipation over the step that made its force ``f`` [N] (on A) and spring energy ``energy``
-    [J]: the trapezoid ΔW = ½ dt (f_n + f)·(v_B − v_A)_{n+1/2} the nodes did on it, less the change of its spring
-    energy, half on A and half on B (module docstring); then keep f and the energy for the next step."""
+    [J]: the trapezoid ΔW = ½ dt (f_n·(v_B − v_A)_ahead + f·(v_B − v_A)_{n+1/2}) the nodes did on it, less the change
+    of its spring energy, half on A and half on B (module docstring); then keep f and the energy for the next step.
+    ``v_rel_ahead`` is the relative velocity the half ahead of f_n is booked against: v_{n+1/2} for nodes of their
+    own, a rigid body's velocity at the pose f_n was made at for its nodes (:func:`relative_velocity_ahead`)."""
     v_rel = node_qd[b] - node_qd[a]
-    work = wp.float64(0.5 * dt * wp.dot(cohesive_f_prev[i] + f, v_rel))
+    work = wp.float64(0.5 * dt * (wp.dot(cohesive_f_prev[i], v_rel_ahead) + wp.dot(f, v_rel)))
     half = wp.float64(0.5) * (work - (wp.float64(energy) - wp.float64(cohesive_energy_prev[i])))
     wp.atomic_add(node_energy_cohesive, a, half)
     wp.atomic_add(node_energy_cohesive, b, half)
     cohesive_f_prev[i] = f
     cohesive_energy_prev[i] = energy
+
+
+@wp.func
+def relative_velocity_ahead(
+    a: int,
+    b: int,
+    node_qd: wp.array(dtype=wp.vec3),
+    node_body: wp.array(dtype=int),
+    node_rigid_r0: wp.array(dtype=wp.vec3d),
+    body_fixed: wp.array(dtype=int),
+    body_v: wp.array(dtype=wp.vec3d),
+    body_q_before: wp.array(dtype=wp.quatd),
+    body_omega_ahead: wp.array(dtype=wp.vec3d),
+) -> wp.vec3:
+    """(v_B − v_A) [m/s] over the half step ahead of the last evaluation: v_{n+1/2} of the nodes, or for a node of a
+    rigid body its velocity at the pose the last force was made at (kernels/rigid.py ``node_velocity_ahead``;
+    ``node_body`` is empty before a switch)."""
+    if node_body.shape[0] == 0:
+        return node_qd[b] - node_qd[a]
+    vb = node_velocity_ahead(b, node_qd, node_body, node_rigid_r0, body_fixed, body_v, body_q_before, body_omega_ahead)
+    va = node_velocity_ahead(a, node_qd, node_body, node_rigid_r0, body_fixed, body_v, body_q_before, body_omega_ahead)
+    return vb - va
 
 
 @wp.kernel
@@ -183,6 +212,12 @@ def eval_cohesive_kernel(
     cohesive_dir: wp.array(dtype=wp.vec3),
     node_u: wp.array(dtype=wp.vec3),
     node_qd: wp.array(dtype=wp.vec3),
+    node_body: wp.array(dtype=int),
+    node_rigid_r0: wp.array(dtype=wp.vec3d),
+    body_fixed: wp.array(dtype=int),
+    body_v: wp.array(dtype=wp.vec3d),
+    body_q_before: wp.array(dtype=wp.quatd),
+    body_omega_ahead: wp.array(dtype=wp.vec3d),
     # In:
     track_energy: int,
     # State out:
@@ -207,6 +242,11 @@ def eval_cohesive_kernel(
     delta_c = cohesive_delta_c[i]
     alpha = cohesive_alpha[i]
     r = opening(a, b, node_ref_q, node_u)
+    v_rel_ahead = wp.vec3(0.0)
+    if dt > 0.0:
+        v_rel_ahead = relative_velocity_ahead(
+            a, b, node_qd, node_body, node_rigid_r0, body_fixed, body_v, body_q_before, body_omega_ahead
+        )
     d_max_old = cohesive_d_max[i]
     d_max = wp.max(d_max_old, wp.length(r))  # LDEC eq. 8
     # An intact element has d_max_old < δ_c, so δ_max before this step is d_max_old itself.
@@ -234,6 +274,7 @@ def eval_cohesive_kernel(
             0.0,
             track_energy,
             node_qd,
+            v_rel_ahead,
             cohesive_f_prev,
             cohesive_energy_prev,
             node_energy_cohesive,
@@ -253,7 +294,20 @@ def eval_cohesive_kernel(
         wp.atomic_max(node_damage, a, damage)
         wp.atomic_max(node_damage, b, damage)
     u = spring_energy(wp.length(r), d_max, fc, delta_c, alpha, s)
-    book_step(i, a, b, dt, f, u, track_energy, node_qd, cohesive_f_prev, cohesive_energy_prev, node_energy_cohesive)
+    book_step(
+        i,
+        a,
+        b,
+        dt,
+        f,
+        u,
+        track_energy,
+        node_qd,
+        v_rel_ahead,
+        cohesive_f_prev,
+        cohesive_energy_prev,
+        node_energy_cohesive,
+    )
 
 
 @wp.kernel

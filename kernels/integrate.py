@@ -21,7 +21,7 @@ import warp as wp
 
 from .contact import MOTION_FREE
 from .loads import NodeDriver, drive_first_half, drive_second_half
-from .rigid import NODE_RIGID
+from .rigid import NODE_RIGID, node_velocity_ahead
 from .tets import node_free_directions
 
 wp.set_module_options({"enable_backward": False})
@@ -232,24 +232,50 @@ def drift_node(
 
 @wp.kernel
 def book_half_ahead_kernel(
+    # Model:
     dt: float,
+    # State in:
     node_count: wp.array(dtype=int),
     node_qd: wp.array(dtype=wp.vec3),
+    node_body: wp.array(dtype=int),
+    node_rigid_r0: wp.array(dtype=wp.vec3d),
+    body_fixed: wp.array(dtype=int),
+    body_v: wp.array(dtype=wp.vec3d),
+    body_q_before: wp.array(dtype=wp.quatd),
+    body_omega_ahead: wp.array(dtype=wp.vec3d),
+    # In:
+    sign: float,
+    rigid_only: int,
+    # State out:
     node_f_kind: wp.array(dtype=wp.vec3),
     node_energy_kind: wp.array(dtype=wp.float64),
 ):
-    """Book minus the half of the last evaluation's work of one kind of force that lies ahead of it,
-    -½ dt f_n·v_{n+1/2} [J], now that v_{n+1/2} is known (node_qd before the new evaluation, set by the drift and,
-    for a rigid block's node, by its pose), and clear the kind's sums for the new evaluation. The kinds: the FEM
-    contacts and joint dashpots (``node_f_contact`` into ``node_energy_contact``; the half behind:
-    kernels/fem_contact.py, kernels/joints.py), the non-reflecting dashpots (``node_f_absorbed`` into
-    ``node_energy_absorbed``; kernels/loads.py)."""
+    """Book ``sign`` × the half of the last evaluation's work of one kind of force that lies ahead of it,
+    ½ dt f_n·v_{n+1/2} [J], now that v_{n+1/2} is known (after the drift, before the new evaluation), and clear the
+    kind's sums for the new evaluation. v_{n+1/2} is ``node_qd`` for a node of its own; for a node of a rigid body
+    it is its velocity at the pose the force was made at (kernels/rigid.py ``node_velocity_ahead``; ``node_body`` is
+    empty before a switch: no node follows a body). The kinds: the FEM contacts and joint dashpots (``node_f_contact``
+    into ``node_energy_contact``, sign −1: what they take out; the half behind: kernels/fem_contact.py,
+    kernels/joints.py), the non-reflecting dashpots (``node_f_absorbed`` into ``node_energy_absorbed``, −1) and the
+    pressure loads (``node_f_load`` into ``node_energy_boundary_work``, +1: work put in; kernels/loads.py), and with
+    ``rigid_only`` the viscous forces of deformable tets on rigid blocks' nodes (``node_f_viscous`` into
+    ``node_energy_damping``, −1; the other nodes' are booked in the drift, :func:`drift_node`)."""
     i = wp.tid()  # one thread per node slot
     if i >= node_count[0]:
         return
+    if rigid_only != 0:
+        if node_body.shape[0] == 0:
+            return
+        if node_body[i] < 0:
+            return
     f = node_f_kind[i]
     if wp.length_sq(f) > 0.0:  # a node no such force touched keeps its zero unwritten
-        node_energy_kind[i] = node_energy_kind[i] - wp.float64(0.5 * dt * wp.dot(f, node_qd[i]))
+        v = node_qd[i]
+        if node_body.shape[0] > 0:
+            v = node_velocity_ahead(
+                i, node_qd, node_body, node_rigid_r0, body_fixed, body_v, body_q_before, body_omega_ahead
+            )
+        node_energy_kind[i] = node_energy_kind[i] + wp.float64(sign * 0.5 * dt * wp.dot(f, v))
         node_f_kind[i] = wp.vec3(0.0)
 
 
@@ -419,9 +445,9 @@ def make_node_drift_kernel(after_second_half: bool) -> wp.Kernel:
             if num_drivers == 0 or node_driver[i] < 0:
                 # A rigid block's node: its body's pose sets its displacement, position and velocity right after
                 # this kernel (kernels/rigid.py), and checks its skin; what is left of the drift below for a node
-                # with no free direction is its accumulators started at zero (v = 0: no damping force, no work).
-                if node_damping[i] > 0.0 or wp.length_sq(node_f_viscous[i]) > 0.0:
-                    node_f_viscous[i] = wp.vec3(0.0)
+                # with no free direction is its force accumulator started at zero (v = 0: no damping force). The
+                # viscous forces of deformable tets next to it are booked and cleared after the body's drift, at the
+                # pose they were made at (warpdem.rigid.drift_bodies).
                 node_f[i] = wp.vec3(0.0)
                 return
         free = node_free_directions(motion)

@@ -11,12 +11,15 @@ code-generation time (:func:`make_face_pressure_kernel`); their parameters sit i
 Work of the loads: velocity Verlet's energy identity per step is, exactly,
 ΔK = ½ dt (f_n + f_{n+1}) · v_{n+1/2} + dt²/8 (|f_{n+1}|²_{M⁻¹} - |f_n|²_{M⁻¹}) (v_{n+1/2} = v_n + dt/2 M⁻¹ f_n,
 v_{n+1} = v_{n+1/2} + dt/2 M⁻¹ f_{n+1}; the second term telescopes to a bounded shadow term), so the load work is
-booked by the same trapezoid, ½ dt (f_n + f_{n+1}) · v_{n+1/2}, face by face in the step that makes f_{n+1}
-(:func:`make_face_pressure_kernel`). f_n is recomputed there from the positions it was made at,
-x_n = x_{n+1} - dt v_{n+1/2}, and t_n, rather than kept per node: a kept per-node force would need a list of the
-loaded nodes, which every split of a node on a loaded face would have to follow (a joint split the nodes of the
-loaded faces after the list was made, and the work of the daughters' f_n went unbooked: 7 % of the load work in
-scenes/tunnel_jointed_rock_nonpersistent.toml).
+booked by the same trapezoid, as the contacts and dashpots book theirs: the evaluation that makes f_{n+1} books the
+half behind it, ½ dt f_{n+1}·v_{n+1/2} (:func:`make_face_pressure_kernel`), and keeps f_{n+1} per node
+(``node_f_load``); the next evaluation books the half ahead, ½ dt f_{n+1}·v_{n+3/2}, once the drift has made
+v_{n+3/2} (kernels/integrate.py ``book_half_ahead_kernel``). For a node of a rigid block the velocity of the half
+ahead is the body's at the pose the force was made at, not at the next one (kernels/rigid.py
+``node_velocity_ahead``): a force made again from the positions x_{n+1} - dt v_{n+1/2} (this module's way before)
+is not f_n for a turning block. The kept forces need no list of the loaded nodes that a split would have to follow:
+a split or conversion pass re-evaluates every force at dt = 0, which makes ``node_f_load`` again from the faces as
+they are then (the daughters' shares included), and the next kick works with exactly those forces.
 
 Non-reflecting boundary (Lysmer & Kuhlemeyer 1969): the traction t = -ρ c_p (v·n) n - ρ c_s (v - (v·n) n) of a
 semi-infinite continuum carrying a plane wave away normally. It is lumped per node (each node's dashpot sees its
@@ -188,9 +191,10 @@ def make_face_pressure_kernel(kind: str) -> wp.Kernel:
     """The pressure kernel of one history kind, the history picked at code-generation time.
 
     The kernel evaluates p at t_n + dt, the time of the positions the step has just drifted to (``time`` still holds
-    t_n), adds f_{n+1} = -p a to the nodes and books the step's load work ½ dt (f_n + f_{n+1}) · v_{n+1/2}, with f_n
-    made again at t_n and x_n = x_{n+1} - dt v_{n+1/2} (``node_qd`` holds v_{n+1/2}). ``dt`` = 0 is the set-up
-    evaluation at the state's own time, which books no work.
+    t_n; the sum in float64 is the clock's own, as it will read after the step), adds f_{n+1} = -p a to the nodes'
+    forces and to ``node_f_load``, and books the half of its work behind it, ½ dt f_{n+1}·v_{n+1/2} (``node_qd``
+    holds v_{n+1/2}; the half ahead: module docstring). ``dt`` = 0 is an evaluation at the state's own time (set-up,
+    after a pass), which books no work.
 
     Args:
         kind: one of :data:`PRESSURE_KINDS`.
@@ -213,6 +217,7 @@ def make_face_pressure_kernel(kind: str) -> wp.Kernel:
         table_times: wp.array(dtype=wp.float64),
         table_values: wp.array(dtype=float),
         dt: float,
+        dt64: wp.float64,
         # State in:
         time: wp.array(dtype=wp.float64),
         node_u: wp.array(dtype=wp.vec3),
@@ -220,39 +225,26 @@ def make_face_pressure_kernel(kind: str) -> wp.Kernel:
         node_qd: wp.array(dtype=wp.vec3),
         # State out:
         node_f: wp.array(dtype=wp.vec3),
+        node_f_load: wp.array(dtype=wp.vec3),
         node_energy_boundary_work: wp.array(dtype=wp.float64),
     ):
         f = wp.tid()  # one thread per loaded face
         n = face_nodes[f]
         load = loads[face_load[f]]
-        edge_a = face_edge_a[f]
-        edge_b = face_edge_b[f]
-        u0 = node_u[n[0]]
-        u1 = node_u[n[1]]
-        u2 = node_u[n[2]]
         centroid = (node_q[n[0]] + node_q[n[1]] + node_q[n[2]]) / 3.0
         # The forces belong to the new positions, at t_{n+1} = t_n + dt (the clock advances at the end of the step).
-        p = history(load, time[0] + wp.float64(dt), centroid, table_times, table_values)
+        p = history(load, time[0] + dt64, centroid, table_times, table_values)
+        if p == 0.0:
+            return
         # f = -p a pushes into the solid; a third on each node.
-        force = (-p / 3.0) * area_vector(edge_a, edge_b, u0, u1, u2)
-        if p != 0.0:
-            for k in range(3):
-                wp.atomic_add(node_f, n[k], force)
-        if dt == 0.0:
-            return
-        # The force of the last step, made again where and when it acted: x_n = x_{n+1} - dt v_{n+1/2} at t_n.
-        v0 = node_qd[n[0]]
-        v1 = node_qd[n[1]]
-        v2 = node_qd[n[2]]
-        p_old = history(load, time[0], centroid - (dt / 3.0) * (v0 + v1 + v2), table_times, table_values)
-        if p == 0.0 and p_old == 0.0:
-            return
-        force_old = (-p_old / 3.0) * area_vector(edge_a, edge_b, u0 - dt * v0, u1 - dt * v1, u2 - dt * v2)
-        # Work of the trapezoid ½ dt (f_n + f_{n+1}) · v_{n+1/2} on each node (module docstring).
-        trapezoid = 0.5 * dt * (force + force_old)
-        wp.atomic_add(node_energy_boundary_work, n[0], wp.float64(wp.dot(trapezoid, v0)))
-        wp.atomic_add(node_energy_boundary_work, n[1], wp.float64(wp.dot(trapezoid, v1)))
-        wp.atomic_add(node_energy_boundary_work, n[2], wp.float64(wp.dot(trapezoid, v2)))
+        force = (-p / 3.0) * area_vector(face_edge_a[f], face_edge_b[f], node_u[n[0]], node_u[n[1]], node_u[n[2]])
+        for k in range(3):
+            node = n[k]
+            wp.atomic_add(node_f, node, force)
+            wp.atomic_add(node_f_load, node, force)
+            if dt > 0.0:
+                # The half of Verlet's trapezoid behind the force, ½ dt f_{n+1}·v_{n+1/2} (module docstring).
+                wp.atomic_add(node_energy_boundary_work, node, wp.float64(0.5 * dt * wp.dot(force, node_qd[node])))
 
     return apply_face_pressure_kernel
 

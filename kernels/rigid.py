@@ -188,6 +188,37 @@ def kick_body(
     return v, allowed_rotation(c, n, angular_momentum + h * body_t[b])
 
 
+@wp.func
+def node_velocity_ahead(
+    i: int,
+    node_qd: wp.array(dtype=wp.vec3),
+    node_body: wp.array(dtype=int),
+    node_rigid_r0: wp.array(dtype=wp.vec3d),
+    body_fixed: wp.array(dtype=int),
+    body_v: wp.array(dtype=wp.vec3d),
+    body_q_before: wp.array(dtype=wp.quatd),
+    body_omega_ahead: wp.array(dtype=wp.vec3d),
+) -> wp.vec3:
+    """The velocity [m/s] that the half ahead of the work of a force made at the last evaluation is booked against,
+    after the drift: v_{n+1/2} (``node_qd``) for a node of its own; for a node of a moving rigid body,
+    V_{n+1/2} + ω(q_n, L_{n+1/2}) × R(q_n) r0, at the pose q_n the force was made at.
+
+    Why that pose: the first half kick changes the body's kinetic energy by exactly ½ dt (F·V̄ + T·ω(q_n, L̄)), V̄ and
+    L̄ the means before and after it (½ L·I⁻¹L is quadratic in L at a fixed pose), that is
+    ½ dt Σ f_i·(V_{n+1/2} + ω(q_n, L_{n+1/2}) × R(q_n) r0_i) less the shadow term's share dt²/8 (|F|²/M + T·I⁻¹T),
+    with T = Σ R(q_n) r0_i × f_i. The node's velocity after the pose, V + ω(q_{n+1}, L_{n+1/2}) × R(q_{n+1}) r0, is
+    that of the next pose: it books the half behind of the next forces. ``body_q_before`` and ``body_omega_ahead``
+    are the drift's record of q_n and ω(q_n, L_{n+1/2}) (:func:`make_body_drift_kernel`); a held body has neither,
+    and its nodes stand still."""
+    b = node_body[i]
+    if b < 0:
+        return node_qd[i]
+    if body_fixed[b] != 0:
+        return node_qd[i]
+    r = wp.quat_rotate(body_q_before[b], node_rigid_r0[i])
+    return wp.vec3(body_v[b] + wp.cross(body_omega_ahead[b], r))
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # Kernels.
 
@@ -195,7 +226,9 @@ def kick_body(
 def make_body_drift_kernel(after_second_half: bool) -> wp.Kernel:
     """The body kernel that ends a half step in a drift: kick by dt/2, translate by dt, free rotor over dt; with
     ``after_second_half`` the second half kick of step n before it (the same forces twice, as the node kernels do),
-    the choice made at code generation."""
+    the choice made at code generation. Before the rotor it records the pose q_n and the spin ω(q_n, L_{n+1/2})
+    (``body_q_before``, ``body_omega_ahead``), which the half ahead of the last forces' work is booked against
+    (:func:`node_velocity_ahead`)."""
 
     @wp.kernel(enable_backward=False, module="unique")
     def drift_bodies_kernel(
@@ -216,6 +249,8 @@ def make_body_drift_kernel(after_second_half: bool) -> wp.Kernel:
         body_v: wp.array(dtype=wp.vec3d),
         body_q: wp.array(dtype=wp.quatd),
         body_l: wp.array(dtype=wp.vec3d),
+        body_q_before: wp.array(dtype=wp.quatd),
+        body_omega_ahead: wp.array(dtype=wp.vec3d),
     ):
         b = wp.tid()  # one thread per body
         if body_fixed[b] != 0:
@@ -234,7 +269,12 @@ def make_body_drift_kernel(after_second_half: bool) -> wp.Kernel:
         body_v[b] = v
         body_l[b] = angular_momentum
         body_dc[b] = body_dc[b] + wp.float64(dt) * v
-        body_q[b] = turn_body(c, n, body_q[b], body_axes[b], body_inertia[b], angular_momentum, dt)
+        q = body_q[b]
+        # The pose the last forces were made at and the spin the kick just gave it there: what the half ahead of
+        # their work is booked against (node_velocity_ahead), before the rotor moves the pose on.
+        body_q_before[b] = q
+        body_omega_ahead[b] = body_angular_velocity(c, n, q, body_axes[b], body_inertia[b], angular_momentum)
+        body_q[b] = turn_body(c, n, q, body_axes[b], body_inertia[b], angular_momentum, dt)
 
     return drift_bodies_kernel
 

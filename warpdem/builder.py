@@ -944,6 +944,7 @@ def new_state(
         node_f_viscous=vec(None, model.node_capacity),
         node_energy_absorbed=wp.zeros(model.node_capacity, dtype=wp.float64, device=device),
         node_f_absorbed=vec(None, model.node_capacity),
+        node_f_load=vec(None, model.node_capacity),
         tet_active=arr(np.ones(nt), int, model.tet_capacity),
         tet_stress=wp.zeros(model.tet_capacity, dtype=wp.mat33, device=device),
         time=wp.zeros(1, dtype=wp.float64, device=device),

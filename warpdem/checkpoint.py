@@ -15,7 +15,8 @@ its writer had, including all those added since version 1 (warpdem.runner.FIELD_
 file may lack some of them: a restart fills each one it lacks with a fresh model's value where that is exactly what
 the run would hold (an energy line of a pass that never ran, the contact books of a run with no contact), and refuses
 otherwise, naming the file, the field and why (warpdem.runner.restore_checkpoint). A field added later bumps the
-version again and adds its rows to that table, with the version it appeared in.
+version again and adds its rows to that table, with the version it appeared in: 3 added the pressure loads' forces
+kept per node (``node_f_load``) and the rigid bodies' drift scratch (``body_q_before``, ``body_omega_ahead``).
 
 Files are written to ``<name>.tmp-<pid>`` in the target directory and moved over the final name with
 ``os.replace``, so a crash or an error mid-write never damages the previous checkpoint.
@@ -47,7 +48,7 @@ __all__ = [
 FORMAT_NAME = "warpdem-checkpoint"
 """Value of the root attribute ``warpdem_format`` identifying a warpdem checkpoint."""
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 """Newest checkpoint format this module writes and reads (module docstring, "Versions"); bump when the layout changes
 or fields are added, and list what older files may lack in warpdem.runner.FIELD_MIGRATIONS."""
 

@@ -60,6 +60,12 @@ def eval_cohesive(model: Model, state: State, dt: float | None = None, track_ene
             s.cohesive_dir,
             s.node_u,
             s.node_qd,
+            s.node_body,
+            s.node_rigid_r0,
+            s.body_fixed,
+            s.body_v,
+            s.body_q_before,
+            s.body_omega_ahead,
             # In:
             int(track_energy),
         ],

@@ -27,9 +27,9 @@ import warp as wp
 
 from .compaction import Compactor
 from .contact import hash_grid_dims
+from .integrate import book_half_ahead
 from .joints import JointData, JointProps, eval_joints, joint_energy, joint_material_table, split_joints
 from .kernels import fem_contact as kf
-from .kernels import integrate as ki
 from .kernels.contact import ContactPair
 from .mesh import TET_FACES, row_groups
 from .model import Model, State
@@ -533,13 +533,7 @@ def eval_fem_contacts(
     if m.node_capacity:
         if step > 0.0:
             # The half ahead of the last evaluation's node contact forces, at the velocities this one sees.
-            wp.launch(
-                ki.book_half_ahead_kernel,
-                dim=m.node_capacity,
-                inputs=[step, s.node_count, s.node_qd],
-                outputs=[s.node_f_contact, s.node_energy_contact],
-                device=m.device,
-            )
+            book_half_ahead(m, s, step, s.node_f_contact, s.node_energy_contact, -1.0)
         else:
             # Set-up or re-evaluation after a pass: the next kick works with the forces evaluated now, so the next
             # step books the half ahead of exactly these, whatever the forces before the pass were.

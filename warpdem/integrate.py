@@ -23,6 +23,44 @@ def integrate_first_half(model: Model, state: State, track_energy: bool = True) 
     _advance_walls(model, state)
 
 
+def book_half_ahead(
+    model: Model,
+    state: State,
+    dt: float,
+    node_f_kind: wp.array,
+    node_energy_kind: wp.array,
+    sign: float,
+    rigid_only: bool = False,
+) -> None:
+    """Book ``sign`` × ½ dt f_n·v_{n+1/2} [J] of one kind of node force kept from the last evaluation
+    (``node_f_kind``, shape (node_capacity,), vec3) into its line (``node_energy_kind``, float64), each node against
+    the velocity of the half step ahead of that evaluation (a rigid body's node: at the pose the force was made at,
+    kernels/rigid.py ``node_velocity_ahead``), and clear the kind's sums (launches only). Call it after the drift and
+    before the kind's new evaluation: sign −1 for a line of what the forces take out (contacts, dashpots), +1 for
+    work put in (loads); ``rigid_only``: the rigid blocks' nodes alone (the viscous forces, whose other nodes the
+    node drift books)."""
+    m, s = model, state
+    wp.launch(
+        ki.book_half_ahead_kernel,
+        dim=m.node_capacity,
+        inputs=[
+            dt,
+            s.node_count,
+            s.node_qd,
+            s.node_body,
+            s.node_rigid_r0,
+            s.body_fixed,
+            s.body_v,
+            s.body_q_before,
+            s.body_omega_ahead,
+            sign,
+            int(rigid_only),
+        ],
+        outputs=[node_f_kind, node_energy_kind],
+        device=m.device,
+    )
+
+
 def integrate_second_half(model: Model, state: State) -> None:
     """Kick by dt/2 with the forces at the new positions; count the work of driven spheres and nodes; advance the
     state's time by dt (last, so that both halves of the step see the same t_n)."""

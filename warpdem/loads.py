@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from .kernels import integrate as ki
+from .integrate import book_half_ahead
 from .kernels import loads as kl
 from .kernels import tets as kt
 from .mesh import TET_FACES
@@ -577,38 +577,26 @@ class LoadModel:
 
 def eval_loads(model: Model, state: State, dt: float | None = None) -> None:
     """Stage 8: add the pressure loads at the state's time and the non-reflecting dashpots at the half-step
-    velocity to ``node_f``, booking the load work and the dashpots' dissipation (launches only).
+    velocity to ``node_f``, booking the load work and the dashpots' dissipation as Verlet does their work: first the
+    half ahead of the last evaluation's forces (``node_f_load``, ``node_f_absorbed``; warpdem.integrate
+    ``book_half_ahead``), then the half behind the new ones (launches only).
 
-    ``dt`` overrides the model step for the bookkeeping; 0 (the set-up evaluation) books nothing and leaves the
-    dashpots out, as the set-up leaves out the integrator's mass-proportional damping.
+    ``dt`` overrides the model step for the bookkeeping; 0 (the set-up evaluation, or after a pass) books nothing and
+    leaves the dashpots out, as the set-up leaves out the integrator's mass-proportional damping; the next step then
+    books the half ahead of exactly the forces made here.
     """
     loads = model.loads
     if loads is None:
         return
     m, s = model, state
     dt = m.dt if dt is None else dt
-    for kind, faces in loads.pressure.items():
-        wp.launch(
-            kl.make_face_pressure_kernel(kind),
-            dim=faces.count,
-            inputs=[
-                # Model:
-                faces.nodes,
-                faces.edge_a,
-                faces.edge_b,
-                faces.index,
-                loads.pressure_loads,
-                loads.table_times,
-                loads.table_values,
-                dt,
-                # State in:
-                s.time,
-                s.node_u,
-                s.node_q,
-                s.node_qd,
-            ],
-            outputs=[s.node_f, s.node_energy_boundary_work],
-            device=m.device,
+    if loads.pressure:
+        if dt > 0.0:
+            book_half_ahead(m, s, dt, s.node_f_load, s.node_energy_boundary_work, 1.0)
+        else:
+            s.node_f_load.zero_()
+        add_pressure_forces(
+            m, s.time, s.node_u, s.node_q, s.node_qd, s.node_f, s.node_f_load, s.node_energy_boundary_work, dt
         )
     if loads.dashpots is not None and dt == 0.0:
         # Set-up or re-evaluation after a pass: the dashpots are left out of these forces, so the next kick does no
@@ -616,13 +604,7 @@ def eval_loads(model: Model, state: State, dt: float | None = None) -> None:
         s.node_f_absorbed.zero_()
     if loads.dashpots is not None and dt > 0.0:
         d = loads.dashpots
-        wp.launch(
-            ki.book_half_ahead_kernel,
-            dim=m.node_capacity,
-            inputs=[dt, s.node_count, s.node_qd],
-            outputs=[s.node_f_absorbed, s.node_energy_absorbed],
-            device=m.device,
-        )
+        book_half_ahead(m, s, dt, s.node_f_absorbed, s.node_energy_absorbed, -1.0)
         wp.launch(
             kl.apply_dashpots_kernel,
             dim=d.count,
@@ -640,6 +622,71 @@ def eval_loads(model: Model, state: State, dt: float | None = None) -> None:
             outputs=[s.node_f, s.node_f_absorbed, s.node_energy_absorbed],
             device=m.device,
         )
+
+
+def add_pressure_forces(
+    model: Model,
+    time: wp.array,
+    node_u: wp.array,
+    node_q: wp.array,
+    node_qd: wp.array,
+    node_f: wp.array,
+    node_f_load: wp.array,
+    node_energy_boundary_work: wp.array,
+    dt: float,
+) -> None:
+    """Add every pressure load's force at time[0] + dt and the displacements ``node_u`` (positions ``node_q``) to
+    ``node_f`` and ``node_f_load`` [N], booking the half of its work behind it against ``node_qd`` into
+    ``node_energy_boundary_work`` [J] (none at dt = 0); arrays shaped as the State's (launches only)."""
+    loads = model.loads
+    for kind, faces in loads.pressure.items():
+        wp.launch(
+            kl.make_face_pressure_kernel(kind),
+            dim=faces.count,
+            inputs=[
+                # Model:
+                faces.nodes,
+                faces.edge_a,
+                faces.edge_b,
+                faces.index,
+                loads.pressure_loads,
+                loads.table_times,
+                loads.table_values,
+                dt,
+                # The float64 step, so that t_n + dt is the clock's own next value (kernels/integrate.py).
+                wp.float64(dt),
+                # State in:
+                time,
+                node_u,
+                node_q,
+                node_qd,
+            ],
+            outputs=[node_f, node_f_load, node_energy_boundary_work],
+            device=model.device,
+        )
+
+
+def pressure_node_forces(model: Model, time: float, node_u: np.ndarray, node_q: np.ndarray) -> np.ndarray:
+    """The pressure loads' forces on each node [N], shape (node_capacity, 3), float32, at ``time`` [s] and the
+    displacements ``node_u`` and positions ``node_q`` (shape (node_capacity, 3)): what an evaluation there keeps in
+    ``node_f_load``, accumulated in the same order (allocates and reads back; a restart from a checkpoint that lacks
+    them, warpdem.runner)."""
+    d = model.device
+    n = model.node_capacity
+    f_load = wp.zeros(n, dtype=wp.vec3, device=d)
+    if model.loads is not None and model.loads.pressure:
+        add_pressure_forces(
+            model,
+            wp.array([time], dtype=wp.float64, device=d),
+            wp.array(np.asarray(node_u, dtype=np.float32), dtype=wp.vec3, device=d),
+            wp.array(np.asarray(node_q, dtype=np.float32), dtype=wp.vec3, device=d),
+            wp.zeros(n, dtype=wp.vec3, device=d),
+            wp.zeros(n, dtype=wp.vec3, device=d),
+            f_load,
+            wp.zeros(n, dtype=wp.float64, device=d),
+            0.0,
+        )
+    return f_load.numpy()
 
 
 def load_forces(model: Model, state: State) -> tuple[list[str], np.ndarray]:

@@ -325,12 +325,18 @@ class State:
             (node_capacity,), float64.
         node_f_viscous: the bulk-viscosity and mass-proportional damping forces on each node at the last evaluation
             [N] (part of ``node_f``), for the integrator's booking of the half of their work that lies ahead, as the
-            sphere contacts' sums (kernels/integrate.py ``drift_node``), shape (node_capacity,), vec3.
+            sphere contacts' sums (kernels/integrate.py ``drift_node``; on a rigid block's node, the forces of the
+            deformable tets next to it, booked after the body's drift: warpdem.rigid.drift_bodies), shape
+            (node_capacity,), vec3.
         node_energy_absorbed: energy the non-reflecting boundaries' dashpots took out of the model [J], per node,
             shape (node_capacity,), float64.
         node_f_absorbed: the non-reflecting boundaries' dashpot forces on each node at the last evaluation [N] (part
-            of ``node_f``), whose work over the half step ahead the next evaluation books (kernels/loads.py
-            ``book_half_ahead_kernel`` in kernels/integrate.py), shape (node_capacity,), vec3.
+            of ``node_f``), whose work over the half step ahead the next evaluation books (kernels/integrate.py
+            ``book_half_ahead_kernel``), shape (node_capacity,), vec3.
+        node_f_load: the pressure loads' forces on each node at the last evaluation [N] (part of ``node_f``), whose
+            work over the half step ahead the next evaluation books into ``node_energy_boundary_work``
+            (kernels/integrate.py ``book_half_ahead_kernel``; the half behind: kernels/loads.py), shape
+            (node_capacity,), vec3.
         tet_active: 1 for a tet that carries forces, 0 for one taken out (converted), shape (tet_capacity,), int32.
         tet_stress: Cauchy stress at the current displacements (elastic, without bulk viscosity; 0 for inactive
             tets) [Pa], tension positive, shape (tet_capacity,), mat33. Refreshed between steps (after every
@@ -445,6 +451,11 @@ class State:
             body_q: rotation since the switch, quatd; body_l: angular momentum about the centre of mass [kg m²/s],
             vec3d; body_f, body_t: force [N] (gravity excluded) and torque about the centre of mass [N m] of the
             nodes' forces, vec3d.
+        body_q_before: the rotation before the last drift's rotor, q_n (where the forces of the last evaluation were
+            made), quatd; body_omega_ahead: the angular velocity there after the drift's kick, ω(q_n, L_{n+1/2})
+            [rad/s] (rollers respected), vec3d. Scratch of a step: each drift writes them and the evaluation after it
+            books the half ahead of the last forces' work with them (kernels/rigid.py ``node_velocity_ahead``);
+            between steps nothing reads them (a restart needs them only as every State array is carried).
         body_node_start, body_node_count: the body's nodes are rigid_nodes[start .. start + count), int32.
         rigid_nodes: the nodes of the bodies, grouped by body, ascending within one, shape (rigid nodes,), int32.
         node_body: the body of each node, -1 for a deformable node, shape (node_capacity,) after the switch, int32.
@@ -503,6 +514,7 @@ class State:
     node_f_viscous: wp.array
     node_energy_absorbed: wp.array
     node_f_absorbed: wp.array
+    node_f_load: wp.array
     tet_active: wp.array
     tet_stress: wp.array
     time: wp.array
@@ -577,6 +589,8 @@ class State:
     body_l: wp.array
     body_f: wp.array
     body_t: wp.array
+    body_q_before: wp.array
+    body_omega_ahead: wp.array
     body_node_start: wp.array
     body_node_count: wp.array
     rigid_nodes: wp.array
@@ -695,6 +709,8 @@ RIGID_BODY_FIELDS = {
     "body_l": wp.vec3d,
     "body_f": wp.vec3d,
     "body_t": wp.vec3d,
+    "body_q_before": wp.quatd,
+    "body_omega_ahead": wp.vec3d,
     "body_node_start": int,
     "body_node_count": int,
 }

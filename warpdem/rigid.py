@@ -53,6 +53,7 @@ import warp as wp
 
 from .fragments import block_labels
 from .guard import CriticalStep
+from .integrate import book_half_ahead
 from .kernels import rigid as kr
 from .loads import dashpot_critical_step
 from .model import RIGID_BODY_FIELDS, RIGID_NODE_FIELDS, Model, State
@@ -249,6 +250,9 @@ def make_bodies(model: Model, state: State) -> tuple[State, RigidReport]:
         "body_l": angular,
         "body_f": np.zeros((count, 3)),
         "body_t": np.zeros((count, 3)),
+        # The drift's scratch (kernels/rigid.py node_velocity_ahead): written by each drift before it is read.
+        "body_q_before": identity,
+        "body_omega_ahead": np.zeros((count, 3)),
         "body_node_start": start,
         "body_node_count": node_count,
         "node_body": node_body,
@@ -323,7 +327,10 @@ def has_bodies(state: State) -> bool:
 
 def drift_bodies(model: Model, state: State, after_second_half: bool) -> None:
     """Kick the bodies by dt/2 (twice with ``after_second_half``: the second half of the step before), translate by
-    dt, turn by the free rotor over dt, then set their nodes' displacements and velocities (launches only)."""
+    dt, turn by the free rotor over dt (recording the pose before it and the spin there, which the half ahead of the
+    last forces' work is booked against: kernels/rigid.py ``node_velocity_ahead``), then set their nodes'
+    displacements and velocities, and book the half ahead of the viscous forces of deformable tets on those nodes
+    (launches only)."""
     m, s = model, state
     kernel = kr.kick_drift_bodies_kernel if after_second_half else kr.drift_bodies_kernel
     wp.launch(
@@ -341,10 +348,12 @@ def drift_bodies(model: Model, state: State, after_second_half: bool) -> None:
             s.body_f,
             s.body_t,
         ],
-        outputs=[s.body_dc, s.body_v, s.body_q, s.body_l],
+        outputs=[s.body_dc, s.body_v, s.body_q, s.body_l, s.body_q_before, s.body_omega_ahead],
         device=m.device,
     )
     pose_nodes(m, s, move=True)
+    # The viscous forces of deformable tets on the bodies' nodes (the node drift leaves them): their half ahead.
+    book_half_ahead(m, s, m.dt, s.node_f_viscous, s.node_energy_damping, -1.0, rigid_only=True)
 
 
 def kick_bodies(model: Model, state: State) -> None:

@@ -20,6 +20,7 @@ from . import __version__
 from .checkpoint import CheckpointError, checkpoint_name, read_checkpoint_version, write_checkpoint
 from .guard import UnstableRunError
 from .limits import MAX_ELEMENTS, MAX_STEPS
+from .loads import pressure_node_forces
 from .model import NEIGHBOR_FIELDS, RIGID_BODY_FIELDS, RIGID_NODE_FIELDS, Model, State
 from .rigid import rigid_step_after_switch, rigid_time_step
 from .scene import Scene, SceneError
@@ -423,6 +424,22 @@ def _no_step_change(arrays: dict[str, np.ndarray], attrs: dict, model: Model) ->
     return _no_pass(arrays, attrs, model)
 
 
+def _pressure_forces(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> np.ndarray:
+    """The pressure loads' forces per node at the checkpoint's time and positions: what the evaluation before it kept
+    in ``node_f_load`` (the same faces, time, displacements and order: bit for bit on the CPU)."""
+    return pressure_node_forces(model, float(arrays["state/time"][0]), arrays["state/node_u"], arrays["state/node_q"])
+
+
+def _drift_scratch(width: int) -> Callable[[dict[str, np.ndarray], dict, Model], np.ndarray]:
+    """Zeros of ``width`` components per body of the checkpoint: a body scratch array the next drift writes before
+    anything reads it (warpdem.model.State ``body_q_before``, ``body_omega_ahead``)."""
+
+    def make(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> np.ndarray:
+        return np.zeros((len(arrays.get("state/body_mass", ())), width))
+
+    return make
+
+
 def _always(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
     """A scene setting no run changes: the scene's value is the run's."""
     return None
@@ -439,11 +456,14 @@ class FieldMigration:
             sized as the checkpoint's other arrays of its kind, ``like``) is exactly what the run would hold, else
             why not (one clause).
         like: the checkpoint key whose length the filled array takes (None: the fresh value's own length).
+        make: (arrays, attrs, fresh model) -> the value made from the checkpoint's own arrays, where ``exact``
+            allows it (None: the fresh value).
     """
 
     since: int
     exact: Callable[[dict[str, np.ndarray], dict, Model], str | None]
     like: str | None = None
+    make: Callable[[dict[str, np.ndarray], dict, Model], np.ndarray] | None = None
 
 
 _RIGID_FIELDS = ("rigid_nodes", *RIGID_BODY_FIELDS, *RIGID_NODE_FIELDS)
@@ -468,6 +488,12 @@ FIELD_MIGRATIONS: dict[str, FieldMigration] = {
     "state/energy_released_rigid": FieldMigration(2, _no_bodies),
     **{f"state/{name}": FieldMigration(2, _no_bodies) for name in _RIGID_FIELDS},
     "model/tet_may_rigid": FieldMigration(2, _always, "model/tet_nodes"),
+    # Pressure loads book the half ahead of their work from the forces kept per node, and rigid nodes book it at the
+    # pose the forces were made at (format 3): the forces are made again from the checkpoint's state where no pass
+    # changed the loaded faces; the drift's scratch is rewritten before it is read.
+    "state/node_f_load": FieldMigration(3, _no_pass, "state/node_u", _pressure_forces),
+    "state/body_q_before": FieldMigration(3, _always, "state/body_mass", _drift_scratch(4)),
+    "state/body_omega_ahead": FieldMigration(3, _always, "state/body_mass", _drift_scratch(3)),
     # Conversion's edge degree (19e0e61): as attached until a pass converts or splits.
     "model/tet_edge_degree": FieldMigration(2, _no_pass, "model/tet_nodes"),
     # Model scalars (attributes): scene settings, and the deformable step kept by a change of step.
@@ -507,7 +533,7 @@ def _migrate(
             left.append(key)
             continue
         why = rule.exact(arrays, attrs, model)
-        value = fresh(key)
+        value = rule.make(arrays, attrs, model) if rule.make is not None and why is None else fresh(key)
         if why is None and key.startswith("attribute "):
             attrs[key.removeprefix("attribute ")] = value
             continue
