@@ -362,14 +362,15 @@ def pose_nodes(model: Model, state: State, move: bool) -> None:
     m, s = model, state
     wp.launch(
         kr.pose_nodes_kernel,
-        dim=m.node_capacity,
+        dim=s.body_mass.shape[0],
         inputs=[
             m.node_ref_q,
             # Without FEM contact (half skin < 0) the stiffness is never read: any float array of the nodes stands in.
             m.node_contact_stiffness if m.node_contact_stiffness is not None else m.node_mass,
             0.5 * m.fem_skin if m.face_capacity else -1.0,
-            s.node_count,
-            s.node_body,
+            s.body_node_start,
+            s.body_node_count,
+            s.rigid_nodes,
             s.node_rigid_r0,
             s.node_rigid_u0,
             s.body_inertia,
