@@ -296,6 +296,8 @@ def pose_nodes_kernel(
     node_u: wp.array(dtype=wp.vec3),
     node_q: wp.array(dtype=wp.vec3),
     node_qd: wp.array(dtype=wp.vec3),
+    node_f: wp.array(dtype=wp.vec3),
+    node_f_viscous: wp.array(dtype=wp.vec3),
     fem_rebuild_flag: wp.array(dtype=int),
 ):
     """Nodes from their body's pose: with ``move`` the displacement u = u0 + dc + (R r0 − r0) and position X + u
@@ -303,7 +305,11 @@ def pose_nodes_kernel(
     ``drift_node`` does), and always the velocity v + ω × R r0. On a roller plane the normal component of R r0 − r0
     (zero but for rounding: the body turns about n) is dropped, so a node on the plane stays on it exactly. One
     thread per body: its ω (R I⁻¹ Rᵀ L) and pose are read once for all its nodes (``rigid_nodes``), each node's
-    arithmetic is the same as a thread of its own would do."""
+    arithmetic is the same as a thread of its own would do.
+
+    With ``move`` (the drift) the nodes' force accumulators start at zero, as the node kernels' drift starts those of
+    a rigid node (kernels/integrate.py ``make_node_drift_kernel``: no damping force at v = 0 relative to the body):
+    a model whose nodes are all rigid and undriven then skips that launch (warpdem.rigid ``every_node_rigid``)."""
     b = wp.tid()  # one thread per body
     q = body_q[b]
     c = body_constraint[b]
@@ -321,6 +327,8 @@ def pose_nodes_kernel(
             if c == BODY_PLANE:
                 turn = turn - wp.dot(turn, n) * n
             u = wp.vec3(wp.vec3d(node_rigid_u0[i]) + dc + turn)
+            node_f[i] = wp.vec3(0.0)
+            node_f_viscous[i] = wp.vec3(0.0)
             node_u[i] = u
             x = node_ref_q[i] + u
             node_q[i] = x
