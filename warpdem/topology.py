@@ -447,9 +447,9 @@ def renumber_nodes(model: Model, state: State, order: np.ndarray, id_arrays: Seq
     per-node array of the Model, the State and the LoadModel (fields ``node_*``, the star CSR heads, the rows of
     :data:`NODE_ROW_FIELDS`) is gathered in that order, and every array of node ids (``tet_nodes``, the joint
     elements' ``joint_a``/``joint_b``, and ``id_arrays``: the load and dashpot faces, warpdem.joints
-    ``load_face_arrays``) is mapped through the inverse; the joint elements
-    are re-sorted by their node pair (:func:`sort_joint_elements`' key, which ``find_joint`` bisects). Slots past the
-    live count are left as they are.
+    ``load_face_arrays``) is mapped through the inverse; the joint elements are re-sorted by their node pair
+    (:func:`sort_joint_elements`' key, which ``find_joint`` bisects). Slots past the live count are left as they
+    are.
 
     Build time only, after the joints' pre-split and before the FEM surface is built (warpdem.fem_contact
     ``attach_fem_contact``): no face list, cohesive element, coupling or rigid body refers to a node yet.
