@@ -316,8 +316,9 @@ def pose_nodes_kernel(
     node_contact_stiffness: wp.array(dtype=float),
     half_fem_skin: float,
     # State in:
-    node_count: wp.array(dtype=int),
-    node_body: wp.array(dtype=int),
+    body_node_start: wp.array(dtype=int),
+    body_node_count: wp.array(dtype=int),
+    rigid_nodes: wp.array(dtype=int),
     node_rigid_r0: wp.array(dtype=wp.vec3d),
     node_rigid_u0: wp.array(dtype=wp.vec3),
     body_inertia: wp.array(dtype=wp.vec3d),
@@ -335,37 +336,48 @@ def pose_nodes_kernel(
     node_u: wp.array(dtype=wp.vec3),
     node_q: wp.array(dtype=wp.vec3),
     node_qd: wp.array(dtype=wp.vec3),
+    node_f: wp.array(dtype=wp.vec3),
     fem_rebuild_flag: wp.array(dtype=int),
 ):
     """Nodes from their body's pose: with ``move`` the displacement u = u0 + dc + (R r0 − r0) and position X + u
     (flagging an FEM contact-list rebuild when a surface node moved half the FEM skin, as kernels/integrate.py
     ``drift_node`` does), and always the velocity v + ω × R r0. On a roller plane the normal component of R r0 − r0
-    (zero but for rounding: the body turns about n) is dropped, so a node on the plane stays on it exactly."""
-    i = wp.tid()  # one thread per FEM node slot
-    if i >= node_count[0]:
-        return
-    b = node_body[i]
-    if b < 0:
-        return
+    (zero but for rounding: the body turns about n) is dropped, so a node on the plane stays on it exactly. One
+    thread per body: its ω (R I⁻¹ Rᵀ L) and pose are read once for all its nodes (``rigid_nodes``), each node's
+    arithmetic is the same as a thread of its own would do.
+
+    With ``move`` (the drift) the nodes' force accumulators start at zero, as the node kernels' drift starts those of
+    a rigid node (kernels/integrate.py ``make_node_drift_kernel``: no damping force at v = 0 relative to the body):
+    a model whose nodes are all rigid and undriven then skips that launch (warpdem.rigid ``every_node_rigid``). The
+    viscous forces of deformable tets on them (``node_f_viscous``) are left for their half ahead, booked and cleared
+    after the pose (warpdem.rigid ``drift_bodies``)."""
+    b = wp.tid()  # one thread per body
     q = body_q[b]
     c = body_constraint[b]
     n = body_axis[b]
-    r = wp.quat_rotate(q, node_rigid_r0[i])
-    if move != 0:
-        turn = r - node_rigid_r0[i]
-        if c == BODY_PLANE:
-            turn = turn - wp.dot(turn, n) * n
-        u = wp.vec3(wp.vec3d(node_rigid_u0[i]) + body_dc[b] + turn)
-        node_u[i] = u
-        x = node_ref_q[i] + u
-        node_q[i] = x
-        if half_fem_skin >= 0.0:
-            if node_contact_stiffness[i] != 0.0:
-                moved = x - node_q_at_fem_build[i]
-                if wp.dot(moved, moved) > half_fem_skin * half_fem_skin:
-                    fem_rebuild_flag[0] = 1
+    dc = body_dc[b]
     w = body_angular_velocity(c, n, q, body_axes[b], body_inertia[b], body_l[b])
-    node_qd[i] = wp.vec3(body_v[b] + wp.cross(w, r))
+    vb = body_v[b]
+    start = body_node_start[b]
+    for k in range(body_node_count[b]):
+        i = rigid_nodes[start + k]
+        r0 = node_rigid_r0[i]
+        r = wp.quat_rotate(q, r0)
+        if move != 0:
+            turn = r - r0
+            if c == BODY_PLANE:
+                turn = turn - wp.dot(turn, n) * n
+            u = wp.vec3(wp.vec3d(node_rigid_u0[i]) + dc + turn)
+            node_f[i] = wp.vec3(0.0)
+            node_u[i] = u
+            x = node_ref_q[i] + u
+            node_q[i] = x
+            if half_fem_skin >= 0.0:
+                if node_contact_stiffness[i] != 0.0:
+                    moved = x - node_q_at_fem_build[i]
+                    if wp.dot(moved, moved) > half_fem_skin * half_fem_skin:
+                        fem_rebuild_flag[0] = 1
+        node_qd[i] = wp.vec3(vb + wp.cross(w, r))
 
 
 @wp.kernel

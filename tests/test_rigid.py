@@ -1066,3 +1066,38 @@ def test_an_old_checkpoint_is_refused_where_a_field_would_not_fill_exactly(switc
         f.attrs["warpdem_format_version"] = 2
     with pytest.raises(CheckpointError, match=r"missing .*written by an older warpdem"):
         run_scene(scene, options)
+
+
+def test_rigid_only_model_skips_the_node_drift_bit_for_bit(device):
+    """A model whose nodes are all rigid and undriven skips the node kernels' drift: the bodies' pose starts the
+    nodes' force accumulators instead (kernels/rigid.py ``pose_nodes_kernel``). Oracle: the same run with the node
+    kernels launched, bit for bit (the rattling jointed cube of 8 blocks, 60 steps, with the books kept); a model
+    with a node left deformable, or a driven rigid node, keeps them (warpdem.rigid ``every_node_rigid``)."""
+    from warpdem.bench import jointed_cube
+
+    skip, launch = jointed_cube(2, device), jointed_cube(2, device)
+    assert not skip.drift_nodes and launch.rigid
+    launch.drift_nodes = True
+    for sim in (skip, launch):
+        sim.track_energy = True
+        sim.advance(60)
+    assert np.count_nonzero(skip.state.node_face_spring.numpy()[: skip.node_count] >= 0) > 0
+    for name in ("node_u", "node_qd", "node_f", "node_f_viscous", "body_q", "body_l", "body_dc", "body_v"):
+        np.testing.assert_array_equal(getattr(skip.state, name).numpy(), getattr(launch.state, name).numpy(), name)
+    assert skip.energy().total == launch.energy().total
+
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (2, 2, 2))
+    for half_rigid, driven in ((True, False), (False, True)):
+        b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+        b.add_material("rock", DENSITY, YOUNG, POISSON)
+        b.add_tet_mesh(points, tets, "rock")
+        if driven:
+            b.add_node_velocity(np.array([0]), (0.0, 0.0, 0.1))
+        model, state = b.finalize(device, safety_factor=0.5)
+        if half_rigid:
+            upper = np.zeros(model.tet_capacity, dtype=np.int32)
+            upper[: len(tets)] = points[tets].mean(axis=1)[:, 2] > 0.5
+            model = dataclasses.replace(model, tet_may_rigid=wp.array(upper, dtype=int, device=model.device))
+        sim = Simulation(model, state)
+        sim.switch_to_rigid()
+        assert sim.rigid and sim.drift_nodes

@@ -161,3 +161,96 @@ def test_regrow_nodes_keeps_live_slots(device):
     k = model.max_node_faces
     np.testing.assert_array_equal(grown_state.node_face_index.numpy()[: cap * k], state.node_face_index.numpy())
     assert grown_state.node_face_index.shape[0] == 2 * cap * k
+
+
+# Renumbering the nodes (finalize(node_order="blocks")) changes only the order in which float32 sums of a node's
+# forces are added (contacts scatter onto a face's nodes; a body's force sums its nodes in node order): each such sum
+# of K terms may round differently by up to ~K ε₃₂ of its size, which feeds the next step. Over STEPS steps the two
+# runs stay within STEPS · K ε₃₂ of each quantity's scale (K = 32: the most terms a node's force gathers here, its
+# tets and node–face candidates); a node or id mapped wrongly moves a node by its whole displacement, far above.
+RENUMBER_TERMS = 32
+
+
+def same_node(a_model, b_model, nt: int) -> np.ndarray:
+    """The node of ``b_model`` that is each node of ``a_model``: tets keep their slots, so corner k of tet t is the
+    same node in both; shape (live nodes of a,)."""
+    ta = a_model.tet_nodes.numpy()[:nt].ravel()
+    tb = b_model.tet_nodes.numpy()[:nt].ravel()
+    m = np.full(ta.max() + 1, -1)
+    m[ta] = tb
+    return m
+
+
+def test_block_node_order_gives_the_same_deformable_motion(device):
+    """A loaded 2 × 1 × 1 m block cut by a bonded joint on x = 1, numbered as the split leaves it and block by block:
+    the same motion, node for node (positions within STEPS · K ε₃₂ of the displacement scale), the same joint
+    elements and the same loaded faces (mapped through the node map), under a pressure on its top, a driven end and
+    non-reflecting dashpots on the other."""
+    steps = 200
+    runs = []
+    for order in ("split", "blocks"):
+        pts, tets = box_mesh((0, 0, 0), (2, 1, 1), (4, 2, 2))
+        b = ModelBuilder(gravity=(0.0, 0.0, -9.81))
+        b.add_material("rock", DENSITY, YOUNG, 0.25)
+        faces = tets[:, TET_FACES].reshape(-1, 3)
+        on = np.all(np.isclose(pts[faces][:, :, 0], 1.0), axis=1)
+        js = b.add_joint_set(JointProps(friction=0.5, cohesion=1e5, tensile_strength=1e5))
+        b.add_tet_mesh(pts, tets, "rock", joint_faces=np.unique(np.sort(faces[on], axis=1), axis=0), joint_set=js)
+        top = np.all(np.isclose(pts[faces][:, :, 2], 1.0), axis=1)
+        b.add_face_pressure(np.unique(np.sort(faces[top], axis=1), axis=0), PressureHistory.table([0, 1], [1e6, 1e6]))
+        b.add_node_velocity(np.flatnonzero(np.isclose(pts[:, 0], 0.0)), (-0.1, 0.0, 0.0))
+        end = np.all(np.isclose(pts[faces][:, :, 0], 2.0), axis=1)
+        b.add_boundary(np.unique(np.sort(faces[end], axis=1), axis=0), "non_reflecting")
+        model, state = b.finalize(device, safety_factor=0.5, node_order=order)
+        sim = Simulation(model, state)
+        sim.advance(steps)
+        runs.append((sim, len(tets)))
+    (a, nt), (b_, _) = runs
+    nn = a.node_count
+    m = same_node(a.model, b_.model, nt)
+    assert not np.array_equal(m[:nn], np.arange(nn))  # the numbering did change (the daughters move up)
+    ua, ub = a.state.node_u.numpy()[:nn], b_.state.node_u.numpy()[m[:nn]]
+    scale = np.abs(ua).max()
+    assert scale > 1e-3  # it moved: driven at 0.1 m/s and pushed
+    print("renumbered deformable run: max |Δu| / max |u| =", np.abs(ua - ub).max() / scale)
+    assert np.abs(ua - ub).max() <= steps * RENUMBER_TERMS * np.finfo(np.float32).eps * scale
+    ja = np.sort(np.stack([m[a.model.joint_a.numpy()], m[a.model.joint_b.numpy()]], axis=1), axis=1)
+    jb = np.sort(np.stack([b_.model.joint_a.numpy(), b_.model.joint_b.numpy()], axis=1), axis=1)
+    assert len(ja) > 0
+    np.testing.assert_array_equal(np.unique(ja, axis=0), jb)  # jb sorted by pair: find_joint's bisection holds
+    la, lb = a.model.loads, b_.model.loads
+    for fa, fb in zip([*la.pressure.values(), la.dashpots], [*lb.pressure.values(), lb.dashpots], strict=True):
+        np.testing.assert_array_equal(m[fa.nodes.numpy()], fb.nodes.numpy())
+    np.testing.assert_array_equal(a.model.loads.node_driver.numpy()[:nn], b_.model.loads.node_driver.numpy()[m[:nn]])
+
+
+def test_block_node_order_gives_the_same_rigid_blocks(device):
+    """The rattling jointed cube of 27 rigid blocks (warpdem.bench.jointed_cube, 100 steps, its inner joints in
+    contact), numbered as the split leaves it and block by block (the bench's order): every body's displacement,
+    velocity, rotation and angular momentum within STEPS · K ε₃₂ of its scale, and the same node–face springs (the
+    target face of each node as its node triple, mapped through the node map)."""
+    from warpdem.bench import jointed_cube
+
+    steps = 100
+    a, b_ = jointed_cube(3, device, node_order="split"), jointed_cube(3, device, node_order="blocks")
+    for sim in (a, b_):
+        sim.advance(steps)
+    nn, nt = a.node_count, int(a.state.tet_count.numpy()[0])
+    m = same_node(a.model, b_.model, nt)
+    assert not np.array_equal(m[:nn], np.arange(nn))
+    body = np.full(a.state.body_mass.shape[0], -1)
+    body[a.state.node_body.numpy()[:nn]] = b_.state.node_body.numpy()[m[:nn]]
+    assert np.array_equal(np.sort(body), np.arange(len(body)))  # a bijection of the bodies
+    worst = 0.0
+    for name in ("body_dc", "body_v", "body_q", "body_l"):
+        x, y = getattr(a.state, name).numpy(), getattr(b_.state, name).numpy()[body]
+        scale = np.abs(x).max()
+        assert scale > 0.0, name
+        worst = max(worst, np.abs(x - y).max() / scale)
+        assert np.abs(x - y).max() <= steps * RENUMBER_TERMS * np.finfo(np.float32).eps * scale, name
+    print("renumbered rigid cube: worst max |Δ| / scale =", worst)
+    sa, sb = a.state.node_face_spring.numpy()[:nn], b_.state.node_face_spring.numpy()[m[:nn]]
+    assert np.count_nonzero(sa >= 0) > nn // 3
+    np.testing.assert_array_equal(sa >= 0, sb >= 0)
+    fa, fb = a.model.face_nodes.numpy(), b_.model.face_nodes.numpy()
+    np.testing.assert_array_equal(np.sort(m[fa[sa[sa >= 0]]], axis=1), np.sort(fb[sb[sb >= 0]], axis=1))

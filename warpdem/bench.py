@@ -1057,11 +1057,12 @@ class BlockBenchResult:
     finite: bool
 
 
-def jointed_cube(cells: int, device: str) -> Simulation:
+def jointed_cube(cells: int, device: str, node_order: str = "blocks") -> Simulation:
     """A cube of ``cells``³ granite blocks of 1 m, one Kuhn cell (6 tets) each: every cell face inside the cube is a
     frictional joint (μ = 0.5), so the blocks are the cells. It rests on a ground wall under gravity, each block with
     a seeded small random velocity (the blocks rattle, so the contacts work), in rigid mode from the start at half
-    the blocks' stable step (warpdem.rigid.rigid_time_step), as a Simulation."""
+    the blocks' stable step (warpdem.rigid.rigid_time_step), as a Simulation. ``node_order``: ModelBuilder.finalize's
+    (the bench's, "blocks", numbers the nodes block by block; README, Benchmark, compares it with "split")."""
     from .builder import ModelBuilder
     from .joints import JointProps
     from .mesh import TET_FACES, box_mesh
@@ -1089,7 +1090,7 @@ def jointed_cube(cells: int, device: str) -> Simulation:
     b.add_tet_mesh(points, tets, "granite", joint_faces=joint_faces, joint_set=js, velocity=velocity)
     # A block corner inside the cube is a corner of eight blocks: some thirty faces of the seven others touch it, all
     # node–face candidates. Slots for them from the start spare the set-up a list build that overflows and is redone.
-    model, state = b.finalize(device, safety_factor=0.5, max_node_faces=32)
+    model, state = b.finalize(device, safety_factor=0.5, max_node_faces=32, node_order=node_order)
     sim = Simulation(rigid_time_step(model, state, 0.5), state, track_energy=False)
     sim.switch_to_rigid()
     return sim

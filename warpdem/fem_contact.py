@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 
 import numpy as np
 import warp as wp
@@ -28,14 +29,22 @@ import warp as wp
 from .compaction import Compactor
 from .contact import hash_grid_dims
 from .integrate import book_half_ahead
-from .joints import JointData, JointProps, eval_joints, joint_energy, joint_material_table, split_joints
+from .joints import (
+    JointData,
+    JointProps,
+    eval_joints,
+    joint_energy,
+    joint_material_table,
+    load_face_arrays,
+    split_joints,
+)
 from .kernels import fem_contact as kf
 from .kernels.contact import ContactPair
 from .mesh import TET_FACES, row_groups
 from .model import Model, State
 from .neighbors import SkinnedList, SlotArrays, finish_rebuild, make_struct
 from .rigid import has_bodies
-from .topology import NodeStars
+from .topology import NodeStars, renumber_nodes
 
 DEFAULT_SKIN_FRACTION = 0.25
 """Default ``fem_skin`` as a fraction of the smallest tet height over a boundary face [-]."""
@@ -273,9 +282,10 @@ def attach_fem_contact(
     max_node_faces: int = 8,
     contact_stiffness_factor: float = 1.0,
     contact_face_normal_stiffness: float = 0.0,
+    node_order: Callable[[Model, State], np.ndarray] | None = None,
 ) -> tuple[Model, State]:
-    """Give a freshly built model its joints and FEM contact: pre-split the joint faces (warpdem.joints), build the
-    surface, and allocate the contact lists. Build time.
+    """Give a freshly built model its joints and FEM contact: pre-split the joint faces (warpdem.joints), renumber
+    the nodes if asked, build the surface, and allocate the contact lists. Build time.
 
     Args:
         joints: joint faces in the model's node ids and their sets.
@@ -286,6 +296,8 @@ def attach_fem_contact(
         max_sphere_faces, max_node_faces: initial candidate slots (grown on overflow).
         contact_stiffness_factor: penalty factor of faces that are no joint faces [-].
         contact_face_normal_stiffness: mesh-independent spring of those faces, k_n / 2 per unit area [Pa/m].
+        node_order: the node numbering after the pre-split, new node i = old node ``node_order(model, state)[i]``
+            (warpdem.topology.renumber_nodes; e.g. warpdem.builder.block_node_order); None keeps the split's own.
     """
     d = model.device
     nj = len(joints)
@@ -312,6 +324,8 @@ def attach_fem_contact(
     )
     if nj:
         model = split_joints(model, state, joints)
+    if node_order is not None:
+        renumber_nodes(model, state, node_order(model, state), load_face_arrays(model.loads))
     model = build_surface(model, state)
     if fem_skin is None:
         fem_skin = 2.0 * DEFAULT_SKIN_FRACTION * smallest_face_depth(model, state)

@@ -14,12 +14,13 @@ from .kernels import integrate as ki
 from .model import Model, State
 
 
-def integrate_first_half(model: Model, state: State, track_energy: bool = True) -> None:
+def integrate_first_half(model: Model, state: State, track_energy: bool = True, nodes: bool = True) -> None:
     """Kick by dt/2 with the forces of the last evaluation, drift by dt, clear the force accumulators (FEM nodes:
     start them at the mass-proportional damping force) and raise the rebuild flags if a sphere has moved half the
     skin or a surface node half the FEM skin; with ``track_energy`` book the half of the sphere contacts' and bonds'
-    work that lies ahead of their evaluation (kernels/integrate.py ``book_contact_work_ahead``)."""
-    _drift(model, state, ki.integrate_first_half_kernel, ki.integrate_nodes_first_half_kernel, track_energy)
+    work that lies ahead of their evaluation (kernels/integrate.py ``book_contact_work_ahead``). ``nodes``: False
+    skips the FEM node kernel (every node rigid and undriven: warpdem.rigid ``every_node_rigid``)."""
+    _drift(model, state, ki.integrate_first_half_kernel, ki.integrate_nodes_first_half_kernel, track_energy, nodes)
     _advance_walls(model, state)
 
 
@@ -109,19 +110,23 @@ def integrate_second_half(model: Model, state: State) -> None:
     _advance_time(m, s)
 
 
-def kick_drift(model: Model, state: State, track_energy: bool = True) -> None:
+def kick_drift(model: Model, state: State, track_energy: bool = True, nodes: bool = True) -> None:
     """The second half of step n and the first half of step n + 1 in one pass (:func:`integrate_second_half` then
     :func:`integrate_first_half`, bit for bit): kick by dt/2 twice with the forces f_{n+1}, book the work of driven
-    spheres and nodes, drift, clear the accumulators, flag a rebuild; the clock advances in between."""
-    _drift(model, state, ki.kick_drift_particles_kernel, ki.kick_drift_nodes_kernel, track_energy)
+    spheres and nodes, drift, clear the accumulators, flag a rebuild; the clock advances in between. ``nodes``: as
+    in :func:`integrate_first_half`."""
+    _drift(model, state, ki.kick_drift_particles_kernel, ki.kick_drift_nodes_kernel, track_energy, nodes)
     # The nodes judged their drivers at t_n + dt/2 and t_n + 3dt/2 from the clock as it was; it moves on now, before
     # the walls and the forces of step n + 1, as between two separate steps.
     _advance_time(model, state)
     _advance_walls(model, state)
 
 
-def _drift(m: Model, s: State, particle_kernel: wp.Kernel, node_kernel: wp.Kernel, track_energy: bool) -> None:
-    """Launch the sphere and node kernels that end a half step in a drift (first half, or kick-drift)."""
+def _drift(
+    m: Model, s: State, particle_kernel: wp.Kernel, node_kernel: wp.Kernel, track_energy: bool, nodes: bool = True
+) -> None:
+    """Launch the sphere and node kernels that end a half step in a drift (first half, or kick-drift); the node
+    kernel only with ``nodes``."""
     wp.launch(
         particle_kernel,
         dim=m.particle_capacity,
@@ -129,7 +134,7 @@ def _drift(m: Model, s: State, particle_kernel: wp.Kernel, node_kernel: wp.Kerne
         outputs=_particle_drift_outputs(s),
         device=m.device,
     )
-    if m.node_capacity:
+    if m.node_capacity and nodes:
         wp.launch(
             node_kernel,
             dim=m.node_capacity,

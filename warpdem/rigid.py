@@ -325,6 +325,19 @@ def has_bodies(state: State) -> bool:
     return state.body_mass.shape[0] > 0
 
 
+def every_node_rigid(model: Model, state: State) -> bool:
+    """Whether every live FEM node is a rigid body's node with no velocity driver (host: reads back). Then the node
+    kernels' drift has nothing to do that the bodies' pose does not (it starts their accumulators,
+    kernels/rigid.py ``pose_nodes_kernel``), and the step skips it (warpdem.integrate ``kick_drift``)."""
+    if not has_bodies(state):
+        return False
+    nn = int(state.node_count.numpy()[0])
+    rigid = model.node_motion.numpy()[:nn] == int(kr.NODE_RIGID)
+    driver = getattr(model.loads, "node_driver", None)
+    driven = driver.numpy()[:nn] >= 0 if isinstance(driver, wp.array) else np.zeros(nn, dtype=bool)
+    return bool(np.all(rigid & ~driven))
+
+
 def drift_bodies(model: Model, state: State, after_second_half: bool) -> None:
     """Kick the bodies by dt/2 (twice with ``after_second_half``: the second half of the step before), translate by
     dt, turn by the free rotor over dt (recording the pose before it and the spin there, which the half ahead of the
@@ -383,14 +396,15 @@ def pose_nodes(model: Model, state: State, move: bool) -> None:
     m, s = model, state
     wp.launch(
         kr.pose_nodes_kernel,
-        dim=m.node_capacity,
+        dim=s.body_mass.shape[0],
         inputs=[
             m.node_ref_q,
             # Without FEM contact (half skin < 0) the stiffness is never read: any float array of the nodes stands in.
             m.node_contact_stiffness if m.node_contact_stiffness is not None else m.node_mass,
             0.5 * m.fem_skin if m.face_capacity else -1.0,
-            s.node_count,
-            s.node_body,
+            s.body_node_start,
+            s.body_node_count,
+            s.rigid_nodes,
             s.node_rigid_r0,
             s.node_rigid_u0,
             s.body_inertia,
@@ -404,7 +418,7 @@ def pose_nodes(model: Model, state: State, move: bool) -> None:
             s.node_q_at_fem_build,
             int(move),
         ],
-        outputs=[s.node_u, s.node_q, s.node_qd, s.fem_rebuild_flag],
+        outputs=[s.node_u, s.node_q, s.node_qd, s.node_f, s.fem_rebuild_flag],
         device=m.device,
     )
 

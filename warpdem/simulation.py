@@ -75,6 +75,7 @@ from .rigid import (
     body_energy,
     drift_bodies,
     element_mode_energy,
+    every_node_rigid,
     has_bodies,
     kick_bodies,
     make_bodies,
@@ -284,6 +285,9 @@ class Simulation:
         self._snapshot: State | None = None
         self._graphs: tuple | None = None
         self.rigid = has_bodies(self.state)
+        # Every node a rigid body's, none driven: the bodies' pose does all the node kernels' drift would (fixed
+        # after the switch: no topology pass runs then).
+        self.drift_nodes = not every_node_rigid(self.model, self.state)
 
     # ------------------------------------------------------------------------------------------------------------
     def step(self) -> None:
@@ -310,14 +314,14 @@ class Simulation:
 
     def _head(self) -> None:
         """First half of the first step of a run, and its forces."""
-        integrate_first_half(self.model, self.state, self.track_energy)
+        integrate_first_half(self.model, self.state, self.track_energy, self.drift_nodes)
         if self.rigid:
             drift_bodies(self.model, self.state, after_second_half=False)
         self._forces()
 
     def _body(self) -> None:
         """Second half of a step, first half of the next (one pass: warpdem.integrate.kick_drift), its forces."""
-        kick_drift(self.model, self.state, self.track_energy)
+        kick_drift(self.model, self.state, self.track_energy, self.drift_nodes)
         if self.rigid:
             drift_bodies(self.model, self.state, after_second_half=True)
         self._forces()

@@ -436,3 +436,70 @@ def live_flags(mask: np.ndarray | None, live: int, capacity: int, where: str, na
         raise ValueError(f"{where}: {name} must have one entry per live {items}, shape ({live},), got {mask.shape}")
     flags[:live] = mask.astype(bool)
     return flags
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Node renumbering (build time)
+
+
+def renumber_nodes(model: Model, state: State, order: np.ndarray, id_arrays: Sequence[wp.array] = ()) -> None:
+    """Renumber the live FEM nodes of a freshly split model in place: new node i is old node ``order[i]``. Every
+    per-node array of the Model, the State and the LoadModel (fields ``node_*``, the star CSR heads, the rows of
+    :data:`NODE_ROW_FIELDS`) is gathered in that order, and every array of node ids (``tet_nodes``, the joint
+    elements' ``joint_a``/``joint_b``, and ``id_arrays``: the load and dashpot faces, warpdem.joints
+    ``load_face_arrays``) is mapped through the inverse; the joint elements are re-sorted by their node pair
+    (:func:`sort_joint_elements`' key, which ``find_joint`` bisects). Slots past the live count are left as they
+    are.
+
+    Build time only, after the joints' pre-split and before the FEM surface is built (warpdem.fem_contact
+    ``attach_fem_contact``): no face list, cohesive element, coupling or rigid body refers to a node yet.
+
+    Raises:
+        ValueError: ``order`` is not a permutation of the live nodes, or cohesive elements already exist.
+    """
+    nn = int(state.node_count.numpy()[0])
+    nt = int(state.tet_count.numpy()[0])
+    order = np.asarray(order, dtype=np.int64)
+    if order.shape != (nn,) or not np.array_equal(np.sort(order), np.arange(nn)):
+        raise ValueError(f"renumber_nodes: the order must be a permutation of the {nn} live nodes")
+    if int(state.cohesive_count.numpy()[0]) != 0:
+        raise ValueError("renumber_nodes: build time only (cohesive elements already refer to nodes)")
+    inv = np.empty(nn, dtype=np.int32)
+    inv[order] = np.arange(nn, dtype=np.int32)
+    cap = model.node_capacity
+
+    def gather_rows(a: wp.array, per: int) -> None:
+        host = a.numpy()
+        rows = host[: cap * per].reshape(cap, per, *host.shape[1:])
+        rows[:nn] = rows[order]
+        a.assign(host)
+
+    def map_ids(a: wp.array, count: int) -> None:
+        host = a.numpy()
+        ids = host[:count]
+        live = ids >= 0  # -1: no node (an empty slot)
+        ids[live] = inv[ids[live]]
+        a.assign(host)
+
+    for obj, extra in ((model, {"star_offset", "star_count"}), (state, set()), (model.loads, set())):
+        if obj is None or not dataclasses.is_dataclass(obj):
+            continue
+        for f in dataclasses.fields(obj):
+            a = getattr(obj, f.name)
+            if not isinstance(a, wp.array) or f.name in NODE_SCALARS:
+                continue
+            per = int(getattr(model, NODE_ROW_FIELDS[f.name])) if f.name in NODE_ROW_FIELDS else 1
+            if (f.name.startswith("node_") or f.name in extra) and a.shape[0] == per * cap and per > 0:
+                gather_rows(a, per)
+    map_ids(model.tet_nodes, nt)
+    for ids in id_arrays:
+        map_ids(ids, ids.shape[0])
+    n = model.joint_capacity
+    if n:
+        a = inv[model.joint_a.numpy()[:n]]
+        b = inv[model.joint_b.numpy()[:n]]
+        sorted_by_pair = np.argsort(np.minimum(a, b).astype(np.int64) * cap + np.maximum(a, b), kind="stable")
+        model.joint_a.assign(a[sorted_by_pair].astype(np.int32))
+        model.joint_b.assign(b[sorted_by_pair].astype(np.int32))
+        for arr in (model.joint_area, model.joint_kn, model.joint_tet_face, model.joint_set):
+            arr.assign(arr.numpy()[:n][sorted_by_pair])
