@@ -338,12 +338,13 @@ def every_node_rigid(model: Model, state: State) -> bool:
     return bool(np.all(rigid & ~driven))
 
 
-def drift_bodies(model: Model, state: State, after_second_half: bool) -> None:
+def drift_bodies(model: Model, state: State, after_second_half: bool, deformable: bool = True) -> None:
     """Kick the bodies by dt/2 (twice with ``after_second_half``: the second half of the step before), translate by
     dt, turn by the free rotor over dt (recording the pose before it and the spin there, which the half ahead of the
     last forces' work is booked against: kernels/rigid.py ``node_velocity_ahead``), then set their nodes'
     displacements and velocities, and book the half ahead of the viscous forces of deformable tets on those nodes
-    (launches only)."""
+    (launches only). ``deformable`` = False (no tet is left deformable, so no viscous force acts on a body's node)
+    skips that booking pass over the node slots."""
     m, s = model, state
     kernel = kr.kick_drift_bodies_kernel if after_second_half else kr.drift_bodies_kernel
     wp.launch(
@@ -365,6 +366,8 @@ def drift_bodies(model: Model, state: State, after_second_half: bool) -> None:
         device=m.device,
     )
     pose_nodes(m, s, move=True)
+    if not deformable:
+        return
     # The viscous forces of deformable tets on the bodies' nodes (the node drift leaves them): their half ahead.
     book_half_ahead(m, s, m.dt, s.node_f_viscous, s.node_energy_damping, -1.0, rigid_only=True)
 

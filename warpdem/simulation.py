@@ -67,6 +67,7 @@ from .fracture import FracturePass, SplitReport
 from .guard import CriticalStep, GuardReport, StabilityGuard, UnstableRunError
 from .integrate import integrate_first_half, integrate_second_half, kick_drift
 from .kernels import rigid as kernels_rigid
+from .kernels.tets import TET_ACTIVE
 from .loads import eval_loads, relax_to_equilibrium
 from .model import NEIGHBOR_FIELDS, Model, State
 from .rigid import (
@@ -288,6 +289,10 @@ class Simulation:
         # Every node a rigid body's, none driven: the bodies' pose does all the node kernels' drift would (fixed
         # after the switch: no topology pass runs then).
         self.drift_nodes = not every_node_rigid(self.model, self.state)
+        # Some tet left deformable: its viscous forces on a body's nodes have a half ahead to book after the bodies'
+        # drift (warpdem.rigid.drift_bodies).
+        nt = int(self.state.tet_count.numpy()[0])
+        self.deformable_tets = bool(np.any(self.state.tet_active.numpy()[:nt] == int(TET_ACTIVE)))
 
     # ------------------------------------------------------------------------------------------------------------
     def step(self) -> None:
@@ -316,14 +321,14 @@ class Simulation:
         """First half of the first step of a run, and its forces."""
         integrate_first_half(self.model, self.state, self.track_energy, self.drift_nodes)
         if self.rigid:
-            drift_bodies(self.model, self.state, after_second_half=False)
+            drift_bodies(self.model, self.state, after_second_half=False, deformable=self.deformable_tets)
         self._forces()
 
     def _body(self) -> None:
         """Second half of a step, first half of the next (one pass: warpdem.integrate.kick_drift), its forces."""
         kick_drift(self.model, self.state, self.track_energy, self.drift_nodes)
         if self.rigid:
-            drift_bodies(self.model, self.state, after_second_half=True)
+            drift_bodies(self.model, self.state, after_second_half=True, deformable=self.deformable_tets)
         self._forces()
 
     def _tail(self) -> None:
