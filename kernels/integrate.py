@@ -21,6 +21,7 @@ import warp as wp
 
 from .contact import MOTION_FREE
 from .loads import NodeDriver, drive_first_half, drive_second_half
+from .neighbors import flag_past_half_fem_skin
 from .rigid import NODE_RIGID, node_velocity_ahead
 from .tets import node_free_directions
 
@@ -211,11 +212,7 @@ def drift_node(
     node_u[i] = u
     x = node_ref_q[i] + u
     node_q[i] = x
-    if half_fem_skin >= 0.0:
-        if node_contact_stiffness[i] != 0.0:
-            moved = x - node_q_at_fem_build[i]
-            if wp.dot(moved, moved) > half_fem_skin * half_fem_skin:
-                fem_rebuild_flag[0] = 1
+    flag_past_half_fem_skin(i, x, half_fem_skin, node_contact_stiffness, node_q_at_fem_build, fem_rebuild_flag)
     alpha = node_damping[i]
     f_viscous = node_f_viscous[i]
     dissipated = -0.5 * dt * wp.dot(f_viscous, v)

@@ -76,6 +76,25 @@ class ListKernels:
 
 
 @wp.func
+def flag_past_half_fem_skin(
+    i: int,
+    x: wp.vec3,
+    half_fem_skin: float,
+    node_contact_stiffness: wp.array(dtype=float),
+    node_q_at_fem_build: wp.array(dtype=wp.vec3),
+    fem_rebuild_flag: wp.array(dtype=int),
+):
+    """Raise the FEM contact lists' rebuild flag when node i, a contact node (on the surface: a penalty stiffness),
+    now at x [m] has moved more than half the FEM skin since the lists were built: the Verlet-skin criterion, as the
+    spheres' (``half_fem_skin`` < 0: the model has no FEM contact). The node drift and the rigid bodies' pose use it."""
+    if half_fem_skin >= 0.0:
+        if node_contact_stiffness[i] != 0.0:
+            moved = x - node_q_at_fem_build[i]
+            if wp.dot(moved, moved) > half_fem_skin * half_fem_skin:
+                fem_rebuild_flag[0] = 1
+
+
+@wp.func
 def find_slot(index: wp.array(dtype=int), first: int, count: int, candidate: int) -> int:
     """The slot among ``first .. first + count - 1`` that holds candidate, -1 if none does."""
     for s in range(count):

@@ -40,6 +40,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from .neighbors import flag_past_half_fem_skin
+
 wp.set_module_options({"enable_backward": False})
 
 NODE_RIGID = wp.constant(8)
@@ -372,11 +374,7 @@ def pose_nodes_kernel(
             node_u[i] = u
             x = node_ref_q[i] + u
             node_q[i] = x
-            if half_fem_skin >= 0.0:
-                if node_contact_stiffness[i] != 0.0:
-                    moved = x - node_q_at_fem_build[i]
-                    if wp.dot(moved, moved) > half_fem_skin * half_fem_skin:
-                        fem_rebuild_flag[0] = 1
+            flag_past_half_fem_skin(i, x, half_fem_skin, node_contact_stiffness, node_q_at_fem_build, fem_rebuild_flag)
         node_qd[i] = wp.vec3(vb + wp.cross(w, r))
 
 
