@@ -68,7 +68,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .rigid import node_velocity_ahead
+from .rigid import PoseAhead, node_velocity_ahead
 
 wp.set_module_options({"enable_backward": False})
 
@@ -173,25 +173,11 @@ def book_step(
 
 
 @wp.func
-def relative_velocity_ahead(
-    a: int,
-    b: int,
-    node_qd: wp.array(dtype=wp.vec3),
-    node_body: wp.array(dtype=int),
-    node_rigid_r0: wp.array(dtype=wp.vec3d),
-    body_fixed: wp.array(dtype=int),
-    body_v: wp.array(dtype=wp.vec3d),
-    body_q_before: wp.array(dtype=wp.quatd),
-    body_omega_ahead: wp.array(dtype=wp.vec3d),
-) -> wp.vec3:
+def relative_velocity_ahead(a: int, b: int, ahead: PoseAhead) -> wp.vec3:
     """(v_B − v_A) [m/s] over the half step ahead of the last evaluation: v_{n+1/2} of the nodes, or for a node of a
     rigid body its velocity at the pose the last force was made at (kernels/rigid.py ``node_velocity_ahead``;
     ``node_body`` is empty before a switch)."""
-    if node_body.shape[0] == 0:
-        return node_qd[b] - node_qd[a]
-    vb = node_velocity_ahead(b, node_qd, node_body, node_rigid_r0, body_fixed, body_v, body_q_before, body_omega_ahead)
-    va = node_velocity_ahead(a, node_qd, node_body, node_rigid_r0, body_fixed, body_v, body_q_before, body_omega_ahead)
-    return vb - va
+    return node_velocity_ahead(b, ahead) - node_velocity_ahead(a, ahead)
 
 
 @wp.kernel
@@ -212,12 +198,7 @@ def eval_cohesive_kernel(
     cohesive_dir: wp.array(dtype=wp.vec3),
     node_u: wp.array(dtype=wp.vec3),
     node_qd: wp.array(dtype=wp.vec3),
-    node_body: wp.array(dtype=int),
-    node_rigid_r0: wp.array(dtype=wp.vec3d),
-    body_fixed: wp.array(dtype=int),
-    body_v: wp.array(dtype=wp.vec3d),
-    body_q_before: wp.array(dtype=wp.quatd),
-    body_omega_ahead: wp.array(dtype=wp.vec3d),
+    ahead: PoseAhead,
     # In:
     track_energy: int,
     # State out:
@@ -244,9 +225,7 @@ def eval_cohesive_kernel(
     r = opening(a, b, node_ref_q, node_u)
     v_rel_ahead = wp.vec3(0.0)
     if dt > 0.0:
-        v_rel_ahead = relative_velocity_ahead(
-            a, b, node_qd, node_body, node_rigid_r0, body_fixed, body_v, body_q_before, body_omega_ahead
-        )
+        v_rel_ahead = relative_velocity_ahead(a, b, ahead)
     d_max_old = cohesive_d_max[i]
     d_max = wp.max(d_max_old, wp.length(r))  # LDEC eq. 8
     # An intact element has d_max_old < δ_c, so δ_max before this step is d_max_old itself.

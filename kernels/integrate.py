@@ -22,7 +22,7 @@ import warp as wp
 from .contact import MOTION_FREE
 from .loads import NodeDriver, drive_first_half, drive_second_half
 from .neighbors import flag_past_half_fem_skin
-from .rigid import NODE_RIGID, node_velocity_ahead
+from .rigid import NODE_RIGID, PoseAhead, node_velocity_ahead
 from .tets import node_free_directions
 
 wp.set_module_options({"enable_backward": False})
@@ -233,13 +233,7 @@ def book_half_ahead_kernel(
     dt: float,
     # State in:
     node_count: wp.array(dtype=int),
-    node_qd: wp.array(dtype=wp.vec3),
-    node_body: wp.array(dtype=int),
-    node_rigid_r0: wp.array(dtype=wp.vec3d),
-    body_fixed: wp.array(dtype=int),
-    body_v: wp.array(dtype=wp.vec3d),
-    body_q_before: wp.array(dtype=wp.quatd),
-    body_omega_ahead: wp.array(dtype=wp.vec3d),
+    ahead: PoseAhead,
     # In:
     sign: float,
     rigid_only: int,
@@ -261,17 +255,13 @@ def book_half_ahead_kernel(
     if i >= node_count[0]:
         return
     if rigid_only != 0:
-        if node_body.shape[0] == 0:
+        if ahead.node_body.shape[0] == 0:
             return
-        if node_body[i] < 0:
+        if ahead.node_body[i] < 0:
             return
     f = node_f_kind[i]
     if wp.length_sq(f) > 0.0:  # a node no such force touched keeps its zero unwritten
-        v = node_qd[i]
-        if node_body.shape[0] > 0:
-            v = node_velocity_ahead(
-                i, node_qd, node_body, node_rigid_r0, body_fixed, body_v, body_q_before, body_omega_ahead
-            )
+        v = node_velocity_ahead(i, ahead)
         node_energy_kind[i] = node_energy_kind[i] + wp.float64(sign * 0.5 * dt * wp.dot(f, v))
         node_f_kind[i] = wp.vec3(0.0)
 

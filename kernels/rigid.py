@@ -190,17 +190,25 @@ def kick_body(
     return v, allowed_rotation(c, n, angular_momentum + h * body_t[b])
 
 
+@wp.struct
+class PoseAhead:
+    """What the half ahead of a force's work is booked against (:func:`node_velocity_ahead`): the nodes' velocities
+    v_{n+1/2} after the drift, and for the nodes of rigid bodies their body, offset R(0) r0 from its centre of mass,
+    and the bodies' record of the pose q_n the force was made at and the spin ω(q_n, L_{n+1/2}) there (State arrays:
+    ``node_qd``, ``node_body``, ``node_rigid_r0``, ``body_fixed``, ``body_v``, ``body_q_before``,
+    ``body_omega_ahead``; ``node_body`` is empty before a switch: no node follows a body)."""
+
+    node_qd: wp.array(dtype=wp.vec3)
+    node_body: wp.array(dtype=int)
+    node_rigid_r0: wp.array(dtype=wp.vec3d)
+    body_fixed: wp.array(dtype=int)
+    body_v: wp.array(dtype=wp.vec3d)
+    body_q_before: wp.array(dtype=wp.quatd)
+    body_omega_ahead: wp.array(dtype=wp.vec3d)
+
+
 @wp.func
-def node_velocity_ahead(
-    i: int,
-    node_qd: wp.array(dtype=wp.vec3),
-    node_body: wp.array(dtype=int),
-    node_rigid_r0: wp.array(dtype=wp.vec3d),
-    body_fixed: wp.array(dtype=int),
-    body_v: wp.array(dtype=wp.vec3d),
-    body_q_before: wp.array(dtype=wp.quatd),
-    body_omega_ahead: wp.array(dtype=wp.vec3d),
-) -> wp.vec3:
+def node_velocity_ahead(i: int, ahead: PoseAhead) -> wp.vec3:
     """The velocity [m/s] that the half ahead of the work of a force made at the last evaluation is booked against,
     after the drift: v_{n+1/2} (``node_qd``) for a node of its own; for a node of a moving rigid body,
     V_{n+1/2} + ω(q_n, L_{n+1/2}) × R(q_n) r0, at the pose q_n the force was made at.
@@ -212,13 +220,15 @@ def node_velocity_ahead(
     that of the next pose: it books the half behind of the next forces. ``body_q_before`` and ``body_omega_ahead``
     are the drift's record of q_n and ω(q_n, L_{n+1/2}) (:func:`make_body_drift_kernel`); a held body has neither,
     and its nodes stand still."""
-    b = node_body[i]
+    if ahead.node_body.shape[0] == 0:
+        return ahead.node_qd[i]
+    b = ahead.node_body[i]
     if b < 0:
-        return node_qd[i]
-    if body_fixed[b] != 0:
-        return node_qd[i]
-    r = wp.quat_rotate(body_q_before[b], node_rigid_r0[i])
-    return wp.vec3(body_v[b] + wp.cross(body_omega_ahead[b], r))
+        return ahead.node_qd[i]
+    if ahead.body_fixed[b] != 0:
+        return ahead.node_qd[i]
+    r = wp.quat_rotate(ahead.body_q_before[b], ahead.node_rigid_r0[i])
+    return wp.vec3(ahead.body_v[b] + wp.cross(ahead.body_omega_ahead[b], r))
 
 
 # ----------------------------------------------------------------------------------------------------------------

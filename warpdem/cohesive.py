@@ -14,6 +14,7 @@ import dataclasses
 import warp as wp
 
 from .compaction import Compactor, grow_live_slots
+from .integrate import pose_ahead
 from .kernels import cohesive as kc
 from .model import COHESIVE_FIELDS, Model, State
 
@@ -60,12 +61,7 @@ def eval_cohesive(model: Model, state: State, dt: float | None = None, track_ene
             s.cohesive_dir,
             s.node_u,
             s.node_qd,
-            s.node_body,
-            s.node_rigid_r0,
-            s.body_fixed,
-            s.body_v,
-            s.body_q_before,
-            s.body_omega_ahead,
+            pose_ahead(s),
             # In:
             int(track_energy),
         ],

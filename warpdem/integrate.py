@@ -11,7 +11,9 @@ from __future__ import annotations
 import warp as wp
 
 from .kernels import integrate as ki
+from .kernels import rigid as kr
 from .model import Model, State
+from .neighbors import make_struct
 
 
 def integrate_first_half(model: Model, state: State, track_energy: bool = True, nodes: bool = True) -> None:
@@ -22,6 +24,22 @@ def integrate_first_half(model: Model, state: State, track_energy: bool = True, 
     skips the FEM node kernel (every node rigid and undriven: warpdem.rigid ``every_node_rigid``)."""
     _drift(model, state, ki.integrate_first_half_kernel, ki.integrate_nodes_first_half_kernel, track_energy, nodes)
     _advance_walls(model, state)
+
+
+def pose_ahead(state: State) -> kr.PoseAhead:
+    """The arrays the half ahead of a force's work is booked against, as the kernels take them (kernels/rigid.py
+    ``PoseAhead``): made at each launch, so that it holds the State's arrays after any growth."""
+    s = state
+    return make_struct(
+        kr.PoseAhead,
+        node_qd=s.node_qd,
+        node_body=s.node_body,
+        node_rigid_r0=s.node_rigid_r0,
+        body_fixed=s.body_fixed,
+        body_v=s.body_v,
+        body_q_before=s.body_q_before,
+        body_omega_ahead=s.body_omega_ahead,
+    )
 
 
 def book_half_ahead(
@@ -47,13 +65,7 @@ def book_half_ahead(
         inputs=[
             dt,
             s.node_count,
-            s.node_qd,
-            s.node_body,
-            s.node_rigid_r0,
-            s.body_fixed,
-            s.body_v,
-            s.body_q_before,
-            s.body_omega_ahead,
+            pose_ahead(s),
             sign,
             int(rigid_only),
         ],

@@ -624,6 +624,20 @@ def eval_loads(model: Model, state: State, dt: float | None = None) -> None:
         )
 
 
+def _pressure_face_inputs(loads: LoadModel, faces: FaceSet) -> list:
+    """The Model inputs every pressure kernel of one history kind starts with (kernels/loads.py): the loaded faces'
+    nodes, reference edges and load index, the loads and their tables."""
+    return [
+        faces.nodes,
+        faces.edge_a,
+        faces.edge_b,
+        faces.index,
+        loads.pressure_loads,
+        loads.table_times,
+        loads.table_values,
+    ]
+
+
 def add_pressure_forces(
     model: Model,
     time: wp.array,
@@ -645,13 +659,7 @@ def add_pressure_forces(
             dim=faces.count,
             inputs=[
                 # Model:
-                faces.nodes,
-                faces.edge_a,
-                faces.edge_b,
-                faces.index,
-                loads.pressure_loads,
-                loads.table_times,
-                loads.table_values,
+                *_pressure_face_inputs(loads, faces),
                 dt,
                 # The float64 step, so that t_n + dt is the clock's own next value (kernels/integrate.py).
                 wp.float64(dt),
@@ -702,13 +710,7 @@ def load_forces(model: Model, state: State) -> tuple[list[str], np.ndarray]:
             dim=faces.count,
             inputs=[
                 # Model:
-                faces.nodes,
-                faces.edge_a,
-                faces.edge_b,
-                faces.index,
-                loads.pressure_loads,
-                loads.table_times,
-                loads.table_values,
+                *_pressure_face_inputs(loads, faces),
                 # State in:
                 state.time,
                 state.node_u,
