@@ -961,9 +961,9 @@ def test_step_after_a_partial_switch_is_that_of_what_is_left(device, dashpots, w
 # Checkpoints of an older format (warpdem.runner.FIELD_MIGRATIONS)
 
 
-def as_old_checkpoint(source, target, keys):
-    """A copy of a checkpoint as format version 1 wrote it: without ``keys`` (``state/<name>``, ``model/<name>``,
-    ``attribute <name>``) and with its version attribute set to 1."""
+def as_old_checkpoint(source, target, keys, version=1):
+    """A copy of a checkpoint as an older format (``version``) wrote it: without ``keys`` (``state/<name>``,
+    ``model/<name>``, ``attribute <name>``) and with its version attribute set to ``version``."""
     import shutil
 
     import h5py
@@ -976,33 +976,50 @@ def as_old_checkpoint(source, target, keys):
                 del f.attrs[key.removeprefix("attribute ")]
             else:
                 del f[key]
-        f.attrs["warpdem_format_version"] = 1
+        f.attrs["warpdem_format_version"] = version
     return target
+
+
+def frame_checkpoint(switch_run, copy_name, frame):
+    """A copy of the switch run's output folder (``copy_name``) and the path of its checkpoint of ``frame`` in it."""
+    import shutil
+
+    from warpdem.checkpoint import read_checkpoint
+
+    _, folder, _ = switch_run
+    copy = folder / copy_name
+    shutil.copytree(folder / "out", copy)
+    return copy, next(p for p in (copy / "checkpoints").iterdir() if read_checkpoint(p)[1]["frame"] == frame)
+
+
+def assert_restart_ends_as_the_run(switch_run, copy, path, what):
+    """Restarts the switch run from ``path`` into ``copy`` and compares its last checkpoint with the uninterrupted
+    run's, array by array, bit for bit (CPU)."""
+    from warpdem.checkpoint import read_checkpoint
+    from warpdem.runner import RunOptions, run_scene
+
+    scene, _, summary = switch_run
+    end_arrays, _ = read_checkpoint(summary.checkpoints[-1])
+    again = run_scene(scene, RunOptions(device="cpu", out_dir=copy, quiet=True, restart=path))
+    arrays, _ = read_checkpoint(again.checkpoints[-1])
+    assert arrays.keys() == end_arrays.keys()
+    for name, a in end_arrays.items():
+        np.testing.assert_array_equal(arrays[name], a, err_msg=f"restart from {what}: {name}")
 
 
 def test_an_old_checkpoint_resumes_bit_for_bit_where_its_fields_fill_exactly(switch_run):
     """A checkpoint of format 1 lacks the fields added since (warpdem.runner.FIELD_MIGRATIONS). Before the switch
     (frame 4) every one of them has its fresh value in the run (no contact, no pass, no viscosity, no change of
     step, no body): a restart fills them and ends with the uninterrupted run's arrays, bit for bit (CPU)."""
-    import shutil
-
     from warpdem.checkpoint import read_checkpoint
-    from warpdem.runner import FIELD_MIGRATIONS, RunOptions, run_scene
+    from warpdem.runner import FIELD_MIGRATIONS
 
-    scene, folder, summary = switch_run
-    end_arrays, _ = read_checkpoint(summary.checkpoints[-1])
-    copy = folder / "old4"
-    shutil.copytree(folder / "out", copy)
-    path = next(p for p in (copy / "checkpoints").iterdir() if read_checkpoint(p)[1]["frame"] == 4)
+    copy, path = frame_checkpoint(switch_run, "old4", 4)
     arrays, attrs = read_checkpoint(path)
     keys = [k for k in FIELD_MIGRATIONS if k in arrays or k.removeprefix("attribute ") in attrs]
     assert len(keys) >= 30  # every state field of the table, tet_may_rigid and the five scalars
     as_old_checkpoint(path, path, keys)
-    again = run_scene(scene, RunOptions(device="cpu", out_dir=copy, quiet=True, restart=path))
-    arrays, _ = read_checkpoint(again.checkpoints[-1])
-    assert arrays.keys() == end_arrays.keys()
-    for name, a in end_arrays.items():
-        np.testing.assert_array_equal(arrays[name], a, err_msg=f"restart from an old frame-4 checkpoint: {name}")
+    assert_restart_ends_as_the_run(switch_run, copy, path, "an old frame-4 checkpoint")
 
 
 def test_a_format_2_checkpoint_after_the_switch_resumes_bit_for_bit(switch_run):
@@ -1011,28 +1028,13 @@ def test_a_format_2_checkpoint_after_the_switch_resumes_bit_for_bit(switch_run):
     the rigid column pushed by its load) lacks them: a restart makes the load's forces again at the checkpoint's time
     and positions and zeroes the scratch (the next drift writes it before anything reads it), and ends with the
     uninterrupted run's arrays, bit for bit (CPU)."""
-    import shutil
-
-    import h5py
-
     from warpdem.checkpoint import read_checkpoint
-    from warpdem.runner import RunOptions, run_scene
 
-    scene, folder, summary = switch_run
-    end_arrays, _ = read_checkpoint(summary.checkpoints[-1])
-    copy = folder / "old8"
-    shutil.copytree(folder / "out", copy)
-    path = next(p for p in (copy / "checkpoints").iterdir() if read_checkpoint(p)[1]["frame"] == 8)
+    copy, path = frame_checkpoint(switch_run, "old8", 8)
     arrays, _ = read_checkpoint(path)
     assert np.any(arrays["state/node_f_load"] != 0.0) and len(arrays["state/body_q_before"]) == 1
-    as_old_checkpoint(path, path, ["state/node_f_load", "state/body_q_before", "state/body_omega_ahead"])
-    with h5py.File(path, "r+") as f:
-        f.attrs["warpdem_format_version"] = 2
-    again = run_scene(scene, RunOptions(device="cpu", out_dir=copy, quiet=True, restart=path))
-    arrays, _ = read_checkpoint(again.checkpoints[-1])
-    assert arrays.keys() == end_arrays.keys()
-    for name, a in end_arrays.items():
-        np.testing.assert_array_equal(arrays[name], a, err_msg=f"restart from a format-2 frame-8 checkpoint: {name}")
+    as_old_checkpoint(path, path, ["state/node_f_load", "state/body_q_before", "state/body_omega_ahead"], version=2)
+    assert_restart_ends_as_the_run(switch_run, copy, path, "a format-2 frame-8 checkpoint")
 
 
 @pytest.mark.parametrize(

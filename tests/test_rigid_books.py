@@ -30,13 +30,14 @@ import dataclasses
 import numpy as np
 import pytest
 from test_cohesive import set_elements
+from test_conversion import worst_balance_error
 from test_fem_contact import two_blocks
 
 from warpdem.builder import ModelBuilder
 from warpdem.fracture import fracture_state
 from warpdem.loads import PressureHistory
 from warpdem.mesh import boundary_faces, box_mesh
-from warpdem.simulation import Simulation, balance_error
+from warpdem.simulation import Simulation
 
 F32_EPS = float(np.finfo(np.float32).eps)
 BOOKS_RTOL = 2.0 * F32_EPS  # module docstring
@@ -58,15 +59,8 @@ def worst_balance(model, state, frames: int, steps: int) -> tuple[float, np.ndar
     over the frames [-], the last body's angular momentum at the switch and at the end [kg m²/s], and the run."""
     sim = Simulation(model, state)
     sim.switch_to_rigid()
-    start = sim.energy()
-    in_play = start.in_play
     l0 = sim.state.body_l.numpy()[-1].copy()
-    worst = 0.0
-    for _ in range(frames):
-        sim.advance(steps)
-        now = sim.energy()
-        in_play = max(in_play, now.in_play)
-        worst = max(worst, abs(balance_error(start, now, in_play)))
+    worst = worst_balance_error(sim, frames, steps)
     return worst, l0, sim.state.body_l.numpy()[-1], sim
 
 

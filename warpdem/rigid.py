@@ -55,6 +55,7 @@ from .fragments import block_labels
 from .guard import CriticalStep
 from .integrate import book_half_ahead
 from .kernels import rigid as kr
+from .kernels.tets import TET_ACTIVE
 from .loads import dashpot_critical_step
 from .model import RIGID_BODY_FIELDS, RIGID_NODE_FIELDS, Model, State
 from .tets import reference_geometry, tet_stable_time_steps
@@ -188,7 +189,7 @@ def make_bodies(model: Model, state: State) -> tuple[State, RigidReport]:
     tets = model.tet_nodes.numpy()[:nt].astype(np.int64)
     active = state.tet_active.numpy()[:nt]
     may = model.tet_may_rigid.numpy()[:nt] != 0 if model.tet_may_rigid is not None else np.ones(nt, dtype=bool)
-    rigid_tet = (active == 1) & may
+    rigid_tet = (active == int(TET_ACTIVE)) & may
     node_body = np.full(model.node_capacity, -1, dtype=np.int32)
     node_body[:nn] = label
     mass = model.node_mass.numpy()[:nn].astype(np.float64)
@@ -608,8 +609,8 @@ def deformable_critical_step(model: Model, state: State) -> CriticalStep:
     """
     nt = int(state.tet_count.numpy()[0])
     nn = int(state.node_count.numpy()[0])
-    active = state.tet_active.numpy()[:nt]
-    tets = model.tet_nodes.numpy()[:nt][active == 1].astype(np.int64)
+    deformable = state.tet_active.numpy()[:nt] == int(TET_ACTIVE)
+    tets = model.tet_nodes.numpy()[:nt][deformable].astype(np.int64)
     steps = [CriticalStep(math.inf, "nothing deformable is left")]
     if int(state.particle_count.numpy()[0]) > 0:
         whole = model.deformable_critical_dt if model.deformable_critical_dt > 0.0 else model.critical_dt
@@ -617,14 +618,14 @@ def deformable_critical_step(model: Model, state: State) -> CriticalStep:
     if len(tets):
         points = model.node_ref_q.numpy()[:nn].astype(np.float64)
         table = model.tet_material_table.numpy()
-        material = model.tet_material.numpy()[:nt][active == 1]
+        material = model.tet_material.numpy()[:nt][deformable]
         props = {name: table[name].astype(np.float64)[material] for name in ("mu", "lam", "density", "c_lin", "alpha")}
         inv_ref, _ = reference_geometry(points, tets)
         per_tet = tet_stable_time_steps(
             inv_ref, props["mu"], props["lam"], props["density"], props["c_lin"], props["alpha"]
         )
         k = int(np.argmin(per_tet))
-        tet = int(np.flatnonzero(active == 1)[k])
+        tet = int(np.flatnonzero(deformable)[k])
         steps.append(CriticalStep(float(per_tet[k]), f"deformable tet {tet} left after the rigid switch"))
         moving = model.node_motion.numpy()[:nn] != int(kr.NODE_RIGID)
         dashpots = model.loads.dashpots if model.loads is not None else None

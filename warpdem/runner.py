@@ -908,12 +908,12 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     # end by an earlier warpdem, which took it at the next frame boundary, may not have). An explicit dt is the
     # user's: it is kept across the switch.
     rigid_step_due = run.dt == "auto" and not bool(attrs.get("rigid_step_taken", primed and sim.rigid))
-    pending_dt: list[float] = []  # the grid's step, set at the frame boundary that ends a bridge (take_rigid_step)
+    pending_dt: float | None = None  # the grid's step, set at the frame boundary that ends a bridge (take_rigid_step)
 
     def adopt_rigid_step(frame: int) -> None:
         """Takes the rigid step now if it is due (the blocks are rigid), ``frame`` being the frame in progress: the
         one whose end on the grid is the next frame boundary at or after the current step."""
-        nonlocal grid, last_step, total_frames, rigid_step_due
+        nonlocal grid, last_step, total_frames, rigid_step_due, pending_dt
         end = grid.end_step(frame)
         if not (rigid_step_due and sim.rigid) or end > last_step:
             # A switch in the run's short last frame: the frames after it would leave the grid (k × period), so the
@@ -927,13 +927,14 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         runs_on = end != last_step  # a bridge to the run's last step ends the run: no step is added past it
         grid = change.grid
         if change.pending:
-            pending_dt.append(change.dt)
+            pending_dt = change.dt
         last_step = grid.last_step(end_time, options.frames, change.dt) if runs_on else grid.step
         total_frames = grid.frames(last_step)
 
     def advance_frame(frame: int) -> None:
         """Runs the steps of frame ``frame`` (to its end on the grid, or the run's last step), taking the rigid step
         at a switch inside it, then the grid's step at its end after a bridge."""
+        nonlocal pending_dt
         while True:
             end = min(grid.end_step(frame), last_step)
             if sim.step_count >= end:
@@ -942,8 +943,9 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
             sim.advance(end - sim.step_count, stop_at_switch=rigid_step_due)
             if sim.rigid and not rigid:
                 adopt_rigid_step(frame)
-        if pending_dt:
-            sim.set_time_step(pending_dt.pop())
+        if pending_dt is not None:
+            sim.set_time_step(pending_dt)
+            pending_dt = None
 
     _check_steps(scene, float(substeps), options, total_frames - first_frame)
 
