@@ -957,6 +957,54 @@ def test_step_after_a_partial_switch_is_that_of_what_is_left(device, dashpots, w
     )  # the stiff half's step (1.4× smaller in tets, 1.6× in springs) is gone
 
 
+def add_sphere_heap(b: ModelBuilder, normal: str) -> None:
+    """Spheres beside the column of :func:`two_material_column` (x > 2 m, clear of it): a bonded 3 × 2 row of r = 0.2 m
+    soft spheres and four loose ones of r = 0.15 m, of a third material, moving at up to 0.5 m/s (so the Hertz
+    impact bound counts), and, with the linear law, one lighter material."""
+    b.add_material("grain", 0.5 * DENSITY, 2.0 * YOUNG, 0.3)
+    i, j = np.meshgrid(np.arange(3), np.arange(2), indexing="ij")
+    row = np.stack([2.5 + 0.4 * i.ravel(), 0.4 * j.ravel(), np.full(6, 0.5)], axis=1)
+    ids = b.add_spheres(row, 0.2, "soft", velocity=(0.0, 0.0, -0.5))
+    b.add_bonded_group(ids, youngs_modulus=YOUNG, tensile_strength=1.0e6, shear_strength=1.0e6, damping_ratio=0.1)
+    loose = np.array([[2.5, 1.5, 1.5], [3.0, 1.5, 1.5], [3.5, 1.5, 1.5], [4.0, 1.5, 1.5]])
+    b.add_spheres(loose, 0.15, "grain" if normal == "hertz" else "soft", velocity=(0.3, 0.0, 0.0), part="loose")
+
+
+@pytest.mark.parametrize("normal", ["hertz", "linear"])
+def test_spheres_left_after_a_switch_take_their_own_step(device, normal):
+    """Spheres beside a column that turns rigid whole bound the step after the switch by their own step, the one the
+    builder gives the same spheres built alone (their contacts: Rayleigh or linear, and the Hertz impact at the
+    fastest approach; their bonds' translational and rotational modes), no longer by the whole model's (set by the
+    column's stiff tets); the step after the switch is the least of theirs and the body's. Both from the same numbers, float32 on the model's side (E, ν recovered from the material
+    pair table, masses and radii): STEP_RTOL."""
+    from warpdem.rigid import (
+        contact_damping_ratio,
+        deformable_critical_step,
+        rigid_critical_step,
+        rigid_step_after_switch,
+    )
+
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 2.0), (2, 2, 4))
+    whole = ModelBuilder(normal=normal, tangential="linear", gravity=(0.0, 0.0, 0.0))
+    alone = ModelBuilder(normal=normal, tangential="linear", gravity=(0.0, 0.0, 0.0))
+    for b in (whole, alone):
+        b.add_material("soft", DENSITY, YOUNG, POISSON)
+        b.add_material("stiff", 4.0 * DENSITY, 10.0 * YOUNG, POISSON)
+        add_sphere_heap(b, normal)
+    whole.add_tet_mesh(points, tets, "stiff")
+    model, state = whole.finalize(device, safety_factor=0.5)
+    spheres, _ = alone.finalize(device, safety_factor=0.5)
+    sim = Simulation(model, state)
+    sim.switch_to_rigid()
+    left = deformable_critical_step(sim.model, sim.state)
+    np.testing.assert_allclose(left.value, spheres.critical_dt, rtol=STEP_RTOL)
+    assert left.source.split("(")[0] == spheres.critical_dt_source.split("(")[0]
+    assert left.value > 1.5 * model.critical_dt  # the stiff tets' step no longer bounds the run
+    bodies = rigid_critical_step(sim.model, sim.state, contact_damping_ratio(sim.model))
+    after = rigid_step_after_switch(sim.model, sim.state)
+    np.testing.assert_allclose(after.value, min(bodies, spheres.critical_dt), rtol=STEP_RTOL)
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # Checkpoints of an older format (warpdem.runner.FIELD_MIGRATIONS)
 

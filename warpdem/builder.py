@@ -7,14 +7,14 @@ Everything here runs once, on the host, before the first step.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
 
 from .bonds import find_bond_pairs
-from .contact import critical_time_step_hertz
+from .contact import sphere_contact_steps
 from .fem_contact import attach_fem_contact, contact_critical_step_at, fem_contact_state
 from .fragments import block_labels
 from .guard import CriticalStep, check_time_step, p_wave_speed, run_away_speed
@@ -147,7 +147,7 @@ def sphere_masses(particles: ParticleData, materials: dict[str, MaterialProps]) 
 
 
 def bond_critical_step(
-    particles: ParticleData, bonds: BondData, materials: dict[str, MaterialProps], part_names: Sequence[str] = ()
+    mass: np.ndarray, part: np.ndarray, bonds: BondData, part_names: Sequence[str] = ()
 ) -> CriticalStep:
     """Stable step [s] of the bonded spheres, from the stiffest mode each sphere can have, and the bond that sets it.
 
@@ -156,8 +156,11 @@ def bond_critical_step(
     dt < (2/ω)(sqrt(1 + ζ²) - ζ), ζ the mode's damping ratio. The bond dashpot c = 2 ζ sqrt(m* k) with m* = m/2
     gives ζ/√2 in translation and sqrt(5/2) ζ ≈ 1.58 ζ in rotation, where the small moment of inertia makes the
     same dashpot relatively much stronger.
+
+    Args:
+        mass: the spheres' masses [kg], shape (N,); part: their part ids, shape (N,).
+        bonds: the bonds (``pairs`` index the spheres), their ``kn``, ``ks`` [N/m] and ``damping`` ζ [-].
     """
-    mass = sphere_masses(particles, materials)
     z = np.bincount(bonds.pairs.ravel(), minlength=len(mass)).astype(np.float64)
     i, j = bonds.pairs[:, 0], bonds.pairs[:, 1]
     m = np.minimum(mass[i], mass[j])
@@ -173,8 +176,8 @@ def bond_critical_step(
     }
     mode, steps = min(modes.items(), key=lambda item: float(item[1].min()))
     k = int(np.argmin(steps))
-    part = int(particles.part[i[k]])
-    name = f" of part {part_names[part]}" if part < len(part_names) else ""
+    owner = int(part[i[k]])
+    name = f" of part {part_names[owner]}" if owner < len(part_names) else ""
     return CriticalStep(
         float(steps[k]), f"the bond between spheres{name} ({mode} mode, {int(zmax[k])} bonds on a sphere)"
     )
@@ -678,27 +681,31 @@ class ModelBuilder:
             self.contact_critical_step(mesh),
         ]
         if np.any(free) or len(bonds):
-            for mid in np.unique(particles.material):
-                mat = self.materials[names[mid]]
-                mine = np.nonzero(particles.material == mid)[0]
-                smallest = mine[np.argmin(particles.radius[mine])]
-                r = float(particles.radius[smallest])
-                what = f"spheres of material {names[mid]} (r = {r:.3g} m, part {self.parts[particles.part[smallest]]})"
-                mass = mat.density * 4.0 / 3.0 * math.pi * r**3
-                if self.normal == "hertz":
-                    rayleigh = critical_time_step_hertz(r, mat.density, mat.youngs_modulus, mat.poisson_ratio)
-                    steps.append(CriticalStep(rayleigh, f"the Rayleigh step of the smallest {what}"))
-                    speed = 2.0 * float(np.linalg.norm(particles.qd, axis=1).max(initial=0.0))
-                    if speed > 0.0:
-                        estar, _ = effective_moduli(mat, mat)
-                        mstar, rstar = 0.5 * mass, 0.5 * r
-                        impact = 0.1 * 2.87 * (mstar**2 / (rstar * estar**2 * speed)) ** 0.2
-                        steps.append(CriticalStep(impact, f"a tenth of the Hertz contact of {what} at {speed:.3g} m/s"))
-                else:
-                    linear = 2.0 * math.sqrt(0.5 * mass / (mat.youngs_modulus * r))
-                    steps.append(CriticalStep(linear, f"the linear contact of the smallest {what}"))
+            props = [self.materials[name] for name in names]
+            material = particles.material
+
+            def per_sphere(value: Callable[[MaterialProps], float]) -> np.ndarray:
+                return np.array([value(p) for p in props], dtype=np.float64)[material]
+
+            def describe(k: int) -> str:
+                where = f"(r = {float(particles.radius[k]):.3g} m, part {self.parts[particles.part[k]]})"
+                return f"spheres of material {names[material[k]]} {where}"
+
+            steps += sphere_contact_steps(
+                self.normal,
+                particles.radius,
+                sphere_masses(particles, self.materials),
+                per_sphere(lambda p: p.youngs_modulus),
+                per_sphere(lambda p: p.poisson_ratio),
+                per_sphere(lambda p: effective_moduli(p, p)[0]),
+                2.0 * float(np.linalg.norm(particles.qd, axis=1).max(initial=0.0)),
+                describe,
+                density=per_sphere(lambda p: p.density),
+            )
             if len(bonds):
-                steps.append(bond_critical_step(particles, bonds, self.materials, self.parts))
+                steps.append(
+                    bond_critical_step(sphere_masses(particles, self.materials), particles.part, bonds, self.parts)
+                )
         return min(steps, key=lambda c: c.value)
 
     def run_away_speed(self, particles: ParticleData, bonds: BondData, mesh: TetMeshData, walls: WallData) -> float:

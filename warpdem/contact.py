@@ -9,10 +9,12 @@ builder is the generic skinned-list builder of :mod:`warpdem.neighbors`.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import warp as wp
 
+from .guard import CriticalStep
 from .kernels import contact as kc
 from .model import Model, State
 from .neighbors import SkinnedList, SlotArrays, finish_rebuild, make_struct
@@ -207,7 +209,52 @@ def neighbor_pairs(model: Model, state: State) -> np.ndarray:
     return pairs[order]
 
 
-def critical_time_step_hertz(radius: float, density: float, young: float, poisson: float) -> float:
-    """Rayleigh time step of a sphere, π r sqrt(ρ/G) / (0.1631 ν + 0.8766) [s] (the usual Hertz DEM bound)."""
+def critical_time_step_hertz(radius, density, young, poisson):
+    """Rayleigh time step of a sphere, π r sqrt(ρ/G) / (0.1631 ν + 0.8766) [s] (the usual Hertz DEM bound); floats
+    or numpy arrays of one shape."""
     shear = young / (2.0 * (1.0 + poisson))
-    return math.pi * radius * math.sqrt(density / shear) / (0.1631 * poisson + 0.8766)
+    return math.pi * radius * np.sqrt(density / shear) / (0.1631 * poisson + 0.8766)
+
+
+def sphere_contact_steps(
+    normal: str,
+    radius: np.ndarray,
+    mass: np.ndarray,
+    young: np.ndarray,
+    poisson: np.ndarray,
+    estar: np.ndarray,
+    speed: float,
+    describe: Callable[[int], str],
+    density: np.ndarray | None = None,
+) -> list[CriticalStep]:
+    """The critical steps of the spheres' contacts [s] before the safety factor, one per bound, each set by its
+    smallest sphere.
+
+    Hertz: the Rayleigh step (:func:`critical_time_step_hertz`; ρ = m / (4/3 π r³) unless ``density`` is given: a
+    converted tet's sphere carries the tet's mass ρV in a smaller ball) and a tenth of the Hertz contact time of two
+    such spheres at the approach ``speed``, 2.87 (m*² / (r* E*² v))^(1/5) with m* = m/2, r* = r/2 (none at rest).
+    Linear: 2 sqrt(m* / k_n), k_n = E r of two such spheres (the linear law's 2 E_a r_a E_b r_b / (E_a r_a + E_b r_b)).
+
+    Args:
+        normal: the normal law, "hertz" or "linear".
+        radius, mass: [m], [kg], shape (N,). young, poisson, estar: E [Pa], ν [-] and E* [Pa] of each sphere's
+            material with itself, shape (N,).
+        speed: the fastest approach, twice the largest sphere speed [m/s].
+        describe: the words for sphere k ("spheres of material … (r = …)").
+        density: the material's density [kg/m³], shape (N,), where mass = ρ 4/3 π r³ (the builder's spheres).
+    """
+    if normal == "hertz":
+        if density is None:
+            density = mass / (4.0 / 3.0 * math.pi * radius**3)
+        steps = {"the Rayleigh step of the smallest {}": critical_time_step_hertz(radius, density, young, poisson)}
+        if speed > 0.0:
+            mstar, rstar = 0.5 * mass, 0.5 * radius
+            impact = 0.1 * 2.87 * (mstar**2 / (rstar * estar**2 * speed)) ** 0.2
+            steps[f"a tenth of the Hertz contact of {{}} at {speed:.3g} m/s"] = impact
+    else:
+        steps = {"the linear contact of the smallest {}": 2.0 * np.sqrt(0.5 * mass / (young * radius))}
+    found = []
+    for words, values in steps.items():
+        k = int(np.argmin(values))
+        found.append(CriticalStep(float(values[k]), words.format(describe(k))))
+    return found

@@ -604,8 +604,7 @@ def deformable_critical_step(model: Model, state: State) -> CriticalStep:
       k = ``node_contact_stiffness`` and lumped mass m (two such nodes pressed together by both passes of the
       contact, warpdem.fem_contact.contact_critical_step_at), dt = 2/ω (sqrt(1 + ζ²) − ζ). After the joints' split
       the side of each node is known, so k/m is the node's own, not the builder's bound over its tets;
-    - spheres left (scene spheres, converted tets): their steps are not measured apart from the rest; they keep the
-      builder's step of the whole deformable model (``deformable_critical_dt``, else ``critical_dt``) as a bound.
+    - spheres left (scene spheres, converted tets): their own step (:func:`sphere_critical_step`).
     """
     nt = int(state.tet_count.numpy()[0])
     nn = int(state.node_count.numpy()[0])
@@ -613,8 +612,7 @@ def deformable_critical_step(model: Model, state: State) -> CriticalStep:
     tets = model.tet_nodes.numpy()[:nt][deformable].astype(np.int64)
     steps = [CriticalStep(math.inf, "nothing deformable is left")]
     if int(state.particle_count.numpy()[0]) > 0:
-        whole = model.deformable_critical_dt if model.deformable_critical_dt > 0.0 else model.critical_dt
-        steps.append(CriticalStep(whole, f"{model.critical_dt_source} (spheres are left)"))
+        steps.append(sphere_critical_step(model, state))
     if len(tets):
         points = model.node_ref_q.numpy()[:nn].astype(np.float64)
         table = model.tet_material_table.numpy()
@@ -644,6 +642,63 @@ def deformable_critical_step(model: Model, state: State) -> CriticalStep:
                 zeta = contact_damping_ratio(model)
                 contact = 2.0 / omega * (math.sqrt(1.0 + zeta**2) - zeta)
                 steps.append(CriticalStep(contact, f"the contact penalty springs of deformable node {node}"))
+    return min(steps, key=lambda c: c.value)
+
+
+def sphere_critical_step(model: Model, state: State) -> CriticalStep:
+    """The critical step of the spheres [s], before the safety factor, and what sets it (inf without spheres): the
+    builder's bounds on its spheres (warpdem.builder.ModelBuilder.critical_step) from what the model holds now.
+    Host; reads back.
+
+    - Their contacts (warpdem.contact.sphere_contact_steps), with each sphere's own radius and mass (a converted tet's
+      sphere carries the tet's mass ρV) and its material's E and ν from the material's pair with itself in
+      ``pair_table`` (E = ``young_a``, 1 − ν² = E / (2 E*)), at twice the fastest sphere's speed now; sphere–face
+      contacts take the same laws, with the face's material.
+    - The live intact bonds (warpdem.builder.bond_critical_step).
+    - Spheres of converted tets: the bound of the converted lattice (warpdem.conversion.conversion_critical_step over
+      the tets that converted: the bonds and couplings on one sphere sum to no more than the fully bonded sphere's).
+    """
+    from .builder import bond_critical_step
+    from .contact import sphere_contact_steps
+    from .conversion import conversion_critical_step
+    from .model import BondData
+
+    n = int(state.particle_count.numpy()[0])
+    nb = int(state.bond_count.numpy()[0])
+    intact = np.flatnonzero(state.bond_broken.numpy()[:nb] == 0)
+    free = model.particle_motion.numpy()[:n] == 0
+    steps = [CriticalStep(math.inf, "no sphere")]
+    if not (free.any() or len(intact)):
+        return steps[0]
+    radius = model.particle_radius.numpy()[:n].astype(np.float64)
+    mass = model.particle_mass.numpy()[:n].astype(np.float64)
+    material = model.particle_material.numpy()[:n]
+    part = model.particle_part.numpy()[:n]
+    pairs = model.pair_table.numpy()[:: model.num_materials + 1]  # each material with itself
+    young = pairs["young_a"].astype(np.float64)[material]
+    estar = pairs["estar"].astype(np.float64)[material]
+    poisson = np.sqrt(np.maximum(1.0 - young / (2.0 * estar), 0.0))
+    speed = 2.0 * float(np.linalg.norm(state.particle_qd.numpy()[:n].astype(np.float64), axis=1).max(initial=0.0))
+
+    def describe(k: int) -> str:
+        where = f"(r = {radius[k]:.3g} m, part {model.part_names[part[k]]})" if model.part_names else ""
+        return f"spheres of material {model.material_names[material[k]]} {where}".rstrip()
+
+    steps += sphere_contact_steps(model.normal_model, radius, mass, young, poisson, estar, speed, describe)
+    if len(intact):
+        fields = ("rest_length", "kn", "ks", "area", "tensile_strength", "shear_strength", "damping")
+        bonds = BondData(
+            np.stack([state.bond_i.numpy()[intact], state.bond_j.numpy()[intact]], axis=1),
+            *(getattr(state, f"bond_{name}").numpy()[intact].astype(np.float64) for name in fields),
+        )
+        steps.append(bond_critical_step(mass, part, bonds, model.part_names))
+    if model.conversion_material_table is not None:
+        nt = int(state.tet_count.numpy()[0])
+        converted = state.tet_sphere.numpy()[:nt] >= 0
+        if converted.any():
+            lattice, tet = conversion_critical_step(model, state, converted)
+            words = f"the bonded spheres of converted tet {tet} (warpdem.conversion.conversion_critical_step)"
+            steps.append(CriticalStep(lattice, words))
     return min(steps, key=lambda c: c.value)
 
 
