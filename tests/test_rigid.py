@@ -975,8 +975,9 @@ def test_spheres_left_after_a_switch_take_their_own_step(device, normal):
     """Spheres beside a column that turns rigid whole bound the step after the switch by their own step, the one the
     builder gives the same spheres built alone (their contacts: Rayleigh or linear, and the Hertz impact at the
     fastest approach; their bonds' translational and rotational modes), no longer by the whole model's (set by the
-    column's stiff tets); the step after the switch is the least of theirs and the body's. Both from the same numbers, float32 on the model's side (E, ν recovered from the material
-    pair table, masses and radii): STEP_RTOL."""
+    column's stiff tets); the step after the switch is the least of theirs and the body's. Both from the same
+    numbers, float32 on the model's side (E, ν recovered from the material pair table, masses and radii):
+    STEP_RTOL."""
     from warpdem.rigid import (
         contact_damping_ratio,
         deformable_critical_step,
@@ -1003,6 +1004,33 @@ def test_spheres_left_after_a_switch_take_their_own_step(device, normal):
     bodies = rigid_critical_step(sim.model, sim.state, contact_damping_ratio(sim.model))
     after = rigid_step_after_switch(sim.model, sim.state)
     np.testing.assert_allclose(after.value, min(bodies, spheres.critical_dt), rtol=STEP_RTOL)
+
+
+def test_converted_spheres_left_after_a_switch_keep_their_lattice_step(device):
+    """A bar pulled apart converts its middle into bonded spheres coupled to the ends; the ends then turn rigid. The
+    spheres' step is the converted lattice's bound (warpdem.conversion.conversion_critical_step over the tets that
+    converted, the bound the conversion's attach checks the step against: ω² = Σ k_b / m per sphere), not the
+    stiffer-looking bond_critical_step of their bonds (most bonds on a sphere × the stiffest); run at half of it the
+    bonded spheres between the two driven blocks stay stable and the books close (test_conversion's bound)."""
+    from test_conversion import ENERGY_BOUND, bar, worst_balance_error
+
+    from warpdem.conversion import conversion_critical_step
+    from warpdem.rigid import rigid_step_after_switch, sphere_critical_step
+
+    model, state, _, _ = bar(device, driver_speed=2.0)
+    sim = Simulation(model, state)
+    sim.advance(60)
+    nt = int(sim.state.tet_count.numpy()[0])
+    converted = sim.state.tet_sphere.numpy()[:nt] >= 0
+    assert converted.sum() > 0
+    sim.switch_to_rigid()
+    spheres = sphere_critical_step(sim.model, sim.state)
+    lattice, _ = conversion_critical_step(sim.model, sim.state, converted)
+    assert spheres.value == lattice and "conversion_critical_step" in spheres.source
+    assert lattice >= model.critical_dt  # the converted tets are some of those that may convert
+    after = rigid_step_after_switch(sim.model, sim.state)
+    sim.set_time_step(0.5 * after.value, after)
+    assert worst_balance_error(sim, 10, 20) < ENERGY_BOUND
 
 
 # ----------------------------------------------------------------------------------------------------------------

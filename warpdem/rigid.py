@@ -654,9 +654,10 @@ def sphere_critical_step(model: Model, state: State) -> CriticalStep:
       sphere carries the tet's mass ρV) and its material's E and ν from the material's pair with itself in
       ``pair_table`` (E = ``young_a``, 1 − ν² = E / (2 E*)), at twice the fastest sphere's speed now; sphere–face
       contacts take the same laws, with the face's material.
-    - The live intact bonds (warpdem.builder.bond_critical_step).
-    - Spheres of converted tets: the bound of the converted lattice (warpdem.conversion.conversion_critical_step over
-      the tets that converted: the bonds and couplings on one sphere sum to no more than the fully bonded sphere's).
+    - The live intact bonds between spheres that no tet became (warpdem.builder.bond_critical_step).
+    - Spheres of converted tets (``tet_sphere`` + 0 … spheres_per_tet − 1): the bound of the converted lattice the
+      conversion's attach checks the step against (warpdem.conversion.conversion_critical_step over the tets that
+      converted: the bonds and couplings on one sphere sum to no more than the fully bonded sphere's).
     """
     from .builder import bond_critical_step
     from .contact import sphere_contact_steps
@@ -685,6 +686,18 @@ def sphere_critical_step(model: Model, state: State) -> CriticalStep:
         return f"spheres of material {model.material_names[material[k]]} {where}".rstrip()
 
     steps += sphere_contact_steps(model.normal_model, radius, mass, young, poisson, estar, speed, describe)
+    converted = np.zeros(n, dtype=bool)
+    if model.conversion_material_table is not None:
+        nt = int(state.tet_count.numpy()[0])
+        first = state.tet_sphere.numpy()[:nt]
+        converted[(first[first >= 0, None] + np.arange(model.spheres_per_tet)).ravel()] = True
+        if converted.any():
+            lattice, tet = conversion_critical_step(model, state, first >= 0)
+            words = f"the bonded spheres of converted tet {tet} (warpdem.conversion.conversion_critical_step)"
+            steps.append(CriticalStep(lattice, words))
+    # The converted lattice's bonds are bounded above, as at the conversion's attach (its sum of the bonds on a
+    # sphere, not bond_critical_step's most bonds times the stiffest).
+    intact = intact[~converted[state.bond_i.numpy()[intact]]]
     if len(intact):
         fields = ("rest_length", "kn", "ks", "area", "tensile_strength", "shear_strength", "damping")
         bonds = BondData(
@@ -692,13 +705,6 @@ def sphere_critical_step(model: Model, state: State) -> CriticalStep:
             *(getattr(state, f"bond_{name}").numpy()[intact].astype(np.float64) for name in fields),
         )
         steps.append(bond_critical_step(mass, part, bonds, model.part_names))
-    if model.conversion_material_table is not None:
-        nt = int(state.tet_count.numpy()[0])
-        converted = state.tet_sphere.numpy()[:nt] >= 0
-        if converted.any():
-            lattice, tet = conversion_critical_step(model, state, converted)
-            words = f"the bonded spheres of converted tet {tet} (warpdem.conversion.conversion_critical_step)"
-            steps.append(CriticalStep(lattice, words))
     return min(steps, key=lambda c: c.value)
 
 
