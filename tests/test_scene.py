@@ -1035,8 +1035,17 @@ def test_scene_error_text() -> None:
 
 def test_every_field_is_documented() -> None:
     # The schema is the user's reference: every field must say what it is (and its unit).
-    models = [obj for obj in vars(scene_module).values() if isinstance(obj, type) and issubclass(obj, BaseModel)]
-    assert Scene in models
+    import importlib
+    import pkgutil
+
+    modules = [importlib.import_module(m.name) for m in pkgutil.iter_modules(scene_module.__path__, "warpdem.scene.")]
+    models = {
+        obj
+        for module in modules
+        for obj in vars(module).values()
+        if isinstance(obj, type) and issubclass(obj, BaseModel) and obj.__module__.startswith("warpdem.scene")
+    }
+    assert Scene in models and len(modules) > 1
     undocumented = [
         f"{model.__name__}.{name}"
         for model in models
@@ -1047,7 +1056,11 @@ def test_every_field_is_documented() -> None:
 
 
 def test_default_scene_path() -> None:
-    assert default_scene_path() == Path(scene_module.__file__).parent / "data" / "default.toml"
+    # The scene shipped in the package's data folder (pyproject.toml's package-data), next to the bench's cases.
+    import warpdem
+
+    assert default_scene_path() == Path(warpdem.__file__).parent / "data" / "default.toml"
+    assert default_scene_path().is_file()
 
 
 def test_default_scene_loads() -> None:

@@ -1,0 +1,435 @@
+"""The continuum of a scene: the rock [mesh] (box, geology, file, cylinder, ellipsoid, arch, bricks), its openings
+and its joints ([joints], [[mesh.joint_sets]])."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Annotated, Any, Literal
+
+from pydantic import (
+    AfterValidator,
+    BeforeValidator,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+from .fields import Bool, FilePath, Float, Int, Name, Str, Vec3, _array_to_list, _Model
+from .regions import _hi_above_lo
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Continuum: the rock mesh, its joints, loads and boundaries
+# ----------------------------------------------------------------------------------------------------------------------
+
+PositiveInt = Annotated[Int, Field(gt=0)]
+Vec2 = Annotated[tuple[Float, Float], BeforeValidator(_array_to_list)]
+"""Two finite floats."""
+
+
+def _fixed_field() -> Any:
+    return Field(default=False, description="Hold every node of the mesh in place (an immobile rock body).")
+
+
+def _velocity_field() -> Any:
+    return Field(default=(0.0, 0.0, 0.0), description="Initial velocity of every node [m/s].")
+
+
+class BoxMesh(_Model):
+    """A structured tet mesh of an axis-aligned box (each cell split into 6 Kuhn tets)."""
+
+    kind: Literal["box"] = Field(description="Mesh kind.")
+    lo: Vec3 = Field(description="Lower corner [m].")
+    hi: Vec3 = Field(description="Upper corner [m]; greater than lo in every component.")
+    divisions: tuple[PositiveInt, PositiveInt, PositiveInt] = Field(description="Cells along x, y and z [-].")
+    material: Str = Field(description="Name of a material defined in [materials].")
+    fixed: Bool = _fixed_field()
+    velocity: Vec3 = _velocity_field()
+
+    @field_validator("hi")
+    @classmethod
+    def _check_hi(cls, value: tuple[float, float, float], info: ValidationInfo) -> tuple[float, float, float]:
+        return _hi_above_lo(value, info)
+
+
+class Layer(_Model):
+    """A horizontal material layer of a geology mesh, from the previous layer top (or the box bottom) up."""
+
+    z_top: Float = Field(description="Height of the top of the layer [m]; increasing from the bottom layer up.")
+    material: Str = Field(description="Name of a material defined in [materials].")
+
+
+class TunnelOpening(_Model):
+    """A horizontal tunnel along x or y."""
+
+    kind: Literal["tunnel"] = Field(description="Opening kind.")
+    axis: Literal["x", "y"] = Field(description="Direction of the tunnel axis.")
+    center: Vec2 = Field(
+        description="Centre of the cross-section's bounding rectangle [m]: (x, z) for axis 'y', (y, z) for axis 'x'."
+    )
+    shape: Literal["circular", "horseshoe", "rectangular"] = Field(default="circular", description="Cross-section.")
+    radius: Float | None = Field(default=None, gt=0, description="Radius of a circular tunnel [m].")
+    width: Float | None = Field(default=None, gt=0, description="Span of a rectangular or horseshoe tunnel [m].")
+    height: Float | None = Field(
+        default=None, gt=0, description="Floor-to-crown height of a rectangular or horseshoe tunnel [m]."
+    )
+    span: Vec2 | None = Field(
+        default=None, description="(start, end) along the axis [m]; omitted: through the whole model."
+    )
+
+    @model_validator(mode="after")
+    def _check_shape(self) -> TunnelOpening:
+        if self.shape == "circular":
+            if self.radius is None:
+                raise ValueError("a circular tunnel needs 'radius'")
+            if self.width is not None or self.height is not None:
+                raise ValueError("'width' and 'height' are only used by rectangular and horseshoe tunnels")
+        else:
+            if self.width is None or self.height is None:
+                raise ValueError(f"a {self.shape} tunnel needs 'width' and 'height'")
+            if self.radius is not None:
+                raise ValueError("'radius' is only used by circular tunnels")
+            if self.shape == "horseshoe" and not self.height > 0.5 * self.width:
+                raise ValueError(f"a horseshoe tunnel needs height > width / 2 (got {self.height} <= {self.width}/2)")
+        if self.span is not None and not self.span[1] > self.span[0]:
+            raise ValueError(f"span: end must exceed start (got {list(self.span)})")
+        return self
+
+
+class ShaftOpening(_Model):
+    """A vertical cylindrical shaft."""
+
+    kind: Literal["shaft"] = Field(description="Opening kind.")
+    center: Vec2 = Field(description="(x, y) of the shaft axis [m].")
+    radius: Float = Field(gt=0, description="Shaft radius [m].")
+    bottom: Float | None = Field(default=None, description="Height of the floor [m]; omitted: through the bottom.")
+    top: Float | None = Field(default=None, description="Height of the top [m]; omitted: open to the surface.")
+
+    @field_validator("top")
+    @classmethod
+    def _check_top(cls, value: float | None, info: ValidationInfo) -> float | None:
+        bottom = info.data.get("bottom")
+        if value is not None and bottom is not None and not value > bottom:
+            raise ValueError(f"must be > bottom = {bottom}")
+        return value
+
+
+class RoomOpening(_Model):
+    """An axis-aligned box-shaped excavation."""
+
+    kind: Literal["room"] = Field(description="Opening kind.")
+    lo: Vec3 = Field(description="Lower corner [m].")
+    hi: Vec3 = Field(description="Upper corner [m]; greater than lo in every component.")
+
+    @field_validator("hi")
+    @classmethod
+    def _check_hi(cls, value: tuple[float, float, float], info: ValidationInfo) -> tuple[float, float, float]:
+        return _hi_above_lo(value, info)
+
+
+Opening = Annotated[TunnelOpening | ShaftOpening | RoomOpening, Field(discriminator="kind")]
+"""One ``[[mesh.openings]]`` entry, selected by ``kind``."""
+
+
+def _check_one_stiffness(model: Any) -> None:
+    # A joint's normal spring is either relative to the rock behind it or a physical k_n: both would be ambiguous.
+    if model.stiffness_factor is not None and model.normal_stiffness is not None:
+        raise ValueError("takes one of 'stiffness_factor' and 'normal_stiffness', not both")
+
+
+class JointProperties(_Model):
+    """Properties of the joints of one joint set (geology) or joint group (mesh file); omitted ones come from
+    ``[joints]``."""
+
+    friction: Float | None = Field(default=None, ge=0, description="Joint friction coefficient; default [joints].")
+    cohesion: Float | None = Field(default=None, ge=0, description="Joint cohesion [Pa]; default [joints].")
+    tensile_strength: Float | None = Field(
+        default=None, ge=0, description="Joint tensile strength [Pa]; default [joints]."
+    )
+    stiffness_factor: Float | None = Field(
+        default=None, gt=0, description="Joint penalty stiffness relative to the rock's (E / h) [-]; default [joints]."
+    )
+    normal_stiffness: Float | None = Field(
+        default=None,
+        gt=0,
+        description="Joint normal stiffness k_n per unit area [Pa/m], independent of the mesh (instead of "
+        "stiffness_factor); default [joints].",
+    )
+    restitution: Float | None = Field(
+        default=None, gt=0, le=1, description="Restitution (0, 1] of the joint's normal dashpot [-]; default [joints]."
+    )
+    shear_stiffness_ratio: Float | None = Field(
+        default=None, gt=0, description="Tangential to normal stiffness ratio k_t / k_n [-]; default [joints]."
+    )
+
+    @model_validator(mode="after")
+    def _one_stiffness(self) -> JointProperties:
+        _check_one_stiffness(self)
+        return self
+
+
+class JointSetSpec(JointProperties):
+    """A set of parallel joints (geological dip / dip direction), and the properties of its joints."""
+
+    name: Name | None = Field(default=None, description="Name of the set; default 'joint<index>'.")
+    dip: Float = Field(ge=0, le=90, description="Dip: angle of the planes below the horizontal, [0, 90] [deg].")
+    dip_direction: Float = Field(
+        description="Dip direction: azimuth of steepest descent, clockwise from north (+y) [deg]."
+    )
+    spacing: Float = Field(gt=0, description="Distance between neighbouring planes along their normal [m].")
+    offset: Float = Field(default=0.0, description="Signed distance of plane 0 from the origin along the normal [m].")
+    persistence: Literal["persistent", "disc", "layers"] = Field(
+        default="persistent",
+        description="'persistent' (through the model), 'disc' (circular joints) or 'layers' (planes persisting "
+        "through 'layers' slabs between the planes of the persistent set 'reference', alternately).",
+    )
+    radius: Float | None = Field(default=None, gt=0, description="Disc radius [m] (persistence 'disc').")
+    disc_spacing: Float | None = Field(
+        default=None, gt=0, description="Disc centre pitch within a plane [m] (persistence 'disc'); default 2.5 radius."
+    )
+    reference: Int | None = Field(
+        default=None, ge=0, description="Index of the persistent joint set bounding the slabs (persistence 'layers')."
+    )
+    layers: Int = Field(default=1, ge=1, description="Slabs a plane persists through (persistence 'layers') [-].")
+    phase: Literal[0, 1] = Field(default=0, description="Which alternation of slab groups holds joints (0 or 1).")
+    jitter_position: Float = Field(default=0.0, ge=0, description="Uniform random shift of each plane [m].")
+    jitter_angle: Float = Field(default=0.0, ge=0, description="Uniform random tilt of each plane's normal [deg].")
+
+    @model_validator(mode="after")
+    def _check_persistence(self) -> JointSetSpec:
+        if self.persistence == "disc" and self.radius is None:
+            raise ValueError("persistence 'disc' needs 'radius'")
+        if self.persistence == "layers" and self.reference is None:
+            raise ValueError("persistence 'layers' needs 'reference' (the index of a persistent joint set)")
+        unused = [
+            key
+            for key, wanted in (("radius", "disc"), ("disc_spacing", "disc"), ("reference", "layers"))
+            if getattr(self, key) is not None and self.persistence != wanted
+        ]
+        if unused:
+            raise ValueError(f"{', '.join(repr(k) for k in unused)} not used with persistence {self.persistence!r}")
+        return self
+
+
+class GeologyMeshSpec(_Model):
+    """A jointed, layered rock box with openings, meshed with Gmsh so that the tets conform to the joints."""
+
+    kind: Literal["geology"] = Field(description="Mesh kind.")
+    lo: Vec3 = Field(description="Lower corner of the rock box [m].")
+    hi: Vec3 = Field(description="Upper corner of the rock box [m]; greater than lo in every component.")
+    material: Str = Field(description="Material above the highest layer top (the whole box without layers).")
+    layers: list[Layer] = Field(default_factory=list, description="Horizontal material layers, bottom up.")
+    openings: list[Opening] = Field(default_factory=list, description="Tunnels, shafts and rooms.")
+    joint_sets: list[JointSetSpec] = Field(default_factory=list, description="Joint sets.")
+    h: Float = Field(gt=0, description="Target tet edge length [m].")
+    h_opening: Float | None = Field(default=None, gt=0, description="Edge length on the opening walls [m]; default h.")
+    refine_distance: Float | None = Field(
+        default=None, gt=0, description="Distance over which the size grows from h_opening to h [m]; default 4 h."
+    )
+    seed: Int | None = Field(default=None, ge=0, description="Seed of the joint jitter; default run.seed.")
+    fixed: Bool = _fixed_field()
+    velocity: Vec3 = _velocity_field()
+
+    @field_validator("hi")
+    @classmethod
+    def _check_hi(cls, value: tuple[float, float, float], info: ValidationInfo) -> tuple[float, float, float]:
+        return _hi_above_lo(value, info)
+
+
+def _joint_group_table(value: Any) -> Any:
+    # The array form predates per-group properties; it stays valid and means "these groups, [joints] properties".
+    if value is None or isinstance(value, Mapping):
+        return value
+    if isinstance(value, list | tuple):
+        bad = [i for i, name in enumerate(value) if not isinstance(name, str)]
+        if bad:
+            raise ValueError(f"item {bad[0]} must be a group name (a string)")
+        repeated = sorted({name for name in value if value.count(name) > 1})
+        if repeated:
+            raise ValueError(f"group {repeated[0]!r} is listed twice")
+        return {name: {} for name in value}
+    raise ValueError("must be an array of triangle group names or a table of group name -> joint properties")
+
+
+class FileMesh(_Model):
+    """A ready tetrahedral mesh file (Gmsh .msh, VTU or legacy VTK) read through meshio."""
+
+    kind: Literal["file"] = Field(description="Mesh kind.")
+    path: FilePath = Field(description="Mesh file, relative to the scene file; absolute after loading.")
+    material_map: dict[Str, Str] = Field(
+        default_factory=dict,
+        description="Tet physical group (name or number) -> material; omitted: the group names are material names.",
+    )
+    material: Str | None = Field(
+        default=None, description="One material for every tet, whatever the groups (instead of material_map)."
+    )
+    joint_groups: Annotated[dict[Str, JointProperties] | None, BeforeValidator(_joint_group_table)] = Field(
+        default=None,
+        description="Triangle groups that are joints: an array of group names (properties from [joints]) or a table "
+        "group name -> joint properties; omitted: the groups whose names start with 'joint'.",
+    )
+    fixed: Bool = _fixed_field()
+    velocity: Vec3 = _velocity_field()
+
+    @model_validator(mode="after")
+    def _one_material_source(self) -> FileMesh:
+        if self.material is not None and self.material_map:
+            raise ValueError("give 'material' or 'material_map', not both")
+        return self
+
+
+def _positive_vec3(value: tuple[float, float, float]) -> tuple[float, float, float]:
+    if not all(c > 0.0 for c in value):
+        raise ValueError("every component must be > 0")
+    return value
+
+
+class CylinderMesh(_Model):
+    """A solid circular cylinder (a disc when short) along a coordinate axis, meshed with Gmsh."""
+
+    kind: Literal["cylinder"] = Field(description="Mesh kind.")
+    center: Vec3 = Field(description="Centre of the base disc [m] (as a cylinder region's).")
+    axis: Literal["x", "y", "z"] = Field(default="z", description="Coordinate axis of the cylinder.")
+    radius: Float = Field(gt=0, description="Radius [m].")
+    height: Float = Field(gt=0, description="Length along the axis from the base disc [m] (a disc's thickness).")
+    h: Float = Field(gt=0, description="Target tet edge length [m].")
+    material: Str = Field(description="Name of a material defined in [materials].")
+    fixed: Bool = _fixed_field()
+    velocity: Vec3 = _velocity_field()
+
+    def volume(self) -> float:
+        """Volume π r² height [m³]."""
+        return math.pi * self.radius**2 * self.height
+
+
+class EllipsoidMesh(_Model):
+    """A solid ellipsoid with axis-aligned semi-axes (a sphere when they are equal), meshed with Gmsh."""
+
+    kind: Literal["ellipsoid"] = Field(description="Mesh kind.")
+    center: Vec3 = Field(description="Centre [m].")
+    radii: Annotated[Vec3, AfterValidator(_positive_vec3)] = Field(description="Semi-axes along x, y and z [m].")
+    h: Float = Field(gt=0, description="Target tet edge length [m].")
+    material: Str = Field(description="Name of a material defined in [materials].")
+    fixed: Bool = _fixed_field()
+    velocity: Vec3 = _velocity_field()
+
+    def volume(self) -> float:
+        """Volume 4/3 π a b c [m³]."""
+        return 4.0 / 3.0 * math.pi * math.prod(self.radii)
+
+
+ARCH_FACE_NAMES = ("left", "right", "downstream", "upstream", "base", "crest")
+"""Face sets of an arch mesh: the two abutment ends (angle − and +), the inner (concave) and outer (convex) faces, the
+base and the crest."""
+
+
+class ArchMesh(_Model):
+    """A curved wall (an arch dam section): a structured tet mesh of an annular sector about a vertical axis, each
+    cell split into 6 Kuhn tets. Curved in plan; with ``bulge`` also in section (a double-curvature dam)."""
+
+    kind: Literal["arch"] = Field(description="Mesh kind.")
+    center: Vec3 = Field(description="Point of the vertical axis at the base [m]; the arch opens towards -y.")
+    radius: Float = Field(gt=0, description="Radius of the outer (upstream, convex) face at the base [m].")
+    thickness: Float = Field(gt=0, description="Radial thickness at the base [m].")
+    crest_thickness: Float | None = Field(
+        default=None, gt=0, description="Radial thickness at the crest [m]; default the base thickness."
+    )
+    height: Float = Field(gt=0, description="Height from the base to the crest [m].")
+    angle: Float = Field(gt=0, le=180, description="Central angle of the sector, symmetric about +y [deg].")
+    bulge: Float = Field(
+        default=0.0,
+        description="Radial offset of the section at mid-height [m] (a parabola, 0 at base and crest): the second "
+        "curvature of a double-curvature dam.",
+    )
+    divisions: tuple[PositiveInt, PositiveInt, PositiveInt] = Field(
+        description="Cells along the arc, through the thickness and up the height [-]."
+    )
+    material: Str = Field(description="Name of a material defined in [materials].")
+    fixed: Bool = _fixed_field()
+    velocity: Vec3 = _velocity_field()
+
+    @model_validator(mode="after")
+    def _inner_radius(self) -> ArchMesh:
+        thickest = max(self.thickness, self.crest_thickness or self.thickness)
+        if not self.radius - thickest - max(0.0, -self.bulge) > 0.0:
+            raise ValueError(
+                f"radius must exceed the thickness (and any inward bulge): radius {self.radius}, thickness {thickest}"
+            )
+        return self
+
+
+class BrickMeshSpec(_Model):
+    """Rock laid in courses of equal blocks (warpdem.bricks): bedding joints between the courses, head joints between
+    the blocks, every other course shifted (running bond), on a structured grid of cells no longer than h."""
+
+    kind: Literal["bricks"] = Field(description="Mesh kind.")
+    lo: Vec3 = Field(description="Lower corner of the box [m].")
+    hi: Vec3 = Field(description="Upper corner of the box [m] (rounded to whole cells); greater than lo.")
+    material: Str = Field(description="Name of a material defined in [materials].")
+    brick: Vec3 = Field(description="Block length along x, depth along y and height along z [m], each > 0.")
+    stagger: Float = Field(
+        default=0.5, ge=0, lt=1, description="Shift of each course against the one below, in block lengths [-]."
+    )
+    h: Float = Field(gt=0, description="Largest cell edge [m] (run.resolution divides it).")
+    openings: list[Opening] = Field(
+        default_factory=list, description="Tunnels, shafts and rooms: every cell whose centre is inside is removed."
+    )
+    bedding: JointProperties | None = Field(
+        default=None, description="Properties of the joints between the courses; omitted ones from [joints]."
+    )
+    head: JointProperties | None = Field(
+        default=None, description="Properties of the joints between the blocks of a course; omitted ones from [joints]."
+    )
+    fixed: Bool = _fixed_field()
+    velocity: Vec3 = _velocity_field()
+
+    @field_validator("hi")
+    @classmethod
+    def _check_hi(cls, value: tuple[float, float, float], info: ValidationInfo) -> tuple[float, float, float]:
+        return _hi_above_lo(value, info)
+
+    @field_validator("brick")
+    @classmethod
+    def _check_brick(cls, value: tuple[float, float, float]) -> tuple[float, float, float]:
+        if not all(v > 0 for v in value):
+            raise ValueError("every size must be > 0")
+        return value
+
+
+Mesh = Annotated[
+    BoxMesh | GeologyMeshSpec | FileMesh | CylinderMesh | EllipsoidMesh | ArchMesh | BrickMeshSpec,
+    Field(discriminator="kind"),
+]
+"""The ``[mesh]`` section, selected by ``kind``."""
+
+
+class JointDefaults(_Model):
+    """Properties of joints that their joint set does not set."""
+
+    friction: Float = Field(default=0.6, ge=0, description="Coulomb friction coefficient of the joints [-].")
+    cohesion: Float = Field(default=0.0, ge=0, description="Cohesion of the joints [Pa].")
+    tensile_strength: Float = Field(default=0.0, ge=0, description="Tensile strength of the joints [Pa].")
+    stiffness_factor: Float | None = Field(
+        default=None,
+        gt=0,
+        description="Joint contact stiffness relative to the rock's (E / h) [-]; 1 when neither it nor "
+        "normal_stiffness is given.",
+    )
+    normal_stiffness: Float | None = Field(
+        default=None,
+        gt=0,
+        description="Joint normal stiffness k_n per unit area [Pa/m], independent of the mesh (instead of "
+        "stiffness_factor).",
+    )
+    restitution: Float = Field(
+        default=0.5, gt=0, le=1, description="Coefficient of restitution (0, 1] of the joints' normal dashpot [-]."
+    )
+    shear_stiffness_ratio: Float = Field(
+        default=0.5, gt=0, description="Tangential to normal stiffness ratio k_t / k_n of the joints [-]."
+    )
+
+    @model_validator(mode="after")
+    def _one_stiffness(self) -> JointDefaults:
+        _check_one_stiffness(self)
+        return self
