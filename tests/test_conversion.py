@@ -415,7 +415,7 @@ def test_regrow_particles_grows_every_per_particle_array(device):
 
 
 def test_restart_continues_bit_for_bit_across_a_conversion(device, tmp_path):
-    from warpdem.runner import restore_checkpoint, save_checkpoint
+    from warpdem.restart import restore_checkpoint, save_checkpoint
 
     # Checkpoint after conversions (spheres, bonds, couplings alive, capacities grown from a model without spheres),
     # restart, continue: the restarted run equals the uninterrupted one bit for bit on the CPU, through further

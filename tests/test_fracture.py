@@ -336,7 +336,7 @@ def test_capacity_overflow_grows_to_the_large_run(device):
 
 
 def test_restart_continues_bit_for_bit_across_splits(device, tmp_path):
-    from warpdem.runner import restore_checkpoint, save_checkpoint
+    from warpdem.restart import restore_checkpoint, save_checkpoint
 
     # Checkpoint after the crack has formed (cohesive elements alive, capacities grown), restart, and continue: the
     # restarted run equals the uninterrupted one bit for bit on the CPU, through further splits.

@@ -298,7 +298,7 @@ def test_four_sphere_runs_are_identical_and_growth_equals_a_large_capacity_run(d
 
 
 def test_restart_continues_bit_for_bit_across_a_four_sphere_conversion(device, tmp_path):
-    from warpdem.runner import restore_checkpoint, save_checkpoint
+    from warpdem.restart import restore_checkpoint, save_checkpoint
 
     # Checkpoint a pulled bar once its middle has started to convert (four spheres per tet: slots tet_sphere + a,
     # the sub-lattice's bonds and couplings, capacities grown), restart from it in a fresh build and continue through

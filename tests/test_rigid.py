@@ -279,7 +279,7 @@ def test_switch_conserves_mass_momentum_and_closes_the_books(device):
 
 
 def test_rigid_restart_continues_bit_for_bit(device, tmp_path):
-    from warpdem.runner import restore_checkpoint, save_checkpoint
+    from warpdem.restart import restore_checkpoint, save_checkpoint
 
     model, state = jointed_pair(device)
     template = state.clone()
@@ -1034,7 +1034,7 @@ def test_converted_spheres_left_after_a_switch_keep_their_lattice_step(device):
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# Checkpoints of an older format (warpdem.runner.FIELD_MIGRATIONS)
+# Checkpoints of an older format (warpdem.restart.FIELD_MIGRATIONS)
 
 
 def as_old_checkpoint(source, target, keys, version=1):
@@ -1084,11 +1084,11 @@ def assert_restart_ends_as_the_run(switch_run, copy, path, what):
 
 
 def test_an_old_checkpoint_resumes_bit_for_bit_where_its_fields_fill_exactly(switch_run):
-    """A checkpoint of format 1 lacks the fields added since (warpdem.runner.FIELD_MIGRATIONS). Before the switch
+    """A checkpoint of format 1 lacks the fields added since (warpdem.restart.FIELD_MIGRATIONS). Before the switch
     (frame 4) every one of them has its fresh value in the run (no contact, no pass, no viscosity, no change of
     step, no body): a restart fills them and ends with the uninterrupted run's arrays, bit for bit (CPU)."""
     from warpdem.checkpoint import read_checkpoint
-    from warpdem.runner import FIELD_MIGRATIONS
+    from warpdem.restart import FIELD_MIGRATIONS
 
     copy, path = frame_checkpoint(switch_run, "old4", 4)
     arrays, attrs = read_checkpoint(path)

@@ -11,10 +11,10 @@ A checkpoint is one HDF5 file holding
   (= :data:`FORMAT_VERSION`), checked on read.
 
 Versions: 1, the layout above; 2, the same layout, with a promise: a version-2 file holds every State and Model field
-its writer had, including all those added since version 1 (warpdem.runner.FIELD_MIGRATIONS lists them). A version-1
+its writer had, including all those added since version 1 (warpdem.restart.FIELD_MIGRATIONS lists them). A version-1
 file may lack some of them: a restart fills each one it lacks with a fresh model's value where that is exactly what
 the run would hold (an energy line of a pass that never ran, the contact books of a run with no contact), and refuses
-otherwise, naming the file, the field and why (warpdem.runner.restore_checkpoint). A field added later bumps the
+otherwise, naming the file, the field and why (warpdem.restart.restore_checkpoint). A field added later bumps the
 version again and adds its rows to that table, with the version it appeared in: 3 added the pressure loads' forces
 kept per node (``node_f_load``) and the rigid bodies' drift scratch (``body_q_before``, ``body_omega_ahead``).
 
@@ -50,7 +50,7 @@ FORMAT_NAME = "warpdem-checkpoint"
 
 FORMAT_VERSION = 3
 """Newest checkpoint format this module writes and reads (module docstring, "Versions"); bump when the layout changes
-or fields are added, and list what older files may lack in warpdem.runner.FIELD_MIGRATIONS."""
+or fields are added, and list what older files may lack in warpdem.restart.FIELD_MIGRATIONS."""
 
 _FORMAT_NAME_ATTR = "warpdem_format"
 _FORMAT_VERSION_ATTR = "warpdem_format_version"
