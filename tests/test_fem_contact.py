@@ -687,3 +687,21 @@ def test_rigid_fast_path_runs_as_general_path(device):
     nf /= np.linalg.norm(nf, axis=1, keepdims=True)
     margin = np.abs(np.sum(nf * both_normals(fast)[1][held], axis=1)).min()
     assert margin > 1e3 * NORMAL_ROUNDOFF
+
+
+def test_contact_force_sums_stay_empty_without_books(device):
+    """Without energy books and without joint elements the contacts' half ahead is not booked (warpdem.fem_contact
+    ``eval_fem_contacts`` skips its launch over every node slot), which is exact only because then nothing adds to
+    ``node_f_contact``: the node–face, node–wall and sphere–face kernels add to it only with the books, and the joint
+    elements' dashpots are its one other writer. Oracle: that premise, on the rattling cube of 27 blocks (the bench's
+    case): over 30 steps with a third of the nodes pressed on faces, the sums and the contact line stay exactly zero
+    (nothing clears them now, so any writer would show)."""
+    from warpdem.bench import jointed_cube
+
+    sim = jointed_cube(3, device)
+    assert not sim.track_energy and sim.model.joint_capacity == 0
+    sim.advance(30)
+    nn = sim.node_count
+    assert np.count_nonzero(sim.state.node_face_spring.numpy()[:nn] >= 0) > nn // 3
+    np.testing.assert_array_equal(sim.state.node_f_contact.numpy(), 0.0)
+    np.testing.assert_array_equal(sim.state.node_energy_contact.numpy(), 0.0)

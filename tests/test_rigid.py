@@ -1148,14 +1148,17 @@ def test_an_old_checkpoint_is_refused_where_a_field_would_not_fill_exactly(switc
 
 def test_rigid_only_model_skips_the_node_drift_bit_for_bit(device):
     """A model whose nodes are all rigid and undriven skips the node kernels' drift: the bodies' pose starts the
-    nodes' force accumulators instead (kernels/rigid.py ``pose_nodes_kernel``). Oracle: the same run with the node
-    kernels launched, bit for bit (the rattling jointed cube of 8 blocks, 60 steps, with the books kept); a model
-    with a node left deformable, or a driven rigid node, keeps them (warpdem.rigid ``every_node_rigid``)."""
+    nodes' force accumulators instead (kernels/rigid.py ``pose_nodes_kernel``); with no tet left deformable it skips
+    the tet stage too (its kernel returns at every rigid tet) and the viscous half ahead. Oracle: the same run with
+    those kernels launched, bit for bit (the rattling jointed cube of 8 blocks, 60 steps, with the books kept); a
+    model with a node left deformable, or a driven rigid node, keeps the node kernels (warpdem.rigid
+    ``every_node_rigid``), and one with a tet left deformable the tet stage."""
     from warpdem.bench import jointed_cube
 
     skip, launch = jointed_cube(2, device), jointed_cube(2, device)
-    assert not skip.drift_nodes and launch.rigid
+    assert not skip.drift_nodes and not skip.deformable_tets and launch.rigid
     launch.drift_nodes = True
+    launch.deformable_tets = True
     for sim in (skip, launch):
         sim.track_energy = True
         sim.advance(60)
@@ -1179,6 +1182,7 @@ def test_rigid_only_model_skips_the_node_drift_bit_for_bit(device):
         sim = Simulation(model, state)
         sim.switch_to_rigid()
         assert sim.rigid and sim.drift_nodes
+        assert sim.deformable_tets == half_rigid
 
 
 def test_a_spring_that_starts_at_the_switch_starts_relaxed(device):

@@ -290,7 +290,8 @@ class Simulation:
         # after the switch: no topology pass runs then).
         self.drift_nodes = not every_node_rigid(self.model, self.state)
         # Some tet left deformable: its viscous forces on a body's nodes have a half ahead to book after the bodies'
-        # drift (warpdem.rigid.drift_bodies).
+        # drift (warpdem.rigid.drift_bodies); with none the step skips the tet stage (every tet_active changes in a
+        # switch or a pass, each followed by this set-up).
         nt = int(self.state.tet_count.numpy()[0])
         self.deformable_tets = bool(np.any(self.state.tet_active.numpy()[:nt] == int(TET_ACTIVE)))
 
@@ -303,7 +304,8 @@ class Simulation:
     def _forces(self) -> None:
         """Stages 2–6 of a step: every force at the drifted positions (launches only)."""
         m, s = self.model, self.state
-        eval_tets(m, s)
+        if self.deformable_tets:
+            eval_tets(m, s)  # with every tet rigid or gone its kernel returns at each (a launch over every slot)
         if m.cohesive_capacity:
             eval_cohesive(m, s, track_energy=self.track_energy)
         if self.has_spheres:
