@@ -352,6 +352,8 @@ def bedding_planes(scene) -> np.ndarray:
 def layer_edges(planes: np.ndarray, roof: float, top: float) -> np.ndarray:
     """The layers above an opening's roof [m]: from the roof to the first bedding plane above it, then bed by bed to
     the surface ``top`` (a block belongs to the layer its centre lies in)."""
+    if roof >= top:  # the shaft: open to the surface, nothing above it
+        return np.array([roof])
     return np.concatenate([[roof], planes[(planes > roof) & (planes < top)], [top]])
 
 
@@ -633,7 +635,7 @@ def report(scene, device: str, end_time: float | None) -> dict:
 def format_side_by_side(results: list[dict]) -> list[str]:
     """The figures of the scenes in columns, one row per quantity."""
     names = [r["scene"].removeprefix("facility_") for r in results]
-    width = 24
+    width = 26
 
     def row(label: str, values: list[str]) -> str:
         return f"{label:<44}" + "".join(f"{v:>{width}}" for v in values)
@@ -738,8 +740,8 @@ def format_side_by_side(results: list[dict]) -> list[str]:
             cells.append(f"{total:.2f} ({total / volume:.1%})")
         lines.append(row(f"  {label}", cells))
     lines.append(
-        "largest room over time: rubble [m³]; its roof blocks' mean / largest drop [cm] and mean sinking speed [m/s] "
-        "(free fall from rest: ½ g t², g t):"
+        "largest room over time: rubble [m³]; its roof bed's blocks' mean / largest drop [cm] and mean sinking speed "
+        "[m/s] (free fall from rest: ½ g t², g t):"
     )
     for k, when in enumerate(results[0]["history"]["time"]):
         if k == 0 or (k % REPORT_EVERY and k != len(results[0]["history"]["time"]) - 1):
@@ -771,7 +773,8 @@ def format_side_by_side(results: list[dict]) -> list[str]:
         lines.append(row(f"  t = {when * 1e3:5.1f} ms", cells))
     lines.append("  (" + "; ".join(results[0]["sections"][j]["name"] for j in grew) + ")")
     lines.append(
-        "largest sinking below the layer's free-field blocks [cm] by 2 m layer above each section's roof, bottom up:"
+        "largest sinking below the layer's free-field blocks [cm], layer by layer above each section's roof (the roof "
+        "bed, then bed by bed), bottom up:"
     )
     for k, sec in enumerate(results[0]["sections"]):
         for r in results:
