@@ -53,7 +53,6 @@ chimneys and the largest room's rubble are reported at 200 ms, ``--end-time 0.2`
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import json
 import math
@@ -459,24 +458,32 @@ def draw_sections(results: list[dict], path: Path) -> None:
     tmp.replace(path)
 
 
-def settling_velocities(scene, device: str, dt: float, ref: np.ndarray, nodes: np.ndarray, marks: list[int]):
-    """Velocities [m/s] of ``nodes``, shape (len(marks), N, 3), after each of ``marks`` steps of ``dt`` [s] in the
-    scene with its loads taken off: the rock under gravity alone, which starts unstressed and settles (its blocks
-    fall at g until the joints beneath them take their weight, up to g t ~ 0.05-0.1 m/s within the wave's window,
-    as large as the far probes' PPV). The loaded run less this one is the blast's wave, exactly while the joints
-    respond linearly (penalty springs in contact, no slip), which holds ahead of and within a probe's first
-    pulse. ``ref`` is the loaded model's node reference positions [m]: the same mesh is checked."""
+def build_simulation(scene, device: str):
+    """The scene built as ``python -m warpdem`` builds it (:func:`warpdem.scene_build.build_scene`), with the rigid
+    blocks' own step where ``dt = "auto"`` (as the runner sets it), as a :class:`warpdem.simulation.Simulation`."""
     from warpdem.rigid import rigid_time_step
     from warpdem.scene_build import build_scene
     from warpdem.simulation import Simulation
 
-    quiet = scene.model_copy(update={"loads": []})
-    model, state = build_scene(quiet, device)
-    if quiet.rigid.enabled and quiet.run.dt == "auto":
-        model = rigid_time_step(model, state, quiet.run.safety_factor)
-    if not np.array_equal(model.node_ref_q.numpy()[: len(ref)].astype(np.float64), ref):
-        raise RuntimeError(f"{scene.name}: the scene without its loads builds another mesh")
-    sim = Simulation(dataclasses.replace(model, dt=dt), state)
+    model, state = build_scene(scene, device)
+    if scene.rigid.enabled and scene.run.dt == "auto":
+        model = rigid_time_step(model, state, scene.run.safety_factor)
+    return Simulation(model, state)
+
+
+def settling_velocities(
+    scene, device: str, dt: float, ref: np.ndarray, nodes: np.ndarray, marks: list[int]
+) -> np.ndarray:
+    """Velocities [m/s] of ``nodes``, shape (len(marks), N, 3), after each of ``marks`` steps of ``dt`` [s] in the
+    scene with its loads taken off: the rock under gravity alone, which starts unstressed and settles (its blocks
+    fall at g until the joints beneath them take their weight, up to g t ~ 0.05-0.1 m/s within the wave's window,
+    as large as the far probes' PPV). The loaded run less this one is the blast's wave: exactly while the joints
+    respond linearly (penalty springs in contact, no slip), approximately where the wave makes them slip.
+    ``ref`` and ``dt`` are the loaded model's node reference positions [m] and step [s]: the same are checked."""
+    sim = build_simulation(scene.model_copy(update={"loads": []}), device)
+    # The same mesh and blocks, so the same step (the blocks' own: their contacts, not the loads).
+    if sim.model.dt != dt or not np.array_equal(sim.model.node_ref_q.numpy()[: len(ref)].astype(np.float64), ref):
+        raise RuntimeError(f"{scene.name}: the scene without its loads builds another mesh or step")
     out, done = [], 0
     for mark in marks:
         sim.advance(mark - done)
@@ -488,15 +495,11 @@ def settling_velocities(scene, device: str, dt: float, ref: np.ndarray, nodes: n
 def report(scene, device: str, end_time: float | None) -> dict:
     """Runs one scene and measures what the module docstring lists; returns the figures as a dict (entries whose
     name starts with an underscore hold arrays: the pictures' and the blocks' history, left out of the JSON)."""
-    from warpdem.rigid import rigid_time_step
-    from warpdem.scene_build import build_scene
-    from warpdem.simulation import Simulation, balance_error
+    from warpdem.simulation import balance_error
 
     start = time.perf_counter()
-    model, state = build_scene(scene, device)
-    if scene.rigid.enabled and scene.run.dt == "auto":  # as the runner does: the blocks' own step
-        model = rigid_time_step(model, state, scene.run.safety_factor)
-    sim = Simulation(model, state)
+    sim = build_simulation(scene, device)
+    model, state = sim.model, sim.state
     built = time.perf_counter() - start
     ref = model.node_ref_q.numpy()[: int(state.node_count.numpy()[0])].astype(np.float64)
     fixed = sim.state.body_fixed.numpy() != 0

@@ -34,10 +34,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from warpdem.rigid import rigid_time_step
 from warpdem.scene import load_scene
-from warpdem.scene_build import build_scene
-from warpdem.simulation import Simulation, balance_error
+from warpdem.simulation import balance_error
 
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 # The sections and roof blocks as the scenes' report measures them (benchmarks/facility_scenes.py, not an installed
@@ -75,9 +73,8 @@ MESH_BOUND = 5e-3
 def persistent():
     """The persistent scene, built on the CPU (the mesh takes Gmsh tens of seconds; the tests share it)."""
     scene = load_scene(SCENES_DIR / "facility_persistent.toml")
-    model, state = build_scene(scene, "cpu")
     # As the runner does for rigid blocks from the start with dt = "auto": the blocks' own step.
-    return scene, Simulation(rigid_time_step(model, state, scene.run.safety_factor), state)
+    return scene, facility.build_simulation(scene, "cpu")
 
 
 def test_blocks_are_rigid_and_the_frame_is_held(persistent):
