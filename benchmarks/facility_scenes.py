@@ -6,26 +6,49 @@ Each scene is built as ``python -m warpdem`` builds it (:func:`warpdem.scene_bui
 t = 0) and stepped in Python, read back every SAMPLE_STEPS steps. What LDEC §3 reports, measured:
 
 - wave speed by direction: probes on three rays from ground zero (the centre of the loaded patch on the surface):
-  straight down, 45° and 75° from the vertical. A probe is the mesh node nearest each point 2, 4, ... m along the
-  ray; its first arrival is the first sample at which its speed exceeds ARRIVAL_FRACTION of its own peak (and
-  ARRIVAL_FLOOR, above the settling under gravity; a probe that never exceeds it is not reached). The
-  distance travelled is the distance from the loaded patch (a disc of the load's radius on the surface), and the
-  ray's speed the least-squares slope of distance against arrival time (anisotropy: the ratio of the slopes), set
-  against the granite's P-wave speed c_p = sqrt((λ + 2μ)/ρ);
-- attenuation with depth: the peak particle speed (PPV) of the probes straight down, and the exponent n of a
-  least-squares fit PPV ∝ d⁻ⁿ;
+  straight down, 45° and 75° from the vertical. A probe is the mesh node nearest each point 2, 4, ... m along the ray;
+  its first arrival is the first sample at which its speed exceeds ARRIVAL_FRACTION of its own peak (and
+  ARRIVAL_FLOOR, above the settling under gravity; a probe that never exceeds it is not reached). The distance
+  travelled is the distance from the loaded patch (a disc of the load's radius on the surface), and the ray's speed
+  the least-squares slope of distance against arrival time (anisotropy: the ratio of the slopes), set against the
+  granite's P-wave speed c_p = sqrt((λ + 2μ)/ρ);
+- attenuation with distance, as LDEC's Fig. 7 shows it (the wave): the peak particle speed of the first pulse (PPV) at
+  free-field probes, fitted over all of them as PPV ∝ r⁻ⁿ (r the distance from ground zero) and as PPV ∝ e^(−α r)/r (a
+  body wave's geometric spreading 1/r times an attenuation coefficient α [1/m]). The probes: the mesh node nearest
+  each point 2, 4, ... m from ground zero on rays at ATTENUATION_POLAR from the vertical and ATTENUATION_AZIMUTHS
+  around it, kept only where the wave reaches them through rock alone: the straight path from ground zero crosses no
+  opening (no diffracted or shadowed probes), the probe's block does not reach over an opening (the column above an
+  opening has nothing beneath it: the blast drives it down as a whole into the opening, which is collapse, not the
+  wave, and the opening's roof sends the pulse back as a free-surface reflection; this leaves out every probe within 4
+  m of ground zero, which lies over the largest room), and its block is not held. The wave's particle velocity: the
+  probe's velocity less that of the same node in the scene run without its loads (:func:`settling_velocities`: the
+  unstressed rock settling under gravity, as fast as the far probes' PPV). Its first pulse: its speed from its first
+  arrival t_a (the first sample past ARRIVAL_FRACTION of its peak) for T + t_a, T the load's pulse, rise + decay time
+  (3.3 ms: the load's history is done to e⁻¹ of its peak), lengthened by as much as the travel time because the
+  jointed mass spreads the pulse as it goes (the blocks on their joint springs are a lattice that passes nothing much
+  faster than its blocks' natural period, 2π sqrt(m / (k_n A)) ~ 9 ms: the particle speed at the probes rises for
+  milliseconds after the first arrival); cut short where the wave reflected by the held frame can arrive, at t_a r'/r,
+  r' the distance from the mirror image of ground zero in the nearest held face (the echo at the direct wave's own
+  mean speed), which in this 24 m box is what ends most windows. As a check of the window, the same fit of the largest
+  speed within WAVE_WINDOW (echoes included: LDEC's Fig. 7 at 30 ms, 10 ms at 1:3);
 - rubble: the volume of block material inside each opening's original cross-section (each tet sampled at the four
   points of the degree-2 Keast rule, each carrying a quarter of its volume, at the blocks' current pose), every
   RUBBLE_INTERVAL, section by section: the largest room, the plain tunnel stretches, the junctions (main tunnel with
   the shaft and with the access tunnel), the access tunnel's arms, the shaft; and summed by kind (room, junctions,
   straight stretches);
-- the largest room's roof over time: the blocks over its footprint within one 2 m layer above its roof, their mean
-  and largest drop and mean sinking speed, against free fall from rest (½ g t², g t);
-- chimney: above each opening section, the blocks whose centre lies over its footprint and above its roof, by 2 m
-  layer up from the roof: the largest displacement of a block in each layer; the chimney is the height above the roof
-  up to which every layer holds a block displaced more than CHIMNEY_DISPLACEMENT.
+- the largest room's roof over time: the blocks over its footprint in the first layer above its roof (the roof bed, up
+  to the first bedding plane), their mean and largest drop and mean sinking speed, against free fall from rest (½ g
+  t², g t);
+- chimney (collapse above an opening), every RUBBLE_INTERVAL: above each opening section, the blocks whose centre lies
+  over its footprint (strictly inside: a block straddling a wall rests on it), layer by layer up from its roof: the
+  roof bed, then bed by bed between the bedding planes (:func:`layer_edges`). A block's sinking is its drop relative
+  to the mean drop of the same layer's free-field blocks, those that reach over no opening (centre ± half a block) and
+  are not held: what the blast pushed down and what the rock settles by, everywhere, is taken out, and what is left is
+  the block's slip into the opening. A layer has collapsed when one of its blocks has sunk more than CHIMNEY_DROP; the
+  chimney is the height above the roof of the top of the highest layer up to which every layer has collapsed.
 
-Wave figures are read within WAVE_WINDOW; the rest at the end (the scene's end_time unless ``--end-time``).
+Wave figures are read within WAVE_WINDOW; the rest at the end (the scene's end_time unless ``--end-time``: the
+chimneys and the largest room's rubble are reported at 200 ms, ``--end-time 0.2``).
 """
 
 from __future__ import annotations
@@ -54,13 +77,22 @@ RAYS = {"down": 0.0, "45°": 45.0, "75°": 75.0}
 openings' footprints along y = 12 m where the angle allows."""
 PROBE_DISTANCES = (2.0, 4.0, 6.0, 8.0, 10.0, 12.0)
 """Distances of the probes along each ray from ground zero [m] (those outside the rock are dropped)."""
-CHIMNEY_DISPLACEMENT = 0.01
-"""A block above an opening counts as part of a chimney once its centre has moved more than this [m]."""
+ATTENUATION_POLAR = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0)
+"""Angles from the vertical of the attenuation probes' rays [deg]."""
+ATTENUATION_AZIMUTHS = 8
+"""Rays at each angle from the vertical, evenly spaced around it (every 45°: along and between the openings' axes)."""
+CHIMNEY_DROP = 0.1
+"""A block above an opening has collapsed once it has sunk this much below its layer's reference blocks [m]. The
+joints close under the blast's peak by p/k_n = 100 MPa / 2.5 GPa/m = 4 cm at the surface (less deeper, where the
+pulse has spread) and open again after it: a sinking of more than twice that, 5 % of a block's size, is slip on the
+joints, not their elastic closure."""
 LAYER = 2.0
-"""Height of the layers the chimney is counted in [m] (the joint spacing of both scenes)."""
+"""The blocks' size [m] (the joint spacing of both scenes): a block whose centre lies more than half of it outside a
+footprint does not reach over it."""
 ENERGY_SAMPLES = 25
 """Samples between readings of the energy in play (the balance's scale, its largest value over the run)."""
 SNAPSHOT_TIME = 0.01
+"""Time of the velocity-field section [s]: LDEC's Fig. 7 compares the velocity fields at 30 ms, 10 ms at 1:3."""
 WAVE_WINDOW = 0.01
 """The probes' speeds are read up to this time [s]: the direct wave has passed every probe by 5 ms, and later the
 blocks over the room fall freely (g t), which is not the wave's PPV."""
@@ -68,7 +100,6 @@ RUBBLE_INTERVAL = 0.005
 """Time between readings of the rubble in each section and of the room's roof [s]."""
 REPORT_EVERY = 2
 """The side-by-side table prints every this many readings of the room (and the last)."""
-"""Time of the velocity-field section [s]: LDEC's Fig. 7 compares the velocity fields at 30 ms, 10 ms at 1:3."""
 KEAST_2 = np.array(
     [
         [0.5854101966249685, 0.1381966011250105, 0.1381966011250105, 0.1381966011250105],
@@ -177,6 +208,86 @@ def probe_points(scene) -> dict[str, list[tuple[float, np.ndarray]]]:
     return out
 
 
+def over_opening(sections: list[Section], lo: np.ndarray, hi: np.ndarray | None = None) -> bool:
+    """Whether a point ``lo`` [m], or a box ``lo``..``hi`` [m] (a block's extent), lies in the column above an
+    opening section: overlapping its footprint (strictly: a box that only touches a wall's plane does not), not below
+    its roof."""
+    hi = lo if hi is None else hi
+    return any(bool(np.all((hi[:2] > sec.lo[:2]) & (lo[:2] < sec.hi[:2])) and hi[2] > sec.hi[2]) for sec in sections)
+
+
+def attenuation_probes(scene) -> list[tuple[float, np.ndarray]]:
+    """(distance from ground zero [m], point [m]) of the free-field probes of the attenuation fit (module docstring):
+    on rays at ATTENUATION_POLAR from the vertical and ATTENUATION_AZIMUTHS around it, at PROBE_DISTANCES, in the
+    rock at least 0.5 m inside the box, not over an opening, and reached from ground zero along a straight path
+    through no opening (checked every 5 cm). Whether a probe's block is held is for the caller (the built model)."""
+    gz, _ = load_patch(scene)
+    lo, hi = np.asarray(scene.mesh.lo), np.asarray(scene.mesh.hi)
+    sections = facility_sections(scene)
+    out = []
+    for polar in ATTENUATION_POLAR:
+        a = math.radians(polar)
+        for k in range(ATTENUATION_AZIMUTHS if polar > 0.0 else 1):
+            b = 2.0 * math.pi * k / ATTENUATION_AZIMUTHS
+            direction = np.array([math.sin(a) * math.cos(b), math.sin(a) * math.sin(b), -math.cos(a)])
+            for r in PROBE_DISTANCES:
+                p = gz + r * direction
+                if not (np.all(p >= lo + 0.5) and np.all(p <= hi - 0.5)) or over_opening(sections, p):
+                    continue
+                path = gz + np.linspace(0.0, r, max(2, math.ceil(r / 0.05) + 1))[:, None] * direction
+                if not any(np.any(sec.contains(path)) for sec in sections):
+                    out.append((r, p))
+    return out
+
+
+def echo_distance(scene, x: np.ndarray) -> float:
+    """Distance from the mirror image of ground zero in the nearest held face of the box (the sides and the base,
+    fixed in both scenes) to a point [m]: the path of the first wave the frame reflects to it."""
+    gz, _ = load_patch(scene)
+    lo, hi = np.asarray(scene.mesh.lo), np.asarray(scene.mesh.hi)
+    images = []
+    for axis, plane in ((0, lo[0]), (0, hi[0]), (1, lo[1]), (1, hi[1]), (2, lo[2])):
+        image = gz.copy()
+        image[axis] = 2.0 * plane - gz[axis]
+        images.append(float(np.linalg.norm(x - image)))
+    return min(images)
+
+
+def first_arrival(t: np.ndarray, v: np.ndarray, floor: float = ARRIVAL_FLOOR) -> tuple[float, float]:
+    """A probe's first arrival [s] from its speeds v [m/s] sampled at times t [s]: the first sample past
+    ARRIVAL_FRACTION of its peak speed and ``floor`` [m/s] (NaN if never); and that peak [m/s]."""
+    peak = float(v.max())
+    threshold = max(ARRIVAL_FRACTION * peak, floor)
+    return (float(t[np.argmax(v > threshold)]) if peak > threshold else math.nan), peak
+
+
+def first_pulse_ppv(t: np.ndarray, v: np.ndarray, distance: float, echo: float, pulse: float) -> tuple[float, float]:
+    """The first pulse's peak particle speed [m/s] of a probe (module docstring): the largest speed v [m/s] of the
+    wave (the settling under gravity taken out) at times t [s] within [t_a, t_a + min(pulse + t_a, t_a (echo −
+    distance) / distance)], t_a its first arrival [s], ``pulse`` the load's rise + decay time [s], ``distance`` and
+    ``echo`` its distances from ground zero and from its mirror image in the held frame [m]. Returns (t_a, PPV),
+    NaN where the wave never arrived."""
+    arrival, _ = first_arrival(t, v, floor=0.0)  # the settling is taken out of v: no floor above it
+    if not math.isfinite(arrival):
+        return math.nan, math.nan
+    end = arrival + min(pulse + arrival, arrival * (echo - distance) / distance)
+    return arrival, float(v[(t >= arrival) & (t <= end)].max())
+
+
+def attenuation_fit(r: np.ndarray, ppv: np.ndarray) -> dict:
+    """Least-squares fits of the first-pulse PPV [m/s] against the distance r [m]: PPV ∝ r⁻ⁿ (log PPV against log r)
+    and PPV ∝ e^(−α r)/r (log(PPV r) against r). Returns n, α [1/m], their standard errors and the probe count."""
+    (slope_n, _), cov_n = np.polyfit(np.log(r), np.log(ppv), 1, cov=True)
+    (slope_a, _), cov_a = np.polyfit(r, np.log(ppv * r), 1, cov=True)
+    return {
+        "n": float(-slope_n),
+        "n_se": float(math.sqrt(cov_n[0, 0])),
+        "alpha": float(-slope_a),
+        "alpha_se": float(math.sqrt(cov_a[0, 0])),
+        "probes": len(r),
+    }
+
+
 def patch_distance(scene, x: np.ndarray) -> float:
     """Distance from a point to the loaded patch (a disc on the surface) [m]."""
     gz, radius = load_patch(scene)
@@ -218,34 +329,68 @@ def block_centres(sim) -> np.ndarray:
     )
 
 
-def roof_motion(sim, centres: np.ndarray, room: Section) -> tuple[float, float, float]:
-    """The largest room's roof: the blocks whose centre lies over the room's footprint and within LAYER above its
-    roof. Their mean and largest downward displacement [m] and their mean downward speed [m/s]."""
+def bedding_planes(scene) -> np.ndarray:
+    """Heights of the bedding planes [m], sorted: the planes of the horizontal joint sets (dip 0) strictly inside
+    the box (``n · x = offset + k spacing`` with n = ±z, warpdem.geology.joint_normal)."""
+    from warpdem.geology import joint_normal
+
+    lo, hi = float(scene.mesh.lo[2]), float(scene.mesh.hi[2])
+    heights = set()
+    for js in scene.mesh.joint_sets:
+        if js.dip != 0.0:
+            continue
+        nz = float(joint_normal(js.dip, js.dip_direction)[2])  # ±1
+        d0, d1 = sorted((lo * nz, hi * nz))
+        for k in range(math.floor((d0 - js.offset) / js.spacing), math.ceil((d1 - js.offset) / js.spacing) + 1):
+            z = (js.offset + k * js.spacing) / nz
+            if lo < z < hi:
+                heights.add(round(z, 9))
+    return np.array(sorted(heights))
+
+
+def layer_edges(planes: np.ndarray, roof: float, top: float) -> np.ndarray:
+    """The layers above an opening's roof [m]: from the roof to the first bedding plane above it, then bed by bed to
+    the surface ``top`` (a block belongs to the layer its centre lies in)."""
+    if roof >= top:  # the shaft: open to the surface, nothing above it
+        return np.array([roof])
+    return np.concatenate([[roof], planes[(planes > roof) & (planes < top)], [top]])
+
+
+def roof_motion(sim, centres: np.ndarray, room: Section, planes: np.ndarray) -> tuple[float, float, float]:
+    """The largest room's roof: the blocks whose centre lies over the room's footprint, in the first layer above
+    its roof (up to the first bedding plane, ``planes`` [m]). Their mean and largest downward displacement [m] and
+    their mean downward speed [m/s]."""
+    first = layer_edges(planes, room.hi[2], np.inf)[1]
     over = np.all((centres[:, :2] > room.lo[:2]) & (centres[:, :2] < room.hi[:2]), axis=1)
-    roof = over & (centres[:, 2] > room.hi[2]) & (centres[:, 2] <= room.hi[2] + LAYER)
+    roof = over & (centres[:, 2] > room.hi[2]) & (centres[:, 2] <= first)
     drop = -sim.state.body_dc.numpy()[roof, 2]
     sink = -sim.state.body_v.numpy()[roof, 2]
     return float(drop.mean()), float(drop.max()), float(sink.mean())
 
 
-def chimneys(sim, sections: list[Section], top: float) -> list[tuple[float, list[float]]]:
-    """For each section: the chimney height above its roof [m] and the largest block displacement of each 2 m layer
-    above the roof [m] (module docstring)."""
-    centres = block_centres(sim)
-    moved = np.linalg.norm(sim.state.body_dc.numpy(), axis=1)
+def chimneys(
+    centres: np.ndarray, fixed: np.ndarray, dc: np.ndarray, sections: list[Section], planes: np.ndarray, top: float
+) -> list[tuple[float, list[float]]]:
+    """For each section: the chimney height above its roof [m] and the largest sinking of a block in each layer
+    above the roof (:func:`layer_edges`) [m] (module docstring), from the blocks' centres at the switch [m], shape
+    (B, 3), whether each is held, shape (B,), their displacements now [m], shape (B, 3), and the bedding planes [m]."""
+    half = 0.5 * LAYER  # a block's half size: a block whose centre is that far from a footprint does not overlap it
+    free_field = ~fixed & ~np.array([over_opening(sections, c - half, c + half) for c in centres])
     out = []
     for sec in sections:
-        over = np.all((centres[:, :2] >= sec.lo[:2]) & (centres[:, :2] <= sec.hi[:2]), axis=1)
-        roof = sec.hi[2]
+        over = np.all((centres[:, :2] > sec.lo[:2]) & (centres[:, :2] < sec.hi[:2]), axis=1)
+        edges = layer_edges(planes, sec.hi[2], top)
         layers = []
-        for k in range(max(0, math.ceil((top - roof) / LAYER))):
-            inside = over & (centres[:, 2] > roof + k * LAYER) & (centres[:, 2] <= roof + (k + 1) * LAYER)
-            layers.append(float(moved[inside].max()) if np.any(inside) else 0.0)
+        for z0, z1 in itertools.pairwise(edges):
+            band = (centres[:, 2] > z0) & (centres[:, 2] <= z1)
+            inside, reference = over & band, free_field & band
+            settled = float(dc[reference, 2].mean()) if np.any(reference) else 0.0
+            layers.append(float(np.max(settled - dc[inside, 2])) if np.any(inside) else 0.0)
         height = 0.0
-        for k, d in enumerate(layers):
-            if d <= CHIMNEY_DISPLACEMENT:
+        for z1, d in zip(edges[1:], layers, strict=True):
+            if d <= CHIMNEY_DROP:
                 break
-            height = min((k + 1) * LAYER, top - roof)
+            height = z1 - sec.hi[2]
         out.append((height, layers))
     return out
 
@@ -313,46 +458,97 @@ def draw_sections(results: list[dict], path: Path) -> None:
     tmp.replace(path)
 
 
-def report(scene, device: str, end_time: float | None) -> dict:
-    """Runs one scene and measures what the module docstring lists; returns the figures as a dict."""
+def build_simulation(scene, device: str):
+    """The scene built as ``python -m warpdem`` builds it (:func:`warpdem.scene_build.build_scene`), with the rigid
+    blocks' own step where ``dt = "auto"`` (as the runner sets it), as a :class:`warpdem.simulation.Simulation`."""
     from warpdem.rigid import rigid_time_step
     from warpdem.scene_build import build_scene
     from warpdem.simulation import Simulation
 
-    start = time.perf_counter()
     model, state = build_scene(scene, device)
-    if scene.rigid.enabled and scene.run.dt == "auto":  # as the runner does: the blocks' own step
+    if scene.rigid.enabled and scene.run.dt == "auto":
         model = rigid_time_step(model, state, scene.run.safety_factor)
-    sim = Simulation(model, state)
+    return Simulation(model, state)
+
+
+def settling_velocities(
+    scene, device: str, dt: float, ref: np.ndarray, nodes: np.ndarray, marks: list[int]
+) -> np.ndarray:
+    """Velocities [m/s] of ``nodes``, shape (len(marks), N, 3), after each of ``marks`` steps of ``dt`` [s] in the
+    scene with its loads taken off: the rock under gravity alone, which starts unstressed and settles (its blocks
+    fall at g until the joints beneath them take their weight, up to g t ~ 0.05-0.1 m/s within the wave's window,
+    as large as the far probes' PPV). The loaded run less this one is the blast's wave: exactly while the joints
+    respond linearly (penalty springs in contact, no slip), approximately where the wave makes them slip.
+    ``ref`` and ``dt`` are the loaded model's node reference positions [m] and step [s]: the same are checked."""
+    sim = build_simulation(scene.model_copy(update={"loads": []}), device)
+    # The same mesh and blocks, so the same step (the blocks' own: their contacts, not the loads).
+    if sim.model.dt != dt or not np.array_equal(sim.model.node_ref_q.numpy()[: len(ref)].astype(np.float64), ref):
+        raise RuntimeError(f"{scene.name}: the scene without its loads builds another mesh or step")
+    out, done = [], 0
+    for mark in marks:
+        sim.advance(mark - done)
+        done = mark
+        out.append(sim.state.node_qd.numpy()[nodes].astype(np.float64))
+    return np.stack(out)
+
+
+def report(scene, device: str, end_time: float | None) -> dict:
+    """Runs one scene and measures what the module docstring lists; returns the figures as a dict (entries whose
+    name starts with an underscore hold arrays: the pictures' and the blocks' history, left out of the JSON)."""
+    from warpdem.simulation import balance_error
+
+    start = time.perf_counter()
+    sim = build_simulation(scene, device)
+    model, state = sim.model, sim.state
     built = time.perf_counter() - start
     ref = model.node_ref_q.numpy()[: int(state.node_count.numpy()[0])].astype(np.float64)
-    probes = {
-        ray: [(patch_distance(scene, p), int(np.argmin(np.linalg.norm(ref - p, axis=1)))) for _, p in pts]
-        for ray, pts in probe_points(scene).items()
-    }
-    nodes = np.array(sorted({i for pts in probes.values() for _, i in pts}))
+    fixed = sim.state.body_fixed.numpy() != 0
+    node_body = sim.state.node_body.numpy()
+
+    def nearest(p: np.ndarray) -> int:
+        return int(np.argmin(np.linalg.norm(ref - p, axis=1)))
+
+    probes = {ray: [(patch_distance(scene, p), nearest(p)) for _, p in pts] for ray, pts in probe_points(scene).items()}
+    field = {}  # node -> (distance from ground zero, echo distance): one probe per node, held blocks left out
+    # Each block's extent [m] at the start: a probe's block must not reach over an opening either.
+    extent_lo = np.full((len(fixed), 3), np.inf)
+    extent_hi = np.full((len(fixed), 3), -np.inf)
+    np.minimum.at(extent_lo, node_body[: len(ref)], ref)
+    np.maximum.at(extent_hi, node_body[: len(ref)], ref)
+    sections = facility_sections(scene)
+    for r, p in attenuation_probes(scene):
+        i = nearest(p)
+        b = node_body[i]
+        if not fixed[b] and i not in field and not over_opening(sections, extent_lo[b], extent_hi[b]):
+            field[i] = (r, echo_distance(scene, ref[i]))
+    nodes = np.array(sorted({i for pts in probes.values() for _, i in pts} | set(field)))
     steps = max(1, round((end_time or scene.run.end_time) / model.dt))
-    times, speeds = [0.0], [np.zeros(len(nodes))]
+    times, sampled, velocities = [0.0], [], [np.zeros((len(nodes), 3))]
     nt = int(sim.state.tet_count.numpy()[0])
     tets = model.tet_nodes.numpy()[:nt].astype(np.int64)
-    tet_body = sim.state.node_body.numpy()[tets[:, 0]].astype(np.int64)
+    tet_body = node_body[tets[:, 0]].astype(np.int64)
     snap_step = min(steps, round(SNAPSHOT_TIME / model.dt))
     wave_steps = min(steps, round(WAVE_WINDOW / model.dt))
     rubble_steps = max(1, round(RUBBLE_INTERVAL / model.dt))
-    sections = facility_sections(scene)
     room = next(sec for sec in sections if sec.kind == "room")
+    top = float(scene.mesh.hi[2])
+    planes = bedding_planes(scene)
     pictures = {"tets": tets, "y": 0.5 * (room.lo[1] + room.hi[1])}
     pictures.update(lo=np.asarray(scene.mesh.lo), hi=np.asarray(scene.mesh.hi))
-    from warpdem.simulation import balance_error
-
+    centres = block_centres(sim)
     start_energy = sim.energy()
     in_play = start_energy.in_play
-    history = {"time": [0.0], "rubble": [[0.0] * len(sections)], "roof": [(0.0, 0.0, 0.0)]}
-    centres = None
+    history = {
+        "time": [0.0],
+        "rubble": [[0.0] * len(sections)],
+        "roof": [(0.0, 0.0, 0.0)],
+        "chimney": [[0.0] * len(sections)],
+    }
+    blocks = {"centres": centres, "fixed": fixed, "dc": [np.zeros_like(centres)], "v": [np.zeros_like(centres)]}
     done, samples = 0, 0
     while done < steps:
         # Stop at every read-back the run needs: the probes (every SAMPLE_STEPS steps within WAVE_WINDOW), the
-        # snapshot, the rubble and roof (every rubble_steps steps), the end.
+        # snapshot, the rubble, roof and chimneys (every rubble_steps steps), the end.
         marks = [steps, snap_step, rubble_steps * (done // rubble_steps + 1)]
         if done < wave_steps:
             marks.append(min(done + SAMPLE_STEPS, wave_steps))
@@ -365,42 +561,53 @@ def report(scene, device: str, end_time: float | None) -> dict:
             pictures["x_snap"] = current_positions(sim)
             pictures["speed_snap"] = np.linalg.norm(sim.state.body_v.numpy(), axis=1)[tet_body]
         if done <= wave_steps:
-            v = sim.state.node_qd.numpy()[nodes].astype(np.float64)
             times.append(done * model.dt)
-            speeds.append(np.linalg.norm(v, axis=1))
+            sampled.append(done)
+            velocities.append(sim.state.node_qd.numpy()[nodes].astype(np.float64))
         if done % rubble_steps == 0 or done == steps:
-            centres = block_centres(sim) if centres is None else centres
+            dc = sim.state.body_dc.numpy().astype(np.float64)
             history["time"].append(done * model.dt)
             history["rubble"].append(rubble(sim, sections))
-            history["roof"].append(roof_motion(sim, centres, room))
+            history["roof"].append(roof_motion(sim, centres, room, planes))
+            history["chimney"].append([h for h, _ in chimneys(centres, fixed, dc, sections, planes, top)])
+            blocks["dc"].append(dc)
+            blocks["v"].append(sim.state.body_v.numpy().astype(np.float64))
         if samples % ENERGY_SAMPLES == 0 or done == steps:
             in_play = max(in_play, sim.energy().in_play)
+    velocities = np.stack(velocities)
+    settling = settling_velocities(scene, device, model.dt, ref, nodes, sampled)
     run = time.perf_counter() - start - built
-    t, speed = np.asarray(times), np.stack(speeds)
+    t, speed = np.asarray(times), np.linalg.norm(velocities, axis=2)
+    wave = np.linalg.norm(velocities - np.concatenate([np.zeros((1, len(nodes), 3)), settling]), axis=2)
     column = {int(i): k for k, i in enumerate(nodes)}
     c_p = p_wave_speed(scene)
     waves = {}
     for ray, pts in probes.items():
         rows = []
         for d, i in pts:
-            v = speed[:, column[i]]
-            peak = float(v.max())
-            threshold = max(ARRIVAL_FRACTION * peak, ARRIVAL_FLOOR)
-            arrival = float(t[np.argmax(v > threshold)]) if peak > threshold else math.nan
+            arrival, peak = first_arrival(t, speed[:, column[i]])
             rows.append({"distance": d, "node": i, "arrival": arrival, "ppv": peak})
         d = np.array([r["distance"] for r in rows])
         ta = np.array([r["arrival"] for r in rows])
         ok = np.isfinite(ta)
         slope = float(np.polyfit(ta[ok], d[ok], 1)[0]) if np.count_nonzero(ok) >= 3 else math.nan
         waves[ray] = {"probes": rows, "speed": slope}
-    down = waves["down"]["probes"]
-    d = np.array([r["distance"] for r in down])
-    ppv = np.array([r["ppv"] for r in down])
-    exponent = float(-np.polyfit(np.log(d), np.log(ppv), 1)[0]) if np.all(ppv > 0) else math.nan
+    history_load = scene.loads[0].history
+    pulse = history_load.rise_time + history_load.decay_time
+    free_field = []
+    for i, (r, echo) in sorted(field.items(), key=lambda item: item[1][0]):
+        arrival, ppv = first_pulse_ppv(t, wave[:, column[i]], r, echo, pulse)
+        free_field.append({"distance": r, "node": i, "echo": echo, "arrival": arrival, "ppv": ppv})
+    reached = [p for p in free_field if math.isfinite(p["ppv"]) and p["ppv"] > 0.0]
+    attenuation = attenuation_fit(np.array([p["distance"] for p in reached]), np.array([p["ppv"] for p in reached]))
+    attenuation.update(pulse=pulse, unreached=len(free_field) - len(reached))
+    # The window's check: the largest speed of the wave within WAVE_WINDOW, the frame's echoes included.
+    whole = np.array([float(wave[:, column[p["node"]]].max()) for p in reached])
+    attenuation["window"] = attenuation_fit(np.array([p["distance"] for p in reached]), whole)
     pictures["x_end"] = current_positions(sim)
     pictures["moved_end"] = np.linalg.norm(sim.state.body_dc.numpy(), axis=1)[tet_body]
     volumes = history["rubble"][-1]
-    chimney = chimneys(sim, sections, float(scene.mesh.hi[2]))
+    chimney = chimneys(centres, fixed, blocks["dc"][-1], sections, planes, top)
     return {
         "scene": scene.name,
         "blocks": int(sim.state.body_mass.shape[0]),
@@ -414,8 +621,11 @@ def report(scene, device: str, end_time: float | None) -> dict:
         "books": balance_error(start_energy, sim.energy(), in_play),
         "in_play": in_play,
         "_pictures": pictures,
+        "_blocks": blocks,
+        "_wave": {"time": t, "velocity": velocities, "settling": settling, "nodes": nodes},
         "waves": waves,
-        "attenuation_exponent": exponent,
+        "free_field": free_field,
+        "attenuation": attenuation,
         "sections": [
             {"name": s.name, "kind": s.kind, "volume": s.volume, "rubble": v, "chimney": c[0], "layers": c[1]}
             for s, v, c in zip(sections, volumes, chimney, strict=True)
@@ -428,7 +638,7 @@ def report(scene, device: str, end_time: float | None) -> dict:
 def format_side_by_side(results: list[dict]) -> list[str]:
     """The figures of the scenes in columns, one row per quantity."""
     names = [r["scene"].removeprefix("facility_") for r in results]
-    width = 24
+    width = 26
 
     def row(label: str, values: list[str]) -> str:
         return f"{label:<44}" + "".join(f"{v:>{width}}" for v in values)
@@ -475,10 +685,44 @@ def format_side_by_side(results: list[dict]) -> list[str]:
             ],
         )
     )
-    lines.append(row("attenuation: PPV ∝ d^-n straight down, n", [f"{r['attenuation_exponent']:.2f}" for r in results]))
+    lines.append(
+        f"attenuation: first-pulse PPV (for {results[0]['attenuation']['pulse'] * 1e3:.1f} ms + the travel time "
+        "after the first arrival, until the held frame's echo) at the free-field probes (not over an opening, reached "
+        "through rock alone; the settling under gravity taken out):"
+    )
+    lines.append(
+        row(
+            "  probes fitted (not reached)",
+            [f"{r['attenuation']['probes']} ({r['attenuation']['unreached']})" for r in results],
+        )
+    )
+    for lo_r, hi_r in itertools.pairwise((0.0, 3.0, 5.0, 7.0, 9.0, 11.0, 13.0)):
+        cells = []
+        for r in results:
+            ppv = [p["ppv"] for p in r["free_field"] if lo_r < p["distance"] <= hi_r and math.isfinite(p["ppv"])]
+            cells.append(f"{np.median(ppv):.3g} ({len(ppv)})" if ppv else "-")
+        lines.append(row(f"  r {lo_r:g}-{hi_r:g} m: median PPV [m/s] (probes)", cells))
+    lines.append(
+        row(
+            "  PPV ∝ r^-n: n ± s.e.",
+            [f"{r['attenuation']['n']:.2f} ± {r['attenuation']['n_se']:.2f}" for r in results],
+        )
+    )
+    lines.append(
+        row(
+            "  PPV ∝ exp(-α r)/r: α ± s.e. [1/m]",
+            [f"{r['attenuation']['alpha']:.3f} ± {r['attenuation']['alpha_se']:.3f}" for r in results],
+        )
+    )
+    lines.append(
+        row(
+            f"  check: largest speed within {WAVE_WINDOW * 1e3:.0f} ms, n; α",
+            [f"{r['attenuation']['window']['n']:.2f}; {r['attenuation']['window']['alpha']:.3f}" for r in results],
+        )
+    )
     lines.append(
         f"rubble in each opening section at the end [m³] (share of the section); chimney above it [m] "
-        f"(layers with a block moved > {CHIMNEY_DISPLACEMENT * 100:.0f} cm):"
+        f"(layers with a block sunk > {CHIMNEY_DROP * 100:.0f} cm below its layer's free-field blocks):"
     )
     for k, sec in enumerate(results[0]["sections"]):
         lines.append(
@@ -499,8 +743,8 @@ def format_side_by_side(results: list[dict]) -> list[str]:
             cells.append(f"{total:.2f} ({total / volume:.1%})")
         lines.append(row(f"  {label}", cells))
     lines.append(
-        "largest room over time: rubble [m³]; its roof blocks' mean / largest drop [cm] and mean sinking speed [m/s] "
-        "(free fall from rest: ½ g t², g t):"
+        "largest room over time: rubble [m³]; its roof bed's blocks' mean / largest drop [cm] and mean sinking speed "
+        "[m/s] (free fall from rest: ½ g t², g t):"
     )
     for k, when in enumerate(results[0]["history"]["time"]):
         if k == 0 or (k % REPORT_EVERY and k != len(results[0]["history"]["time"]) - 1):
@@ -516,7 +760,25 @@ def format_side_by_side(results: list[dict]) -> list[str]:
             mean, most, sink = h["roof"][k]
             cells.append(f"{h['rubble'][k][room]:.2f}; {mean * 100:.1f} / {most * 100:.1f}, {sink:.2f}")
         lines.append(row(f"  t = {when * 1e3:5.1f} ms ({0.5 * g * when**2 * 100:.1f} cm, {g * when:.2f} m/s)", cells))
-    lines.append("largest block displacement [cm] by 2 m layer above each section's roof, bottom up:")
+    lines.append("chimney over time [m] above the sections where one grew:")
+    grew = [
+        k
+        for k in range(len(results[0]["sections"]))
+        if any(any(c[k] > 0.0 for c in r["history"]["chimney"]) for r in results)
+    ]
+    for k, when in enumerate(results[0]["history"]["time"]):
+        if k == 0 or (k % REPORT_EVERY and k != len(results[0]["history"]["time"]) - 1):
+            continue
+        cells = []
+        for r in results:
+            h = r["history"]
+            cells.append(" / ".join(f"{h['chimney'][k][j]:.0f}" for j in grew) if k < len(h["time"]) else "")
+        lines.append(row(f"  t = {when * 1e3:5.1f} ms", cells))
+    lines.append("  (" + "; ".join(results[0]["sections"][j]["name"] for j in grew) + ")")
+    lines.append(
+        "largest sinking below the layer's free-field blocks [cm], layer by layer above each section's roof (the roof "
+        "bed, then bed by bed), bottom up:"
+    )
     for k, sec in enumerate(results[0]["sections"]):
         for r in results:
             layers = " ".join(f"{d * 100:.1f}" for d in r["sections"][k]["layers"])
@@ -544,7 +806,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.picture is not None:
         draw_sections(results, args.picture)
     if args.json is not None:
-        args.json.write_text(json.dumps([{k: v for k, v in r.items() if k != "_pictures"} for r in results], indent=1))
+        args.json.write_text(
+            json.dumps([{k: v for k, v in r.items() if not k.startswith("_")} for r in results], indent=1)
+        )
     return 0
 
 
