@@ -11,8 +11,13 @@ original cross-section (the rectangle its cut-out cells span, through the slab's
 0 at the start by construction (no centroid lies in the opening). The fill fraction is that solid volume over the
 tunnel's volume; a loose pile fills the tunnel once its solid fraction nears that of rubble (≈ 0.6), which is what
 "fills" means below. Per sample: time, rubble volume and fill fraction, the rubble's pieces (distinct rigid bodies or
-fragments among those tets), node splits, and the phase (deformable or rigid). At the end: the switch's RigidReport
-(the rigid step's gain over the deformable step), the energy balance and the wall time.
+fragments among those tets), node splits, and the phase (deformable or rigid). At the end: the peak particle speed
+(PPV) at the tunnel in the deformable phase against the charge's scaled-distance law (:func:`ppv_law`), the switch's
+RigidReport (the rigid step's gain over the deformable step), the energy balance and the wall time.
+
+PPV: each node's largest speed |v| over the deformable phase (sampled every step), in two bands of the rock 0.5-1 m
+from the tunnel (PPV_BANDS: its left wall, facing the charge, and its roof), each summarised by the median over its
+nodes, against the law at each node's distance R from the charge's centre (the borehole's axis, the second opening).
 """
 
 from __future__ import annotations
@@ -29,6 +34,47 @@ import numpy as np
 SCENE = Path(__file__).resolve().parent.parent / "scenes" / "limestone_tunnel.toml"
 RUBBLE_SOLID_FRACTION = 0.6
 """Solid fraction of a loose rubble pile: the fill fraction at which the tunnel counts as filled [-]."""
+CHARGE_MASS = 1000.0
+"""LDEC §4's charge: a tamped one-ton detonation [kg of TNT]."""
+PPV_K, PPV_BETA = 1.14, 1.6
+"""Square-root scaled-distance law PPV = K (R/sqrt(W))^-beta of a confined charge: K [m/s] for R in m and W in kg
+(Dowding 1985, Blast Vibration Monitoring and Control: 160 in/s × (D [ft]/sqrt(W [lb]))^-1.6, the upper bound of
+confined charges; 160 in/s × (3.281/sqrt(2.205))^-1.6 = 1.14 m/s)."""
+PPV_BANDS = (0.5, 1.0)
+"""Distances [m] into the rock from the tunnel's faces between which the PPV is taken."""
+
+
+def ppv_law(distance: np.ndarray | float, charge: float = CHARGE_MASS) -> np.ndarray | float:
+    """Peak particle speed [m/s] at ``distance`` R [m] from a tamped ``charge`` W [kg]: K (R/sqrt(W))^-beta."""
+    return PPV_K * (np.asarray(distance) / np.sqrt(charge)) ** -PPV_BETA
+
+
+def ppv_bands(ref: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> dict[str, np.ndarray]:
+    """Masks over the nodes' reference positions ``ref`` (n, 3) [m] of the rock PPV_BANDS from the tunnel [lo, hi]:
+    its left wall (x, the charge's side, beside the tunnel's height) and its roof (z, over the tunnel's width)."""
+    near, far = PPV_BANDS
+    tol = 1e-6  # nodes on the bands' limits (the grid's lines) count
+    x, z = ref[:, 0], ref[:, 2]
+    return {
+        "left wall": (x >= lo[0] - far - tol) & (x <= lo[0] - near + tol) & (z >= lo[2]) & (z <= hi[2]),
+        "roof": (z >= hi[2] + near - tol) & (z <= hi[2] + far + tol) & (x >= lo[0]) & (x <= hi[0]),
+    }
+
+
+def ppv_lines(peak: np.ndarray, ref: np.ndarray, lo: np.ndarray, hi: np.ndarray, charge_xz: np.ndarray) -> list[str]:
+    """Report lines of the nodes' peak speeds ``peak`` (n,) [m/s] in the PPV bands against :func:`ppv_law`."""
+    distance = np.hypot(ref[:, 0] - charge_xz[0], ref[:, 2] - charge_xz[1])
+    lines = []
+    bands = ppv_bands(ref, lo, hi)
+    for name, mask in (*bands.items(), ("both", np.logical_or(*bands.values()))):
+        r, v = distance[mask], peak[mask]
+        lines.append(
+            f"PPV {name} ({PPV_BANDS[0]}-{PPV_BANDS[1]} m into the rock, {mask.sum()} nodes, R {r.min():.2f}-"
+            f"{r.max():.2f} m): median {np.median(v):.2f} m/s (range {v.min():.2f}-{v.max():.2f}); the law "
+            f"{PPV_K} (R/sqrt({CHARGE_MASS:.0f} kg))^-{PPV_BETA} at the median R {np.median(r):.2f} m: "
+            f"{float(ppv_law(np.median(r))):.2f} m/s; median of PPV/law {np.median(v / ppv_law(r)):.3f}"
+        )
+    return lines
 
 
 def tunnel_section(scene) -> tuple[np.ndarray, np.ndarray]:
@@ -76,6 +122,8 @@ def report(
     ):
         say(line)
     rows = []
+    ref = sim.model.node_ref_q.numpy().astype(np.float64)
+    peak = np.zeros(len(ref))  # the nodes' largest speed in the deformable phase [m/s] (daughters of splits left out)
     e0 = sim.energy()
     in_play = e0.in_play
     wall = time.perf_counter()
@@ -96,8 +144,17 @@ def report(
             critical = rigid_step_after_switch(sim.model, sim.state)
             sim.set_time_step(scene.run.safety_factor * critical.value, critical)
             taken = True
-        sim.advance(max(1, min(round(period / sim.model.dt), round((end - sim.time) / sim.model.dt))))
+        todo = max(1, min(round(period / sim.model.dt), round((end - sim.time) / sim.model.dt)))
+        while todo > 0 and not sim.rigid:  # step by step while deformable, for the PPV
+            sim.advance(1)
+            todo -= 1
+            if not sim.rigid:  # the switch step's speeds are the blocks' (the same motion, counted once before)
+                np.maximum(peak, np.linalg.norm(sim.state.node_qd.numpy()[: len(ref)], axis=1), out=peak)
+        if todo > 0:
+            sim.advance(todo)
     wall = time.perf_counter() - wall
+    for line in ppv_lines(peak, ref, lo, hi, np.asarray(scene.mesh.openings[1].center)):
+        say(line)
     if sim.rigid_report is not None:
         say(sim.rigid_report.format())
     error = balance_error(e0, sim.energy(), in_play)

@@ -13,12 +13,17 @@ Oracles:
   device's float32 node springs and positions), and at LDEC's own tet size (10 cm: [run] resolution 3) it must be
   at least 10× the deformable step the builder takes (issue 11: "the rigid step is at least 10× the deformable step
   on the tunnel scene"). The rigid step hardly depends on the mesh (mass and springs both scale with the block, not
-  the tets), the deformable one is ∝ h: at the scene's own CPU resolution 1 (30 cm cells) the gain is a third of it.
+  the tets), the deformable one is ∝ h: at the scene's own CPU resolution 1 (30 cm cells) the gain is a third of it;
+- the scene's deformable phase: the wave's speed across the bedding (courses and joints in series), the charge's peak
+  particle speed at the tunnel against the confined-charge scaled-distance law it is calibrated on (within the law's
+  scatter), and the books across the node splitting and the switch.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +38,14 @@ from warpdem.scene_build import finalize_scene, scene_builder
 from warpdem.simulation import Simulation
 
 SCENE = Path(__file__).resolve().parent.parent / "scenes" / "limestone_tunnel.toml"
+# The tunnel's section, the PPV bands and the charge's PPV law as the scene's report measures them
+# (benchmarks/limestone_tunnel.py, not an installed module).
+_spec = importlib.util.spec_from_file_location(
+    "limestone_tunnel", Path(__file__).resolve().parent.parent / "benchmarks" / "limestone_tunnel.py"
+)
+tunnel = importlib.util.module_from_spec(_spec)
+sys.modules[_spec.name] = tunnel
+_spec.loader.exec_module(tunnel)
 F32_EPS = float(np.finfo(np.float32).eps)
 STEP_RTOL = 64.0 * F32_EPS  # float32 node springs (sums of a few area shares) and positions, in an eigenvalue
 GAIN = 10.0
@@ -144,42 +157,42 @@ def test_limestone_tunnel_rigid_step_is_ten_times_the_deformable(device):
 
 
 PROBE_DEPTHS = (1.3, 4.9)
-"""Depths below the charge's borehole [m] of the two bedding planes the wave's arrival is timed at."""
-EARLY_SWITCH = 4.5e-3
-"""Switch time [s] of the short run: past the front's arrival at the deeper probe, before it reaches the tunnel."""
-SHORT_DECAY = 0.5e-3
-"""Decay time [s] of the short run's charge: spent (p < 1e-3 of its peak) by the switch. A pressure load still acting
-on rigid blocks is not yet booked right (the scene's own 2 ms pulse at a 4.5 ms switch: books off by 9.8e-2; at its
-10 ms switch, where 0.7 % of the peak is left, 1e-5), which is not this test's subject."""
+"""Depths below the charge's cavity [m] of the two bedding planes the wave's arrival is timed at."""
+ARRIVAL_WINDOW = 4.5e-3
+"""End [s] of the probes' record: past the front's arrival at the deeper probe, before reflections from the tunnel and
+the surface come back to the column (a later, larger peak would move the half level)."""
+PPV_SCATTER = 2.0
+"""Measured PPV scatters about a site's scaled-distance fit by up to a factor of about 2 (Dowding 1985): the median
+PPV/law at the tunnel must lie within [1/2, 2]."""
 
 
-def test_limestone_tunnel_wave_speed_across_the_bedding_and_books(device):
-    """The scene to 4.5 ms with a shorter pulse (rigid blocks from then on, for 1 ms): the charge's wave runs down the
-    column of courses under the borehole at the speed of the courses in series with their bedding joints,
+def test_limestone_tunnel_wave_speed_ppv_and_books(device):
+    """The scene as shipped to its switch at 10 ms, then rigid blocks for 1 ms.
+    Wave speed: the charge's wave runs down the column of courses under the cavity at the speed of the courses in
+    series with their bedding joints,
         1/M_eff = 1/M + 1/(k_eff s),  c = sqrt(M_eff/ρ),  M = E (1 − ν) / ((1 + ν)(1 − 2ν))
     (M: the P-wave modulus, a front wide in x between the slab's roller faces y±; s = 0.3 m per course; k_eff [Pa/m]
     the bedding's springs per unit area in the model: Σ node_contact_stiffness of the nodes on a bedding plane, both
     sides, over its area: a node's spring sums all its boundary faces, so the slab's y faces and the head joints add
-    to k_n there). The front is timed where the vertical velocity first reaches half its own peak at two bedding
-    planes 3.6 m apart (about 2.7 ms of travel): the pulse changes shape on the way (a discrete chain of one-cell
-    courses disperses it; the cylindrical front spreads), which moves its half level by up to one course transit
-    (0.22 ms) at each probe, ±16 % of the travel time, so the measured speed lies within [0.8, 1.2] × c. Intact
-    limestone (sqrt(M/ρ) = 4.3 km/s, 3.2 c) and joints of the nominal k_n alone (0.7 c) lie outside it.
-    The books close to 1e-3 of the energy in play across the node splitting and the switch."""
+    to k_n there). The front is timed where the vertical velocity first reaches half its own peak (within
+    ARRIVAL_WINDOW) at two bedding planes 3.6 m apart (about 2.7 ms of travel): the pulse changes shape on the way
+    (a discrete chain of one-cell courses disperses it; the cylindrical front spreads), which moves its half level by
+    up to one course transit (0.22 ms) at each probe, ±16 % of the travel time, so the measured speed lies within
+    [0.8, 1.2] × c. Intact limestone (sqrt(M/ρ) = 4.3 km/s, 3.2 c) and joints of the nominal k_n alone (0.7 c) lie
+    outside it.
+    PPV: the charge is calibrated on the peak particle speed at the tunnel (the scene's header): the median over the
+    rock 0.5-1 m from the tunnel's left wall and roof of each node's PPV / the confined-charge law K (R/sqrt(W))^-β at
+    its distance R from the charge (benchmarks/limestone_tunnel.py's bands and law) lies within the law's scatter,
+    PPV_SCATTER (the 0.4 m borehole at the same 300 MPa gave 0.45).
+    Books: they close to 1e-3 of the energy in play across the node splitting and the switch (the charge's pulse,
+    0.7 % of its peak left at the switch, still acts on the rigid blocks)."""
     from warpdem.rigid import rigid_step_after_switch
     from warpdem.scene_build import build_scene
     from warpdem.simulation import balance_error
 
     scene = load_scene(SCENE)
     charge = scene.loads[0]
-    pulse = charge.history.model_copy(update={"decay_time": SHORT_DECAY})
-    short = scene.model_copy(
-        update={
-            "rigid": scene.rigid.model_copy(update={"switch_time": EARLY_SWITCH}),
-            "loads": [charge.model_copy(update={"history": pulse})],
-        }
-    )
-    model, state = build_scene(short, device)
+    model, state = build_scene(scene, device)
     sim = Simulation(model, state)
     hole = charge.region.cylinder
     cx, bottom = hole.center[0], hole.center[2] - scene.mesh.openings[1].radius
@@ -189,15 +202,21 @@ def test_limestone_tunnel_wave_speed_across_the_bedding_and_books(device):
     planes = [course * round((bottom - d) / course) for d in PROBE_DEPTHS]
     probes = [np.flatnonzero((np.abs(ref[:, 0] - column) < 1e-4) & (np.abs(ref[:, 2] - z) < 1e-4)) for z in planes]
     assert all(len(p) for p in probes)
+    peak = np.zeros(len(ref))  # each node's largest speed while deformable [m/s]
     e0 = sim.energy()
     in_play = e0.in_play
     times, vz = [], []
+    steps = 0
     while not sim.rigid:
         sim.advance(1)
+        steps += 1
         v = sim.state.node_qd.numpy()
-        times.append(sim.time)
-        vz.append([float(v[p, 2].mean()) for p in probes])
-        in_play = max(in_play, sim.energy().in_play) if len(times) % 50 == 0 else in_play
+        if not sim.rigid:  # the switch step's speeds are the blocks' (benchmarks/limestone_tunnel.py)
+            np.maximum(peak, np.linalg.norm(v[: len(ref)], axis=1), out=peak)
+        if sim.time <= ARRIVAL_WINDOW:
+            times.append(sim.time)
+            vz.append([float(v[p, 2].mean()) for p in probes])
+        in_play = max(in_play, sim.energy().in_play) if steps % 50 == 0 else in_play
     assert int(sim.state.node_splits_total.numpy()[0]) > 0  # the tunnel's rock cracked before the switch
     critical = rigid_step_after_switch(sim.model, sim.state)
     sim.set_time_step(scene.run.safety_factor * critical.value, critical)
@@ -219,3 +238,10 @@ def test_limestone_tunnel_wave_speed_across_the_bedding_and_books(device):
     c = math.sqrt(1.0 / (1.0 / m_intact + 1.0 / (k_eff * course)) / rock.density)
     assert 0.8 * c <= measured <= 1.2 * c, (measured, c, k_eff)
     assert measured < 0.5 * math.sqrt(m_intact / rock.density)
+
+    lo, hi = tunnel.tunnel_section(scene)
+    bands = tunnel.ppv_bands(ref.astype(np.float64), lo, hi)
+    rock_near = np.logical_or(*bands.values())
+    distance = np.hypot(ref[rock_near, 0] - cx, ref[rock_near, 2] - hole.center[2])
+    ratio = float(np.median(peak[rock_near] / tunnel.ppv_law(distance)))
+    assert 1.0 / PPV_SCATTER <= ratio <= PPV_SCATTER, ratio
