@@ -56,6 +56,8 @@ def test_every_scene_kernel_compiles_for_cuda(tmp_path):
         "tets",
         "joints",
         "fem_contact",
+        "fem_surface",
+        "sphere_face",  # the scenes with spheres and tets
         "loads",
         "compaction",
         "guard",

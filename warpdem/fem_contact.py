@@ -377,13 +377,13 @@ class FemContact:
         self.normal_body = wp.full(max(model.node_capacity, 1), -1, dtype=int, device=d)
         self.rest_normal = wp.zeros(max(model.node_capacity, 1), dtype=wp.vec3, device=d)
         # Where each node found its target in its candidate list at the last evaluation (a hint only: a stale one
-        # costs a search, never a different answer; kernels/fem_contact.py kept_face_holds).
+        # costs a search, never a different answer; kernels/node_face_target.py kept_face_holds).
         self.target_slot = wp.full(max(model.node_capacity, 1), -1, dtype=int, device=d)
         self.rigid_normals(True)
 
     def rigid_normals(self, on: bool) -> None:
         """Turn the nodes of rigid blocks by their bodies' pose instead of walking their stars each evaluation
-        (kernels/fem_contact.py ``rest_normals_kernel``; ``on`` False: every node walks its star, the general path
+        (kernels/fem_surface.py ``rest_normals_kernel``; ``on`` False: every node walks its star, the general path
         the fast one is tested against). A no-op before the blocks turned rigid. Launches only; the arrays keep
         their addresses, so a captured graph sees the choice."""
         m, s, d = self.model, self.state, self.model.device
@@ -691,7 +691,7 @@ def hold_contact_stiffness(model: Model, state: State) -> None:
 def contact_stiffness_in_use(model: Model, state: State) -> np.ndarray:
     """The penalty stiffness each live node's contact springs use now [N/m], shape (node_count,), float64: the
     stiffness per unit mass it holds times its mass where it holds one (since a split or conversion pass, until it
-    touches nothing), else the lumped stiffness of its faces (kernels/fem_contact.py ``held_stiffness``). Reads back."""
+    touches nothing), else the lumped stiffness of its faces (kernels/fem_surface.py ``held_stiffness``). Reads back."""
     n = int(state.node_count.numpy()[0])
     lumped = model.node_contact_stiffness.numpy()[:n].astype(np.float64)
     hold = state.node_contact_hold.numpy()[:n]

@@ -392,7 +392,7 @@ def regrow_nodes(model: Model, state: State, capacity: int) -> tuple[Model, Stat
 def sort_joint_elements(model: Model, state: State) -> None:
     """Re-sort the joint elements by their node pair (min(a, b), max(a, b)) in place (a stable radix sort on the
     device, then every joint array gathered in that order), after a split pass handed some over: the contact stage
-    finds a pair's element by binary search (kernels/fem_contact.py ``find_joint``). Launches only."""
+    finds a pair's element by binary search (kernels/fem_surface.py ``find_joint``). Launches only."""
     n = model.joint_capacity
     if n == 0:
         return
