@@ -1,7 +1,7 @@
 """Conversion benchmark (issue 10 §8): ``python benchmarks/conversion.py [--tets 1000000] [--fraction 0.01]
 [--steps 50] [--run-tets 10000] [--run-steps 200] [--intervals 0 1 10] [--repeat 3] [--device cpu]``.
 
-The same as ``python -m warpdem bench conversion`` (the cases are described in warpdem/bench.py).
+The same as ``python -m warpdem bench conversion`` (the cases are described in the package warpdem.bench).
 """
 
 from __future__ import annotations

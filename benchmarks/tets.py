@@ -1,7 +1,7 @@
 """Tetrahedra benchmark (issue "Cosserat point tetrahedra" §9): ``python benchmarks/tets.py [--sizes 200000 1000000]
 [--steps 100] [--repeat 3] [--device cpu]``.
 
-The same as ``python -m warpdem bench tets`` (the case is described in warpdem/bench.py).
+The same as ``python -m warpdem bench tets`` (the case is described in warpdem/bench/tets.py).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Benchmark cases (warpdem/bench.py): the settling cases ship with the package, so ``python -m warpdem bench`` runs
+"""Benchmark cases (warpdem.bench): the settling cases ship with the package, so ``python -m warpdem bench`` runs
 after a plain ``pip install .`` from any folder.
 
 Oracles: the shipped centres of each case have the count and the mean height recorded with the case when it was made
