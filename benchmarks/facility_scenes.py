@@ -495,7 +495,7 @@ def settling_velocities(
 def report(scene, device: str, end_time: float | None) -> dict:
     """Runs one scene and measures what the module docstring lists; returns the figures as a dict (entries whose
     name starts with an underscore hold arrays: the pictures' and the blocks' history, left out of the JSON)."""
-    from warpdem.simulation import balance_error
+    from warpdem.energy import balance_error
 
     start = time.perf_counter()
     sim = build_simulation(scene, device)

@@ -97,9 +97,10 @@ def report(
 ) -> list[str]:
     """Run the scene to ``end_time`` (default its own), sampling ``samples`` times; each report line goes to ``emit``
     as it is made (a long run shows its progress) and all are returned."""
+    from warpdem.energy import balance_error
     from warpdem.rigid import rigid_step_after_switch
     from warpdem.scene_build import build_scene
-    from warpdem.simulation import Simulation, balance_error
+    from warpdem.simulation import Simulation
 
     model, state = build_scene(scene, device)
     sim = Simulation(model, state)

@@ -260,7 +260,7 @@ def eval_tet_forces_kernel(
     wp.atomic_add(node_f, n[3], f3)
     if q > 0.0:
         # Verlet does the viscous forces' work as the trapezoid ½ dt f_{n+1}·(v_{n+1/2} + v_{n+3/2}), as every force's
-        # (warpdem.simulation.EnergyBalance). The half behind, ½ q (-J̇) V₀ dt ≥ 0 at v_{n+1/2}, is booked here, on the
+        # (warpdem.energy.EnergyBalance). The half behind, ½ q (-J̇) V₀ dt ≥ 0 at v_{n+1/2}, is booked here, on the
         # tet's first node (only the sum over nodes is read: one float64 update instead of four); the forces
         # q V₀ A_i go to node_f_viscous, whose half ahead the integrator books once v_{n+3/2} is known. A tet that
         # stops carrying forces between steps (converted) then leaves nothing booked that Verlet did not do.

@@ -186,9 +186,9 @@ def test_limestone_tunnel_wave_speed_ppv_and_books(device):
     PPV_SCATTER (the 0.4 m borehole at the same 300 MPa gave 0.45).
     Books: they close to 1e-3 of the energy in play across the node splitting and the switch (the charge's pulse,
     0.7 % of its peak left at the switch, still acts on the rigid blocks)."""
+    from warpdem.energy import balance_error
     from warpdem.rigid import rigid_step_after_switch
     from warpdem.scene_build import build_scene
-    from warpdem.simulation import balance_error
 
     scene = load_scene(SCENE)
     charge = scene.loads[0]

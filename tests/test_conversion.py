@@ -30,13 +30,14 @@ from warpdem.conversion import (
     regrow_bonds,
     regrow_particles,
 )
+from warpdem.energy import balance_error
 from warpdem.fem_contact import contact_stiffness_in_use
 from warpdem.fracture import FractureProps, attach_fracture
 from warpdem.lattice import edge_pairs
 from warpdem.mesh import TET_FACES, box_mesh
 from warpdem.model import NEIGHBOR_FIELDS
 from warpdem.multisphere import mesh_lattice_factors
-from warpdem.simulation import Simulation, balance_error
+from warpdem.simulation import Simulation
 from warpdem.tets import TetProps, eval_tet_stresses, set_node_displacements
 
 YOUNG = 1.0e9  # [Pa]
@@ -440,7 +441,7 @@ def test_restart_continues_bit_for_bit_across_a_conversion(device, tmp_path):
 
 
 def worst_balance_error(sim: Simulation, chunks: int, steps: int) -> float:
-    """The largest |balance error| (warpdem.simulation.balance_error) over ``chunks`` advances of ``steps`` [-]."""
+    """The largest |balance error| (warpdem.energy.balance_error) over ``chunks`` advances of ``steps`` [-]."""
     start = sim.energy()
     in_play = start.in_play
     worst = 0.0

@@ -23,8 +23,9 @@ import numpy as np
 import pytest
 
 from warpdem.builder import InteractionProps, ModelBuilder
+from warpdem.energy import EnergyBalance
 from warpdem.mesh import box_mesh
-from warpdem.simulation import EnergyBalance, Simulation
+from warpdem.simulation import Simulation
 from warpdem.tets import TetProps
 
 YOUNG = 1.0e8  # [Pa] a soft rock: a long time step

@@ -42,9 +42,10 @@ from test_conversion import (
 
 from warpdem.conversion import regrow_bonds
 from warpdem.coupling import regrow_coupling
+from warpdem.energy import balance_error
 from warpdem.mesh import TET_FACES
 from warpdem.multisphere import mesh_lattice_factors, sub_lattice
-from warpdem.simulation import Simulation, balance_error
+from warpdem.simulation import Simulation
 
 SPT = 4
 

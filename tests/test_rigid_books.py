@@ -8,7 +8,7 @@ fixed pose), and likewise ½ M V² by ½ dt F·V̄. With T = Σ R(q) r0_i × f_i
 ½ dt f_n·(v_{n−1/2} + v_{n+1/2}) of every force with both halves at q_n, the pose f_n was made at, and a shadow term
 dt²/8 (|F|²/M + T·I⁻¹T) (warpdem.rigid.body_energy). The free rotor between the kicks keeps |L| and, about a
 principal axis of the body, ½ L·ω exactly. So where every force books its work that way, kinetic − shadow plus the
-books is constant to rounding: the balance of warpdem.simulation.EnergyBalance closes.
+books is constant to rounding: the balance of warpdem.energy.EnergyBalance closes.
 
 Before the half ahead of each evaluation was booked at the next pose, V + ω(q_{n+1}, L_{n+1/2}) × R(q_{n+1}) r0: an
 error of relative size ω dt per step in the work of any force with a torque (measured, in the cases below: 5.6e-4

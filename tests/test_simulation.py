@@ -84,7 +84,7 @@ ENERGY_FRAMES = 20
 
 # Energy tolerance, relative to the initial total (≈ the ball's kinetic energy, 5.6 J). Contacts and bonds book their
 # work as velocity Verlet does it, the energy the tangential springs gain as k_t follows the overlap is its own line,
-# and the balance carries Verlet's shadow term (warpdem.simulation.EnergyBalance), so what is left at any dt is
+# and the balance carries Verlet's shadow term (warpdem.energy.EnergyBalance), so what is left at any dt is
 # float32 rounding: a random walk of ROUNDING_PER_STEP ε₃₂ of the energy per step (measured on spheres in
 # test_energy_balance.py). Before the exact books: 2.35 % with friction, and without it 0.55 % at safety factor 0.2
 # and 0.29 % at 0.1 (first order in dt); now 1e-5 to 2e-5.

@@ -38,11 +38,12 @@ import pytest
 from pxr import Usd, UsdGeom
 
 from warpdem.contact import wall_forces
+from warpdem.energy import EnergyBalance, balance_error
 from warpdem.loads import load_forces
 from warpdem.runner import RunOptions, run_scene
 from warpdem.scene import parse_scene
 from warpdem.scene_build import finalize_scene, scene_builder
-from warpdem.simulation import EnergyBalance, Simulation, balance_error
+from warpdem.simulation import Simulation
 from warpdem.timeseries import COUNT_COLUMNS, FRACTURE_COLUMNS, energy_lines, energy_signs, read_series, unit
 
 SUM_RTOL = 1e-12  # a sum of ~15 float64 terms of one magnitude

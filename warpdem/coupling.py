@@ -22,7 +22,7 @@ the sphere: the coupling conserves linear and angular momentum. A rigid motion o
 
 Energy. U is quadratic in the positions (g is linear in x_p and x_a, N_a fixed), so the coupling is booked as a
 potential, as the tets' strain energy is: :func:`coupling_energy` is the ``coupling_elastic`` line (in ``in_play``),
-and nothing is booked per step. Velocity Verlet with the shadow term (warpdem.simulation.EnergyBalance) conserves
+and nothing is booked per step. Velocity Verlet with the shadow term (warpdem.energy.EnergyBalance) conserves
 Σ ½ m v_{n-1/2}·v_{n+1/2} + U(x_n) exactly for a quadratic U: with v_{n+1/2} = v_{n-1/2} + dt M⁻¹ f_n,
 x_{n+1} = x_n + dt v_{n+1/2} and f = -K x, the change over a step is ½ dt v_{n+1/2}·(f_n + f_{n+1}) + U(x_{n+1})
 - U(x_n) = 0 term by term. The coupling therefore closes the books with no dissipation line, to rounding where the

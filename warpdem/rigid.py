@@ -492,7 +492,7 @@ def angular_velocities(state: State) -> np.ndarray:
 
 def body_energy(model: Model, state: State) -> tuple[float, float]:
     """Kinetic energy of the bodies ½ M v² + ½ L·ω, and their Verlet shadow term dt²/8 (|F + M g|²/M + T·I⁻¹T)
-    (as warpdem.simulation.EnergyBalance has it for spheres and nodes: kinetic − shadow is the leapfrog kinetic energy
+    (as warpdem.energy.EnergyBalance has it for spheres and nodes: kinetic − shadow is the leapfrog kinetic energy
     the translation conserves), held bodies excluded [J] (reads back). On roller constraints, of the allowed motion:
     F + M g and T projected as the kicks project them, ω and I⁻¹ of the allowed rotation."""
     if not has_bodies(state):

@@ -17,13 +17,14 @@ import warp as wp
 
 from . import __version__
 from .checkpoint import checkpoint_name
+from .energy import EnergyBalance, balance_error
 from .guard import UnstableRunError
 from .limits import MAX_STEPS
 from .restart import restore_checkpoint, save_checkpoint
 from .rigid import rigid_step_after_switch, rigid_time_step
 from .scene import Scene, SceneError
 from .scene_build import finalize_scene, scene_builder, start_as_spheres
-from .simulation import EnergyBalance, Simulation, balance_error
+from .simulation import Simulation
 
 
 class NothingToDo(Exception):

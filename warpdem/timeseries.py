@@ -9,7 +9,7 @@ the same timeline, so a restarted run leaves the rows of the uninterrupted one.
 Columns (units in :data:`UNITS` and the HDF5 attributes):
 
 - ``frame`` [-], ``time`` [s];
-- ``energy_<line>`` [J] for every field of :class:`warpdem.simulation.EnergyBalance` (taken from the dataclass, so a
+- ``energy_<line>`` [J] for every field of :class:`warpdem.energy.EnergyBalance` (taken from the dataclass, so a
   line added there appears here), ``energy_total`` [J] and ``energy_error`` [-] (:func:`balance_error` against
   the first frame of the timeline, relative to the largest energy in play so far: the number the summary prints);
 - counts [-]: ``spheres``, ``contacts`` (touching sphere pairs), ``bonds_intact``, ``bonds_broken``, ``nodes``,
@@ -34,8 +34,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
+    from .energy import EnergyBalance
     from .model import Model, State
-    from .simulation import EnergyBalance, Simulation
+    from .simulation import Simulation
 
 COUNT_COLUMNS = {
     "spheres": "live spheres",
@@ -84,8 +85,8 @@ def fracture_values(model: Model, state: State) -> dict[str, int | float]:
 
 
 def energy_lines() -> list[str]:
-    """The fields of :class:`~warpdem.simulation.EnergyBalance`, in declaration order."""
-    from .simulation import EnergyBalance
+    """The fields of :class:`~warpdem.energy.EnergyBalance`, in declaration order."""
+    from .energy import EnergyBalance
 
     return [f.name for f in dataclasses.fields(EnergyBalance)]
 
@@ -93,7 +94,7 @@ def energy_lines() -> list[str]:
 def energy_signs() -> dict[str, float]:
     """Sign of each energy line in the balance's ``total``: +1 for energy held or dissipated, -1 for work put in
     (read off ``EnergyBalance.total`` itself, so a new line is classified without a list here)."""
-    from .simulation import EnergyBalance
+    from .energy import EnergyBalance
 
     names = energy_lines()
     return {n: EnergyBalance(**{m: float(m == n) for m in names}).total for n in names}
@@ -155,11 +156,11 @@ def frame_values(
     Args:
         sim: the simulation. frame: output frame number. energy: its energy balance now (``sim.energy()``).
         start: the balance at the first frame of the timeline (the error's reference). in_play: the largest
-            :attr:`~warpdem.simulation.EnergyBalance.in_play` of the timeline so far [J] (the error's scale).
+            :attr:`~warpdem.energy.EnergyBalance.in_play` of the timeline so far [J] (the error's scale).
     """
     from .contact import wall_forces
+    from .energy import balance_error
     from .loads import load_forces
-    from .simulation import balance_error
 
     m, s = sim.model, sim.state
     row: dict[str, float] = {"frame": frame, "time": sim.time}
@@ -237,7 +238,7 @@ class TimeSeries:
                     for r in np.flatnonzero(keep)
                 ]
                 if self.rows and old["frame"][keep][0] == 0:
-                    from .simulation import EnergyBalance
+                    from .energy import EnergyBalance
 
                     kept = [
                         EnergyBalance(
