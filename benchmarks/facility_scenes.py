@@ -461,7 +461,7 @@ def draw_sections(results: list[dict], path: Path) -> None:
 def build_simulation(scene, device: str):
     """The scene built as ``python -m warpdem`` builds it (:func:`warpdem.scene_build.build_scene`), with the rigid
     blocks' own step where ``dt = "auto"`` (as the runner sets it), as a :class:`warpdem.simulation.Simulation`."""
-    from warpdem.rigid import rigid_time_step
+    from warpdem.rigid_step import rigid_time_step
     from warpdem.scene_build import build_scene
     from warpdem.simulation import Simulation
 

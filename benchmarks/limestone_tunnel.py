@@ -4,7 +4,7 @@
 The scene is built as ``warpdem run`` builds it (:func:`warpdem.scene_build.build_scene`) and stepped in Python,
 sampling between steps (the fracture passes and the switch to rigid blocks run inside ``Simulation.advance``). At the
 first sample after the switch the run takes the rigid blocks' step, ``safety_factor`` × the critical step after the
-switch (warpdem.rigid.rigid_step_after_switch), as ``warpdem run`` does at its first frame after it.
+switch (warpdem.rigid_step.rigid_step_after_switch), as ``warpdem run`` does at its first frame after it.
 
 Rubble: the volume of the tets (and of the spheres, were any converted) whose centroid lies inside the tunnel's
 original cross-section (the rectangle its cut-out cells span, through the slab's depth), at the current positions;
@@ -98,7 +98,7 @@ def report(
     """Run the scene to ``end_time`` (default its own), sampling ``samples`` times; each report line goes to ``emit``
     as it is made (a long run shows its progress) and all are returned."""
     from warpdem.energy import balance_error
-    from warpdem.rigid import rigid_step_after_switch
+    from warpdem.rigid_step import rigid_step_after_switch
     from warpdem.scene_build import build_scene
     from warpdem.simulation import Simulation
 

@@ -9,7 +9,7 @@ Oracles:
 - the rigid step on the scene's joints: each free block is a box of mass M = ρ L W H and principal moments
   M (b² + c²)/12, on node springs k_n/2 × the nodes' area shares of its surface (k_n the scene's normal stiffness,
   the same on every face); ω² = 2 λ_max(M⁻¹K) with K = Σ k_i J_iᵀ J_i computed here in float64 from the box's
-  surface triangles, dt = 2/ω (sqrt(1 + ζ²) − ζ). warpdem.rigid.rigid_critical_step must give it to STEP_RTOL (the
+  surface triangles, dt = 2/ω (sqrt(1 + ζ²) − ζ). warpdem.rigid_step.rigid_critical_step must give it to STEP_RTOL (the
   device's float32 node springs and positions), and at LDEC's own tet size (10 cm: [run] resolution 3) it must be
   at least 10× the deformable step the builder takes (issue 11: "the rigid step is at least 10× the deformable step
   on the tunnel scene"). The rigid step hardly depends on the mesh (mass and springs both scale with the block, not
@@ -32,7 +32,8 @@ import pytest
 from warpdem.bricks import brick_cells, mesh_bricks
 from warpdem.geology import Room
 from warpdem.mesh import TET_FACES
-from warpdem.rigid import box_inertia, contact_damping_ratio
+from warpdem.rigid import box_inertia
+from warpdem.rigid_step import contact_damping_ratio
 from warpdem.scene import load_scene
 from warpdem.scene_build import finalize_scene, scene_builder
 from warpdem.simulation import Simulation
@@ -187,7 +188,7 @@ def test_limestone_tunnel_wave_speed_ppv_and_books(device):
     Books: they close to 1e-3 of the energy in play across the node splitting and the switch (the charge's pulse,
     0.7 % of its peak left at the switch, still acts on the rigid blocks)."""
     from warpdem.energy import balance_error
-    from warpdem.rigid import rigid_step_after_switch
+    from warpdem.rigid_step import rigid_step_after_switch
     from warpdem.scene_build import build_scene
 
     scene = load_scene(SCENE)

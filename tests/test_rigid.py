@@ -669,7 +669,7 @@ def test_a_change_of_time_step_keeps_the_books_closed(device):
     by (dt_new/dt_old)² at the same forces (float64 sums of the same float32 forces: 1e-12), and that is what the
     ``step_change`` line books, so the total does not move (SWITCH_RTOL); afterwards the books close at the new step
     as Verlet closes them (BOOKS_RTOL)."""
-    from warpdem.rigid import rigid_step_after_switch
+    from warpdem.rigid_step import rigid_step_after_switch
 
     model, state = jointed_pair(device)
     sim = Simulation(model, state)
@@ -756,7 +756,7 @@ def test_a_later_switch_takes_the_rigid_step_on_the_frame_grid(switch_run):
     """With dt = "auto" the run takes the rigid step at the switch itself: the rest of the frame the switch falls in
     (steps s..E of the old step, s = ⌈t_switch / dt_old⌉, E = 6 n_old) as m = ⌈(E − s) dt_old / dt_new⌉ bridge steps of
     (E − s) dt_old / m ≤ dt_new, then period / n from that frame's end on, n the fewest steps per frame within safety ×
-    the critical step after the switch (warpdem.rigid.rigid_step_after_switch); the run says so. The step count is
+    the critical step after the switch (warpdem.rigid_step.rigid_step_after_switch); the run says so. The step count is
     that arithmetic exactly; frame k still lands on k / rate (the device clock's float64 sum of steps: 1e-12 of the
     end time); the changes book their shadow term (``step_change``) and the balance closes across them (no bulk
     viscosity: the books of the deformable phase close as Verlet closes them); the column slides on its floor with
@@ -885,7 +885,7 @@ def test_an_explicit_time_step_is_kept_across_the_switch(tmp_path):
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# The step of a mixed model after a switch (warpdem.rigid.deformable_critical_step)
+# The step of a mixed model after a switch (warpdem.rigid_step.deformable_critical_step)
 
 STEP_RTOL = 16.0 * F32_EPS
 """The step of what is left from the model's float32 numbers (material table, reference positions, node masses and
@@ -935,7 +935,7 @@ def test_step_after_a_partial_switch_is_that_of_what_is_left(device, dashpots, w
     does the rigid half change (its nodes on the shared face follow the body). The whole model's step (set by the
     stiff half) no longer bounds the run. Both sides are float64 numpy sums of the same numbers, float32 on the
     model's side (STEP_RTOL)."""
-    from warpdem.rigid import (
+    from warpdem.rigid_step import (
         contact_damping_ratio,
         deformable_critical_step,
         rigid_critical_step,
@@ -978,7 +978,7 @@ def test_spheres_left_after_a_switch_take_their_own_step(device, normal):
     column's stiff tets); the step after the switch is the least of theirs and the body's. Both from the same
     numbers, float32 on the model's side (E, ν recovered from the material pair table, masses and radii):
     STEP_RTOL."""
-    from warpdem.rigid import (
+    from warpdem.rigid_step import (
         contact_damping_ratio,
         deformable_critical_step,
         rigid_critical_step,
@@ -1015,7 +1015,7 @@ def test_converted_spheres_left_after_a_switch_keep_their_lattice_step(device):
     from test_conversion import ENERGY_BOUND, bar, worst_balance_error
 
     from warpdem.conversion import conversion_critical_step
-    from warpdem.rigid import rigid_step_after_switch, sphere_critical_step
+    from warpdem.rigid_step import rigid_step_after_switch, sphere_critical_step
 
     model, state, _, _ = bar(device, driver_speed=2.0)
     sim = Simulation(model, state)

@@ -152,8 +152,8 @@ class Model:
             ``rigid_check_interval`` steps; 0: off.
         rigid_check_interval: steps between two checks of ``rigid_energy_fraction``.
         deformable_critical_dt: the builder's critical step of the deformable model where a rigid-from-start run took
-            the rigid blocks' step instead (warpdem.rigid.rigid_time_step) [s]; 0 otherwise (``critical_dt`` is it; not
-            nan, which a checkpoint's attributes could not compare equal).
+            the rigid blocks' step instead (warpdem.rigid_step.rigid_time_step) [s]; 0 otherwise (``critical_dt`` is
+            it; not nan, which a checkpoint's attributes could not compare equal).
         tet_may_rigid: 1 where a tet may turn rigid (the scene's region or materials), else 0, shape
             (tet_capacity,), int32; None: every tet.
     """

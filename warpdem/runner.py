@@ -21,7 +21,7 @@ from .energy import EnergyBalance, balance_error
 from .guard import UnstableRunError
 from .limits import MAX_STEPS
 from .restart import restore_checkpoint, save_checkpoint
-from .rigid import rigid_step_after_switch, rigid_time_step
+from .rigid_step import rigid_step_after_switch, rigid_time_step
 from .scene import Scene, SceneError
 from .scene_build import finalize_scene, scene_builder, start_as_spheres
 from .simulation import Simulation
@@ -327,8 +327,8 @@ def take_rigid_step(
     ``sim.step_count``, inside frame ``frame`` or at its end, ``end``: the step that frame ends at on ``grid``).
 
     From the next frame boundary on, the step is period / n for the fewest n steps per frame that keep it within
-    ``safety_factor`` × the critical step after the switch (warpdem.rigid.rigid_step_after_switch; larger or smaller
-    than the step before), so frames keep landing on k × period. A switch inside a frame leaves the time
+    ``safety_factor`` × the critical step after the switch (warpdem.rigid_step.rigid_step_after_switch; larger or
+    smaller than the step before), so frames keep landing on k × period. A switch inside a frame leaves the time
     r = (end − step) × dt_old to the frame's end: it is run as m = ⌈r / dt_new⌉ steps of r / m ≤ dt_new (the bridge),
     so the rigid step holds from the switch itself and the frame still ends on its time, to the rounding of the
     device clock. Each change is :meth:`warpdem.simulation.Simulation.set_time_step` (which books the shadow term's

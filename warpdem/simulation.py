@@ -80,8 +80,8 @@ from .rigid import (
     make_bodies,
     pose_nodes,
     reduce_body_forces,
-    rigid_step_after_switch,
 )
+from .rigid_step import rigid_step_after_switch
 from .tets import eval_tet_stresses, eval_tets
 from .topology import regrow_nodes
 
