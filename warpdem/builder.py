@@ -13,11 +13,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from .bonds import find_bond_pairs
+from .bonds import bond_critical_step, find_bond_pairs, sphere_masses
 from .contact import sphere_contact_steps
-from .fem_contact import attach_fem_contact, contact_critical_step_at, fem_contact_state
-from .fragments import block_labels
+from .fem_contact import attach_fem_contact, contact_critical_step_at
 from .guard import CriticalStep, check_time_step, p_wave_speed, run_away_speed
+from .initial_state import new_state
 from .joints import JointData, JointProps, count_split_nodes
 from .kernels.contact import ContactPair
 from .kernels.tets import TetMaterial
@@ -30,11 +30,9 @@ from .model import (
     State,
     TetMeshData,
     WallData,
-    conversion_state,
-    fracture_state,
     pair_table_array,
-    rigid_state,
 )
+from .ordering import NODE_ORDERS, morton_order
 from .overlap import InitialOverlap, initial_overlap
 from .restitution import hertz_damping_coefficient, linear_damping_ratio
 from .tets import (
@@ -94,93 +92,6 @@ def effective_moduli(a: MaterialProps, b: MaterialProps) -> tuple[float, float]:
     ga = 2.0 * (2.0 - a.poisson_ratio) * (1.0 + a.poisson_ratio) / a.youngs_modulus
     gb = 2.0 * (2.0 - b.poisson_ratio) * (1.0 + b.poisson_ratio) / b.youngs_modulus
     return estar, 1.0 / (ga + gb)
-
-
-def morton_order(q: np.ndarray, cell: float) -> np.ndarray:
-    """Permutation that sorts points along a Z-order curve of cells of size ``cell`` (memory locality)."""
-    if len(q) == 0:
-        return np.zeros(0, dtype=np.int64)
-    c = np.floor((q - q.min(axis=0)) / cell).astype(np.uint64)
-    c = np.minimum(c, np.uint64(2**21 - 1))
-    code = np.zeros(len(q), dtype=np.uint64)
-    for bit in range(21):
-        for axis in range(3):
-            code |= ((c[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
-    return np.argsort(code, kind="stable")
-
-
-def block_node_order(model: Model, state: State) -> np.ndarray:
-    """A node numbering for memory locality after the joints' pre-split, which numbers each split node's daughters
-    past all the mesh's nodes, far from their block's other nodes: the blocks (warpdem.fragments.block_labels: tets
-    connected through shared nodes) in the Z order of their centroids on cells of the mean block size, each block's
-    nodes together in their old order, nodes of no tet last. A body's nodes are then contiguous, and a node–face
-    contact's face nodes (a neighbouring block's) near in memory: `bench blocks` gains with it at 103 823 blocks and
-    breaks even at 4096, where the split's numbering suits the node–face stage better (README, Benchmark).
-
-    Returns:
-        New node i = old node order[i], shape (node_count,), int64.
-    """
-    label, count = block_labels(model, state)
-    if count == 0:
-        return np.arange(len(label), dtype=np.int64)
-    q = model.node_ref_q.numpy()[: len(label)].astype(np.float64)
-    inside = label >= 0
-    sums = np.zeros((count, 3))
-    np.add.at(sums, label[inside], q[inside])
-    centroid = sums / np.bincount(label[inside], minlength=count)[:, None]
-    extent = np.ptp(q[inside], axis=0)
-    cell = max(float(np.prod(np.maximum(extent, 1e-12)) / count) ** (1.0 / 3.0), 1e-12)
-    rank = np.empty(count, dtype=np.int64)
-    rank[morton_order(centroid, cell)] = np.arange(count)
-    key = np.where(inside, rank[np.maximum(label, 0)], count)
-    return np.argsort(key, kind="stable").astype(np.int64)
-
-
-NODE_ORDERS = {"split": None, "blocks": block_node_order}
-"""The node numberings of :meth:`ModelBuilder.finalize`: name → the order after the pre-split (None: keep it)."""
-
-
-def sphere_masses(particles: ParticleData, materials: dict[str, MaterialProps]) -> np.ndarray:
-    """Mass of each sphere, ρ (4/3) π r³ [kg], shape (N,)."""
-    density = np.array([m.density for m in materials.values()])[particles.material]
-    return density * 4.0 / 3.0 * math.pi * particles.radius**3
-
-
-def bond_critical_step(
-    mass: np.ndarray, part: np.ndarray, bonds: BondData, part_names: Sequence[str] = ()
-) -> CriticalStep:
-    """Stable step [s] of the bonded spheres, from the stiffest mode each sphere can have, and the bond that sets it.
-
-    A sphere with Z bonds, mass m and I = (2/5) m r² has a translational mode ω² = Z k_n / m and a rotational one
-    ω² = Z (k_s r²)·2 / I = 5 Z k_s / m (neighbours counter-rotating). Explicit central differences are stable for
-    dt < (2/ω)(sqrt(1 + ζ²) - ζ), ζ the mode's damping ratio. The bond dashpot c = 2 ζ sqrt(m* k) with m* = m/2
-    gives ζ/√2 in translation and sqrt(5/2) ζ ≈ 1.58 ζ in rotation, where the small moment of inertia makes the
-    same dashpot relatively much stronger.
-
-    Args:
-        mass: the spheres' masses [kg], shape (N,); part: their part ids, shape (N,).
-        bonds: the bonds (``pairs`` index the spheres), their ``kn``, ``ks`` [N/m] and ``damping`` ζ [-].
-    """
-    z = np.bincount(bonds.pairs.ravel(), minlength=len(mass)).astype(np.float64)
-    i, j = bonds.pairs[:, 0], bonds.pairs[:, 1]
-    m = np.minimum(mass[i], mass[j])
-    zmax = np.maximum(z[i], z[j])
-    zeta = np.asarray(bonds.damping, dtype=np.float64)
-
-    def step(omega2: np.ndarray, damping_ratio: np.ndarray) -> np.ndarray:
-        return 2.0 / np.sqrt(omega2) * (np.sqrt(1.0 + damping_ratio**2) - damping_ratio)
-
-    modes = {
-        "translational": step(zmax * bonds.kn / m, zeta / math.sqrt(2.0)),
-        "rotational": step(5.0 * zmax * bonds.ks / m, 1.58 * zeta),
-    }
-    mode, steps = min(modes.items(), key=lambda item: float(item[1].min()))
-    k = int(np.argmin(steps))
-    owner = int(part[i[k]])
-    name = f" of part {part_names[owner]}" if owner < len(part_names) else ""
-    return CriticalStep(
-        float(steps[k]), f"the bond between spheres{name} ({mode} mode, {int(zmax[k])} bonds on a sphere)"
-    )
 
 
 @dataclass
@@ -908,97 +819,6 @@ class ModelBuilder:
             "tet_material": padded(mesh.material, tcap, int, np.int32),
             "tet_material_table": wp.array(table, dtype=TetMaterial, device=device),
         }
-
-
-def new_state(
-    model: Model, particles: ParticleData, walls: WallData, bonds: BondData, mesh: TetMeshData | None = None
-) -> State:
-    """Allocate the initial State of a model: spheres and FEM nodes at their initial positions and velocities,
-    bonds intact, tets active."""
-    device, cap, k = model.device, model.particle_capacity, model.max_neighbors
-    n, nb = len(particles), len(bonds)
-    mesh = mesh if mesh is not None else TetMeshData.empty()
-    nn, nt = len(mesh.points), len(mesh.tets)
-
-    def vec(a: np.ndarray | None, size: int, dtype=wp.vec3) -> wp.array:
-        out = np.zeros((size, 3), dtype=np.float64 if dtype == wp.vec3d else np.float32)
-        if a is not None:
-            out[: len(a)] = a
-        return wp.array(out, dtype=dtype, device=device)
-
-    def arr(a: np.ndarray, dtype, size: int, fill=0) -> wp.array:
-        out = np.full(size, fill, dtype={int: np.int32, float: np.float32, wp.int64: np.int64}[dtype])
-        out[: len(a)] = a
-        return wp.array(out, dtype=dtype, device=device)
-
-    def scalar(v: int) -> wp.array:
-        return wp.array([v], dtype=int, device=device)
-
-    pairs = bonds.pairs.astype(np.int64)
-    q = particles.q
-    return State(
-        particle_count=scalar(n),
-        # Absolute positions of spheres and walls are float64 (State.particle_q); everything else float32.
-        particle_q=vec(q, cap, wp.vec3d),
-        particle_qd=vec(particles.qd, cap),
-        particle_omega=vec(particles.omega, cap),
-        particle_f=vec(None, cap),
-        particle_t=vec(None, cap),
-        particle_q_at_build=vec(q, cap, wp.vec3d),
-        rebuild_flag=scalar(1),
-        rebuild_total=scalar(0),
-        nbr_needed=scalar(0),
-        nbr_count=wp.zeros(cap, dtype=int, device=device),
-        nbr_index=wp.zeros(cap * k, dtype=int, device=device),
-        nbr_shear=wp.zeros(cap * k, dtype=wp.vec3, device=device),
-        nbr_bond=wp.full(cap * k, -1, dtype=int, device=device),
-        wall_point=vec(walls.point, len(walls), wp.vec3d),
-        wall_shear=wp.zeros(cap * len(walls), dtype=wp.vec3, device=device),
-        bond_count=scalar(nb),
-        bond_i=arr(pairs[:, 0], int, nb),
-        bond_j=arr(pairs[:, 1], int, nb),
-        bond_key=arr(pairs[:, 0] * cap + pairs[:, 1], wp.int64, nb),
-        bond_rest_length=arr(bonds.rest_length, float, nb),
-        bond_kn=arr(bonds.kn, float, nb),
-        bond_ks=arr(bonds.ks, float, nb),
-        bond_area=arr(bonds.area, float, nb),
-        bond_tensile_strength=arr(bonds.tensile_strength, float, nb),
-        bond_shear_strength=arr(bonds.shear_strength, float, nb),
-        bond_damping=arr(bonds.damping, float, nb),
-        bond_shear=vec(None, nb),
-        bond_broken=arr(np.zeros(nb), int, nb),
-        bond_energy_prev=wp.zeros(nb, dtype=wp.vec2, device=device),
-        bonds_broken_total=scalar(0),
-        particle_bonds_broken=wp.zeros(cap, dtype=int, device=device),
-        energy_damping=wp.zeros(cap, dtype=wp.float64, device=device),
-        energy_friction=wp.zeros(cap, dtype=wp.float64, device=device),
-        energy_boundary_work=wp.zeros(cap, dtype=wp.float64, device=device),
-        energy_bond_broken=wp.zeros(cap, dtype=wp.float64, device=device),
-        energy_stiffness_change=wp.zeros(cap, dtype=wp.float64, device=device),
-        contact_f_normal=vec(None, cap),
-        contact_f_tangential=vec(None, cap),
-        contact_t_tangential=vec(None, cap),
-        contact_energy_prev=wp.zeros(cap, dtype=wp.vec2, device=device),
-        node_count=scalar(nn),
-        tet_count=scalar(nt),
-        node_u=vec(None, model.node_capacity),
-        node_q=vec(mesh.points, model.node_capacity),
-        node_qd=vec(mesh.velocity, model.node_capacity),
-        node_f=vec(None, model.node_capacity),
-        node_energy_damping=wp.zeros(model.node_capacity, dtype=wp.float64, device=device),
-        node_f_viscous=vec(None, model.node_capacity),
-        node_energy_absorbed=wp.zeros(model.node_capacity, dtype=wp.float64, device=device),
-        node_f_absorbed=vec(None, model.node_capacity),
-        node_f_load=vec(None, model.node_capacity),
-        tet_active=arr(np.ones(nt), int, model.tet_capacity),
-        tet_stress=wp.zeros(model.tet_capacity, dtype=wp.mat33, device=device),
-        time=wp.zeros(1, dtype=wp.float64, device=device),
-        node_energy_boundary_work=wp.zeros(model.node_capacity, dtype=wp.float64, device=device),
-        **fem_contact_state(model),
-        **fracture_state(model),
-        **conversion_state(model),
-        **rigid_state(model),
-    )
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -333,7 +333,7 @@ def conversion_critical_step(
     A sphere of mass m = ρ V has a bond of the edge network (k_b = κ E V_b / L_b², :mod:`warpdem.lattice`) or a
     coupling (k ≤ k_b, warpdem.coupling) to each tet sharing an edge with its tet; L_b the distance of the two
     centroids. Its stiffest translational mode is bounded by ω² = Σ_b k_b / m (every spring along the motion, as
-    builder.bond_critical_step's Z k_n / m); the bonds have no shear springs or dashpots, so dt = 2 / ω.
+    warpdem.bonds.bond_critical_step's Z k_n / m); the bonds have no shear springs or dashpots, so dt = 2 / ω.
 
     Four spheres per tet: warpdem.multisphere.sub_critical_step, the same bound on the sub-lattice.
 

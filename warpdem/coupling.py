@@ -166,7 +166,7 @@ def coupling_stiffness(
     effective mass along g is m_mp = 1 / Σ_a N_a² / m_a (node a takes -N_a f, and x_mp = Σ N_a x_a accelerates by
     Σ N_a² f / m_a): its mode is ω_c² = k (1 / m_s + Σ_a N_a² / m_a). The bonds the coupling joins have stiffness
     k_n; a bond between two spheres of mass m_s has ω_b² = 2 k_n / m_s, and the step is chosen stable for the bonds
-    (warpdem.builder.bond_critical_step: Z k_n / m_s with Z bonds on a sphere). Requiring
+    (warpdem.bonds.bond_critical_step: Z k_n / m_s with Z bonds on a sphere). Requiring
 
     - ω_c ≤ ω_b: k ≤ 2 k_n / (1 + m_s Σ N_a² / m_a) — the coupling's own mode does not lower the critical step below
       a bond's; on the FEM side the stiffness it adds to node a's diagonal, k N_a² / m_a ≤ ω_c², is no more than a

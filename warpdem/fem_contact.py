@@ -297,7 +297,7 @@ def attach_fem_contact(
         contact_stiffness_factor: penalty factor of faces that are no joint faces [-].
         contact_face_normal_stiffness: mesh-independent spring of those faces, k_n / 2 per unit area [Pa/m].
         node_order: the node numbering after the pre-split, new node i = old node ``node_order(model, state)[i]``
-            (warpdem.topology.renumber_nodes; e.g. warpdem.builder.block_node_order); None keeps the split's own.
+            (warpdem.topology.renumber_nodes; e.g. warpdem.ordering.block_node_order); None keeps the split's own.
     """
     d = model.device
     nj = len(joints)

@@ -129,12 +129,12 @@ def sphere_critical_step(model: Model, state: State) -> CriticalStep:
       sphere carries the tet's mass ρV) and its material's E and ν from the material's pair with itself in
       ``pair_table`` (E = ``young_a``, 1 − ν² = E / (2 E*)), at twice the fastest sphere's speed now; sphere–face
       contacts take the same laws, with the face's material.
-    - The live intact bonds between spheres that no tet became (warpdem.builder.bond_critical_step).
+    - The live intact bonds between spheres that no tet became (warpdem.bonds.bond_critical_step).
     - Spheres of converted tets (``tet_sphere`` + 0 … spheres_per_tet − 1): the bound of the converted lattice the
       conversion's attach checks the step against (warpdem.conversion.conversion_critical_step over the tets that
       converted: the bonds and couplings on one sphere sum to no more than the fully bonded sphere's).
     """
-    from .builder import bond_critical_step
+    from .bonds import bond_critical_step
     from .contact import sphere_contact_steps
     from .conversion import conversion_critical_step
     from .model import BondData
