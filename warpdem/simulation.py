@@ -159,6 +159,23 @@ class Simulation:
                 self.evaluate_forces()
             self._switch_if_due()
 
+    @property
+    def track_energy(self) -> bool:
+        """Whether the step keeps the energy books (the dissipation accumulators and the half-ahead sums)."""
+        return self._track_energy
+
+    @track_energy.setter
+    def track_energy(self, on: bool) -> None:
+        # A change after set-up re-captures the step (its launches differ) and clears the contacts' half-ahead sums:
+        # without the books and without joint elements nothing books or clears them (warpdem.fem_contact
+        # eval_fem_contacts skips that launch), so forces kept from the last booked evaluation would otherwise be
+        # booked against the velocities of a step long after.
+        changed = hasattr(self, "_track_energy") and self._track_energy != bool(on)
+        self._track_energy = bool(on)
+        if changed:
+            self._graphs = None
+            self.state.node_f_contact.zero_()
+
     def _setup(self) -> None:
         # A model of tets alone has no sphere to size the contact grid by: its sphere contact stages are skipped.
         self.has_spheres = self.model.max_radius > 0.0
