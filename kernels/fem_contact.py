@@ -99,7 +99,16 @@ from .fem_surface import (
 )
 from .joints import JointMaterial
 from .neighbors import ListSpec, make_list_kernels
-from .node_face_target import kept_face_holds, node_face_target, node_normal
+from .node_face_target import (
+    NODE_SPRINGS,
+    PLANE_GROUP_COS,
+    SPRING_BOUND,
+    kept_face_holds,
+    new_plane_face,
+    node_face_targets,
+    node_normal,
+    same_plane,
+)
 from .sphere_face import (
     SPHERE_FACE_LIST,
     SphereFaceHistory,
@@ -119,7 +128,10 @@ __all__ = [
     "BOUND_SLACK",
     "KEEP_EPS",
     "NODE_FACE_LIST",
+    "NODE_SPRINGS",
+    "PLANE_GROUP_COS",
     "SPHERE_FACE_LIST",
+    "SPRING_BOUND",
     "TIE_EPS",
     "NodeFaceInputs",
     "SphereFaceHistory",
@@ -148,9 +160,10 @@ __all__ = [
     "min3",
     "moved_plane_depth",
     "nearer",
+    "new_plane_face",
     "node_contact_stiffness_kernel",
     "node_face_search_radius",
-    "node_face_target",
+    "node_face_targets",
     "node_normal",
     "node_spring_energy",
     "node_surface_normal",
@@ -163,6 +176,7 @@ __all__ = [
     "remap_face_ids_kernel",
     "rest_normals_kernel",
     "rest_positions_kernel",
+    "same_plane",
     "scatter_boundary_faces_kernel",
     "sphere_face_contact",
     "sphere_face_search_radius",
@@ -377,8 +391,8 @@ def node_spring_energy(
     x: wp.vec3,
     kn: float,
     mat_v: int,
-    f: int,
-    offset: float,
+    node_face_spring: wp.array(dtype=int),
+    node_face_offset: wp.array(dtype=float),
     face_nodes: wp.array(dtype=wp.vec3i),
     face_joint: wp.array(dtype=int),
     face_tet: wp.array(dtype=int),
@@ -394,16 +408,20 @@ def node_spring_energy(
     node_wall_shear: wp.array(dtype=wp.vec3),
     wall_point: wp.array(dtype=wp.vec3d),
 ) -> float:
-    """Elastic energy [J] of node v's springs at x: its face spring (target f, carrying ``offset``) and its wall
+    """Elastic energy [J] of node v's springs at x: its face springs (slot i = v NODE_SPRINGS + s targets
+    ``node_face_spring[i]``, carrying ``node_face_offset[i]``, tangential ``node_face_shear[i]``) and its wall
     springs, normal ½ k δ² and tangential ½ k_t |ξ|² (the same sum in the force evaluation and the energy books)."""
     e = float(0.0)
-    if f >= 0 and f < face_nodes.shape[0]:
-        p = face_contact_pair(
-            mat_v, f, face_tet, face_joint, tet_material, fem_pair_table, joint_material_table, num_materials
-        )
-        d = spring_depth(x, f, offset, face_nodes, node_q)
-        sh = node_face_shear[v]
-        e += 0.5 * kn * d * d + 0.5 * p.kt_ratio * kn * wp.dot(sh, sh)
+    for s in range(NODE_SPRINGS):
+        i = v * NODE_SPRINGS + s
+        f = node_face_spring[i]
+        if f >= 0 and f < face_nodes.shape[0]:
+            p = face_contact_pair(
+                mat_v, f, face_tet, face_joint, tet_material, fem_pair_table, joint_material_table, num_materials
+            )
+            d = spring_depth(x, f, node_face_offset[i], face_nodes, node_q)
+            sh = node_face_shear[i]
+            e += 0.5 * kn * d * d + 0.5 * p.kt_ratio * kn * wp.dot(sh, sh)
     for wall in range(num_walls):
         gap = wp.dot(wp.vec3(wp.vec3d(x) - wall_point[wall]), wall_normal[wall])
         if gap < 0.0:
@@ -491,14 +509,17 @@ def make_node_contact_kernel(track_energy: bool):
         xv = node_qd[v]
         inv_mv = node_inv_mass[v]
         mat_v = node_contact_material[v]
-        best_f = int(-1)
-        best_d = float(0.0)
-        best_w = wp.vec3(0.0)
-        best_n = wp.vec3(0.0)
-        old_f = node_face_spring[v]
-        best_slot = int(-1)
+        base = v * NODE_SPRINGS
+        old = wp.vec3i(node_face_spring[base], node_face_spring[base + 1], node_face_spring[base + 2])
+        faces = wp.vec3i(-1, -1, -1)
+        slots = wp.vec3i(-1, -1, -1)
+        depths = wp.vec3(0.0)
+        weights = wp.mat33(0.0)
+        normals = wp.mat33(0.0)
+        handed = wp.vec3i(0, 0, 0)
         if node_face_count[v] > 0:
-            best_f, best_slot, best_d, best_w, best_n = node_face_target(
+            hints = wp.vec3i(node_target_slot[base], node_target_slot[base + 1], node_target_slot[base + 2])
+            faces, slots, depths, weights, normals, handed = node_face_targets(
                 v,
                 x,
                 max_node_faces,
@@ -516,99 +537,109 @@ def make_node_contact_kernel(track_energy: bool):
                 normal_body,
                 rest_normal,
                 body_q,
-                old_f,
-                node_target_slot[v],
+                old,
+                hints,
             )
-        node_target_slot[v] = best_slot
         f_v = wp.vec3(0.0)
         d_v = float(0.0)  # minus the work behind [J] (the wall's share of the work ahead included)
         # What a re-evaluation at dt = 0 lets go of at the same positions [J]: a spring handed to a shallower face,
         # one left with no target, tangential springs cut back to their Coulomb limit (its D = -ΔU, W = 0).
         r_v = float(0.0)
-        # The spring is continuous across a change of target: the new face takes over the old spring's compression
-        # at the current positions (at most its own depth: the excess is dissipated), and carries the rest of its
-        # depth as an offset, so that ½ k δ² never jumps up without work. A spring left with no target is
-        # dissipated with its tangential part.
-        offset = node_face_offset[v]
-        delta = float(0.0)
-        if best_f != old_f:
-            offset = float(0.0)
-            delta = best_d
-            if old_f >= 0:
-                old_delta = spring_depth(x, old_f, node_face_offset[v], face_nodes, node_q)
+        touching = int(0)
+        for s in range(NODE_SPRINGS):
+            i = base + s
+            node_target_slot[i] = slots[s]
+            old_f = old[s]
+            best_f = faces[s]
+            best_d = depths[s]
+            # Each slot's spring is continuous across a change of target within its plane direction (``handed``):
+            # the new face takes over the old spring's compression at the current positions (at most its own
+            # depth: the excess is dissipated), and carries the rest of its depth as an offset, so that ½ k δ²
+            # never jumps up without work. A spring whose plane no face holds any more is let go, dissipated with
+            # its tangential part; a face of a new plane in the slot starts as a new contact.
+            offset = node_face_offset[i]
+            sh = node_face_shear[i]
+            delta = float(0.0)
+            if best_f >= 0 and best_f == old_f:
+                # The relaxed depth follows a node that backs out (no work: the spring is slack meanwhile).
+                offset = wp.min(offset, best_d)
+                delta = best_d - offset
+            elif handed[s] != 0:
+                old_delta = spring_depth(x, old_f, offset, face_nodes, node_q)
                 delta = wp.min(best_d, old_delta)
                 offset = best_d - delta
                 r_v += 0.5 * kn * (old_delta * old_delta - delta * delta)
-            elif dt > 0.0:
-                # A new spring takes only the depth gained in this step: a node that was already behind the face's
-                # plane at the last positions x - dt v (it slid in past an edge, or the face turned towards it)
-                # carries that depth as an offset instead of starting at ½ k δ² that no force worked for.
-                before = moved_plane_depth(x - dt * xv, face_nodes[best_f], node_q, node_qd, dt)
-                offset = wp.min(wp.max(before, 0.0), best_d)
-                delta = best_d - offset
-            elif born_relaxed != 0:
-                # The re-evaluation after a topology pass: nothing moved, so no depth was gained. A node that finds
-                # itself behind a face only now (a new crack face, or its own surface turned by the faces it gained)
-                # carries that depth as its offset.
-                offset = best_d
-        elif best_f >= 0:
-            # The relaxed depth follows a node that backs out (no work: the spring is slack meanwhile).
-            offset = wp.min(offset, best_d)
-            delta = best_d - offset
-        node_face_spring[v] = best_f
-        node_face_offset[v] = offset
-        if best_f < 0:
-            if old_f >= 0 and old_f < face_nodes.shape[0]:
-                p_old = face_contact_pair(
-                    mat_v,
-                    old_f,
-                    face_tet,
-                    face_joint,
-                    tet_material,
-                    fem_pair_table,
-                    joint_material_table,
-                    num_materials,
-                )
-                sh = node_face_shear[v]
-                r_v += 0.5 * p_old.kt_ratio * kn * wp.dot(sh, sh)
-            node_face_shear[v] = wp.vec3(0.0)  # history lives only as long as the node touches
-        else:
-            fn = face_nodes[best_f]
-            # Weights on the triangle (an edge or vertex contact has one slightly negative): clamp and normalise.
-            w = wp.vec3(wp.max(best_w[0], 0.0), wp.max(best_w[1], 0.0), wp.max(best_w[2], 0.0))
-            w = w / (w[0] + w[1] + w[2])
-            inv_sum = inv_mv
-            inv_sum += w[0] * w[0] * node_inv_mass[fn[0]] + w[1] * w[1] * node_inv_mass[fn[1]]
-            inv_sum += w[2] * w[2] * node_inv_mass[fn[2]]
-            if inv_sum > 0.0:
-                p = face_contact_pair(
-                    mat_v,
-                    best_f,
-                    face_tet,
-                    face_joint,
-                    tet_material,
-                    fem_pair_table,
-                    joint_material_table,
-                    num_materials,
-                )
-                v_face = w[0] * node_qd[fn[0]] + w[1] * node_qd[fn[1]] + w[2] * node_qd[fn[2]]
-                sh = node_face_shear[v]
-                force, shear = penalty_contact(best_n, delta, kn, 1.0 / inv_sum, xv - v_face, sh, p, dt)
-                node_face_shear[v] = shear
-                r_v -= 0.5 * p.kt_ratio * kn * (wp.dot(shear, shear) - wp.dot(sh, sh))
-                f_v += force
-                wp.atomic_add(node_f, fn[0], -w[0] * force)
-                wp.atomic_add(node_f, fn[1], -w[1] * force)
-                wp.atomic_add(node_f, fn[2], -w[2] * force)
-                if wp.static(track_energy):
-                    d_v -= 0.5 * dt * wp.dot(force, xv - v_face)
-                    wp.atomic_add(node_f_contact, fn[0], -w[0] * force)
-                    wp.atomic_add(node_f_contact, fn[1], -w[1] * force)
-                    wp.atomic_add(node_f_contact, fn[2], -w[2] * force)
+            else:
+                if old_f >= 0:
+                    old_delta = spring_depth(x, old_f, offset, face_nodes, node_q)
+                    r_v += 0.5 * kn * old_delta * old_delta
+                    if old_f < face_nodes.shape[0]:
+                        p_old = face_contact_pair(
+                            mat_v,
+                            old_f,
+                            face_tet,
+                            face_joint,
+                            tet_material,
+                            fem_pair_table,
+                            joint_material_table,
+                            num_materials,
+                        )
+                        r_v += 0.5 * p_old.kt_ratio * kn * wp.dot(sh, sh)
+                sh = wp.vec3(0.0)  # history lives only as long as the node touches the plane
+                offset = float(0.0)
+                delta = best_d
+                if best_f >= 0:
+                    if dt > 0.0:
+                        # A new spring takes only the depth gained in this step: a node that was already behind the
+                        # face's plane at the last positions x - dt v (it slid in past an edge, or the face turned
+                        # towards it) carries that depth as an offset instead of starting at ½ k δ² that no force
+                        # worked for.
+                        before = moved_plane_depth(x - dt * xv, face_nodes[best_f], node_q, node_qd, dt)
+                        offset = wp.min(wp.max(before, 0.0), best_d)
+                        delta = best_d - offset
+                    elif born_relaxed != 0:
+                        # The re-evaluation after a topology pass: nothing moved, so no depth was gained. A node that
+                        # finds itself behind a face only now (a new crack face, or its own surface turned by the
+                        # faces it gained) carries that depth as its offset.
+                        offset = best_d
+            node_face_spring[i] = best_f
+            node_face_offset[i] = offset
+            node_face_shear[i] = sh
+            if best_f >= 0:
+                touching = 1
+                fn = face_nodes[best_f]
+                best_w = weights[s]
+                # Weights on the triangle (an edge or vertex contact has one slightly negative): clamp and normalise.
+                w = wp.vec3(wp.max(best_w[0], 0.0), wp.max(best_w[1], 0.0), wp.max(best_w[2], 0.0))
+                w = w / (w[0] + w[1] + w[2])
+                inv_sum = inv_mv
+                inv_sum += w[0] * w[0] * node_inv_mass[fn[0]] + w[1] * w[1] * node_inv_mass[fn[1]]
+                inv_sum += w[2] * w[2] * node_inv_mass[fn[2]]
+                if inv_sum > 0.0:
+                    p = face_contact_pair(
+                        mat_v,
+                        best_f,
+                        face_tet,
+                        face_joint,
+                        tet_material,
+                        fem_pair_table,
+                        joint_material_table,
+                        num_materials,
+                    )
+                    v_face = w[0] * node_qd[fn[0]] + w[1] * node_qd[fn[1]] + w[2] * node_qd[fn[2]]
+                    force, shear = penalty_contact(normals[s], delta, kn, 1.0 / inv_sum, xv - v_face, sh, p, dt)
+                    node_face_shear[i] = shear
+                    r_v -= 0.5 * p.kt_ratio * kn * (wp.dot(shear, shear) - wp.dot(sh, sh))
+                    f_v += force
+                    wp.atomic_add(node_f, fn[0], -w[0] * force)
+                    wp.atomic_add(node_f, fn[1], -w[1] * force)
+                    wp.atomic_add(node_f, fn[2], -w[2] * force)
+                    if wp.static(track_energy):
+                        d_v -= 0.5 * dt * wp.dot(force, xv - v_face)
+                        wp.atomic_add(node_f_contact, fn[0], -w[0] * force)
+                        wp.atomic_add(node_f_contact, fn[1], -w[1] * force)
+                        wp.atomic_add(node_f_contact, fn[2], -w[2] * force)
         w_wall = float(0.0)
-        touching = int(0)
-        if best_f >= 0:
-            touching = 1
         for wall in range(num_walls):
             nw = wall_normal[wall]
             slot = v * num_walls + wall
@@ -643,8 +674,8 @@ def make_node_contact_kernel(track_energy: bool):
                 x,
                 kn,
                 mat_v,
-                best_f,
-                offset,
+                node_face_spring,
+                node_face_offset,
                 face_nodes,
                 face_joint,
                 face_tet,
@@ -723,8 +754,8 @@ def fem_contact_energy_kernel(
         node_q[v],
         kn,
         node_contact_material[v],
-        node_face_spring[v],  # the target of the last force evaluation
-        node_face_offset[v],
+        node_face_spring,  # the targets of the last force evaluation
+        node_face_offset,
         face_nodes,
         face_joint,
         face_tet,

@@ -1,5 +1,6 @@
-"""The face a node is pushed out of (kernels/fem_contact.py, "Node–face"): the node's outward normal (its star's, or
-on a rigid block its normal at the switch turned with the body), the kept-face test and the scan of its candidates.
+"""The faces a node is pushed out of (kernels/fem_contact.py, "Node–face"): the node's outward normal (its star's, or
+on a rigid block its normal at the switch turned with the body), the kept-face test and the scan of its candidates,
+one face per plane direction into each of its NODE_SPRINGS spring slots.
 """
 
 from __future__ import annotations
@@ -9,6 +10,19 @@ import warp as wp
 from .fem_surface import BARY_EPS, KEEP_EPS, TIE_EPS, min3, nearer, node_surface_normal, projection_barycentric
 
 wp.set_module_options({"enable_backward": False})
+
+NODE_SPRINGS = wp.constant(3)
+"""Spring slots per node [-] (Model.node_springs): one per face plane direction the node lies behind, so a node in
+the inside corner of three blocks (a block lattice's corner lies on three joint planes) is held by all three."""
+
+PLANE_GROUP_COS = wp.constant(0.5)
+"""cos θ_g of the plane groups [-], θ_g = 60°: two faces whose unit normals have |n_f · n_f'| > cos θ_g are one plane
+direction, and only the shallowest of them holds a spring. The springs of a node then have pairwise |n_s · n_t| ≤
+cos θ_g, so by Gershgorin on their Gram matrix λ_max(Σ_s n_s n_sᵀ) ≤ 1 + (NODE_SPRINGS − 1) cos θ_g = 2 = SPRING_BOUND:
+the node's springs are no stiffer along any direction than 2 k (the stable steps take it, warpdem.fem_contact)."""
+
+SPRING_BOUND = 1.0 + (3 - 1) * 0.5
+"""λ_max(Σ_s n_s n_sᵀ) over a node's springs at most [-] (:data:`PLANE_GROUP_COS`); a Python float for the host."""
 
 
 @wp.func
@@ -84,7 +98,25 @@ def kept_face_holds(
 
 
 @wp.func
-def node_face_target(
+def same_plane(n: wp.vec3, m: wp.vec3) -> bool:
+    """Whether two unit face normals are one plane direction (:data:`PLANE_GROUP_COS`; opposite normals too: a
+    spring's stiffness n nᵀ does not tell them apart)."""
+    return wp.abs(wp.dot(n, m)) > PLANE_GROUP_COS
+
+
+@wp.func
+def in_held_plane(nf: wp.vec3, faces: wp.vec3i, normals: wp.mat33) -> bool:
+    """Whether the face normal nf is the plane direction of a slot that holds a face (``faces`` >= 0, its normal the
+    row of ``normals``)."""
+    for s in range(NODE_SPRINGS):
+        if faces[s] >= 0:
+            if same_plane(nf, normals[s]):
+                return True
+    return False
+
+
+@wp.func
+def new_plane_face(
     v: int,
     x: wp.vec3,
     max_node_faces: int,
@@ -102,56 +134,32 @@ def node_face_target(
     normal_body: wp.array(dtype=int),
     rest_normal: wp.array(dtype=wp.vec3),
     body_q: wp.array(dtype=wp.quatd),
-    keep: int,
-    hint: int,
+    faces: wp.vec3i,
+    normals: wp.mat33,
+    normal: wp.vec3,
+    has_normal: int,
 ):
-    """The face node v (at x, its own surface's outward normal n_v) is pushed out of: of the candidate faces
-    that face it (n_f · n_v < 0) and that it lies behind (less deep than face_depth) and projects into, the
-    shallowest; an interior contact before an edge or vertex one, then the lowest face index. The face ``keep``
-    (the node's target at the last evaluation, -1 for none) is kept while it stays one of those faces: the shallowest
-    face jumps where two face planes meet, and a target held until it no longer holds the node switches less often.
+    """The shallowest face node v (at x, its own surface's outward normal n_v) penetrates outside the plane
+    directions its slots hold (``faces``, their normals ``normals``): of the candidate faces that face it
+    (n_f · n_v < 0) and that it lies behind (less deep than face_depth) and projects into, the shallowest; an interior
+    contact before an edge or vertex one, then the lowest face index (the rule of one spring per node before, now
+    within the faces of the new planes).
 
     The facing test keeps a node on a convex edge of one body, which sits exactly on the edge of the body it rests
     on, from being pushed out through that body's side face (where it is "behind" the side plane by a rounding
     error): the side face's normal points along the node's own, the face it rests on against it.
 
-    The tests run cheapest first and give the same decisions in any order: the depth test reads the face's unit
-    normal from ``face_normal`` (face_normals_kernel, this step's positions), n_v is summed only for a node with a
-    candidate it lies behind, and the projection only for a face that passes both.
-
-    The kept face is tried first (:func:`kept_face_holds`): when it holds, the scan of all candidates would end on it
-    with the same numbers (it replaces whatever came before it and nothing after it is looked at), so the scan is
-    skipped. A node in a lasting contact, nearly every surface node of a block pile, then tests one face a step instead
-    of all its candidates (some thirty in a lattice of blocks, each face touching a block corner is one): the same
-    result bit for bit, at a fraction of the cost.
+    The tests run cheapest first and give the same decisions in any order: the held planes' test reads only the
+    face's unit normal from ``face_normal`` (face_normals_kernel, this step's positions) and takes three dot products
+    (a node resting on a joint plane lies behind the plane of every face of it in its list: they stop here, before
+    the loads of the depth test), n_v is summed only for a node with a candidate it lies behind in a new plane
+    (``normal``/``has_normal``: the one summed already, handed back), and the projection only for a face that passes
+    all those.
 
     Returns:
         (face or -1, its slot in v's candidate list (-1 with no face), depth δ [m], barycentric weights of the
-        projection, the face's unit normal).
+        projection, the face's unit normal, n_v, whether n_v is summed).
     """
-    normal = wp.vec3(0.0)
-    has_normal = int(0)
-    if keep >= 0:
-        normal = node_normal(
-            v, tet_nodes, tet_face_nbr, star_offset, star_count, star_tets, node_q, normal_body, rest_normal, body_q
-        )
-        has_normal = 1
-        holds, keep_slot, keep_d, keep_w, keep_n = kept_face_holds(
-            v,
-            x,
-            keep,
-            hint,
-            max_node_faces,
-            node_face_count,
-            node_face_index,
-            face_nodes,
-            face_depth,
-            face_normal,
-            normal,
-            node_q,
-        )
-        if holds:
-            return keep, keep_slot, keep_d, keep_w, keep_n
     tol = TIE_EPS * wp.length(x)
     best_d = float(0.0)
     best_interior = int(0)
@@ -161,11 +169,11 @@ def node_face_target(
     best_n = wp.vec3(0.0)
     for s in range(wp.min(node_face_count[v], max_node_faces)):
         f = node_face_index[v * max_node_faces + s]
-        if f == keep:
-            continue  # it does not hold (above)
+        nf = face_normal[f]
+        if in_held_plane(nf, faces, normals):
+            continue
         fn = face_nodes[f]
         a = node_q[fn[0]]
-        nf = face_normal[f]
         depth = -wp.dot(x - a, nf)
         if depth <= 0.0 or depth >= face_depth[f]:
             continue
@@ -189,4 +197,162 @@ def node_face_target(
             best_slot = s
             best_w = w
             best_n = nf
-    return best_f, best_slot, best_d, best_w, best_n
+    return best_f, best_slot, best_d, best_w, best_n, normal, has_normal
+
+
+@wp.func
+def free_slot(faces: wp.vec3i, old: wp.vec3i, old_normal: wp.mat33, nf: wp.vec3) -> int:
+    """The slot a face of a new plane (unit normal nf) goes into, of those that hold no face yet this evaluation
+    (``faces`` < 0): the one whose last face (``old``, its normal a row of ``old_normal``) was of that plane (its
+    spring is handed over); else one that held nothing; else one whose last face let go; -1 when none is free."""
+    for s in range(NODE_SPRINGS):
+        if faces[s] < 0 and old[s] >= 0:
+            if same_plane(nf, old_normal[s]):
+                return s
+    for s in range(NODE_SPRINGS):
+        if faces[s] < 0 and old[s] < 0:
+            return s
+    for s in range(NODE_SPRINGS):
+        if faces[s] < 0:
+            return s
+    return -1
+
+
+@wp.func
+def node_face_targets(
+    v: int,
+    x: wp.vec3,
+    max_node_faces: int,
+    node_face_count: wp.array(dtype=int),
+    node_face_index: wp.array(dtype=int),
+    face_nodes: wp.array(dtype=wp.vec3i),
+    face_depth: wp.array(dtype=float),
+    face_normal: wp.array(dtype=wp.vec3),
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    tet_face_nbr: wp.array(dtype=int),
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    node_q: wp.array(dtype=wp.vec3),
+    normal_body: wp.array(dtype=int),
+    rest_normal: wp.array(dtype=wp.vec3),
+    body_q: wp.array(dtype=wp.quatd),
+    old: wp.vec3i,
+    hints: wp.vec3i,
+):
+    """The faces node v (at x) is pushed out of, one per slot: ``old`` holds each slot's face at the last
+    evaluation (-1 for none), ``hints`` their list slots then.
+
+    1. Each slot keeps its face while it holds (:func:`kept_face_holds`, as with one spring per node: the shallowest
+       face jumps where two face planes meet, and a target held until it no longer holds the node switches less
+       often). Of two kept faces that came into one plane direction (a block turned), the shallower stays.
+    2. Then, while a slot is free, the shallowest face of a plane direction no slot holds
+       (:func:`new_plane_face`) takes one (:func:`free_slot`): the slot whose lost face was of that direction (its
+       spring is handed over), else an empty one. A face of a held direction never opens a second slot, so the
+       springs' normals keep pairwise |n_s · n_t| ≤ cos θ_g (:data:`PLANE_GROUP_COS`).
+
+    A node whose slots all hold tests only its kept faces. One with a free slot scans its candidates once for a new
+    plane: a face of a held plane stops at the depth test and three dot products, so a node resting on a joint pays
+    about one depth test per candidate for the chance of meeting a second plane.
+
+    Returns:
+        (face per slot (-1 for none), its candidate-list slot, depth δ [m] per slot, barycentric weights per slot
+        (rows), the faces' unit normals (rows), whether each slot's face is of its last face's plane (a hand-over:
+        the same face, or a new one of that direction)).
+    """
+    faces = wp.vec3i(-1, -1, -1)
+    slots = wp.vec3i(-1, -1, -1)
+    depths = wp.vec3(0.0)
+    weights = wp.mat33(0.0)
+    normals = wp.mat33(0.0)
+    handed = wp.vec3i(0, 0, 0)
+    old_normal = wp.mat33(0.0)
+    normal = wp.vec3(0.0)
+    has_normal = int(0)
+    for s in range(NODE_SPRINGS):
+        keep = old[s]
+        if keep >= 0 and keep < face_normal.shape[0]:
+            old_normal[s] = face_normal[keep]
+            if has_normal == 0:
+                normal = node_normal(
+                    v,
+                    tet_nodes,
+                    tet_face_nbr,
+                    star_offset,
+                    star_count,
+                    star_tets,
+                    node_q,
+                    normal_body,
+                    rest_normal,
+                    body_q,
+                )
+                has_normal = 1
+            holds, keep_slot, keep_d, keep_w, keep_n = kept_face_holds(
+                v,
+                x,
+                keep,
+                hints[s],
+                max_node_faces,
+                node_face_count,
+                node_face_index,
+                face_nodes,
+                face_depth,
+                face_normal,
+                normal,
+                node_q,
+            )
+            if holds:
+                faces[s] = keep
+                slots[s] = keep_slot
+                depths[s] = keep_d
+                weights[s] = keep_w
+                normals[s] = keep_n
+                handed[s] = 1
+    for s in range(NODE_SPRINGS):
+        for t in range(NODE_SPRINGS):
+            if t > s and faces[s] >= 0 and faces[t] >= 0:
+                if same_plane(normals[s], normals[t]):
+                    drop = t
+                    if depths[t] < depths[s]:
+                        drop = s
+                    faces[drop] = -1
+                    slots[drop] = -1
+                    depths[drop] = 0.0
+                    handed[drop] = 0
+    for _pass in range(NODE_SPRINGS):
+        if faces[0] >= 0 and faces[1] >= 0 and faces[2] >= 0:
+            break
+        f, ls, d, w, nf, normal, has_normal = new_plane_face(
+            v,
+            x,
+            max_node_faces,
+            node_face_count,
+            node_face_index,
+            face_nodes,
+            face_depth,
+            face_normal,
+            tet_nodes,
+            tet_face_nbr,
+            star_offset,
+            star_count,
+            star_tets,
+            node_q,
+            normal_body,
+            rest_normal,
+            body_q,
+            faces,
+            normals,
+            normal,
+            has_normal,
+        )
+        if f < 0:
+            break
+        s = free_slot(faces, old, old_normal, nf)
+        if old[s] >= 0 and same_plane(nf, old_normal[s]):
+            handed[s] = 1
+        faces[s] = f
+        slots[s] = ls
+        depths[s] = d
+        weights[s] = w
+        normals[s] = nf
+    return faces, slots, depths, weights, normals, handed

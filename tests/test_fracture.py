@@ -456,7 +456,7 @@ def test_face_ids_follow_their_tet_face_slots(device):
     assert fp.split(model, state)[0] > 0
     model, slot_to_face = rebuild_surface(model, state)
     assert int(state.face_count.numpy()[0]) > old_count  # the crack's faces joined the surface
-    spring = np.full(model.node_capacity, -1, dtype=np.int32)
+    spring = np.full(model.node_capacity * model.node_springs, -1, dtype=np.int32)  # every slot of every node
     spring[:old_count] = np.arange(old_count)[::-1]  # any old face ids
     state.node_face_spring.assign(spring)
     remap_face_ids(model, state, wp.array(old_slots, dtype=int, device=device), old_count, slot_to_face)

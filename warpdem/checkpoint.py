@@ -16,7 +16,9 @@ file may lack some of them: a restart fills each one it lacks with a fresh model
 the run would hold (an energy line of a pass that never ran, the contact books of a run with no contact), and refuses
 otherwise, naming the file, the field and why (warpdem.restart.restore_checkpoint). A field added later bumps the
 version again and adds its rows to that table, with the version it appeared in: 3 added the pressure loads' forces
-kept per node (``node_f_load``) and the rigid bodies' drift scratch (``body_q_before``, ``body_omega_ahead``).
+kept per node (``node_f_load``) and the rigid bodies' drift scratch (``body_q_before``, ``body_omega_ahead``); 4 holds
+node_springs node–face springs per node (``node_face_spring``, ``_offset``, ``_shear`` rows, and the model scalar
+``node_springs``) where older files hold one (warpdem.restart.FIELD_RESHAPES puts it into slot 0).
 
 Files are written to ``<name>.tmp-<pid>`` in the target directory and moved over the final name with
 ``os.replace``, so a crash or an error mid-write never damages the previous checkpoint.
@@ -48,7 +50,7 @@ __all__ = [
 FORMAT_NAME = "warpdem-checkpoint"
 """Value of the root attribute ``warpdem_format`` identifying a warpdem checkpoint."""
 
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 """Newest checkpoint format this module writes and reads (module docstring, "Versions"); bump when the layout changes
 or fields are added, and list what older files may lack in warpdem.restart.FIELD_MIGRATIONS."""
 

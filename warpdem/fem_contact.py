@@ -79,9 +79,9 @@ def fem_contact_state(model: Model) -> dict[str, wp.array]:
         "node_face_needed": one(),
         "node_face_count": wp.zeros(ncap, dtype=int, device=d),
         "node_face_index": wp.zeros(ncap * model.max_node_faces, dtype=int, device=d),
-        "node_face_spring": wp.full(ncap, -1, dtype=int, device=d),
-        "node_face_offset": wp.zeros(ncap, dtype=float, device=d),
-        "node_face_shear": wp.zeros(ncap, dtype=wp.vec3, device=d),
+        "node_face_spring": wp.full(ncap * model.node_springs, -1, dtype=int, device=d),
+        "node_face_offset": wp.zeros(ncap * model.node_springs, dtype=float, device=d),
+        "node_face_shear": wp.zeros(ncap * model.node_springs, dtype=wp.vec3, device=d),
         "node_wall_shear": wp.zeros(ncap * model.num_walls, dtype=wp.vec3, device=d),
         "node_contact_hold": wp.zeros(ncap, dtype=wp.float64, device=d),
         "node_f_contact": wp.zeros(ncap, dtype=wp.vec3, device=d),
@@ -239,7 +239,7 @@ def _reuse(a: wp.array | None, n: int, dtype: type, device: wp.context.Device) -
 def remap_face_ids(
     model: Model, state: State, face_slot: wp.array, old_face_count: int, slot_to_face: wp.array
 ) -> None:
-    """Carry the face ids the FEM contact state holds (each node's spring target ``node_face_spring``, the
+    """Carry the face ids the FEM contact state holds (every spring slot's target ``node_face_spring``, the
     sphere–face candidate slots ``sphere_face_index``) across a surface rebuild: old face → its tet-face slot
     (``face_slot``, taken before the topology changed) → the new face of that slot (``slot_to_face`` from
     :func:`rebuild_surface`). Launches only."""
@@ -376,9 +376,9 @@ class FemContact:
         self.node_faces = SkinnedList(kf.NODE_FACE_LIST, model.node_capacity, model.max_node_faces, d)
         self.normal_body = wp.full(max(model.node_capacity, 1), -1, dtype=int, device=d)
         self.rest_normal = wp.zeros(max(model.node_capacity, 1), dtype=wp.vec3, device=d)
-        # Where each node found its target in its candidate list at the last evaluation (a hint only: a stale one
-        # costs a search, never a different answer; kernels/node_face_target.py kept_face_holds).
-        self.target_slot = wp.full(max(model.node_capacity, 1), -1, dtype=int, device=d)
+        # Where each spring slot found its target in its node's candidate list at the last evaluation (a hint only: a
+        # stale one costs a search, never a different answer; kernels/node_face_target.py kept_face_holds).
+        self.target_slot = wp.full(max(model.node_capacity, 1) * model.node_springs, -1, dtype=int, device=d)
         self.rigid_normals(True)
 
     def rigid_normals(self, on: bool) -> None:
@@ -532,8 +532,8 @@ def eval_fem_contacts(
             an initial penetration pushes, and in a step a new spring takes the depth gained in it).
         normal_body, rest_normal: the rigid normals (``FemContact.rigid_normals``), shape (node_capacity,); None:
             every node walks its star.
-        target_slot: each node's list slot of its target at the last evaluation, a hint (``FemContact``), shape
-            (node_capacity,), int32; None: none.
+        target_slot: each spring slot's list slot of its target at the last evaluation, a hint (``FemContact``),
+            shape (node_capacity * node_springs,), int32; None: none.
         The three are allocated here when None (a direct call outside a step).
     """
     m, s = model, state
@@ -542,7 +542,7 @@ def eval_fem_contacts(
         normal_body = wp.full(n, -1, dtype=int, device=m.device)
         rest_normal = wp.zeros(n, dtype=wp.vec3, device=m.device)
     if target_slot is None:
-        target_slot = wp.full(n, -1, dtype=int, device=m.device)
+        target_slot = wp.full(n * m.node_springs, -1, dtype=int, device=m.device)
     step = m.dt if dt is None else dt
     if m.node_capacity:
         if step > 0.0:
@@ -832,9 +832,11 @@ def contact_critical_step_at(
     the joints that is the whole star; on a joint the side is not known before the split, but by the mediant
     inequality k / m is at most the largest ratio, over the tets t at the node, of t's share of k to ρ V₀ / 4. Two
     such nodes pressed together by both passes of the contact (or a joint element, of the same stiffness) form the
-    relative mode ω² = (k_A + k_B)(1/m_A + 1/m_B) = 4 k/m for equal sides; a node on a wall has ω² = k/m. Hence
-    dt = 2/ω (sqrt(1 + ζ²) - ζ) with ω² = 4 max k/m. For a regular mesh this is about h / (2 c_bar sqrt(f)),
-    c_bar = sqrt(E/ρ): comparable to the tets' own step for f = 1.
+    relative mode ω² = (k_A + k_B)(1/m_A + 1/m_B) = 4 k/m for equal sides; a node on a wall has ω² = k/m. A node
+    holds a spring per face plane direction it lies behind (kernels/node_face_target.py), their normals pairwise
+    |n_s · n_t| ≤ cos θ_g, so along any direction its springs are no stiffer than SPRING_BOUND k = 2 k (Gershgorin,
+    ``PLANE_GROUP_COS``). Hence dt = 2/ω (sqrt(1 + ζ²) - ζ) with ω² = 4 SPRING_BOUND max k/m. For a regular mesh this
+    is about h / (2 c_bar sqrt(2 f)), c_bar = sqrt(E/ρ).
 
     Args:
         points: (N, 3) [m]. tets: (M, 4), positively oriented. young: E per tet [Pa], (M,). density: ρ per tet
@@ -890,5 +892,5 @@ def contact_critical_step_at(
     k_over_m = float(ratio[node])
     if k_over_m <= 0.0:
         return math.inf, -1, -1
-    omega = math.sqrt(4.0 * k_over_m)
+    omega = math.sqrt(4.0 * kf.SPRING_BOUND * k_over_m)
     return 2.0 / omega * (math.sqrt(1.0 + damping_ratio**2) - damping_ratio), node, int(joint_of[node])

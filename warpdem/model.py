@@ -85,6 +85,8 @@ class Model:
         face_capacity: boundary face slots.
         max_sphere_faces: candidate faces per sphere (grows ×2 on overflow between steps).
         max_node_faces: candidate faces per FEM node (grows ×2 on overflow between steps).
+        node_springs: node–face spring slots per FEM node, one per face plane direction the node lies behind
+            (kernels/node_face_target.py NODE_SPRINGS, which the kernels are compiled for; the only value allowed).
         fem_skin: Verlet skin of the FEM contact lists [m] (rebuilt when a node has moved half of it).
         face_radius: largest distance from a boundary face's centroid to its vertices (reference) [m].
         face_depth_max: largest face_depth [m].
@@ -205,6 +207,7 @@ class Model:
     face_capacity: int = 0
     max_sphere_faces: int = 8
     max_node_faces: int = 8
+    node_springs: int = 3
     fem_skin: float = 0.0
     face_radius: float = 0.0
     face_depth_max: float = 0.0
@@ -361,12 +364,13 @@ class State:
         node_face_needed: the most candidate faces a node had at a build (overflow when > max_node_faces), shape
             (1,); node_face_count: candidate faces of each node, shape (node_capacity,); node_face_index: candidate
             face of each slot, shape (node_capacity * max_node_faces,), int32.
-        node_face_spring: the face each node's contact spring acts across, -1 for none (kept while it still holds
-            the node), shape (node_capacity,), int32.
-        node_face_offset: depth behind its target face at which each node's spring is relaxed [m] (what a change of
-            target carried over without work), shape (node_capacity,), float32.
-        node_face_shear: tangential spring of each node's face contact [m] (a node touches one face at a time; the
-            spring follows it from face to face), shape (node_capacity,), vec3.
+        node_face_spring: the face each node–face spring acts across, -1 for none, node_springs slots per node (one
+            per face plane direction the node lies behind; each keeps its face while it still holds the node), shape
+            (node_capacity * node_springs,), int32.
+        node_face_offset: depth behind its target face at which each spring is relaxed [m] (what a change of target
+            within its plane carried over without work), shape (node_capacity * node_springs,), float32.
+        node_face_shear: tangential spring of each node–face spring [m] (it follows the node from face to face within
+            its plane), shape (node_capacity * node_springs,), vec3.
         node_wall_shear: tangential spring of each node–wall pair [m], shape (node_capacity * num_walls,), vec3.
         node_contact_hold: penalty stiffness per unit mass [1/s²] that a node's contact springs keep across topology
             passes while it touches (k = hold × node_mass; 0: none held, k = ``node_contact_stiffness``), held at each

@@ -305,10 +305,37 @@ FIELD_MIGRATIONS: dict[str, FieldMigration] = {
     "attribute rigid_energy_fraction": FieldMigration(2, _always),
     "attribute rigid_check_interval": FieldMigration(2, _always),
     "attribute deformable_critical_dt": FieldMigration(2, _no_step_change),
+    # A node–face spring per face plane (format 4): older files held one per node, which is slot 0 of the rows
+    # (FIELD_RESHAPES), the other slots empty.
+    "attribute node_springs": FieldMigration(4, _always),
 }
 """The fields added since checkpoint format 1, by checkpoint key (``state/<name>``, ``model/<name>``, ``attribute
 <name>`` for a model scalar), and when a restart may fill them from the fresh model and state
 (warpdem.checkpoint, "Versions")."""
+
+
+def _spring_rows(name: str, empty: float) -> Callable[[dict[str, np.ndarray], dict, Model], np.ndarray]:
+    """The node_springs rows per node of a per-node spring field of an older checkpoint: its one spring into slot 0,
+    the other slots ``empty`` (no face, no offset, no shear): exactly the state a run with these rows holds after the
+    same steps, since the one spring was then a node's only one (warpdem.model.State ``node_face_spring``)."""
+
+    def make(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> np.ndarray:
+        old = arrays[f"state/{name}"]
+        if len(old) != int(attrs.get("node_capacity", len(old))):
+            return old  # rows already (a file whose version was set back by hand, as the tests make old files)
+        rows = np.full((len(old), model.node_springs, *old.shape[1:]), empty, dtype=old.dtype)
+        rows[:, 0] = old
+        return rows.reshape(len(old) * model.node_springs, *old.shape[1:])
+
+    return make
+
+
+FIELD_RESHAPES: dict[str, FieldMigration] = {
+    f"state/{name}": FieldMigration(4, _always, make=_spring_rows(name, empty))
+    for name, empty in (("node_face_spring", -1), ("node_face_offset", 0.0), ("node_face_shear", 0.0))
+}
+"""Fields an older checkpoint holds in another shape, by checkpoint key: a file of a format before ``since`` has its
+value made anew (``make``) before the restart reads it."""
 
 
 def _migrate(
@@ -381,6 +408,9 @@ def restore_checkpoint(
         expected = getattr(model, key)
         if key in attrs and attrs[key] != expected:
             raise CheckpointError(f"{path}: {key} is {attrs[key]} but the scene builds {expected}; wrong scene?")
+    for key, rule in FIELD_RESHAPES.items():
+        if version < rule.since and key in arrays and rule.make is not None:
+            arrays[key] = rule.make(arrays, attrs, model)
     scalars = model_scalars(model)
     missing = [
         k

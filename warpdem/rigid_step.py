@@ -15,6 +15,7 @@ import warp as wp
 from .fragments import block_labels
 from .guard import CriticalStep
 from .kernels import rigid as kr
+from .kernels.node_face_target import SPRING_BOUND
 from .kernels.tets import TET_ACTIVE
 from .loads import dashpot_critical_step
 from .model import Model, State
@@ -75,9 +76,10 @@ def deformable_critical_step(model: Model, state: State) -> CriticalStep:
     - each tet's element step (warpdem.tets.tet_stable_time_steps, with its bulk viscosity and mass damping);
     - the nodes under non-reflecting dashpots (warpdem.loads.dashpot_critical_step);
     - the contact springs of the deformable surface nodes, where contacts can engage (as the builder: walls, spheres,
-      joints, cohesive elements, or more than one tet body): ω² = 4 k/m with the node's penalty stiffness
+      joints, cohesive elements, or more than one tet body): ω² = 4 SPRING_BOUND k/m with the node's penalty stiffness
       k = ``node_contact_stiffness`` and lumped mass m (two such nodes pressed together by both passes of the
-      contact, warpdem.fem_contact.contact_critical_step_at), dt = 2/ω (sqrt(1 + ζ²) − ζ). After the joints' split
+      contact, each node's springs on several face planes no stiffer than SPRING_BOUND k = 2 k along any direction,
+      warpdem.fem_contact.contact_critical_step_at), dt = 2/ω (sqrt(1 + ζ²) − ζ). After the joints' split
       the side of each node is known, so k/m is the node's own, not the builder's bound over its tets;
     - spheres left (scene spheres, converted tets): their own step (:func:`sphere_critical_step`).
     """
@@ -113,7 +115,7 @@ def deformable_critical_step(model: Model, state: State) -> CriticalStep:
             ratio = np.where(moving & (spring > 0.0) & (mass > 0.0), spring / np.where(mass > 0.0, mass, 1.0), 0.0)
             node = int(np.argmax(ratio))
             if ratio[node] > 0.0:
-                omega = 2.0 * math.sqrt(ratio[node])
+                omega = 2.0 * math.sqrt(SPRING_BOUND * ratio[node])
                 zeta = contact_damping_ratio(model)
                 contact = 2.0 / omega * (math.sqrt(1.0 + zeta**2) - zeta)
                 steps.append(CriticalStep(contact, f"the contact penalty springs of deformable node {node}"))
@@ -281,13 +283,16 @@ def rigid_critical_step(model: Model, state: State, damping_ratio: float = 0.0) 
 
     Every surface node i of a body (penalty stiffness k_i = ``node_contact_stiffness``, warpdem.fem_contact) pressed
     by a contact at once gives the body the stiffness K = Σ k_i J_iᵀ J_i on its six velocities (J_i = [1, −[r_i]×],
-    the node's velocity from the body's), against its mass matrix diag(M, M, M, I). A spring between two bodies
-    stores ½ k |u_A − u_B|² ≤ k (|u_A|² + |u_B|²), so no mode of the assembly exceeds ω² = 2 max_b λ_max(M_b⁻¹ K_b).
-    The non-reflecting dashpots on its nodes (C_i, warpdem.loads) give it D = Σ J_iᵀ C_i J_i, explicit at the
-    half-step velocity: c = λ_max(M_b⁻¹ D_b), ζ = ζ_contact + c / (2ω). On roller constraints K, D and the mass are
-    those of the allowed motions (:func:`_allowed_basis`). dt = min_b 2/ω (sqrt(1 + ζ²) − ζ) (2/c without
-    springs), as for the nodes. Held bodies, and deformable nodes and tets (whose own steps still hold where some
-    remain), are not counted.
+    the node's velocity from the body's), against its mass matrix diag(M, M, M, I), with k_i = SPRING_BOUND × the
+    node's penalty stiffness: a node holds a spring per face plane it lies behind, k Σ_s n_s n_sᵀ, whose normals
+    are pairwise |n_s · n_t| ≤ cos θ_g, so it is no stiffer than SPRING_BOUND k = 2 k along any direction
+    (kernels/node_face_target.py ``PLANE_GROUP_COS``; three orthogonal springs are exactly k I). A spring between
+    two bodies stores ½ k |u_A − u_B|² ≤ k (|u_A|² + |u_B|²), so no mode of the assembly exceeds
+    ω² = 2 max_b λ_max(M_b⁻¹ K_b). The non-reflecting dashpots on its nodes (C_i, warpdem.loads) give it
+    D = Σ J_iᵀ C_i J_i, explicit at the half-step velocity: c = λ_max(M_b⁻¹ D_b), ζ = ζ_contact + c / (2ω). On roller
+    constraints K, D and the mass are those of the allowed motions (:func:`_allowed_basis`).
+    dt = min_b 2/ω (sqrt(1 + ζ²) − ζ) (2/c without springs), as for the nodes. Held bodies, and deformable nodes and
+    tets (whose own steps still hold where some remain), are not counted.
     """
     if not has_bodies(state) or model.node_contact_stiffness is None:
         return math.inf
@@ -297,7 +302,7 @@ def rigid_critical_step(model: Model, state: State, damping_ratio: float = 0.0) 
     nodes = state.rigid_nodes.numpy()
     node_body = state.node_body.numpy()
     body = node_body[nodes].astype(np.int64)
-    k = model.node_contact_stiffness.numpy()[nodes].astype(np.float64)
+    k = SPRING_BOUND * model.node_contact_stiffness.numpy()[nodes].astype(np.float64)
     axes, moments = body_frames(state)
     r0 = state.node_rigid_r0.numpy()
     rotations = _rotations(state.body_q.numpy())

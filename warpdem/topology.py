@@ -338,7 +338,13 @@ def reference_face_neighbors(model: Model, state: State) -> wp.array:
     return out.tet_face_nbr
 
 
-NODE_ROW_FIELDS = {"node_face_index": "max_node_faces", "node_wall_shear": "num_walls"}
+NODE_ROW_FIELDS = {
+    "node_face_index": "max_node_faces",
+    "node_wall_shear": "num_walls",
+    "node_face_spring": "node_springs",
+    "node_face_offset": "node_springs",
+    "node_face_shear": "node_springs",
+}
 """State fields with a row of slots per node: the Model attribute that says how many."""
 
 NODE_SCALARS = {"node_count", "node_face_needed", "node_splits_total"}

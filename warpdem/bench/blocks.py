@@ -126,7 +126,7 @@ def bench_blocks(blocks_wanted: int, steps: int = 50, device: str = "cpu", repea
         block_steps_per_second=blocks * steps / wall,
         cpu_time=cpu,
         block_steps_per_cpu_second=blocks * steps / cpu if cpu > 0.0 else math.inf,
-        contacts=int(np.count_nonzero(s.node_face_spring.numpy()[:nn] >= 0)),
+        contacts=int(np.count_nonzero(s.node_face_spring.numpy()[: nn * sim.model.node_springs] >= 0)),  # every slot
         list_builds=int(s.fem_rebuild_total.numpy()[0]) - builds,
         bytes_per_block=total_bytes / blocks,
         peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
