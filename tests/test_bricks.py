@@ -8,9 +8,10 @@ Oracles:
   block is one brick (its cells' extent is one block length or the half ones at the ends);
 - the rigid step on the scene's joints: each free block is a box of mass M = ρ L W H and principal moments
   M (b² + c²)/12, on node springs k_n/2 × the nodes' area shares of its surface (k_n the scene's normal stiffness,
-  the same on every face); ω² = 2 λ_max(M⁻¹K) with K = Σ k_i J_iᵀ J_i computed here in float64 from the box's
-  surface triangles, dt = 2/ω (sqrt(1 + ζ²) − ζ). warpdem.rigid_step.rigid_critical_step must give it to STEP_RTOL (the
-  device's float32 node springs and positions), and at LDEC's own tet size (10 cm: [run] resolution 3) it must be
+  the same on every face, × SPRING_BOUND = 2 for a node's springs on up to three planes); ω² = 2 λ_max(M⁻¹K) with
+  K = Σ k_i J_iᵀ J_i computed here in float64 from the box's surface triangles, dt = 2/ω (sqrt(1 + ζ²) − ζ).
+  warpdem.rigid_step.rigid_critical_step must give it to STEP_RTOL (the device's float32 node springs and
+  positions), and at LDEC's own tet size (10 cm: [run] resolution 3) it must be
   at least 10× the deformable step the builder takes (issue 11: "the rigid step is at least 10× the deformable step
   on the tunnel scene"). The rigid step hardly depends on the mesh (mass and springs both scale with the block, not
   the tets), the deformable one is ∝ h: at the scene's own CPU resolution 1 (30 cm cells) the gain is a third of it;
@@ -28,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from warpdem.kernels.node_face_target import SPRING_BOUND
 
 from warpdem.bricks import brick_cells, mesh_bricks
 from warpdem.geology import Room
@@ -101,7 +103,9 @@ def test_opening_removes_whole_cells():
 def analytic_block_step(
     points: np.ndarray, tets: np.ndarray, k_n: float, density: float, zeta: float, dofs: list[int] | None = None
 ) -> float:
-    """dt = 2/ω (sqrt(1 + ζ²) − ζ), ω² = 2 λ_max(M⁻¹K) of one box block (module docstring), in float64; ``dofs``:
+    """dt = 2/ω (sqrt(1 + ζ²) − ζ), ω² = 2 λ_max(M⁻¹K) of one box block (module docstring), each node's spring
+    SPRING_BOUND × its k_n/2 share (a node holds a spring per face plane it lies behind, no stiffer than that along
+    any direction: kernels/node_face_target.py), in float64; ``dofs``:
     the velocities (vx, vy, vz, ωx, ωy, ωz) a roller leaves the block, all by default (the box's principal axes are
     the coordinate axes, so the constrained problem is the submatrix of K and M on them)."""
     faces = tets[:, TET_FACES].reshape(-1, 3)
@@ -118,7 +122,7 @@ def analytic_block_step(
     for i in np.flatnonzero(share):
         cross = np.array([[0.0, -r[i, 2], r[i, 1]], [r[i, 2], 0.0, -r[i, 0]], [-r[i, 1], r[i, 0], 0.0]])
         jac = np.hstack([np.eye(3), -cross])
-        k_matrix += 0.5 * k_n * share[i] * jac.T @ jac
+        k_matrix += SPRING_BOUND * 0.5 * k_n * share[i] * jac.T @ jac
     inv_sqrt = 1.0 / np.sqrt(np.concatenate([np.full(3, mass), box_inertia(mass, size)]))
     keep = np.arange(6) if dofs is None else np.asarray(dofs)
     scaled = (inv_sqrt[:, None] * k_matrix * inv_sqrt[None, :])[np.ix_(keep, keep)]

@@ -1118,6 +1118,42 @@ def test_a_format_2_checkpoint_after_the_switch_resumes_bit_for_bit(switch_run):
     assert_restart_ends_as_the_run(switch_run, copy, path, "a format-2 frame-8 checkpoint")
 
 
+def test_a_format_3_checkpoint_puts_each_nodes_one_spring_into_slot_0(device, tmp_path):
+    """Format 4 holds node_springs node–face springs per node (``node_face_spring``, ``_offset``, ``_shear`` rows and
+    the model scalar ``node_springs``); format 3 held one per node. Two rigid blocks meet on one joint plane, so every
+    node's spring lies in slot 0 of its row and the others are empty (checked): its checkpoint written as format 3
+    wrote it (slot 0 only, no ``node_springs``) restarts with each node's spring in slot 0
+    (warpdem.restart.FIELD_RESHAPES) and ends 100 steps later as the uninterrupted run, bit for bit (CPU)."""
+    import h5py
+
+    from warpdem.restart import restore_checkpoint, save_checkpoint
+
+    model, state, _ = two_blocks(device, 10.0, 2)  # the upper block resting on the held lower one
+    template = state.clone()
+    sim = Simulation(model, state)
+    sim.switch_to_rigid()
+    sim.advance(50)
+    k = sim.model.node_springs
+    springs = sim.state.node_face_spring.numpy().reshape(-1, k)
+    assert np.any(springs[:, 0] >= 0) and np.all(springs[:, 1:] == -1)
+    path = save_checkpoint(tmp_path / "c.h5", sim, 1, {})
+    with h5py.File(path, "r+") as f:
+        for name in ("node_face_spring", "node_face_offset", "node_face_shear"):
+            rows = f["state"][name][...]
+            del f["state"][name]
+            f["state"][name] = rows.reshape(len(rows) // k, k, *rows.shape[1:])[:, 0]
+        del f.attrs["node_springs"]
+        f.attrs["warpdem_format_version"] = 3
+    sim.advance(100)
+    fresh_model, _, _ = two_blocks(device, 10.0, 2)
+    model2, state2, attrs = restore_checkpoint(path, fresh_model, template)
+    assert model2.node_springs == k
+    again = Simulation(model2, state2, primed=True, step=int(attrs["step"]), time=float(attrs["time"]))
+    again.advance(100)
+    for name, a in sim.state.arrays().items():
+        np.testing.assert_array_equal(getattr(again.state, name).numpy(), a.numpy(), err_msg=name)
+
+
 @pytest.mark.parametrize(
     ("key", "why"),
     [
