@@ -5,16 +5,24 @@ stiffness and the point–triangle geometry (kernels/fem_surface.py), the sphere
 
 Node–face: a node penetrates a face when the face faces it (n_f · n_v < 0, n_v the outward normal of the node's own
 surface), it lies behind the face's plane (s = (x - x_a) · n_f < 0), less deep than half the tet's height over the
-face, and it projects inside the triangle. Of the faces it penetrates it is pushed out of the shallowest (the
-shortest way out; a vertex shared by coplanar faces goes to the lowest face index), by a linear spring–dashpot k δ
-with k its penalty stiffness and ζ from the restitution (the laws linear_normal_force and coulomb_tangential of
-kernels/contact.py). One spring of tangential history per node follows it from face to face.
-The spring never gains energy that no force worked for (½ k δ² jumping up at an event is energy created; a jump down
-is booked as dissipated): a node keeps its target while it still penetrates it (its projection may then stray
-KEEP_EPS outside the triangle: a node on the rim of a joint sits on the edge of the face opposite); on a change of
-target the new spring starts at no more than the old one's compression; a new contact starts at the depth gained in
-the step, the depth the node already had behind the plane at the last positions (it slid in past an edge) carried as
-an offset; the offset follows a node that backs out.
+face, and it projects inside the triangle. The faces it penetrates are grouped by plane direction (unit normals with
+|n_f · n_f'| > cos θ_g, θ_g = 60°, are one plane: kernels/node_face_target.py PLANE_GROUP_COS), and of each plane it
+is pushed out of the shallowest face (the shortest way out; a vertex shared by coplanar faces goes to the lowest face
+index), by a linear spring–dashpot k δ with k its penalty stiffness and ζ from the restitution (the laws
+linear_normal_force and coulomb_tangential of kernels/contact.py). A node has NODE_SPRINGS = 3 spring slots, one per
+plane, each with its own tangential history that follows the node from face to face within its plane: a node in an
+inside corner of two or three blocks (a block lattice's corners lie on three joint planes, a brick's head joint on
+the bedding too) is held out of every plane it is pressed into, where one spring per node held it out of one only
+and left a joint whose every node lies on another plane held by nothing. The slots' normals keep pairwise
+|n_s · n_t| ≤ cos θ_g, so a node's springs are no stiffer than SPRING_BOUND k = 2 k along any direction
+(Gershgorin), which the stable steps take (warpdem.fem_contact.contact_critical_step_at, warpdem.rigid_step).
+Each spring never gains energy that no force worked for (½ k δ² jumping up at an event is energy created; a jump
+down is booked as dissipated): a slot keeps its target while the node still penetrates it (its projection may then
+stray KEEP_EPS outside the triangle: a node on the rim of a joint sits on the edge of the face opposite); on a change
+of target within its plane the new spring starts at no more than the old one's compression; a spring whose plane no
+face holds is let go (dissipated); a new contact (a new plane) starts at the depth gained in the step, the depth the
+node already had behind the plane at the last positions (it slid in past an edge) carried as an offset; the offset
+follows a node that backs out. The springs' energy is their sum, in the force evaluation and in the books alike.
 Candidates exclude every face with a vertex in the node's 1-ring (the node itself or a node it shares a tet with):
 a node never touches a face of a tet holding it, nor a face that holds it, and near a crack tip the rock is still
 continuous. An intact joint element's pair is excluded too (the element carries it).
