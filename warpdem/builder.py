@@ -21,7 +21,7 @@ from .initial_state import new_state
 from .joints import JointData, JointProps, count_split_nodes
 from .kernels.contact import ContactPair
 from .kernels.tets import TetMaterial
-from .loads import LoadModel, LoadSpecs, PressureHistory
+from .loads import LoadModel, LoadSpecs
 from .mesh import MeshQuality, check_tets
 from .model import (
     BondData,
@@ -34,6 +34,7 @@ from .model import (
 )
 from .ordering import NODE_ORDERS, morton_order
 from .overlap import InitialOverlap, initial_overlap
+from .pressure import PressureHistory
 from .restitution import hertz_damping_coefficient, linear_damping_ratio
 from .tets import (
     TetProps,
