@@ -21,8 +21,8 @@ from .conversion import (
     centroid64,
     couples_to,
     lattice_stiffness,
-    write_lattice_bond,
 )
+from .conversion_bonds import write_lattice_bond
 from .coupling import current_barycentric
 
 wp.set_module_options({"enable_backward": False})

@@ -184,3 +184,72 @@ def bond_critical_step(
     return CriticalStep(
         float(steps[k]), f"the bond between spheres{name} ({mode} mode, {int(zmax[k])} bonds on a sphere)"
     )
+
+
+COINCIDENT = 1e-6
+"""Two bonded spheres whose centres are closer than this times the sum of their radii coincide: their bond has no
+direction and an infinite stiffness E A / L0."""
+
+
+class CoincidentSpheresError(ValueError):
+    """Two spheres of a bonded group have the same centre (a particle source given twice, usually).
+
+    Attributes:
+        group: index of the bonded group (the scene's ``bonds[group]``). i, j: sphere ids (creation order).
+    """
+
+    def __init__(self, group: int, i: int, j: int, center: np.ndarray) -> None:
+        super().__init__(
+            f"spheres {i} and {j} have the same centre {np.round(center, 9).tolist()} m; a bond needs two distinct "
+            "centres (is a particle source given twice?)"
+        )
+        self.group, self.i, self.j = group, i, j
+
+
+def bonded_group_bonds(groups: Sequence[tuple], particles: ParticleData, device: wp.context.Device) -> BondData:
+    """Bonds of every bonded group (pairs found with the hash grid, :func:`find_bond_pairs`), with their springs and
+    strengths: k_n = E_b A / L_0 with A = π (λ min(r_i, r_j))², k_s = k_n / ratio.
+
+    Args:
+        groups: (sphere ids, (E_b, σ_t, τ_c, k_n/k_s, λ, search tolerance, ζ)) per group, as
+            :meth:`warpdem.builder.ModelBuilder.add_bonded_group` keeps them; a sphere belongs to the last group that
+            names it.
+        particles: the spheres. device: where the pairs are searched.
+
+    Raises:
+        CoincidentSpheresError: two spheres of a group share a centre.
+    """
+    parts: list[BondData] = []
+    group = np.zeros(len(particles), dtype=np.int32)
+    for k, (ids, _) in enumerate(groups):
+        group[ids] = k + 1  # a sphere belongs to the last group that names it
+    for k, (_, props) in enumerate(groups):
+        e_b, sig_t, tau_c, ratio, lam, tol, zeta = props
+        mine = np.where(group == k + 1, 1, 0)
+        pairs = find_bond_pairs(particles.q, particles.radius, mine, tol, device)
+        if len(pairs) == 0:
+            continue
+        i, j = pairs[:, 0], pairs[:, 1]
+        length = np.linalg.norm(particles.q[i] - particles.q[j], axis=1)
+        coincident = np.nonzero(length <= COINCIDENT * (particles.radius[i] + particles.radius[j]))[0]
+        if len(coincident):
+            a, b = int(i[coincident[0]]), int(j[coincident[0]])
+            raise CoincidentSpheresError(k, a, b, particles.q[a])
+        area = math.pi * (lam * np.minimum(particles.radius[i], particles.radius[j])) ** 2
+        kn = e_b * area / length
+        m = len(pairs)
+        parts.append(
+            BondData(
+                pairs=pairs,
+                rest_length=length,
+                kn=kn,
+                ks=kn / ratio,
+                area=area,
+                tensile_strength=np.full(m, sig_t),
+                shear_strength=np.full(m, tau_c),
+                damping=np.full(m, zeta),
+            )
+        )
+    if not parts:
+        return BondData.empty()
+    return BondData(*(np.concatenate([getattr(p, f) for p in parts]) for f in BondData.__dataclass_fields__))

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from .bonds import bond_critical_step, find_bond_pairs, sphere_masses
+from .bonds import bond_critical_step, bonded_group_bonds, sphere_masses
 from .contact import sphere_contact_steps
 from .fem_contact import attach_fem_contact, contact_critical_step_at
 from .guard import CriticalStep, check_time_step, p_wave_speed, run_away_speed
@@ -21,7 +21,7 @@ from .initial_state import new_state
 from .joints import JointData, JointProps, count_split_nodes
 from .kernels.contact import ContactPair
 from .kernels.tets import TetMaterial
-from .loads import LoadModel, LoadSpecs, PressureHistory
+from .loads import LoadModel, LoadSpecs
 from .mesh import MeshQuality, check_tets
 from .model import (
     BondData,
@@ -34,6 +34,7 @@ from .model import (
 )
 from .ordering import NODE_ORDERS, morton_order
 from .overlap import InitialOverlap, initial_overlap
+from .pressure import PressureHistory
 from .restitution import hertz_damping_coefficient, linear_damping_ratio
 from .tets import (
     TetProps,
@@ -46,26 +47,6 @@ from .tets import (
 
 MOTIONS = {"free": 0, "fixed": 1, "prescribed": 2}
 NODE_MOTIONS = {"free": 0, "fixed": 1, "z_only": 2}
-
-
-COINCIDENT = 1e-6
-"""Two bonded spheres whose centres are closer than this times the sum of their radii coincide: their bond has no
-direction and an infinite stiffness E A / L0."""
-
-
-class CoincidentSpheresError(ValueError):
-    """Two spheres of a bonded group have the same centre (a particle source given twice, usually).
-
-    Attributes:
-        group: index of the bonded group (the scene's ``bonds[group]``). i, j: sphere ids (creation order).
-    """
-
-    def __init__(self, group: int, i: int, j: int, center: np.ndarray) -> None:
-        super().__init__(
-            f"spheres {i} and {j} have the same centre {np.round(center, 9).tolist()} m; a bond needs two distinct "
-            "centres (is a particle source given twice?)"
-        )
-        self.group, self.i, self.j = group, i, j
 
 
 @dataclass
@@ -534,41 +515,8 @@ class ModelBuilder:
         return table
 
     def bond_data(self, particles: ParticleData, device: wp.context.Device) -> BondData:
-        """Bonds of every bonded group (pairs found with the hash grid), with their springs and strengths."""
-        parts: list[BondData] = []
-        group = np.zeros(len(particles), dtype=np.int32)
-        for k, (ids, _) in enumerate(self._bond_groups):
-            group[ids] = k + 1  # a sphere belongs to the last group that names it
-        for k, (_, props) in enumerate(self._bond_groups):
-            e_b, sig_t, tau_c, ratio, lam, tol, zeta = props
-            mine = np.where(group == k + 1, 1, 0)
-            pairs = find_bond_pairs(particles.q, particles.radius, mine, tol, device)
-            if len(pairs) == 0:
-                continue
-            i, j = pairs[:, 0], pairs[:, 1]
-            length = np.linalg.norm(particles.q[i] - particles.q[j], axis=1)
-            coincident = np.nonzero(length <= COINCIDENT * (particles.radius[i] + particles.radius[j]))[0]
-            if len(coincident):
-                a, b = int(i[coincident[0]]), int(j[coincident[0]])
-                raise CoincidentSpheresError(k, a, b, particles.q[a])
-            area = math.pi * (lam * np.minimum(particles.radius[i], particles.radius[j])) ** 2
-            kn = e_b * area / length
-            m = len(pairs)
-            parts.append(
-                BondData(
-                    pairs=pairs,
-                    rest_length=length,
-                    kn=kn,
-                    ks=kn / ratio,
-                    area=area,
-                    tensile_strength=np.full(m, sig_t),
-                    shear_strength=np.full(m, tau_c),
-                    damping=np.full(m, zeta),
-                )
-            )
-        if not parts:
-            return BondData.empty()
-        return BondData(*(np.concatenate([getattr(p, f) for p in parts]) for f in BondData.__dataclass_fields__))
+        """Bonds of every bonded group (:func:`warpdem.bonds.bonded_group_bonds`)."""
+        return bonded_group_bonds(self._bond_groups, particles, device)
 
     def critical_time_step(self, particles: ParticleData, bonds: BondData, mesh: TetMeshData | None = None) -> float:
         """Critical time step [s] before the safety factor (:meth:`critical_step`)."""

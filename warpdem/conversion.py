@@ -79,6 +79,7 @@ from .compaction import Compactor
 from .coupling import compact_coupling
 from .kernels import compaction as kc
 from .kernels import conversion as kcv
+from .kernels import conversion_bonds as kcb
 from .kernels import multisphere as kms
 from .kernels import topology as kt
 from .lattice import edge_pairs
@@ -635,7 +636,7 @@ class ConversionPass:
         )
         if m.bond_capacity:
             wp.launch(
-                kms.write_sub_bonds_kernel if sub else kcv.write_conversion_bonds_kernel,
+                kms.write_sub_bonds_kernel if sub else kcb.write_conversion_bonds_kernel,
                 dim=m.tet_capacity,
                 inputs=[
                     m.tet_nodes,
@@ -729,14 +730,14 @@ def sort_bonds(model: Model, state: State) -> None:
     # Slots past the count sort last (largest key) and keep their place.
     keys.fill_(np.iinfo(np.int64).max)
     wp.launch(kcv.iota_kernel, dim=n, inputs=[], outputs=[order], device=d)
-    wp.launch(kcv.bond_sort_keys_kernel, dim=n, inputs=[s.bond_count, s.bond_key], outputs=[keys, order], device=d)
+    wp.launch(kcb.bond_sort_keys_kernel, dim=n, inputs=[s.bond_count, s.bond_key], outputs=[keys, order], device=d)
     wp.utils.radix_sort_pairs(keys, order, n)
     for name in BOND_FIELDS:
         a = getattr(s, name)
         src = wp.clone(a)
         wp.launch(kt.gather_kernel, dim=n, inputs=[order, src], outputs=[a], device=d)
     old_to_new = wp.zeros(n, dtype=int, device=d)
-    wp.launch(kcv.inverse_order_kernel, dim=n, inputs=[s.bond_count, order], outputs=[old_to_new], device=d)
+    wp.launch(kcb.inverse_order_kernel, dim=n, inputs=[s.bond_count, order], outputs=[old_to_new], device=d)
     if s.nbr_bond.shape[0]:
         wp.launch(kc.remap_indices_kernel, dim=s.nbr_bond.shape[0], inputs=[old_to_new], outputs=[s.nbr_bond], device=d)
 

@@ -28,7 +28,8 @@ def block_node_order(model: Model, state: State) -> np.ndarray:
     connected through shared nodes) in the Z order of their centroids on cells of the mean block size, each block's
     nodes together in their old order, nodes of no tet last. A body's nodes are then contiguous, and a node–face
     contact's face nodes (a neighbouring block's) near in memory: `bench blocks` gains with it at 103 823 blocks and
-    breaks even at 4096, where the split's numbering suits the node–face stage better (README, Benchmark).
+    breaks even at 4096, where the split's numbering suits the node–face stage better (benchmarks/README.md,
+    "bench blocks").
 
     Returns:
         New node i = old node order[i], shape (node_count,), int64.

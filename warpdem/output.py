@@ -23,7 +23,7 @@ import numpy as np
 
 from .fragments import fragment_colors
 from .mesh import TET_FACES, row_groups
-from .usd import CurveSet, SurfaceFrame
+from .usd_frames import CurveSet, SurfaceFrame
 
 if TYPE_CHECKING:
     from .model import Model, State

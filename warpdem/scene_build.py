@@ -16,7 +16,8 @@ import numpy as np
 import warp as wp
 
 from . import packing
-from .builder import CoincidentSpheresError, InteractionProps, ModelBuilder
+from .bonds import CoincidentSpheresError
+from .builder import InteractionProps, ModelBuilder
 from .guard import UnstableTimeStepError
 from .limits import F32_MAX
 from .mesh import tet_signed_volumes

@@ -470,7 +470,8 @@ def _add_loads(builder: ModelBuilder, scene: Scene, mesh: GeologyMesh, nodes: np
         raise SceneError(f"{source}: {section}: not supported by this build yet (warpdem.loads)")
     if not (scene.loads or scene.boundaries):
         return
-    from .loads import PressureHistory, roller_axis
+    from .loads import roller_axis
+    from .pressure import PressureHistory
 
     driven = np.full(len(mesh.points), -1, dtype=np.int64)  # the velocity load that drives each node
     for i, load in enumerate(scene.loads):

@@ -41,11 +41,12 @@ import math
 import os
 import pathlib
 import shutil
-from dataclasses import dataclass
 from types import TracebackType
 from typing import Any
 
 import numpy as np
+
+from .usd_frames import CurveSet, SurfaceFrame, as_float32, check_curves, check_surface, empty_curves, empty_surface
 
 __all__ = ["CurveSet", "SurfaceFrame", "UsdWriter", "stage_frame"]
 
@@ -56,51 +57,6 @@ _LAZY_PRIMS = ("/World/Particles", "/World/Bonds", "/World/Rock", "/World/Cohesi
 
 # Radius-to-width ratio of the bond curves: thin enough to leave the spheres visible, thick enough to see.
 _BOND_WIDTH_PER_MEAN_RADIUS = 0.5
-
-
-@dataclass
-class SurfaceFrame:
-    """One frame of a triangulated surface (the boundary of the FEM rock, crack faces included).
-
-    Attributes:
-        points: vertex positions [m], shape (P, 3); may hold vertices no triangle uses.
-        faces: triangles as vertex indices, shape (F, 3), integer, right-handed (normal out of the rock).
-        velocities: vertex velocities [m/s], shape (P, 3).
-        von_mises: von Mises stress of each triangle's tet [Pa], shape (F,).
-        max_principal: largest principal stress (tension positive) of each triangle's tet [Pa], shape (F,).
-        colors: display colours, linear RGB in [0, 1], shape (F, 3) (one per triangle) or (P, 3) (one per vertex,
-            when ``vertex_colors``).
-        vertex_colors: whether ``colors`` holds one colour per vertex instead of one per triangle.
-        damage: optional damage of each vertex [-], shape (P,), in [0, 1] (written to ``primvars:damage``).
-        fragment: fragment id of each vertex (-1 for none; warpdem.fragments), shape (P,), integer, or None.
-    """
-
-    points: np.ndarray
-    faces: np.ndarray
-    velocities: np.ndarray
-    von_mises: np.ndarray
-    max_principal: np.ndarray
-    colors: np.ndarray
-    vertex_colors: bool = False
-    damage: np.ndarray | None = None
-    fragment: np.ndarray | None = None
-
-
-@dataclass
-class CurveSet:
-    """One frame of straight two-point curves (the cohesive elements of the FEM rock).
-
-    Attributes:
-        endpoints: the two ends of each curve [m], shape (M, 2, 3).
-        width: the width of every curve [m].
-        damage: a value per curve [-], shape (M,) (``primvars:damage``).
-        colors: display colour of each curve, linear RGB in [0, 1], shape (M, 3).
-    """
-
-    endpoints: np.ndarray
-    width: float
-    damage: np.ndarray
-    colors: np.ndarray
 
 
 class UsdWriter:
@@ -349,11 +305,11 @@ class UsdWriter:
         t = float(time)
         if not math.isfinite(t):
             raise ValueError(f"USD frame {self._frame_count}: time must be finite, got {time}")
-        pos = _as_float32(positions, "positions", (-1, 3))
+        pos = as_float32(positions, "positions", (-1, 3))
         n = pos.shape[0]
-        rad = _as_float32(radii, "radii", (n,))
-        vel = _as_float32(velocities, "velocities", (n, 3))
-        col = _as_float32(colors, "colors", (n, 3))
+        rad = as_float32(radii, "radii", (n,))
+        vel = as_float32(velocities, "velocities", (n, 3))
+        col = as_float32(colors, "colors", (n, 3))
         ids_arr = np.asarray(ids)
         if ids_arr.shape != (n,) or not np.issubdtype(ids_arr.dtype, np.integer):
             raise ValueError(f"ids: expected integer array of shape ({n},), got {ids_arr.dtype} {ids_arr.shape}")
@@ -367,8 +323,8 @@ class UsdWriter:
                 )
             if bond_arr.size and (bond_arr.min() < 0 or bond_arr.max() >= n):
                 raise ValueError(f"bonds: indices must lie in [0, {n}), got range [{bond_arr.min()}, {bond_arr.max()}]")
-        checked_surface = _check_surface(surface) if surface is not None else None
-        checked_cohesive = _check_curves(cohesive) if cohesive is not None else None
+        checked_surface = check_surface(surface) if surface is not None else None
+        checked_cohesive = check_curves(cohesive) if cohesive is not None else None
 
         code = float(self._first_frame + self._frame_count)
         self._time_attr.Set(t, code)
@@ -410,12 +366,12 @@ class UsdWriter:
                 label = np.asarray(surface.fragment).reshape(len(checked_surface[0]))
                 self._set_fragment("/World/Rock", self._rock.GetPrim(), code, label)
         elif self._rock is not None:
-            self._write_surface(code, *_empty_surface(), self._rock_vertex_colors, None)
+            self._write_surface(code, *empty_surface(), self._rock_vertex_colors, None)
 
         if checked_cohesive is not None:
             self._write_cohesive(code, *checked_cohesive)
         elif self._cohesive is not None:
-            self._write_cohesive(code, *_empty_curves())
+            self._write_cohesive(code, *empty_curves())
 
         self._frame_count += 1
         if self._crate and self.save_interval_frames > 0 and self._frame_count % self.save_interval_frames == 0:
@@ -536,7 +492,7 @@ class UsdWriter:
             self._define_cohesive()
             if code > self._start:
                 # USD holds the first sample backwards in time: frames before the elements existed draw none.
-                self._write_cohesive(code - 1.0, *_empty_curves())
+                self._write_cohesive(code - 1.0, *empty_curves())
         _set_curves(self._cohesive, code, endpoints, width)
         self._cohesive_attrs["damage"].Set(Vt.FloatArray.FromNumpy(damage), code)
         self._cohesive_attrs["color"].Set(Vt.Vec3fArray.FromNumpy(colors), code)
@@ -575,7 +531,7 @@ class UsdWriter:
             self._define_rock(vertex_colors, damage is not None)
             if code > self._start:
                 # USD holds the first sample backwards in time: frames before the surface existed draw nothing.
-                self._write_surface(code - 1.0, *_empty_surface(), vertex_colors, None)
+                self._write_surface(code - 1.0, *empty_surface(), vertex_colors, None)
         elif damage is not None and "damage" not in self._rock_attrs:
             self._define_rock_damage()
         a = self._rock_attrs
@@ -651,79 +607,6 @@ class UsdWriter:
         self._cohesive_attrs = {}
         self._stage = None
         self._layer = None
-
-
-def _as_float32(values: np.ndarray, name: str, shape: tuple[int, ...]) -> np.ndarray:
-    """Converts an array to contiguous float32 and checks its shape.
-
-    Args:
-        values: Input array.
-        name: Argument name for the error message.
-        shape: Expected shape; ``-1`` accepts any length in that axis.
-
-    Returns:
-        C-contiguous float32 array.
-
-    Raises:
-        ValueError: If the shape does not match.
-    """
-    arr = np.asarray(values)
-    if arr.ndim != len(shape) or any(want not in (-1, got) for want, got in zip(shape, arr.shape, strict=True)):
-        expected = "(" + ", ".join("N" if s == -1 else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
-        raise ValueError(f"{name}: expected shape {expected}, got {arr.shape}")
-    return np.ascontiguousarray(arr, dtype=np.float32)
-
-
-def _check_surface(surface: SurfaceFrame) -> tuple:
-    """Checks a surface frame's shapes and converts its arrays for USD (float32, int32 indices).
-
-    Raises:
-        ValueError: If shapes disagree, the faces are not integers, or an index is out of range.
-    """
-    pts = _as_float32(surface.points, "surface.points", (-1, 3))
-    p = pts.shape[0]
-    faces = np.asarray(surface.faces)
-    if faces.ndim != 2 or faces.shape[1] != 3 or not (np.issubdtype(faces.dtype, np.integer) or faces.size == 0):
-        raise ValueError(f"surface.faces: expected integer array of shape (F, 3), got {faces.dtype} {faces.shape}")
-    if faces.size and (faces.min() < 0 or faces.max() >= p):
-        raise ValueError(f"surface.faces: indices must lie in [0, {p}), got range [{faces.min()}, {faces.max()}]")
-    f = faces.shape[0]
-    vel = _as_float32(surface.velocities, "surface.velocities", (p, 3))
-    von_mises = _as_float32(surface.von_mises, "surface.von_mises", (f,))
-    max_principal = _as_float32(surface.max_principal, "surface.max_principal", (f,))
-    colors = _as_float32(surface.colors, "surface.colors", (p if surface.vertex_colors else f, 3))
-    damage = _as_float32(surface.damage, "surface.damage", (p,)) if surface.damage is not None else None
-    faces = np.ascontiguousarray(faces, dtype=np.int32)
-    return pts, faces, vel, von_mises, max_principal, colors, bool(surface.vertex_colors), damage
-
-
-def _empty_surface() -> tuple:
-    """The arrays of a surface without triangles (authored where the rock is gone or not there yet)."""
-    z3 = np.zeros((0, 3), np.float32)
-    z = np.zeros(0, np.float32)
-    return z3, np.zeros((0, 3), np.int32), z3, z, z, z3
-
-
-def _check_curves(curves: CurveSet) -> tuple:
-    """Checks a curve set's shapes and converts it for USD: endpoints as (2 M, 3) float32, width, damage and colours
-    float32.
-
-    Raises:
-        ValueError: If shapes disagree or the width is not a finite number >= 0.
-    """
-    ends = _as_float32(curves.endpoints, "cohesive.endpoints", (-1, 2, 3))
-    m = ends.shape[0]
-    width = float(curves.width)
-    if not (math.isfinite(width) and width >= 0.0):
-        raise ValueError(f"cohesive.width: expected a finite number >= 0, got {curves.width}")
-    damage = _as_float32(curves.damage, "cohesive.damage", (m,))
-    colors = _as_float32(curves.colors, "cohesive.colors", (m, 3))
-    return ends.reshape(-1, 3), width, damage, colors
-
-
-def _empty_curves() -> tuple:
-    """The arrays of a curve set without curves (checked form)."""
-    return np.zeros((0, 3), np.float32), 0.0, np.zeros(0, np.float32), np.zeros((0, 3), np.float32)
 
 
 def _define_curves(stage: Any, path: str) -> Any:

@@ -52,8 +52,8 @@ def jointed_cube(cells: int, device: str, node_order: str = "blocks") -> Simulat
     frictional joint (μ = 0.5), so the blocks are the cells. It rests on a ground wall under gravity, each block with
     a seeded small random velocity (the blocks rattle, so the contacts work), in rigid mode from the start at half
     the blocks' stable step (warpdem.rigid_step.rigid_time_step), as a Simulation. ``node_order``:
-    ModelBuilder.finalize's (the bench's, "blocks", numbers the nodes block by block; README, Benchmark, compares it
-    with "split")."""
+    ModelBuilder.finalize's (the bench's, "blocks", numbers the nodes block by block; benchmarks/README.md,
+    "bench blocks", compares it with "split")."""
     from ..builder import ModelBuilder
     from ..joints import JointProps
     from ..mesh import TET_FACES, box_mesh
