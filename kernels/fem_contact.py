@@ -1,7 +1,7 @@
 """FEM contact (DESIGN.md stage 4): the node–face and node–wall forces with tangential history, and the node–face
 candidate lists from a hash grid. The pieces it stands on, re-exported here: the boundary faces, the nodes' penalty
 stiffness and the point–triangle geometry (kernels/fem_surface.py), the sphere–face lists and forces
-(kernels/sphere_face.py), and the face a node is pushed out of (kernels/node_face_target.py).
+(kernels/sphere_face.py), and the faces a node is pushed out of (kernels/node_face_target.py).
 
 Node–face: a node penetrates a face when the face faces it (n_f · n_v < 0, n_v the outward normal of the node's own
 surface), it lies behind the face's plane (s = (x - x_a) · n_f < 0), less deep than half the tet's height over the

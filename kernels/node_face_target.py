@@ -63,7 +63,7 @@ def kept_face_holds(
 ):
     """Whether the kept face ``keep`` is still node v's target: a candidate of v that v lies behind (less deep than
     face_depth), that faces v's normal n_v (``normal``) and that v projects into within KEEP_EPS; the tests of
-    :func:`node_face_target` for that face, in its arithmetic. Whether it is a candidate is read at the list slot
+    :func:`new_plane_face` for that face, in its arithmetic. Whether it is a candidate is read at the list slot
     ``hint`` where the last evaluation found it; only when it is not there (the list was rebuilt since, or no hint)
     is the list searched: the same answer, without a pass over some thirty slots for nearly every node.
 
