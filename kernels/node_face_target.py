@@ -21,7 +21,7 @@ direction, and only the shallowest of them holds a spring. The springs of a node
 cos θ_g, so by Gershgorin on their Gram matrix λ_max(Σ_s n_s n_sᵀ) ≤ 1 + (NODE_SPRINGS − 1) cos θ_g = 2 = SPRING_BOUND:
 the node's springs are no stiffer along any direction than 2 k (the stable steps take it, warpdem.fem_contact)."""
 
-SPRING_BOUND = 1.0 + (3 - 1) * 0.5
+SPRING_BOUND = 1.0 + (NODE_SPRINGS - 1) * PLANE_GROUP_COS
 """λ_max(Σ_s n_s n_sᵀ) over a node's springs at most [-] (:data:`PLANE_GROUP_COS`); a Python float for the host."""
 
 
