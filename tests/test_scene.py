@@ -598,6 +598,20 @@ MESH_BAD_SCENES = [
         "group 'bedding' is listed twice",
     ),
     (
+        "geology_opening_min_piece",
+        edit("radius = 1.5", "radius = 1.5\nmin_piece = 0.25", base=GEOLOGY_BASE),
+        "mesh.openings",
+        "'min_piece' is for bricks meshes only",
+    ),
+    (
+        "bricks_opening_min_piece_one",
+        MINIMAL + '\n[mesh]\nkind = "bricks"\nlo = [0, 0, 0]\nhi = [4, 1, 2]\nmaterial = "rock"\n'
+        'brick = [1.0, 1.0, 0.5]\nh = 0.5\n[[mesh.openings]]\nkind = "room"\nlo = [1, -1, 0.5]\nhi = [2, 2, 1]\n'
+        "min_piece = 1.0\n",
+        "mesh.openings[0].min_piece",
+        "less than 1",
+    ),
+    (
         "geology_joint_set_restitution_zero",
         edit("spacing = 3.0", "spacing = 3.0\nrestitution = 0.0", base=GEOLOGY_BASE),
         "mesh.joint_sets[0].restitution",

@@ -11,7 +11,11 @@ of what the stagger needs (so the shifted courses' head joints fall on grid line
 height / h rounded up. The box is a whole number of cells from ``lo`` (its ``hi`` rounded to the nearest cell);
 course k starts with a block at ``lo`` shifted by ``k × stagger`` block lengths (modulo one block). An opening
 removes every cell whose centre lies inside it, so its walls follow the grid (a size that is no whole number of
-cells rounds to the nearest one).
+cells rounds to the nearest one). An opening may also take the pieces of the blocks it cuts that are left smaller
+than a fraction of a whole block (``min_piece``): a charge's equivalent cavity stands for its crushed zone, and the
+staircase its cells cut from the bricks around it leaves pieces of a cell or two, rubble of that zone, whose
+springs would otherwise set the rigid blocks' stable step (∝ sqrt(mass / stiffness), smallest for the smallest
+piece).
 """
 
 from __future__ import annotations
@@ -66,6 +70,51 @@ def _inside(opening: Tunnel | Shaft | Room, x: np.ndarray) -> np.ndarray:
     return inside
 
 
+def _small_pieces(
+    keep: np.ndarray,
+    removed: np.ndarray,
+    block_key: np.ndarray,
+    cell: np.ndarray,
+    n: np.ndarray,
+    whole: int,
+    limit: float,
+) -> np.ndarray:
+    """Which tets (T,) lie in a piece smaller than ``limit`` × ``whole`` cells of a block an opening cut.
+
+    Args:
+        keep: (T,) tets still in the rock. removed: (T,) tets this opening removed. block_key: (T,) each tet's brick.
+        cell: (T,) each tet's cell, numbered x fastest on the grid of n (3,) cells. whole: cells of a whole block.
+        limit: fraction of a whole block below which a piece goes [-].
+    """
+    # A piece is a face-connected set of kept cells of one brick (a cut can leave two): its cells' labels settle on
+    # the smallest cell number of the piece by passes of the minimum over the grid neighbours of the same brick, at
+    # most a brick's length of passes.
+    grid_keep = np.zeros(n[::-1], dtype=bool)
+    grid_block = np.full(n[::-1], -1, dtype=np.int64)
+    grid_keep.ravel()[cell[keep]] = True
+    grid_block.ravel()[cell] = block_key
+    none = np.iinfo(np.int64).max
+    label = np.where(grid_keep, np.arange(grid_keep.size).reshape(grid_keep.shape), none)
+    while True:
+        before = label.copy()
+        for axis in range(3):
+            for step in (1, -1):
+                lo = [slice(None)] * 3
+                hi = [slice(None)] * 3
+                lo[axis], hi[axis] = (slice(0, -1), slice(1, None)) if step == 1 else (slice(1, None), slice(0, -1))
+                a, b = tuple(lo), tuple(hi)
+                joined = grid_keep[a] & grid_keep[b] & (grid_block[a] == grid_block[b])
+                label[a] = np.where(joined, np.minimum(label[a], label[b]), label[a])
+        if np.array_equal(label, before):
+            break
+    cut_blocks = np.unique(block_key[removed])
+    flat_label = label.ravel()
+    in_cut = grid_keep.ravel() & np.isin(grid_block.ravel(), cut_blocks)
+    pieces, size = np.unique(flat_label[in_cut], return_counts=True)
+    small = pieces[size < limit * whole]
+    return keep & np.isin(flat_label[cell], small)
+
+
 def mesh_bricks(
     lo: Sequence[float],
     hi: Sequence[float],
@@ -74,26 +123,33 @@ def mesh_bricks(
     material: str,
     stagger: float = 0.5,
     openings: Sequence[Tunnel | Shaft | Room] = (),
+    min_pieces: Sequence[float] | None = None,
 ) -> GeologyMesh:
     """The brick mesh of the box [lo, hi] (module docstring).
 
     Args:
         lo, hi: corners of the box [m]; hi is rounded to whole cells. brick: block length along x, depth along y and
         height along z [m]. h: largest cell edge [m]. material: the rock's material name. stagger: shift of each
-        course against the one below, in block lengths, [0, 1). openings: cut out cell by cell.
+        course against the one below, in block lengths, [0, 1). openings: cut out cell by cell. min_pieces: per
+        opening, the fraction of a whole block's volume [0, 1) below which a connected piece of a block it cuts is
+        removed with it; ``None``: 0 for each (every piece stays).
 
     Returns:
         The mesh: joint sets :data:`BRICK_JOINT_SETS`, one block (``tet_block``) per brick piece left after the
         openings, the box faces and ``"opening"`` as face sets.
 
     Raises:
-        ValueError: a size that is not positive, a stagger outside [0, 1), or openings that remove every cell.
+        ValueError: a size that is not positive, a stagger outside [0, 1), a min_pieces entry outside [0, 1) or
+        of another length than openings, or openings that remove every cell.
     """
     lo_a, hi_a, size = (np.asarray(v, dtype=np.float64) for v in (lo, hi, brick))
     if not (h > 0 and np.all(size > 0) and np.all(hi_a > lo_a)):
         raise ValueError(f"bricks: need h > 0, brick sizes > 0 and hi > lo, got h {h}, brick {size.tolist()}")
     if not 0.0 <= stagger < 1.0:
         raise ValueError(f"bricks: stagger must lie in [0, 1) block lengths, got {stagger}")
+    limits = [0.0] * len(openings) if min_pieces is None else [float(v) for v in min_pieces]
+    if len(limits) != len(openings) or not all(0.0 <= v < 1.0 for v in limits):
+        raise ValueError(f"bricks: need one min_piece in [0, 1) per opening, got {limits} for {len(openings)}")
     per = np.array(
         [brick_cells(size[0], stagger, h), max(1, math.ceil(size[1] / h - 1e-9)), max(1, math.ceil(size[2] / h - 1e-9))]
     )
@@ -110,9 +166,12 @@ def mesh_bricks(
     column = (i + per[0] - shift) // per[0]  # the block along x within the course (0: the partial one at lo)
     block_key = column + (n[0] // per[0] + 2) * ((j // per[1]) + (n[1] // per[1] + 1) * course)
     centre = points[tets].mean(axis=1)
-    keep = np.ones(len(tets), dtype=bool)
-    for opening in openings:
-        keep &= ~_inside(opening, lo_a + (np.stack([i, j, k], axis=1) + 0.5) * cell)
+    cell_centre = lo_a + (np.stack([i, j, k], axis=1) + 0.5) * cell
+    cut = [_inside(opening, cell_centre) for opening in openings]
+    keep = ~np.any(cut, axis=0) if cut else np.ones(len(tets), dtype=bool)
+    for removed, limit in zip(cut, limits, strict=True):
+        if limit > 0.0:
+            keep &= ~_small_pieces(keep, removed, block_key, c, n, int(np.prod(per)), limit)
     if not np.any(keep):
         raise ValueError("bricks: the openings remove every cell")
     tets, block_key, centre = tets[keep], block_key[keep], centre[keep]

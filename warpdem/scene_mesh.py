@@ -266,7 +266,16 @@ def _rock_mesh(scene: Scene) -> GeologyMesh:
         if spec.kind == "ellipsoid":
             return mesh_ellipsoid(spec.center, spec.radii, spec.h, spec.material)
         if spec.kind == "bricks":
-            return mesh_bricks(spec.lo, spec.hi, spec.brick, spec.h, spec.material, spec.stagger, _openings(spec))
+            return mesh_bricks(
+                spec.lo,
+                spec.hi,
+                spec.brick,
+                spec.h,
+                spec.material,
+                spec.stagger,
+                _openings(spec),
+                [o.min_piece for o in spec.openings],
+            )
         return _file(spec, scene)
     except (ValueError, RuntimeError, MeshError) as exc:
         if isinstance(exc, SceneError):

@@ -60,6 +60,16 @@ class Layer(_Model):
     material: Str = Field(description="Name of a material defined in [materials].")
 
 
+def _min_piece_field() -> Any:
+    return Field(
+        default=0.0,
+        ge=0,
+        lt=1,
+        description="Bricks meshes: a piece of a block this opening cuts that is left smaller than this fraction of a "
+        "whole block goes with it (a charge's crushed zone) [-]; 0 keeps every piece.",
+    )
+
+
 class TunnelOpening(_Model):
     """A horizontal tunnel along x or y."""
 
@@ -77,6 +87,7 @@ class TunnelOpening(_Model):
     span: Vec2 | None = Field(
         default=None, description="(start, end) along the axis [m]; omitted: through the whole model."
     )
+    min_piece: Float = _min_piece_field()
 
     @model_validator(mode="after")
     def _check_shape(self) -> TunnelOpening:
@@ -105,6 +116,7 @@ class ShaftOpening(_Model):
     radius: Float = Field(gt=0, description="Shaft radius [m].")
     bottom: Float | None = Field(default=None, description="Height of the floor [m]; omitted: through the bottom.")
     top: Float | None = Field(default=None, description="Height of the top [m]; omitted: open to the surface.")
+    min_piece: Float = _min_piece_field()
 
     @field_validator("top")
     @classmethod
@@ -121,6 +133,7 @@ class RoomOpening(_Model):
     kind: Literal["room"] = Field(description="Opening kind.")
     lo: Vec3 = Field(description="Lower corner [m].")
     hi: Vec3 = Field(description="Upper corner [m]; greater than lo in every component.")
+    min_piece: Float = _min_piece_field()
 
     @field_validator("hi")
     @classmethod
@@ -235,6 +248,14 @@ class GeologyMeshSpec(_Model):
     @classmethod
     def _check_hi(cls, value: tuple[float, float, float], info: ValidationInfo) -> tuple[float, float, float]:
         return _hi_above_lo(value, info)
+
+    @field_validator("openings")
+    @classmethod
+    def _check_openings(cls, value: list[Any]) -> list[Any]:
+        # Gmsh conforms the tets to the joints, so no opening leaves cell-sized pieces to take.
+        if any(o.min_piece > 0 for o in value):
+            raise ValueError("'min_piece' is for bricks meshes only")
+        return value
 
 
 def _joint_group_table(value: Any) -> Any:
