@@ -57,9 +57,9 @@ from warpdem.kernels import fem_contact as kf
 
 from warpdem.builder import InteractionProps, ModelBuilder
 from warpdem.guard import UnstableRunError
+from warpdem.host_data import BondData
 from warpdem.joints import JointProps
 from warpdem.mesh import TET_FACES, box_mesh
-from warpdem.model import BondData
 from warpdem.simulation import Simulation
 from warpdem.tets import TetProps
 

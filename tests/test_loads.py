@@ -38,10 +38,10 @@ import pytest
 
 from warpdem.builder import ModelBuilder
 from warpdem.guard import UnstableTimeStepError
+from warpdem.host_data import BondData
 from warpdem.joints import JointProps
 from warpdem.loads import PressureHistory, eval_loads, load_work
 from warpdem.mesh import TET_FACES, boundary_faces, box_mesh
-from warpdem.model import BondData
 from warpdem.simulation import Simulation
 from warpdem.tets import TetProps, lame_parameters
 

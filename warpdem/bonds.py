@@ -13,8 +13,9 @@ import warp as wp
 from .compaction import Compactor
 from .contact import hash_grid_dims
 from .guard import CriticalStep
+from .host_data import BondData, ParticleData
 from .kernels import bonds as kb
-from .model import BOND_FIELDS, BondData, Model, ParticleData, State
+from .model import BOND_FIELDS, Model, State
 
 if TYPE_CHECKING:
     from .builder import MaterialProps

@@ -17,21 +17,14 @@ from .bonds import bond_critical_step, bonded_group_bonds, sphere_masses
 from .contact import sphere_contact_steps
 from .fem_contact import attach_fem_contact, contact_critical_step_at
 from .guard import CriticalStep, check_time_step, p_wave_speed, run_away_speed
+from .host_data import BondData, ParticleData, TetMeshData, WallData
 from .initial_state import new_state
 from .joints import JointData, JointProps, count_split_nodes
 from .kernels.contact import ContactPair
 from .kernels.tets import TetMaterial
 from .loads import LoadModel, LoadSpecs
 from .mesh import MeshQuality, check_tets
-from .model import (
-    BondData,
-    Model,
-    ParticleData,
-    State,
-    TetMeshData,
-    WallData,
-    pair_table_array,
-)
+from .model import Model, State, pair_table_array
 from .ordering import NODE_ORDERS, morton_order
 from .overlap import InitialOverlap, initial_overlap
 from .pressure import PressureHistory

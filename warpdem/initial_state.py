@@ -7,17 +7,8 @@ import numpy as np
 import warp as wp
 
 from .fem_contact import fem_contact_state
-from .model import (
-    BondData,
-    Model,
-    ParticleData,
-    State,
-    TetMeshData,
-    WallData,
-    conversion_state,
-    fracture_state,
-    rigid_state,
-)
+from .host_data import BondData, ParticleData, TetMeshData, WallData
+from .model import Model, State, conversion_state, fracture_state, rigid_state
 
 
 def new_state(

@@ -22,11 +22,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
+from .host_data import TetMeshData
 from .integrate import book_half_ahead
 from .kernels import loads as kl
 from .kernels import tets as kt
 from .mesh import TET_FACES
-from .model import Model, State, TetMeshData
+from .model import Model, State
 from .pressure import PressureHistory
 from .tets import lumped_node_masses, reference_geometry, tet_stable_time_steps
 

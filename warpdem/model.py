@@ -15,7 +15,6 @@ import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-import numpy as np
 import warp as wp
 
 from .kernels.contact import ContactPair
@@ -741,86 +740,6 @@ def rigid_state(model: Model) -> dict[str, wp.array]:
 
 NEIGHBOR_FIELDS = ("nbr_index", "nbr_shear", "nbr_bond")
 """State fields with max_neighbors slots per particle (regrown together)."""
-
-
-@dataclass
-class ParticleData:
-    """Host-side description of the spheres to create, in the order they get their ids.
-
-    Attributes:
-        q: centres [m], shape (N, 3). qd: velocities [m/s], (N, 3). omega: spins [rad/s], (N, 3).
-        radius: [m], (N,). material: material id, (N,). motion: 0 free / 1 fixed / 2 prescribed, (N,).
-        part: part id, (N,).
-    """
-
-    q: np.ndarray
-    qd: np.ndarray
-    omega: np.ndarray
-    radius: np.ndarray
-    material: np.ndarray
-    motion: np.ndarray
-    part: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.radius)
-
-
-@dataclass
-class TetMeshData:
-    """Host-side FEM nodes and tets to create.
-
-    Attributes:
-        points: node positions [m], (N, 3). velocity: node velocities [m/s], (N, 3). motion: 0 free / 1 fixed /
-        2 z only, (N,). tets: positively oriented node indices, (M, 4). material: material id per tet, (M,).
-    """
-
-    points: np.ndarray
-    velocity: np.ndarray
-    motion: np.ndarray
-    tets: np.ndarray
-    material: np.ndarray
-
-    @staticmethod
-    def empty() -> TetMeshData:
-        z3 = np.zeros((0, 3))
-        return TetMeshData(z3, z3, np.zeros(0, np.int32), np.zeros((0, 4), np.int32), np.zeros(0, np.int32))
-
-
-@dataclass
-class BondData:
-    """Host-side bonds to create: pairs (i < j), rest lengths [m], stiffnesses [N/m], areas [m²], strengths [Pa],
-    damping ratios [-]; all shape (M,) except ``pairs`` (M, 2)."""
-
-    pairs: np.ndarray
-    rest_length: np.ndarray
-    kn: np.ndarray
-    ks: np.ndarray
-    area: np.ndarray
-    tensile_strength: np.ndarray
-    shear_strength: np.ndarray
-    damping: np.ndarray
-
-    @staticmethod
-    def empty() -> BondData:
-        z = np.zeros(0, dtype=np.float32)
-        return BondData(np.zeros((0, 2), dtype=np.int32), z, z, z, z, z, z, z)
-
-    def __len__(self) -> int:
-        return len(self.pairs)
-
-
-@dataclass
-class WallData:
-    """Host-side planar walls: points [m] (W, 3), inward unit normals (W, 3), velocities [m/s] (W, 3),
-    material ids (W,)."""
-
-    point: np.ndarray
-    normal: np.ndarray
-    velocity: np.ndarray
-    material: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.material)
 
 
 def pair_table_array(pairs: list[list[ContactPair]], device: wp.context.Device) -> wp.array:

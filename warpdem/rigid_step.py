@@ -139,7 +139,7 @@ def sphere_critical_step(model: Model, state: State) -> CriticalStep:
     from .bonds import bond_critical_step
     from .contact import sphere_contact_steps
     from .conversion import conversion_critical_step
-    from .model import BondData
+    from .host_data import BondData
 
     n = int(state.particle_count.numpy()[0])
     nb = int(state.bond_count.numpy()[0])

@@ -262,8 +262,8 @@ def pulled_granite(cells: int, device: str, steps: int, seed: int = 0) -> tuple[
     uniaxial stress). Returns (model, state, strengths [Pa] of the classes in material order, shape
     (STRENGTH_CLASSES,), the driven nodes as a bool mask, shape (nodes,))."""
     from ..builder import ModelBuilder
+    from ..host_data import BondData
     from ..mesh import box_mesh
-    from ..model import BondData
 
     points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (cells, cells, cells))
     cell = np.arange(len(tets)) // 6
