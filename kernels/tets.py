@@ -99,11 +99,11 @@ def node_free_directions(motion: int) -> wp.vec3:
 
 
 @wp.func
-def deformation_gradient(u0: wp.vec3, u1: wp.vec3, u2: wp.vec3, u3: wp.vec3, inv_ref: wp.mat33) -> wp.mat33:
-    """F = [d1 d2 d3] D⁻¹ = I + [u1 - u0, u2 - u0, u3 - u0] D⁻¹ from the nodal displacements u_k = x_k - X_k (LDEC
-    §2.1: directors d_i = x_i - x_0 = D_i + u_i - u_0). Forming the displacement gradient first keeps float32
+def displacement_gradient(u0: wp.vec3, u1: wp.vec3, u2: wp.vec3, u3: wp.vec3, inv_ref: wp.mat33) -> wp.mat33:
+    """H = F - I = [u1 - u0, u2 - u0, u3 - u0] D⁻¹ from the nodal displacements u_k = x_k - X_k (LDEC §2.1:
+    directors d_i = x_i - x_0 = D_i + u_i - u_0, F = [d1 d2 d3] D⁻¹). Forming it from the displacements keeps float32
     round-off relative to |u| rather than to the coordinates."""
-    return wp.identity(n=3, dtype=float) + wp.matrix_from_cols(u1 - u0, u2 - u0, u3 - u0) * inv_ref
+    return wp.matrix_from_cols(u1 - u0, u2 - u0, u3 - u0) * inv_ref
 
 
 @wp.func
@@ -113,6 +113,19 @@ def cofactor(f: wp.mat33) -> wp.mat33:
     c1 = wp.vec3(f[0, 1], f[1, 1], f[2, 1])
     c2 = wp.vec3(f[0, 2], f[1, 2], f[2, 2])
     return wp.matrix_from_cols(wp.cross(c1, c2), wp.cross(c2, c0), wp.cross(c0, c1))
+
+
+@wp.func
+def det_minus_one(h: wp.mat33, cof_h: wp.mat33) -> float:
+    """J - 1 = det(I + H) - 1 = tr H + tr cof H + det H (the three invariants of H), exactly, without forming the 1 that
+    cancels: at rock strains (|H| ~ 1e-4) float32 det(F) - 1 keeps only about three significant digits of it."""
+    return wp.trace(h) + wp.trace(cof_h) + wp.dot(h[0], cof_h[0])
+
+
+@wp.func
+def deformation_cofactor(h: wp.mat33, cof_h: wp.mat33) -> wp.mat33:
+    """cof F = cof(I + H) = (1 + tr H) I - Hᵀ + cof H, exactly (each entry of cof F is a 2 × 2 minor of I + H)."""
+    return wp.diag(wp.vec3(1.0 + wp.trace(h))) - wp.transpose(h) + cof_h
 
 
 @wp.func
@@ -145,11 +158,35 @@ def volumetric_energy(j: wp.float64, mu: wp.float64, lam: wp.float64) -> wp.floa
 
 
 @wp.func
-def cauchy_stress(f: wp.mat33, j: float, g: float, mu: float) -> wp.mat33:
-    """Cauchy stress σ = P Fᵀ / J = (μ F Fᵀ + g J I) / J [Pa] of P = μ F + g cof F (cof F Fᵀ = J I), with J clamped
-    at J_MIN in the division."""
-    inv_j = 1.0 / wp.max(j, J_MIN)
-    return (mu * inv_j) * (f * wp.transpose(f)) + wp.diag(wp.vec3(g * j * inv_j))
+def shifted_pressure(j_minus_one: float, mat: TetMaterial) -> float:
+    """g(J) + μ [Pa]: the volumetric stress g = dψ_v/dJ (:func:`volumetric_stress`) plus μ, which is
+    (J - 1) (λ + μ/J) for J ≥ J_MIN, formed from J - 1 so that it keeps float32 precision at rock strains (g alone is
+    ≈ -μ there)."""
+    j = 1.0 + j_minus_one
+    if j < J_MIN:
+        return volumetric_stress(j, mat.mu, mat.lam) + mat.mu
+    return j_minus_one * (mat.lam + mat.mu / j)
+
+
+@wp.func
+def stretch_less_cofactor(h: wp.mat33, cof_h: wp.mat33) -> wp.mat33:
+    """F - cof F = H + Hᵀ - (tr H) I - cof H at F = I + H (:func:`deformation_cofactor`): of the order of the strain,
+    where F and cof F are each of order 1."""
+    return h + wp.transpose(h) - wp.diag(wp.vec3(wp.trace(h))) - cof_h
+
+
+@wp.func
+def cauchy_stress(h: wp.mat33, j_minus_one: float, mat: TetMaterial) -> wp.mat33:
+    """Cauchy stress σ = P Fᵀ / J [Pa] of the neo-Hookean P = μ F + g cof F at F = I + H:
+    (μ (F Fᵀ - I) + λ (J - 1) J I) / J with F Fᵀ - I = H + Hᵀ + H Hᵀ (no cancellation); below J_MIN (μ F Fᵀ + g J I) / J
+    with J clamped at J_MIN in the division."""
+    j = 1.0 + j_minus_one
+    if j < J_MIN:
+        f = wp.identity(n=3, dtype=float) + h
+        g = volumetric_stress(j, mat.mu, mat.lam)
+        return (mat.mu / J_MIN) * (f * wp.transpose(f)) + wp.diag(wp.vec3(g * j / J_MIN))
+    strain = h + wp.transpose(h) + h * wp.transpose(h)
+    return (mat.mu / j) * strain + wp.diag(wp.vec3(mat.lam * j_minus_one))
 
 
 @wp.func
@@ -183,11 +220,17 @@ def bulk_viscosity_pressure(volume_rate: float, length: float, mat: TetMaterial)
 
 @wp.func
 def director_forces(
-    f: wp.mat33, a: wp.mat33, pressure: float, mu: float, volume0: float, inv_ref: wp.mat33
+    stretch: wp.mat33, a: wp.mat33, pressure: float, mu: float, volume0: float, inv_ref: wp.mat33
 ) -> wp.mat33:
-    """Nodal forces of a tet of P = μ F + pressure cof F: the rows of -V₀ D⁻¹ Pᵀ = -V₀ (μ D⁻¹ Fᵀ + pressure A) are
-    the forces on nodes 1..3 [N] (node 0 takes minus their sum), with A = D⁻¹ cof Fᵀ and pressure = g(J) - q [Pa]."""
-    return -volume0 * (mu * (inv_ref * wp.transpose(f)) + pressure * a)
+    """Nodal forces of a tet of P = μ F + (g - q) cof F = μ (F - cof F) + (g + μ - q) cof F, the neo-Hookean law
+    (∂ψ/∂F = μ F + g cof F) and a viscous pressure q: the rows of -V₀ D⁻¹ Pᵀ = -V₀ (μ D⁻¹ (F - cof F)ᵀ + pressure A)
+    are the forces on nodes 1..3 [N] (node 0 takes minus their sum), with ``stretch`` = F - cof F
+    (:func:`stretch_less_cofactor`), A = D⁻¹ cof Fᵀ and ``pressure`` = g + μ - q [Pa] (:func:`shifted_pressure`).
+
+    Written as μ F + g cof F, its two O(μ) terms cancel to the stress (μ - μ = 0 at rest): in float32 that left an
+    error of ε₃₂ μ in the force, ~1e-3 of it at rock strains, which did work the energy does not see (a floor in the
+    books that does not shrink with dt). Both terms here are of the order of the strain."""
+    return -volume0 * (mu * (inv_ref * wp.transpose(stretch)) + pressure * a)
 
 
 @wp.func
@@ -196,12 +239,14 @@ def elastic_node_force(
 ) -> wp.vec3:
     """Elastic force of a tet on its node k (0..3) [N] at the displacements u_i [m] (no bulk viscosity): the force
     eval_tet_forces_kernel adds to that node when the tet is at rest."""
-    f = deformation_gradient(u0, u1, u2, u3, inv_ref)
-    g = volumetric_stress(wp.determinant(f), mat.mu, mat.lam)
-    h = director_forces(f, inv_ref * wp.transpose(cofactor(f)), g, mat.mu, volume0, inv_ref)
+    h = displacement_gradient(u0, u1, u2, u3, inv_ref)
+    cof_h = cofactor(h)
+    a = inv_ref * wp.transpose(deformation_cofactor(h, cof_h))
+    pressure = shifted_pressure(det_minus_one(h, cof_h), mat)
+    forces = director_forces(stretch_less_cofactor(h, cof_h), a, pressure, mat.mu, volume0, inv_ref)
     if k == 0:
-        return -(h[0] + h[1] + h[2])
-    return h[k - 1]
+        return -(forces[0] + forces[1] + forces[2])
+    return forces[k - 1]
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -237,10 +282,11 @@ def eval_tet_forces_kernel(
     inv_ref = tet_inv_ref[t]
     volume0 = tet_volume[t]
     mat = tet_material_table[tet_material[t]]
-    f = deformation_gradient(node_u[n[0]], node_u[n[1]], node_u[n[2]], node_u[n[3]], inv_ref)
-    cof = cofactor(f)
-    j = wp.determinant(f)
-    g = volumetric_stress(j, mat.mu, mat.lam)
+    h = displacement_gradient(node_u[n[0]], node_u[n[1]], node_u[n[2]], node_u[n[3]], inv_ref)
+    cof_h = cofactor(h)
+    cof = deformation_cofactor(h, cof_h)
+    j_minus_one = det_minus_one(h, cof_h)
+    j = 1.0 + j_minus_one
     # The Cauchy stress is not stored here (eval_tet_stress_kernel, between steps): its 36-byte store per tet would
     # be a third of the kernel's memory traffic, for a value no stage of the step reads.
     # A = D⁻¹ cof Fᵀ: row i is ∂J/∂d_i, so J̇ = Σ_i A_i · (v_i - v_0) (= cof F : Ḟ) and ε̇_v = J̇ / J.
@@ -248,12 +294,14 @@ def eval_tet_forces_kernel(
     v0 = node_qd[n[0]]
     j_rate = wp.dot(a[0], node_qd[n[1]] - v0) + wp.dot(a[1], node_qd[n[2]] - v0) + wp.dot(a[2], node_qd[n[3]] - v0)
     q = bulk_viscosity_pressure(j_rate / wp.max(j, J_MIN), tet_length[t], mat)
-    # P = μ F + (g - q) cof F: the elastic law plus the viscous pressure q as -q J F⁻ᵀ. Nodal forces -V₀ P D⁻ᵀ e_i
-    # are the rows of -V₀ D⁻¹ Pᵀ = -V₀ (μ D⁻¹ Fᵀ + (g - q) A) on nodes 1..3, minus their sum on node 0.
-    h = director_forces(f, a, g - q, mat.mu, volume0, inv_ref)
-    f1 = h[0]
-    f2 = h[1]
-    f3 = h[2]
+    # P = μ F + (g - q) cof F: the elastic law plus the viscous pressure q as -q J F⁻ᵀ, formed as μ (F - cof F) +
+    # (g + μ - q) cof F (director_forces says why). Nodal forces -V₀ P D⁻ᵀ e_i are the rows of
+    # -V₀ (μ D⁻¹ (F - cof F)ᵀ + (g + μ - q) A) on nodes 1..3, minus their sum on node 0.
+    pressure = shifted_pressure(j_minus_one, mat) - q
+    forces = director_forces(stretch_less_cofactor(h, cof_h), a, pressure, mat.mu, volume0, inv_ref)
+    f1 = forces[0]
+    f2 = forces[1]
+    f3 = forces[2]
     wp.atomic_add(node_f, n[0], -(f1 + f2 + f3))
     wp.atomic_add(node_f, n[1], f1)
     wp.atomic_add(node_f, n[2], f2)
@@ -294,10 +342,9 @@ def eval_tet_stress_kernel(
         return
     n = tet_nodes[t]
     mat = tet_material_table[tet_material[t]]
-    f = deformation_gradient(node_u[n[0]], node_u[n[1]], node_u[n[2]], node_u[n[3]], tet_inv_ref[t])
-    j = wp.determinant(f)
+    h = displacement_gradient(node_u[n[0]], node_u[n[1]], node_u[n[2]], node_u[n[3]], tet_inv_ref[t])
     # The elastic stress: the bulk viscosity is a numerical device, not a rock stress.
-    tet_stress[t] = cauchy_stress(f, j, volumetric_stress(j, mat.mu, mat.lam), mat.mu)
+    tet_stress[t] = cauchy_stress(h, det_minus_one(h, cofactor(h)), mat)
 
 
 @wp.kernel

@@ -164,6 +164,27 @@ def test_single_tet_forces_match_hand_computation(device):
     np.testing.assert_array_equal(f_off, 0.0)
 
 
+@pytest.mark.parametrize("strain", [1.0e-6, 1.0e-4])
+def test_small_strain_forces_keep_float32_precision_relative_to_the_strain(device, strain):
+    """At rock strains the force and stress are of order μ |H|, while μ F and the volumetric -μ/J cof F are each of
+    order μ: summed as such in float32 they cancel to an error of ε₃₂ μ, ε₃₂/|H| of the force (0.12 at |H| = 1e-6).
+    kernels/tets.py forms every term at the order of the strain (director_forces, cauchy_stress), so the forces and
+    stresses must match the float64 law, from the displacements the device holds, to a few ε₃₂ of their own size:
+    H is a sum of three products (3 ε₃₂), D⁻¹ and V₀ are rounded (ε₃₂/2 each), P and D⁻¹ Pᵀ add a few more; 64 ε₃₂."""
+    model, state = build(device, SINGLE_TET, np.array([[0, 1, 2, 3]]))
+    grad = strain * np.array([[0.3, -0.7, 0.2], [0.5, 1.0, -0.4], [-0.6, 0.1, -0.9]])
+    x = SINGLE_TET + (SINGLE_TET - SINGLE_TET[0]) @ grad.T
+    f, sigma = forces_at(model, state, x)
+    u = state.node_u.numpy().astype(np.float64)
+    dm_inv = np.linalg.inv((SINGLE_TET[1:] - SINGLE_TET[0]).T)
+    ff = np.eye(3) + (u[1:] - u[0]).T @ dm_inv
+    h = -(np.linalg.det((SINGLE_TET[1:] - SINGLE_TET[0]).T) / 6.0) * neo_hookean_piola(ff) @ dm_inv.T
+    expected = np.vstack([-h.sum(axis=1), h.T])
+    np.testing.assert_allclose(f[:4], expected, atol=64.0 * F32_EPS * np.abs(expected).max())
+    cauchy = neo_hookean_cauchy(ff)
+    np.testing.assert_allclose(sigma[0], cauchy, atol=64.0 * F32_EPS * np.abs(cauchy).max())
+
+
 def test_rigid_motion_gives_zero_force(device):
     points, tets = centered_block()
     model, state = build(device, points, tets)
