@@ -625,10 +625,13 @@ def make_node_contact_kernel(track_energy: bool):
             if best_f >= 0:
                 touching = 1
                 fn = face_nodes[best_f]
-                best_w = weights[s]
-                # Weights on the triangle (an edge or vertex contact has one slightly negative): clamp and normalise.
-                w = wp.vec3(wp.max(best_w[0], 0.0), wp.max(best_w[1], 0.0), wp.max(best_w[2], 0.0))
-                w = w / (w[0] + w[1] + w[2])
+                # The reaction acts at the node's projection onto the face's plane, w the projection's barycentric
+                # weights (Σ w = 1; one or two may be negative, down to -KEEP_EPS, for a node at the rim): the force
+                # pair then lies on one line along n_f and has no torque. Weights clamped to the triangle put the
+                # reaction up to KEEP_EPS of the face off that line, a torque from nothing (a frictionless pair of
+                # rigid blocks gained angular momentum). −w_i n_f is also the gradient of the depth in face node i at a
+                # fixed normal.
+                w = weights[s]
                 inv_sum = inv_mv
                 inv_sum += w[0] * w[0] * node_inv_mass[fn[0]] + w[1] * w[1] * node_inv_mass[fn[1]]
                 inv_sum += w[2] * w[2] * node_inv_mass[fn[2]]
