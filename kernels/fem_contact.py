@@ -5,7 +5,9 @@ stiffness and the point–triangle geometry (kernels/fem_surface.py), the sphere
 
 Node–face: a node penetrates a face when the face faces it (n_f · n_v < 0, n_v the outward normal of the node's own
 surface), it lies behind the face's plane (s = (x - x_a) · n_f < 0), less deep than half the tet's height over the
-face, and it projects inside the triangle. The faces it penetrates are grouped by plane direction (unit normals with
+face, and it projects into the triangle (within RIM_EPS of its edges, kernels/fem_surface.py: where two joint faces
+are one cell across, every node of each sits on the rim of the other). The reaction acts on the face's nodes at that
+projection, on the force's line. The faces it penetrates are grouped by plane direction (unit normals with
 |n_f · n_f'| > cos θ_g, θ_g = 60°, are one plane: kernels/node_face_target.py PLANE_GROUP_COS), and of each plane it
 is pushed out of the shallowest face (the shortest way out; a vertex shared by coplanar faces goes to the lowest face
 index), by a linear spring–dashpot k δ with k its penalty stiffness and ζ from the restitution (the laws
