@@ -5,7 +5,9 @@ stiffness and the point–triangle geometry (kernels/fem_surface.py), the sphere
 
 Node–face: a node penetrates a face when the face faces it (n_f · n_v < 0, n_v the outward normal of the node's own
 surface), it lies behind the face's plane (s = (x - x_a) · n_f < 0), less deep than half the tet's height over the
-face, and it projects inside the triangle. The faces it penetrates are grouped by plane direction (unit normals with
+face, and it projects into the triangle (within RIM_EPS of its edges, kernels/fem_surface.py: where two joint faces
+are one cell across, every node of each sits on the rim of the other). The reaction acts on the face's nodes at that
+projection, on the force's line. The faces it penetrates are grouped by plane direction (unit normals with
 |n_f · n_f'| > cos θ_g, θ_g = 60°, are one plane: kernels/node_face_target.py PLANE_GROUP_COS), and of each plane it
 is pushed out of the shallowest face (the shortest way out; a vertex shared by coplanar faces goes to the lowest face
 index), by a linear spring–dashpot k δ with k its penalty stiffness and ζ from the restitution (the laws
@@ -138,6 +140,7 @@ __all__ = [
     "NODE_FACE_LIST",
     "NODE_SPRINGS",
     "PLANE_GROUP_COS",
+    "RIM_REACH",
     "SPHERE_FACE_LIST",
     "SPRING_BOUND",
     "TIE_EPS",
@@ -195,8 +198,12 @@ __all__ = [
 
 
 BOUND_SLACK = wp.constant(1.0e-3)
-"""Relative slack on a face's bounding ball in the node–face prefilter [-]: the ball's radius, the barycentric
-margin (4 BARY_EPS at most) and float32 rounding all fit well inside it."""
+"""Relative slack on a face's bounding ball in the node–face prefilter [-]: float32 rounding of the ball's radius and
+of the distance fits well inside it."""
+
+RIM_REACH = wp.constant(1.0 + 4.0 * KEEP_EPS + BOUND_SLACK)
+"""How far a node–face candidate's projection may lie from the face's centroid, in bounding radii [-]
+(:func:`within_reach`; the host's query radius takes it too, warpdem.fem_contact)."""
 
 
 @wp.struct
@@ -238,16 +245,18 @@ def on_surface(inputs: NodeFaceInputs, v: int) -> bool:
 
 @wp.func
 def within_reach(inputs: NodeFaceInputs, x: wp.vec3, f: int) -> bool:
-    """Whether x lies within max(fem_skin, face_depth) + (1 + BOUND_SLACK) × the face's bounding radius of its
-    centroid: a necessary condition of the candidate test below, at the cost of one load and a dot product.
+    """Whether x lies within max(fem_skin, face_depth) + RIM_REACH × the face's bounding radius of its centroid: a
+    necessary condition of the candidate test below, at the cost of one load and a dot product.
 
     Why necessary: a point p of the triangle lies within the bounding radius r_f of the centroid c, so a face whose
     closest point is within fem_skin of x has |x − c| < fem_skin + r_f; and a node behind the face, less deep than
-    face_depth, whose projection p has barycentric weights w_i ≥ −BARY_EPS (Σ w_i = 1, so Σ |w_i| ≤ 1 + 4 BARY_EPS)
-    has |p − c| = |Σ w_i (v_i − c)| ≤ (1 + 4 BARY_EPS) r_f and |x − c| < face_depth + (1 + 4 BARY_EPS) r_f. The grid
-    hands over every face in the cells the query ball touches (about six times the ball's volume with cells as wide
-    as its radius); this drops the ones outside the ball before the exact test's point–triangle arithmetic."""
-    reach = (1.0 + BOUND_SLACK) * inputs.face_bound[f] + wp.max(inputs.fem_skin, inputs.face_depth[f])
+    face_depth, whose projection p has barycentric weights w_i ≥ −KEEP_EPS (the margin of a kept target, wider than
+    the RIM_EPS of a new one: Σ w_i = 1, so the negative weights sum to no less than −2 KEEP_EPS and
+    Σ |w_i| ≤ 1 + 4 KEEP_EPS) has |p − c| = |Σ w_i (v_i − c)| ≤ (1 + 4 KEEP_EPS) r_f and
+    |x − c| < face_depth + (1 + 4 KEEP_EPS) r_f. The grid hands over every face in the cells the query ball touches
+    (about six times the ball's volume with cells as wide as its radius); this drops the ones outside the ball before
+    the exact test's point–triangle arithmetic."""
+    reach = RIM_REACH * inputs.face_bound[f] + wp.max(inputs.fem_skin, inputs.face_depth[f])
     d = x - inputs.face_center[f]
     return wp.dot(d, d) <= reach * reach
 
@@ -269,7 +278,9 @@ def own_body_face(inputs: NodeFaceInputs, v: int, fn: wp.vec3i) -> bool:
 def is_node_face_candidate(inputs: NodeFaceInputs, v: int, x: wp.vec3, f: int) -> bool:
     """Within reach of the face (:func:`within_reach`); no vertex of the face in the node's 1-ring or held to it by
     an intact joint element, the face not of the node's own rigid body (:func:`own_body_face`); the face's closest
-    point within fem_skin, or the node already behind the face (a build during a contact)."""
+    point within fem_skin, or the node already behind the face (a build during a contact) and projecting into it
+    within KEEP_EPS: every face a kept target may hold (kernels/node_face_target.py ``kept_face_holds``), and so every
+    face a new one may take (RIM_EPS < KEEP_EPS)."""
     if not within_reach(inputs, x, f):
         return False
     fn = inputs.face_nodes[f]
@@ -283,7 +294,7 @@ def is_node_face_candidate(inputs: NodeFaceInputs, v: int, x: wp.vec3, f: int) -
         area2 = wp.cross(b - a, c - a)
         s = wp.dot(x - a, wp.normalize(area2))
         if s < 0.0 and -s < inputs.face_depth[f]:
-            near = min3(projection_barycentric(x, a, b, c, area2)) >= -BARY_EPS
+            near = min3(projection_barycentric(x, a, b, c, area2)) >= -KEEP_EPS
     if not near:
         # The distance test first: most faces the grid offers are far away, and the 1-ring and joint searches below
         # cost a star walk each (the list build of a cracked mesh took 3x longer with them first).
@@ -616,10 +627,13 @@ def make_node_contact_kernel(track_energy: bool):
             if best_f >= 0:
                 touching = 1
                 fn = face_nodes[best_f]
-                best_w = weights[s]
-                # Weights on the triangle (an edge or vertex contact has one slightly negative): clamp and normalise.
-                w = wp.vec3(wp.max(best_w[0], 0.0), wp.max(best_w[1], 0.0), wp.max(best_w[2], 0.0))
-                w = w / (w[0] + w[1] + w[2])
+                # The reaction acts at the node's projection onto the face's plane, w the projection's barycentric
+                # weights (Σ w = 1; one or two may be negative, down to -KEEP_EPS, for a node at the rim): the force
+                # pair then lies on one line along n_f and has no torque. Weights clamped to the triangle put the
+                # reaction up to KEEP_EPS of the face off that line, a torque from nothing (a frictionless pair of
+                # rigid blocks gained angular momentum). −w_i n_f is also the gradient of the depth in face node i at a
+                # fixed normal.
+                w = weights[s]
                 inv_sum = inv_mv
                 inv_sum += w[0] * w[0] * node_inv_mass[fn[0]] + w[1] * w[1] * node_inv_mass[fn[1]]
                 inv_sum += w[2] * w[2] * node_inv_mass[fn[2]]

@@ -23,12 +23,24 @@ wp.set_module_options({"enable_backward": False})
 
 BARY_EPS = wp.constant(1.0e-5)
 """A barycentric weight above this is inside the triangle; a contact point with all three above it is in the
-face's interior, otherwise on an edge or vertex [-]."""
+face's interior, otherwise on an edge or vertex [-] (which of two equally deep faces a node takes; how far outside a
+node–face contact may lie: RIM_EPS, KEEP_EPS)."""
 
-KEEP_EPS = wp.constant(1.0e-3)
-"""A node keeps its target face while its projection lies within this barycentric margin outside the triangle
-(new targets need -BARY_EPS): a node on the rim of a joint sits on the edge of the face opposite, and float32 rounding
-or a little shear would otherwise drop and restart its contact step after step [-]."""
+RIM_EPS = wp.constant(1.0e-2)
+"""A node may take a face as a new target while its projection lies within this barycentric margin outside the
+triangle: past an edge by up to RIM_EPS of the triangle's height over that edge (3 mm on a 30 cm face) [-]. A node on
+the rim of a joint sits on the edge of the face opposite, and where the two faces are one cell across, every node of
+each is a corner of the other: a shift along the joint (another joint's compression, 3e-3 of the face at the
+limestone tunnel's head joints; float32 rounding where the faces are aligned) puts them all just outside the face
+opposite, and with a margin of rounding's size (BARY_EPS) nothing held that joint (tests/test_rim_contact.py). The
+spring still acts along the face's normal, at the contact point clamped to the triangle; a node that passes beside a
+face within the margin, behind its plane, meets a ledge of that width (its spring starts at the depth gained in the
+step, so no energy is created)."""
+
+KEEP_EPS = wp.constant(2.0e-2)
+"""A node keeps its target face while its projection lies within this barycentric margin outside the triangle, twice
+the RIM_EPS a new target may take, so that a node taken at the rim is not dropped and restarted step after step by
+float32 rounding or a little shear [-]."""
 
 TIE_EPS = wp.constant(4.0e-6)
 """Relative tolerance (about 32 float32 ulps of the lengths involved) within which two contacts are equally near:

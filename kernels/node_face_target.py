@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .fem_surface import BARY_EPS, KEEP_EPS, TIE_EPS, min3, nearer, node_surface_normal, projection_barycentric
+from .fem_surface import BARY_EPS, KEEP_EPS, RIM_EPS, TIE_EPS, min3, nearer, node_surface_normal, projection_barycentric
 
 wp.set_module_options({"enable_backward": False})
 
@@ -141,9 +141,10 @@ def new_plane_face(
 ):
     """The shallowest face node v (at x, its own surface's outward normal n_v) penetrates outside the plane
     directions its slots hold (``faces``, their normals ``normals``): of the candidate faces that face it
-    (n_f · n_v < 0) and that it lies behind (less deep than face_depth) and projects into, the shallowest; an interior
-    contact before an edge or vertex one, then the lowest face index (the rule of one spring per node before, now
-    within the faces of the new planes).
+    (n_f · n_v < 0) and that it lies behind (less deep than face_depth) and projects into (within RIM_EPS of the
+    triangle: a node on the rim of a joint whose faces are one cell across, kernels/fem_surface.py), the shallowest;
+    an interior contact before an edge or vertex one, then the lowest face index (the rule of one spring per node
+    before, now within the faces of the new planes).
 
     The facing test keeps a node on a convex edge of one body, which sits exactly on the edge of the body it rests
     on, from being pushed out through that body's side face (where it is "behind" the side plane by a rounding
@@ -187,7 +188,7 @@ def new_plane_face(
         b = node_q[fn[1]]
         c = node_q[fn[2]]
         w = projection_barycentric(x, a, b, c, wp.cross(b - a, c - a))
-        if min3(w) < -BARY_EPS:
+        if min3(w) < -RIM_EPS:
             continue
         inside = int(min3(w) > BARY_EPS)
         if nearer(depth, inside, f, best_d, best_interior, best_f, tol + TIE_EPS * depth):

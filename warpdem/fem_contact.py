@@ -365,7 +365,8 @@ class FemContact:
         self.face_normal = wp.zeros(fcap, dtype=wp.vec3, device=d)
         # A sphere moves at most its whole skin between FEM builds (kernels/fem_contact.py, "Skins"), a face half ours.
         self.sphere_margin = model.skin + 0.5 * model.fem_skin
-        self.node_search = model.face_radius + max(model.fem_skin, model.face_depth_max)
+        # A node–face candidate may project KEEP_EPS outside its face: within RIM_REACH face radii of its centroid.
+        self.node_search = kf.RIM_REACH * model.face_radius + max(model.fem_skin, model.face_depth_max)
         self.sphere_search = model.face_radius + (model.max_radius + self.sphere_margin if has_spheres else 0.0)
         self.cell = max(self.node_search, self.sphere_search, 1.0e-6)
         self.sphere_faces = None
