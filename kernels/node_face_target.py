@@ -11,6 +11,15 @@ from .fem_surface import BARY_EPS, KEEP_EPS, TIE_EPS, min3, nearer, node_surface
 
 wp.set_module_options({"enable_backward": False})
 
+SURVIVORS = wp.constant(8)
+"""List slots a node's first scan for a new plane keeps of the faces that pass all its tests [-] (:func:`new_plane_face`;
+more fall back to full scans)."""
+
+
+class Survivors(wp.types.vector(length=8, dtype=wp.int32)):
+    """The list slots of :data:`SURVIVORS`."""
+
+
 NODE_SPRINGS = wp.constant(3)
 """Spring slots per node [-] (Model.node_springs): one per face plane direction the node lies behind, so a node in
 the inside corner of three blocks (a block lattice's corner lies on three joint planes) is held by all three."""
@@ -58,6 +67,7 @@ def kept_face_holds(
     face_nodes: wp.array(dtype=wp.vec3i),
     face_depth: wp.array(dtype=float),
     face_normal: wp.array(dtype=wp.vec3),
+    face_origin: wp.array(dtype=wp.vec3),
     normal: wp.vec3,
     node_q: wp.array(dtype=wp.vec3),
 ):
@@ -83,12 +93,12 @@ def kept_face_holds(
                 break
     if slot < 0:
         return False, -1, 0.0, wp.vec3(0.0), wp.vec3(0.0)
-    fn = face_nodes[keep]
-    a = node_q[fn[0]]
+    a = face_origin[keep]
     nf = face_normal[keep]
     depth = -wp.dot(x - a, nf)
     if depth <= 0.0 or depth >= face_depth[keep] or wp.dot(nf, normal) >= 0.0:
         return False, slot, 0.0, wp.vec3(0.0), wp.vec3(0.0)
+    fn = face_nodes[keep]
     b = node_q[fn[1]]
     c = node_q[fn[2]]
     w = projection_barycentric(x, a, b, c, wp.cross(b - a, c - a))
@@ -125,6 +135,7 @@ def new_plane_face(
     face_nodes: wp.array(dtype=wp.vec3i),
     face_depth: wp.array(dtype=float),
     face_normal: wp.array(dtype=wp.vec3),
+    face_origin: wp.array(dtype=wp.vec3),
     tet_nodes: wp.array(dtype=wp.vec4i),
     tet_face_nbr: wp.array(dtype=int),
     star_offset: wp.array(dtype=int),
@@ -138,6 +149,8 @@ def new_plane_face(
     normals: wp.mat33,
     normal: wp.vec3,
     has_normal: int,
+    survivors: Survivors,
+    n_survivors: int,
 ):
     """The shallowest face node v (at x, its own surface's outward normal n_v) penetrates outside the plane
     directions its slots hold (``faces``, their normals ``normals``): of the candidate faces that face it
@@ -154,11 +167,20 @@ def new_plane_face(
     (a node resting on a joint plane lies behind the plane of every face of it in its list: they stop here, before
     the loads of the depth test), n_v is summed only for a node with a candidate it lies behind in a new plane
     (``normal``/``has_normal``: the one summed already, handed back), and the projection only for a face that passes
-    all those.
+    all those. The depth test reads the face's first vertex from ``face_origin`` (written with the normals) and is
+    one branch with the facing test: a node on a joint plane without pressure lies behind the faces of the blocks
+    around it by rounding errors, so each of the two tests alone is a coin flip the processor mispredicts.
+
+    The scans of one evaluation (one per slot a new plane fills, :func:`node_face_targets`) differ only in the held
+    planes, which grow, and the held test only drops more faces as they do: a face that fails any other test in the
+    first scan fails it in every later one. So the first scan (``n_survivors`` -2) lists the list slots of the faces
+    that pass every test (``survivors``, their number handed back), and the later ones test only those, in the same
+    order and arithmetic: the same face as a full scan, at a few tests instead of some thirty. A first scan with
+    more than SURVIVORS of them hands back -1, and the later ones scan the whole list.
 
     Returns:
         (face or -1, its slot in v's candidate list (-1 with no face), depth δ [m], barycentric weights of the
-        projection, the face's unit normal, n_v, whether n_v is summed).
+        projection, the face's unit normal, n_v, whether n_v is summed, the survivors and their number).
     """
     tol = TIE_EPS * wp.length(x)
     best_d = float(0.0)
@@ -167,28 +189,38 @@ def new_plane_face(
     best_slot = int(-1)
     best_w = wp.vec3(0.0)
     best_n = wp.vec3(0.0)
-    for s in range(wp.min(node_face_count[v], max_node_faces)):
+    first = n_survivors == -2
+    n = wp.min(node_face_count[v], max_node_faces)
+    if n_survivors >= 0:
+        n = n_survivors
+    kept = int(0)  # survivors of a first scan; SURVIVORS + 1: too many to list
+    for i in range(n):
+        s = i
+        if n_survivors >= 0:
+            s = survivors[i]
         f = node_face_index[v * max_node_faces + s]
         nf = face_normal[f]
         if in_held_plane(nf, faces, normals):
             continue
-        fn = face_nodes[f]
-        a = node_q[fn[0]]
+        a = face_origin[f]
         depth = -wp.dot(x - a, nf)
-        if depth <= 0.0 or depth >= face_depth[f]:
-            continue
-        if has_normal == 0:
+        behind = int(depth > 0.0) & int(depth < face_depth[f])
+        if behind > has_normal:
             normal = node_normal(
                 v, tet_nodes, tet_face_nbr, star_offset, star_count, star_tets, node_q, normal_body, rest_normal, body_q
             )
             has_normal = 1
-        if wp.dot(nf, normal) >= 0.0:
+        if (behind & int(wp.dot(nf, normal) < 0.0)) == 0:
             continue
+        fn = face_nodes[f]
         b = node_q[fn[1]]
         c = node_q[fn[2]]
         w = projection_barycentric(x, a, b, c, wp.cross(b - a, c - a))
         if min3(w) < -BARY_EPS:
             continue
+        if first and kept < SURVIVORS:
+            survivors[kept] = s
+        kept = wp.min(kept + 1, SURVIVORS + 1)
         inside = int(min3(w) > BARY_EPS)
         if nearer(depth, inside, f, best_d, best_interior, best_f, tol + TIE_EPS * depth):
             best_d = depth
@@ -197,7 +229,11 @@ def new_plane_face(
             best_slot = s
             best_w = w
             best_n = nf
-    return best_f, best_slot, best_d, best_w, best_n, normal, has_normal
+    if first:
+        n_survivors = kept
+        if kept > SURVIVORS:
+            n_survivors = -1
+    return best_f, best_slot, best_d, best_w, best_n, normal, has_normal, survivors, n_survivors
 
 
 @wp.func
@@ -228,6 +264,7 @@ def node_face_targets(
     face_nodes: wp.array(dtype=wp.vec3i),
     face_depth: wp.array(dtype=float),
     face_normal: wp.array(dtype=wp.vec3),
+    face_origin: wp.array(dtype=wp.vec3),
     tet_nodes: wp.array(dtype=wp.vec4i),
     tet_face_nbr: wp.array(dtype=int),
     star_offset: wp.array(dtype=int),
@@ -239,9 +276,12 @@ def node_face_targets(
     body_q: wp.array(dtype=wp.quatd),
     old: wp.vec3i,
     hints: wp.vec3i,
+    first_scan: int,
 ):
     """The faces node v (at x) is pushed out of, one per slot: ``old`` holds each slot's face at the last
-    evaluation (-1 for none), ``hints`` their list slots then.
+    evaluation (-1 for none), ``hints`` their list slots then, ``first_scan`` -2 (the later scans for a new plane test
+    only the first one's survivors, :func:`new_plane_face`) or -1 (each scans the whole list: the path they are
+    tested against).
 
     1. Each slot keeps its face while it holds (:func:`kept_face_holds`, as with one spring per node: the shallowest
        face jumps where two face planes meet, and a target held until it no longer holds the node switches less
@@ -269,6 +309,8 @@ def node_face_targets(
     old_normal = wp.mat33(0.0)
     normal = wp.vec3(0.0)
     has_normal = int(0)
+    survivors = Survivors()
+    n_survivors = first_scan
     for s in range(NODE_SPRINGS):
         keep = old[s]
         if keep >= 0 and keep < face_normal.shape[0]:
@@ -298,6 +340,7 @@ def node_face_targets(
                 face_nodes,
                 face_depth,
                 face_normal,
+                face_origin,
                 normal,
                 node_q,
             )
@@ -322,7 +365,7 @@ def node_face_targets(
     for _pass in range(NODE_SPRINGS):
         if faces[0] >= 0 and faces[1] >= 0 and faces[2] >= 0:
             break
-        f, ls, d, w, nf, normal, has_normal = new_plane_face(
+        f, ls, d, w, nf, normal, has_normal, survivors, n_survivors = new_plane_face(
             v,
             x,
             max_node_faces,
@@ -331,6 +374,7 @@ def node_face_targets(
             face_nodes,
             face_depth,
             face_normal,
+            face_origin,
             tet_nodes,
             tet_face_nbr,
             star_offset,
@@ -344,6 +388,8 @@ def node_face_targets(
             normals,
             normal,
             has_normal,
+            survivors,
+            n_survivors,
         )
         if f < 0:
             break
