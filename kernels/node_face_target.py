@@ -126,6 +126,28 @@ def in_held_plane(nf: wp.vec3, faces: wp.vec3i, normals: wp.mat33) -> bool:
 
 
 @wp.func
+def held_rows(faces: wp.vec3i, normals: wp.mat33) -> wp.mat33:
+    """The rows of ``normals`` whose slots hold a face (``faces`` >= 0), the others zero: |n_f · 0| > cos θ_g is false,
+    so :func:`outside_held_planes` against them is :func:`in_held_plane`'s negation without its branches."""
+    rows = wp.mat33(0.0)
+    for s in range(NODE_SPRINGS):
+        if faces[s] >= 0:
+            rows[s] = normals[s]
+    return rows
+
+
+@wp.func
+def outside_held_planes(nf: wp.vec3, rows: wp.mat33) -> int:
+    """1 when the face normal nf is of no held plane direction (:func:`held_rows`), else 0: the same test as
+    :func:`same_plane` row by row, combined without a branch."""
+    return (
+        int(wp.abs(wp.dot(nf, rows[0])) <= PLANE_GROUP_COS)
+        & int(wp.abs(wp.dot(nf, rows[1])) <= PLANE_GROUP_COS)
+        & int(wp.abs(wp.dot(nf, rows[2])) <= PLANE_GROUP_COS)
+    )
+
+
+@wp.func
 def new_plane_face(
     v: int,
     x: wp.vec3,
@@ -189,6 +211,7 @@ def new_plane_face(
     best_slot = int(-1)
     best_w = wp.vec3(0.0)
     best_n = wp.vec3(0.0)
+    held = held_rows(faces, normals)
     first = n_survivors == -2
     n = wp.min(node_face_count[v], max_node_faces)
     if n_survivors >= 0:
@@ -200,11 +223,9 @@ def new_plane_face(
             s = survivors[i]
         f = node_face_index[v * max_node_faces + s]
         nf = face_normal[f]
-        if in_held_plane(nf, faces, normals):
-            continue
         a = face_origin[f]
         depth = -wp.dot(x - a, nf)
-        behind = int(depth > 0.0) & int(depth < face_depth[f])
+        behind = outside_held_planes(nf, held) & int(depth > 0.0) & int(depth < face_depth[f])
         if behind > has_normal:
             normal = node_normal(
                 v, tet_nodes, tet_face_nbr, star_offset, star_count, star_tets, node_q, normal_body, rest_normal, body_q
