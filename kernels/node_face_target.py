@@ -11,15 +11,6 @@ from .fem_surface import BARY_EPS, KEEP_EPS, TIE_EPS, min3, nearer, node_surface
 
 wp.set_module_options({"enable_backward": False})
 
-SURVIVORS = wp.constant(8)
-"""List slots a node's first scan for a new plane keeps of the faces that pass all its tests [-] (:func:`new_plane_face`;
-more fall back to full scans)."""
-
-
-class Survivors(wp.types.vector(length=8, dtype=wp.int32)):
-    """The list slots of :data:`SURVIVORS`."""
-
-
 NODE_SPRINGS = wp.constant(3)
 """Spring slots per node [-] (Model.node_springs): one per face plane direction the node lies behind, so a node in
 the inside corner of three blocks (a block lattice's corner lies on three joint planes) is held by all three."""
@@ -32,6 +23,14 @@ the node's springs are no stiffer along any direction than 2 k (the stable steps
 
 SPRING_BOUND = 1.0 + (NODE_SPRINGS - 1) * PLANE_GROUP_COS
 """λ_max(Σ_s n_s n_sᵀ) over a node's springs at most [-] (:data:`PLANE_GROUP_COS`); a Python float for the host."""
+
+SURVIVORS = wp.constant(8)
+"""List slots of the faces that pass every test of a node's first scan for a new plane that the scan keeps for the
+later ones of the same evaluation [-] (:func:`new_plane_face`; with more, each later scan is a full one)."""
+
+
+class Survivors(wp.types.vector(length=SURVIVORS, dtype=wp.int32)):
+    """The list slots a first scan keeps (:data:`SURVIVORS`)."""
 
 
 @wp.func
@@ -115,20 +114,9 @@ def same_plane(n: wp.vec3, m: wp.vec3) -> bool:
 
 
 @wp.func
-def in_held_plane(nf: wp.vec3, faces: wp.vec3i, normals: wp.mat33) -> bool:
-    """Whether the face normal nf is the plane direction of a slot that holds a face (``faces`` >= 0, its normal the
-    row of ``normals``)."""
-    for s in range(NODE_SPRINGS):
-        if faces[s] >= 0:
-            if same_plane(nf, normals[s]):
-                return True
-    return False
-
-
-@wp.func
 def held_rows(faces: wp.vec3i, normals: wp.mat33) -> wp.mat33:
-    """The rows of ``normals`` whose slots hold a face (``faces`` >= 0), the others zero: |n_f · 0| > cos θ_g is false,
-    so :func:`outside_held_planes` against them is :func:`in_held_plane`'s negation without its branches."""
+    """The rows of ``normals`` whose slots hold a face (``faces`` >= 0), the others zero (|n_f · 0| > cos θ_g is
+    false: no plane direction), for :func:`in_held_plane`."""
     rows = wp.mat33(0.0)
     for s in range(NODE_SPRINGS):
         if faces[s] >= 0:
@@ -137,14 +125,10 @@ def held_rows(faces: wp.vec3i, normals: wp.mat33) -> wp.mat33:
 
 
 @wp.func
-def outside_held_planes(nf: wp.vec3, rows: wp.mat33) -> int:
-    """1 when the face normal nf is of no held plane direction (:func:`held_rows`), else 0: the same test as
-    :func:`same_plane` row by row, combined without a branch."""
-    return (
-        int(wp.abs(wp.dot(nf, rows[0])) <= PLANE_GROUP_COS)
-        & int(wp.abs(wp.dot(nf, rows[1])) <= PLANE_GROUP_COS)
-        & int(wp.abs(wp.dot(nf, rows[2])) <= PLANE_GROUP_COS)
-    )
+def in_held_plane(nf: wp.vec3, rows: wp.mat33) -> int:
+    """1 when the unit face normal nf is of a plane direction a slot holds (rows of :func:`held_rows`), else 0:
+    :func:`same_plane` against each row in its arithmetic, combined without a branch."""
+    return int(same_plane(nf, rows[0])) | int(same_plane(nf, rows[1])) | int(same_plane(nf, rows[2]))
 
 
 @wp.func
@@ -184,14 +168,14 @@ def new_plane_face(
     on, from being pushed out through that body's side face (where it is "behind" the side plane by a rounding
     error): the side face's normal points along the node's own, the face it rests on against it.
 
-    The tests run cheapest first and give the same decisions in any order: the held planes' test reads only the
-    face's unit normal from ``face_normal`` (face_normals_kernel, this step's positions) and takes three dot products
-    (a node resting on a joint plane lies behind the plane of every face of it in its list: they stop here, before
-    the loads of the depth test), n_v is summed only for a node with a candidate it lies behind in a new plane
-    (``normal``/``has_normal``: the one summed already, handed back), and the projection only for a face that passes
-    all those. The depth test reads the face's first vertex from ``face_origin`` (written with the normals) and is
-    one branch with the facing test: a node on a joint plane without pressure lies behind the faces of the blocks
-    around it by rounding errors, so each of the two tests alone is a coin flip the processor mispredicts.
+    Every candidate takes the same arithmetic, combined into one branch: the held planes' test (three dot products
+    with the unit normal from ``face_normal``, face_normals_kernel at this step's positions), the depth δ = -(x -
+    x_a) · n_f (x_a from ``face_origin``, written with the normals) against 0 and face_depth, and the facing test.
+    A node on a joint plane without pressure lies in front of or behind the faces of the blocks around it by
+    rounding errors, so each test alone is a coin flip the processor mispredicts; taken together they fail for all
+    but about one candidate in a thousand. n_v is summed only for a node with a candidate it lies behind in a new
+    plane (``normal``/``has_normal``: the one summed already, handed back), and the projection only for a face that
+    passes all those.
 
     The scans of one evaluation (one per slot a new plane fills, :func:`node_face_targets`) differ only in the held
     planes, which grow, and the held test only drops more faces as they do: a face that fails any other test in the
@@ -225,13 +209,14 @@ def new_plane_face(
         nf = face_normal[f]
         a = face_origin[f]
         depth = -wp.dot(x - a, nf)
-        behind = outside_held_planes(nf, held) & int(depth > 0.0) & int(depth < face_depth[f])
-        if behind > has_normal:
+        # 0 for a face of a new plane the node lies behind (the comparisons of the tests one by one, NaN included).
+        off = in_held_plane(nf, held) | int(depth <= 0.0) | int(depth >= face_depth[f])
+        if (off | has_normal) == 0:
             normal = node_normal(
                 v, tet_nodes, tet_face_nbr, star_offset, star_count, star_tets, node_q, normal_body, rest_normal, body_q
             )
             has_normal = 1
-        if (behind & int(wp.dot(nf, normal) < 0.0)) == 0:
+        if (off | int(wp.dot(nf, normal) >= 0.0)) != 0:
             continue
         fn = face_nodes[f]
         b = node_q[fn[1]]
@@ -312,9 +297,10 @@ def node_face_targets(
        spring is handed over), else an empty one. A face of a held direction never opens a second slot, so the
        springs' normals keep pairwise |n_s · n_t| ≤ cos θ_g (:data:`PLANE_GROUP_COS`).
 
-    A node whose slots all hold tests only its kept faces. One with a free slot scans its candidates once for a new
-    plane: a face of a held plane stops at the depth test and three dot products, so a node resting on a joint pays
-    about one depth test per candidate for the chance of meeting a second plane.
+    A node whose slots all hold tests only its kept faces. One with a free slot scans its candidates for a new plane,
+    once in full: each later scan (after a new plane took a slot) tests only the faces that passed the first
+    (:func:`new_plane_face`), so a node resting on a joint pays one branch-free test per candidate a step for the
+    chance of meeting a second plane.
 
     Returns:
         (face per slot (-1 for none), its candidate-list slot, depth δ [m] per slot, barycentric weights per slot
