@@ -95,7 +95,8 @@ def kept_face_holds(
     a = face_origin[keep]
     nf = face_normal[keep]
     depth = -wp.dot(x - a, nf)
-    if depth <= 0.0 or depth >= face_depth[keep] or wp.dot(nf, normal) >= 0.0:
+    # One branch for the three tests (their comparisons one by one), as in new_plane_face.
+    if (int(depth <= 0.0) | int(depth >= face_depth[keep]) | int(wp.dot(nf, normal) >= 0.0)) != 0:
         return False, slot, 0.0, wp.vec3(0.0), wp.vec3(0.0)
     fn = face_nodes[keep]
     b = node_q[fn[1]]
