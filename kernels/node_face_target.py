@@ -201,7 +201,7 @@ def new_plane_face(
     n = wp.min(node_face_count[v], max_node_faces)
     if n_survivors >= 0:
         n = n_survivors
-    kept = int(0)  # survivors of a first scan; SURVIVORS + 1: too many to list
+    passed = int(0)  # survivors of a first scan; SURVIVORS + 1: too many to list
     for i in range(n):
         s = i
         if n_survivors >= 0:
@@ -225,9 +225,9 @@ def new_plane_face(
         w = projection_barycentric(x, a, b, c, wp.cross(b - a, c - a))
         if min3(w) < -BARY_EPS:
             continue
-        if first and kept < SURVIVORS:
-            survivors[kept] = s
-        kept = wp.min(kept + 1, SURVIVORS + 1)
+        if first and passed < SURVIVORS:
+            survivors[passed] = s
+        passed = wp.min(passed + 1, SURVIVORS + 1)
         inside = int(min3(w) > BARY_EPS)
         if nearer(depth, inside, f, best_d, best_interior, best_f, tol + TIE_EPS * depth):
             best_d = depth
@@ -237,8 +237,8 @@ def new_plane_face(
             best_w = w
             best_n = nf
     if first:
-        n_survivors = kept
-        if kept > SURVIVORS:
+        n_survivors = passed
+        if passed > SURVIVORS:
             n_survivors = -1
     return best_f, best_slot, best_d, best_w, best_n, normal, has_normal, survivors, n_survivors
 
