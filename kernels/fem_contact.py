@@ -501,8 +501,10 @@ def make_node_contact_kernel(track_energy: bool):
         body_q: wp.array(dtype=wp.quatd),
         # In:
         face_normal: wp.array(dtype=wp.vec3),
+        face_origin: wp.array(dtype=wp.vec3),
         normal_body: wp.array(dtype=int),
         rest_normal: wp.array(dtype=wp.vec3),
+        first_scan: wp.array(dtype=int),
         born_relaxed: int,
         # State out:
         node_face_spring: wp.array(dtype=int),
@@ -547,6 +549,7 @@ def make_node_contact_kernel(track_energy: bool):
                 face_nodes,
                 face_depth,
                 face_normal,
+                face_origin,
                 tet_nodes,
                 tet_face_nbr,
                 star_offset,
@@ -558,6 +561,7 @@ def make_node_contact_kernel(track_energy: bool):
                 body_q,
                 old,
                 hints,
+                first_scan[0],
             )
         f_v = wp.vec3(0.0)
         d_v = float(0.0)  # minus the work behind [J] (the wall's share of the work ahead included)

@@ -485,6 +485,7 @@ def face_normals_kernel(
     node_q: wp.array(dtype=wp.vec3),
     # Out:
     face_normal: wp.array(dtype=wp.vec3),
+    face_origin: wp.array(dtype=wp.vec3),
 ):
     f = wp.tid()  # one thread per face slot: the unit normal n_f at the current positions, once for all its nodes
     if f >= face_count[0]:
@@ -494,6 +495,9 @@ def face_normals_kernel(
     b = node_q[fn[1]]
     c = node_q[fn[2]]
     face_normal[f] = wp.normalize(wp.cross(b - a, c - a))
+    # Its first vertex x_a, the point the node–face depth tests measure from (-(x - x_a) · n_f): one load of a copy
+    # instead of face_nodes[f] and then node_q at its first index, in the same arithmetic.
+    face_origin[f] = a
 
 
 @wp.kernel

@@ -24,6 +24,14 @@ the node's springs are no stiffer along any direction than 2 k (the stable steps
 SPRING_BOUND = 1.0 + (NODE_SPRINGS - 1) * PLANE_GROUP_COS
 """λ_max(Σ_s n_s n_sᵀ) over a node's springs at most [-] (:data:`PLANE_GROUP_COS`); a Python float for the host."""
 
+SURVIVORS = wp.constant(8)
+"""List slots of the faces that pass every test of a node's first scan for a new plane that the scan keeps for the
+later ones of the same evaluation [-] (:func:`new_plane_face`; with more, each later scan is a full one)."""
+
+
+class Survivors(wp.types.vector(length=SURVIVORS, dtype=wp.int32)):
+    """The list slots a first scan keeps (:data:`SURVIVORS`)."""
+
 
 @wp.func
 def node_normal(
@@ -58,6 +66,7 @@ def kept_face_holds(
     face_nodes: wp.array(dtype=wp.vec3i),
     face_depth: wp.array(dtype=float),
     face_normal: wp.array(dtype=wp.vec3),
+    face_origin: wp.array(dtype=wp.vec3),
     normal: wp.vec3,
     node_q: wp.array(dtype=wp.vec3),
 ):
@@ -83,12 +92,13 @@ def kept_face_holds(
                 break
     if slot < 0:
         return False, -1, 0.0, wp.vec3(0.0), wp.vec3(0.0)
-    fn = face_nodes[keep]
-    a = node_q[fn[0]]
+    a = face_origin[keep]
     nf = face_normal[keep]
     depth = -wp.dot(x - a, nf)
-    if depth <= 0.0 or depth >= face_depth[keep] or wp.dot(nf, normal) >= 0.0:
+    # One branch for the three tests (their comparisons one by one), as in new_plane_face.
+    if (int(depth <= 0.0) | int(depth >= face_depth[keep]) | int(wp.dot(nf, normal) >= 0.0)) != 0:
         return False, slot, 0.0, wp.vec3(0.0), wp.vec3(0.0)
+    fn = face_nodes[keep]
     b = node_q[fn[1]]
     c = node_q[fn[2]]
     w = projection_barycentric(x, a, b, c, wp.cross(b - a, c - a))
@@ -105,14 +115,21 @@ def same_plane(n: wp.vec3, m: wp.vec3) -> bool:
 
 
 @wp.func
-def in_held_plane(nf: wp.vec3, faces: wp.vec3i, normals: wp.mat33) -> bool:
-    """Whether the face normal nf is the plane direction of a slot that holds a face (``faces`` >= 0, its normal the
-    row of ``normals``)."""
+def held_rows(faces: wp.vec3i, normals: wp.mat33) -> wp.mat33:
+    """The rows of ``normals`` whose slots hold a face (``faces`` >= 0), the others zero (|n_f · 0| > cos θ_g is
+    false: no plane direction), for :func:`in_held_plane`."""
+    rows = wp.mat33(0.0)
     for s in range(NODE_SPRINGS):
         if faces[s] >= 0:
-            if same_plane(nf, normals[s]):
-                return True
-    return False
+            rows[s] = normals[s]
+    return rows
+
+
+@wp.func
+def in_held_plane(nf: wp.vec3, rows: wp.mat33) -> int:
+    """1 when the unit face normal nf is of a plane direction a slot holds (rows of :func:`held_rows`), else 0:
+    :func:`same_plane` against each row in its arithmetic, combined without a branch."""
+    return int(same_plane(nf, rows[0])) | int(same_plane(nf, rows[1])) | int(same_plane(nf, rows[2]))
 
 
 @wp.func
@@ -125,6 +142,7 @@ def new_plane_face(
     face_nodes: wp.array(dtype=wp.vec3i),
     face_depth: wp.array(dtype=float),
     face_normal: wp.array(dtype=wp.vec3),
+    face_origin: wp.array(dtype=wp.vec3),
     tet_nodes: wp.array(dtype=wp.vec4i),
     tet_face_nbr: wp.array(dtype=int),
     star_offset: wp.array(dtype=int),
@@ -138,6 +156,8 @@ def new_plane_face(
     normals: wp.mat33,
     normal: wp.vec3,
     has_normal: int,
+    survivors: Survivors,
+    n_survivors: int,
 ):
     """The shallowest face node v (at x, its own surface's outward normal n_v) penetrates outside the plane
     directions its slots hold (``faces``, their normals ``normals``): of the candidate faces that face it
@@ -150,16 +170,25 @@ def new_plane_face(
     on, from being pushed out through that body's side face (where it is "behind" the side plane by a rounding
     error): the side face's normal points along the node's own, the face it rests on against it.
 
-    The tests run cheapest first and give the same decisions in any order: the held planes' test reads only the
-    face's unit normal from ``face_normal`` (face_normals_kernel, this step's positions) and takes three dot products
-    (a node resting on a joint plane lies behind the plane of every face of it in its list: they stop here, before
-    the loads of the depth test), n_v is summed only for a node with a candidate it lies behind in a new plane
-    (``normal``/``has_normal``: the one summed already, handed back), and the projection only for a face that passes
-    all those.
+    Every candidate takes the same arithmetic, combined into one branch: the held planes' test (three dot products
+    with the unit normal from ``face_normal``, face_normals_kernel at this step's positions), the depth δ = -(x -
+    x_a) · n_f (x_a from ``face_origin``, written with the normals) against 0 and face_depth, and the facing test.
+    A node on a joint plane without pressure lies in front of or behind the faces of the blocks around it by
+    rounding errors, so each test alone is a coin flip the processor mispredicts; taken together they fail for all
+    but about one candidate in a thousand. n_v is summed only for a node with a candidate it lies behind in a new
+    plane (``normal``/``has_normal``: the one summed already, handed back), and the projection only for a face that
+    passes all those.
+
+    The scans of one evaluation (one per slot a new plane fills, :func:`node_face_targets`) differ only in the held
+    planes, which grow, and the held test only drops more faces as they do: a face that fails any other test in the
+    first scan fails it in every later one. So the first scan (``n_survivors`` -2) lists the list slots of the faces
+    that pass every test (``survivors``, their number handed back), and the later ones test only those, in the same
+    order and arithmetic: the same face as a full scan, at a few tests instead of some thirty. A first scan with
+    more than SURVIVORS of them hands back -1, and the later ones scan the whole list.
 
     Returns:
         (face or -1, its slot in v's candidate list (-1 with no face), depth δ [m], barycentric weights of the
-        projection, the face's unit normal, n_v, whether n_v is summed).
+        projection, the face's unit normal, n_v, whether n_v is summed, the survivors and their number).
     """
     tol = TIE_EPS * wp.length(x)
     best_d = float(0.0)
@@ -168,28 +197,38 @@ def new_plane_face(
     best_slot = int(-1)
     best_w = wp.vec3(0.0)
     best_n = wp.vec3(0.0)
-    for s in range(wp.min(node_face_count[v], max_node_faces)):
+    held = held_rows(faces, normals)
+    first = n_survivors == -2
+    n = wp.min(node_face_count[v], max_node_faces)
+    if n_survivors >= 0:
+        n = n_survivors
+    passed = int(0)  # survivors of a first scan; SURVIVORS + 1: too many to list
+    for i in range(n):
+        s = i
+        if n_survivors >= 0:
+            s = survivors[i]
         f = node_face_index[v * max_node_faces + s]
         nf = face_normal[f]
-        if in_held_plane(nf, faces, normals):
-            continue
-        fn = face_nodes[f]
-        a = node_q[fn[0]]
+        a = face_origin[f]
         depth = -wp.dot(x - a, nf)
-        if depth <= 0.0 or depth >= face_depth[f]:
-            continue
-        if has_normal == 0:
+        # 0 for a face of a new plane the node lies behind (the comparisons of the tests one by one, NaN included).
+        off = in_held_plane(nf, held) | int(depth <= 0.0) | int(depth >= face_depth[f])
+        if (off | has_normal) == 0:
             normal = node_normal(
                 v, tet_nodes, tet_face_nbr, star_offset, star_count, star_tets, node_q, normal_body, rest_normal, body_q
             )
             has_normal = 1
-        if wp.dot(nf, normal) >= 0.0:
+        if (off | int(wp.dot(nf, normal) >= 0.0)) != 0:
             continue
+        fn = face_nodes[f]
         b = node_q[fn[1]]
         c = node_q[fn[2]]
         w = projection_barycentric(x, a, b, c, wp.cross(b - a, c - a))
         if min3(w) < -RIM_EPS:
             continue
+        if first and passed < SURVIVORS:
+            survivors[passed] = s
+        passed = wp.min(passed + 1, SURVIVORS + 1)
         inside = int(min3(w) > BARY_EPS)
         if nearer(depth, inside, f, best_d, best_interior, best_f, tol + TIE_EPS * depth):
             best_d = depth
@@ -198,7 +237,11 @@ def new_plane_face(
             best_slot = s
             best_w = w
             best_n = nf
-    return best_f, best_slot, best_d, best_w, best_n, normal, has_normal
+    if first:
+        n_survivors = passed
+        if passed > SURVIVORS:
+            n_survivors = -1
+    return best_f, best_slot, best_d, best_w, best_n, normal, has_normal, survivors, n_survivors
 
 
 @wp.func
@@ -229,6 +272,7 @@ def node_face_targets(
     face_nodes: wp.array(dtype=wp.vec3i),
     face_depth: wp.array(dtype=float),
     face_normal: wp.array(dtype=wp.vec3),
+    face_origin: wp.array(dtype=wp.vec3),
     tet_nodes: wp.array(dtype=wp.vec4i),
     tet_face_nbr: wp.array(dtype=int),
     star_offset: wp.array(dtype=int),
@@ -240,9 +284,12 @@ def node_face_targets(
     body_q: wp.array(dtype=wp.quatd),
     old: wp.vec3i,
     hints: wp.vec3i,
+    first_scan: int,
 ):
     """The faces node v (at x) is pushed out of, one per slot: ``old`` holds each slot's face at the last
-    evaluation (-1 for none), ``hints`` their list slots then.
+    evaluation (-1 for none), ``hints`` their list slots then, ``first_scan`` -2 (the later scans for a new plane test
+    only the first one's survivors, :func:`new_plane_face`) or -1 (each scans the whole list: the path they are
+    tested against).
 
     1. Each slot keeps its face while it holds (:func:`kept_face_holds`, as with one spring per node: the shallowest
        face jumps where two face planes meet, and a target held until it no longer holds the node switches less
@@ -252,9 +299,10 @@ def node_face_targets(
        spring is handed over), else an empty one. A face of a held direction never opens a second slot, so the
        springs' normals keep pairwise |n_s · n_t| ≤ cos θ_g (:data:`PLANE_GROUP_COS`).
 
-    A node whose slots all hold tests only its kept faces. One with a free slot scans its candidates once for a new
-    plane: a face of a held plane stops at the depth test and three dot products, so a node resting on a joint pays
-    about one depth test per candidate for the chance of meeting a second plane.
+    A node whose slots all hold tests only its kept faces. One with a free slot scans its candidates for a new plane,
+    once in full: each later scan (after a new plane took a slot) tests only the faces that passed the first
+    (:func:`new_plane_face`), so a node resting on a joint pays one branch-free test per candidate a step for the
+    chance of meeting a second plane.
 
     Returns:
         (face per slot (-1 for none), its candidate-list slot, depth δ [m] per slot, barycentric weights per slot
@@ -270,6 +318,8 @@ def node_face_targets(
     old_normal = wp.mat33(0.0)
     normal = wp.vec3(0.0)
     has_normal = int(0)
+    survivors = Survivors()
+    n_survivors = first_scan
     for s in range(NODE_SPRINGS):
         keep = old[s]
         if keep >= 0 and keep < face_normal.shape[0]:
@@ -299,6 +349,7 @@ def node_face_targets(
                 face_nodes,
                 face_depth,
                 face_normal,
+                face_origin,
                 normal,
                 node_q,
             )
@@ -323,7 +374,7 @@ def node_face_targets(
     for _pass in range(NODE_SPRINGS):
         if faces[0] >= 0 and faces[1] >= 0 and faces[2] >= 0:
             break
-        f, ls, d, w, nf, normal, has_normal = new_plane_face(
+        f, ls, d, w, nf, normal, has_normal, survivors, n_survivors = new_plane_face(
             v,
             x,
             max_node_faces,
@@ -332,6 +383,7 @@ def node_face_targets(
             face_nodes,
             face_depth,
             face_normal,
+            face_origin,
             tet_nodes,
             tet_face_nbr,
             star_offset,
@@ -345,6 +397,8 @@ def node_face_targets(
             normals,
             normal,
             has_normal,
+            survivors,
+            n_survivors,
         )
         if f < 0:
             break

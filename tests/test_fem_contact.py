@@ -24,6 +24,9 @@ Oracles:
 - the rigid fast path (rigid normals n_v = R(q) n_v0, the kept target's list slot as a hint) against the general
   path: the normals agree with the star walk at randomly turned poses to NORMAL_ROUNDOFF, and a rattling jointed
   cube runs bit for bit the same 100 steps with the fast path on, with scrambled hints and with the star walk;
+- a node's later scans for a new plane in one evaluation test only its first scan's survivors: a stirred jointed
+  cube runs bit for bit the same 150 steps as with every scan over the whole candidate list (the survivors are
+  exercised: evaluations that fill two slots with new planes occur);
 - the stable step of the penalty springs (ModelBuilder.contact_critical_time_step) scales as 1/sqrt(f) with the
   stiffness factor, and is a bound: a bonded two-block model whose step the joint controls runs at it with its
   energy conserved, and blows up at STEP_BLOWUP times it, where the stability guard stops the run (so the bound is
@@ -692,6 +695,39 @@ def test_rigid_fast_path_runs_as_general_path(device):
     nf /= np.linalg.norm(nf, axis=1, keepdims=True)
     margin = np.abs(np.sum(nf * both_normals(fast)[1][held], axis=1)).min()
     assert margin > 1e3 * NORMAL_ROUNDOFF
+
+
+def test_survivor_scans_run_as_full_scans(device):
+    """The scans of a node for a new plane in one evaluation (kernels/node_face_target.py new_plane_face) against
+    each scanning its whole candidate list (FemContact.survivor_scans(False), the code before them). Oracle: the later
+    scans differ only in more held planes, so a face failing the first scan's other tests fails theirs too, and
+    testing the first scan's survivors alone, in list order and the same arithmetic, must give the same faces: the
+    springs, forces and bodies of a jointed cube of 27 blocks stirred at 0.3 m/s and 50 kg m²/s (blocks that turn and
+    meet new planes every step) stay bit for bit the same over 150 steps. The survivors are exercised: evaluations in
+    which a node takes new-plane faces into two slots at once (its second scan runs on the survivors) are counted."""
+    from warpdem.bench import jointed_cube
+
+    fast, full = (jointed_cube(3, device) for _ in range(2))
+    full.fem_contact.survivor_scans(False)
+    rng = np.random.default_rng(1)
+    kick_v = rng.normal(scale=0.3, size=fast.state.body_v.numpy().shape)
+    kick_l = rng.normal(scale=50.0, size=fast.state.body_l.numpy().shape)
+    for sim in (fast, full):
+        sim.state.body_v.assign(sim.state.body_v.numpy() + kick_v)
+        sim.state.body_l.assign(sim.state.body_l.numpy() + kick_l)
+    nn, k = fast.node_count, fast.model.node_springs
+    springs = fast.state.node_face_spring.numpy().reshape(-1, k)[:nn].copy()
+    two_new = 0
+    for _ in range(150):
+        for sim in (fast, full):
+            sim.advance(1)
+        now = fast.state.node_face_spring.numpy().reshape(-1, k)[:nn].copy()
+        two_new += np.count_nonzero(((now >= 0) & (now != springs)).sum(axis=1) >= 2)
+        springs = now
+        np.testing.assert_array_equal(full.state.node_face_spring.numpy().reshape(-1, k)[:nn], now)
+    assert two_new > 0
+    for name in ("node_face_offset", "node_face_shear", "node_q", "node_qd", "node_f", "body_q", "body_l", "body_v"):
+        np.testing.assert_array_equal(getattr(full.state, name).numpy(), getattr(fast.state, name).numpy(), name)
 
 
 def test_contact_force_sums_stay_empty_without_books(device):

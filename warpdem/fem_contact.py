@@ -363,6 +363,7 @@ class FemContact:
         self.face_center = wp.zeros(fcap, dtype=wp.vec3, device=d)
         self.face_bound = wp.zeros(fcap, dtype=float, device=d)
         self.face_normal = wp.zeros(fcap, dtype=wp.vec3, device=d)
+        self.face_origin = wp.zeros(fcap, dtype=wp.vec3, device=d)
         # A sphere moves at most its whole skin between FEM builds (kernels/fem_contact.py, "Skins"), a face half ours.
         self.sphere_margin = model.skin + 0.5 * model.fem_skin
         # A node–face candidate may project KEEP_EPS outside its face: within RIM_REACH face radii of its centroid.
@@ -380,7 +381,16 @@ class FemContact:
         # Where each spring slot found its target in its node's candidate list at the last evaluation (a hint only: a
         # stale one costs a search, never a different answer; kernels/node_face_target.py kept_face_holds).
         self.target_slot = wp.full(max(model.node_capacity, 1) * model.node_springs, -1, dtype=int, device=d)
+        # -2: a node's later scans for a new plane test only the first scan's survivors; -1: each scans its whole
+        # list (kernels/node_face_target.py new_plane_face; survivor_scans).
+        self.first_scan = wp.full(1, -2, dtype=int, device=d)
         self.rigid_normals(True)
+
+    def survivor_scans(self, on: bool) -> None:
+        """Let a node's later scans for a new plane in one evaluation test only the faces that passed its first scan
+        (``on``, the default) or scan its whole candidate list each time (the path it is tested against: the same
+        decisions). An array fill, so a captured graph sees the choice."""
+        self.first_scan.fill_(-2 if on else -1)
 
     def rigid_normals(self, on: bool) -> None:
         """Turn the nodes of rigid blocks by their bodies' pose instead of walking their stars each evaluation
@@ -507,6 +517,8 @@ class FemContact:
             self.normal_body,
             self.rest_normal,
             self.target_slot,
+            self.face_origin,
+            self.first_scan,
         )
         eval_joints(self.model, self.state, dt)
 
@@ -522,6 +534,8 @@ def eval_fem_contacts(
     normal_body: wp.array | None = None,
     rest_normal: wp.array | None = None,
     target_slot: wp.array | None = None,
+    face_origin: wp.array | None = None,
+    first_scan: wp.array | None = None,
 ) -> None:
     """Sphere–face, node–face and node–wall forces into ``particle_f/t`` and ``node_f`` (launches only).
 
@@ -535,7 +549,11 @@ def eval_fem_contacts(
             every node walks its star.
         target_slot: each spring slot's list slot of its target at the last evaluation, a hint (``FemContact``),
             shape (node_capacity * node_springs,), int32; None: none.
-        The three are allocated here when None (a direct call outside a step).
+        face_origin: scratch for each face's first vertex x_a at this evaluation, shape (face_capacity,), vec3
+            (``FemContact`` holds one; written with the normals, read by the node–face depth tests).
+        first_scan: shape (1,), int32: -2, a node's later scans for a new plane test only its first scan's survivors;
+            -1, each scans the whole list (``FemContact.survivor_scans``).
+        The five are allocated here when None (a direct call outside a step; survivors on).
     """
     m, s = model, state
     n = max(m.node_capacity, 1)
@@ -544,6 +562,10 @@ def eval_fem_contacts(
         rest_normal = wp.zeros(n, dtype=wp.vec3, device=m.device)
     if target_slot is None:
         target_slot = wp.full(n * m.node_springs, -1, dtype=int, device=m.device)
+    if face_origin is None:
+        face_origin = wp.zeros(face_normal.shape[0], dtype=wp.vec3, device=m.device)
+    if first_scan is None:
+        first_scan = wp.full(1, -2, dtype=int, device=m.device)
     step = m.dt if dt is None else dt
     if m.node_capacity:
         if step > 0.0:
@@ -607,7 +629,7 @@ def eval_fem_contacts(
             kf.face_normals_kernel,
             dim=m.face_capacity,
             inputs=[m.face_nodes, s.face_count, s.node_q],
-            outputs=[face_normal],
+            outputs=[face_normal, face_origin],
             device=m.device,
         )
         wp.launch(
@@ -648,8 +670,10 @@ def eval_fem_contacts(
                 s.body_q,
                 # In:
                 face_normal,
+                face_origin,
                 normal_body,
                 rest_normal,
+                first_scan,
                 int(born_relaxed),
             ],
             outputs=[
