@@ -444,7 +444,7 @@ def test_material_without_strength_never_splits(device):
 def test_face_ids_follow_their_tet_face_slots(device):
     # The contact state's face ids (node springs, sphere candidates) are carried across the surface rebuild through
     # the tet-face slot of each face, which no split changes: every old face maps to the new face of its own slot.
-    from warpdem.fem_contact import face_slots, rebuild_surface, remap_face_ids
+    from warpdem.fem_surface import face_slots, rebuild_surface, remap_face_ids
     from warpdem.fracture import FracturePass
 
     model, state, pts = bar(device, node_capacity=200, cohesive_capacity=64)

@@ -53,16 +53,8 @@ from .conversion import (
 )
 from .coupling import coupling_energy, eval_coupling, regrow_coupling
 from .energy import EnergyBalance, energy_balance, shadow_term
-from .fem_contact import (
-    FemContact,
-    face_slots,
-    fem_contact_energy,
-    fem_contact_growth,
-    hold_contact_stiffness,
-    rebuild_surface,
-    regrow_fem_contacts,
-    remap_face_ids,
-)
+from .fem_contact import FemContact, fem_contact_energy, fem_contact_growth, hold_contact_stiffness, regrow_fem_contacts
+from .fem_surface import face_slots, rebuild_surface, remap_face_ids
 from .fracture import FracturePass, SplitReport
 from .guard import CriticalStep, GuardReport, StabilityGuard, UnstableRunError
 from .integrate import integrate_first_half, integrate_second_half, kick_drift
