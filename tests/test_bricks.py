@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_lattice import walk_components
 from warpdem.kernels.node_face_target import SPRING_BOUND
 
 from warpdem.bricks import brick_cells, mesh_bricks
@@ -115,16 +116,7 @@ def tet_pieces(tets: np.ndarray, block: np.ndarray) -> np.ndarray:
         if len(pair) == 2 and block[pair[0]] == block[pair[1]]:
             neighbours[pair[0]].append(pair[1])
             neighbours[pair[1]].append(pair[0])
-    label = np.full(len(tets), -1)
-    for start in range(len(tets)):
-        if label[start] < 0:
-            label[start], queue = start, [start]
-            while queue:
-                for other in neighbours[queue.pop()]:
-                    if label[other] < 0:
-                        label[other] = start
-                        queue.append(other)
-    return label
+    return walk_components(neighbours)
 
 
 def test_opening_takes_the_small_pieces_it_cuts():

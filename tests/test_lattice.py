@@ -111,6 +111,21 @@ def test_no_bar_to_pull_falls_back_to_the_reference_factors():
         assert mesh_lattice_factors(tets, points, np.ones(1, dtype=bool), spheres_per_tet) == (*reference, 0)
 
 
+def walk_components(neighbours: list[list[int]]) -> np.ndarray:
+    """Brute-force reference: the connected components of a graph given by its adjacency lists, by a walk from every
+    unlabelled item (labels (n,): the lowest item of each component)."""
+    label = np.full(len(neighbours), -1)
+    for start in range(len(neighbours)):
+        if label[start] < 0:
+            label[start], queue = start, [start]
+            while queue:
+                for other in neighbours[queue.pop()]:
+                    if label[other] < 0:
+                        label[other] = start
+                        queue.append(other)
+    return label
+
+
 def test_largest_body_against_breadth_first_search():
     # Brute force: a breadth-first search from every unlabelled item gives the components; the largest (ties: the
     # one holding the lowest item) is the one returned.
@@ -118,19 +133,11 @@ def test_largest_body_against_breadth_first_search():
     n = 60
     pairs = np.sort(rng.integers(0, n, size=(45, 2)), axis=1)
     pairs = pairs[pairs[:, 0] != pairs[:, 1]]
-    neighbours = [[] for _ in range(n)]
+    neighbours: list[list[int]] = [[] for _ in range(n)]
     for a, b in pairs:
         neighbours[a].append(b)
         neighbours[b].append(a)
-    component = -np.ones(n, dtype=int)
-    for start in range(n):
-        if component[start] < 0:
-            component[start], queue = start, [start]
-            while queue:
-                for b in neighbours[queue.pop()]:
-                    if component[b] < 0:
-                        component[b] = start
-                        queue.append(b)
+    component = walk_components(neighbours)
     sizes = np.bincount(component[component >= 0], minlength=n)
     np.testing.assert_array_equal(largest_body(pairs, n), component == np.argmax(sizes))
 
