@@ -33,9 +33,9 @@ the rim of a joint sits on the edge of the face opposite, and where the two face
 each is a corner of the other: a shift along the joint (another joint's compression, 3e-3 of the face at the
 limestone tunnel's head joints; float32 rounding where the faces are aligned) puts them all just outside the face
 opposite, and with a margin of rounding's size (BARY_EPS) nothing held that joint (tests/test_rim_contact.py). The
-spring still acts along the face's normal, at the contact point clamped to the triangle; a node that passes beside a
-face within the margin, behind its plane, meets a ledge of that width (its spring starts at the depth gained in the
-step, so no energy is created)."""
+spring still acts along the face's normal, its reaction at the node's projection (kernels/fem_contact.py); a node
+that passes beside a face within the margin, behind its plane, meets a ledge of that width (its spring starts at the
+depth gained in the step, so no energy is created)."""
 
 KEEP_EPS = wp.constant(2.0e-2)
 """A node keeps its target face while its projection lies within this barycentric margin outside the triangle, twice
