@@ -29,6 +29,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
+import sys
 import xml.etree.ElementTree as ET
 
 import h5py
@@ -377,3 +378,33 @@ def test_restarted_fracture_run_leaves_the_uninterrupted_stage_and_series(fractu
     assert again.splits == summary.splits and again.crack_area == summary.crack_area
     assert again.series_path.read_text() == summary.series_path.read_text()
     assert_stages_equal(Usd.Stage.Open(str(again.usd_path)), Usd.Stage.Open(str(summary.usd_path)))
+
+
+def test_fracture_outputs_run_on_across_a_rigid_switch(tmp_path):
+    """The pulled bar cracks, then turns rigid at 3.5 frames ([rigid] switch_time): the switch stops the split passes
+    but keeps the cracks. Oracles: one row per frame 0..F across the switch (the series had dropped every row before
+    it); in every row nodes − nodes at frame 0 = splits = cohesive intact + broken (exact counts); no split after the
+    switch (no pass runs); the stage carries the damage primvar at every frame, the checkpoint's at the end."""
+    from warpdem.checkpoint import read_checkpoint
+
+    period = 1.0 / BAR_SCENE["run"]["output_rate"]
+    scene = {**BAR_SCENE, "rigid": {"switch_time": 3.5 * period}}
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(sys.modules[__name__], "BAR_SCENE", scene)
+        summary = run_with_fracture(RunOptions(device="cpu", frames=FRACTURE_FRAMES, out_dir=tmp_path, quiet=True))
+    assert summary.rigid, "the bar should have turned rigid within the run"
+    data = read_series(summary.series_path)
+    np.testing.assert_array_equal(data["frame"], np.arange(FRACTURE_FRAMES + 1))
+    splits = data["splits"]
+    assert splits[3] > 0, "the bar should crack before the switch"
+    np.testing.assert_array_equal(data["nodes"] - data["nodes"][0], splits)
+    np.testing.assert_array_equal(data["cohesive_intact"] + data["cohesive_broken"], splits)
+    np.testing.assert_array_equal(splits[4:], splits[3])
+    assert summary.splits == splits[-1]  # the summary's are the last row's
+    arrays, _ = read_checkpoint(summary.checkpoints[-1])
+    nn = int(arrays["state/node_count"][0])
+    stage = Usd.Stage.Open(str(summary.usd_path))
+    rock = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Rock"))
+    damage = UsdGeom.PrimvarsAPI(rock.GetPrim()).GetPrimvar("damage")
+    assert all(damage.Get(float(k)) is not None for k in range(FRACTURE_FRAMES + 1))
+    np.testing.assert_array_equal(np.asarray(damage.Get(float(FRACTURE_FRAMES))), arrays["state/node_damage"][:nn])

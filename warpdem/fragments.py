@@ -90,9 +90,7 @@ class FragmentStats:
 def can_fragment(model: Model) -> bool:
     """Whether a model can break apart at all: nodal fracture or conversion on, bonds or joint elements present.
     Fragment output is written only for such scenes (elsewhere it would count the same pieces every frame)."""
-    return bool(
-        model.fracture_interval > 0 or model.conversion_interval > 0 or model.bond_capacity > 0 or model.joint_capacity
-    )
+    return bool(model.has_fracture or model.conversion_interval > 0 or model.bond_capacity > 0 or model.joint_capacity)
 
 
 def label_fragments(model: Model, state: State) -> FragmentStats:

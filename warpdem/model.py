@@ -120,7 +120,8 @@ class Model:
             tet-face slot of A's joint face (its outward normal is the element's); joint_set: its joint set.
 
     Nodal fracture (warpdem.fracture, warpdem.cohesive; LDEC §2.2–2.3):
-        fracture_interval: steps between two split passes; 0: fracture is off.
+        fracture_interval: steps between two split passes; 0: no split pass (fracture off, or a rigid switch stopped
+            the passes: :attr:`has_fracture` tells the two apart).
         cohesive_capacity: cohesive element slots (grows ×2 on overflow between steps).
         node_may_split: 1 where a node may split (the scene's fracture region), else 0, shape (node_capacity,), int32
             (a daughter inherits its parent's flag).
@@ -257,6 +258,14 @@ class Model:
         """Largest sphere radius [m] (host copy, for the grid cell size)."""
         r = self.particle_radius.numpy()
         return float(r.max()) if r.size else 0.0
+
+    @property
+    def has_fracture(self) -> bool:
+        """Whether nodal fracture was attached (warpdem.fracture.attach_fracture, which gives at least one cohesive
+        slot): the cracks, cohesive elements, node damage and their counters exist. It stays true after a rigid
+        switch, which stops the split passes (``fracture_interval`` = 0) but keeps what they made, so a run's outputs
+        keep their fracture columns and fields from its first frame to its last."""
+        return self.cohesive_capacity > 0
 
     def arrays(self) -> dict[str, wp.array]:
         """All per-item arrays of the model by field name."""

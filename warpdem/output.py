@@ -85,7 +85,7 @@ def damage_colors(fraction: np.ndarray) -> np.ndarray:
 def node_damage(model: Model, state: State) -> np.ndarray | None:
     """Damage of the live FEM nodes (reads back; call between steps): the largest δ_max/δ_c of each node's cohesive
     elements so far, 1 once one broke, shape (N,), float32 in [0, 1]; None when fracture is off."""
-    if model.fracture_interval <= 0:
+    if not model.has_fracture:
         return None
     return state.node_damage.numpy()[: int(state.node_count.numpy()[0])]
 
@@ -355,7 +355,7 @@ class RockFrames:
     open every frame: daughters of one node share their reference position, which identifies the two sides of a split
     face, drawn once their daughters are more than :data:`CLOSED_GAP` of the mesh size apart. Colours scale with the
     largest value seen so far in the run, so a colour means the same in every later frame. With fracture on
-    (``model.fracture_interval`` > 0) the surface carries each node's damage (``state.node_damage``) and the VTU
+    (``model.has_fracture``) the surface carries each node's damage (``state.node_damage``) and the VTU
     files a ``damage`` point field.
 
     Args:
@@ -452,7 +452,7 @@ class RockFrames:
         """The intact cohesive elements now as curves from daughter A to daughter B (reads back; call between
         steps), each with its damage δ_max/δ_c; None when fracture is off. The width is :data:`COHESIVE_WIDTH` of
         the mesh size (measured by the last :meth:`surface`, else here)."""
-        if model.fracture_interval <= 0:
+        if not model.has_fracture:
             return None
         if self._size == 0.0:
             nt = int(state.tet_count.numpy()[0])

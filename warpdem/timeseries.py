@@ -14,9 +14,10 @@ Columns (units in :data:`UNITS` and the HDF5 attributes):
   the first frame of the timeline, relative to the largest energy in play so far: the number the summary prints);
 - counts [-]: ``spheres``, ``contacts`` (touching sphere pairs), ``bonds_intact``, ``bonds_broken``, ``nodes``,
   ``tets`` (active), ``joints_intact``, ``joints_failed``;
-- with fracture on (``model.fracture_interval`` > 0; :data:`FRACTURE_COLUMNS`): ``splits``, ``cohesive_intact``,
-  ``cohesive_broken`` [-], ``crack_area`` and ``crack_area_opened`` [m²] (one face), ``cohesive_work_broken`` [J]
-  (Γ A_f of the broken elements, what the dissipated energy ``energy_dissipated_cohesive`` must reach for them);
+- with fracture attached (``model.has_fracture``, from the first frame to the last, a rigid switch between them;
+  :data:`FRACTURE_COLUMNS`): ``splits``, ``cohesive_intact``, ``cohesive_broken`` [-], ``crack_area`` and
+  ``crack_area_opened`` [m²] (one face), ``cohesive_work_broken`` [J] (Γ A_f of the broken elements, what the
+  dissipated energy ``energy_dissipated_cohesive`` must reach for them);
 - ``wall<w>_fx``, ``_fy``, ``_fz`` [N]: force of the spheres on wall w (in the order the scene makes walls);
 - ``load<i>_fx``, ``_fy``, ``_fz`` [N]: total force of pressure load ``[[loads]]`` entry i on the rock, -∫ p dA;
 - ``max_speed`` [m/s]: the largest speed of any sphere or FEM node.
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import math
 import os
 import pathlib
 import re
@@ -71,7 +73,7 @@ def fracture_values(model: Model, state: State) -> dict[str, int | float]:
     """The fracture counters now (reads back; call between steps), by :data:`FRACTURE_COLUMNS` name; empty when
     fracture is off. Alive elements are the live slots (``cohesive_count``) less those broken and not yet
     compacted; the crack areas are half of the A_f sums, which count both faces (LDEC eq. 9)."""
-    if model.fracture_interval <= 0:
+    if not model.has_fracture:
         return {}
     nc = int(state.cohesive_count.numpy()[0])
     return {
@@ -228,13 +230,18 @@ class TimeSeries:
         self.energy_start: EnergyBalance | None = None
         self.in_play = 0.0
         """The largest energy in play over the rows so far [J] (the error's scale)."""
+        self._recorded = False
+        """Whether this run recorded a row yet (rows before that were read from an earlier run's file)."""
         if first_frame > 0 and self.csv_path.is_file():
             old = read_series(self.csv_path)
             if old and "frame" in old:
                 keep = old["frame"] < first_frame
                 self.columns = list(old)
                 self.rows = [
-                    [int(old[c][r]) if c in INTEGER_COLUMNS else float(old[c][r]) for c in self.columns]
+                    [
+                        int(old[c][r]) if c in INTEGER_COLUMNS and np.isfinite(old[c][r]) else float(old[c][r])
+                        for c in self.columns
+                    ]
                     for r in np.flatnonzero(keep)
                 ]
                 if self.rows and old["frame"][keep][0] == 0:
@@ -261,10 +268,13 @@ class TimeSeries:
             self.energy_start = energy
         self.in_play = max(self.in_play, self.energy_start.in_play, energy.in_play)
         row = frame_values(sim, frame, energy, self.energy_start, self.in_play)
-        if self.columns and list(row) != self.columns:
-            self.rows = []  # a different scene wrote the old rows: they cannot share the table
-        self.columns = list(row)
-        self.rows = [r for r in self.rows if r[0] != frame] + [list(row.values())]
+        if self.columns and list(row) != self.columns and not self._recorded:
+            self.columns, self.rows = [], []  # a different scene wrote the rows a restart found: they cannot share
+        self._recorded = True
+        # This run's own rows are never dropped: were a column in some of its frames only, the others hold NaN.
+        old = [dict(zip(self.columns, r, strict=True)) for r in self.rows if r[0] != frame]
+        self.columns = list(row) + [c for c in self.columns if c not in row]
+        self.rows = [[r.get(c, math.nan) for c in self.columns] for r in [*old, row]]
         self._write_csv()
         self._write_hdf5()
         return row
@@ -285,7 +295,7 @@ class TimeSeries:
                 f.attrs["columns"] = self.columns
                 table = np.array(self.rows, dtype=np.float64).reshape(len(self.rows), len(self.columns))
                 for k, name in enumerate(self.columns):
-                    integer = name in INTEGER_COLUMNS
+                    integer = name in INTEGER_COLUMNS and bool(np.all(np.isfinite(table[:, k])))  # NaN: not recorded
                     data = f.create_dataset(name, data=table[:, k].astype(np.int64 if integer else np.float64))
                     data.attrs["unit"] = unit(name)
                     data.attrs["description"] = description(name)
