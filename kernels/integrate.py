@@ -3,7 +3,8 @@
 Step n → n+1 (LIGGGHTS ``fix nve/sphere``): first half kick and drift, v ← v + dt/2 a_n, x ← x + dt v, which also
 clears the force accumulators for the new evaluation; then, after the forces at x_{n+1}, the second half kick
 v ← v + dt/2 a_{n+1}. Sphere centres are float64 (the drift adds the float32 dt·v without loss at any offset);
-velocities and forces are float32. Rotation of spheres is isotropic (I = 2/5 m r²), so ω is kicked the same way. FEM
+velocities and forces are float32, and each kick adds its increment to the velocity with a carry of what the float32
+sums rounded off (:func:`carried_sum`), so a small increment repeated over many steps is not lost to rounding. Rotation of spheres is isotropic (I = 2/5 m r²), so ω is kicked the same way. FEM
 nodes (lumped mass, translation only) take the same two half kicks in their own kernels; they drift their displacement,
 u ← u + dt v, and x = X + u follows. Their held components (fixed, rollers) stay zero, and a node with a velocity
 driver (warpdem.loads) holds its velocity while the driver does, the driver's work booked. The state's time advances
@@ -20,7 +21,7 @@ from __future__ import annotations
 import warp as wp
 
 from .contact import MOTION_FREE
-from .loads import NodeDriver, drive_first_half, drive_second_half
+from .loads import NodeDriver, drive_first_half, drive_second_half, driver_holds
 from .neighbors import flag_past_half_fem_skin
 from .rigid import NODE_RIGID, PoseAhead, node_velocity_ahead
 from .tets import node_free_directions
@@ -33,6 +34,20 @@ wp.set_module_options({"enable_backward": False})
 
 
 @wp.func
+def carried_sum(v: wp.vec3, carry: wp.vec3, dv: wp.vec3):
+    """v + dv in float32 by compensated (Kahan) summation [m/s]: ``carry`` holds what the earlier sums rounded off
+    and joins dv; returns (the rounded sum, the new carry). The velocity the kicks have
+    summed is the returned one plus its carry, to float32 rounding of the carry, whose size stays within half a unit
+    in the last place of v, so no rounding piles up: a constant increment (gravity's dt g/2 a half kick) that rounds
+    the same way at every kick drifted a free fall's velocity by 1.2e-3 of g t over 0.1 s at dt = 1 µs, more the
+    finer the step (warpdem.model.State ``particle_qd_carry``). Plain float32 arithmetic, which the compilers keep
+    as written (Warp compiles without fast-math reassociation)."""
+    y = dv + carry
+    t = v + y
+    return t, y - (t - v)
+
+
+@wp.func
 def kick_particle(
     i: int,
     dt: float,
@@ -42,13 +57,13 @@ def kick_particle(
     particle_f: wp.array(dtype=wp.vec3),
     particle_t: wp.array(dtype=wp.vec3),
     v: wp.vec3,
+    carry: wp.vec3,
     omega: wp.vec3,
 ):
-    """Half kick of a free sphere: v + dt/2 (f/m + g) [m/s] and ω + dt/2 t/I [rad/s]."""
-    return (
-        v + 0.5 * dt * (particle_f[i] * particle_inv_mass[i] + gravity),
-        omega + 0.5 * dt * particle_inv_inertia[i] * particle_t[i],
-    )
+    """Half kick of a free sphere: v + dt/2 (f/m + g) [m/s] (:func:`carried_sum`, returning the new carry) and
+    ω + dt/2 t/I [rad/s]."""
+    v, carry = carried_sum(v, carry, 0.5 * dt * (particle_f[i] * particle_inv_mass[i] + gravity))
+    return v, carry, omega + 0.5 * dt * particle_inv_inertia[i] * particle_t[i]
 
 
 @wp.func
@@ -119,6 +134,23 @@ def held_particle_work(
 
 
 @wp.func
+def node_kick(
+    i: int,
+    dt: float,
+    gravity: wp.vec3,
+    free: wp.vec3,
+    v: wp.vec3,
+    carry: wp.vec3,
+    node_inv_mass: wp.array(dtype=float),
+    node_f: wp.array(dtype=wp.vec3),
+):
+    """Half kick of a node without its driver: v + dt/2 (f/m + g) [m/s] by :func:`carried_sum`, in its free
+    components (the held ones and their carry zero); returns (v, carry)."""
+    v, carry = carried_sum(v, carry, 0.5 * dt * (node_f[i] * node_inv_mass[i] + gravity))
+    return wp.cw_mul(free, v), wp.cw_mul(free, carry)
+
+
+@wp.func
 def node_first_half_velocity(
     i: int,
     dt: float,
@@ -126,6 +158,7 @@ def node_first_half_velocity(
     t_step: wp.float64,
     free: wp.vec3,
     v_old: wp.vec3,
+    carry: wp.vec3,
     node_mass: wp.array(dtype=float),
     node_inv_mass: wp.array(dtype=float),
     node_driver: wp.array(dtype=int),
@@ -133,13 +166,14 @@ def node_first_half_velocity(
     num_drivers: int,
     node_f: wp.array(dtype=wp.vec3),
 ):
-    """v_{n+1/2} of a node from v_n = ``v_old`` [m/s] and the driver's work [J] over the half step starting at t_step.
+    """v_{n+1/2} of a node from v_n = ``v_old`` [m/s], with its kicks' carry (:func:`carried_sum`), the new carry and
+    the driver's work [J] over the half step starting at t_step.
 
     Held velocity components stay zero (fixed nodes, rollers), so the constraints do no work. A driven node holds the
-    driver's velocity over steps whose midpoint it covers (kernels/loads.py); the driver works against gravity only
-    where the node's weight counts in the potential (inv_mass > 0).
+    driver's velocity over steps whose midpoint it covers (kernels/loads.py), its carry zero meanwhile; the driver
+    works against gravity only where the node's weight counts in the potential (inv_mass > 0).
     """
-    v = wp.cw_mul(free, v_old + 0.5 * dt * (node_f[i] * node_inv_mass[i] + gravity))
+    v, carry = node_kick(i, dt, gravity, free, v_old, carry, node_inv_mass, node_f)
     work = float(0.0)
     if num_drivers > 0:
         d = node_driver[i]
@@ -147,7 +181,9 @@ def node_first_half_velocity(
             weight = node_mass[i] * gravity * wp.where(node_inv_mass[i] > 0.0, 1.0, 0.0)
             t_mid = t_step + wp.float64(0.5 * dt)
             v, work = drive_first_half(drivers[d], t_mid, dt, free, v_old, v, node_f[i] + weight, node_mass[i])
-    return v, work
+            if driver_holds(drivers[d], t_mid):
+                carry = wp.vec3(0.0)
+    return v, carry, work
 
 
 @wp.func
@@ -158,6 +194,7 @@ def node_second_half_velocity(
     t_step: wp.float64,
     free: wp.vec3,
     v_half: wp.vec3,
+    carry: wp.vec3,
     node_mass: wp.array(dtype=float),
     node_inv_mass: wp.array(dtype=float),
     node_driver: wp.array(dtype=int),
@@ -165,16 +202,20 @@ def node_second_half_velocity(
     num_drivers: int,
     node_f: wp.array(dtype=wp.vec3),
 ):
-    """v_{n+1} of a node from v_{n+1/2} [m/s] and the driver's work [J] (the step started at t_step: the driver is
-    judged at the same midpoint as in the first half, so both halves agree bit for bit)."""
-    v = wp.cw_mul(free, v_half + 0.5 * dt * (node_f[i] * node_inv_mass[i] + gravity))
+    """v_{n+1} of a node from v_{n+1/2} [m/s] with its kicks' carry, the new carry and the driver's work [J] (the step
+    started at t_step: the driver is judged at the same midpoint as in the first half, so both halves agree bit for
+    bit)."""
+    v, carry = node_kick(i, dt, gravity, free, v_half, carry, node_inv_mass, node_f)
     work = float(0.0)
     if num_drivers > 0:
         d = node_driver[i]
         if d >= 0:
             weight = node_mass[i] * gravity * wp.where(node_inv_mass[i] > 0.0, 1.0, 0.0)
-            v, work = drive_second_half(drivers[d], t_step + wp.float64(0.5 * dt), dt, v, node_f[i] + weight)
-    return v, work
+            t_mid = t_step + wp.float64(0.5 * dt)
+            v, work = drive_second_half(drivers[d], t_mid, dt, v, node_f[i] + weight)
+            if driver_holds(drivers[d], t_mid):
+                carry = wp.vec3(0.0)
+    return v, carry, work
 
 
 @wp.func
@@ -292,6 +333,7 @@ def make_particle_drift_kernel(after_second_half: bool) -> wp.Kernel:
         # State out:
         particle_q: wp.array(dtype=wp.vec3d),
         particle_qd: wp.array(dtype=wp.vec3),
+        particle_qd_carry: wp.array(dtype=wp.vec3),
         particle_omega: wp.array(dtype=wp.vec3),
         particle_f: wp.array(dtype=wp.vec3),
         particle_t: wp.array(dtype=wp.vec3),
@@ -309,14 +351,16 @@ def make_particle_drift_kernel(after_second_half: bool) -> wp.Kernel:
         v = particle_qd[i]
         omega = particle_omega[i]
         if particle_motion[i] == MOTION_FREE:
+            carry = particle_qd_carry[i]
             if wp.static(after_second_half):
-                v, omega = kick_particle(
-                    i, dt, gravity, particle_inv_mass, particle_inv_inertia, particle_f, particle_t, v, omega
+                v, carry, omega = kick_particle(
+                    i, dt, gravity, particle_inv_mass, particle_inv_inertia, particle_f, particle_t, v, carry, omega
                 )
-            v, omega = kick_particle(
-                i, dt, gravity, particle_inv_mass, particle_inv_inertia, particle_f, particle_t, v, omega
+            v, carry, omega = kick_particle(
+                i, dt, gravity, particle_inv_mass, particle_inv_inertia, particle_f, particle_t, v, carry, omega
             )
             particle_qd[i] = v
+            particle_qd_carry[i] = carry
             particle_omega[i] = omega
         else:
             # A driven sphere is held on its path by whatever drives it: ½ dt of the work of f_{n+1} in each half
@@ -362,6 +406,7 @@ def integrate_second_half_kernel(
     particle_t: wp.array(dtype=wp.vec3),
     # State out:
     particle_qd: wp.array(dtype=wp.vec3),
+    particle_qd_carry: wp.array(dtype=wp.vec3),
     particle_omega: wp.array(dtype=wp.vec3),
     energy_boundary_work: wp.array(dtype=wp.float64),
 ):
@@ -369,7 +414,7 @@ def integrate_second_half_kernel(
     if i >= particle_count[0]:
         return
     if particle_motion[i] == MOTION_FREE:
-        v, omega = kick_particle(
+        v, carry, omega = kick_particle(
             i,
             dt,
             gravity,
@@ -378,9 +423,11 @@ def integrate_second_half_kernel(
             particle_f,
             particle_t,
             particle_qd[i],
+            particle_qd_carry[i],
             particle_omega[i],
         )
         particle_qd[i] = v
+        particle_qd_carry[i] = carry
         particle_omega[i] = omega
     else:
         # A driven sphere is held on its path by whatever drives it (the second half of the step's work).
@@ -418,6 +465,7 @@ def make_node_drift_kernel(after_second_half: bool) -> wp.Kernel:
         node_u: wp.array(dtype=wp.vec3),
         node_q: wp.array(dtype=wp.vec3),
         node_qd: wp.array(dtype=wp.vec3),
+        node_qd_carry: wp.array(dtype=wp.vec3),
         node_f: wp.array(dtype=wp.vec3),
         node_energy_damping: wp.array(dtype=wp.float64),
         node_f_viscous: wp.array(dtype=wp.vec3),
@@ -439,19 +487,33 @@ def make_node_drift_kernel(after_second_half: bool) -> wp.Kernel:
                 return
         free = node_free_directions(motion)
         v = node_qd[i]
+        carry = node_qd_carry[i]
         t_step = time[0]
         work = float(0.0)
         if wp.static(after_second_half):
-            v, work = node_second_half_velocity(
-                i, dt, gravity, t_step, free, v, node_mass, node_inv_mass, node_driver, drivers, num_drivers, node_f
+            v, carry, work = node_second_half_velocity(
+                i,
+                dt,
+                gravity,
+                t_step,
+                free,
+                v,
+                carry,
+                node_mass,
+                node_inv_mass,
+                node_driver,
+                drivers,
+                num_drivers,
+                node_f,
             )
             t_step = t_step + dt64
-        v, work_next = node_first_half_velocity(
-            i, dt, gravity, t_step, free, v, node_mass, node_inv_mass, node_driver, drivers, num_drivers, node_f
+        v, carry, work_next = node_first_half_velocity(
+            i, dt, gravity, t_step, free, v, carry, node_mass, node_inv_mass, node_driver, drivers, num_drivers, node_f
         )
         if work != 0.0 or work_next != 0.0:
             node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(work) + wp.float64(work_next)
         node_qd[i] = v
+        node_qd_carry[i] = carry
         drift_node(
             i,
             dt,
@@ -494,18 +556,32 @@ def integrate_nodes_second_half_kernel(
     node_f: wp.array(dtype=wp.vec3),
     # State out:
     node_qd: wp.array(dtype=wp.vec3),
+    node_qd_carry: wp.array(dtype=wp.vec3),
     node_energy_boundary_work: wp.array(dtype=wp.float64),
 ):
     i = wp.tid()  # one thread per FEM node slot
     if i >= node_count[0]:
         return
     free = node_free_directions(node_motion[i])
-    v, work = node_second_half_velocity(
-        i, dt, gravity, time[0], free, node_qd[i], node_mass, node_inv_mass, node_driver, drivers, num_drivers, node_f
+    v, carry, work = node_second_half_velocity(
+        i,
+        dt,
+        gravity,
+        time[0],
+        free,
+        node_qd[i],
+        node_qd_carry[i],
+        node_mass,
+        node_inv_mass,
+        node_driver,
+        drivers,
+        num_drivers,
+        node_f,
     )
     if work != 0.0:
         node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(work)
     node_qd[i] = v
+    node_qd_carry[i] = carry
 
 
 @wp.kernel

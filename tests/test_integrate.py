@@ -146,6 +146,45 @@ def test_free_fall_is_exact_for_constant_acceleration(device: str) -> None:
     np.testing.assert_array_equal(sim.state.particle_f.numpy(), 0.0)  # the fall really was contact-free
 
 
+SMALL_DT = 5.0e-6  # [s]: not a power of two, so dt/2 · g rounds, and the same way at every kick
+SMALL_DT_STEPS = 20_000  # 0.1 s
+CARRY_BOUND = 4.0
+"""|v − g t| <= CARRY_BOUND EPS32 |g t| at any step count (the test's comment derives it)."""
+
+
+def test_free_fall_keeps_float32_precision_over_many_small_steps(device: str) -> None:
+    # v_n = g t exactly (above). The 2n kicks add the increment fl(dt/2 · g) to a float32 velocity with a carry
+    # (kernels/integrate.py carried_sum): Kahan's bound on the sum is 2 ε |v| + O(n ε²) |v| (increments of one sign;
+    # n ε² = 3e-10 here), and the increment errs by at most ε/2 (one rounding of dt/2 · g, alike at every kick), so
+    # |v − g t| <= 4 ε |g t| whatever n: the bound does not grow with the steps. A sphere's centre is float64 and sums
+    # dt v_{k+1/2}, each within that bound: |x − x_exact| <= 4 ε |g| t². A node's displacement is float32: each drift
+    # rounds by ulp(u)/2 besides, n ε max|u| / 2 at most. Without the carry the same rounding of every kick piled up
+    # to 8e-5 of g t at dt = 1e-5 s and 1.2e-3 at 1e-6 s over 0.1 s, worse the finer the step.
+    from warpdem.mesh import box_mesh
+
+    b = ModelBuilder(gravity=GRAVITY)
+    b.add_material("rock", 2600.0, YOUNG, POISSON)
+    b.add_sphere((0.0, 0.0, 0.0), 0.01, "rock")
+    points, tets = box_mesh((5.0, 5.0, 5.0), (5.1, 5.1, 5.1), (1, 1, 1))
+    b.add_tet_mesh(points, tets, "rock")  # one rigidly falling cell: its tets stay unstrained, no force
+    model, state = b.finalize(device, dt=SMALL_DT, allow_unstable_dt=True)
+    sim = Simulation(model, state)
+    sim.advance(SMALL_DT_STEPS)
+    dt32 = float(np.float32(SMALL_DT))  # the kernels take dt in float32
+    g = np.asarray(GRAVITY, dtype=np.float32).astype(np.float64)
+    t = SMALL_DT_STEPS * dt32
+    v_bound = CARRY_BOUND * EPS32 * np.linalg.norm(g) * t
+    nn = sim.node_count
+    np.testing.assert_allclose(vec(sim.state.particle_qd)[0], g * t, rtol=0.0, atol=v_bound)
+    np.testing.assert_allclose(vec(sim.state.node_qd)[:nn], np.tile(g * t, (nn, 1)), rtol=0.0, atol=v_bound)
+    x_bound = CARRY_BOUND * EPS32 * np.linalg.norm(g) * t * t
+    np.testing.assert_allclose(vec(sim.state.particle_q)[0], 0.5 * g * t * t, rtol=0.0, atol=x_bound)
+    u = vec(sim.state.node_u)[:nn]
+    u_bound = x_bound + SMALL_DT_STEPS * EPS32 * np.abs(u).max() / 2.0
+    np.testing.assert_allclose(u, np.tile(0.5 * g * t * t, (nn, 1)), rtol=0.0, atol=u_bound)
+    assert u_bound < 1e-2 * np.abs(0.5 * g * t * t).min()
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # Fixed and prescribed spheres
 

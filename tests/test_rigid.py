@@ -1097,7 +1097,13 @@ def test_an_old_checkpoint_resumes_bit_for_bit_where_its_fields_fill_exactly(swi
 
     copy, path = frame_checkpoint(switch_run, "old4", 4)
     arrays, attrs = read_checkpoint(path)
-    keys = [k for k in FIELD_MIGRATIONS if k in arrays or k.removeprefix("attribute ") in attrs]
+    # The kicks' carries (format 5) stay: an older file's run carried nothing, so zero was its carry, where this
+    # run's deformable column has carried since its first kick.
+    keys = [
+        k
+        for k in FIELD_MIGRATIONS
+        if (k in arrays or k.removeprefix("attribute ") in attrs) and FIELD_MIGRATIONS[k].since < 5
+    ]
     assert len(keys) >= 30  # every state field of the table, tet_may_rigid and the five scalars
     as_old_checkpoint(path, path, keys)
     assert_restart_ends_as_the_run(switch_run, copy, path, "an old frame-4 checkpoint")

@@ -18,7 +18,8 @@ otherwise, naming the file, the field and why (warpdem.restart.restore_checkpoin
 version again and adds its rows to that table, with the version it appeared in: 3 added the pressure loads' forces
 kept per node (``node_f_load``) and the rigid bodies' drift scratch (``body_q_before``, ``body_omega_ahead``); 4 holds
 node_springs node–face springs per node (``node_face_spring``, ``_offset``, ``_shear`` rows, and the model scalar
-``node_springs``) where older files hold one (warpdem.restart.FIELD_RESHAPES puts it into slot 0).
+``node_springs``) where older files hold one (warpdem.restart.FIELD_RESHAPES puts it into slot 0); 5 the velocities'
+kick carries (``particle_qd_carry``, ``node_qd_carry``: zero in an older run, whose kicks carried nothing).
 
 Files are written to ``<name>.tmp-<pid>`` in the target directory and moved over the final name with
 ``os.replace``, so a crash or an error mid-write never damages the previous checkpoint.
@@ -50,7 +51,7 @@ __all__ = [
 FORMAT_NAME = "warpdem-checkpoint"
 """Value of the root attribute ``warpdem_format`` identifying a warpdem checkpoint."""
 
-FORMAT_VERSION = 4
+FORMAT_VERSION = 5
 """Newest checkpoint format this module writes and reads (module docstring, "Versions"); bump when the layout changes
 or fields are added, and list what older files may lack in warpdem.restart.FIELD_MIGRATIONS."""
 

@@ -392,6 +392,7 @@ PARTICLE_MODEL_FIELDS = {
 PARTICLE_STATE_FIELDS = (
     "particle_q",
     "particle_qd",
+    "particle_qd_carry",
     "particle_omega",
     "particle_f",
     "particle_t",

@@ -42,6 +42,7 @@ def new_state(
         # Absolute positions of spheres and walls are float64 (State.particle_q); everything else float32.
         particle_q=vec(q, cap, wp.vec3d),
         particle_qd=vec(particles.qd, cap),
+        particle_qd_carry=vec(None, cap),
         particle_omega=vec(particles.omega, cap),
         particle_f=vec(None, cap),
         particle_t=vec(None, cap),
@@ -85,6 +86,7 @@ def new_state(
         node_u=vec(None, model.node_capacity),
         node_q=vec(mesh.points, model.node_capacity),
         node_qd=vec(mesh.velocity, model.node_capacity),
+        node_qd_carry=vec(None, model.node_capacity),
         node_f=vec(None, model.node_capacity),
         node_energy_damping=wp.zeros(model.node_capacity, dtype=wp.float64, device=device),
         node_f_viscous=vec(None, model.node_capacity),

@@ -93,7 +93,7 @@ def integrate_second_half(model: Model, state: State) -> None:
             s.particle_f,
             s.particle_t,
         ],
-        outputs=[s.particle_qd, s.particle_omega, s.energy_boundary_work],
+        outputs=[s.particle_qd, s.particle_qd_carry, s.particle_omega, s.energy_boundary_work],
         device=m.device,
     )
     if m.node_capacity:
@@ -116,7 +116,7 @@ def integrate_second_half(model: Model, state: State) -> None:
                 s.time,
                 s.node_f,
             ],
-            outputs=[s.node_qd, s.node_energy_boundary_work],
+            outputs=[s.node_qd, s.node_qd_carry, s.node_energy_boundary_work],
             device=m.device,
         )
     _advance_time(m, s)
@@ -177,6 +177,7 @@ def _particle_drift_outputs(s: State) -> list:
     return [
         s.particle_q,
         s.particle_qd,
+        s.particle_qd_carry,
         s.particle_omega,
         s.particle_f,
         s.particle_t,
@@ -217,6 +218,7 @@ def _node_drift_outputs(s: State) -> list:
         s.node_u,
         s.node_q,
         s.node_qd,
+        s.node_qd_carry,
         s.node_f,
         s.node_energy_damping,
         s.node_f_viscous,

@@ -284,6 +284,11 @@ class State:
             differences x_i - x_j (or x_i - wall point, x_i - FEM node) in float64 and round the small result to
             float32 once, so every contact, bond and wall law sees the same numbers wherever the model sits.
         particle_qd: velocities [m/s], shape (particle_capacity,), vec3.
+        particle_qd_carry: what the float32 kicks of ``particle_qd`` rounded off [m/s], shape (particle_capacity,),
+            vec3: each kick adds its increment to the velocity with compensated (Kahan) summation, carrying the
+            rounding into the next kick, so that the increments are summed to float32 precision of the velocity.
+            Without it a constant increment (gravity, dt g/2 a half kick) rounds the same way at every kick: a free
+            fall's velocity was 1.2e-3 off g t after 0.1 s at dt = 1 µs, and worse the finer the step.
         particle_omega: angular velocities [rad/s], shape (particle_capacity,), vec3.
         particle_f: forces [N] (gravity excluded), shape (particle_capacity,), vec3.
         particle_t: torques [N m], shape (particle_capacity,), vec3.
@@ -330,6 +335,8 @@ class State:
             the contact geometry of nodes rounds to ulp(|x|)/2, e.g. 3.8 µm at 100 m; a sphere–face contact takes the
             float64 difference from the sphere's centre to these).
         node_qd: node velocities [m/s], shape (node_capacity,), vec3.
+        node_qd_carry: what the float32 kicks of ``node_qd`` rounded off [m/s], shape (node_capacity,), vec3 (as
+            ``particle_qd_carry``); zero where a driver sets the velocity, or a body (rigid nodes do not kick).
         node_f: node forces [N] (gravity excluded; starts each step at the damping force -α m v), shape
             (node_capacity,), vec3.
         node_energy_damping: energy dissipated by bulk viscosity and mass-proportional damping [J], per node, shape
@@ -478,6 +485,7 @@ class State:
     particle_count: wp.array
     particle_q: wp.array
     particle_qd: wp.array
+    particle_qd_carry: wp.array
     particle_omega: wp.array
     particle_f: wp.array
     particle_t: wp.array
@@ -521,6 +529,7 @@ class State:
     node_u: wp.array
     node_q: wp.array
     node_qd: wp.array
+    node_qd_carry: wp.array
     node_f: wp.array
     node_energy_damping: wp.array
     node_f_viscous: wp.array

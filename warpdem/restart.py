@@ -308,6 +308,9 @@ FIELD_MIGRATIONS: dict[str, FieldMigration] = {
     # A node–face spring per face plane (format 4): older files held one per node, which is slot 0 of the rows
     # (FIELD_RESHAPES), the other slots empty.
     "attribute node_springs": FieldMigration(4, _always),
+    # The kicks sum the velocities with a carry (format 5): an older run's velocity was its float32 value, carry 0.
+    "state/particle_qd_carry": FieldMigration(5, _always, "state/particle_qd"),
+    "state/node_qd_carry": FieldMigration(5, _always, "state/node_qd"),
 }
 """The fields added since checkpoint format 1, by checkpoint key (``state/<name>``, ``model/<name>``, ``attribute
 <name>`` for a model scalar), and when a restart may fill them from the fresh model and state
