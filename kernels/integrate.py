@@ -4,8 +4,10 @@ Step n → n+1 (LIGGGHTS ``fix nve/sphere``): first half kick and drift, v ← v
 clears the force accumulators for the new evaluation; then, after the forces at x_{n+1}, the second half kick
 v ← v + dt/2 a_{n+1}. Sphere centres are float64 (the drift adds the float32 dt·v without loss at any offset);
 velocities and forces are float32, and each kick adds its increment to the velocity with a carry of what the float32
-sums rounded off (:func:`carried_sum`), so a small increment repeated over many steps is not lost to rounding. Rotation of spheres is isotropic (I = 2/5 m r²), so ω is kicked the same way. FEM
-nodes (lumped mass, translation only) take the same two half kicks in their own kernels; they drift their displacement,
+sums rounded off (:func:`carried_sum`), so a small increment repeated over many steps is not lost to rounding.
+Rotation of spheres is isotropic (I = 2/5 m r²), so ω is kicked the same way, without a carry (no constant increment
+drives a spin). FEM nodes (lumped mass, translation only) take the same two half kicks in their own kernels (with
+the carry); they drift their displacement,
 u ← u + dt v, and x = X + u follows. Their held components (fixed, rollers) stay zero, and a node with a velocity
 driver (warpdem.loads) holds its velocity while the driver does, the driver's work booked. The state's time advances
 last, after the second half kick.
