@@ -5,30 +5,29 @@ stiffness and the point–triangle geometry (kernels/fem_surface.py), the sphere
 node is pushed out of (kernels/node_face_target.py).
 
 Node–face: a node penetrates a face when the face faces it (n_f · n_v < 0, n_v the outward normal of the node's own
-surface), it lies behind the face's plane (s = (x - x_a) · n_f < 0), less deep than half the tet's height over the
-face, and it projects into the triangle (within RIM_EPS of its edges, kernels/fem_surface.py: where two joint faces
-are one cell across, every node of each sits on the rim of the other). The reaction acts on the face's nodes at that
-projection, on the force's line. The faces it penetrates are grouped by plane direction (unit normals with
-|n_f · n_f'| > cos θ_g, θ_g = 60°, are one plane: kernels/node_face_target.py PLANE_GROUP_COS), and of each plane it
-is pushed out of the shallowest face (the shortest way out; a vertex shared by coplanar faces goes to the lowest face
-index), by a linear spring–dashpot k δ with k its penalty stiffness and ζ from the restitution (the laws
+surface), it lies behind the face's plane (s = (x - x_a) · n_f < 0), less deep than half the tet's height over the face,
+and it projects into the triangle (within RIM_EPS of the edges of a joint face, kernels/fem_surface.py: where two joint
+faces are one cell across, every node of each sits on the rim of the other; within BARY_EPS of another). The reaction
+acts on the face's nodes at that projection, on the force's line. The faces it penetrates are grouped by plane direction
+(unit normals with |n_f · n_f'| > cos θ_g, θ_g = 60°, are one plane: kernels/node_face_target.py PLANE_GROUP_COS), and
+of each plane it is pushed out of the shallowest face (the shortest way out; a vertex shared by coplanar faces goes to
+the lowest face index), by a linear spring–dashpot k δ with k its penalty stiffness and ζ from the restitution (the laws
 linear_normal_force and coulomb_tangential of kernels/contact.py). A node has NODE_SPRINGS = 3 spring slots, one per
 plane, each with its own tangential history that follows the node from face to face within its plane: a node in an
-inside corner of two or three blocks (a block lattice's corners lie on three joint planes, a brick's head joint on
-the bedding too) is held out of every plane it is pressed into, where one spring per node held it out of one only
-and left a joint whose every node lies on another plane held by nothing. The slots' normals keep pairwise
-|n_s · n_t| ≤ cos θ_g, so a node's springs are no stiffer than SPRING_BOUND k = 2 k along any direction
-(Gershgorin), which the stable steps take (warpdem.fem_contact.contact_critical_step_at, warpdem.rigid_step).
-Each spring never gains energy that no force worked for (½ k δ² jumping up at an event is energy created; a jump
-down is booked as dissipated): a slot keeps its target while the node still penetrates it (its projection may then
-stray KEEP_EPS outside the triangle: a node on the rim of a joint sits on the edge of the face opposite); on a change
-of target within its plane the new spring starts at no more than the old one's compression; a spring whose plane no
-face holds is let go (dissipated); a new contact (a new plane) starts at the depth gained in the step, the depth the
-node already had behind the plane at the last positions (it slid in past an edge) carried as an offset; the offset
-follows a node that backs out. The springs' energy is their sum, in the force evaluation and in the books alike.
-Candidates exclude every face with a vertex in the node's 1-ring (the node itself or a node it shares a tet with):
-a node never touches a face of a tet holding it, nor a face that holds it, and near a crack tip the rock is still
-continuous. An intact joint element's pair is excluded too (the element carries it).
+inside corner of two or three blocks (a block lattice's corners lie on three joint planes, a brick's head joint on the
+bedding too) is held out of every plane it is pressed into, where one spring per node held it out of one only and left a
+joint whose every node lies on another plane held by nothing. The slots' normals keep pairwise |n_s · n_t| ≤ cos θ_g, so
+a node's springs are no stiffer than SPRING_BOUND k = 2 k along any direction (Gershgorin), which the stable steps take
+(warpdem.fem_contact.contact_critical_step_at, warpdem.rigid_step). Each spring never gains energy that no force worked
+for (½ k δ² jumping up at an event is energy created; a jump down is booked as dissipated): a slot keeps its target
+while the node still penetrates it (its projection may then stray KEEP_EPS outside the triangle: a node on the rim of a
+joint sits on the edge of the face opposite); on a change of target within its plane the new spring starts at no more
+than the old one's compression; a spring whose plane no face holds is let go (dissipated); a new contact (a new plane)
+starts at the depth gained in the step, the depth the node already had behind the plane at the last positions (it slid
+in past an edge) carried as an offset; the offset follows a node that backs out. The springs' energy is their sum, in
+the force evaluation and in the books alike. Candidates exclude every face with a vertex in the node's 1-ring (the node
+itself or a node it shares a tet with): a node never touches a face of a tet holding it, nor a face that holds it, and
+near a crack tip the rock is still continuous. An intact joint element's pair is excluded too (the element carries it).
 
 Node–wall: as sphere–wall, with the node's penalty stiffness.
 
@@ -84,6 +83,7 @@ from .fem_surface import (
     BARY_EPS,
     KEEP_EPS,
     TIE_EPS,
+    RimFaces,
     closest_point_barycentric,
     count_tet_faces_kernel,
     face_centers_kernel,
@@ -156,6 +156,7 @@ __all__ = [
     "SPRING_BOUND",
     "TIE_EPS",
     "NodeFaceInputs",
+    "RimFaces",
     "SphereFaceHistory",
     "SphereFaceInputs",
     "closest_point_barycentric",
@@ -392,6 +393,7 @@ def make_node_contact_kernel(track_energy: bool):
         rest_normal: wp.array(dtype=wp.vec3),
         first_scan: wp.array(dtype=int),
         born_relaxed: int,
+        rims: RimFaces,
         # State out:
         node_face_spring: wp.array(dtype=int),
         node_face_offset: wp.array(dtype=float),
@@ -433,6 +435,7 @@ def make_node_contact_kernel(track_energy: bool):
                 node_face_count,
                 node_face_index,
                 face_nodes,
+                rims,
                 face_depth,
                 face_normal,
                 face_origin,

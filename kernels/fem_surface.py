@@ -28,19 +28,62 @@ node–face contact may lie: RIM_EPS, KEEP_EPS)."""
 
 RIM_EPS = wp.constant(1.0e-2)
 """A node may take a face as a new target while its projection lies within this barycentric margin outside the
-triangle: past an edge by up to RIM_EPS of the triangle's height over that edge (3 mm on a 30 cm face) [-]. A node on
+triangle: past an edge by up to RIM_EPS of the triangle's height over that edge (3 mm on a 30 cm face) [-]; a crack's
+face within BARY_EPS (:func:`rim_margins`). A node on
 the rim of a joint sits on the edge of the face opposite, and where the two faces are one cell across, every node of
 each is a corner of the other: a shift along the joint (another joint's compression, 3e-3 of the face at the
 limestone tunnel's head joints; float32 rounding where the faces are aligned) puts them all just outside the face
 opposite, and with a margin of rounding's size (BARY_EPS) nothing held that joint (tests/test_rim_contact.py). The
 spring still acts along the face's normal, its reaction at the node's projection (kernels/fem_contact.py); a node
 that passes beside a face within the margin, behind its plane, meets a ledge of that width (its spring starts at the
-depth gained in the step, so no energy is created)."""
+depth gained in the step, so no energy is created).
+
+Why not on a crack's faces: the ledge is as wide there, and wider than the openings. A crack runs
+through tets, so its faces kink; at a kink a daughter node lies behind the plane of the face beyond the kink, past its
+edge, without touching it, and a margin of 1e-2 of a 4 mm face (40 µm, some δ_c) pushed it out: the Brazilian disc's
+crack no longer let go (its load rose to 1.31 T_f by 0.8 ms, where it peaks at T_f and falls to 0.90 of the peak by
+0.64 ms). Joints are planes cut before the run, and the bodies' outer faces meet at their edges only."""
 
 KEEP_EPS = wp.constant(2.0e-2)
 """A node keeps its target face while its projection lies within this barycentric margin outside the triangle, twice
 the RIM_EPS a new target may take, so that a node taken at the rim is not dropped and restarted step after step by
-float32 rounding or a little shear [-]."""
+float32 rounding or a little shear [-]; a crack's face within FACE_KEEP_EPS."""
+
+FACE_KEEP_EPS = wp.constant(1.0e-3)
+"""A node keeps a crack's face as its target while its projection lies within this barycentric margin outside the
+triangle (new targets need BARY_EPS): float32 rounding and a little shear do not drop and restart it [-]."""
+
+
+@wp.struct
+class RimFaces:
+    """What :func:`rim_margins` reads: the Model arrays of those names (``ref_tet_face_nbr`` empty where neither
+    fracture nor conversion is attached: then no face was inside the built mesh)."""
+
+    face_joint: wp.array(dtype=int)
+    face_tet: wp.array(dtype=int)
+    face_nodes: wp.array(dtype=wp.vec3i)
+    tet_nodes: wp.array(dtype=wp.vec4i)
+    ref_tet_face_nbr: wp.array(dtype=int)
+
+
+@wp.func
+def rim_margins(f: int, rims: RimFaces) -> wp.vec2:
+    """The barycentric margins outside face f [-] within which a node may take it as a new target and keep it as
+    one: (BARY_EPS, FACE_KEEP_EPS) for a face of a crack or of a converted tet's hole (a face inside the built mesh,
+    ``ref_tet_face_nbr`` >= 0 across its tet-face slot, that is no joint face), (RIM_EPS, KEEP_EPS) for any other:
+    the outer surfaces of the bodies, joints, openings (RIM_EPS says why)."""
+    if rims.face_joint[f] < 0 and rims.ref_tet_face_nbr.shape[0] > 0:
+        t = rims.face_tet[f]
+        fn = rims.face_nodes[f]
+        tn = rims.tet_nodes[t]
+        k = int(0)  # the slot of the face: opposite the tet's node that is not one of its three
+        for i in range(4):
+            if tn[i] != fn[0] and tn[i] != fn[1] and tn[i] != fn[2]:
+                k = i
+        if rims.ref_tet_face_nbr[4 * t + k] >= 0:
+            return wp.vec2(BARY_EPS, FACE_KEEP_EPS)
+    return wp.vec2(RIM_EPS, KEEP_EPS)
+
 
 TIE_EPS = wp.constant(4.0e-6)
 """Relative tolerance (about 32 float32 ulps of the lengths involved) within which two contacts are equally near:

@@ -7,7 +7,16 @@ from __future__ import annotations
 
 import warp as wp
 
-from .fem_surface import BARY_EPS, KEEP_EPS, RIM_EPS, TIE_EPS, min3, nearer, node_surface_normal, projection_barycentric
+from .fem_surface import (
+    BARY_EPS,
+    TIE_EPS,
+    RimFaces,
+    min3,
+    nearer,
+    node_surface_normal,
+    projection_barycentric,
+    rim_margins,
+)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -64,6 +73,7 @@ def kept_face_holds(
     node_face_count: wp.array(dtype=int),
     node_face_index: wp.array(dtype=int),
     face_nodes: wp.array(dtype=wp.vec3i),
+    rims: RimFaces,
     face_depth: wp.array(dtype=float),
     face_normal: wp.array(dtype=wp.vec3),
     face_origin: wp.array(dtype=wp.vec3),
@@ -102,7 +112,7 @@ def kept_face_holds(
     b = node_q[fn[1]]
     c = node_q[fn[2]]
     w = projection_barycentric(x, a, b, c, wp.cross(b - a, c - a))
-    if min3(w) < -KEEP_EPS:
+    if min3(w) < -rim_margins(keep, rims)[1]:
         return False, slot, 0.0, wp.vec3(0.0), wp.vec3(0.0)
     return True, slot, depth, w, nf
 
@@ -140,6 +150,7 @@ def new_plane_face(
     node_face_count: wp.array(dtype=int),
     node_face_index: wp.array(dtype=int),
     face_nodes: wp.array(dtype=wp.vec3i),
+    rims: RimFaces,
     face_depth: wp.array(dtype=float),
     face_normal: wp.array(dtype=wp.vec3),
     face_origin: wp.array(dtype=wp.vec3),
@@ -224,7 +235,7 @@ def new_plane_face(
         b = node_q[fn[1]]
         c = node_q[fn[2]]
         w = projection_barycentric(x, a, b, c, wp.cross(b - a, c - a))
-        if min3(w) < -RIM_EPS:
+        if min3(w) < -rim_margins(f, rims)[0]:
             continue
         if first and passed < SURVIVORS:
             survivors[passed] = s
@@ -270,6 +281,7 @@ def node_face_targets(
     node_face_count: wp.array(dtype=int),
     node_face_index: wp.array(dtype=int),
     face_nodes: wp.array(dtype=wp.vec3i),
+    rims: RimFaces,
     face_depth: wp.array(dtype=float),
     face_normal: wp.array(dtype=wp.vec3),
     face_origin: wp.array(dtype=wp.vec3),
@@ -347,6 +359,7 @@ def node_face_targets(
                 node_face_count,
                 node_face_index,
                 face_nodes,
+                rims,
                 face_depth,
                 face_normal,
                 face_origin,
@@ -381,6 +394,7 @@ def node_face_targets(
             node_face_count,
             node_face_index,
             face_nodes,
+            rims,
             face_depth,
             face_normal,
             face_origin,

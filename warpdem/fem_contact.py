@@ -506,6 +506,7 @@ def eval_fem_contacts(
                 rest_normal,
                 first_scan,
                 int(born_relaxed),
+                rim_faces(m),
             ],
             outputs=[
                 s.node_face_spring,
@@ -526,6 +527,27 @@ def eval_fem_contacts(
 
 # ----------------------------------------------------------------------------------------------------------------
 # Growth, energy, time step
+
+
+_NO_FACES: dict[str, wp.array] = {}
+"""An empty int array per device: ``ref_tet_face_nbr`` of a model without fracture or conversion."""
+
+
+def rim_faces(model: Model) -> kf.RimFaces:
+    """What the node–face tests read to tell a crack's faces from the others (kernels/fem_surface.py ``rim_margins``),
+    as the kernels take it: made at each launch, so that it holds the Model's arrays after any growth."""
+    m = model
+    ref = m.ref_tet_face_nbr
+    if ref is None:
+        ref = _NO_FACES.setdefault(str(m.device), wp.empty(0, dtype=int, device=m.device))
+    return make_struct(
+        kf.RimFaces,
+        face_joint=m.face_joint,
+        face_tet=m.face_tet,
+        face_nodes=m.face_nodes,
+        tet_nodes=m.tet_nodes,
+        ref_tet_face_nbr=ref,
+    )
 
 
 def hold_contact_stiffness(model: Model, state: State) -> None:
