@@ -31,7 +31,9 @@ import math
 
 import numpy as np
 import pytest
+import warp as wp
 from test_fem_contact import BOOKS_ROUNDOFF, DYNAMIC, F32_EPS, block_parts, hold, part_nodes, plane_faces
+from warpdem.kernels.fem_surface import RimFaces, rim_margins
 
 from warpdem.loads import PressureHistory
 from warpdem.mesh import box_mesh
@@ -108,3 +110,83 @@ def test_joint_holds_where_every_node_is_past_the_rim_of_the_face_opposite(devic
     assert (x[a_face, 0].mean() - x[b_face, 0].mean()) > 0.1 * static  # pressed, and carried by the joint
     assert deepest < DYNAMIC * static, (deepest, static)
     assert worst < BOOKS_ROUNDOFF * F32_EPS * math.sqrt(steps), worst
+
+
+@wp.kernel
+def _margins_kernel(rims: RimFaces, out: wp.array(dtype=wp.vec2)):
+    f = wp.tid()
+    out[f] = rim_margins(f, rims)
+
+
+def _face_margins(sim) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """rim_margins of every live face, the faces' reference positions (F, 3, 3) and their joint sets."""
+    from warpdem.fem_contact import rim_faces
+
+    m, s = sim.model, sim.state
+    nf = int(s.face_count.numpy()[0])
+    out = wp.zeros(max(nf, 1), dtype=wp.vec2, device=m.device)
+    wp.launch(_margins_kernel, dim=nf, inputs=[rim_faces(m)], outputs=[out], device=m.device)
+    faces = m.face_nodes.numpy()[:nf]
+    return out.numpy()[:nf], m.node_ref_q.numpy()[faces].astype(np.float64), m.face_joint.numpy()[:nf]
+
+
+def _inside_the_built_mesh(positions: np.ndarray, sim) -> np.ndarray:
+    """Brute force: a face lay inside the built mesh when a face of another live tet has the same three reference
+    positions (daughters share their parent's bit for bit), i.e. the unsplit mesh had a tet across it."""
+    from warpdem.mesh import TET_FACES
+
+    m, s = sim.model, sim.state
+    nt = int(s.tet_count.numpy()[0])
+    tets = m.tet_nodes.numpy()[:nt][s.tet_active.numpy()[:nt] != 0]
+    x = m.node_ref_q.numpy().astype(np.float64)
+    all_faces = {}
+    for tet in tets:
+        for face in tet[TET_FACES]:
+            key = tuple(sorted(map(tuple, x[face])))
+            all_faces[key] = all_faces.get(key, 0) + 1
+    return np.array([all_faces[tuple(sorted(map(tuple, p)))] == 2 for p in positions])
+
+
+def test_a_cracks_faces_take_the_narrow_margins_and_the_others_the_rim_ones(device):
+    """kernels/fem_surface.py ``rim_margins``: (BARY_EPS, FACE_KEEP_EPS) on the faces of a crack, (RIM_EPS, KEEP_EPS)
+    on every other face: the outer surface and joint faces (a joint's two sides also lie inside the built mesh).
+    A ledge of RIM_EPS on every kink of a crack held the Brazilian disc's crack shut (fem_surface.py RIM_EPS).
+    Oracles: a bar pulled apart along z with nodal fracture on (tests/test_timeseries.py's) until nodes split, and a
+    jointed cube (two cells across a joint plane, no crack); each face's class by brute force over the live tets'
+    faces (:func:`_inside_the_built_mesh`) and the joint sets."""
+    from test_timeseries import BAR_FRACTURE, BAR_SCENE
+    from warpdem.kernels.fem_surface import BARY_EPS, FACE_KEEP_EPS, KEEP_EPS, RIM_EPS
+
+    from warpdem.builder import ModelBuilder
+    from warpdem.fracture import FractureProps, attach_fracture
+    from warpdem.joints import JointProps
+    from warpdem.mesh import TET_FACES
+    from warpdem.scene import parse_scene
+    from warpdem.scene_build import build_scene
+
+    narrow, wide = (float(BARY_EPS), float(FACE_KEEP_EPS)), (float(RIM_EPS), float(KEEP_EPS))
+    model, state = build_scene(parse_scene(BAR_SCENE), device)
+    model, state = attach_fracture(model, state, [FractureProps(**BAR_FRACTURE)], check_interval=1)
+    sim = Simulation(model, state)
+    n0 = sim.node_count
+    sim.advance(int(1.0e-4 / sim.model.dt))
+    assert sim.node_count > n0, "the bar should have cracked"
+    margins, positions, joint = _face_margins(sim)
+    crack = _inside_the_built_mesh(positions, sim) & (joint < 0)
+    assert crack.any() and (~crack).any()
+    np.testing.assert_allclose(margins[crack], np.tile(narrow, (crack.sum(), 1)), rtol=1e-6)
+    np.testing.assert_allclose(margins[~crack], np.tile(wide, ((~crack).sum(), 1)), rtol=1e-6)
+
+    points, tets = box_mesh((0.0, 0.0, 0.0), (2.0, 1.0, 1.0), (2, 1, 1))
+    faces = tets[:, TET_FACES].reshape(-1, 3)
+    on_joint = np.all(points[faces][:, :, 0] == 1.0, axis=1)
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", 2600.0, 5.0e9, 0.25)
+    js = b.add_joint_set(JointProps(friction=0.5))
+    b.add_tet_mesh(points, tets, "rock", joint_faces=np.unique(np.sort(faces[on_joint], axis=1), axis=0), joint_set=js)
+    model, state = b.finalize(device)
+    model, state = attach_fracture(model, state, [FractureProps(None, None)])
+    jointed = Simulation(model, state)
+    margins, positions, joint = _face_margins(jointed)
+    assert _inside_the_built_mesh(positions, jointed)[joint >= 0].all() and (joint >= 0).sum() == 4
+    np.testing.assert_allclose(margins, np.tile(wide, (len(margins), 1)), rtol=1e-6)
