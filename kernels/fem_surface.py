@@ -54,6 +54,27 @@ FACE_KEEP_EPS = wp.constant(1.0e-3)
 triangle (new targets need BARY_EPS): float32 rounding and a little shear do not drop and restart it [-]."""
 
 
+@wp.func
+def face_tet_slot(
+    f: int,
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    face_nodes: wp.array(dtype=wp.vec3i),
+    face_tet: wp.array(dtype=int),
+) -> int:
+    """The tet-face slot 4t + k of boundary face f: t its tet, k the tet's node that is not one of its three (-1 when
+    every node is: the face no longer matches its tet)."""
+    t = face_tet[f]
+    n = face_nodes[f]
+    nodes = tet_nodes[t]
+    from_k = int(-1)
+    for k in range(4):
+        if nodes[k] != n[0] and nodes[k] != n[1] and nodes[k] != n[2]:
+            from_k = k
+    if from_k < 0:
+        return -1
+    return 4 * t + from_k
+
+
 @wp.struct
 class RimFaces:
     """What :func:`rim_margins` reads: the Model arrays of those names (``ref_tet_face_nbr`` empty where neither
@@ -73,14 +94,8 @@ def rim_margins(f: int, rims: RimFaces) -> wp.vec2:
     ``ref_tet_face_nbr`` >= 0 across its tet-face slot, that is no joint face), (RIM_EPS, KEEP_EPS) for any other:
     the outer surfaces of the bodies, joints, openings (RIM_EPS says why)."""
     if rims.face_joint[f] < 0 and rims.ref_tet_face_nbr.shape[0] > 0:
-        t = rims.face_tet[f]
-        fn = rims.face_nodes[f]
-        tn = rims.tet_nodes[t]
-        k = int(0)  # the slot of the face: opposite the tet's node that is not one of its three
-        for i in range(4):
-            if tn[i] != fn[0] and tn[i] != fn[1] and tn[i] != fn[2]:
-                k = i
-        if rims.ref_tet_face_nbr[4 * t + k] >= 0:
+        slot = face_tet_slot(f, rims.tet_nodes, rims.face_nodes, rims.face_tet)
+        if slot >= 0 and rims.ref_tet_face_nbr[slot] >= 0:
             return wp.vec2(BARY_EPS, FACE_KEEP_EPS)
     return wp.vec2(RIM_EPS, KEEP_EPS)
 
@@ -558,15 +573,7 @@ def tet_face_slots_kernel(
     face_slot[f] = -1
     if f >= face_count[0]:
         return
-    t = face_tet[f]
-    n = face_nodes[f]
-    from_k = int(-1)
-    nodes = tet_nodes[t]
-    for k in range(4):
-        if nodes[k] != n[0] and nodes[k] != n[1] and nodes[k] != n[2]:
-            from_k = k
-    if from_k >= 0:
-        face_slot[f] = 4 * t + from_k
+    face_slot[f] = face_tet_slot(f, tet_nodes, face_nodes, face_tet)
 
 
 @wp.kernel
