@@ -408,3 +408,33 @@ def test_fracture_outputs_run_on_across_a_rigid_switch(tmp_path):
     damage = UsdGeom.PrimvarsAPI(rock.GetPrim()).GetPrimvar("damage")
     assert all(damage.Get(float(k)) is not None for k in range(FRACTURE_FRAMES + 1))
     np.testing.assert_array_equal(np.asarray(damage.Get(float(FRACTURE_FRAMES))), arrays["state/node_damage"][:nn])
+
+
+def test_a_column_some_frames_lack_keeps_every_row_with_nan(tmp_path, monkeypatch):
+    """TimeSeries.record never drops a row this run wrote: a column in some frames only (a counter that appears
+    mid-run) is NaN in the others, in the CSV and the HDF5 file (an integer column with NaN stored as float64), and a
+    restart reading that CSV keeps the rows before it. Oracle: the values written, cell by cell."""
+    import warpdem.timeseries as ts
+
+    books = {f"energy_{n}": 0.0 for n in energy_lines()}  # every real row has the energy lines
+    frames = [
+        {"frame": 0, "time": 0.0, **books, "splits": 3, "max_speed": 1.0},
+        {"frame": 1, "time": 0.5, **books, "max_speed": 2.0},
+        {"frame": 2, "time": 1.0, **books, "splits": 5, "max_speed": 3.0, "extra": 7.0},
+    ]
+    monkeypatch.setattr(ts, "frame_values", lambda sim, frame, *a: frames[frame])
+    energy = EnergyBalance(*[0.0] * 8)
+    series = ts.TimeSeries(tmp_path, "mixed")
+    for k in range(3):
+        series.record(None, k, energy)
+    data = read_series(series.csv_path)
+    np.testing.assert_array_equal(data["frame"], [0, 1, 2])
+    np.testing.assert_array_equal(data["splits"], [3, np.nan, 5])
+    np.testing.assert_array_equal(data["max_speed"], [1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(data["extra"], [np.nan, np.nan, 7.0])
+    with h5py.File(series.h5_path) as f:
+        assert f["splits"].dtype == np.float64 and f["frame"].dtype == np.int64
+        np.testing.assert_array_equal(f["splits"][...], [3, np.nan, 5])
+    restart = ts.TimeSeries(tmp_path, "mixed", first_frame=2)
+    assert [r[:2] for r in restart.rows] == [[0, 0.0], [1, 0.5]]
+    assert np.isnan(restart.rows[1][restart.columns.index("splits")])
