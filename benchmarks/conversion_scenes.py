@@ -2,12 +2,13 @@
 [--device cpu] [--end-time T] [--resolution R]`` with SCENE among masonry_wall_blast, masonry_tunnel_blast,
 dam_crest_blast (default: all three).
 
-Each scene is built as ``warpdem run`` builds it (:func:`warpdem.scene_build.build_scene`, the ``start_as_spheres``
-region converted on the new Simulation) and stepped in Python, sampling between steps (conversion passes run inside
-``Simulation.advance``). A converted tet is a live tet with ``tet_active`` = 0; its place is its centroid at the
-reference positions. Per sample: converted tets (per material), spheres, intact and broken bonds, the fastest sphere,
-and the fractured zone's extent: the distance of the farthest converted tet from the scene's charge (the centre of
-the pressure load's region); the tets converted by the passes (not the start_as_spheres region) are counted apart.
+Each scene is built as ``warpdem run`` builds it (:func:`warpdem.build.scene_build.build_scene`, the
+``start_as_spheres`` region converted on the new Simulation) and stepped in Python, sampling between steps (conversion
+passes run inside ``Simulation.advance``). A converted tet is a live tet with ``tet_active`` = 0; its place is its
+centroid at the reference positions. Per sample: converted tets (per material), spheres, intact and broken bonds, the
+fastest sphere, and the fractured zone's extent: the distance of the farthest converted tet from the scene's charge (the
+centre of the pressure load's region); the tets converted by the passes (not the start_as_spheres region) are counted
+apart.
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ def charge_point(scene) -> np.ndarray:
 
 def report(scene, device: str, end_time: float | None) -> list[str]:
     """Converted tets, spheres, bonds and the fractured zone's extent over the run."""
-    from warpdem.scene_build import build_scene, start_as_spheres
+    from warpdem.build.scene_build import build_scene, start_as_spheres
     from warpdem.simulation import Simulation
 
     model, state = build_scene(scene, device)

@@ -2,7 +2,7 @@
 [--device cpu] [--end-time T] [--json FILE] [--picture PNG]`` with SCENE among facility_persistent,
 facility_nonpersistent (default: both, printed side by side).
 
-Each scene is built as ``python -m warpdem`` builds it (:func:`warpdem.scene_build.build_scene`, rigid blocks from
+Each scene is built as ``python -m warpdem`` builds it (:func:`warpdem.build.scene_build.build_scene`, rigid blocks from
 t = 0) and stepped in Python, read back every SAMPLE_STEPS steps. What LDEC §3 reports, measured:
 
 - wave speed by direction: probes on three rays from ground zero (the centre of the loaded patch on the surface):
@@ -331,8 +331,8 @@ def block_centres(sim) -> np.ndarray:
 
 def bedding_planes(scene) -> np.ndarray:
     """Heights of the bedding planes [m], sorted: the planes of the horizontal joint sets (dip 0) strictly inside
-    the box (``n · x = offset + k spacing`` with n = ±z, warpdem.geology.joint_normal)."""
-    from warpdem.geology import joint_normal
+    the box (``n · x = offset + k spacing`` with n = ±z, warpdem.build.geology.joint_normal)."""
+    from warpdem.build.geology import joint_normal
 
     lo, hi = float(scene.mesh.lo[2]), float(scene.mesh.hi[2])
     heights = set()
@@ -459,11 +459,12 @@ def draw_sections(results: list[dict], path: Path) -> None:
 
 
 def build_simulation(scene, device: str):
-    """The scene built as ``python -m warpdem`` builds it (:func:`warpdem.scene_build.build_scene`), with the rigid
-    blocks' own step where ``dt = "auto"`` (as the runner sets it), as a :class:`warpdem.simulation.Simulation`."""
-    from warpdem.rigid_step import rigid_time_step
-    from warpdem.scene_build import build_scene
+    """The scene built as ``python -m warpdem`` builds it (:func:`warpdem.build.scene_build.build_scene`), with the
+    rigid blocks' own step where ``dt = "auto"`` (as the runner sets it), as a
+    :class:`warpdem.simulation.Simulation`."""
+    from warpdem.build.scene_build import build_scene
     from warpdem.simulation import Simulation
+    from warpdem.stages.rigid_step import rigid_time_step
 
     model, state = build_scene(scene, device)
     if scene.rigid.enabled and scene.run.dt == "auto":
@@ -495,7 +496,7 @@ def settling_velocities(
 def report(scene, device: str, end_time: float | None) -> dict:
     """Runs one scene and measures what the module docstring lists; returns the figures as a dict (entries whose
     name starts with an underscore hold arrays: the pictures' and the blocks' history, left out of the JSON)."""
-    from warpdem.energy import balance_error
+    from warpdem.stages.energy import balance_error
 
     start = time.perf_counter()
     sim = build_simulation(scene, device)

@@ -1,17 +1,17 @@
 """Reports of the fracture scenes (issue 9 §7): ``python benchmarks/fracture_scenes.py [SCENE ...] [--device cpu]
 [--end-time T] [--checkpoint FILE]`` with SCENE among pmma_plate, brazilian_disc, boulder_impact (default: all three).
 
-Each scene of ``scenes/`` is built as ``warpdem run`` builds it (:func:`warpdem.scene_build.build_scene`) and stepped
-in Python, sampling between steps (split passes run inside ``Simulation.advance``):
+Each scene of ``scenes/`` is built as ``warpdem run`` builds it (:func:`warpdem.build.scene_build.build_scene`) and
+stepped in Python, sampling between steps (split passes run inside ``Simulation.advance``):
 
 - ``pmma_plate`` (LDEC Fig. 4): the crack tip on each side is the farthest node born by a split (a daughter: an index
   past the built node count) along x, at its reference position; the tip speed is the least-squares slope of the
   tip position against time over the run from the seed tip to 90 % of the way to the plate edge; its ratio to the
   Rayleigh wave speed c_R ≈ c_s (0.862 + 1.14 ν)/(1 + ν) (Freund's approximation), c_s = sqrt(G/ρ).
 - ``brazilian_disc``: the load P of the top platen is the sum of the elastic penalty forces of the nodes behind it,
-  Σ k_v max(0, −gap_v) (the node–wall law of warpdem.fem_contact without its dashpot, which is small at this rate),
-  so σ_t = 2P/(πDt) at the first split and at the peak against T_f, and the lowest load after the peak (a disc that
-  has split through drops its load); the split is told by the daughters' distance from the loaded diameter (at the
+  Σ k_v max(0, −gap_v) (the node–wall law of warpdem.stages.fem_contact without its dashpot, which is small at this
+  rate), so σ_t = 2P/(πDt) at the first split and at the peak against T_f, and the lowest load after the peak (a disc
+  that has split through drops its load); the split is told by the daughters' distance from the loaded diameter (at the
   peak and at the end), and whether the crack has let go by its cohesive elements (broken, and the opening d_max/δ_c
   of those still intact), the fragments (as for ``boulder_impact``) and the crack faces still held by a node.
 - ``boulder_impact``: fragments are the connected pieces of the rock: tets joined through shared nodes and through
@@ -45,7 +45,7 @@ def rayleigh_speed(youngs_modulus: float, poisson_ratio: float, density: float) 
 
 def _stepped(scene, device: str, end_time: float | None) -> Iterator[tuple[float, object, int]]:
     """Builds the scene and yields ``(time [s], simulation, built node count)`` after each of SAMPLES chunks."""
-    from warpdem.scene_build import build_scene
+    from warpdem.build.scene_build import build_scene
     from warpdem.simulation import Simulation
 
     model, state = build_scene(scene, device)
@@ -71,7 +71,7 @@ def pmma_plate(scene, device: str, end_time: float | None) -> list[str]:
     """Crack-tip positions and speed against the Rayleigh wave speed."""
     mat = scene.materials[scene.mesh.material]
     c_r = rayleigh_speed(mat.youngs_modulus, mat.poisson_ratio, mat.density)
-    from warpdem.scene_mesh import rock_mesh, seed_crack_faces
+    from warpdem.build.scene_mesh import rock_mesh, seed_crack_faces
 
     mesh = rock_mesh(scene)
     seed_faces = seed_crack_faces(mesh.points, mesh.tets, scene.fracture.seed_cracks[0], "seed_cracks[0]")
@@ -110,9 +110,9 @@ def pmma_plate(scene, device: str, end_time: float | None) -> list[str]:
 
 def platen_load(sim, wall: int, normal: np.ndarray) -> float:
     """Load P [N] on a platen (wall ``wall`` of unit ``normal``): the sum of the elastic penalty forces of the nodes
-    behind it, Σ k_v max(0, −gap_v) (the node–wall law of warpdem.fem_contact without its dashpot; k_v the stiffness
-    in use, which a node pressed across a split keeps)."""
-    from warpdem.fem_contact import contact_stiffness_in_use
+    behind it, Σ k_v max(0, −gap_v) (the node–wall law of warpdem.stages.fem_contact without its dashpot; k_v the
+    stiffness in use, which a node pressed across a split keeps)."""
+    from warpdem.stages.fem_contact import contact_stiffness_in_use
 
     n = int(sim.state.node_count.numpy()[0])
     q = sim.state.node_q.numpy()[:n].astype(np.float64)
@@ -206,7 +206,7 @@ def fragments(sim) -> np.ndarray:
 def crack_face_states(sim) -> np.ndarray:
     """Faces of the unsplit mesh between two tets (``ref_tet_face_nbr``) by the nodes the two tets still share on
     them: counts of (0: open, 1 and 2: held by one or two nodes, a hinge), the intact (3) left out."""
-    from warpdem.mesh import TET_FACES
+    from warpdem.tables import TET_FACES
 
     nt = int(sim.state.tet_count.numpy()[0])
     tets = sim.model.tet_nodes.numpy()[:nt].astype(np.int64)
@@ -222,7 +222,7 @@ def fragment_sizes(
 ) -> np.ndarray:
     """Tet count of each connected piece of the rock (tets joined through shared nodes and through the cohesive
     elements not yet broken), largest first; the arrays of the live tets (T, 4) and cohesive elements (C,)."""
-    from warpdem.geology import component_labels
+    from warpdem.build.geology import component_labels
 
     tets = np.asarray(tets, dtype=np.int64)
     intact = np.asarray(broken) == 0
@@ -256,7 +256,7 @@ def boulder_impact(scene, device: str, end_time: float | None) -> list[str]:
 
 def checkpoint_fragments(path: Path) -> str:
     """The fragments of the rock in a checkpoint of any run (``warpdem run``), as :func:`boulder_impact` counts them."""
-    from warpdem.checkpoint import read_checkpoint
+    from warpdem.io.checkpoint import read_checkpoint
 
     arrays, attrs = read_checkpoint(path)
     count = int(arrays["state/cohesive_count"][0])

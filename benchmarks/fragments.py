@@ -3,7 +3,7 @@
 
 The vibrating granite block of ``bench tets`` (Kuhn tets, 6 per cube cell) with a random fraction ``removed`` of
 its tets taken out (0.9 shatters it into many pieces; node masses are left as they were, so a node of removed tets
-alone is a fragment of its own), labelled by :func:`warpdem.fragments.label_fragments` (device union–find, the
+alone is a fragment of its own), labelled by :func:`warpdem.stages.fragments.label_fragments` (device union–find, the
 read-back of the labels and the host pass over masses and speeds: what an output frame costs); best of ``repeat``.
 Reports the time, the fragment count, and the time in units of one force step of the same block (a captured step,
 best of ``repeat`` runs of 20).
@@ -19,7 +19,7 @@ import warp as wp
 
 from warpdem.bench import vibrating_block
 from warpdem.cli import init_warp
-from warpdem.fragments import label_fragments
+from warpdem.stages.fragments import label_fragments
 
 
 def main() -> None:

@@ -1,10 +1,10 @@
 """Report of the LDEC §4 limestone tunnel (scenes/limestone_tunnel.toml): ``python benchmarks/limestone_tunnel.py
 [--scene PATH] [--device cpu] [--end-time T] [--resolution R] [--samples N] [--csv PATH]``.
 
-The scene is built as ``warpdem run`` builds it (:func:`warpdem.scene_build.build_scene`) and stepped in Python,
+The scene is built as ``warpdem run`` builds it (:func:`warpdem.build.scene_build.build_scene`) and stepped in Python,
 sampling between steps (the fracture passes and the switch to rigid blocks run inside ``Simulation.advance``). At the
 first sample after the switch the run takes the rigid blocks' step, ``safety_factor`` × the critical step after the
-switch (warpdem.rigid_step.rigid_step_after_switch), as ``warpdem run`` does at its first frame after it.
+switch (warpdem.stages.rigid_step.rigid_step_after_switch), as ``warpdem run`` does at its first frame after it.
 
 Rubble: the volume of the tets (and of the spheres, were any converted) whose centroid lies inside the tunnel's
 original cross-section (the rectangle its cut-out cells span, through the slab's depth), at the current positions;
@@ -80,7 +80,7 @@ def ppv_lines(peak: np.ndarray, ref: np.ndarray, lo: np.ndarray, hi: np.ndarray,
 def tunnel_section(scene) -> tuple[np.ndarray, np.ndarray]:
     """(lo, hi) [m] of the tunnel's cut-out: the box spanned by the mesh's opening faces within half a block of the
     first opening's nominal rectangle (the charge's borehole, the second opening, lies elsewhere)."""
-    from warpdem.scene_mesh import rock_mesh
+    from warpdem.build.scene_mesh import rock_mesh
 
     mesh = scene.mesh
     tunnel = mesh.openings[0]
@@ -97,10 +97,10 @@ def report(
 ) -> list[str]:
     """Run the scene to ``end_time`` (default its own), sampling ``samples`` times; each report line goes to ``emit``
     as it is made (a long run shows its progress) and all are returned."""
-    from warpdem.energy import balance_error
-    from warpdem.rigid_step import rigid_step_after_switch
-    from warpdem.scene_build import build_scene
+    from warpdem.build.scene_build import build_scene
     from warpdem.simulation import Simulation
+    from warpdem.stages.energy import balance_error
+    from warpdem.stages.rigid_step import rigid_step_after_switch
 
     model, state = build_scene(scene, device)
     sim = Simulation(model, state)

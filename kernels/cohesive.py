@@ -16,7 +16,7 @@ daughters are born with equal X and u, so d = 0 exactly; afterwards d is at firs
 displacements (a spacing of 2⁻²³ |u| ≈ 1.2e-7 |u|), whose direction is noise and whose ratio d/δ_max would make the
 force jump between 0 and f_c from step to step. So while δ_max < OPEN_FRACTION δ_c (1e-4 δ_c: above that round-off for
 displacements up to ~10³ δ_c) the element is taken as not yet open: d/δ_max := 1 and e := cohesive_dir, the direction
-the split gave it (from A's side to B's side; warpdem.fracture). The force is then f_env(δ_max) ≈ f_c along it,
+the split gave it (from A's side to B's side; warpdem.stages.fracture). The force is then f_env(δ_max) ≈ f_c along it,
 which is what eqs. 3–4 need at the split (the daughters keep the parent's acceleration), and it meets eq. 6
 continuously where δ_max passes the threshold while loading (d = δ_max there). The books below take the work this
 force does, whatever its direction.

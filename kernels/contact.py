@@ -65,7 +65,7 @@ def hertz_normal_force(delta: float, vn: float, rstar: float, mstar: float, p: C
     """Hertz normal force with Tsuji-type damping, clamped non-negative.
 
     F_el = (4/3) E* sqrt(R*) δ^{3/2} (Hertz); F = max(0, F_el - c sqrt(m* k) δ^{1/4} v_n) with
-    k = (4/3) E* sqrt(R*) and c from the restitution (warpdem.restitution.hertz_damping_coefficient), which makes
+    k = (4/3) E* sqrt(R*) and c from the restitution (warpdem.stages.restitution.hertz_damping_coefficient), which makes
     the restitution exact and independent of the impact speed.
 
     Returns:

@@ -1,8 +1,8 @@
 """Adaptive FEM→DEM conversion (CIMNE §4–5, DESIGN.md stage 7): the conversion properties of a material, and the
 kernels of the between-steps conversion pass (criterion per tet, spawning spheres and their bonds).
 
-The pass (warpdem/conversion.py) runs them in this order: ``flag_conversion_kernel`` (criterion) → exclusive scan of
-the flags (sphere slots) → ``count_conversion_links_kernel`` over the stars of all live tets (it also marks the
+The pass (warpdem/stages/conversion.py) runs them in this order: ``flag_conversion_kernel`` (criterion) → exclusive scan
+of the flags (sphere slots) → ``count_conversion_links_kernel`` over the stars of all live tets (it also marks the
 converting tets and their edge neighbours) → ``edge_degree_kernel`` for the marked tets alone → exclusive scans
 (bond and coupling slots) → the host grows the capacities → ``spawn_spheres_kernel`` →
 ``write_conversion_bonds_kernel`` (kernels/conversion_bonds.py) → bonds re-sorted by key →
@@ -45,11 +45,11 @@ class ConversionMaterial:
         tensile_strength: T_f [Pa] (Rankine; also the bonds' tensile strength).
         cohesion: c of Mohr–Coulomb [Pa].
         friction_angle: φ of Mohr–Coulomb [rad].
-        bond_modulus: κ E, the modulus of the new bonds' normal springs k_b = κ E V_b / L_b² [Pa] (warpdem.lattice:
-            the edge network's energy equivalence, κ measured on a bar).
+        bond_modulus: κ E, the modulus of the new bonds' normal springs k_b = κ E V_b / L_b² [Pa]
+            (warpdem.stages.lattice: the edge network's energy equivalence, κ measured on a bar).
         bond_shear_ratio: k_s / k_n of the new bonds (0: normal springs alone; the edge network is rigid) [-].
         bond_tensile_strength: the new bonds' tensile strength (κ / S) T_f per unit A_b = V_b / L_b [Pa]: a bond
-            breaks at the stretch L_b T_f / (S E) (S = warpdem.lattice.STRENGTH_FACTOR), so a bar fails at T_f.
+            breaks at the stretch L_b T_f / (S E) (S = warpdem.stages.lattice.STRENGTH_FACTOR), so a bar fails at T_f.
         bond_shear_strength: (κ / S) τ_f (T_f without τ_f) [Pa] (inactive without shear springs).
         converts: 1 when the material converts at all, else 0.
     """
@@ -178,7 +178,8 @@ def edge_degree(
     star_tets: wp.array(dtype=int),
     t: int,
 ) -> int:
-    """Z_t: the tets of the stars that share an edge with tet t (warpdem.lattice), each seen once (edge_neighbor)."""
+    """Z_t: the tets of the stars that share an edge with tet t (warpdem.stages.lattice), each seen once
+    (edge_neighbor)."""
     z = int(0)
     nodes = tet_nodes[t]
     for a in range(4):
@@ -271,8 +272,8 @@ def count_conversion_links_kernel(
 
 @wp.func
 def lattice_stiffness(mat_t: ConversionMaterial, mat_n: ConversionMaterial, volume: float, length: float) -> float:
-    """k_b = κ E V_b / L_b² [N/m] of a bond of the edge network (warpdem.lattice: energy equivalence under an affine
-    strain, with the factor κ measured on a bar); E the mean of the two materials' (``bond_modulus`` holds κ E),
+    """k_b = κ E V_b / L_b² [N/m] of a bond of the edge network (warpdem.stages.lattice: energy equivalence under an
+    affine strain, with the factor κ measured on a bar); E the mean of the two materials' (``bond_modulus`` holds κ E),
     V_b = V_t / Z_t + V_n / Z_n the volume the bond stands for."""
     return 0.5 * (mat_t.bond_modulus + mat_n.bond_modulus) * volume / (length * length)
 
@@ -281,7 +282,7 @@ def lattice_stiffness(mat_t: ConversionMaterial, mat_n: ConversionMaterial, volu
 def capped_coupling_stiffness(
     kn: float, bary: wp.vec4, nodes: wp.vec4i, node_mass: wp.array(dtype=float), ms: float
 ) -> float:
-    """k = k_n min(1, 2 / (1 + m_s Σ N_a² / m_a)) [N/m] (warpdem.coupling.coupling_stiffness)."""
+    """k = k_n min(1, 2 / (1 + m_s Σ N_a² / m_a)) [N/m] (warpdem.stages.coupling.coupling_stiffness)."""
     ratio = float(0.0)
     for k in range(4):
         ratio += bary[k] * bary[k] / node_mass[nodes[k]]
@@ -598,8 +599,8 @@ def write_conversion_couplings_kernel(
             # N_a at the sphere's centre in the neighbour's current configuration: Σ N_a x_a = x_p, a spring born
             # relaxed (CIMNE eq. 9 with zero residual).
             bary = current_barycentric(x, n, node_ref_q, node_u)
-            # The stiffness rule (warpdem.coupling.coupling_stiffness): k = k_n min(1, 2 / (1 + m_s Σ N_a² / m_a)),
-            # k_n the bond the sphere would have with a sphere at the neighbour's centroid.
+            # The stiffness rule (warpdem.stages.coupling.coupling_stiffness): k = k_n min(1, 2 / (1 + m_s Σ N_a² /
+            # m_a)), k_n the bond the sphere would have with a sphere at the neighbour's centroid.
             mid = wp.vec3d(0.0, 0.0, 0.0)
             for k in range(4):
                 mid += wp.vec3d(node_ref_q[n[k]]) + wp.vec3d(node_u[n[k]])

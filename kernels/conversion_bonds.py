@@ -1,4 +1,4 @@
-"""The bonds of converted tets (CIMNE §4–5, DESIGN.md stage 7; warpdem/lattice.py): each bond of the edge network
+"""The bonds of converted tets (CIMNE §4–5, DESIGN.md stage 7; warpdem/stages/lattice.py): each bond of the edge network
 written into its slot, born relaxed, and the bonds' re-sort by key after the pass (``bond_sort_keys_kernel`` →
 host sort → ``inverse_order_kernel``). kernels/conversion.py runs the rest of the conversion pass;
 kernels/multisphere.py writes the four-sphere lattice with :func:`write_lattice_bond` too.
@@ -40,7 +40,7 @@ def write_lattice_bond(
     """Write bond slot b between spheres i < j of the converted lattice (one or four spheres per tet): the share vb
     [m³] of volume it carries, its length [m] and the conversion materials of its two ends. Born relaxed (rest length =
     length: the strain energy the tets held is booked as released), normal springs alone (k_s = 0: the edge network
-    is rigid, warpdem.lattice), no dashpot, no history."""
+    is rigid, warpdem.stages.lattice), no dashpot, no history."""
     bond_i[b] = i
     bond_j[b] = j
     bond_key[b] = wp.int64(i) * wp.int64(particle_capacity) + wp.int64(j)

@@ -1,6 +1,6 @@
 """Penalty coupling of a sphere to its material point in a still-continuous tet (the overlap zone of the CIMNE
 adaptive DEM/FEM scheme, adaptive_dem_fem_blast.txt §4, eqs. 8–9; the host side and the physics are in
-warpdem/coupling.py).
+warpdem/stages/coupling.py).
 
 Coupling c ties sphere p to tet t: the material point is x_mp = Σ_a N_a x_a, N_a the fixed barycentric coordinates
 (``coupling_bary``) and x_a = X_a + u_a the tet's nodes; the gap g = x_mp - x_p; the force k g acts on the sphere and

@@ -18,16 +18,17 @@ inside corner of two or three blocks (a block lattice's corners lie on three joi
 bedding too) is held out of every plane it is pressed into, where one spring per node held it out of one only and left a
 joint whose every node lies on another plane held by nothing. The slots' normals keep pairwise |n_s · n_t| ≤ cos θ_g, so
 a node's springs are no stiffer than SPRING_BOUND k = 2 k along any direction (Gershgorin), which the stable steps take
-(warpdem.fem_contact.contact_critical_step_at, warpdem.rigid_step). Each spring never gains energy that no force worked
-for (½ k δ² jumping up at an event is energy created; a jump down is booked as dissipated): a slot keeps its target
-while the node still penetrates it (its projection may then stray KEEP_EPS outside the triangle: a node on the rim of a
-joint sits on the edge of the face opposite); on a change of target within its plane the new spring starts at no more
-than the old one's compression; a spring whose plane no face holds is let go (dissipated); a new contact (a new plane)
-starts at the depth gained in the step, the depth the node already had behind the plane at the last positions (it slid
-in past an edge) carried as an offset; the offset follows a node that backs out. The springs' energy is their sum, in
-the force evaluation and in the books alike. Candidates exclude every face with a vertex in the node's 1-ring (the node
-itself or a node it shares a tet with): a node never touches a face of a tet holding it, nor a face that holds it, and
-near a crack tip the rock is still continuous. An intact joint element's pair is excluded too (the element carries it).
+(warpdem.stages.fem_contact.contact_critical_step_at, warpdem.stages.rigid_step). Each spring never gains energy that no
+force worked for (½ k δ² jumping up at an event is energy created; a jump down is booked as dissipated): a slot keeps
+its target while the node still penetrates it (its projection may then stray KEEP_EPS outside the triangle: a node on
+the rim of a joint sits on the edge of the face opposite); on a change of target within its plane the new spring starts
+at no more than the old one's compression; a spring whose plane no face holds is let go (dissipated); a new contact (a
+new plane) starts at the depth gained in the step, the depth the node already had behind the plane at the last positions
+(it slid in past an edge) carried as an offset; the offset follows a node that backs out. The springs' energy is their
+sum, in the force evaluation and in the books alike. Candidates exclude every face with a vertex in the node's 1-ring
+(the node itself or a node it shares a tet with): a node never touches a face of a tet holding it, nor a face that holds
+it, and near a crack tip the rock is still continuous. An intact joint element's pair is excluded too (the element
+carries it).
 
 Node–wall: as sphere–wall, with the node's penalty stiffness.
 
@@ -52,7 +53,7 @@ the lumped stiffness takes over at no cost in energy. Why per unit mass:
 - a conversion pass that moves a tet's mass into a sphere leaves the node ω² m_new ≤ k: its springs' energy can
   only fall (the share of the node that left no longer presses), never rise;
 - the contact's frequency ω is the parent's, so no pass raises a node's k / m above what the stable step
-  (warpdem.fem_contact.contact_critical_step_at) was taken for; holding k itself on a node that lost most of its
+  (warpdem.stages.fem_contact.contact_critical_step_at) was taken for; holding k itself on a node that lost most of its
   mass to spheres would.
 
 Float64 makes the hold exact for a node whose mass the pass leaves alone: f32(f64(k) / m × m) = k, the two

@@ -206,8 +206,8 @@ def in_one_ring(
 @wp.func
 def find_joint(joint_a: wp.array(dtype=int), joint_b: wp.array(dtype=int), count: int, a: int, b: int) -> int:
     """Index of the joint element of nodes {a, b}, a < b, in the elements sorted by their pair (min, max) (binary
-    search), -1 if absent. An element's A may be the larger index once a split pass handed it over (warpdem.topology
-    .sort_joint_elements keeps the order)."""
+    search), -1 if absent. An element's A may be the larger index once a split pass handed it over
+    (warpdem.stages.topology .sort_joint_elements keeps the order)."""
     lo = int(0)
     hi = count
     while lo < hi:
@@ -241,7 +241,7 @@ def held_by_joint(
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# Surface topology (after every topology pass): flag → scan → scatter through warpdem.compaction.
+# Surface topology (after every topology pass): flag → scan → scatter through warpdem.stages.compaction.
 
 
 @wp.kernel

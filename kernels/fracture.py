@@ -1,8 +1,8 @@
 """Nodal fracture (LDEC §2.2–2.3, DESIGN.md stage 6): the fracture properties of a material, and the kernels of the
 run-time split pass (nodal stress, candidates, claims, partition of a node's star, birth of cohesive elements).
 
-The rules of the pass are written in warpdem/fracture.py's module docstring; the node duplication itself (re-lumped
-masses, remapped tets, faces and elements) is warpdem.kernels.topology's.
+The rules of the pass are written in warpdem/stages/fracture.py's module docstring; the node duplication itself
+(re-lumped masses, remapped tets, faces and elements) is warpdem.kernels.topology's.
 """
 
 from __future__ import annotations
@@ -134,8 +134,8 @@ def freed_hinge(
     v: int,
     star_comp: wp.array(dtype=int),
 ) -> int:
-    """1 when node v is a freed hinge (warpdem/fracture.py, "Candidates"): its neighbours' cracks cut its star into
-    ≥ 2 pieces (components through the faces no neighbour has opened, :func:`label_star`, written to star_comp) and
+    """1 when node v is a freed hinge (warpdem/stages/fracture.py, "Candidates"): its neighbours' cracks cut its star
+    into ≥ 2 pieces (components through the faces no neighbour has opened, :func:`label_star`, written to star_comp) and
     every half-open face of the star is traction-free: each of its other nodes that split across it left daughters
     of which at least one holds no intact cohesive or joint element (``node_bonded`` = 0), so no element joins the
     two copies. Else 0."""
@@ -186,7 +186,7 @@ def partition_star(
     star_comp: wp.array(dtype=int),
 ):
     """Sides of node v's star tets (star_comp: 0 −, A keeps v; 1 +, the new daughter B) for a split normal to p,
-    face-consistent with the cracks its neighbours have opened (warpdem/fracture.py, "Partition")."""
+    face-consistent with the cracks its neighbours have opened (warpdem/stages/fracture.py, "Partition")."""
     x = node_q[v]
     # Components through the faces no neighbour has opened (a half-open face: its ref neighbour no longer holds it).
     components = label_star(tet_nodes, start, count, star_tets, v, ref_tet_face_nbr, no_joints, star_comp)
@@ -330,7 +330,7 @@ def nodal_stress_kernel(
     node_p1[v] = p
     if sigma1 < strength:
         # Below T_f only a freed hinge in tension splits: the cut around it is open and traction-free, and the node
-        # alone pins its two pieces together (warpdem/fracture.py, "Candidates"). Its star's components make the
+        # alone pins its two pieces together (warpdem/stages/fracture.py, "Candidates"). Its star's components make the
         # partition, so there is a face between the sides.
         if sigma1 > 0.0:
             candidate[v] = freed_hinge(

@@ -199,8 +199,8 @@ def unite_masked_tets_kernel(
     # Out:
     parent: wp.array(dtype=int),
 ):
-    """The blocks of rigid mode (warpdem.rigid): only deformable tets (``tet_active`` 1) where ``tet_mask`` is set
-    unite their nodes; no element, bond or coupling glues anything."""
+    """The blocks of rigid mode (warpdem.stages.rigid): only deformable tets (``tet_active`` 1) where ``tet_mask`` is
+    set unite their nodes; no element, bond or coupling glues anything."""
     t = wp.tid()  # one thread per tet slot
     if t >= tet_count_in[0] or tet_active_in[t] != 1 or tet_mask[t] == 0:
         return

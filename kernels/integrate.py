@@ -9,8 +9,8 @@ Rotation of spheres is isotropic (I = 2/5 m r²), so ω is kicked the same way, 
 drives a spin). FEM nodes (lumped mass, translation only) take the same two half kicks in their own kernels (with
 the carry); they drift their displacement,
 u ← u + dt v, and x = X + u follows. Their held components (fixed, rollers) stay zero, and a node with a velocity
-driver (warpdem.loads) holds its velocity while the driver does, the driver's work booked. The state's time advances
-last, after the second half kick.
+driver (warpdem.stages.loads) holds its velocity while the driver does, the driver's work booked. The state's time
+advances last, after the second half kick.
 
 Between two steps of one run nothing happens but the clock: the second half kick of step n and the first of step n+1
 use the same forces, so the ``kick_drift_*`` kernels do both in one pass over the arrays (the body of a run of steps,
@@ -484,7 +484,7 @@ def make_node_drift_kernel(after_second_half: bool) -> wp.Kernel:
                 # this kernel (kernels/rigid.py), and checks its skin; what is left of the drift below for a node
                 # with no free direction is its force accumulator started at zero (v = 0: no damping force). The
                 # viscous forces of deformable tets next to it are booked and cleared after the body's drift, at the
-                # pose they were made at (warpdem.rigid.drift_bodies).
+                # pose they were made at (warpdem.stages.rigid.drift_bodies).
                 node_f[i] = wp.vec3(0.0)
                 return
         free = node_free_directions(motion)

@@ -1,4 +1,4 @@
-"""Several spheres per converted tet (``spheres_per_tet`` = 4; warpdem/multisphere.py has the design and its
+"""Several spheres per converted tet (``spheres_per_tet`` = 4; warpdem/stages/multisphere.py has the design and its
 reasons): the kernels of the conversion pass that differ from the one-sphere pass of kernels/conversion.py.
 
 Sphere a of tet t (local node a) sits at s_a = (x_a + c) / 2, the centroid of the corner sub-tet at node a of the

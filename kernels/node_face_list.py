@@ -17,7 +17,7 @@ of the distance fits well inside it."""
 
 RIM_REACH = wp.constant(1.0 + 4.0 * KEEP_EPS + BOUND_SLACK)
 """How far a node–face candidate's projection may lie from the face's centroid, in bounding radii [-]
-(:func:`within_reach`; the host's query radius takes it too, warpdem.fem_contact)."""
+(:func:`within_reach`; the host's query radius takes it too, warpdem.stages.fem_contact)."""
 
 
 @wp.struct

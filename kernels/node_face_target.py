@@ -28,7 +28,8 @@ PLANE_GROUP_COS = wp.constant(0.5)
 """cos θ_g of the plane groups [-], θ_g = 60°: two faces whose unit normals have |n_f · n_f'| > cos θ_g are one plane
 direction, and only the shallowest of them holds a spring. The springs of a node then have pairwise |n_s · n_t| ≤
 cos θ_g, so by Gershgorin on their Gram matrix λ_max(Σ_s n_s n_sᵀ) ≤ 1 + (NODE_SPRINGS − 1) cos θ_g = 2 = SPRING_BOUND:
-the node's springs are no stiffer along any direction than 2 k (the stable steps take it, warpdem.fem_contact)."""
+the node's springs are no stiffer along any direction than 2 k (the stable steps take it,
+warpdem.stages.fem_contact)."""
 
 SPRING_BOUND = 1.0 + (NODE_SPRINGS - 1) * PLANE_GROUP_COS
 """λ_max(Σ_s n_s n_sᵀ) over a node's springs at most [-] (:data:`PLANE_GROUP_COS`); a Python float for the host."""

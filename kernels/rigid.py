@@ -360,9 +360,9 @@ def pose_nodes_kernel(
 
     With ``move`` (the drift) the nodes' force accumulators start at zero, as the node kernels' drift starts those of
     a rigid node (kernels/integrate.py ``make_node_drift_kernel``: no damping force at v = 0 relative to the body):
-    a model whose nodes are all rigid and undriven then skips that launch (warpdem.rigid ``every_node_rigid``). The
-    viscous forces of deformable tets on them (``node_f_viscous``) are left for their half ahead, booked and cleared
-    after the pose (warpdem.rigid ``drift_bodies``)."""
+    a model whose nodes are all rigid and undriven then skips that launch (warpdem.stages.rigid ``every_node_rigid``).
+    The viscous forces of deformable tets on them (``node_f_viscous``) are left for their half ahead, booked and cleared
+    after the pose (warpdem.stages.rigid ``drift_bodies``)."""
     b = wp.tid()  # one thread per body
     q = body_q[b]
     c = body_constraint[b]

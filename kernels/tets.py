@@ -33,7 +33,7 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 # Motion kinds of a node (``node_motion``): which velocity components are held at zero. Rollers (from
-# warpdem.loads) hold the one normal to their plane; a node on two roller planes moves along their common axis.
+# warpdem.stages.loads) hold the one normal to their plane; a node on two roller planes moves along their common axis.
 NODE_FREE = wp.constant(0)
 NODE_FIXED = wp.constant(1)
 NODE_Z_ONLY = wp.constant(2)
@@ -209,7 +209,8 @@ def bulk_viscosity_pressure(volume_rate: float, length: float, mat: TetMaterial)
 
     Args:
         volume_rate: volumetric strain rate ε̇_v = J̇/J [1/s].
-        length: the tet's characteristic length ℓ = 2 / sqrt(Σ_a |∇N_a|²) [m] (warpdem.tets.characteristic_lengths),
+        length: the tet's characteristic length ℓ = 2 / sqrt(Σ_a |∇N_a|²) [m]
+        (warpdem.stages.tets.characteristic_lengths),
             stored per tet: it shrinks with the smallest height of a flat tet, so the viscosity damps the element's
             fastest mode by the same ratio whatever its shape.
     """
@@ -308,8 +309,8 @@ def eval_tet_forces_kernel(
     wp.atomic_add(node_f, n[3], f3)
     if q > 0.0:
         # Verlet does the viscous forces' work as the trapezoid ½ dt f_{n+1}·(v_{n+1/2} + v_{n+3/2}), as every force's
-        # (warpdem.energy.EnergyBalance). The half behind, ½ q (-J̇) V₀ dt ≥ 0 at v_{n+1/2}, is booked here, on the
-        # tet's first node (only the sum over nodes is read: one float64 update instead of four); the forces
+        # (warpdem.stages.energy.EnergyBalance). The half behind, ½ q (-J̇) V₀ dt ≥ 0 at v_{n+1/2}, is booked here, on
+        # the tet's first node (only the sum over nodes is read: one float64 update instead of four); the forces
         # q V₀ A_i go to node_f_viscous, whose half ahead the integrator books once v_{n+3/2} is known. A tet that
         # stops carrying forces between steps (converted) then leaves nothing booked that Verlet did not do.
         wp.atomic_add(node_energy_damping, n[0], wp.float64(-0.5 * q * j_rate * volume0 * dt))

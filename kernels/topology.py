@@ -1,8 +1,8 @@
 """Topology of the tet mesh and node duplication: the one place that joints (build time), nodal fracture (run time)
-and later conversion change the mesh (STYLE.md), kernels and wp.funcs only (host side: warpdem/topology.py).
+and later conversion change the mesh (STYLE.md), kernels and wp.funcs only (host side: warpdem/stages/topology.py).
 
 Topology conventions. Face k of a positively oriented tet is the face opposite its node k, listed so that its
-right-hand normal points out of the tet (:func:`tet_face`, the table of ``warpdem.mesh.TET_FACES``); tet-face
+right-hand normal points out of the tet (:func:`tet_face`, the table of ``warpdem.build.mesh.TET_FACES``); tet-face
 slot ``4 t + k``. The *star* of a node is the list of live, active tets that hold it: a CSR layout
 (``star_offset[n]``, ``star_count[n]``, ``star_tets``) built count → exclusive scan → fill, each node's list then
 sorted ascending so that everything derived from it is deterministic.
@@ -10,8 +10,8 @@ sorted ascending so that everything derived from it is deterministic.
 Splitting a node. Its star falls into connected components when tets that meet across a face holding the node
 are joined, except across a joint face. Component 0 (the one holding the lowest tet index) keeps the node; every
 further component takes a new node slot, appended after the live nodes in the order of their parents
-(warpdem.compaction's append pass), and its tets are remapped onto it. Each component is ordered by its lowest tet
-index, so the result does not depend on thread scheduling.
+(warpdem.stages.compaction's append pass), and its tets are remapped onto it. Each component is ordered by its lowest
+tet index, so the result does not depend on thread scheduling.
 
 Tet-face slots never move: a split rewrites node indices inside tets, never which tet sits in which slot, so an
 adjacency by tet slot made once on the unsplit mesh (``ref_tet_face_nbr``, matching faces by reference positions,

@@ -66,7 +66,7 @@ RUNTIME_SCALES = (0.5, 0.9, 1.1, 2.0, -1.0)  # within a factor 2: sizes grow at 
 
 def _unit_cube_mesh() -> tuple[np.ndarray, np.ndarray]:
     """The 6 Kuhn tets of a unit cube (positive volume), points (8, 3) [m], tets (6, 4)."""
-    from warpdem.mesh import box_mesh
+    from warpdem.build.mesh import box_mesh
 
     points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (1, 1, 1))
     return np.asarray(points, dtype=np.float64), np.asarray(tets, dtype=np.int64)

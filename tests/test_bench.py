@@ -92,7 +92,7 @@ def test_conversion_pass_converts_the_flagged_tets_above_the_threshold(device, s
     round-off ~1e-7), s = 2.5 at 0.83 τ_f (7 % below it): the tets due are the flagged ones, or none. The host's
     brute-force count (``due_tets``) must say the same, and the pass must convert exactly that set (tet_active = 0),
     one sphere per tet, one bond per pair of them that shares an edge and one coupling per pair of one of them and a
-    tet that stays continuous sharing an edge (warpdem.lattice's network, counted on the host by sorting edges).
+    tet that stays continuous sharing an edge (warpdem.stages.lattice's network, counted on the host by sorting edges).
     """
     cells = 4
     may_convert = spread_tets(6 * cells**3, 0.05, seed=3)
@@ -146,7 +146,7 @@ def test_block_bench_makes_one_body_per_cell(tmp_path, device):
     mass ρ (1 m)³ and the moments ρ (1 m)⁵/6 of a unit cube (the exact tet inertia; float32 node masses), and the
     command runs and writes its JSON."""
     from warpdem.bench import GRANITE, jointed_cube
-    from warpdem.rigid import box_inertia
+    from warpdem.stages.rigid import box_inertia
 
     sim = jointed_cube(2, device)
     s = sim.state

@@ -1,5 +1,5 @@
-"""Bond stage (kernels/bonds.py, warpdem/bonds.py): breakage in tension and shear, hand-over to frictional contact,
-and the axial bond stiffness.
+"""Bond stage (kernels/bonds.py, warpdem/stages/bonds.py): breakage in tension and shear, hand-over to frictional
+contact, and the axial bond stiffness.
 
 Set-up: two spheres of radius R, touching, bonded by ModelBuilder.add_bonded_group (A = π R², L0 = 2R,
 k_n = E_b A / L0, k_s = k_n / 2.5), sphere A fixed, sphere B prescribed (it keeps its velocity) or free; no gravity
@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 from warpdem.kernels.bonds import BOND_BROKEN_SHEAR, BOND_BROKEN_TENSION
 
-from warpdem.builder import InteractionProps, ModelBuilder
+from warpdem.build.builder import InteractionProps, ModelBuilder
 from warpdem.simulation import Simulation
 
 RADIUS = 0.01  # [m]

@@ -1,4 +1,4 @@
-"""Brick meshes (warpdem/bricks.py) and the rigid blocks' stable step on the limestone tunnel's bricks
+"""Brick meshes (warpdem/build/bricks.py) and the rigid blocks' stable step on the limestone tunnel's bricks
 (scenes/limestone_tunnel.toml, LDEC §4).
 
 Oracles:
@@ -10,7 +10,7 @@ Oracles:
   M (b² + c²)/12, on node springs k_n/2 × the nodes' area shares of its surface (k_n the scene's normal stiffness,
   the same on every face, × SPRING_BOUND = 2 for a node's springs on up to three planes); ω² = 2 λ_max(M⁻¹K) with
   K = Σ k_i J_iᵀ J_i computed here in float64 from the box's surface triangles, dt = 2/ω (sqrt(1 + ζ²) − ζ).
-  warpdem.rigid_step.rigid_critical_step must give it to STEP_RTOL (the device's float32 node springs and
+  warpdem.stages.rigid_step.rigid_critical_step must give it to STEP_RTOL (the device's float32 node springs and
   positions), and at LDEC's own tet size (10 cm: [run] resolution 3) it must be
   at least 10× the deformable step the builder takes (issue 11: "the rigid step is at least 10× the deformable step
   on the tunnel scene"). The rigid step hardly depends on the mesh (mass and springs both scale with the block, not
@@ -35,14 +35,14 @@ import pytest
 from test_lattice import walk_components
 from warpdem.kernels.node_face_target import SPRING_BOUND
 
-from warpdem.bricks import brick_cells, mesh_bricks
-from warpdem.geology import Room, Tunnel
-from warpdem.mesh import TET_FACES
-from warpdem.rigid import box_inertia
-from warpdem.rigid_step import contact_damping_ratio
+from warpdem.build.bricks import brick_cells, mesh_bricks
+from warpdem.build.geology import Room, Tunnel
+from warpdem.build.scene_build import finalize_scene, scene_builder
 from warpdem.scene import load_scene
-from warpdem.scene_build import finalize_scene, scene_builder
 from warpdem.simulation import Simulation
+from warpdem.stages.rigid import box_inertia
+from warpdem.stages.rigid_step import contact_damping_ratio
+from warpdem.tables import TET_FACES
 
 SCENE = Path(__file__).resolve().parent.parent / "scenes" / "limestone_tunnel.toml"
 # The tunnel's section, the PPV bands and the charge's PPV law as the scene's report measures them
@@ -259,9 +259,9 @@ def test_limestone_tunnel_wave_speed_ppv_and_books(device):
     PPV_SCATTER (the 0.4 m borehole at the same 300 MPa gave 0.45).
     Books: they close to 1e-3 of the energy in play across the node splitting and the switch (the charge's pulse,
     0.7 % of its peak left at the switch, still acts on the rigid blocks)."""
-    from warpdem.energy import balance_error
-    from warpdem.rigid_step import rigid_step_after_switch
-    from warpdem.scene_build import build_scene
+    from warpdem.build.scene_build import build_scene
+    from warpdem.stages.energy import balance_error
+    from warpdem.stages.rigid_step import rigid_step_after_switch
 
     scene = load_scene(SCENE)
     charge = scene.loads[0]

@@ -1,4 +1,4 @@
-"""Tests for warpdem.checkpoint: bit-exact round trips, atomic replacement and readable errors."""
+"""Tests for warpdem.io.checkpoint: bit-exact round trips, atomic replacement and readable errors."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import h5py
 import numpy as np
 import pytest
 
-from warpdem import checkpoint
-from warpdem.checkpoint import (
+from warpdem.io import checkpoint
+from warpdem.io.checkpoint import (
     FORMAT_NAME,
     FORMAT_VERSION,
     CheckpointError,

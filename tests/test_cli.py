@@ -26,8 +26,8 @@ import pytest
 from pxr import Usd, UsdGeom
 from stage_compare import assert_stages_equal
 
-from warpdem.checkpoint import read_checkpoint, write_checkpoint
 from warpdem.cli import main
+from warpdem.io.checkpoint import read_checkpoint, write_checkpoint
 
 OUTPUT_RATE = 100.0  # [frames/s]
 FPS_RTOL = 1e-12  # 1 / (substeps · dt) with dt = period / substeps: a few float64 roundings

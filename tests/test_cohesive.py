@@ -1,4 +1,4 @@
-"""Cohesive elements between split daughters (kernels/cohesive.py, warpdem/cohesive.py): LDEC eqs. 5–10.
+"""Cohesive elements between split daughters (kernels/cohesive.py, warpdem/stages/cohesive.py): LDEC eqs. 5–10.
 
 Set-up: a model from the builder whose first nodes are taken as daughter pairs (2k, 2k + 1) sharing one reference
 position X, as a split leaves them; its tets are never evaluated, so the nodes feel only the cohesive forces. The
@@ -17,7 +17,7 @@ Oracles:
   d < d_max, nor do the books but for float32 rounding (the trapezoid of a linear spring is exact);
 - (c) equal and opposite central forces: on one element node_f[A] = −node_f[B] bit for bit, and over elements sharing
   nodes the total force and the total moment Σ x × f vanish (to float32 rounding of the sums);
-- (d) dynamics with the project's integrator (velocity Verlet, warpdem.integrate): two free nodes flying apart
+- (d) dynamics with the project's integrator (velocity Verlet, warpdem.stages.integrate): two free nodes flying apart
   conserve kinetic − shadow + stored + dissipated (EnergyBalance's books) to rounding, and kinetic + stored +
   dissipated to the shadow term, an O(dt²) bound; a pair with more energy than Γ A_f breaks, its books close to
   rounding through the break, and it keeps the kinetic energy minus Γ A_f within the break step's error (also with
@@ -43,12 +43,12 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warpdem.builder import ModelBuilder
-from warpdem.cohesive import cohesive_energy, compact_cohesive, eval_cohesive, regrow_cohesive
-from warpdem.compaction import Compactor
-from warpdem.integrate import integrate_first_half, integrate_second_half
-from warpdem.mesh import box_mesh
+from warpdem.build.builder import ModelBuilder
+from warpdem.build.mesh import box_mesh
 from warpdem.model import COHESIVE_FIELDS, Model, State, fracture_state
+from warpdem.stages.cohesive import cohesive_energy, compact_cohesive, eval_cohesive, regrow_cohesive
+from warpdem.stages.compaction import Compactor
+from warpdem.stages.integrate import integrate_first_half, integrate_second_half
 
 F32_EPS = float(np.finfo(np.float32).eps)
 FC = 1.0e3  # [N] f_c
@@ -371,7 +371,7 @@ def test_forces_are_equal_opposite_and_central(device):
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# (d) Dynamics: two free daughters under velocity Verlet (warpdem.integrate) with the cohesive force alone.
+# (d) Dynamics: two free daughters under velocity Verlet (warpdem.stages.integrate) with the cohesive force alone.
 
 
 def energies(model: Model, state: State) -> tuple[float, float, float, float]:

@@ -1,12 +1,12 @@
-"""Compaction pass (kernels/compaction.py, warpdem/compaction.py): flag → exclusive scan → scatter → remap.
+"""Compaction pass (kernels/compaction.py, warpdem/stages/compaction.py): flag → exclusive scan → scatter → remap.
 
 Oracles (exact equality; the pass only moves data):
 - numpy boolean-mask compaction of the same arrays with the same dead flags;
 - ``old_to_new`` is a bijection from the survivors (slot < count, dead == 0) onto 0..new_count-1 that keeps their
   order, and -1 for every other slot;
 - remapped index arrays hold only -1 or indices in [0, new_count), and follow ``old_to_new``;
-- on a bonded model (warpdem.bonds.compact_bonds): every neighbour slot's ``nbr_bond`` that is not -1 names a live
-  bond joining exactly that slot's pair, every surviving bond is still linked from its pair's slot, and the
+- on a bonded model (warpdem.stages.bonds.compact_bonds): every neighbour slot's ``nbr_bond`` that is not -1 names a
+  live bond joining exactly that slot's pair, every surviving bond is still linked from its pair's slot, and the
   bond keys stay sorted (the neighbour build binary-searches them).
 """
 
@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warpdem import packing
-from warpdem.bonds import compact_bonds
-from warpdem.builder import ModelBuilder
-from warpdem.compaction import Compactor
+from warpdem.build import packing
+from warpdem.build.builder import ModelBuilder
 from warpdem.model import BOND_FIELDS
 from warpdem.simulation import Simulation
+from warpdem.stages.bonds import compact_bonds
+from warpdem.stages.compaction import Compactor
 
 SEEDS = (0, 1, 2)
 # (capacity, live count): the empty set, one slot (live or not), count < capacity, count == capacity.

@@ -1,4 +1,4 @@
-"""Contact stage: skinned neighbour list and sphere contact laws (warpdem.contact, warpdem.kernels.contact).
+"""Contact stage: skinned neighbour list and sphere contact laws (warpdem.stages.contact, warpdem.kernels.contact).
 
 Oracles:
 - neighbour list: the O(N²) brute-force pair set, exact equality at the positions of the last build, and every
@@ -23,9 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from warpdem.builder import InteractionProps, ModelBuilder
-from warpdem.contact import critical_time_step_hertz, neighbor_pairs
+from warpdem.build.builder import InteractionProps, ModelBuilder
 from warpdem.simulation import Simulation
+from warpdem.stages.contact import critical_time_step_hertz, neighbor_pairs
 
 EPS32 = float(np.finfo(np.float32).eps)
 """float32 machine epsilon, 2⁻²³: ulp(x) <= EPS32 |x|, and rounding to nearest errs by at most ulp/2."""
@@ -323,7 +323,7 @@ def test_elastic_normal_impact_matches_theory(device: str, normal: str, target: 
 def test_rebound_speed_is_restitution_times_impact_speed(
     device: str, normal: str, target: str, restitution: float
 ) -> None:
-    # v_out = e v_in: the damping of both clamped laws is set from e (warpdem.restitution), for any m*, k, v.
+    # v_out = e v_in: the damping of both clamped laws is set from e (warpdem.stages.restitution), for any m*, k, v.
     ref = impact_reference(normal, target)
     dt = ref.t_contact / STEPS_PER_CONTACT
     sim = impact_simulation(device, normal, target, restitution=restitution, dt=dt)

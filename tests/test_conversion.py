@@ -1,10 +1,10 @@
-"""FEM→DEM conversion (kernels/conversion.py, warpdem/conversion.py, Simulation.conversion_pass): the pass on the
+"""FEM→DEM conversion (kernels/conversion.py, warpdem/stages/conversion.py, Simulation.conversion_pass): the pass on the
 device.
 
 Oracles: conservation of mass and linear momentum by a conversion (the spheres carry ρV and the tet's momentum);
 angular momentum against its derived change ΔH = Σ (J_t − (2/5) m r² 1) ω for a rigidly spinning body (J_t the tet's
-lumped inertia about its centroid: warpdem.conversion's bound); the criterion against numpy principal stresses of the
-same tet stresses (no conversion below f, every tet above f converted in the check that first sees it); brute-force
+lumped inertia about its centroid: warpdem.stages.conversion's bound); the criterion against numpy principal stresses of
+the same tet stresses (no conversion below f, every tet above f converted in the check that first sees it); brute-force
 overlap checks of the new spheres against each other and the remaining boundary faces; topology invariants (indices
 in range, bond keys sorted, node masses = Σ ρV/4 of the active tets); determinism (two runs); capacity growth against
 a large-capacity run; a restart from a checkpoint against the uninterrupted run; the energy books closing across
@@ -22,23 +22,24 @@ import dataclasses
 import numpy as np
 import pytest
 
-from warpdem.builder import ModelBuilder
-from warpdem.conversion import (
+from warpdem.build.builder import ModelBuilder
+from warpdem.build.mesh import box_mesh
+from warpdem.model import NEIGHBOR_FIELDS
+from warpdem.simulation import Simulation
+from warpdem.stages.conversion import (
     ConversionProps,
     attach_conversion,
     conversion_material_table,
     regrow_bonds,
     regrow_particles,
 )
-from warpdem.energy import balance_error
-from warpdem.fem_contact import contact_stiffness_in_use
-from warpdem.fracture import FractureProps, attach_fracture
-from warpdem.lattice import edge_pairs
-from warpdem.mesh import TET_FACES, box_mesh
-from warpdem.model import NEIGHBOR_FIELDS
-from warpdem.multisphere import mesh_lattice_factors
-from warpdem.simulation import Simulation
-from warpdem.tets import TetProps, eval_tet_stresses, set_node_displacements
+from warpdem.stages.energy import balance_error
+from warpdem.stages.fem_contact import contact_stiffness_in_use
+from warpdem.stages.fracture import FractureProps, attach_fracture
+from warpdem.stages.lattice import edge_pairs
+from warpdem.stages.multisphere import mesh_lattice_factors
+from warpdem.stages.tets import TetProps, eval_tet_stresses, set_node_displacements
+from warpdem.tables import TET_FACES
 
 YOUNG = 1.0e9  # [Pa]
 DENSITY = 2000.0  # [kg/m³]
@@ -199,8 +200,8 @@ def check_invariants(sim: Simulation) -> None:
 def test_conversion_conserves_mass_momentum_and_the_derived_angular_momentum(device):
     # A rigid spin ω0 and drift v0 plus a stretch: converting the middle tets hands each one's ρV and momentum to its
     # sphere. Mass and linear momentum are conserved to round-off (Σ m_a v_a = m v̄ per tet); the angular momentum
-    # changes by exactly Σ_t (J_t − (2/5) m_t r_t² 1) ω0 (warpdem.conversion: a rigidly spinning tet's internal part
-    # J ω is replaced by the sphere's spin), which is the stated bound |ΔH| ≤ Σ (‖J‖ + I_s) |ω|.
+    # changes by exactly Σ_t (J_t − (2/5) m_t r_t² 1) ω0 (warpdem.stages.conversion: a rigidly spinning tet's internal
+    # part J ω is replaced by the sphere's spin), which is the stated bound |ΔH| ≤ Σ (‖J‖ + I_s) |ω|.
     model, state, pts, tets = bar(device, jitter=0.05)
     sim = Simulation(model, state)
     stretch(sim, 2.5e-3)
@@ -335,7 +336,7 @@ def test_two_runs_are_identical_and_growth_equals_a_large_capacity_run(device):
         if large:
             model, state = regrow_bonds(model, state, 1024)
         else:
-            from warpdem.coupling import regrow_coupling
+            from warpdem.stages.coupling import regrow_coupling
 
             model, state = regrow_coupling(dataclasses.replace(model, coupling_capacity=0), state, 1)
         sim = Simulation(model, state)
@@ -416,7 +417,7 @@ def test_regrow_particles_grows_every_per_particle_array(device):
 
 
 def test_restart_continues_bit_for_bit_across_a_conversion(device, tmp_path):
-    from warpdem.restart import restore_checkpoint, save_checkpoint
+    from warpdem.io.restart import restore_checkpoint, save_checkpoint
 
     # Checkpoint after conversions (spheres, bonds, couplings alive, capacities grown from a model without spheres),
     # restart, continue: the restarted run equals the uninterrupted one bit for bit on the CPU, through further
@@ -441,7 +442,7 @@ def test_restart_continues_bit_for_bit_across_a_conversion(device, tmp_path):
 
 
 def worst_balance_error(sim: Simulation, chunks: int, steps: int) -> float:
-    """The largest |balance error| (warpdem.energy.balance_error) over ``chunks`` advances of ``steps`` [-]."""
+    """The largest |balance error| (warpdem.stages.energy.balance_error) over ``chunks`` advances of ``steps`` [-]."""
     start = sim.energy()
     in_play = start.in_play
     worst = 0.0
@@ -531,14 +532,15 @@ def test_conversion_runs_before_splitting_on_a_tet_that_qualifies_for_both(devic
 
 @pytest.mark.parametrize("split_first", [False, True])
 def test_bond_and_coupling_stiffness_use_the_edge_degrees_of_the_current_mesh(device, split_first):
-    # k_b = κ E V_b / L_b² with V_b = V_t / Z_t + V_n / Z_n (warpdem.lattice), Z the live tets sharing an edge with a
-    # tet in the mesh as it is at the pass: against a brute-force numpy count (warpdem.lattice.edge_pairs) over the
-    # current tet nodes. Without fracture the pass reads the Z found at attach; after a split pass (split nodes cut
-    # edges) it finds Z again around the converting tets. A coupling's k is k_b min(1, 2/(1 + m_s Σ N²/m_a)) ≤ k_b
+    # k_b = κ E V_b / L_b² with V_b = V_t / Z_t + V_n / Z_n (warpdem.stages.lattice), Z the live tets sharing an edge
+    # with a tet in the mesh as it is at the pass: against a brute-force numpy count (warpdem.stages.lattice.edge_pairs)
+    # over the current tet nodes. Without fracture the pass reads the Z found at attach; after a split pass (split nodes
+    # cut edges) it finds Z again around the converting tets. A coupling's k is k_b min(1, 2/(1 + m_s Σ N²/m_a)) ≤ k_b
     # and equals k_b where the ratio allows (checked on the bonds' V_b / L_b² through the neighbour's centroid).
     # Tolerance: a handful of float32 products and quotients, 16 ε₃₂.
     model, state, pts, tets = bar(device, may_convert="all")
-    # κ as attach calibrated it on this mesh's own network (warpdem.multisphere.mesh_lattice_factors; its own tests).
+    # κ as attach calibrated it on this mesh's own network (warpdem.stages.multisphere.mesh_lattice_factors; its own
+    # tests).
     kappa = mesh_lattice_factors(tets, model.node_ref_q.numpy(), np.ones(len(tets), dtype=bool), 1)[0]
     if split_first:  # nodes left of the middle may split: Z changes there, the right side stays joined (couplings)
         model, state = attach_fracture(
@@ -621,7 +623,7 @@ def test_pressure_on_faces_of_converted_tets_is_dropped(device):
     # Pressure on both ends of a bar; the tets of the x = 0 end convert. Their loaded faces are dropped (collapsed,
     # zero area): from then on the load does no work there (the work of the x = 0 faces' nodes stays constant), while
     # the x = 4 end, still a continuum, keeps being pushed (its work grows).
-    from warpdem.loads import PressureHistory
+    from warpdem.stages.loads import PressureHistory
 
     pts, tets = box_mesh((0.0, 0.0, 0.0), (LENGTH, 1.0, 1.0), (8, 2, 2))
     faces = tets[:, TET_FACES].reshape(-1, 3)

@@ -24,8 +24,8 @@ import math
 import numpy as np
 import pytest
 
+from warpdem.build.scene_build import build_scene, start_as_spheres
 from warpdem.scene import SceneError, parse_scene
-from warpdem.scene_build import build_scene, start_as_spheres
 from warpdem.simulation import Simulation
 
 RHO, E, NU = 2400.0, 3.0e10, 0.2

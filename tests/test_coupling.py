@@ -1,4 +1,5 @@
-"""Penalty coupling of spheres to material points in tets (kernels/coupling.py, warpdem/coupling.py; CIMNE eqs. 8–9).
+"""Penalty coupling of spheres to material points in tets (kernels/coupling.py, warpdem/stages/coupling.py; CIMNE eqs.
+8–9).
 
 Oracles:
 - forces against a float64 host evaluation of f = k g, g = Σ N_a x_a - x_p, and -N_a f on the nodes; Σ forces = 0
@@ -25,10 +26,14 @@ import dataclasses
 import numpy as np
 import pytest
 
-from warpdem.builder import InteractionProps, ModelBuilder
-from warpdem.compaction import Compactor
-from warpdem.conversion import ConversionProps, attach_conversion
-from warpdem.coupling import (
+from warpdem.build.builder import InteractionProps, ModelBuilder
+from warpdem.build.geology import Geology, RockMass, mesh_geology
+from warpdem.build.mesh import box_mesh
+from warpdem.model import COUPLING_FIELDS
+from warpdem.simulation import Simulation
+from warpdem.stages.compaction import Compactor
+from warpdem.stages.conversion import ConversionProps, attach_conversion
+from warpdem.stages.coupling import (
     compact_coupling,
     coupling_energy,
     coupling_stiffness,
@@ -37,11 +42,8 @@ from warpdem.coupling import (
     regrow_coupling,
     set_couplings,
 )
-from warpdem.geology import Geology, RockMass, mesh_geology
-from warpdem.mesh import TET_FACES, box_mesh
-from warpdem.model import COUPLING_FIELDS
-from warpdem.simulation import Simulation
-from warpdem.tets import TetProps, tet_energies
+from warpdem.stages.tets import TetProps, tet_energies
+from warpdem.tables import TET_FACES
 
 YOUNG = 1.0e8  # [Pa]
 POISSON = 0.25
@@ -52,15 +54,15 @@ RIGID_ROUNDOFF = 16.0
 FLOOR_REFLECTED = 0.02  # measured 0.006 left behind, 0.99 through, in a bar without a band
 # Energy fractions (wave_fractions), measured on the CPU; the bounds leave ~1.5× on what is reflected for the order
 # of float32 atomics on a GPU and small changes of the network. A spring interface alone would reflect
-# (ω Z / 2 κ)² ≈ 1 % here (warpdem/coupling.py); the rest is the network's own impedance and dispersion.
+# (ω Z / 2 κ)² ≈ 1 % here (warpdem/stages/coupling.py); the rest is the network's own impedance and dispersion.
 FIRST_REFLECTED = 0.08  # measured 0.0545
 BAND_REFLECTED = 0.11  # measured 0.077
 BAND_TRANSMITTED = 0.88  # measured 0.914
 CALIBRATION_RTOL = {"kuhn": 0.10, "gmsh": 0.10}
 """Tolerance on the fully converted bar's wave speed and strength against the continuum's [-]: the issue's 10 % on
-either mesh. attach_conversion calibrates κ and S on the bar's own network (warpdem.lattice, "Calibration on the mesh");
-measured, Kuhn cells 0.992 sqrt(E/ρ) and 0.987 T_f (four spheres per tet 0.978 and 1.010), Gmsh at h = 0.8 CELL 1.001
-and 0.997 (before the calibration, with the Kuhn constants: 1.116 and 0.905)."""
+either mesh. attach_conversion calibrates κ and S on the bar's own network (warpdem.stages.lattice, "Calibration on the
+mesh"); measured, Kuhn cells 0.992 sqrt(E/ρ) and 0.987 T_f (four spheres per tet 0.978 and 1.010), Gmsh at h = 0.8 CELL
+1.001 and 0.997 (before the calibration, with the Kuhn constants: 1.116 and 0.905)."""
 WAVE_BOOKS_RTOL = 5.0e-3  # measured ≤ 2.6e-3 while the pulse is in the far dashpots, ~1e-4 otherwise
 
 
@@ -235,10 +237,10 @@ def oscillator_drift(device, dt_factor: float, held: bool = False, gap: float = 
 
 
 def test_books_close_for_coupled_oscillator(device):
-    # Verlet + shadow term conserve Σ ½ m v_{n-1/2}·v_{n+1/2} + U exactly for a quadratic U (warpdem/coupling.py):
-    # against a held block the coupled sphere is a linear oscillator and the books close to rounding.
-    # Rounding: the gap is formed from X_a - x_p rounded to float32 at the tet's size L (~1 m), an error of a few
-    # ε₃₂ L in g, so ½ k|g|² is resolved to ~2 · 4 ε₃₂ L / |g| of itself.
+    # Verlet + shadow term conserve Σ ½ m v_{n-1/2}·v_{n+1/2} + U exactly for a quadratic U
+    # (warpdem/stages/coupling.py): against a held block the coupled sphere is a linear oscillator and the books close
+    # to rounding. Rounding: the gap is formed from X_a - x_p rounded to float32 at the tet's size L (~1 m), an error of
+    # a few ε₃₂ L in g, so ½ k|g|² is resolved to ~2 · 4 ε₃₂ L / |g| of itself.
     gap = 0.04
     exact, periods = oscillator_drift(device, 1.0, held=True, gap=gap)
     assert periods >= 2.9
@@ -377,7 +379,7 @@ def bar(
     mesh: str = "kuhn",
 ):
     """A bar ``cells`` × CELL long and 2 CELL × 2 CELL across, no bulk viscosity: Kuhn tets of cubic cells, or with
-    ``mesh`` "gmsh" an unstructured Delaunay mesh of edge GMSH_H (warpdem.geology.mesh_geology); the tets whose
+    ``mesh`` "gmsh" an unstructured Delaunay mesh of edge GMSH_H (warpdem.build.geology.mesh_geology); the tets whose
     centroid lies in band[0] < x / CELL < band[1] converted (Simulation.convert_tets) into ``spheres_per_tet`` spheres
     each; non-reflecting dashpots on the far end if asked. Returns (sim, points, tets)."""
     size = (cells * CELL, 2 * CELL, 2 * CELL)
@@ -404,7 +406,7 @@ def bar(
     if band is not None:
         x = points[tets].mean(axis=1)[:, 0] / CELL
         mask = (x > band[0]) & (x < band[1])
-        sim.convert_tets(mask)  # spheres, the edge-bond network (warpdem.lattice) and the couplings
+        sim.convert_tets(mask)  # spheres, the edge-bond network (warpdem.stages.lattice) and the couplings
     return sim, points, tets
 
 
@@ -494,8 +496,8 @@ def test_plane_wave_crosses_converted_band(device):
 
 @pytest.mark.parametrize(("spheres_per_tet", "mesh"), [(1, "kuhn"), (4, "kuhn"), (1, "gmsh")])
 def test_converted_bar_wave_speed(device, spheres_per_tet, mesh):
-    # A fully converted bar (one sphere per tet, or four: warpdem.multisphere), 12 cells long, free at both ends, set
-    # moving in its lowest longitudinal mode
+    # A fully converted bar (one sphere per tet, or four: warpdem.stages.multisphere), 12 cells long, free at both ends,
+    # set moving in its lowest longitudinal mode
     # v = v0 cos(π x / L): the left half's momentum swings as cos(ω t), ω = π c / L, c = sqrt(E/ρ) for a bar whose
     # wavelength (2 L = 24 cells) is long against its width. Zero crossings of that momentum give the half period.
     sim, _, _ = bar(device, 12, (0, 12), spheres_per_tet=spheres_per_tet, mesh=mesh)

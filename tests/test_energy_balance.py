@@ -1,6 +1,7 @@
-"""Energy balance of the FEM node–face contact (kernels/fem_contact.py, warpdem/fem_contact.py) on kinematic paths.
+"""Energy balance of the FEM node–face contact (kernels/fem_contact.py, warpdem/stages/fem_contact.py) on kinematic
+paths.
 
-A block U is driven at a constant velocity V (every node, warpdem.loads velocity drivers) over fixed blocks, the
+A block U is driven at a constant velocity V (every node, warpdem.stages.loads velocity drivers) over fixed blocks, the
 contact frictionless and elastic (restitution 1), the tets without bulk viscosity, no gravity. Oracle: with every
 moving node driven, velocity Verlet's kicks are overridden and x_{n+1} = x_n + dt V, so the kinetic energy is constant
 (no shadow term) and the driver's booked work -½ dt (f_n + f_{n+1}) · V is exactly minus the work of the forces on
@@ -22,11 +23,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from warpdem.builder import InteractionProps, ModelBuilder
-from warpdem.energy import EnergyBalance
-from warpdem.mesh import box_mesh
+from warpdem.build.builder import InteractionProps, ModelBuilder
+from warpdem.build.mesh import box_mesh
 from warpdem.simulation import Simulation
-from warpdem.tets import TetProps
+from warpdem.stages.energy import EnergyBalance
+from warpdem.stages.tets import TetProps
 
 YOUNG = 1.0e8  # [Pa] a soft rock: a long time step
 POISSON = 0.25

@@ -27,13 +27,13 @@ import meshio
 import numpy as np
 import pytest
 
-from warpdem.builder import ModelBuilder
-from warpdem.checkpoint import remove_stale_temporaries, write_checkpoint
+from warpdem.build.builder import ModelBuilder
+from warpdem.build.mesh import box_mesh
+from warpdem.build.scene_build import build_scene, finalize_scene, scene_builder
 from warpdem.cli import main
-from warpdem.mesh import box_mesh
+from warpdem.io.checkpoint import remove_stale_temporaries, write_checkpoint
 from warpdem.runner import RunOptions, run_scene
 from warpdem.scene import SceneError, load_scene, parse_scene
-from warpdem.scene_build import build_scene, finalize_scene, scene_builder
 from warpdem.simulation import Simulation
 
 REPO = Path(__file__).resolve().parents[1]

@@ -34,8 +34,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from warpdem.energy import balance_error
 from warpdem.scene import load_scene
+from warpdem.stages.energy import balance_error
 
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 # The sections and roof blocks as the scenes' report measures them (benchmarks/facility_scenes.py, not an installed

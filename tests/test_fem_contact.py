@@ -1,4 +1,4 @@
-"""FEM contact (kernels/fem_contact.py, warpdem/fem_contact.py): boundary faces, candidate lists, sphere–face,
+"""FEM contact (kernels/fem_contact.py, warpdem/stages/fem_contact.py): boundary faces, candidate lists, sphere–face,
 node–face and node–wall forces.
 
 Oracles:
@@ -58,13 +58,14 @@ import pytest
 import warp as wp
 from warpdem.kernels import fem_contact as kf
 
-from warpdem.builder import InteractionProps, ModelBuilder
-from warpdem.guard import UnstableRunError
+from warpdem.build.builder import InteractionProps, ModelBuilder
+from warpdem.build.mesh import box_mesh
 from warpdem.host_data import BondData
-from warpdem.joints import JointProps
-from warpdem.mesh import TET_FACES, box_mesh
 from warpdem.simulation import Simulation
-from warpdem.tets import TetProps
+from warpdem.stages.guard import UnstableRunError
+from warpdem.stages.joints import JointProps
+from warpdem.stages.tets import TetProps
+from warpdem.tables import TET_FACES
 
 YOUNG = 1.0e8  # [Pa]
 POISSON = 0.25
@@ -646,7 +647,7 @@ def test_rigid_normals_turn_with_bodies(device):
     is turned by a random rotation (far from the rattling of a run) and its nodes posed; the two normals agree to
     NORMAL_ROUNDOFF (derivation at its definition), and every block node takes the fast path (its star is all rigid)."""
     from warpdem.bench import jointed_cube
-    from warpdem.rigid import pose_nodes
+    from warpdem.stages.rigid import pose_nodes
 
     sim = jointed_cube(2, device)
     m, s, fc = sim.model, sim.state, sim.fem_contact
@@ -731,12 +732,12 @@ def test_survivor_scans_run_as_full_scans(device):
 
 
 def test_contact_force_sums_stay_empty_without_books(device):
-    """Without energy books and without joint elements the contacts' half ahead is not booked (warpdem.fem_contact
-    ``eval_fem_contacts`` skips its launch over every node slot), which is exact only because then nothing adds to
-    ``node_f_contact``: the node–face, node–wall and sphere–face kernels add to it only with the books, and the joint
-    elements' dashpots are its one other writer. Oracle: that premise, on the rattling cube of 27 blocks (the bench's
-    case): over 30 steps with a quarter of the nodes pressed on faces, the sums and the contact line stay exactly zero
-    (nothing clears them now, so any writer would show)."""
+    """Without energy books and without joint elements the contacts' half ahead is not booked
+    (warpdem.stages.fem_contact ``eval_fem_contacts`` skips its launch over every node slot), which is exact only
+    because then nothing adds to ``node_f_contact``: the node–face, node–wall and sphere–face kernels add to it only
+    with the books, and the joint elements' dashpots are its one other writer. Oracle: that premise, on the rattling
+    cube of 27 blocks (the bench's case): over 30 steps with a quarter of the nodes pressed on faces, the sums and the
+    contact line stay exactly zero (nothing clears them now, so any writer would show)."""
     from warpdem.bench import jointed_cube
 
     sim = jointed_cube(3, device)
@@ -807,7 +808,7 @@ def test_block_in_an_inside_corner_rests_on_both_faces(device):
     points move with the body, O(|u| / L) of the lever arms (|u| = 6 mm, L = 1 m; measured 0.3 |u| / L); the damped
     modes (ω ≥ 38 rad/s) settle in 0.4 s to below 1e-5 of |u| (measured); float32 positions err by
     ε₃₂ |x| ≈ 4e-7 m ≪ |u|."""
-    from warpdem.fem_contact import contact_stiffness_in_use
+    from warpdem.stages.fem_contact import contact_stiffness_in_use
 
     alpha = math.radians(CORNER_ALPHA)
     g = np.array([-GRAVITY * math.sin(alpha), 0.0, -GRAVITY * math.cos(alpha)])
@@ -865,12 +866,12 @@ def test_head_joint_holds_where_every_node_is_also_on_a_bedding_plane(device):
     Oracles: (1) the joint holds: A's face penetrates B's by at most DYNAMIC × the static δ = P A / Σ k of A's face
     nodes alone (B's nodes on the joint only stiffen it; DYNAMIC bounds the overshoot of a suddenly applied load, a
     ramp over several periods overshoots less), and it does penetrate (the push is carried by the joint's springs, not
-    by anything else); (2) the energy books close (the balance error of warpdem.energy, relative to the largest
+    by anything else); (2) the energy books close (the balance error of warpdem.stages.energy, relative to the largest
     energy in play) to BOOKS_ROUNDOFF ε₃₂ sqrt(N) over the N steps, as the other contact books here."""
-    from warpdem.energy import balance_error
-    from warpdem.fem_contact import contact_stiffness_in_use
-    from warpdem.loads import PressureHistory
-    from warpdem.rigid_step import rigid_time_step
+    from warpdem.stages.energy import balance_error
+    from warpdem.stages.fem_contact import contact_stiffness_in_use
+    from warpdem.stages.loads import PressureHistory
+    from warpdem.stages.rigid_step import rigid_time_step
 
     parts = {
         "floor": ((-1.0, -1.0, 0.0), (4.0, 2.0, 1.0), (5, 3, 1)),

@@ -1,4 +1,5 @@
-"""Nodal fracture (kernels/fracture.py, warpdem/fracture.py, Simulation.fracture_pass): the split pass on the device.
+"""Nodal fracture (kernels/fracture.py, warpdem/stages/fracture.py, Simulation.fracture_pass): the split pass on the
+device.
 
 Oracles: conservation of mass and momentum by a split (m_A + m_B = m_K, copied velocities); eq. 3 against eqs. 2 + 4
 (the daughters keep the parent's acceleration when the cohesive force f_A/B of eq. 4 acts along p1); the uniaxial
@@ -21,12 +22,13 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warpdem.builder import InteractionProps, ModelBuilder
-from warpdem.fem_contact import eval_fem_contacts, fem_contact_energy
-from warpdem.fracture import FractureProps, attach_fracture
-from warpdem.mesh import TET_FACES, box_mesh, tet_signed_volumes
+from warpdem.build.builder import InteractionProps, ModelBuilder
+from warpdem.build.mesh import box_mesh, tet_signed_volumes
 from warpdem.simulation import Simulation
-from warpdem.tets import set_node_displacements
+from warpdem.stages.fem_contact import eval_fem_contacts, fem_contact_energy
+from warpdem.stages.fracture import FractureProps, attach_fracture
+from warpdem.stages.tets import set_node_displacements
+from warpdem.tables import TET_FACES
 
 YOUNG = 1.0e9  # [Pa]
 DENSITY = 2000.0  # [kg/m³]
@@ -180,7 +182,7 @@ def test_daughters_keep_the_parents_acceleration(device, case):
     # "uniaxial": ν = 0 and u = (ε x + κ x², 0, 0), a uniaxial stress σ_xx = E (ε + 2κx) with no lateral stress, so
     # every tet force, and F_A - F_B, lies along x = p1; the stress gradient gives the mid-plane nodes a net force, so
     # a_K ≠ 0. "general": a jittered mesh, ν = 0.25 and a bent, sheared field, so F_A - F_B has lateral components;
-    # the element's direction is eq. 4's own (warpdem.fracture), so the identity holds there too.
+    # the element's direction is eq. 4's own (warpdem.stages.fracture), so the identity holds there too.
     general = case == "general"
     poisson = 0.25 if general else 0.0
     model, state, pts = bar(device, poisson=poisson, jitter=0.05 if general else 0.0)
@@ -336,7 +338,7 @@ def test_capacity_overflow_grows_to_the_large_run(device):
 
 
 def test_restart_continues_bit_for_bit_across_splits(device, tmp_path):
-    from warpdem.restart import restore_checkpoint, save_checkpoint
+    from warpdem.io.restart import restore_checkpoint, save_checkpoint
 
     # Checkpoint after the crack has formed (cohesive elements alive, capacities grown), restart, and continue: the
     # restarted run equals the uninterrupted one bit for bit on the CPU, through further splits.
@@ -444,8 +446,8 @@ def test_material_without_strength_never_splits(device):
 def test_face_ids_follow_their_tet_face_slots(device):
     # The contact state's face ids (node springs, sphere candidates) are carried across the surface rebuild through
     # the tet-face slot of each face, which no split changes: every old face maps to the new face of its own slot.
-    from warpdem.fem_surface import face_slots, rebuild_surface, remap_face_ids
-    from warpdem.fracture import FracturePass
+    from warpdem.stages.fem_surface import face_slots, rebuild_surface, remap_face_ids
+    from warpdem.stages.fracture import FracturePass
 
     model, state, pts = bar(device, node_capacity=200, cohesive_capacity=64)
     stretch(Simulation(model, state), pts, 1.5 * STRENGTH / YOUNG, 0.25)
@@ -708,9 +710,9 @@ def test_split_runs_on_through_half_open_faces(device):
 
 @pytest.mark.parametrize("outer", ["broken", "intact"])
 def test_freed_hinge_splits_below_strength_only_where_the_cut_is_traction_free(device, outer):
-    # The freed-hinge rule (warpdem/fracture.py, "Candidates"): rows y = 0 and y = 1 of the mid-section split above
-    # T_f, so every section face holds one of their nodes and the middle row's stars are cut into two components by
-    # half-open faces. Under a load of only half T_f the middle row then splits, and opens the section fully, exactly
+    # The freed-hinge rule (warpdem/stages/fracture.py, "Candidates"): rows y = 0 and y = 1 of the mid-section split
+    # above T_f, so every section face holds one of their nodes and the middle row's stars are cut into two components
+    # by half-open faces. Under a load of only half T_f the middle row then splits, and opens the section fully, exactly
     # when no element joins the outer rows' daughters across those faces (their cohesive elements broken): the cut
     # is traction-free and the middle node alone pins it. With the elements intact the faces carry traction and no
     # node below T_f may split. (In both cases the pass is made to evaluate the nodal stresses as after any broken

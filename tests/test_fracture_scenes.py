@@ -3,8 +3,8 @@ mode-I tension that cracks from the notch tip along its symmetry plane.
 
 Oracles:
 - seed crack: the joint pre-split duplicates every node of the crack faces except those on the crack's rim inside
-  the rock (warpdem.joints: the rock around the rim still joins the two sides), so a crack through the thickness of
-  a box mesh, ending on a grid line inside the plate, adds (crack nodes along x − 1 rim) × (nodes through the
+  the rock (warpdem.stages.joints: the rock around the rim still joins the two sides), so a crack through the thickness
+  of a box mesh, ending on a grid line inside the plate, adds (crack nodes along x − 1 rim) × (nodes through the
   thickness) nodes: an exact count.
 - notched plate (symmetry): the plate, its edge notch and its loads are mirror-symmetric about y = 0, so the
   principal tension at the notch tip is along y and the crack must open along the element faces of that plane:
@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from warpdem.build.scene_build import build_scene
 from warpdem.scene import parse_scene
-from warpdem.scene_build import build_scene
 from warpdem.simulation import Simulation
 
 H = 0.002

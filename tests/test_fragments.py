@@ -1,4 +1,4 @@
-"""Fragments (kernels/fragments.py, warpdem/fragments.py): device labelling, masses and speeds, the HDF5 record.
+"""Fragments (kernels/fragments.py, warpdem/stages/fragments.py): device labelling, masses and speeds, the HDF5 record.
 
 Oracles:
 - partitions: a breadth-first search on the host over the same graph (items: nodes with mass, free spheres; edges:
@@ -22,11 +22,11 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warpdem import packing
-from warpdem.builder import ModelBuilder
-from warpdem.fragments import FragmentFile, fragment_colors, label_fragments, read_fragments
-from warpdem.mesh import box_mesh
+from warpdem.build import packing
+from warpdem.build.builder import ModelBuilder
+from warpdem.build.mesh import box_mesh
 from warpdem.model import Model, State, conversion_state, fracture_state
+from warpdem.stages.fragments import FragmentFile, fragment_colors, label_fragments, read_fragments
 
 RTOL_SUM = 1e-12  # float64 sums of a few hundred float32 values in two orders (module docstring)
 SEEDS = (0, 1, 2, 3)
@@ -345,7 +345,7 @@ def test_run_writes_fragments(struck_bar_run):
     per sphere whose distinct values are the fragment count (the ball and the bar's pieces; no held spheres here)."""
     from pxr import Usd
 
-    from warpdem.plot import plot_run
+    from warpdem.io.plot import plot_run
 
     _, out, summary = struck_bar_run
     series = read_fragments(summary.fragments_path)
@@ -396,7 +396,7 @@ def test_usd_fragment_primvars(tmp_path):
     """The writer stores the labels it is given as int vertex primvars on the spheres and the rock, per frame."""
     from pxr import Usd
 
-    from warpdem.usd import SurfaceFrame, UsdWriter
+    from warpdem.io.usd import SurfaceFrame, UsdWriter
 
     points = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [5.0, 5.0, 5.0]])
     surface = SurfaceFrame(
@@ -434,8 +434,8 @@ def test_usd_fragment_primvars(tmp_path):
 def test_rock_surface_by_fragment(device):
     """The rock surface coloured by fragment carries the node labels and one colour per fragment; tets per fragment
     count each active tet once, in the fragment of its nodes."""
-    from warpdem.fragments import tets_per_fragment
-    from warpdem.output import RockFrames
+    from warpdem.io.output import RockFrames
+    from warpdem.stages.fragments import tets_per_fragment
 
     model, state = break_randomly(*exploded_model(device, spheres=False), 3)
     stats = label_fragments(model, state)
@@ -456,9 +456,9 @@ def test_rock_surface_by_fragment(device):
 @pytest.mark.parametrize("seed", SEEDS[:2])
 def test_converted_spheres_end_to_end(device, seed):
     """A bar of tets whose middle band and a random fifth elsewhere convert into bonded spheres coupled to the
-    remaining tets (warpdem.conversion), then a random half of the bonds broken: the labels equal the search's (nodes
-    left without mass are in no fragment, couplings join spheres to the continuum), and the fragments hold the bar's
-    mass
+    remaining tets (warpdem.stages.conversion), then a random half of the bonds broken: the labels equal the search's
+    (nodes left without mass are in no fragment, couplings join spheres to the continuum), and the fragments hold the
+    bar's mass
     ρ L W H: Σ of float32 node and sphere masses, rtol = 16 ε₃₂ as the conversion tests' mass bound."""
     from test_conversion import DENSITY, LENGTH, bar
 

@@ -1,4 +1,4 @@
-"""Jointed-rock meshing (warpdem.geology) against analytic geometry.
+"""Jointed-rock meshing (warpdem.build.geology) against analytic geometry.
 
 Tolerances:
 - ``REL_FLAT``: volumes and areas of meshes bounded by planes only are exact up to float64 round-off summed over
@@ -27,7 +27,7 @@ import meshio
 import numpy as np
 import pytest
 
-from warpdem.geology import (
+from warpdem.build.geology import (
     Geology,
     GeologyMesh,
     JointSet,
@@ -389,7 +389,7 @@ def test_cached_mesh_equals_a_fresh_one_and_is_the_callers() -> None:
     """mesh_geology_cached: the same arrays as Gmsh makes afresh (equal inputs give identical meshes), a copy the caller
     may change without changing the next one, and a geology that differs in one field (the seed of the jitter) is
     meshed anew."""
-    import warpdem.geology as geology_module
+    import warpdem.build.geology as geology_module
 
     fresh = mesh_geology(jittered(7))
     first = mesh_geology_cached(jittered(7))
@@ -608,8 +608,8 @@ def tunnel_in_jointed_box() -> Geology:
 def test_tunnel_mesh_quality_and_stable_step() -> None:
     """Gmsh's optimiser leaves no sliver, and every tet's stable step has the floor its radius ratio guarantees.
 
-    Floor: :func:`warpdem.tets.tet_stable_time_steps` gives dt = 2/ω, ω² = (4/ρ) λ_max(2μ diag q + λ √q √qᵀ), q the
-    eigenvalues of Q = Σ_a ∇N_a ∇N_aᵀ. That λ_max ≤ (λ + 2μ) tr Q, and tr Q = Σ_a 1/h_a² ≤ 4/h_min² (h_a the
+    Floor: :func:`warpdem.stages.tets.tet_stable_time_steps` gives dt = 2/ω, ω² = (4/ρ) λ_max(2μ diag q + λ √q √qᵀ), q
+    the eigenvalues of Q = Σ_a ∇N_a ∇N_aᵀ. That λ_max ≤ (λ + 2μ) tr Q, and tr Q = Σ_a 1/h_a² ≤ 4/h_min² (h_a the
     altitudes), so dt ≥ h_min / (2 c_p). A face is at most the sum of the other three (they project onto it), so
     h_min = 3V/A_max ≥ 6V/ΣA = 2 r_in; the circumsphere holds the longest edge L, r_circ ≥ L/2, so with the radius
     ratio ρ = 3 r_in / r_circ: r_in ≥ ρ L / 6 and dt ≥ ρ L / (6 c_p). A regular tet of edge L has
@@ -617,7 +617,7 @@ def test_tunnel_mesh_quality_and_stable_step() -> None:
     DT_FLOOR = ρ_min / (6 √(2/3) √(3(λ+2μ) / (4(3λ+2μ)))) — 0.030 for ρ_min = 0.1 at ν = 0.25. Measured: 0.16
     with the optimiser, 0.006 without.
     """
-    from warpdem.tets import lame_parameters, reference_geometry, tet_stable_time_steps
+    from warpdem.stages.tets import lame_parameters, reference_geometry, tet_stable_time_steps
 
     mesh = mesh_geology(tunnel_in_jointed_box())
     assert_valid(mesh)

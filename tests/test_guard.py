@@ -1,9 +1,9 @@
-"""Stability guard (warpdem/guard.py, kernels/guard.py): an explicit dt above the critical time step is refused at
-set-up, and a run that goes non-finite or runs away stops with exit status 3, its good frames published.
+"""Stability guard (warpdem/stages/guard.py, kernels/guard.py): an explicit dt above the critical time step is refused
+at set-up, and a run that goes non-finite or runs away stops with exit status 3, its good frames published.
 
 Oracles:
 - set-up: the critical step of three spheres at rest is their Rayleigh step π r sqrt(ρ/G) / (0.1631 ν + 0.8766) of
-  the smallest radius (closed form); of a tet box, the smallest per-tet step (warpdem.tets.tet_stable_time_steps,
+  the smallest radius (closed form); of a tet box, the smallest per-tet step (warpdem.stages.tets.tet_stable_time_steps,
   itself checked against closed forms in tests/test_tets.py), and the tet the refusal names has that step. The
   threshold is the estimate itself: dt = (1 ± REFUSAL_MARGIN) × estimate is accepted / refused;
 - run-away bound: the P-wave speed sqrt(E (1 - ν) / ((1 + ν)(1 - 2ν) ρ)) of the only material (spheres at rest, no
@@ -28,14 +28,14 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
 
-from warpdem.builder import ModelBuilder
-from warpdem.checkpoint import read_checkpoint
+from warpdem.build.builder import ModelBuilder
+from warpdem.build.scene_build import build_scene, scene_builder
 from warpdem.cli import EXIT_UNSTABLE, main
-from warpdem.guard import SPEED_LIMIT_FACTOR, UnstableRunError
+from warpdem.io.checkpoint import read_checkpoint
 from warpdem.scene import SceneError, load_scene
-from warpdem.scene_build import build_scene, scene_builder
 from warpdem.simulation import Simulation
-from warpdem.tets import reference_geometry, tet_stable_time_steps
+from warpdem.stages.guard import SPEED_LIMIT_FACTOR, UnstableRunError
+from warpdem.stages.tets import reference_geometry, tet_stable_time_steps
 
 REFUSAL_MARGIN = 1e-3  # relative; far above float64 rounding of dt and of the estimate (~1e-15)
 TIME_RTOL = 1e-12  # the device clock sums dt in float64 a few times
@@ -104,7 +104,7 @@ material = "granite"
 
 # A small bonded slab resting on the ground: gravity presses it into the wall, which excites the bond modes. The bonds
 # cannot break, so an unstable mode grows without bound (breakable ones would all break and the spheres fly apart at
-# about c_p, below the run-away bound: warpdem.guard).
+# about c_p, below the run-away bound: warpdem.stages.guard).
 SLAB = """\
 schema_version = 1
 name = "slab"

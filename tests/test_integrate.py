@@ -1,5 +1,5 @@
 """Integration stage: velocity Verlet for free spheres, fixed and prescribed spheres, moving walls
-(warpdem.integrate, warpdem.kernels.integrate), and the bookkeeping of the work their drivers do.
+(warpdem.stages.integrate, warpdem.kernels.integrate), and the bookkeeping of the work their drivers do.
 
 Oracles:
 - free fall: velocity Verlet is exact for a constant acceleration, x(t) = x₀ + v₀ t + g t²/2, v(t) = v₀ + g t, up to
@@ -19,7 +19,7 @@ import math
 import numpy as np
 import pytest
 
-from warpdem.builder import InteractionProps, ModelBuilder
+from warpdem.build.builder import InteractionProps, ModelBuilder
 from warpdem.simulation import Simulation
 
 EPS32 = float(np.finfo(np.float32).eps)
@@ -160,7 +160,7 @@ def test_free_fall_keeps_float32_precision_over_many_small_steps(device: str) ->
     # dt v_{k+1/2}, each within that bound: |x − x_exact| <= 4 ε |g| t². A node's displacement is float32: each drift
     # rounds by ulp(u)/2 besides, n ε max|u| / 2 at most. Without the carry the same rounding of every kick piled up
     # to 8e-5 of g t at dt = 1e-5 s and 1.2e-3 at 1e-6 s over 0.1 s, worse the finer the step.
-    from warpdem.mesh import box_mesh
+    from warpdem.build.mesh import box_mesh
 
     b = ModelBuilder(gravity=GRAVITY)
     b.add_material("rock", 2600.0, YOUNG, POISSON)

@@ -1,5 +1,5 @@
-"""Joints (kernels/joints.py, warpdem/joints.py): the device pass that pre-splits joint faces, the append pass of
-warpdem.compaction it runs on, and the cohesive joint interface elements.
+"""Joints (kernels/joints.py, warpdem/stages/joints.py): the device pass that pre-splits joint faces, the append pass of
+warpdem.stages.compaction it runs on, and the cohesive joint interface elements.
 
 Oracles:
 - the append pass against numpy (the parents' copies land after the live slots, in the parents' order; a total past
@@ -30,12 +30,13 @@ import pytest
 import warp as wp
 from warpdem.kernels.node_face_target import SPRING_BOUND
 
-from warpdem.builder import ModelBuilder
-from warpdem.compaction import Compactor
-from warpdem.geology import Geology, JointSet, RockMass, mesh_geology
-from warpdem.joints import JointFaceError, JointProps, NodeSplitter
-from warpdem.mesh import TET_FACES, box_mesh, tet_signed_volumes
+from warpdem.build.builder import ModelBuilder
+from warpdem.build.geology import Geology, JointSet, RockMass, mesh_geology
+from warpdem.build.mesh import box_mesh, tet_signed_volumes
 from warpdem.simulation import Simulation
+from warpdem.stages.compaction import Compactor
+from warpdem.stages.joints import JointFaceError, JointProps, NodeSplitter
+from warpdem.tables import TET_FACES
 
 YOUNG = 1.0e8  # [Pa] a soft rock, so that the physics tests take few steps
 POISSON = 0.25
@@ -357,7 +358,7 @@ def test_bonded_joint_dashpots_book_what_verlet_works(device):
     step that lead is 9× the bound (measured), and the test fails on it."""
     from test_loads import VERLET_MARGIN, shadow_energy
 
-    from warpdem.tets import TetProps
+    from warpdem.stages.tets import TetProps
 
     points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (2, 2, 2))
     strong = 1.0e3 * YOUNG  # never reached: the joint stays intact
@@ -404,7 +405,7 @@ def stacked_blocks(device, props: JointProps, mode: str):
     run 0.5 s until it rests. Returns (model, sim, upper-side joint nodes, lower-side joint nodes)."""
     from test_fem_contact import hold
 
-    from warpdem.tets import TetProps
+    from warpdem.stages.tets import TetProps
 
     points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (2, 2, 2))
     b = ModelBuilder(gravity=(0.0, 0.0, -GRAVITY), contact_stiffness_factor=TINY_FACTOR)

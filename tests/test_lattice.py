@@ -1,5 +1,5 @@
-"""The lattice calibration on the mesh's own network (warpdem.lattice ``network_tension``, ``calibration_sample``;
-warpdem.multisphere ``mesh_lattice_factors``): host numpy, no device.
+"""The lattice calibration on the mesh's own network (warpdem.stages.lattice ``network_tension``,
+``calibration_sample``; warpdem.stages.multisphere ``mesh_lattice_factors``): host numpy, no device.
 
 The dynamic oracle (a fully converted bar's wave speed and strength against the continuum's) is in
 tests/test_coupling.py; these tests check the virtual test itself."""
@@ -9,7 +9,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from warpdem.lattice import (
+from warpdem.build.mesh import box_mesh
+from warpdem.stages.lattice import (
     CALIBRATION_ASPECT,
     CALIBRATION_RTOL,
     STIFFNESS_FACTOR,
@@ -19,8 +20,7 @@ from warpdem.lattice import (
     largest_body,
     network_tension,
 )
-from warpdem.mesh import box_mesh
-from warpdem.multisphere import SUB_STIFFNESS_FACTOR, SUB_STRENGTH_FACTOR, mesh_lattice_factors
+from warpdem.stages.multisphere import SUB_STIFFNESS_FACTOR, SUB_STRENGTH_FACTOR, mesh_lattice_factors
 
 CELL = 0.05  # [m], the bar of tests/test_coupling.py: 12 × 2 × 2 cubic cells
 # The conjugate gradients stop at a relative residual CALIBRATION_RTOL; the modulus and peak strain are ratios of

@@ -1,4 +1,4 @@
-"""Loads and boundaries (kernels/loads.py, warpdem/loads.py): pressure histories on faces, Friedlander arrival,
+"""Loads and boundaries (kernels/loads.py, warpdem/stages/loads.py): pressure histories on faces, Friedlander arrival,
 non-reflecting dashpots, rollers, velocity drivers, the device clock and the energy balance with all of them.
 
 Oracles:
@@ -36,14 +36,15 @@ import math
 import numpy as np
 import pytest
 
-from warpdem.builder import ModelBuilder
-from warpdem.guard import UnstableTimeStepError
+from warpdem.build.builder import ModelBuilder
+from warpdem.build.mesh import boundary_faces, box_mesh
 from warpdem.host_data import BondData
-from warpdem.joints import JointProps
-from warpdem.loads import PressureHistory, eval_loads, load_work
-from warpdem.mesh import TET_FACES, boundary_faces, box_mesh
 from warpdem.simulation import Simulation
-from warpdem.tets import TetProps, lame_parameters
+from warpdem.stages.guard import UnstableTimeStepError
+from warpdem.stages.joints import JointProps
+from warpdem.stages.loads import PressureHistory, eval_loads, load_work
+from warpdem.stages.tets import TetProps, lame_parameters
+from warpdem.tables import TET_FACES
 
 YOUNG = 50.0e9  # [Pa] granite-like
 POISSON = 0.25  # [-]

@@ -1,4 +1,4 @@
-"""Host tet meshes (warpdem/mesh.py): the Kuhn box mesher, validation, quality and boundary faces.
+"""Host tet meshes (warpdem/build/mesh.py): the Kuhn box mesher, validation, quality and boundary faces.
 
 Oracles: exact geometry of the box (volume, surface area, ∮ x·n dA = 3V by the divergence theorem), the face
 incidence of a conforming mesh (every face shared by one tet on the boundary, two inside), and the closed-form
@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from warpdem.mesh import MeshError, boundary_faces, box_mesh, check_tets, smallest_heights, tet_quality
+from warpdem.build.mesh import MeshError, boundary_faces, box_mesh, check_tets, smallest_heights, tet_quality
 
 # Float64 geometry of a few hundred tets: sums are exact to a few ulps of the total.
 GEOMETRY_RTOL = 1.0e-12

@@ -1,16 +1,16 @@
-"""Four spheres per converted tet (kernels/multisphere.py, warpdem/multisphere.py, the conversion pass with
+"""Four spheres per converted tet (kernels/multisphere.py, warpdem/stages/multisphere.py, the conversion pass with
 ``spheres_per_tet`` = 4).
 
 Oracles:
 - conservation: mass (each sphere ρV/4, Σ = ρV) and linear momentum to round-off; per tet Σ_a m_a v_a = m v̄ (the
   linear velocity field at the sub-centroids s_a, whose equal-weight mean is the centroid); the angular momentum
-  changes by exactly Σ_t ((3/4) J_t − (2/5) m_t ρ_t² 1) ω for a rigidly spinning body (warpdem.multisphere: the
+  changes by exactly Σ_t ((3/4) J_t − (2/5) m_t ρ_t² 1) ω for a rigidly spinning body (warpdem.stages.multisphere: the
   orbits keep H/4 of the tet's internal part, the spins (2/5) m ρ² ω);
 - geometry against numpy: s_a = (x_a + c)/2, v(s_a) = v0 + ω × s_a for a rigid field, spin ω;
 - brute force: no two spheres overlap and no sphere overlaps a remaining boundary face, after two passes (spheres
   next to spheres of the same pass, of an earlier pass and to tets); each touches its corner sub-tet's nearest face;
-- the bond and coupling sets against a numpy construction of the sub-lattice (warpdem.multisphere.sub_lattice and a
-  brute-force search of edge neighbours through each node), stiffness κ₄ E V_b / L_b² and strength (κ₄/S₄) T_f;
+- the bond and coupling sets against a numpy construction of the sub-lattice (warpdem.stages.multisphere.sub_lattice and
+  a brute-force search of edge neighbours through each node), stiffness κ₄ E V_b / L_b² and strength (κ₄/S₄) T_f;
 - the books: a pass closes them exactly; a pulled bar converting its middle closes to ENERGY_BOUND;
 - determinism (two runs) and capacity growth equal to a large-capacity run.
 The bar-wave speed and tensile strength of a fully converted bar are in tests/test_coupling.py (parametrized by the
@@ -40,12 +40,12 @@ from test_conversion import (
     tresca_measure,
 )
 
-from warpdem.conversion import regrow_bonds
-from warpdem.coupling import regrow_coupling
-from warpdem.energy import balance_error
-from warpdem.mesh import TET_FACES
-from warpdem.multisphere import mesh_lattice_factors, sub_lattice
 from warpdem.simulation import Simulation
+from warpdem.stages.conversion import regrow_bonds
+from warpdem.stages.coupling import regrow_coupling
+from warpdem.stages.energy import balance_error
+from warpdem.stages.multisphere import mesh_lattice_factors, sub_lattice
+from warpdem.tables import TET_FACES
 
 SPT = 4
 
@@ -299,7 +299,7 @@ def test_four_sphere_runs_are_identical_and_growth_equals_a_large_capacity_run(d
 
 
 def test_restart_continues_bit_for_bit_across_a_four_sphere_conversion(device, tmp_path):
-    from warpdem.restart import restore_checkpoint, save_checkpoint
+    from warpdem.io.restart import restore_checkpoint, save_checkpoint
 
     # Checkpoint a pulled bar once its middle has started to convert (four spheres per tet: slots tet_sphere + a,
     # the sub-lattice's bonds and couplings, capacities grown), restart from it in a fresh build and continue through

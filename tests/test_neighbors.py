@@ -1,4 +1,4 @@
-"""The generic skinned-list builder (warpdem.kernels.neighbors, warpdem.neighbors) on a toy kind of list: points
+"""The generic skinned-list builder (warpdem.kernels.neighbors, warpdem.stages.neighbors) on a toy kind of list: points
 listing the other points within a cut-off, owners switched off by a flag, and an integer tag per slot as history.
 
 Oracles:
@@ -18,7 +18,7 @@ import pytest
 import warp as wp
 from warpdem.kernels.neighbors import ListSpec, make_list_kernels
 
-from warpdem.neighbors import SkinnedList, SlotArrays, make_struct
+from warpdem.stages.neighbors import SkinnedList, SlotArrays, make_struct
 
 CAPACITY = 300  # owner slots
 LIVE = 260  # live owners and candidates

@@ -32,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from warpdem.builder import InteractionProps, ModelBuilder
+from warpdem.build.builder import InteractionProps, ModelBuilder
 from warpdem.simulation import Simulation
 
 ORIGIN_RTOL = 1.0e-4

@@ -1,8 +1,8 @@
-"""FEM rock output (warpdem/output.py and the runner): boundary surface, stress measures, VTU/pvd series, checkpoints
+"""FEM rock output (warpdem/io/output.py and the runner): boundary surface, stress measures, VTU/pvd series, checkpoints
 of the mesh, and a box-mesh scene run end to end.
 
 Oracles:
-- surface: the faces used once by active tets, against :func:`warpdem.mesh.boundary_faces` of the active tets
+- surface: the faces used once by active tets, against :func:`warpdem.build.mesh.boundary_faces` of the active tets
   (exact); split faces hidden while closed and drawn once open, by construction;
 - stress measures: hand values (uniaxial σ → von Mises |σ|, pure shear τ → √3 τ, hydrostatic → 0), to float64
   round-off (``STRESS_RTOL``);
@@ -23,9 +23,9 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
 
-from warpdem.checkpoint import read_checkpoint
-from warpdem.mesh import boundary_faces, box_mesh
-from warpdem.output import VtuSeries, max_principal_stress, surface_faces, von_mises_stress
+from warpdem.build.mesh import boundary_faces, box_mesh
+from warpdem.io.checkpoint import read_checkpoint
+from warpdem.io.output import VtuSeries, max_principal_stress, surface_faces, von_mises_stress
 from warpdem.runner import RunOptions, run_scene
 from warpdem.scene import parse_scene
 
@@ -134,7 +134,7 @@ def test_split_faces_drawn_only_once_open():
 def test_face_grouping_equals_numpy_unique_rows():
     """The packed-key grouping of the surface search against np.unique(rows, axis=0) (exact), below and above the
     largest node index a packed key holds."""
-    from warpdem.mesh import PACKED_ROW_LIMIT, row_groups
+    from warpdem.tables import PACKED_ROW_LIMIT, row_groups
 
     rng = np.random.default_rng(3)
     for high in (1, 7, 1000, 3 * PACKED_ROW_LIMIT):
@@ -329,7 +329,7 @@ def test_opened_joint_appears_in_the_rock_surface(device, tmp_path):
     """Frame 0: the joint is closed and only the outer surface is drawn; once the upper block has been pulled
     PULL / output_rate = 1 mm away, both sides of every joint face are drawn, and the triangles are re-authored
     at that frame only."""
-    from warpdem.scene_mesh import rock_mesh
+    from warpdem.build.scene_mesh import rock_mesh
 
     scene = parse_scene(JOINTED_SCENE)
     geology = rock_mesh(scene)
@@ -421,8 +421,8 @@ def cracking_cube(restart_frame: int | None = None):
     crack opens) and the centre's element broken; 4 nothing moved but the velocities. Yields (frame, model, state)."""
     import dataclasses
 
+    from warpdem.build.scene_build import finalize_scene, scene_builder
     from warpdem.model import fracture_state
-    from warpdem.scene_build import finalize_scene, scene_builder
 
     scene = parse_scene(CRACK_SCENE)
     model, state = finalize_scene(scene, scene_builder(scene), "cpu")
@@ -451,7 +451,7 @@ def cracking_cube(restart_frame: int | None = None):
 def write_cracking_cube(path: Path, rock, first_frame: int = 0) -> list[tuple]:
     """Writes the rock of :func:`cracking_cube` from ``first_frame`` on (a restart when above 0); returns, per frame
     written, (node damage, node positions, intact cohesive pairs)."""
-    from warpdem.usd import UsdWriter
+    from warpdem.io.usd import UsdWriter
 
     held = []
     none = {
@@ -485,7 +485,7 @@ def test_run_time_crack_faces_appear_as_they_open_with_damage(tmp_path):
     node, closed); the opened crack adds both sides of every mesh triangle in the plane z = CRACK_Z that has a split
     node (brute force over the tets' faces); damage primvar, damage colours, VTU point data and cohesive curves
     equal what the state holds at every frame (float32 storage: exact)."""
-    from warpdem.output import RockFrames, VtuSeries, damage_colors
+    from warpdem.io.output import RockFrames, VtuSeries, damage_colors
 
     path = tmp_path / "crack.usdc"
     rock = RockFrames("damage", VtuSeries(tmp_path, "crack"))
@@ -536,7 +536,7 @@ def test_restart_extends_a_cracked_stage(tmp_path, restart_frame):
     uninterrupted one, damage primvar and cohesive curves included, sample by sample."""
     from stage_compare import assert_stages_equal
 
-    from warpdem.output import RockFrames
+    from warpdem.io.output import RockFrames
 
     whole, pieces = tmp_path / "whole.usdc", tmp_path / "pieces.usdc"
     write_cracking_cube(whole, RockFrames("stress"))

@@ -1,4 +1,5 @@
-"""Initial overlaps (warpdem/overlap.py, kernels/overlap.py): spheres deep in each other or in the rock at build time.
+"""Initial overlaps (warpdem/build/overlap.py, kernels/overlap.py): spheres deep in each other or in the rock at build
+time.
 
 Oracles:
 - sphere pairs: the O(N²) brute-force set of pairs with δ = r_i + r_j − |x_i − x_j| > ROUNDOFF · min(r_i, r_j), exact
@@ -23,10 +24,16 @@ import warp as wp
 from warp._src import context
 from warpdem.kernels import overlap as ko
 
-from warpdem.mesh import box_mesh
-from warpdem.overlap import OVERLAP_TOLERANCE, ROUNDOFF, initial_overlap, sphere_pair_overlaps, sphere_rock_penetration
+from warpdem.build.mesh import box_mesh
+from warpdem.build.overlap import (
+    OVERLAP_TOLERANCE,
+    ROUNDOFF,
+    initial_overlap,
+    sphere_pair_overlaps,
+    sphere_rock_penetration,
+)
+from warpdem.build.scene_build import build_scene, finalize_scene, scene_builder
 from warpdem.scene import SceneError, default_scene_path, load_scene, parse_scene
-from warpdem.scene_build import build_scene, finalize_scene, scene_builder
 
 DEPTH_ATOL = 1e-6  # [m] float32 positions of order 1 m: ~1e-7 each, a few roundings
 MARGIN = 1e-4  # [m] distance kept from the cube's faces by the inside/outside test points

@@ -1,4 +1,4 @@
-"""Initial sphere arrangements (warpdem.packing).
+"""Initial sphere arrangements (warpdem.build.packing).
 
 Oracles:
 - brute-force O(N²) pair distances (N <= 2000): no two spheres overlap, and every sphere lies inside its region;
@@ -32,7 +32,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from warpdem.packing import Box, Cylinder, lattice_packing, random_packing
+from warpdem.build.packing import Box, Cylinder, lattice_packing, random_packing
 
 OVERLAP_TOL = 1e-12
 LATTICE_REL_TOL = 1e-9
@@ -308,7 +308,7 @@ def test_random_packing_invalid_arguments_raise(kwargs: dict) -> None:
 
 
 def test_exclusion_voxels_never_reject_free_positions() -> None:
-    from warpdem.packing import _ExclusionVoxels
+    from warpdem.build.packing import _ExclusionVoxels
 
     rng = np.random.default_rng(1)
     lo, hi = np.zeros(3), np.full(3, 6.0)
@@ -327,7 +327,7 @@ def test_exclusion_voxels_never_reject_free_positions() -> None:
 
 
 def test_first_come_matches_sequential_greedy() -> None:
-    from warpdem.packing import _CellGrid, _first_come
+    from warpdem.build.packing import _CellGrid, _first_come
 
     rng = np.random.default_rng(2)
     points = rng.random((400, 3)) * 5.0

@@ -1,4 +1,4 @@
-"""``plot`` and ``preview`` (warpdem/plot.py, warpdem/preview.py): pictures of a sphere, a mesh and a mixed run.
+"""``plot`` and ``preview`` (warpdem/io/plot.py, warpdem/io/preview.py): pictures of a sphere, a mesh and a mixed run.
 
 Oracles (pixel statistics, not golden images):
 - every PNG has the requested size and is not blank: more than ``MIN_INK`` of its pixels differ from the background;
@@ -21,11 +21,11 @@ import pytest
 from PIL import Image
 
 from warpdem.cli import main
-from warpdem.plot import plot_run
-from warpdem.preview import _bounds, _fit, camera, draw_frame, read_frame, render
+from warpdem.io.plot import plot_run
+from warpdem.io.preview import _bounds, _fit, camera, draw_frame, read_frame, render
+from warpdem.io.usd import UsdWriter
 from warpdem.runner import RunOptions, run_scene
 from warpdem.scene import parse_scene
-from warpdem.usd import UsdWriter
 
 MIN_INK = 0.01  # fraction of pixels that must differ from the background
 

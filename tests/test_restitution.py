@@ -1,4 +1,4 @@
-"""Restitution ↔ damping maps of the clamped normal contact laws (warpdem.restitution).
+"""Restitution ↔ damping maps of the clamped normal contact laws (warpdem.stages.restitution).
 
 Oracles:
 - an independent small-step integration of the dimensional equation of motion, m* δ'' = -max(0, F(δ, δ')), run
@@ -24,8 +24,8 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from warpdem import restitution
-from warpdem.restitution import (
+from warpdem.stages import restitution
+from warpdem.stages.restitution import (
     hertz_damping_coefficient,
     linear_damping_ratio,
     restitution_hertz,

@@ -1,4 +1,5 @@
-"""Rigid blocks (kernels/rigid.py, warpdem/rigid.py) and the switch from deformable tets (Simulation.switch_to_rigid).
+"""Rigid blocks (kernels/rigid.py, warpdem/stages/rigid.py) and the switch from deformable tets
+(Simulation.switch_to_rigid).
 
 Oracles:
 - inertia: a box block meshed by tets has the principal moments M (b² + c²)/12 … of the uniform box (the tet second
@@ -37,12 +38,12 @@ import pytest
 import warp as wp
 from test_fem_contact import FRICTION, GRAVITY, SLIDE_RTOL, centre_of_mass_motion, two_blocks
 
-from warpdem.builder import ModelBuilder
-from warpdem.fragments import block_labels
-from warpdem.joints import JointProps
-from warpdem.mesh import box_mesh
-from warpdem.rigid import angular_velocities, body_frames, box_inertia, element_mode_energy
+from warpdem.build.builder import ModelBuilder
+from warpdem.build.mesh import box_mesh
 from warpdem.simulation import Simulation
+from warpdem.stages.fragments import block_labels
+from warpdem.stages.joints import JointProps
+from warpdem.stages.rigid import angular_velocities, body_frames, box_inertia, element_mode_energy
 
 DENSITY = 2000.0  # [kg/m³]
 YOUNG = 1.0e8  # [Pa]
@@ -279,7 +280,7 @@ def test_switch_conserves_mass_momentum_and_closes_the_books(device):
 
 
 def test_rigid_restart_continues_bit_for_bit(device, tmp_path):
-    from warpdem.restart import restore_checkpoint, save_checkpoint
+    from warpdem.io.restart import restore_checkpoint, save_checkpoint
 
     model, state = jointed_pair(device)
     template = state.clone()
@@ -377,8 +378,8 @@ def test_rigid_scene_keys_and_the_tets_they_pick(tmp_path):
     (brute force over the built tets) and sets the model's switch."""
     from test_scene import MESH_BASE, write
 
+    from warpdem.build.scene_build import finalize_scene, scene_builder, tet_centroids
     from warpdem.scene import load_scene
-    from warpdem.scene_build import finalize_scene, scene_builder, tet_centroids
 
     scene = load_scene(write(tmp_path, MESH_BASE))
     assert not scene.rigid.active and scene.rigid.check_interval == 100
@@ -407,8 +408,8 @@ def test_rigid_scene_keys_and_the_tets_they_pick(tmp_path):
 def test_bad_rigid_table_is_a_one_line_scene_error(tmp_path, table, phrase):
     from test_scene import MESH_BASE, write
 
+    from warpdem.build.scene_build import finalize_scene, scene_builder
     from warpdem.scene import SceneError, load_scene
-    from warpdem.scene_build import finalize_scene, scene_builder
 
     path = write(tmp_path, MESH_BASE + f"\n[rigid]\n{table}\n")
     with pytest.raises(SceneError) as info:
@@ -419,9 +420,9 @@ def test_bad_rigid_table_is_a_one_line_scene_error(tmp_path, table, phrase):
 
 
 def test_rigid_blocks_keep_their_surface_in_the_output(device):
-    """The rock surface written to USD/VTU (warpdem.output.RockFrames) is the same set of faces before and after the
+    """The rock surface written to USD/VTU (warpdem.io.output.RockFrames) is the same set of faces before and after the
     switch: rigid tets (tet_active 2) are still material, only their elastic force is off."""
-    from warpdem.output import RockFrames
+    from warpdem.io.output import RockFrames
 
     model, state = jointed_pair(device)
     sim = Simulation(model, state)
@@ -442,8 +443,8 @@ def test_rigid_region_next_to_deformable_tets_conserves_momentum(device):
     b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
     b.add_material("rock", DENSITY, YOUNG, POISSON)
     # Bulk viscosity on (the default): the deformable tets' viscous forces on the shared nodes book their half ahead at
-    # the body's pose they were made at, after its drift (warpdem.rigid.drift_bodies). Measured: 5.3e-5 of the energy
-    # in play over 300 steps (3.5e-2 when the rigid nodes' half ahead was dropped).
+    # the body's pose they were made at, after its drift (warpdem.stages.rigid.drift_bodies). Measured: 5.3e-5 of the
+    # energy in play over 300 steps (3.5e-2 when the rigid nodes' half ahead was dropped).
     rng = np.random.default_rng(5)
     b.add_tet_mesh(points, tets, "rock", velocity=rng.normal(scale=0.05, size=points.shape))
     model, state = b.finalize(device, safety_factor=0.5)
@@ -557,7 +558,7 @@ def test_block_on_a_roller_plane_slides_and_turns_as_the_plane_allows(device):
 def pushed_box(device, rollers: list[tuple[str, tuple[float, float, float]]], pressure: float = 2.0e4):
     """A 1 m box (2³ Kuhn cells) under gravity −z, a constant pressure on its x+ face, its faces named in ``rollers``
     on roller planes (face name, normal). Returns model, state, the pressure's force [N] and the box mass [kg]."""
-    from warpdem.loads import PressureHistory
+    from warpdem.stages.loads import PressureHistory
 
     points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (2, 2, 2))
     b = ModelBuilder(gravity=(0.0, 0.0, -GRAVITY))
@@ -669,7 +670,7 @@ def test_a_change_of_time_step_keeps_the_books_closed(device):
     by (dt_new/dt_old)² at the same forces (float64 sums of the same float32 forces: 1e-12), and that is what the
     ``step_change`` line books, so the total does not move (SWITCH_RTOL); afterwards the books close at the new step
     as Verlet closes them (BOOKS_RTOL)."""
-    from warpdem.rigid_step import rigid_step_after_switch
+    from warpdem.stages.rigid_step import rigid_step_after_switch
 
     model, state = jointed_pair(device)
     sim = Simulation(model, state)
@@ -730,8 +731,8 @@ kind = "roller"
 
 [contact]
 # Softer outer faces than the rock's E / h behind them (1.5e11 Pa/m here): the rigid step assumes every surface node
-# pressed by springs on up to three face planes (warpdem.rigid_step.rigid_critical_step, SPRING_BOUND), and with E / h
-# it would fall just below the deformable step, leaving no step to gain at the switch.
+# pressed by springs on up to three face planes (warpdem.stages.rigid_step.rigid_critical_step, SPRING_BOUND), and with
+E / h # it would fall just below the deformable step, leaving no step to gain at the switch.
 surface_normal_stiffness = 1.2e11
 
 [rigid]
@@ -762,14 +763,14 @@ def test_a_later_switch_takes_the_rigid_step_on_the_frame_grid(switch_run):
     """With dt = "auto" the run takes the rigid step at the switch itself: the rest of the frame the switch falls in
     (steps s..E of the old step, s = ⌈t_switch / dt_old⌉, E = 6 n_old) as m = ⌈(E − s) dt_old / dt_new⌉ bridge steps of
     (E − s) dt_old / m ≤ dt_new, then period / n from that frame's end on, n the fewest steps per frame within safety ×
-    the critical step after the switch (warpdem.rigid_step.rigid_step_after_switch); the run says so. The step count is
-    that arithmetic exactly; frame k still lands on k / rate (the device clock's float64 sum of steps: 1e-12 of the
-    end time); the changes book their shadow term (``step_change``) and the balance closes across them (no bulk
+    the critical step after the switch (warpdem.stages.rigid_step.rigid_step_after_switch); the run says so. The step
+    count is that arithmetic exactly; frame k still lands on k / rate (the device clock's float64 sum of steps: 1e-12 of
+    the end time); the changes book their shadow term (``step_change``) and the balance closes across them (no bulk
     viscosity: the books of the deformable phase close as Verlet closes them); the column slides on its floor with
     the load's impulse."""
     import csv
 
-    from warpdem.checkpoint import read_checkpoint
+    from warpdem.io.checkpoint import read_checkpoint
 
     summary = switch_run[2]
     assert "time step" in summary.rigid and "after the switch" in summary.rigid
@@ -808,7 +809,7 @@ def test_restart_across_the_switch_and_the_step_change_is_bit_for_bit(switch_run
     arrays and step, bit for bit (CPU)."""
     import shutil
 
-    from warpdem.checkpoint import read_checkpoint
+    from warpdem.io.checkpoint import read_checkpoint
     from warpdem.runner import RunOptions, run_scene
 
     scene, folder, summary = switch_run
@@ -835,7 +836,7 @@ def test_a_switch_on_a_frame_end_or_in_a_short_last_frame_keeps_the_frames_on_th
 
     from test_scene import write
 
-    from warpdem.checkpoint import read_checkpoint
+    from warpdem.io.checkpoint import read_checkpoint
     from warpdem.runner import RunOptions, run_scene
     from warpdem.scene import load_scene
 
@@ -876,7 +877,7 @@ def test_an_explicit_time_step_is_kept_across_the_switch(tmp_path):
     booked as a step change) and says so; the frames stay those of that dt, so the run ends at step T / dt."""
     from test_scene import write
 
-    from warpdem.checkpoint import read_checkpoint
+    from warpdem.io.checkpoint import read_checkpoint
     from warpdem.runner import RunOptions, run_scene
     from warpdem.scene import load_scene
 
@@ -891,7 +892,7 @@ def test_an_explicit_time_step_is_kept_across_the_switch(tmp_path):
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# The step of a mixed model after a switch (warpdem.rigid_step.deformable_critical_step)
+# The step of a mixed model after a switch (warpdem.stages.rigid_step.deformable_critical_step)
 
 STEP_RTOL = 16.0 * F32_EPS
 """The step of what is left from the model's float32 numbers (material table, reference positions, node masses and
@@ -903,7 +904,7 @@ def two_material_column(device, lower: bool = False, dashpots: bool = True, wall
     surface springs need 1/1.6 of the soft ones' step, its body a longer one), the lower half soft; non-reflecting
     dashpots on the bottom face and a wall 1 m below (so the builder counts the contact springs), each optional.
     ``lower``: the lower half built alone (the same tets and nodes); else the upper half may turn rigid."""
-    from warpdem.mesh import boundary_faces
+    from warpdem.build.mesh import boundary_faces
 
     points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 2.0), (2, 2, 4))
     upper = points[tets].mean(axis=1)[:, 2] > 1.0
@@ -941,7 +942,7 @@ def test_step_after_a_partial_switch_is_that_of_what_is_left(device, dashpots, w
     body). With the wall the whole model's step (set by the stiff half's springs) no longer bounds the run; without
     it the bodies' own step (every surface node taken as pressed on up to three planes, SPRING_BOUND) sets the run's.
     Both sides are float64 numpy sums of the same numbers, float32 on the model's side (STEP_RTOL)."""
-    from warpdem.rigid_step import (
+    from warpdem.stages.rigid_step import (
         contact_damping_ratio,
         deformable_critical_step,
         rigid_critical_step,
@@ -983,7 +984,7 @@ def test_spheres_left_after_a_switch_take_their_own_step(device, normal):
     column's stiff tets); the step after the switch is the least of theirs and the body's. Both from the same
     numbers, float32 on the model's side (E, ν recovered from the material pair table, masses and radii):
     STEP_RTOL."""
-    from warpdem.rigid_step import (
+    from warpdem.stages.rigid_step import (
         contact_damping_ratio,
         deformable_critical_step,
         rigid_critical_step,
@@ -1013,14 +1014,14 @@ def test_spheres_left_after_a_switch_take_their_own_step(device, normal):
 
 def test_converted_spheres_left_after_a_switch_keep_their_lattice_step(device):
     """A bar pulled apart converts its middle into bonded spheres coupled to the ends; the ends then turn rigid. The
-    spheres' step is the converted lattice's bound (warpdem.conversion.conversion_critical_step over the tets that
-    converted, the bound the conversion's attach checks the step against: ω² = Σ k_b / m per sphere), not the
+    spheres' step is the converted lattice's bound (warpdem.stages.conversion.conversion_critical_step over the tets
+    that converted, the bound the conversion's attach checks the step against: ω² = Σ k_b / m per sphere), not the
     stiffer-looking bond_critical_step of their bonds (most bonds on a sphere × the stiffest); run at half of it the
     bonded spheres between the two driven blocks stay stable and the books close (test_conversion's bound)."""
     from test_conversion import ENERGY_BOUND, bar, worst_balance_error
 
-    from warpdem.conversion import conversion_critical_step
-    from warpdem.rigid_step import rigid_step_after_switch, sphere_critical_step
+    from warpdem.stages.conversion import conversion_critical_step
+    from warpdem.stages.rigid_step import rigid_step_after_switch, sphere_critical_step
 
     model, state, _, _ = bar(device, driver_speed=2.0)
     sim = Simulation(model, state)
@@ -1039,7 +1040,7 @@ def test_converted_spheres_left_after_a_switch_keep_their_lattice_step(device):
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# Checkpoints of an older format (warpdem.restart.FIELD_MIGRATIONS)
+# Checkpoints of an older format (warpdem.io.restart.FIELD_MIGRATIONS)
 
 
 def as_old_checkpoint(source, target, keys, version=1):
@@ -1065,7 +1066,7 @@ def frame_checkpoint(switch_run, copy_name, frame):
     """A copy of the switch run's output folder (``copy_name``) and the path of its checkpoint of ``frame`` in it."""
     import shutil
 
-    from warpdem.checkpoint import read_checkpoint
+    from warpdem.io.checkpoint import read_checkpoint
 
     _, folder, _ = switch_run
     copy = folder / copy_name
@@ -1076,7 +1077,7 @@ def frame_checkpoint(switch_run, copy_name, frame):
 def assert_restart_ends_as_the_run(switch_run, copy, path, what):
     """Restarts the switch run from ``path`` into ``copy`` and compares its last checkpoint with the uninterrupted
     run's, array by array, bit for bit (CPU)."""
-    from warpdem.checkpoint import read_checkpoint
+    from warpdem.io.checkpoint import read_checkpoint
     from warpdem.runner import RunOptions, run_scene
 
     scene, _, summary = switch_run
@@ -1089,11 +1090,11 @@ def assert_restart_ends_as_the_run(switch_run, copy, path, what):
 
 
 def test_an_old_checkpoint_resumes_bit_for_bit_where_its_fields_fill_exactly(switch_run):
-    """A checkpoint of format 1 lacks the fields added since (warpdem.restart.FIELD_MIGRATIONS). Before the switch
+    """A checkpoint of format 1 lacks the fields added since (warpdem.io.restart.FIELD_MIGRATIONS). Before the switch
     (frame 4) every one of them has its fresh value in the run (no contact, no pass, no viscosity, no change of
     step, no body): a restart fills them and ends with the uninterrupted run's arrays, bit for bit (CPU)."""
-    from warpdem.checkpoint import read_checkpoint
-    from warpdem.restart import FIELD_MIGRATIONS
+    from warpdem.io.checkpoint import read_checkpoint
+    from warpdem.io.restart import FIELD_MIGRATIONS
 
     copy, path = frame_checkpoint(switch_run, "old4", 4)
     arrays, attrs = read_checkpoint(path)
@@ -1115,7 +1116,7 @@ def test_a_format_2_checkpoint_after_the_switch_resumes_bit_for_bit(switch_run):
     the rigid column pushed by its load) lacks them: a restart makes the load's forces again at the checkpoint's time
     and positions and zeroes the scratch (the next drift writes it before anything reads it), and ends with the
     uninterrupted run's arrays, bit for bit (CPU)."""
-    from warpdem.checkpoint import read_checkpoint
+    from warpdem.io.checkpoint import read_checkpoint
 
     copy, path = frame_checkpoint(switch_run, "old8", 8)
     arrays, _ = read_checkpoint(path)
@@ -1129,10 +1130,10 @@ def test_a_format_3_checkpoint_puts_each_nodes_one_spring_into_slot_0(device, tm
     the model scalar ``node_springs``); format 3 held one per node. Two rigid blocks meet on one joint plane, so every
     node's spring lies in slot 0 of its row and the others are empty (checked): its checkpoint written as format 3
     wrote it (slot 0 only, no ``node_springs``) restarts with each node's spring in slot 0
-    (warpdem.restart.FIELD_RESHAPES) and ends 100 steps later as the uninterrupted run, bit for bit (CPU)."""
+    (warpdem.io.restart.FIELD_RESHAPES) and ends 100 steps later as the uninterrupted run, bit for bit (CPU)."""
     import h5py
 
-    from warpdem.restart import restore_checkpoint, save_checkpoint
+    from warpdem.io.restart import restore_checkpoint, save_checkpoint
 
     model, state, _ = two_blocks(device, 10.0, 2)  # the upper block resting on the held lower one
     template = state.clone()
@@ -1175,7 +1176,7 @@ def test_an_old_checkpoint_is_refused_where_a_field_would_not_fill_exactly(switc
     as incomplete."""
     import h5py
 
-    from warpdem.checkpoint import CheckpointError, read_checkpoint
+    from warpdem.io.checkpoint import CheckpointError, read_checkpoint
     from warpdem.runner import RunOptions, run_scene
 
     scene, _, summary = switch_run
@@ -1198,7 +1199,7 @@ def test_rigid_only_model_skips_the_node_drift_bit_for_bit(device):
     nodes' force accumulators instead (kernels/rigid.py ``pose_nodes_kernel``); with no tet left deformable it skips
     the tet stage too (its kernel returns at every rigid tet) and the viscous half ahead. Oracle: the same run with
     those kernels launched, bit for bit (the rattling jointed cube of 8 blocks, 60 steps, with the books kept); a
-    model with a node left deformable, or a driven rigid node, keeps the node kernels (warpdem.rigid
+    model with a node left deformable, or a driven rigid node, keeps the node kernels (warpdem.stages.rigid
     ``every_node_rigid``), and one with a tet left deformable the tet stage."""
     from warpdem.bench import jointed_cube
 

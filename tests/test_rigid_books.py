@@ -6,9 +6,9 @@ Oracle: velocity Verlet's energy identity for a body. A half kick of L by ½ dt 
 fixed pose), and likewise ½ M V² by ½ dt F·V̄. With T = Σ R(q) r0_i × f_i and F = Σ f_i that is, per node,
 ½ dt Σ f_i·(V + ω(q, L) × R(q) r0_i) at the kick's mean momenta, which is Verlet's trapezoid
 ½ dt f_n·(v_{n−1/2} + v_{n+1/2}) of every force with both halves at q_n, the pose f_n was made at, and a shadow term
-dt²/8 (|F|²/M + T·I⁻¹T) (warpdem.rigid.body_energy). The free rotor between the kicks keeps |L| and, about a
+dt²/8 (|F|²/M + T·I⁻¹T) (warpdem.stages.rigid.body_energy). The free rotor between the kicks keeps |L| and, about a
 principal axis of the body, ½ L·ω exactly. So where every force books its work that way, kinetic − shadow plus the
-books is constant to rounding: the balance of warpdem.energy.EnergyBalance closes.
+books is constant to rounding: the balance of warpdem.stages.energy.EnergyBalance closes.
 
 Before the half ahead of each evaluation was booked at the next pose, V + ω(q_{n+1}, L_{n+1/2}) × R(q_{n+1}) r0: an
 error of relative size ω dt per step in the work of any force with a torque (measured, in the cases below: 5.6e-4
@@ -33,11 +33,11 @@ from test_cohesive import set_elements
 from test_conversion import worst_balance_error
 from test_fem_contact import two_blocks
 
-from warpdem.builder import ModelBuilder
-from warpdem.fracture import fracture_state
-from warpdem.loads import PressureHistory
-from warpdem.mesh import boundary_faces, box_mesh
+from warpdem.build.builder import ModelBuilder
+from warpdem.build.mesh import boundary_faces, box_mesh
 from warpdem.simulation import Simulation
+from warpdem.stages.fracture import fracture_state
+from warpdem.stages.loads import PressureHistory
 
 F32_EPS = float(np.finfo(np.float32).eps)
 BOOKS_RTOL = 2.0 * F32_EPS  # module docstring

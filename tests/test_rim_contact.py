@@ -19,8 +19,8 @@ rigid mode and deformable.
 Oracles: (1) the joint holds: A's face penetrates B's by at most DYNAMIC × the static δ = P A / Σ k over A's face
 nodes (B's nodes on the joint only stiffen it: the two sets of springs act in parallel; DYNAMIC bounds the overshoot
 of a suddenly applied load, a ramp over several periods overshoots less), and it does penetrate (the push is carried
-by the joint's springs); (2) the energy books close (warpdem.energy balance error) to BOOKS_ROUNDOFF ε₃₂ sqrt(N) of
-the energy in play over the N steps, as the contact books of tests/test_fem_contact.py: the wider rim creates no
+by the joint's springs); (2) the energy books close (warpdem.stages.energy balance error) to BOOKS_ROUNDOFF ε₃₂ sqrt(N)
+of the energy in play over the N steps, as the contact books of tests/test_fem_contact.py: the wider rim creates no
 energy (a new spring starts at the depth gained in the step). On the code before the rim tolerance A ran 0.22 m into
 B (rigid; 21 mm deformable) against a static δ of 1.0 mm.
 """
@@ -35,9 +35,9 @@ import warp as wp
 from test_fem_contact import BOOKS_ROUNDOFF, DYNAMIC, F32_EPS, block_parts, hold, part_nodes, plane_faces
 from warpdem.kernels.fem_surface import RimFaces, rim_margins
 
-from warpdem.loads import PressureHistory
-from warpdem.mesh import box_mesh
+from warpdem.build.mesh import box_mesh
 from warpdem.simulation import Simulation
+from warpdem.stages.loads import PressureHistory
 
 OFFSET = 3.0e-3
 """How far A's corners lie past B's edges along the offset direction, as a fraction of the 1 m face [-]: the
@@ -55,8 +55,8 @@ def rim_blocks(device, along: int, rigid: bool) -> tuple:
     """Block A (x in [0, 1]) pushed into block B (x in [1, 2]) held by a wall (x in [2, 3]), no gravity, no friction;
     A's face taller than B's by 2 OFFSET along axis ``along`` (1: y, 2: z) and narrower by 2 ROUNDING along the
     other. Returns (simulation, A's joint nodes, B's joint nodes, the static δ [m])."""
-    from warpdem.fem_contact import contact_stiffness_in_use
-    from warpdem.rigid_step import rigid_time_step
+    from warpdem.stages.fem_contact import contact_stiffness_in_use
+    from warpdem.stages.rigid_step import rigid_time_step
 
     other = 3 - along
     lo, hi = np.array([0.0, 0.0, 0.0]), np.array([1.0, 1.0, 1.0])
@@ -92,7 +92,7 @@ def rim_blocks(device, along: int, rigid: bool) -> tuple:
 @pytest.mark.parametrize("along", [2, 1], ids=["z", "y"])
 def test_joint_holds_where_every_node_is_past_the_rim_of_the_face_opposite(device, along, rigid):
     """See the module docstring: the joint holds within DYNAMIC × its static δ and the books close."""
-    from warpdem.energy import balance_error
+    from warpdem.stages.energy import balance_error
 
     sim, a_face, b_face, static = rim_blocks(device, along, rigid)
     start = sim.energy()
@@ -120,7 +120,7 @@ def _margins_kernel(rims: RimFaces, out: wp.array(dtype=wp.vec2)):
 
 def _face_margins(sim) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """rim_margins of every live face, the faces' reference positions (F, 3, 3) and their joint sets."""
-    from warpdem.fem_contact import rim_faces
+    from warpdem.stages.fem_contact import rim_faces
 
     m, s = sim.model, sim.state
     nf = int(s.face_count.numpy()[0])
@@ -133,7 +133,7 @@ def _face_margins(sim) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def _inside_the_built_mesh(positions: np.ndarray, sim) -> np.ndarray:
     """Brute force: a face lay inside the built mesh when a face of another live tet has the same three reference
     positions (daughters share their parent's bit for bit), i.e. the unsplit mesh had a tet across it."""
-    from warpdem.mesh import TET_FACES
+    from warpdem.tables import TET_FACES
 
     m, s = sim.model, sim.state
     nt = int(s.tet_count.numpy()[0])
@@ -157,12 +157,12 @@ def test_a_cracks_faces_take_the_narrow_margins_and_the_others_the_rim_ones(devi
     from test_timeseries import BAR_FRACTURE, BAR_SCENE
     from warpdem.kernels.fem_surface import BARY_EPS, FACE_KEEP_EPS, KEEP_EPS, RIM_EPS
 
-    from warpdem.builder import ModelBuilder
-    from warpdem.fracture import FractureProps, attach_fracture
-    from warpdem.joints import JointProps
-    from warpdem.mesh import TET_FACES
+    from warpdem.build.builder import ModelBuilder
+    from warpdem.build.scene_build import build_scene
     from warpdem.scene import parse_scene
-    from warpdem.scene_build import build_scene
+    from warpdem.stages.fracture import FractureProps, attach_fracture
+    from warpdem.stages.joints import JointProps
+    from warpdem.tables import TET_FACES
 
     narrow, wide = (float(BARY_EPS), float(FACE_KEEP_EPS)), (float(RIM_EPS), float(KEEP_EPS))
     model, state = build_scene(parse_scene(BAR_SCENE), device)

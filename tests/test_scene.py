@@ -1209,8 +1209,8 @@ def test_seed_crack_faces_on_a_box_mesh(tmp_path: Path) -> None:
     """A Kuhn box mesh cuts every cell face of a grid plane into two triangles, so a seed crack on an interior grid
     plane whose region holds an a × b patch of cells cracks exactly 2 a b faces (exact: the grid nodes lie on the
     plane to round-off, SEED_PLANE_TOLERANCE is 1e-9 of the diagonal)."""
-    from warpdem.mesh import box_mesh
-    from warpdem.scene_mesh import seed_crack_faces
+    from warpdem.build.mesh import box_mesh
+    from warpdem.build.scene_mesh import seed_crack_faces
 
     # Cells of 0.5 x 0.5 x 0.5 m; the plane z = 2 is interior; the region holds x in [0, 0.5], y in [0, 1].
     scene = load_scene(write(tmp_path, FRACTURING + "\n" + SEED))

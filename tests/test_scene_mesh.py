@@ -1,9 +1,9 @@
-"""Scene meshes (warpdem/scene_mesh.py): the [mesh] kinds, face and node selections, and their mapping onto the
+"""Scene meshes (warpdem/build/scene_mesh.py): the [mesh] kinds, face and node selections, and their mapping onto the
 builder.
 
 Oracles: box face sets against the analytic box (4 n_a n_b triangles per face, all nodes on the plane, outward unit
 normals exactly ±e_axis); region selections against the named sets they coincide with; the builder's continuum
-properties against the scene's material values; a mesh file written by warpdem.geology.write_mesh and read back
+properties against the scene's material values; a mesh file written by warpdem.build.geology.write_mesh and read back
 through a scene gives the same tets; layer materials by tet centroid height; per-group joint properties of a mesh
 file on the device, each joint face identified by the plane it lies on (not by its set id) and checked against the
 scene's value for that plane's group, or the [joints] default it does not set.
@@ -16,13 +16,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from warpdem.builder import NODE_MOTIONS
-from warpdem.geology import GeologyMesh, write_mesh
-from warpdem.mesh import TET_FACES, boundary_faces
+from warpdem.build.builder import NODE_MOTIONS
+from warpdem.build.geology import GeologyMesh, write_mesh
+from warpdem.build.mesh import boundary_faces
+from warpdem.build.scene_build import finalize_scene, scene_builder
+from warpdem.build.scene_mesh import box_face_sets, face_normals, nodes_of_selection, rock_mesh, select_faces
 from warpdem.scene import Material, Region, SceneError, parse_scene
-from warpdem.scene_build import finalize_scene, scene_builder
-from warpdem.scene_mesh import box_face_sets, face_normals, nodes_of_selection, rock_mesh, select_faces
-from warpdem.tets import TetProps
+from warpdem.stages.tets import TetProps
+from warpdem.tables import TET_FACES
 
 ROCK = {"density": 2600.0, "youngs_modulus": 5.0e10, "poisson_ratio": 0.25}
 BOX = {"kind": "box", "lo": [0.0, 0.0, 0.0], "hi": [2.0, 1.0, 3.0], "divisions": [4, 2, 3], "material": "rock"}
@@ -196,7 +197,7 @@ def two_joint_group_file(tmp_path: Path) -> Path:
 
 
 def test_file_joint_groups_get_their_own_properties(tmp_path: Path):
-    from warpdem.restitution import restitution_linear
+    from warpdem.stages.restitution import restitution_linear
 
     path = two_joint_group_file(tmp_path)
     defaults = {"friction": 0.6, "cohesion": 0.0, "tensile_strength": 0.0, "stiffness_factor": 1.0}
@@ -273,7 +274,7 @@ def test_file_joint_group_selection_and_errors(tmp_path: Path):
 
 
 def test_scene_without_spheres_or_mesh_is_refused():
-    from warpdem.scene_build import build_scene
+    from warpdem.build.scene_build import build_scene
 
     data = {"name": "empty", "run": {"end_time": 0.01}, "materials": {"rock": dict(ROCK)}}
     with pytest.raises(SceneError, match="empty: particles: the scene creates no sphere"):
@@ -402,8 +403,8 @@ def test_arch_mesh_volume_orientation_and_face_sets():
     round-off (ROUND). Every tet of a tapered, bulging arch (the dam's shape) is positively oriented; the face sets
     lie where the map puts them: upstream at r = R, downstream at r = R − t, crest at z = H, base at z = 0, the ends at
     θ = ∓angle/2."""
-    from warpdem.mesh import tet_signed_volumes
-    from warpdem.scene_mesh import arch_mesh
+    from warpdem.build.mesh import tet_signed_volumes
+    from warpdem.build.scene_mesh import arch_mesh
 
     ROUND = 1e-12
     scene = parse_scene(_arch_scene())

@@ -26,8 +26,8 @@ import pytest
 from pxr import Usd, UsdGeom
 from stage_compare import assert_stages_equal
 
-from warpdem.builder import ModelBuilder
-from warpdem.checkpoint import read_checkpoint
+from warpdem.build.builder import ModelBuilder
+from warpdem.io.checkpoint import read_checkpoint
 from warpdem.runner import RunOptions, RunSummary, run_scene
 from warpdem.scene import default_scene_path, load_scene
 
@@ -115,7 +115,7 @@ def test_scene_runs_two_frames_and_restarts_bit_for_bit(device, tmp_path, path, 
         counts = [len(points.Get(float(frame))) for frame in range(FRAMES + 1)]
         if scene.conversion.enabled:
             # FEM→DEM conversion adds spheres and never removes them: the count grows to n; the frames before the
-            # first spheres hold one empty sample, the one before them (warpdem.usd).
+            # first spheres hold one empty sample, the one before them (warpdem.io.usd).
             samples = points.GetTimeSamples()
             assert samples == [float(frame) for frame in range(int(samples[0]), FRAMES + 1)]
             assert counts == sorted(counts) and counts[-1] == n

@@ -20,13 +20,13 @@ import tomllib
 import numpy as np
 import pytest
 
-from warpdem import packing
-from warpdem.builder import ModelBuilder
-from warpdem.checkpoint import read_checkpoint
+from warpdem.build import packing
+from warpdem.build.builder import ModelBuilder
+from warpdem.build.scene_build import build_scene
+from warpdem.io.checkpoint import read_checkpoint
 from warpdem.model import BOND_FIELDS
 from warpdem.runner import RunOptions, run_scene
 from warpdem.scene import load_scene, parse_scene
-from warpdem.scene_build import build_scene
 from warpdem.simulation import Simulation
 
 RADIUS = 0.005  # [m]
@@ -84,7 +84,7 @@ ENERGY_FRAMES = 20
 
 # Energy tolerance, relative to the initial total (≈ the ball's kinetic energy, 5.6 J). Contacts and bonds book their
 # work as velocity Verlet does it, the energy the tangential springs gain as k_t follows the overlap is its own line,
-# and the balance carries Verlet's shadow term (warpdem.energy.EnergyBalance), so what is left at any dt is
+# and the balance carries Verlet's shadow term (warpdem.stages.energy.EnergyBalance), so what is left at any dt is
 # float32 rounding: a random walk of ROUNDING_PER_STEP ε₃₂ of the energy per step (measured on spheres in
 # test_energy_balance.py). Before the exact books: 2.35 % with friction, and without it 0.55 % at safety factor 0.2
 # and 0.29 % at 0.1 (first order in dt); now 1e-5 to 2e-5.
@@ -370,9 +370,9 @@ def test_bond_compaction_during_run_keeps_neighbor_links(device):
 def _every_kind_of_motion(device: str):
     """Free, prescribed and fixed spheres over a moving wall and a tet block with a velocity driver that takes hold
     and lets go mid-run, mass-proportional damping, bulk viscosity, a blast on its top and gravity."""
-    from warpdem.loads import PressureHistory
-    from warpdem.mesh import boundary_faces, box_mesh
-    from warpdem.tets import TetProps
+    from warpdem.build.mesh import boundary_faces, box_mesh
+    from warpdem.stages.loads import PressureHistory
+    from warpdem.stages.tets import TetProps
 
     b = ModelBuilder(gravity=(0.0, 0.0, -9.81))
     b.add_material("rock", 2600.0, 1.0e8, 0.25)
@@ -396,7 +396,7 @@ def _every_kind_of_motion(device: str):
 def test_run_of_steps_equals_separate_steps(device):
     """Invariant: ``advance(n)`` (first half, n - 1 fused kick-drifts, second half; replayed graphs) is, bit for bit,
     n calls of ``step()`` (two separate halves each): the fused pass does the same float operations in the same order
-    (warpdem/integrate.py). The run covers a driver taking hold and letting go, contacts and a blast."""
+    (warpdem/stages/integrate.py). The run covers a driver taking hold and letting go, contacts and a blast."""
     steps = 40
     runs = []
     for use_graph in (True, False):

@@ -1,4 +1,5 @@
-"""Cosserat point tetrahedra (kernels/tets.py, warpdem/tets.py): element forces, stresses, waves, energy, time step.
+"""Cosserat point tetrahedra (kernels/tets.py, warpdem/stages/tets.py): element forces, stresses, waves, energy, time
+step.
 
 Oracles: a hand computation of one tet in float64 numpy (F = [d1 d2 d3] D⁻¹, P = μF + (λ (J - 1) J - μ) F⁻ᵀ,
 f_i = -V₀ P D⁻ᵀ e_i); zero force under rigid motion; the patch test (a uniform affine deformation gives the uniform
@@ -20,10 +21,17 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warpdem.builder import ModelBuilder
-from warpdem.mesh import box_mesh, smallest_heights
+from warpdem.build.builder import ModelBuilder
+from warpdem.build.mesh import box_mesh, smallest_heights
 from warpdem.simulation import Simulation
-from warpdem.tets import TetProps, eval_tet_stresses, eval_tets, lame_parameters, set_node_displacements, tet_energy
+from warpdem.stages.tets import (
+    TetProps,
+    eval_tet_stresses,
+    eval_tets,
+    lame_parameters,
+    set_node_displacements,
+    tet_energy,
+)
 
 YOUNG = 50.0e9  # [Pa] granite-like
 POISSON = 0.25  # [-]

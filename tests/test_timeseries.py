@@ -1,4 +1,5 @@
-"""Per-frame outputs of a run (warpdem/timeseries.py, the sphere VTU series, the damage primvar, wall and load forces).
+"""Per-frame outputs of a run (warpdem/io/timeseries.py, the sphere VTU series, the damage primvar, wall and load
+forces).
 
 Oracles:
 - the CSV has one row per frame (0..F), its columns are the EnergyBalance fields, the counts, three components per
@@ -38,14 +39,14 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
 
-from warpdem.contact import wall_forces
-from warpdem.energy import EnergyBalance, balance_error
-from warpdem.loads import load_forces
+from warpdem.build.scene_build import finalize_scene, scene_builder
+from warpdem.io.timeseries import COUNT_COLUMNS, FRACTURE_COLUMNS, energy_lines, energy_signs, read_series, unit
 from warpdem.runner import RunOptions, run_scene
 from warpdem.scene import parse_scene
-from warpdem.scene_build import finalize_scene, scene_builder
 from warpdem.simulation import Simulation
-from warpdem.timeseries import COUNT_COLUMNS, FRACTURE_COLUMNS, energy_lines, energy_signs, read_series, unit
+from warpdem.stages.contact import wall_forces
+from warpdem.stages.energy import EnergyBalance, balance_error
+from warpdem.stages.loads import load_forces
 
 SUM_RTOL = 1e-12  # a sum of ~15 float64 terms of one magnitude
 F32_RTOL = 1e-5  # float32 forces and areas, a few roundings
@@ -262,7 +263,7 @@ def run_with_fracture(options: RunOptions):
     """run_scene of BAR_SCENE with nodal fracture attached to the built model (every node may split, a pass every
     step)."""
     import warpdem.runner as runner
-    from warpdem.fracture import FractureProps, attach_fracture
+    from warpdem.stages.fracture import FractureProps, attach_fracture
 
     build = runner.finalize_scene
 
@@ -284,7 +285,7 @@ def fracture_run(tmp_path_factory):
 
 
 def test_fracture_run_counts_splits_elements_and_crack_area(fracture_run):
-    from warpdem.checkpoint import read_checkpoint
+    from warpdem.io.checkpoint import read_checkpoint
     from warpdem.runner import summary_json
 
     summary, out = fracture_run
@@ -354,11 +355,12 @@ def test_fracture_run_counts_splits_elements_and_crack_area(fracture_run):
 def test_fracture_run_plot_has_a_fracture_picture(fracture_run, tmp_path):
     import matplotlib.image as mpimg
 
-    from warpdem.plot import plot_run
+    from warpdem.io.plot import plot_run
 
     _, out = fracture_run
     files = plot_run(out, tmp_path, size=(400, 300))
-    # A run with fracture can break apart, so it also wrote a fragment file and gets its picture (warpdem.fragments).
+    # A run with fracture can break apart, so it also wrote a fragment file and gets its picture
+    # (warpdem.stages.fragments).
     expected = [f"pulled_bar_{k}.png" for k in ("counts", "energy", "fracture", "fragments")]
     assert sorted(f.name for f in files) == expected
     image = mpimg.imread(tmp_path / "pulled_bar_fracture.png")[..., :3]
@@ -385,7 +387,7 @@ def test_fracture_outputs_run_on_across_a_rigid_switch(tmp_path):
     but keeps the cracks. Oracles: one row per frame 0..F across the switch (the series had dropped every row before
     it); in every row nodes − nodes at frame 0 = splits = cohesive intact + broken (exact counts); no split after the
     switch (no pass runs); the stage carries the damage primvar at every frame, the checkpoint's at the end."""
-    from warpdem.checkpoint import read_checkpoint
+    from warpdem.io.checkpoint import read_checkpoint
 
     period = 1.0 / BAR_SCENE["run"]["output_rate"]
     scene = {**BAR_SCENE, "rigid": {"switch_time": 3.5 * period}}
@@ -414,7 +416,7 @@ def test_a_column_some_frames_lack_keeps_every_row_with_nan(tmp_path, monkeypatc
     """TimeSeries.record never drops a row this run wrote: a column in some frames only (a counter that appears
     mid-run) is NaN in the others, in the CSV and the HDF5 file (an integer column with NaN stored as float64), and a
     restart reading that CSV keeps the rows before it. Oracle: the values written, cell by cell."""
-    import warpdem.timeseries as ts
+    import warpdem.io.timeseries as ts
 
     books = {f"energy_{n}": 0.0 for n in energy_lines()}  # every real row has the energy lines
     frames = [

@@ -1,4 +1,4 @@
-"""Mesh topology and node duplication (kernels/topology.py, warpdem/topology.py), shared by joints and fracture.
+"""Mesh topology and node duplication (kernels/topology.py, warpdem/stages/topology.py), shared by joints and fracture.
 
 Oracles: numpy rebuilds of the star CSR and of the unsplit face adjacency (faces matched by sorted node triples of
 the original mesh, an independent method from the device's star search through reference positions); the hand-over
@@ -11,14 +11,15 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from warpdem.builder import ModelBuilder
-from warpdem.fracture import FractureProps, attach_fracture
-from warpdem.joints import JointProps
-from warpdem.loads import PressureHistory
-from warpdem.mesh import TET_FACES, box_mesh
+from warpdem.build.builder import ModelBuilder
+from warpdem.build.mesh import box_mesh
 from warpdem.simulation import Simulation
-from warpdem.tets import set_node_displacements
-from warpdem.topology import NodeStars, reference_face_neighbors, regrow_nodes
+from warpdem.stages.fracture import FractureProps, attach_fracture
+from warpdem.stages.joints import JointProps
+from warpdem.stages.loads import PressureHistory
+from warpdem.stages.tets import set_node_displacements
+from warpdem.stages.topology import NodeStars, reference_face_neighbors, regrow_nodes
+from warpdem.tables import TET_FACES
 
 YOUNG = 1.0e9  # [Pa]
 DENSITY = 2000.0  # [kg/m³]

@@ -1,4 +1,4 @@
-"""Tests for warpdem.usd: the written stage is read back with pxr and compared with the input.
+"""Tests for warpdem.io.usd: the written stage is read back with pxr and compared with the input.
 
 Tolerances: positions, velocities, widths and colours are stored as float32, so values are compared with a
 relative tolerance of 1e-6 (float32 epsilon is 1.2e-7); times are stored as double and compared exactly.
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
 
-from warpdem.usd import CurveSet, SurfaceFrame, UsdWriter
+from warpdem.io.usd import CurveSet, SurfaceFrame, UsdWriter
 
 RTOL = 1e-6  # float32 storage
 FPS = 24.0

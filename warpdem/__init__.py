@@ -10,7 +10,7 @@ import importlib.util
 import sys
 from pathlib import Path
 
-__version__ = "0.1.0"
+from ._version import __version__
 
 __all__ = ["__version__"]
 

@@ -20,7 +20,7 @@ from .limits import MAX_STEPS
 
 EXIT_USAGE = 2
 EXIT_UNSTABLE = 3
-"""Exit status of a run stopped by the stability guard (warpdem.guard): non-finite or run-away state."""
+"""Exit status of a run stopped by the stability guard (warpdem.stages.guard): non-finite or run-away state."""
 
 CUDA_DRIVER_MISSING = "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver"
 """Start of the line Warp's native library prints on stderr when it finds no CUDA driver (a CPU-only machine)."""
@@ -234,7 +234,7 @@ def pass_bench_parser(kind: str) -> argparse.ArgumentParser:
 
 
 def _size(text: str) -> tuple[int, int]:
-    from .preview import PreviewError, parse_size
+    from .io.preview import PreviewError, parse_size
 
     try:
         return parse_size(text)
@@ -255,7 +255,7 @@ def plot_parser() -> argparse.ArgumentParser:
 
 
 def preview_parser() -> argparse.ArgumentParser:
-    from .preview import DEFAULT_MAX_SPHERES, VIEWS
+    from .io.preview import DEFAULT_MAX_SPHERES, VIEWS
 
     p = argparse.ArgumentParser(
         prog="python -m warpdem preview",
@@ -329,7 +329,7 @@ def main(argv: list[str] | None = None) -> int:
         init_warp()
         return run_bench(args.sizes, args.steps, args.device, args.json, args.data, args.repeat)
     if argv[:1] == ["plot"]:
-        from .plot import PlotError, plot_run
+        from .io.plot import PlotError, plot_run
 
         args = plot_parser().parse_args(argv[1:])
         try:
@@ -339,7 +339,7 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(str(f) for f in files))
         return 0
     if argv[:1] == ["preview"]:
-        from .preview import PreviewError, render
+        from .io.preview import PreviewError, render
 
         args = preview_parser().parse_args(argv[1:])
         try:
@@ -359,9 +359,9 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(exc.problems)
 
     init_warp(quiet=args.quiet)
-    from .checkpoint import CheckpointError
-    from .guard import UnstableRunError
+    from .io.checkpoint import CheckpointError
     from .runner import NothingToDo, RunOptions, run_scene, summary_json
+    from .stages.guard import UnstableRunError
 
     options = RunOptions(
         device=args.device,

@@ -1,4 +1,4 @@
-"""Host-side descriptions of what a model is built from (warpdem.builder): spheres, FEM nodes and tets, bonds and
+"""Host-side descriptions of what a model is built from (warpdem.build.builder): spheres, FEM nodes and tets, bonds and
 walls as numpy arrays, in the order they get their device ids."""
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ import warp as wp
 from .kernels.contact import ContactPair
 
 if TYPE_CHECKING:
-    from .loads import LoadModel
+    from .load_data import LoadModel
 
 
 def _array_fields(obj: object) -> dict[str, wp.array]:
@@ -69,18 +69,18 @@ class Model:
         tet_nodes: node indices, positively oriented, shape (tet_capacity,), vec4i.
         tet_inv_ref: [D1 D2 D3]⁻¹ of the reference directors D_i = X_i - X_0 [1/m], shape (tet_capacity,), mat33.
         tet_volume: reference volume V₀ [m³], shape (tet_capacity,), float32.
-        tet_length: characteristic length ℓ = 2 / sqrt(Σ_a |∇N_a|²) of the bulk viscosity (warpdem.tets
+        tet_length: characteristic length ℓ = 2 / sqrt(Σ_a |∇N_a|²) of the bulk viscosity (warpdem.stages.tets
             .characteristic_lengths) [m], shape (tet_capacity,), float32.
         tet_material: material id, shape (tet_capacity,), int32.
         tet_material_table: continuum properties per material id, shape (num_materials,), TetMaterial.
-        loads: pressure loads, non-reflecting dashpots and node velocity drivers (warpdem.loads.LoadModel), or None.
-        critical_dt: the builder's estimate of the critical time step [s] (inf when nothing bounds it), and
-            critical_dt_source: what sets it, in words (warpdem.guard.CriticalStep).
+        loads: pressure loads, non-reflecting dashpots and node velocity drivers (warpdem.load_data.LoadModel), or
+        None. critical_dt: the builder's estimate of the critical time step [s] (inf when nothing bounds it), and
+            critical_dt_source: what sets it, in words (warpdem.stages.guard.CriticalStep).
         speed_limit: run-away bound on the speed of a sphere or node at t = 0 [m/s]; the guard adds |g| t
-            (warpdem.guard.run_away_speed; inf: only non-finite values are caught).
+            (warpdem.stages.guard.run_away_speed; inf: only non-finite values are caught).
 
-    FEM contact and joints (warpdem.fem_contact, warpdem.joints; the surface topology is rebuilt on the device after
-    every topology pass):
+    FEM contact and joints (warpdem.stages.fem_contact, warpdem.stages.joints; the surface topology is rebuilt on the
+    device after every topology pass):
         face_capacity: boundary face slots.
         max_sphere_faces: candidate faces per sphere (grows ×2 on overflow between steps).
         max_node_faces: candidate faces per FEM node (grows ×2 on overflow between steps).
@@ -113,13 +113,13 @@ class Model:
         fem_pair_table: node–face and node–wall interaction of a material pair, as pair_table with damp_n the
             linear damping ratio ζ, shape (num_materials²,), ContactPair.
         joint_material_table: properties of each joint set, shape (max(num_joint_sets, 1),), JointMaterial.
-        joint_set_props: the joint sets' warpdem.joints.JointProps (host copies).
+        joint_set_props: the joint sets' warpdem.stages.joints.JointProps (host copies).
         joint_capacity: joint interface elements.
         joint_a, joint_b: daughter nodes of each element, a < b, shape (joint_capacity,), int32.
         joint_area: interface area of each element [m²]; joint_kn: its normal stiffness [N/m]; joint_tet_face: the
             tet-face slot of A's joint face (its outward normal is the element's); joint_set: its joint set.
 
-    Nodal fracture (warpdem.fracture, warpdem.cohesive; LDEC §2.2–2.3):
+    Nodal fracture (warpdem.stages.fracture, warpdem.stages.cohesive; LDEC §2.2–2.3):
         fracture_interval: steps between two split passes; 0: no split pass (fracture off, or a rigid switch stopped
             the passes: :attr:`has_fracture` tells the two apart).
         cohesive_capacity: cohesive element slots (grows ×2 on overflow between steps).
@@ -129,10 +129,10 @@ class Model:
             (kernels/fracture.py).
         ref_tet_face_nbr: the tet across each tet-face slot 4t + k in the unsplit mesh (faces matched by reference
             positions, so joints and cracks do not cut it), -1 on the outer surface, shape (4 tet_capacity,), int32
-            (warpdem.topology.reference_face_neighbors, set by attach_fracture and attach_conversion; tet slots never
-            move, so it holds for the whole run).
+            (warpdem.stages.topology.reference_face_neighbors, set by attach_fracture and attach_conversion; tet slots
+            never move, so it holds for the whole run).
 
-    Adaptive FEM→DEM conversion (warpdem.conversion, warpdem.coupling; CIMNE §4–5):
+    Adaptive FEM→DEM conversion (warpdem.stages.conversion, warpdem.stages.coupling; CIMNE §4–5):
         conversion_interval: steps between two conversion passes; 0: conversion is off.
         spheres_per_tet: spheres spawned in place of one converted tet (1 or more, a scene option).
         conversion_part: part id of the spawned spheres.
@@ -142,10 +142,10 @@ class Model:
         conversion_material_table: criterion, fraction and strengths of every material id, shape (num_materials,),
             ConversionMaterial (kernels/conversion.py).
         tet_edge_degree: Z_t, the live tets sharing an edge with each tet (converted or not: the bonds' V_b = V_t /
-            Z_t + V_n / Z_n, warpdem.lattice), 0 past the live tets, shape (tet_capacity,), int32; set at attach
+            Z_t + V_n / Z_n, warpdem.stages.lattice), 0 past the live tets, shape (tet_capacity,), int32; set at attach
             (the mesh's topology then; a conversion pass recomputes what it reads where nodes may split).
 
-    Rigid blocks (warpdem.rigid; LDEC §2–§4):
+    Rigid blocks (warpdem.stages.rigid; LDEC §2–§4):
         rigid_switch: whether the blocks turn rigid at ``rigid_switch_time``.
         rigid_switch_time: the time of that switch [s] (0: from the start); it falls on the first step at or after
             it (warpdem.simulation).
@@ -154,8 +154,8 @@ class Model:
             ``rigid_check_interval`` steps; 0: off.
         rigid_check_interval: steps between two checks of ``rigid_energy_fraction``.
         deformable_critical_dt: the builder's critical step of the deformable model where a rigid-from-start run took
-            the rigid blocks' step instead (warpdem.rigid_step.rigid_time_step) [s]; 0 otherwise (``critical_dt`` is
-            it; not nan, which a checkpoint's attributes could not compare equal).
+            the rigid blocks' step instead (warpdem.stages.rigid_step.rigid_time_step) [s]; 0 otherwise (``critical_dt``
+            is it; not nan, which a checkpoint's attributes could not compare equal).
         tet_may_rigid: 1 where a tet may turn rigid (the scene's region or materials), else 0, shape
             (tet_capacity,), int32; None: every tet.
     """
@@ -261,8 +261,8 @@ class Model:
 
     @property
     def has_fracture(self) -> bool:
-        """Whether nodal fracture was attached (warpdem.fracture.attach_fracture, which gives at least one cohesive
-        slot): the cracks, cohesive elements, node damage and their counters exist. It stays true after a rigid
+        """Whether nodal fracture was attached (warpdem.stages.fracture.attach_fracture, which gives at least one
+        cohesive slot): the cracks, cohesive elements, node damage and their counters exist. It stays true after a rigid
         switch, which stops the split passes (``fracture_interval`` = 0) but keeps what they made, so a run's outputs
         keep their fracture columns and fields from its first frame to its last."""
         return self.cohesive_capacity > 0
@@ -344,7 +344,7 @@ class State:
         node_f_viscous: the bulk-viscosity and mass-proportional damping forces on each node at the last evaluation
             [N] (part of ``node_f``), for the integrator's booking of the half of their work that lies ahead, as the
             sphere contacts' sums (kernels/integrate.py ``drift_node``; on a rigid block's node, the forces of the
-            deformable tets next to it, booked after the body's drift: warpdem.rigid.drift_bodies), shape
+            deformable tets next to it, booked after the body's drift: warpdem.stages.rigid.drift_bodies), shape
             (node_capacity,), vec3.
         node_energy_absorbed: energy the non-reflecting boundaries' dashpots took out of the model [J], per node,
             shape (node_capacity,), float64.
@@ -375,7 +375,7 @@ class State:
             sphere_face_shear: tangential spring of each slot [m], same shape, vec3; sphere_face_energy_prev: (normal,
             tangential) spring energy of each sphere's face contacts at the last evaluation [J] (ΔU of their
             dissipation D = -W - ΔU), shape (particle_capacity,), vec2. In a model without boundary faces
-            (face_capacity 0) the four per-sphere arrays are empty (warpdem.fem_contact.sphere_face_rows).
+            (face_capacity 0) the four per-sphere arrays are empty (warpdem.stages.fem_contact.sphere_face_rows).
         node_face_needed: the most candidate faces a node had at a build (overflow when > max_node_faces), shape
             (1,); node_face_count: candidate faces of each node, shape (node_capacity,); node_face_index: candidate
             face of each slot, shape (node_capacity * max_node_faces,), int32.
@@ -413,7 +413,7 @@ class State:
         cohesive_alpha: α of the weakening law (eq. 6) [-], float32.
         cohesive_area: A_f, the new crack area attributed to the node, both faces (eq. 9) [m²], float32.
         cohesive_dir: unit direction from A to B before any opening: that of eq. 4's force at the split (along the
-            principal direction p1 in a pure tensile split; warpdem.fracture says why), vec3.
+            principal direction p1 in a pure tensile split; warpdem.stages.fracture says why), vec3.
         cohesive_d_max: d_max, the largest opening |x_B − x_A| so far (eq. 8) [m], float32.
         cohesive_f_prev: the element's force on A at its last evaluation (its birth force after a split) [N], vec3: the
             first half of the next step's trapezoid in the energy books (kernels/cohesive.py).
@@ -451,7 +451,7 @@ class State:
         tet_sphere: the sphere spawned in place of each tet, -1 while it is a tet, shape (tet_capacity,), int32
             (the bonds of a later conversion find their partner spheres through it).
 
-    Rigid blocks (warpdem.rigid, kernels/rigid.py; body arrays of shape (bodies,), empty before the switch, all
+    Rigid blocks (warpdem.stages.rigid, kernels/rigid.py; body arrays of shape (bodies,), empty before the switch, all
     float64 but the ints):
         rigid_switched: 1 once the blocks turned rigid, shape (1,), int32.
         energy_released_rigid: the strain energy of the tets and the kinetic energy of the element modes that left
@@ -465,7 +465,7 @@ class State:
             (columns, world), mat33d; body_fixed: 1 for a block held in place (a fixed or driven node, or rollers of
             three directions), int32; body_constraint: 0 free, 1 on a roller plane (moves in the plane, turns about
             its normal ``body_axis``), 2 between two roller planes (moves along their line ``body_axis``), int32;
-            body_axis: that normal or line, unit [-], vec3d (warpdem.rigid: roller constraints).
+            body_axis: that normal or line, unit [-], vec3d (warpdem.stages.rigid: roller constraints).
         body_dc: displacement of the centre of mass since the switch [m], vec3d; body_v: its velocity [m/s], vec3d;
             body_q: rotation since the switch, quatd; body_l: angular momentum about the centre of mass [kg m²/s],
             vec3d; body_f, body_t: force [N] (gravity excluded) and torque about the centre of mass [N m] of the
@@ -742,7 +742,7 @@ RIGID_NODE_FIELDS = {"node_body": int, "node_rigid_r0": wp.vec3d, "node_rigid_u0
 
 
 def rigid_state(model: Model) -> dict[str, wp.array]:
-    """The State fields of rigid blocks before the switch: no body, no rigid node (warpdem.rigid fills them)."""
+    """The State fields of rigid blocks before the switch: no body, no rigid node (warpdem.stages.rigid fills them)."""
     d = model.device
     fields = {
         name: wp.empty(0, dtype=dtype, device=d) for name, dtype in {**RIGID_BODY_FIELDS, **RIGID_NODE_FIELDS}.items()

@@ -15,16 +15,16 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from . import __version__
-from .checkpoint import checkpoint_name
-from .energy import EnergyBalance, balance_error
-from .guard import UnstableRunError
+from ._version import __version__
+from .build.scene_build import finalize_scene, scene_builder, start_as_spheres
+from .io.checkpoint import checkpoint_name
+from .io.restart import restore_checkpoint, save_checkpoint
 from .limits import MAX_STEPS
-from .restart import restore_checkpoint, save_checkpoint
-from .rigid_step import rigid_step_after_switch, rigid_time_step
 from .scene import Scene, SceneError
-from .scene_build import finalize_scene, scene_builder, start_as_spheres
 from .simulation import Simulation
+from .stages.energy import EnergyBalance, balance_error
+from .stages.guard import UnstableRunError
+from .stages.rigid_step import rigid_step_after_switch, rigid_time_step
 
 
 class NothingToDo(Exception):
@@ -58,13 +58,13 @@ class RunSummary:
     """What a run did: simulated time [s], steps, wall time [s], throughput [particle-steps/s], contacts now,
     bonds broken, the energy balance at start and end, and the files written; FEM nodes and live tets, throughput
     [tet-steps/s] and the VTU collection where the scene has a mesh (or writes its spheres as VTU); the time series
-    CSV (warpdem.timeseries).
+    CSV (warpdem.io.timeseries).
 
     ``energy_in_play`` [J] is the largest :attr:`EnergyBalance.in_play` (kinetic + elastic + strain, or the work put
     in so far; no gravity potential) over the run's frames, and ``energy_error`` the balance's change over the run
     relative to it: a scale with no arbitrary datum, so the error does not depend on where z = 0 is.
 
-    With fracture on (``fracture``; warpdem.timeseries.fracture_values): node ``splits``, cohesive elements
+    With fracture on (``fracture``; warpdem.io.timeseries.fracture_values): node ``splits``, cohesive elements
     ``cohesive_intact`` and ``cohesive_broken``, the crack area made (``crack_area``, one face [m²]) and fully
     opened (``crack_area_opened``), the energy the cohesive elements dissipated (``dissipated_cohesive`` [J]) and,
     to compare, Γ A_f of the broken ones (``cohesive_work_broken`` [J]: a broken element has dissipated exactly that,
@@ -101,7 +101,7 @@ class RunSummary:
     dissipated_cohesive: float = 0.0
     cohesive_work_broken: float = 0.0
     fragments_path: Path | None = None
-    """The per-frame fragment record (warpdem.fragments), for scenes that can break apart; None otherwise."""
+    """The per-frame fragment record (warpdem.stages.fragments), for scenes that can break apart; None otherwise."""
     fragment_count: int = 0
     fragment_largest: float = 0.0
     """Mass of the largest fragment at the last frame [kg]."""
@@ -112,7 +112,7 @@ class RunSummary:
     """Largest and median centre-of-mass speed of the fragments other than the largest at the last frame [m/s]
     (0 with one fragment)."""
     rigid: str = ""
-    """What the switch to rigid blocks did in this run (warpdem.rigid.RigidReport.format), empty without one."""
+    """What the switch to rigid blocks did in this run (warpdem.stages.rigid.RigidReport.format), empty without one."""
 
     def format(self) -> str:
         e0, e1 = self.energy_start, self.energy_end
@@ -327,7 +327,7 @@ def take_rigid_step(
     ``sim.step_count``, inside frame ``frame`` or at its end, ``end``: the step that frame ends at on ``grid``).
 
     From the next frame boundary on, the step is period / n for the fewest n steps per frame that keep it within
-    ``safety_factor`` × the critical step after the switch (warpdem.rigid_step.rigid_step_after_switch; larger or
+    ``safety_factor`` × the critical step after the switch (warpdem.stages.rigid_step.rigid_step_after_switch; larger or
     smaller than the step before), so frames keep landing on k × period. A switch inside a frame leaves the time
     r = (end − step) × dt_old to the frame's end: it is run as m = ⌈r / dt_new⌉ steps of r / m ≤ dt_new (the bridge),
     so the rigid step holds from the switch itself and the frame still ends on its time, to the rounding of the
@@ -415,7 +415,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     Raises:
         SceneError: the scene cannot be built (for example a particle file that cannot be read).
         CheckpointError: the restart file cannot be used.
-        UnstableRunError: the run blew up (warpdem.guard); the stage holds the good frames and is published, the
+        UnstableRunError: the run blew up (warpdem.stages.guard); the stage holds the good frames and is published, the
             checkpoints written before stay, none is written of the bad state.
     """
     options = options or RunOptions()
@@ -435,7 +435,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         print(f"initial overlap: {builder.overlap.format()}")
 
     if scene.rigid.enabled and run.dt == "auto":
-        # Rigid blocks from the start: no element modes, the contacts on the bodies set the step (warpdem.rigid).
+        # Rigid blocks from the start: no element modes, the contacts on the bodies set the step (warpdem.stages.rigid).
         model = rigid_time_step(model, state, run.safety_factor)
     fps = run.output_rate
     frame_period = 1.0 / fps
@@ -540,10 +540,10 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     checkpoint_dir = out_dir / scene.output.checkpoint_dir
     frames_per_checkpoint = max(1, round(checkpoint_every / frame_period)) if checkpoint_every > 0 else 0
 
-    from .fragments import FragmentFile, FragmentStats, can_fragment, fragment_colors, label_fragments
-    from .output import RockFrames, VtuSeries, damage_colors, sphere_damage, sphere_point_data
-    from .timeseries import TimeSeries, fracture_values
-    from .usd import UsdWriter
+    from .io.output import RockFrames, VtuSeries, damage_colors, sphere_damage, sphere_point_data
+    from .io.timeseries import TimeSeries, fracture_values
+    from .io.usd import UsdWriter
+    from .stages.fragments import FragmentFile, FragmentStats, can_fragment, fragment_colors, label_fragments
 
     # Colour scales are the largest values seen so far in the run: a restart continues them from its checkpoint.
     speed_scale = [float(attrs.get("speed_scale", 1e-12))]
@@ -738,7 +738,7 @@ def _check_stage_continues(usd_path: Path, fps: float, frame: int, sim: Simulati
     Raises:
         SceneError: the stage at ``usd_path`` belongs to another run (nothing is written).
     """
-    from .usd import stage_frame
+    from .io.usd import stage_frame
 
     if not usd_path.exists():
         if not quiet:

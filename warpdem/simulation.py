@@ -5,13 +5,14 @@ A step (DESIGN.md, stages in order):
 1. integrate, first half — kick by dt/2, drift by dt, clear forces, flag a neighbour rebuild if needed (spheres
    and FEM nodes);
 2. tetrahedra — Cosserat point element forces and bulk viscosity (their Cauchy stresses are refreshed between steps);
-   cohesive elements between the daughters of split nodes (LDEC eqs. 5–8, warpdem.cohesive);
+   cohesive elements between the daughters of split nodes (LDEC eqs. 5–8, warpdem.stages.cohesive);
 3. contact search — rebuild the skinned neighbour list from the hash grid when flagged (conditional node);
 4. contact — sphere–sphere and sphere–wall forces with tangential history; FEM contact (its lists rebuilt in a
    conditional node when a node moved half the FEM skin or the sphere list was rebuilt): sphere–face, node–face
-   across joints and cracks, node–wall, and the joint interface elements (warpdem.fem_contact, warpdem.joints);
+   across joints and cracks, node–wall, and the joint interface elements (warpdem.stages.fem_contact,
+   warpdem.stages.joints);
 5. bonds — cohesive bond forces and breakage; the penalty couplings of converted spheres to the continuum
-   (warpdem.coupling);
+   (warpdem.stages.coupling);
 6. loads and boundaries — pressure histories on faces, non-reflecting dashpots (fixed and roller nodes and velocity
    drivers are held by the integrator);
 7. integrate, second half — kick by dt/2 with the new forces; advance the time.
@@ -21,13 +22,13 @@ device's overflow counters; if a capacity was exceeded it grows the buffers ×2,
 start of the advance and runs it again, so nothing is ever dropped. Topology passes (removing broken bonds and
 cohesive elements) run there too. With nodal fracture or FEM→DEM conversion on, an advance runs in chunks that
 end on multiples of ``model.fracture_interval`` and ``model.conversion_interval`` steps, each chunk with its own
-overflow redo, and the passes due after each (:meth:`Simulation.conversion_pass`, warpdem.conversion, then
-:meth:`Simulation.fracture_pass`, warpdem.fracture): a redo never crosses a topology pass.
+overflow redo, and the passes due after each (:meth:`Simulation.conversion_pass`, warpdem.stages.conversion, then
+:meth:`Simulation.fracture_pass`, warpdem.stages.fracture): a redo never crosses a topology pass.
 
-Rigid blocks (warpdem.rigid): once the blocks turned rigid (:meth:`Simulation.switch_to_rigid`, from the start, at a
-time, or by the kinetic energy of the element modes), each half of the integration is followed by the bodies' (kick,
-drift and free rotor, then their nodes' pose; the second half kick) and the forces by their reduction to a force and
-a torque per body; the tets of the blocks carry no force.
+Rigid blocks (warpdem.stages.rigid): once the blocks turned rigid (:meth:`Simulation.switch_to_rigid`, from the start,
+at a time, or by the kinetic energy of the element modes), each half of the integration is followed by the bodies'
+(kick, drift and free rotor, then their nodes' pose; the second half kick) and the forces by their reduction to a force
+and a torque per body; the tets of the blocks carry no force.
 """
 
 from __future__ import annotations
@@ -39,11 +40,14 @@ import warnings
 import numpy as np
 import warp as wp
 
-from .bonds import compact_bonds, eval_bonds
-from .cohesive import compact_cohesive, eval_cohesive, regrow_cohesive
-from .compaction import Compactor
-from .contact import NeighborList, contact_energy, eval_contacts
-from .conversion import (
+from .kernels import rigid as kernels_rigid
+from .kernels.tets import TET_ACTIVE
+from .model import NEIGHBOR_FIELDS, Model, State
+from .stages.bonds import compact_bonds, eval_bonds
+from .stages.cohesive import compact_cohesive, eval_cohesive, regrow_cohesive
+from .stages.compaction import Compactor
+from .stages.contact import NeighborList, contact_energy, eval_contacts
+from .stages.conversion import (
     ConversionPass,
     ConversionReport,
     drop_converted_load_faces,
@@ -51,18 +55,21 @@ from .conversion import (
     regrow_bonds,
     regrow_particles,
 )
-from .coupling import coupling_energy, eval_coupling, regrow_coupling
-from .energy import EnergyBalance, energy_balance, shadow_term
-from .fem_contact import FemContact, fem_contact_energy, fem_contact_growth, hold_contact_stiffness, regrow_fem_contacts
-from .fem_surface import face_slots, rebuild_surface, remap_face_ids
-from .fracture import FracturePass, SplitReport
-from .guard import CriticalStep, GuardReport, StabilityGuard, UnstableRunError
-from .integrate import integrate_first_half, integrate_second_half, kick_drift
-from .kernels import rigid as kernels_rigid
-from .kernels.tets import TET_ACTIVE
-from .loads import eval_loads, relax_to_equilibrium
-from .model import NEIGHBOR_FIELDS, Model, State
-from .rigid import (
+from .stages.coupling import coupling_energy, eval_coupling, regrow_coupling
+from .stages.energy import EnergyBalance, energy_balance, shadow_term
+from .stages.fem_contact import (
+    FemContact,
+    fem_contact_energy,
+    fem_contact_growth,
+    hold_contact_stiffness,
+    regrow_fem_contacts,
+)
+from .stages.fem_surface import face_slots, rebuild_surface, remap_face_ids
+from .stages.fracture import FracturePass, SplitReport
+from .stages.guard import CriticalStep, GuardReport, StabilityGuard, UnstableRunError
+from .stages.integrate import integrate_first_half, integrate_second_half, kick_drift
+from .stages.loads import eval_loads, relax_to_equilibrium
+from .stages.rigid import (
     RigidReport,
     drift_bodies,
     element_mode_energy,
@@ -73,9 +80,9 @@ from .rigid import (
     pose_nodes,
     reduce_body_forces,
 )
-from .rigid_step import rigid_step_after_switch
-from .tets import eval_tet_stresses, eval_tets
-from .topology import regrow_nodes
+from .stages.rigid_step import rigid_step_after_switch
+from .stages.tets import eval_tet_stresses, eval_tets
+from .stages.topology import regrow_nodes
 
 NODE_RIGID = int(kernels_rigid.NODE_RIGID)
 
@@ -159,7 +166,7 @@ class Simulation:
     @track_energy.setter
     def track_energy(self, on: bool) -> None:
         # A change after set-up re-captures the step (its launches differ) and clears the contacts' half-ahead sums:
-        # without the books and without joint elements nothing books or clears them (warpdem.fem_contact
+        # without the books and without joint elements nothing books or clears them (warpdem.stages.fem_contact
         # eval_fem_contacts skips that launch), so forces kept from the last booked evaluation would otherwise be
         # booked against the velocities of a step long after.
         changed = hasattr(self, "_track_energy") and self._track_energy != bool(on)
@@ -185,8 +192,8 @@ class Simulation:
         # after the switch: no topology pass runs then).
         self.drift_nodes = not every_node_rigid(self.model, self.state)
         # Some tet left deformable: its viscous forces on a body's nodes have a half ahead to book after the bodies'
-        # drift (warpdem.rigid.drift_bodies); with none the step skips the tet stage (every tet_active changes in a
-        # switch or a pass, each followed by this set-up).
+        # drift (warpdem.stages.rigid.drift_bodies); with none the step skips the tet stage (every tet_active changes in
+        # a switch or a pass, each followed by this set-up).
         nt = int(self.state.tet_count.numpy()[0])
         self.deformable_tets = bool(np.any(self.state.tet_active.numpy()[:nt] == int(TET_ACTIVE)))
 
@@ -222,7 +229,7 @@ class Simulation:
         self._forces()
 
     def _body(self) -> None:
-        """Second half of a step, first half of the next (one pass: warpdem.integrate.kick_drift), its forces."""
+        """Second half of a step, first half of the next (one pass: warpdem.stages.integrate.kick_drift), its forces."""
         kick_drift(self.model, self.state, self.track_energy, self.drift_nodes)
         if self.rigid:
             drift_bodies(self.model, self.state, after_second_half=True, deformable=self.deformable_tets)
@@ -245,7 +252,7 @@ class Simulation:
         s.contact_t_tangential.zero_()
         s.node_f.zero_()
         # The next kick books the half ahead of exactly the viscous forces evaluated here (none of the damping: it
-        # starts with the next drift), whatever a pass took out since the last step (warpdem.integrate).
+        # starts with the next drift), whatever a pass took out since the last step (warpdem.stages.integrate).
         s.node_f_viscous.zero_()
         eval_tets(m, s, dt=0.0)
         if m.cohesive_capacity:
@@ -266,7 +273,7 @@ class Simulation:
 
     def relax_to_equilibrium(self, **kwargs) -> int:
         """Damped dynamic relaxation of the FEM nodes to the geostatic state before dynamics starts (keyword
-        arguments and return value: :func:`warpdem.loads.relax_to_equilibrium`)."""
+        arguments and return value: :func:`warpdem.stages.loads.relax_to_equilibrium`)."""
         steps = relax_to_equilibrium(self, **kwargs)
         eval_tet_stresses(self.model, self.state)
         return steps
@@ -321,8 +328,8 @@ class Simulation:
             The steps run: ``n_steps``, or fewer when ``stop_at_switch`` stopped at a switch.
 
         Raises:
-            warpdem.guard.UnstableRunError: the state went non-finite or ran away (warpdem.guard); the simulation is
-                left at the first bad step.
+            warpdem.stages.guard.UnstableRunError: the state went non-finite or ran away (warpdem.stages.guard); the
+                simulation is left at the first bad step.
         """
         remaining = n_steps
         while remaining > 0:
@@ -367,8 +374,8 @@ class Simulation:
         return self.switch_to_rigid() if due else None
 
     def switch_to_rigid(self) -> RigidReport:
-        """Turn every block rigid now, between steps (warpdem.rigid.make_bodies): each takes the mass, momentum and
-        angular momentum of its nodes; the strain energy of its tets and the kinetic energy of its element modes are
+        """Turn every block rigid now, between steps (warpdem.stages.rigid.make_bodies): each takes the mass, momentum
+        and angular momentum of its nodes; the strain energy of its tets and the kinetic energy of its element modes are
         booked as ``released_rigid_switch`` (with the change of the shadow term, as a conversion pass books it), so
         the books stay closed across the switch. Fracture and conversion passes stop. Forces are re-evaluated at the
         current positions (dt = 0) and the graphs re-captured.
@@ -527,9 +534,9 @@ class Simulation:
 
     # ------------------------------------------------------------------------------------------------------------
     def fracture_pass(self) -> SplitReport:
-        """One split pass now, between steps (warpdem.fracture): candidates, capacities grown ×2 to hold them, rounds
-        of independent sets; after splits the surface and contact lists are rebuilt and the forces re-evaluated at
-        the current positions (dt = 0; what the rebuild gives the FEM contact springs is booked,
+        """One split pass now, between steps (warpdem.stages.fracture): candidates, capacities grown ×2 to hold them,
+        rounds of independent sets; after splits the surface and contact lists are rebuilt and the forces re-evaluated
+        at the current positions (dt = 0; what the rebuild gives the FEM contact springs is booked,
         :meth:`_book_contact_topology`, and the change of Verlet's shadow term goes to ``energy_step_change``).
         Captured graphs are kept unless an array they read was reallocated. Reads back a few counts.
 
@@ -585,9 +592,9 @@ class Simulation:
         A pass moves nothing, so no contact force works across it. The surface is rebuilt, and the penalty stiffness
         of a split node's daughters (and of a converted tet's neighbours) is re-lumped over their new faces, but a
         node in contact keeps the stiffness per unit mass it held before the pass
-        (warpdem.fem_contact.hold_contact_stiffness): the daughters' springs sum to the parent's, so a split leaves
-        them as they were to float32 rounding, and a conversion can only lower them (a node that lost mass to spheres
-        presses with ω² m_new ≤ k). What is left to book: that loss, sphere–face springs on faces born inside an
+        (warpdem.stages.fem_contact.hold_contact_stiffness): the daughters' springs sum to the parent's, so a split
+        leaves them as they were to float32 rounding, and a conversion can only lower them (a node that lost mass to
+        spheres presses with ω² m_new ≤ k). What is left to book: that loss, sphere–face springs on faces born inside an
         overlap, springs the dt = 0 re-evaluation starts or lets go of on the new faces, and rounding. Before the
         hold, each pass created ½ Δk δ² at every split node pressed by δ into the ground or a face: 8.8 kJ by 4.5 ms
         on the boulder scene, a third of its energy in play, which its dashpots then took out."""
@@ -643,7 +650,7 @@ class Simulation:
 
     # ------------------------------------------------------------------------------------------------------------
     def conversion_pass(self) -> ConversionReport:
-        """One conversion pass now, between steps (warpdem.conversion): tets at their criterion turn into bonded
+        """One conversion pass now, between steps (warpdem.stages.conversion): tets at their criterion turn into bonded
         spheres; capacities grow ×2 first to hold what the pass writes; then the surface and contact lists are
         rebuilt, the stages set up again (sphere contact comes alive with the first spheres) and the forces
         re-evaluated at the current positions (dt = 0). Reads back a few counts.
@@ -663,12 +670,12 @@ class Simulation:
             mask: bool per live tet, shape (tet_count,).
 
         Raises:
-            ValueError: conversion is not attached (warpdem.conversion.attach_conversion) or the mask has the wrong
-                shape.
+            ValueError: conversion is not attached (warpdem.stages.conversion.attach_conversion) or the mask has the
+                wrong shape.
         """
         m = self.model
         if m.conversion_material_table is None:
-            raise ValueError("convert_tets: conversion is not attached (warpdem.conversion.attach_conversion)")
+            raise ValueError("convert_tets: conversion is not attached (warpdem.stages.conversion.attach_conversion)")
         nt = int(self.state.tet_count.numpy()[0])
         mask = np.asarray(mask)
         if mask.shape != (nt,):
@@ -778,11 +785,11 @@ class Simulation:
 
     # ------------------------------------------------------------------------------------------------------------
     def energy(self) -> EnergyBalance:
-        """The energy balance now (warpdem.energy.energy_balance; reads back; call between steps)."""
+        """The energy balance now (warpdem.stages.energy.energy_balance; reads back; call between steps)."""
         return energy_balance(self.model, self.state)
 
     def shadow(self) -> float:
-        """Verlet's shadow term of the energy books now [J] (warpdem.energy.shadow_term; reads back)."""
+        """Verlet's shadow term of the energy books now [J] (warpdem.stages.energy.shadow_term; reads back)."""
         m, n = self.model, self.particle_count
         mass = m.particle_mass.numpy()[:n].astype(np.float64)
         free = m.particle_motion.numpy()[:n] == 0

@@ -51,14 +51,15 @@ def jointed_cube(cells: int, device: str, node_order: str = "blocks") -> Simulat
     """A cube of ``cells``³ granite blocks of 1 m, one Kuhn cell (6 tets) each: every cell face inside the cube is a
     frictional joint (μ = 0.5), so the blocks are the cells. It rests on a ground wall under gravity, each block with
     a seeded small random velocity (the blocks rattle, so the contacts work), in rigid mode from the start at half
-    the blocks' stable step (warpdem.rigid_step.rigid_time_step), as a Simulation. ``node_order``:
+    the blocks' stable step (warpdem.stages.rigid_step.rigid_time_step), as a Simulation. ``node_order``:
     ModelBuilder.finalize's (the bench's, "blocks", numbers the nodes block by block; benchmarks/README.md,
     "bench blocks", compares it with "split")."""
-    from ..builder import ModelBuilder
-    from ..joints import JointProps
-    from ..mesh import TET_FACES, box_mesh
-    from ..rigid_step import rigid_time_step
+    from ..build.builder import ModelBuilder
+    from ..build.mesh import box_mesh
     from ..simulation import Simulation
+    from ..stages.joints import JointProps
+    from ..stages.rigid_step import rigid_time_step
+    from ..tables import TET_FACES
 
     points, tets = box_mesh((0.0, 0.0, 0.0), (float(cells),) * 3, (cells,) * 3)
     faces = tets[:, TET_FACES].reshape(-1, 3)

@@ -60,7 +60,7 @@ def converting_block(cells: int, device: str, may_convert: np.ndarray, stretch: 
     0.9 τ_f = 0.9 TRESCA_STRENGTH, a pass every step, one sphere per tet) and ``may_convert`` (bool per tet) the tets
     that may convert. Particle, bond and coupling slots are reserved for the case where every tet that may convert
     does (:func:`lattice_counts`), so the pass does not grow them. Returns (model, state)."""
-    from ..conversion import ConversionProps, attach_conversion, regrow_bonds
+    from ..stages.conversion import ConversionProps, attach_conversion, regrow_bonds
 
     flagged = int(np.count_nonzero(may_convert))
     model, state = stretched_granite(cells, device, stretch=stretch, particle_capacity=flagged)
@@ -74,10 +74,11 @@ def converting_block(cells: int, device: str, may_convert: np.ndarray, stretch: 
 
 def lattice_counts(model: Model, state: State, mask: np.ndarray) -> tuple[int, int]:
     """What a conversion of exactly the tets in ``mask`` (bool per tet, shape (tet_count,)) makes, counted on the host
-    by the rules of warpdem.conversion: (bonds, one per pair of tets in the mask that share an edge
-    (warpdem.lattice.edge_pairs); couplings, one per pair of a tet in the mask and an active tet outside it that share
-    an edge)."""
-    from ..lattice import TET_EDGES, edge_pairs
+    by the rules of warpdem.stages.conversion: (bonds, one per pair of tets in the mask that share an edge
+    (warpdem.stages.lattice.edge_pairs); couplings, one per pair of a tet in the mask and an active tet outside it that
+    share an edge)."""
+    from ..stages.lattice import edge_pairs
+    from ..tables import TET_EDGES
 
     count = len(mask)
     tets = model.tet_nodes.numpy()[:count].astype(np.int64)
@@ -101,12 +102,12 @@ def lattice_counts(model: Model, state: State, mask: np.ndarray) -> tuple[int, i
 
 
 def due_tets(model: Model, state: State) -> np.ndarray:
-    """The tets a conversion pass must convert, found on the host by brute force (the rules of warpdem.conversion):
-    live, active tets with ``tet_may_convert`` of a material that converts, whose stress (``state.tet_stress``,
-    brought up to date here) reaches the criterion of their material — Tresca (σ1 − σ3)/2 ≥ f τ_f or Rankine
-    σ1 ≥ f T_f, principal stresses in float64. Returns a bool mask, shape (tet_count,)."""
+    """The tets a conversion pass must convert, found on the host by brute force (the rules of
+    warpdem.stages.conversion): live, active tets with ``tet_may_convert`` of a material that converts, whose stress
+    (``state.tet_stress``, brought up to date here) reaches the criterion of their material — Tresca (σ1 − σ3)/2 ≥ f τ_f
+    or Rankine σ1 ≥ f T_f, principal stresses in float64. Returns a bool mask, shape (tet_count,)."""
     from ..kernels.conversion import CRITERION_RANKINE, CRITERION_TRESCA
-    from ..tets import eval_tet_stresses
+    from ..stages.tets import eval_tet_stresses
 
     eval_tet_stresses(model, state)
     count = int(state.tet_count.numpy()[0])
@@ -206,8 +207,8 @@ def converting_run_block(cells: int, device: str, steps: int, interval: int, see
     steps (0: none, the reference). Returns a Simulation."""
     import dataclasses
 
-    from ..conversion import ConversionProps, attach_conversion
     from ..simulation import Simulation
+    from ..stages.conversion import ConversionProps, attach_conversion
 
     model, state, strengths, _ = pulled_granite(cells, device, steps, seed)
     count = int(state.tet_count.numpy()[0])

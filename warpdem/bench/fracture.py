@@ -70,8 +70,8 @@ def stretched_granite(
     T_f and σ_yy = σ_zz = λ ε = stretch × T_f ν / (1 − ν) (= stretch × T_f / 3 for ν = 0.25)."""
     import warp as wp
 
-    from ..builder import ModelBuilder
-    from ..mesh import box_mesh
+    from ..build.builder import ModelBuilder
+    from ..build.mesh import box_mesh
 
     points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (cells, cells, cells))
     held = (points[:, 0] == 0.0) | (points[:, 0] == 1.0)
@@ -96,7 +96,7 @@ def stretched_block(
     """The fracture pass case: :func:`stretched_granite` at σ_xx = STRETCH × T_f with fracture on, a pass every step
     and ``may_split`` (bool per node) the nodes that may split. Returns (model, state); ``node_capacity`` leaves room
     for the daughters."""
-    from ..fracture import FractureProps, attach_fracture
+    from ..stages.fracture import FractureProps, attach_fracture
 
     model, state = stretched_granite(cells, device, node_capacity=node_capacity)
     props = FractureProps(tensile_strength=TENSILE_STRENGTH, fracture_energy=FRACTURE_ENERGY)
@@ -104,12 +104,12 @@ def stretched_block(
 
 
 def qualifying_nodes(model: Model, state: State, may_split: np.ndarray) -> int:
-    """How many nodes the split pass must split, counted on the host by brute force (the rules of warpdem.fracture):
-    nodes with ``may_split``, whose volume-weighted average of their tets' stresses (LDEC eq. 1) has σ1 ≥ the least
-    T_f of their tets' materials, and whose star has tets on both sides of the plane through the node normal to p1.
-    Nodes that share a tet are all counted: the pass's rounds split them one after another. (The pass also asks for a
-    face between the two sides; a node's star in a conforming mesh such as the Kuhn box is face-connected around it,
-    so tets on both sides imply one.)"""
+    """How many nodes the split pass must split, counted on the host by brute force (the rules of
+    warpdem.stages.fracture): nodes with ``may_split``, whose volume-weighted average of their tets' stresses (LDEC eq.
+    1) has σ1 ≥ the least T_f of their tets' materials, and whose star has tets on both sides of the plane through the
+    node normal to p1. Nodes that share a tet are all counted: the pass's rounds split them one after another. (The pass
+    also asks for a face between the two sides; a node's star in a conforming mesh such as the Kuhn box is
+    face-connected around it, so tets on both sides imply one.)"""
     nodes = int(state.node_count.numpy()[0])
     tcount = int(state.tet_count.numpy()[0])
     tets = model.tet_nodes.numpy()[:tcount].astype(np.int64)
@@ -261,9 +261,9 @@ def pulled_granite(cells: int, device: str, steps: int, seed: int = 0) -> tuple[
     of the way through ``steps`` steps at half the critical step and the strongest by half way (σ_xx ≈ E ε in
     uniaxial stress). Returns (model, state, strengths [Pa] of the classes in material order, shape
     (STRENGTH_CLASSES,), the driven nodes as a bool mask, shape (nodes,))."""
-    from ..builder import ModelBuilder
+    from ..build.builder import ModelBuilder
+    from ..build.mesh import box_mesh
     from ..host_data import BondData
-    from ..mesh import box_mesh
 
     points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (cells, cells, cells))
     cell = np.arange(len(tets)) // 6
@@ -302,8 +302,8 @@ def cracking_block(cells: int, device: str, steps: int, interval: int, seed: int
     Simulation."""
     import dataclasses
 
-    from ..fracture import FractureProps, attach_fracture
     from ..simulation import Simulation
+    from ..stages.fracture import FractureProps, attach_fracture
 
     model, state, strengths, driven = pulled_granite(cells, device, steps, seed)
     props = [FractureProps(tensile_strength=float(t), fracture_energy=FRACTURE_ENERGY) for t in strengths]

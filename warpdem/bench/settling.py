@@ -65,7 +65,7 @@ def find_case(n: int, data_dir: Path | None = None) -> tuple[np.ndarray, dict]:
 
 def settling_case(n: int, device: str, track_energy: bool = False, data_dir: Path | None = None):
     """Model, state and Simulation of the settling case."""
-    from ..builder import InteractionProps, ModelBuilder
+    from ..build.builder import InteractionProps, ModelBuilder
     from ..simulation import Simulation
 
     q, box = find_case(n, data_dir)

@@ -42,8 +42,8 @@ def vibrating_block(tets_wanted: int, device: str):
     """A cubic granite block of about ``tets_wanted`` Kuhn tets (6 per cell), vibrating, as a Simulation."""
     import math
 
-    from ..builder import ModelBuilder
-    from ..mesh import box_mesh
+    from ..build.builder import ModelBuilder
+    from ..build.mesh import box_mesh
     from ..simulation import Simulation
 
     n = max(1, round((tets_wanted / 6.0) ** (1.0 / 3.0)))

@@ -381,8 +381,8 @@ class ArchMesh(_Model):
 
 
 class BrickMeshSpec(_Model):
-    """Rock laid in courses of equal blocks (warpdem.bricks): bedding joints between the courses, head joints between
-    the blocks, every other course shifted (running bond), on a structured grid of cells no longer than h."""
+    """Rock laid in courses of equal blocks (warpdem.build.bricks): bedding joints between the courses, head joints
+    between the blocks, every other course shifted (running bond), on a structured grid of cells no longer than h."""
 
     kind: Literal["bricks"] = Field(description="Mesh kind.")
     lo: Vec3 = Field(description="Lower corner of the box [m].")

@@ -14,12 +14,12 @@ from pydantic import (
     model_validator,
 )
 
-from ..geology import BOX_FACE_NAMES, OPENING_FACE_NAME, SURFACE_FACE_NAME
 from ..limits import (
     BYTES_PER_NEIGHBOR_SLOT,
     BYTES_PER_SPHERE,
     size_problem,
 )
+from ..tables import BOX_FACE_NAMES, OPENING_FACE_NAME, SURFACE_FACE_NAME
 from .continuum import (
     ARCH_FACE_NAMES,
     ArchMesh,

@@ -90,7 +90,7 @@ class Conversion(_Model):
     @field_validator("spheres_per_tet")
     @classmethod
     def _check_spheres_per_tet(cls, value: int) -> int:
-        # warpdem.multisphere: the corner sub-tets of the 1:8 subdivision (8 is not offered; it says why).
+        # warpdem.stages.multisphere: the corner sub-tets of the 1:8 subdivision (8 is not offered; it says why).
         if value not in (1, 4):
             raise ValueError("must be 1 or 4")
         return value
@@ -98,8 +98,8 @@ class Conversion(_Model):
 
 class Rigid(_Model):
     """Rigid blocks (LDEC §2–§4): each connected set of tets (what joints, cracks and conversion left in one piece)
-    turns into one rigid body whose nodes follow it; contacts and joints act between the blocks (warpdem.rigid). At
-    most one of ``enabled``, ``switch_time`` and ``energy_fraction``."""
+    turns into one rigid body whose nodes follow it; contacts and joints act between the blocks (warpdem.stages.rigid).
+    At most one of ``enabled``, ``switch_time`` and ``energy_fraction``."""
 
     enabled: Bool = Field(default=False, description="Rigid blocks from the start (t = 0).")
     switch_time: Float | None = Field(

@@ -50,7 +50,7 @@ class Run(_Model):
     allow_initial_overlap: Bool = Field(
         default=False,
         description="Run even when spheres start overlapping each other or the rock by more than 5 % of a radius, "
-        "or with a centre inside the rock (warpdem.overlap); otherwise such a scene is refused at build time.",
+        "or with a centre inside the rock (warpdem.build.overlap); otherwise such a scene is refused at build time.",
     )
     allow_unstable_dt: Bool = Field(
         default=False,
@@ -210,7 +210,7 @@ class Output(_Model):
     color_by: Literal["speed", "part", "damage", "fragment"] = Field(
         default="speed",
         description="Particle colouring in the USD file; damage = the fraction of each sphere's bonds broken so far; "
-        "fragment = a colour per fragment (warpdem.fragments).",
+        "fragment = a colour per fragment (warpdem.stages.fragments).",
     )
     bonds_as_curves: Bool = Field(default=False, description="Write intact bonds as USD curves.")
     cohesive_as_curves: Bool = Field(

@@ -1,0 +1,84 @@
+"""The data of a model's loads and boundary dashpots, as the Model holds it (:attr:`warpdem.model.Model.loads`).
+
+The load stage (:mod:`warpdem.stages.loads`) fills and evaluates these; they live below the Model so that the Model
+can hold them without importing the stage that uses them (tests/test_layers.py keeps the layers apart).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+__all__ = ["FaceSet", "LoadModel"]
+
+
+@dataclass
+class FaceSet:
+    """Faces on the device.
+
+    Attributes:
+        nodes: node ids, outward order, shape (F,), vec3i.
+        edge_a, edge_b: reference edges X1 - X0 and X2 - X0 [m] (float64 on the host), shape (F,), vec3.
+        index: pressure load of each face (into LoadModel.pressure_loads), shape (F,), int32; or None.
+        impedance: (ρ c_p, ρ c_s) of the tet behind each dashpot face [Pa s/m], shape (F,), vec2; or None.
+    """
+
+    nodes: wp.array
+    edge_a: wp.array
+    edge_b: wp.array
+    index: wp.array | None = None
+    impedance: wp.array | None = None
+
+    @property
+    def count(self) -> int:
+        return self.nodes.shape[0]
+
+    @staticmethod
+    def create(
+        points: np.ndarray,
+        faces: np.ndarray,
+        device,
+        index: np.ndarray | None = None,
+        impedance: np.ndarray | None = None,
+    ) -> FaceSet:
+        x = np.asarray(points, dtype=np.float64)[faces]
+        return FaceSet(
+            nodes=wp.array(faces.astype(np.int32), dtype=wp.vec3i, device=device),
+            edge_a=wp.array((x[:, 1] - x[:, 0]).astype(np.float32), dtype=wp.vec3, device=device),
+            edge_b=wp.array((x[:, 2] - x[:, 0]).astype(np.float32), dtype=wp.vec3, device=device),
+            index=None if index is None else wp.array(index.astype(np.int32), dtype=int, device=device),
+            impedance=None
+            if impedance is None
+            else wp.array(impedance.astype(np.float32), dtype=wp.vec2, device=device),
+        )
+
+
+@dataclass
+class LoadModel:
+    """Loads and boundary dashpots of a model (static during a step).
+
+    Attributes:
+        pressure: loaded faces by history kind (one launch per kind).
+        pressure_loads: parameters of every pressure load, shape (L,), PressureLoad; None without loads.
+        pressure_names: name of each pressure load, index = load id.
+        table_times: times of all table histories, concatenated [s], float64.
+        table_values: their pressures [Pa], float32.
+        dashpots: the non-reflecting faces with their impedances, or None.
+        node_driver: velocity driver of each node or -1, shape (node_capacity,), int32; None without drivers.
+        drivers: the velocity drivers, shape (D,), NodeDriver; None without drivers.
+    """
+
+    pressure: dict[str, FaceSet]
+    pressure_loads: wp.array | None
+    pressure_names: list[str]
+    table_times: wp.array
+    table_values: wp.array
+    dashpots: FaceSet | None
+    node_driver: wp.array | None
+    drivers: wp.array | None
+
+    @property
+    def num_drivers(self) -> int:
+        return 0 if self.drivers is None else self.drivers.shape[0]

@@ -1,0 +1,145 @@
+"""Cohesive stage (host side): the weakening elements between the daughters of split nodes (LDEC eqs. 5–10, force
+law and energy books in kernels/cohesive.py), their stored and dissipated energy, the removal of broken elements by
+the compaction helper, and growth of their slots.
+
+An element lives in the slots < ``State.cohesive_count``; ``cohesive_broken`` marks the ones that broke (d_max ≥ δ_c)
+and wait for :func:`compact_cohesive` between steps. The energy they dissipated stays with their nodes
+(``State.node_energy_cohesive``), so compaction loses nothing from the books.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import warp as wp
+
+from ..kernels import cohesive as kc
+from ..model import COHESIVE_FIELDS, Model, State
+from .compaction import Compactor, grow_live_slots
+from .integrate import pose_ahead
+
+
+def eval_cohesive(model: Model, state: State, dt: float | None = None, track_energy: bool = True) -> None:
+    """Add the forces of the intact cohesive elements to ``state.node_f`` and advance their history (launches only).
+
+    Per element (one thread per slot of ``model.cohesive_capacity``): the central force of LDEC eqs. 5–8, +f on A
+    towards B and −f on B; d_max (eq. 8) and ``node_damage`` (atomic max of δ_max/δ_c on A and B) updated; with
+    ``track_energy`` the trapezoid work of the step less the change of the spring energy booked into
+    ``node_energy_cohesive``, half on each node (kernels/cohesive.py: the books as velocity Verlet does the work, so
+    ``node_qd`` must hold v_{n+1/2}, as it does during a step's force evaluation). An element whose d_max reaches δ_c
+    breaks: no force, ``cohesive_broken`` = 1, what its spring held released into the books, the counters
+    ``cohesive_broken_total`` / ``cohesive_area_broken`` / ``cohesive_work_broken`` (Γ A_f, eq. 9) advanced, damage 1
+    on both nodes and ``fem_rebuild_flag`` raised.
+
+    Args:
+        model: the model (``node_ref_q``, ``cohesive_capacity``).
+        state: the state; its ``node_f`` accumulates the forces [N].
+        dt: time step [s] (None: ``model.dt``); 0 evaluates the forces only (the set-up and post-split evaluation):
+            no history, no books, no break.
+        track_energy: book the dissipated energy.
+    """
+    if model.cohesive_capacity == 0:
+        return
+    m, s = model, state
+    wp.launch(
+        kc.eval_cohesive_kernel,
+        dim=m.cohesive_capacity,
+        inputs=[
+            # Model:
+            m.node_ref_q,
+            m.node_inv_mass,
+            m.dt,
+            m.dt if dt is None else dt,
+            # State in:
+            s.cohesive_count,
+            s.cohesive_a,
+            s.cohesive_b,
+            s.cohesive_fc,
+            s.cohesive_delta_c,
+            s.cohesive_alpha,
+            s.cohesive_area,
+            s.cohesive_dir,
+            s.node_u,
+            s.node_qd,
+            pose_ahead(s),
+            # In:
+            int(track_energy),
+        ],
+        outputs=[
+            s.cohesive_d_max,
+            s.cohesive_f_prev,
+            s.cohesive_energy_prev,
+            s.cohesive_broken,
+            s.cohesive_broken_total,
+            s.cohesive_area_broken,
+            s.cohesive_work_broken,
+            s.fem_rebuild_flag,
+            s.node_f,
+            s.node_damage,
+            s.node_energy_cohesive,
+        ],
+        device=m.device,
+    )
+
+
+def cohesive_energy(model: Model, state: State) -> tuple[float, float]:
+    """The cohesive elements' energy [J]: (stored, dissipated).
+
+    stored: Σ over the intact live elements of the spring energy on their unloading lines at their last evaluation
+    (``cohesive_energy_prev``: ½ k d², k = f(δ_max)/δ_max, once open; kernels/cohesive.py ``spring_energy``);
+    dissipated: Σ ``node_energy_cohesive`` over the live nodes (the work done on the elements less what they hold:
+    ½ f_c δ_max per intact element and Γ A_f per broken one where the steps resolve δ_c).
+    Allocates and reads back: call between steps.
+    """
+    m, s = model, state
+    stored = wp.zeros(1, dtype=wp.float64, device=m.device)
+    if m.cohesive_capacity:
+        wp.launch(
+            kc.cohesive_energy_kernel,
+            dim=m.cohesive_capacity,
+            inputs=[s.cohesive_count, s.cohesive_energy_prev, s.cohesive_broken],
+            outputs=[stored],
+            device=m.device,
+        )
+    nodes = int(s.node_count.numpy()[0])
+    dissipated = float(s.node_energy_cohesive.numpy()[:nodes].sum())
+    return float(stored.numpy()[0]), dissipated
+
+
+def compact_cohesive(model: Model, state: State, compactor: Compactor) -> int:
+    """Remove the broken elements (a topology pass between steps): the survivors keep their order in the slots
+    ``0 .. count - 1`` and the slots past them are zero. Returns the live element count (reads back).
+
+    Args:
+        model: the model.
+        state: the state; every array of ``COHESIVE_FIELDS`` and ``cohesive_count`` are updated in place.
+        compactor: a :class:`warpdem.stages.compaction.Compactor` of ``model.cohesive_capacity`` slots.
+
+    Raises:
+        ValueError: the compactor's capacity is not the model's cohesive capacity.
+    """
+    if compactor.capacity != model.cohesive_capacity:
+        raise ValueError(
+            f"compact_cohesive: the compactor has {compactor.capacity} slots, the model {model.cohesive_capacity} "
+            "cohesive slots (make a new Compactor after growing them)"
+        )
+    if model.cohesive_capacity == 0:
+        return 0
+    fields = [getattr(state, name) for name in COHESIVE_FIELDS]
+    compactor.remove(state.cohesive_count, state.cohesive_broken, fields)
+    return int(state.cohesive_count.numpy()[0])
+
+
+def regrow_cohesive(model: Model, state: State, capacity: int) -> tuple[Model, State]:
+    """Copies of ``model`` and ``state`` with ``capacity`` cohesive element slots: the live elements (slots below
+    ``cohesive_count``) copied in place, the other slots zero; every other array is shared. Reads the count back:
+    call between steps.
+
+    Raises:
+        ValueError: ``capacity`` is below the live element count.
+    """
+    live = int(state.cohesive_count.numpy()[0])
+    if capacity < live:
+        raise ValueError(f"regrow_cohesive: capacity {capacity} is below the {live} live cohesive elements")
+    fields = grow_live_slots(state, COHESIVE_FIELDS, live, capacity)
+    return dataclasses.replace(model, cohesive_capacity=capacity), dataclasses.replace(state, **fields)

@@ -1,0 +1,180 @@
+"""The FEM contact surface (host side): the boundary faces of the tet mesh, rebuilt on the device after every
+topology pass (node splitting, conversion), with the node → tet stars, the tets' face neighbours, every surface
+node's penalty stiffness and the faces' extent; and the map that carries each live face's id (and so every contact
+history that names it) across a rebuild. The contact stage that uses them is :mod:`warpdem.stages.fem_contact`."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import warp as wp
+
+from ..kernels import fem_contact as kf
+from ..model import Model, State
+from .compaction import Compactor
+from .topology import NodeStars
+
+
+def build_surface(model: Model, state: State) -> Model:
+    """Rebuild the node → tet stars, the tet face neighbours, the boundary faces (a compaction of the tet-face slots
+    to those with no neighbour), every node's penalty stiffness and the faces' extent, on the device. Between steps
+    (reads back the face count and extent); the face arrays grow (×2) when the surface outgrows them.
+
+    Returns:
+        The model with the new topology arrays; ``state.face_count`` is set.
+    """
+    return rebuild_surface(model, state)[0]
+
+
+def rebuild_surface(model: Model, state: State) -> tuple[Model, wp.array]:
+    """:func:`build_surface`, writing into the model's existing topology arrays where they are large enough (so a
+    captured graph that reads them stays valid), and also returning the new face of every tet-face slot (-1 for an
+    interior slot), shape (4 tet_capacity,), int32: the map that carries face ids across the rebuild (a face keeps
+    its tet-face slot through any split).
+    """
+    m, s = model, state
+    d = m.device
+    ncap, tcap = m.node_capacity, m.tet_capacity
+    stars = NodeStars(ncap, tcap, d)
+    stars.build(m.tet_nodes, s.tet_count, s.tet_active, s.node_count, ref_face_nbr=m.ref_tet_face_nbr)
+    slots = 4 * tcap
+    compactor = Compactor(slots, d)
+    tet_face_count = wp.zeros(1, dtype=int, device=d)
+    dead = wp.zeros(slots, dtype=int, device=d)
+    if tcap:
+        wp.launch(kf.count_tet_faces_kernel, dim=1, inputs=[s.tet_count], outputs=[tet_face_count], device=d)
+        wp.launch(
+            kf.flag_boundary_faces_kernel,
+            dim=slots,
+            inputs=[s.tet_count, s.tet_active, stars.tet_face_nbr],
+            outputs=[dead],
+            device=d,
+        )
+    old_to_new = compactor.plan(tet_face_count, dead)
+    count = int(compactor.new_count.numpy()[0])
+    cap = max(count, m.face_capacity)
+    if m.face_nodes is not None and m.face_capacity >= count:
+        face_nodes, face_tet, face_joint, face_depth = m.face_nodes, m.face_tet, m.face_joint, m.face_depth
+    else:
+        if m.face_nodes is not None:
+            cap = max(count, 2 * m.face_capacity)  # a growing crack surface: amortised growth, as every capacity
+        face_nodes = wp.zeros(cap, dtype=wp.vec3i, device=d)
+        face_tet = wp.zeros(cap, dtype=int, device=d)
+        face_joint = wp.zeros(cap, dtype=int, device=d)
+        face_depth = wp.zeros(cap, dtype=float, device=d)
+    if tcap:
+        wp.launch(
+            kf.scatter_boundary_faces_kernel,
+            dim=slots,
+            inputs=[m.node_ref_q, m.tet_nodes, m.tet_volume, m.tet_face_joint, tet_face_count, old_to_new],
+            outputs=[face_nodes, face_tet, face_joint, face_depth],
+            device=d,
+        )
+    wp.copy(s.face_count, compactor.new_count)
+    stiffness = _reuse(m.node_contact_stiffness, ncap, float, d)
+    material = _reuse(m.node_contact_material, ncap, int, d)
+    if ncap:
+        wp.launch(
+            kf.node_contact_stiffness_kernel,
+            dim=ncap,
+            inputs=[
+                m.node_ref_q,
+                m.tet_nodes,
+                m.tet_volume,
+                m.tet_material,
+                m.tet_material_table,
+                stars.tet_face_nbr,
+                m.tet_face_joint,
+                m.joint_material_table,
+                m.contact_stiffness_factor,
+                m.contact_face_normal_stiffness,
+                *stars.csr(),
+                s.node_count,
+            ],
+            outputs=[stiffness, material],
+            device=d,
+        )
+    extent = wp.zeros(2, dtype=float, device=d)
+    if cap:
+        wp.launch(
+            kf.face_extent_kernel,
+            dim=cap,
+            inputs=[m.node_ref_q, face_nodes, face_depth, s.face_count],
+            outputs=[extent],
+            device=d,
+        )
+    radius, depth_max = (float(v) for v in extent.numpy())
+    topology = {}
+    for name, new in (
+        ("star_offset", stars.offset),
+        ("star_count", stars.count),
+        ("star_tets", stars.tets),
+        ("tet_face_nbr", stars.tet_face_nbr),
+    ):
+        old = getattr(m, name)
+        if old is not None and old.shape == new.shape:
+            wp.copy(old, new)
+            new = old
+        topology[name] = new
+    model = dataclasses.replace(
+        m,
+        face_capacity=cap,
+        **topology,
+        face_nodes=face_nodes,
+        face_tet=face_tet,
+        face_joint=face_joint,
+        face_depth=face_depth,
+        node_contact_stiffness=stiffness,
+        node_contact_material=material,
+        face_radius=radius,
+        face_depth_max=depth_max,
+    )
+    return model, old_to_new
+
+
+def _reuse(a: wp.array | None, n: int, dtype: type, device: wp.context.Device) -> wp.array:
+    """``a`` zeroed when it has n entries, else a new zero array of n."""
+    if a is not None and a.shape[0] == n:
+        a.zero_()
+        return a
+    return wp.zeros(n, dtype=dtype, device=device)
+
+
+def remap_face_ids(
+    model: Model, state: State, face_slot: wp.array, old_face_count: int, slot_to_face: wp.array
+) -> None:
+    """Carry the face ids the FEM contact state holds (every spring slot's target ``node_face_spring``, the
+    sphere–face candidate slots ``sphere_face_index``) across a surface rebuild: old face → its tet-face slot
+    (``face_slot``, taken before the topology changed) → the new face of that slot (``slot_to_face`` from
+    :func:`rebuild_surface`). Launches only."""
+    for ids in (state.node_face_spring, state.sphere_face_index):
+        if ids.shape[0] and old_face_count:
+            wp.launch(
+                kf.remap_face_ids_kernel,
+                dim=ids.shape[0],
+                inputs=[old_face_count, face_slot, slot_to_face],
+                outputs=[ids],
+                device=model.device,
+            )
+
+
+def face_slots(model: Model, state: State, out: wp.array | None = None) -> wp.array:
+    """The tet-face slot 4t + k of every boundary face (-1 past the count), shape (face_capacity,), int32; call before
+    a topology pass changes the tets (launches only)."""
+    if out is None or out.shape[0] != max(model.face_capacity, 1):
+        out = wp.full(max(model.face_capacity, 1), -1, dtype=int, device=model.device)
+    if model.face_capacity:
+        wp.launch(
+            kf.tet_face_slots_kernel,
+            dim=model.face_capacity,
+            inputs=[model.tet_nodes, model.face_nodes, model.face_tet, state.face_count],
+            outputs=[out],
+            device=model.device,
+        )
+    return out
+
+
+def smallest_face_depth(model: Model, state: State) -> float:
+    """Smallest face_depth of the live boundary faces [m] (0 without faces)."""
+    n = int(state.face_count.numpy()[0])
+    return float(model.face_depth.numpy()[:n].min()) if n else 0.0

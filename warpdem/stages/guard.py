@@ -1,0 +1,223 @@
+"""Stability guard: an explicit time step above the critical one is refused at set-up, and a run whose state goes
+non-finite or runs away is stopped between runs of steps with a message that names the time, the step, the first
+bad sphere or node and the likely cause.
+
+Set-up: the builder estimates the critical time step and what sets it (:class:`CriticalStep`: a tet, a contact,
+a bond, a dashpot, a penalty spring); :func:`check_time_step` refuses an explicit dt above it. The refusal is at
+the critical step itself, not at the ``safety_factor`` fraction of it that ``dt = "auto"`` takes: the estimates are
+bounds (element eigenvalue bounds, the fastest mode of the stiffest sphere), so a dt between the two may well be
+stable and is the user's call, while one above the bound is not stable by the estimate's own argument.
+
+Run time: :class:`StabilityGuard` launches one check over the spheres and one over the FEM nodes after each run of
+steps (``kernels/guard.py``; no read-back inside the step): a non-finite position, velocity or spin, or a speed above
+the run-away bound ``Model.speed_limit + |g| t`` (:func:`run_away_speed`): the fastest P-wave speed c_p of the
+materials and bond chains, or SPEED_LIMIT_FACTOR times the fastest initial, wall or driver speed, or particle
+velocity 2 p / (ρ c_p) of a pressure load, if that is higher.
+A material point moving at c_p would be at 100 % strain (v = ε c), a sphere can gain no more than its launch speeds
+from collisions, and gravity adds at most |g| t: what passes the bound is a blow-up. A blow-up that saturates below
+it (an unconfined bonded cluster whose bonds all break flies apart at about c_p) is not caught here; the energy
+balance of the summary shows it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from ..kernels import guard as kg
+from ..model import Model, State
+
+SPEED_LIMIT_FACTOR = 10.0
+"""Run-away speed bound relative to the fastest launch speed of the scene (initial, wall, driver, load) [-]."""
+
+PROBLEMS = {
+    kg.PROBLEM_POSITION: "non-finite position",
+    kg.PROBLEM_VELOCITY: "non-finite velocity",
+    kg.PROBLEM_SPIN: "non-finite angular velocity",
+    kg.PROBLEM_SPEED: "run-away speed",
+}
+
+
+@dataclass(frozen=True)
+class CriticalStep:
+    """A critical time step [s] and what sets it, in words (``"tet 123 of material granite"``)."""
+
+    value: float
+    source: str
+
+
+class UnstableTimeStepError(ValueError):
+    """An explicit time step above the critical one, refused at set-up.
+
+    Attributes:
+        dt: the time step asked for [s]. critical: the estimate and what sets it.
+    """
+
+    def __init__(self, dt: float, critical: CriticalStep) -> None:
+        self.dt = dt
+        self.critical = critical
+        super().__init__(
+            f"dt = {dt:.4g} s exceeds the critical time step {critical.value:.4g} s, set by {critical.source}"
+        )
+
+
+def check_time_step(dt: float, critical: CriticalStep, allow_unstable: bool = False) -> None:
+    """Refuse an explicit time step [s] above the critical one, unless ``allow_unstable``.
+
+    Raises:
+        UnstableTimeStepError: dt > critical.value and not allow_unstable.
+    """
+    if dt > critical.value and not allow_unstable:
+        raise UnstableTimeStepError(dt, critical)
+
+
+def p_wave_speed(density: float, young: float, poisson: float) -> float:
+    """c_p = sqrt((λ + 2μ)/ρ) = sqrt(E (1 - ν) / ((1 + ν)(1 - 2ν) ρ)) [m/s], the fastest wave of an elastic solid."""
+    return math.sqrt(young * (1.0 - poisson) / ((1.0 + poisson) * (1.0 - 2.0 * poisson) * density))
+
+
+def run_away_speed(wave_speeds: list[float], launch_speeds: list[float]) -> float:
+    """The run-away bound ``Model.speed_limit`` [m/s]: the fastest wave speed, or SPEED_LIMIT_FACTOR × the fastest
+    launch speed (initial, wall, driver, pressure load) if higher (inf when there is none: only non-finite values
+    are caught)."""
+    fastest = max(max(wave_speeds, default=0.0), SPEED_LIMIT_FACTOR * max(launch_speeds, default=0.0))
+    return fastest if fastest > 0.0 else math.inf
+
+
+class UnstableRunError(RuntimeError):
+    """A run stopped because its state went non-finite or ran away.
+
+    Attributes:
+        time: simulated time of the first bad state [s]. step: its step. entity: the first bad sphere or node, in
+        words. problem: what is wrong with it. cause: the likely cause. outputs: what the run left behind (the
+        runner adds it: the published stage, the last good checkpoint), or "".
+    """
+
+    def __init__(self, time: float, step: int, entity: str, problem: str, cause: str) -> None:
+        self.time, self.step, self.entity, self.problem, self.cause = time, step, entity, problem, cause
+        self.outputs = ""
+        super().__init__()
+
+    def __str__(self) -> str:
+        line = (
+            f"unstable run stopped at t = {self.time:.6g} s (step {self.step}): {self.entity}: {self.problem}; "
+            f"likely cause: {self.cause}"
+        )
+        return f"{line}; {self.outputs}" if self.outputs else line
+
+
+@dataclass
+class GuardReport:
+    """The guard's findings after a run of steps: the first bad sphere and node slots (-1 for none), what is wrong
+    with each (a ``kernels.guard.PROBLEM_*`` code) and how many are bad."""
+
+    sphere: int
+    sphere_problem: int
+    spheres_bad: int
+    node: int
+    node_problem: int
+    nodes_bad: int
+
+
+class StabilityGuard:
+    """The run-time check of a simulation: two launches and a read-back of four ints, between runs of steps.
+
+    Args:
+        device: Warp device of the model.
+    """
+
+    def __init__(self, device: wp.context.Device) -> None:
+        self.report = wp.zeros(4, dtype=int, device=device)
+        self._clean = np.array([kg.NO_KEY, 0, kg.NO_KEY, 0], dtype=np.int32)
+
+    def check(self, model: Model, state: State) -> GuardReport | None:
+        """Check the state now; None when every sphere and node is finite and below the run-away bound."""
+        m, s = model, state
+        self.report.assign(self._clean)
+        gravity_norm = float(np.linalg.norm(m.gravity))
+        if m.particle_capacity:
+            wp.launch(
+                kg.check_spheres_kernel,
+                dim=m.particle_capacity,
+                inputs=[
+                    m.speed_limit,
+                    gravity_norm,
+                    s.particle_count,
+                    s.particle_q,
+                    s.particle_qd,
+                    s.particle_omega,
+                    s.time,
+                ],
+                outputs=[self.report],
+                device=m.device,
+            )
+        if m.node_capacity:
+            wp.launch(
+                kg.check_nodes_kernel,
+                dim=m.node_capacity,
+                inputs=[m.speed_limit, gravity_norm, s.node_count, s.node_u, s.node_qd, s.time],
+                outputs=[self.report],
+                device=m.device,
+            )
+        key_s, bad_s, key_n, bad_n = (int(v) for v in self.report.numpy())
+        if not bad_s and not bad_n:
+            return None
+        np_ = kg.NUM_PROBLEMS
+        return GuardReport(
+            sphere=key_s // np_ if bad_s else -1,
+            sphere_problem=key_s % np_,
+            spheres_bad=bad_s,
+            node=key_n // np_ if bad_n else -1,
+            node_problem=key_n % np_,
+            nodes_bad=bad_n,
+        )
+
+    def error(self, model: Model, state: State, report: GuardReport, step: int, time: float) -> UnstableRunError:
+        """The error for a report: the first bad sphere (else node) in words, what is wrong, the likely cause."""
+        m, s = model, state
+        bound = m.speed_limit + float(np.linalg.norm(m.gravity)) * time
+        if report.sphere >= 0:
+            i, code = report.sphere, report.sphere_problem
+            pid = int(m.particle_id.numpy()[i])
+            part = m.part_names[int(m.particle_part.numpy()[i])]
+            entity = f"sphere {pid} (part {part})"
+            values = {
+                kg.PROBLEM_POSITION: s.particle_q,
+                kg.PROBLEM_SPIN: s.particle_omega,
+            }.get(code, s.particle_qd)
+        else:
+            i, code = report.node, report.node_problem
+            tets = m.tet_nodes.numpy()[: int(s.tet_count.numpy()[0])]
+            in_tet = np.nonzero((tets == i).any(axis=1))[0]
+            where = ""
+            if len(in_tet):
+                t = int(in_tet[0])
+                where = f" (of tet {t}, material {m.material_names[int(m.tet_material.numpy()[t])]})"
+            entity = f"FEM node {i}{where}"
+            values = s.node_u if code == kg.PROBLEM_POSITION else s.node_qd
+        value = values.numpy()[i].astype(np.float64)
+        if code == kg.PROBLEM_SPEED:
+            problem = f"speed {np.linalg.norm(value):.3g} m/s above the run-away bound {bound:.3g} m/s"
+        else:
+            problem = f"{PROBLEMS[code]} {np.array2string(value, precision=3)}"
+        problem += f" ({report.spheres_bad} spheres and {report.nodes_bad} FEM nodes bad)"
+        return UnstableRunError(time, step, entity, problem, likely_cause(m))
+
+
+def likely_cause(model: Model) -> str:
+    """The likely cause of a blow-up, from the time step against the critical one."""
+    dt, critical, source = model.dt, model.critical_dt, model.critical_dt_source
+    if dt > critical:
+        return (
+            f"time step too large: dt = {dt:.4g} s is {dt / critical:.3g} x the critical time step {critical:.4g} s "
+            f"set by {source} (allowed by allow_unstable_dt); use dt <= {critical:.4g} s or dt = 'auto'"
+        )
+    within = f"{critical:.4g} s set by {source}" if math.isfinite(critical) else "(no estimate: nothing to bound it)"
+    return (
+        f"dt = {dt:.4g} s is within the critical time step {within}, so the state itself is extreme: initial "
+        "overlaps, loads or velocities far beyond what the materials carry, or a contact stiffer than estimated; "
+        "try a smaller run.safety_factor or dt"
+    )
