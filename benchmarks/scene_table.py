@@ -53,8 +53,9 @@ def stamp() -> dict:
     }
 
 
-def run_scene(name: str, device: str, work: Path) -> dict:
-    """One scene to its end time: the CLI's summary plus the wall time of the process [s]."""
+def run_scene(name: str, device: str, work: Path, keep: Path | None = None) -> dict:
+    """One scene to its end time: the CLI's summary plus the wall time of the process [s]; its outputs go to
+    ``keep / name`` when given (else a scratch folder)."""
     scene = ROOT / "scenes" / f"{name}.toml"
     base = [sys.executable, "-m", "warpdem", str(scene), "--device", device, "--quiet"]
     warm = subprocess.run([*base, "--frames", "1", "--out", str(work / "warm")], capture_output=True, text=True)
@@ -81,6 +82,7 @@ def run_scene(name: str, device: str, work: Path) -> dict:
         "splits": s["splits"],
         "bonds_broken": s["bonds_broken"],
         "fragments": s["fragment_count"],
+        "usd": s["usd_path"] and Path(s["usd_path"]).name,
     }
 
 
@@ -118,6 +120,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="cpu", help="Warp device [cpu]")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="results file (JSON) [%(default)s]")
     parser.add_argument("--markdown", action="store_true", help="print the table of an existing results file")
+    parser.add_argument(
+        "--keep",
+        type=Path,
+        help="keep each run's outputs (stage, series) in KEEP/SCENE (the pictures are drawn from them)",
+    )
     args = parser.parse_args(argv)
     if args.markdown:
         print(markdown(json.loads(args.out.read_text())))
@@ -130,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
     previous = json.loads(args.out.read_text()) if args.out.is_file() else None
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.scenes or SCENES:
-            row = run_scene(name, args.device, Path(tmp)) | {"stamp": here}
+            row = run_scene(name, args.device, Path(tmp), args.keep) | {"stamp": here}
             print(json.dumps(row), flush=True)
             results["scenes"].append(row)
     if previous and args.scenes:  # a partial run keeps the other scenes' rows, each with its own stamp
