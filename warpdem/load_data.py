@@ -20,7 +20,8 @@ class FaceSet:
 
     Attributes:
         nodes: node ids, outward order, shape (F,), vec3i.
-        edge_a, edge_b: reference edges X1 - X0 and X2 - X0 [m] (float64 on the host), shape (F,), vec3.
+        edge_a: reference edge X1 - X0 [m] (float64 on the host), shape (F,), vec3.
+        edge_b: reference edge X2 - X0 [m] (float64 on the host), shape (F,), vec3.
         index: pressure load of each face (into LoadModel.pressure_loads), shape (F,), int32; or None.
         impedance: (ρ c_p, ρ c_s) of the tet behind each dashpot face [Pa s/m], shape (F,), vec2; or None.
     """

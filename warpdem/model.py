@@ -74,13 +74,16 @@ class Model:
         tet_material: material id, shape (tet_capacity,), int32.
         tet_material_table: continuum properties per material id, shape (num_materials,), TetMaterial.
         loads: pressure loads, non-reflecting dashpots and node velocity drivers (warpdem.load_data.LoadModel), or
-        None. critical_dt: the builder's estimate of the critical time step [s] (inf when nothing bounds it), and
-            critical_dt_source: what sets it, in words (warpdem.stages.guard.CriticalStep).
+            None.
+        critical_dt: the builder's estimate of the critical time step [s] (inf when nothing bounds it).
+        critical_dt_source: what sets ``critical_dt``, in words (warpdem.stages.guard.CriticalStep).
         speed_limit: run-away bound on the speed of a sphere or node at t = 0 [m/s]; the guard adds |g| t
             (warpdem.stages.guard.run_away_speed; inf: only non-finite values are caught).
 
     FEM contact and joints (warpdem.stages.fem_contact, warpdem.stages.joints; the surface topology is rebuilt on the
-    device after every topology pass):
+    device after every topology pass).
+
+    Attributes:
         face_capacity: boundary face slots.
         max_sphere_faces: candidate faces per sphere (grows ×2 on overflow between steps).
         max_node_faces: candidate faces per FEM node (grows ×2 on overflow between steps).
@@ -96,8 +99,9 @@ class Model:
             ``contact_stiffness_factor`` is then 0); 0 otherwise.
         tet_face_joint: joint set of each tet-face slot 4t + k (face k opposite node k), -1 for none, shape
             (4 tet_capacity,), int32.
-        star_offset, star_count: the node → tet adjacency: node n's tets are star_tets[star_offset[n] ..
-            star_offset[n] + star_count[n]), sorted, shape (node_capacity,), int32.
+        star_offset: the node → tet adjacency: node n's tets are ``star_tets[star_offset[n] .. star_offset[n] +
+            star_count[n])``, sorted, shape (node_capacity,), int32.
+        star_count: the number of tets in each node's star, shape (node_capacity,), int32.
         star_tets: live active tets of every node's star, shape (4 tet_capacity,), int32.
         tet_face_nbr: the tet across each tet-face slot, -1 on the surface, shape (4 tet_capacity,), int32.
         face_nodes: boundary faces (faces of active tets used once), nodes in outward order, shape (face_capacity,),
@@ -115,11 +119,16 @@ class Model:
         joint_material_table: properties of each joint set, shape (max(num_joint_sets, 1),), JointMaterial.
         joint_set_props: the joint sets' warpdem.stages.joints.JointProps (host copies).
         joint_capacity: joint interface elements.
-        joint_a, joint_b: daughter nodes of each element, a < b, shape (joint_capacity,), int32.
-        joint_area: interface area of each element [m²]; joint_kn: its normal stiffness [N/m]; joint_tet_face: the
-            tet-face slot of A's joint face (its outward normal is the element's); joint_set: its joint set.
+        joint_a: daughter node A of each element (a < b), shape (joint_capacity,), int32.
+        joint_b: daughter node B of each element, shape (joint_capacity,), int32.
+        joint_area: interface area of each element [m²].
+        joint_kn: its normal stiffness [N/m].
+        joint_tet_face: the tet-face slot of A's joint face (its outward normal is the element's).
+        joint_set: its joint set.
 
-    Nodal fracture (warpdem.stages.fracture, warpdem.stages.cohesive; LDEC §2.2–2.3):
+    Nodal fracture (warpdem.stages.fracture, warpdem.stages.cohesive; LDEC §2.2–2.3).
+
+    Attributes:
         fracture_interval: steps between two split passes; 0: no split pass (fracture off, or a rigid switch stopped
             the passes: :attr:`has_fracture` tells the two apart).
         cohesive_capacity: cohesive element slots (grows ×2 on overflow between steps).
@@ -132,7 +141,9 @@ class Model:
             (warpdem.stages.topology.reference_face_neighbors, set by attach_fracture and attach_conversion; tet slots
             never move, so it holds for the whole run).
 
-    Adaptive FEM→DEM conversion (warpdem.stages.conversion, warpdem.stages.coupling; CIMNE §4–5):
+    Adaptive FEM→DEM conversion (warpdem.stages.conversion, warpdem.stages.coupling; CIMNE §4–5).
+
+    Attributes:
         conversion_interval: steps between two conversion passes; 0: conversion is off.
         spheres_per_tet: spheres spawned in place of one converted tet (1 or more, a scene option).
         conversion_part: part id of the spawned spheres.
@@ -145,7 +156,9 @@ class Model:
             Z_t + V_n / Z_n, warpdem.stages.lattice), 0 past the live tets, shape (tet_capacity,), int32; set at attach
             (the mesh's topology then; a conversion pass recomputes what it reads where nodes may split).
 
-    Rigid blocks (warpdem.stages.rigid; LDEC §2–§4):
+    Rigid blocks (warpdem.stages.rigid; LDEC §2–§4).
+
+    Attributes:
         rigid_switch: whether the blocks turn rigid at ``rigid_switch_time``.
         rigid_switch_time: the time of that switch [s] (0: from the start); it falls on the first step at or after
             it (warpdem.simulation).
@@ -304,26 +317,39 @@ class State:
             from).
         wall_shear: tangential spring of each sphere–wall pair [m], shape (particle_capacity * num_walls,), vec3.
         bond_count: live bonds (intact or broken but not yet compacted), shape (1,), int32.
-        bond_i, bond_j: the bonded spheres, i < j, shape (bond_capacity,), int32.
+        bond_i: the first bonded sphere (i < j), shape (bond_capacity,), int32.
+        bond_j: the second bonded sphere, shape (bond_capacity,), int32.
         bond_key: i * particle_capacity + j, sorted ascending, shape (bond_capacity,), int64.
-        bond_rest_length: L_0 [m]; bond_kn, bond_ks: stiffnesses [N/m]; bond_area: cross-section [m²];
-        bond_tensile_strength, bond_shear_strength: [Pa]; bond_damping: damping ratio ζ [-];
-        bond_shear: shear spring [m] (vec3); bond_broken: 0 intact, 1 broke in tension, 2 in shear;
-        bond_energy_prev: (normal, shear) spring energy at the last evaluation [J] (vec2, for the energy books).
+        bond_rest_length: L_0 [m], shape (bond_capacity,).
+        bond_kn: normal stiffness [N/m], shape (bond_capacity,).
+        bond_ks: shear stiffness [N/m], shape (bond_capacity,).
+        bond_area: cross-section [m²], shape (bond_capacity,).
+        bond_tensile_strength: [Pa], shape (bond_capacity,).
+        bond_shear_strength: [Pa], shape (bond_capacity,).
+        bond_damping: damping ratio ζ [-], shape (bond_capacity,).
+        bond_shear: shear spring [m], shape (bond_capacity,), vec3.
+        bond_broken: 0 intact, 1 broke in tension, 2 in shear, shape (bond_capacity,).
+        bond_energy_prev: (normal, shear) spring energy at the last evaluation [J], shape (bond_capacity,), vec2 (for
+            the energy books).
         bonds_broken_total: bonds broken since the start, shape (1,).
         particle_bonds_broken: bonds each sphere has lost since the start (a damage measure for output), shape
             (particle_capacity,), int32.
-        energy_damping, energy_friction, energy_boundary_work, energy_bond_broken: per-particle accumulators
-            [J], shape (particle_capacity,), float64: dissipated by dashpots, by friction (and tangential
-            dashpots), work done on the spheres by moving walls and driven spheres, and spring energy released
-            by breaking bonds.
+        energy_damping: energy dissipated by dashpots [J], per particle, shape (particle_capacity,), float64.
+        energy_friction: energy dissipated by friction (and tangential dashpots) [J], per particle, shape
+            (particle_capacity,), float64.
+        energy_boundary_work: work done on the spheres by moving walls and driven spheres [J], per particle, shape
+            (particle_capacity,), float64.
+        energy_bond_broken: spring energy released by breaking bonds [J], per particle, shape (particle_capacity,),
+            float64.
         energy_stiffness_change: energy the contacts' tangential springs gained without work because k_t follows
             the overlap (Mindlin, or a linear k_t on a Hertz k_n) [J], per particle, shape (particle_capacity,),
             float64.
-        contact_f_normal, contact_f_tangential, contact_t_tangential: sums of the sphere contacts' normal forces
-            [N], tangential forces [N] and tangential + rolling torques [N m] on each sphere at the last evaluation,
-            for the integrator's booking of the half of their work that lies ahead (kernels/contact.py), shape
+        contact_f_normal: sum of the sphere contacts' normal forces on each sphere at the last evaluation [N], for
+            the integrator's booking of the half of their work that lies ahead (kernels/contact.py), shape
             (particle_capacity,), vec3.
+        contact_f_tangential: the same for their tangential forces [N], shape (particle_capacity,), vec3.
+        contact_t_tangential: the same for their tangential and rolling torques [N m], shape (particle_capacity,),
+            vec3.
         contact_energy_prev: (normal, tangential) spring energy of the contacts each sphere owns (its half list and
             its walls) at the last evaluation [J], shape (particle_capacity,), vec2.
         node_count: live FEM nodes, shape (1,), int32.
@@ -370,15 +396,18 @@ class State:
             sphere moved half its skin, so the sphere–face lists are rebuilt too), shape (1,), int32.
         node_q_at_fem_build: node positions at the last FEM contact-list build [m], shape (node_capacity,), vec3.
         sphere_face_needed: the most candidate faces a sphere had at a build (overflow when > max_sphere_faces),
-            shape (1,); sphere_face_count: candidate faces of each sphere, shape (particle_capacity,);
-            sphere_face_index: candidate face of each slot, shape (particle_capacity * max_sphere_faces,), int32;
-            sphere_face_shear: tangential spring of each slot [m], same shape, vec3; sphere_face_energy_prev: (normal,
-            tangential) spring energy of each sphere's face contacts at the last evaluation [J] (ΔU of their
-            dissipation D = -W - ΔU), shape (particle_capacity,), vec2. In a model without boundary faces
-            (face_capacity 0) the four per-sphere arrays are empty (warpdem.stages.fem_contact.sphere_face_rows).
+            shape (1,).
+        sphere_face_count: candidate faces of each sphere, shape (particle_capacity,). In a model without boundary
+            faces (face_capacity 0) this and the next three per-sphere arrays are empty
+            (warpdem.stages.fem_contact.sphere_face_rows).
+        sphere_face_index: candidate face of each slot, shape (particle_capacity * max_sphere_faces,), int32.
+        sphere_face_shear: tangential spring of each slot [m], shape (particle_capacity * max_sphere_faces,), vec3.
+        sphere_face_energy_prev: (normal, tangential) spring energy of each sphere's face contacts at the last
+            evaluation [J] (ΔU of their dissipation D = -W - ΔU), shape (particle_capacity,), vec2.
         node_face_needed: the most candidate faces a node had at a build (overflow when > max_node_faces), shape
-            (1,); node_face_count: candidate faces of each node, shape (node_capacity,); node_face_index: candidate
-            face of each slot, shape (node_capacity * max_node_faces,), int32.
+            (1,).
+        node_face_count: candidate faces of each node, shape (node_capacity,).
+        node_face_index: candidate face of each slot, shape (node_capacity * max_node_faces,), int32.
         node_face_spring: the face each node–face spring acts across, -1 for none, node_springs slots per node (one
             per face plane direction the node lies behind; each keeps its face while it still holds the node), shape
             (node_capacity * node_springs,), int32.
@@ -404,10 +433,12 @@ class State:
         joints_broken_total: joint elements failed since the start, shape (1,), int32.
 
     Cohesive elements between the daughters A, B of a split node (LDEC eqs. 4–10; arrays of shape
-    (cohesive_capacity,) unless said):
+    (cohesive_capacity,) unless said).
+
+    Attributes:
         cohesive_count: live elements (intact, or broken and not yet compacted), shape (1,), int32.
-        cohesive_a, cohesive_b: the daughter nodes A (the − side, keeps the parent's index at the split) and B (the
-            + side), int32.
+        cohesive_a: the daughter node A (the − side, keeps the parent's index at the split), int32.
+        cohesive_b: the daughter node B (the + side), int32.
         cohesive_fc: f_c, the force at the onset of fracture (eq. 4) [N], float32.
         cohesive_delta_c: δ_c, the critical opening (eq. 10) [m], float32.
         cohesive_alpha: α of the weakening law (eq. 6) [-], float32.
@@ -435,7 +466,9 @@ class State:
             [J] (the penalty stiffness k of a node re-lumped over its new faces at the depth it holds, springs of
             faces that appear inside an overlap), shape (1,), float64.
 
-    Adaptive FEM→DEM conversion (arrays of shape (coupling_capacity,) unless said):
+    Adaptive FEM→DEM conversion (arrays of shape (coupling_capacity,) unless said).
+
+    Attributes:
         tets_converted_total: tets converted since the start, shape (1,), int32.
         spheres_spawned_total: spheres spawned by conversion since the start, shape (1,), int32.
         energy_released_conversion: energy that left the mechanical books at conversions [J] — the strain energy and
@@ -452,7 +485,9 @@ class State:
             (the bonds of a later conversion find their partner spheres through it).
 
     Rigid blocks (warpdem.stages.rigid, kernels/rigid.py; body arrays of shape (bodies,), empty before the switch, all
-    float64 but the ints):
+    float64 but the ints).
+
+    Attributes:
         rigid_switched: 1 once the blocks turned rigid, shape (1,), int32.
         energy_released_rigid: the strain energy of the tets and the kinetic energy of the element modes that left
             the mechanical books at the switch, with the switch's change of the shadow term [J], shape (1,), float64.
@@ -461,25 +496,33 @@ class State:
             the forces then, and what split passes changed it by at the step, S(f_new) − S(f_old) (the forces the
             next kick uses, re-evaluated after the split) [J], shape (1,), float64 (a line of the books: no force
             works across either change).
-        body_mass: M [kg]; body_inertia: principal moments [kg m²], vec3d; body_axes: principal axes at the switch
-            (columns, world), mat33d; body_fixed: 1 for a block held in place (a fixed or driven node, or rollers of
-            three directions), int32; body_constraint: 0 free, 1 on a roller plane (moves in the plane, turns about
-            its normal ``body_axis``), 2 between two roller planes (moves along their line ``body_axis``), int32;
-            body_axis: that normal or line, unit [-], vec3d (warpdem.stages.rigid: roller constraints).
-        body_dc: displacement of the centre of mass since the switch [m], vec3d; body_v: its velocity [m/s], vec3d;
-            body_q: rotation since the switch, quatd; body_l: angular momentum about the centre of mass [kg m²/s],
-            vec3d; body_f, body_t: force [N] (gravity excluded) and torque about the centre of mass [N m] of the
-            nodes' forces, vec3d.
+        body_mass: M [kg].
+        body_inertia: principal moments [kg m²], vec3d.
+        body_axes: principal axes at the switch (columns, world), mat33d.
+        body_fixed: 1 for a block held in place (a fixed or driven node, or rollers of three directions), int32.
+        body_constraint: 0 free, 1 on a roller plane (moves in the plane, turns about its normal ``body_axis``), 2
+            between two roller planes (moves along their line ``body_axis``), int32.
+        body_axis: that normal or line, unit [-], vec3d (warpdem.stages.rigid: roller constraints).
+        body_dc: displacement of the centre of mass since the switch [m], vec3d.
+        body_v: the velocity of the centre of mass [m/s], vec3d.
+        body_q: rotation since the switch, quatd.
+        body_l: angular momentum about the centre of mass [kg m²/s], vec3d.
+        body_f: force of the nodes' forces [N] (gravity excluded), vec3d.
+        body_t: torque of the nodes' forces about the centre of mass [N m], vec3d.
         body_q_before: the rotation before the last drift's rotor, q_n (where the forces of the last evaluation were
-            made), quatd; body_omega_ahead: the angular velocity there after the drift's kick, ω(q_n, L_{n+1/2})
-            [rad/s] (rollers respected), vec3d. Scratch of a step: each drift writes them and the evaluation after it
-            books the half ahead of the last forces' work with them (kernels/rigid.py ``node_velocity_ahead``);
-            between steps nothing reads them (a restart needs them only as every State array is carried).
-        body_node_start, body_node_count: the body's nodes are rigid_nodes[start .. start + count), int32.
+            made), quatd. Scratch of a step, as ``body_omega_ahead``.
+        body_omega_ahead: the angular velocity there after the drift's kick, ω(q_n, L_{n+1/2}) [rad/s] (rollers
+            respected), vec3d. Scratch of a step: each drift writes it and ``body_q_before``, and the evaluation
+            after it books the half ahead of the last forces' work with them (kernels/rigid.py
+            ``node_velocity_ahead``); between steps nothing reads them (a restart needs them only as every State
+            array is carried).
+        body_node_start: the body's nodes are ``rigid_nodes[start .. start + count)``, int32.
+        body_node_count: see ``body_node_start``, int32.
         rigid_nodes: the nodes of the bodies, grouped by body, ascending within one, shape (rigid nodes,), int32.
         node_body: the body of each node, -1 for a deformable node, shape (node_capacity,) after the switch, int32.
-        node_rigid_r0: the node's offset from its body's centre of mass at the switch [m], vec3d; node_rigid_u0: its
-            displacement then [m], vec3; both shape (node_capacity,) after the switch.
+        node_rigid_r0: the node's offset from its body's centre of mass at the switch [m], shape (node_capacity,)
+            after the switch, vec3d.
+        node_rigid_u0: the node's displacement at the switch [m], shape (node_capacity,) after the switch, vec3.
     """
 
     particle_count: wp.array

@@ -129,11 +129,15 @@ def mesh_bricks(
     """The brick mesh of the box [lo, hi] (module docstring).
 
     Args:
-        lo, hi: corners of the box [m]; hi is rounded to whole cells. brick: block length along x, depth along y and
-        height along z [m]. h: largest cell edge [m]. material: the rock's material name. stagger: shift of each
-        course against the one below, in block lengths, [0, 1). openings: cut out cell by cell. min_pieces: per
-        opening, the fraction of a whole block's volume [0, 1) below which a connected piece of a block it cuts is
-        removed with it; ``None``: 0 for each (every piece stays).
+        lo: lower corner of the box [m].
+        hi: upper corner of the box [m]; rounded to whole cells.
+        brick: block length along x, depth along y and height along z [m].
+        h: largest cell edge [m].
+        material: the rock's material name.
+        stagger: shift of each course against the one below, in block lengths, [0, 1).
+        openings: cut out cell by cell.
+        min_pieces: per opening, the fraction of a whole block's volume [0, 1) below which a connected piece of a
+            block it cuts is removed with it; ``None``: 0 for each (every piece stays).
 
     Returns:
         The mesh: joint sets :data:`BRICK_JOINT_SETS`, one block (``tet_block``) per brick piece left after the
@@ -141,7 +145,7 @@ def mesh_bricks(
 
     Raises:
         ValueError: a size that is not positive, a stagger outside [0, 1), a min_pieces entry outside [0, 1) or
-        of another length than openings, or openings that remove every cell.
+            of another length than openings, or openings that remove every cell.
     """
     lo_a, hi_a, size = (np.asarray(v, dtype=np.float64) for v in (lo, hi, brick))
     if not (h > 0 and np.all(size > 0) and np.all(hi_a > lo_a)):

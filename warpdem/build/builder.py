@@ -121,8 +121,11 @@ class ModelBuilder:
         """Add spheres; returns their ids.
 
         Args:
-            centers: [m], shape (N, 3). radii: [m], scalar or (N,). material: material name.
-            velocity, angular_velocity: [m/s], [rad/s], shape (3,) or (N, 3).
+            centers: [m], shape (N, 3).
+            radii: [m], scalar or (N,).
+            material: material name.
+            velocity: [m/s], shape (3,) or (N, 3).
+            angular_velocity: [rad/s], shape (3,) or (N, 3).
             motion: "free", "fixed" (never moves; velocity and spin are ignored) or "prescribed" (keeps its
                 velocity and spin).
             part: part name (for colouring and output).
@@ -589,8 +592,8 @@ class ModelBuilder:
             node_capacity: FEM node slots (default: the node count after splitting the joints).
             tet_capacity: tet slots (default: the tet count).
             fem_skin: Verlet skin of the FEM contact lists [m] (default: warpdem.stages.fem_contact.attach_fem_contact).
-            max_sphere_faces, max_node_faces: initial FEM contact candidates per sphere and per node (grown on
-                overflow).
+            max_sphere_faces: initial FEM contact candidates per sphere (grown on overflow).
+            max_node_faces: initial FEM contact candidates per node (grown on overflow).
             allow_unstable_dt: accept an explicit dt above the critical time step (the run-time guard still stops a
                 run that blows up, warpdem.stages.guard).
             node_order: FEM node numbering: ``"split"`` (the mesh's nodes, then the daughters the joints' pre-split

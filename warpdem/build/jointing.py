@@ -180,9 +180,9 @@ class JointSet:
             reference planes k and k + 1; the set's planes fill the slabs with ``(k // layers) % 2 == phase``.
         phase: 0 or 1, which alternation of slab groups holds joints (``"layers"``).
         jitter_position: Each plane (each disc, each plane piece of a ``"layers"`` group) is shifted along its
-            normal by a uniform draw from [-jitter_position, jitter_position] [m]; disc centres are also
+            normal by a uniform draw from ``[-jitter_position, jitter_position]`` [m]; disc centres are also
             shifted by such draws along strike and dip.
-        jitter_angle: Each plane's (disc's, piece's) normal is tilted by a uniform draw from [0, jitter_angle]
+        jitter_angle: Each plane's (disc's, piece's) normal is tilted by a uniform draw from ``[0, jitter_angle]``
             [deg] about a uniformly random axis in the plane.
         name: Name of the set (physical group name on export); default ``joint<i>``.
     """

@@ -32,9 +32,13 @@ class MeshQuality:
 
     Attributes:
         count: number of tets.
-        volume_min, volume_mean, volume_total: tet volumes [m³].
-        radius_ratio_min, radius_ratio_mean: 3 r_in / r_circ, 1 for a regular tet, → 0 for slivers [-].
-        dihedral_min, dihedral_max: smallest and largest dihedral angle over all tets [deg] (regular: 70.53°).
+        volume_min: smallest tet volume [m³].
+        volume_mean: mean tet volume [m³].
+        volume_total: total tet volume [m³].
+        radius_ratio_min: smallest radius ratio 3 r_in / r_circ (1 for a regular tet, → 0 for slivers) [-].
+        radius_ratio_mean: mean radius ratio [-].
+        dihedral_min: smallest dihedral angle over all tets [deg] (regular: 70.53°).
+        dihedral_max: largest dihedral angle over all tets [deg].
         edge_min: shortest edge [m].
     """
 

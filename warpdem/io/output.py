@@ -400,9 +400,11 @@ class RockFrames:
         """The rock surface now (reads back; call between steps), or None for a model without tets.
 
         Args:
-            model, state: the simulation's. fragment: the fragment id of each live node (FragmentStats.node_label),
-                shape (node_count,), or None; carried as the surface's ``fragment`` primvar and, with color_by
-                "fragment", its colours (grey without it).
+            model: the simulation's model.
+            state: the simulation's state.
+            fragment: the fragment id of each live node (FragmentStats.node_label), shape (node_count,), or None;
+                carried as the surface's ``fragment`` primvar and, with color_by "fragment", its colours (grey
+                without it).
         """
         nn, tet_nodes, active = self._live(model, state)
         if nn == 0:

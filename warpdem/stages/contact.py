@@ -237,8 +237,11 @@ def sphere_contact_steps(
 
     Args:
         normal: the normal law, "hertz" or "linear".
-        radius, mass: [m], [kg], shape (N,). young, poisson, estar: E [Pa], ν [-] and E* [Pa] of each sphere's
-            material with itself, shape (N,).
+        radius: [m], shape (N,).
+        mass: [kg], shape (N,).
+        young: E [Pa] of each sphere's material, shape (N,).
+        poisson: ν [-] of each sphere's material, shape (N,).
+        estar: E* [Pa] of each sphere's material with itself, shape (N,).
         speed: the fastest approach, twice the largest sphere speed [m/s].
         describe: the words for sphere k ("spheres of material … (r = …)").
         density: the material's density [kg/m³], shape (N,), where mass = ρ 4/3 π r³ (the builder's spheres).

@@ -20,7 +20,7 @@ Rules of the conversion pass (others rely on them):
   |centroid| and the tet's size, so it touches its own tet's nearest face and overlaps no neighbouring tet or sphere
   at birth; velocity the mean of the nodes' (each node held ρ V₀ / 4 of the tet: mass and linear momentum are
   conserved exactly, to float32 round-off of the re-lumped masses); spin ω = axial vector of the antisymmetric part
-  of the velocity gradient L = [v_a − v_0][x_a − x_0]⁻¹; material the tet's, part ``model.conversion_part``.
+  of the velocity gradient L = ``[v_a − v_0][x_a − x_0]⁻¹``; material the tet's, part ``model.conversion_part``.
 - Four spheres per tet (``spheres_per_tet`` = 4, warpdem.stages.multisphere): one in each corner sub-tet of the 1:8
   midpoint subdivision, at (x_a + c) / 2 with node a's lumped mass ρ V₀ / 4, the velocity field there and the same
   spin; radius h_min / 8 (less the float32 margin); slots ``tet_sphere`` + a; bonds to the other three and to the

@@ -82,7 +82,8 @@ def eval_coupling(model: Model, state: State, dt: float | None = None, track_ene
     sphere, -N_a k g on node a of its tet, g = Σ N_a x_a - x_p [m]. Couplings whose tet is inactive apply nothing.
 
     Args:
-        model, state: the system; launches over ``model.coupling_capacity``, returns past ``coupling_count``.
+        model: the system's model; launches over ``model.coupling_capacity``.
+        state: the system's state; returns past its ``coupling_count``.
         dt: the step [s]; unused (the spring is a potential: nothing is booked per step, at dt = 0 or otherwise).
             Kept so every force stage has the same call.
         track_energy: record each spring's energy ½ k |g|² [J] in ``coupling_energy_prev``.

@@ -130,7 +130,8 @@ def attach_fem_contact(
         pairs: the sphere pair table (ModelBuilder.pair_table), for the node contacts' friction and restitution.
         fem_skin: Verlet skin of the FEM lists [m]; None = :data:`DEFAULT_SKIN_FRACTION` × the smallest tet height
             over a boundary face.
-        max_sphere_faces, max_node_faces: initial candidate slots (grown on overflow).
+        max_sphere_faces: initial candidate slots per sphere (grown on overflow).
+        max_node_faces: initial candidate slots per node (grown on overflow).
         contact_stiffness_factor: penalty factor of faces that are no joint faces [-].
         contact_face_normal_stiffness: mesh-independent spring of those faces, k_n / 2 per unit area [Pa/m].
         node_order: the node numbering after the pre-split, new node i = old node ``node_order(model, state)[i]``
@@ -180,7 +181,8 @@ class FemContact:
     """The FEM contact stage of a Model/State pair: hash grid, scratch buffers, rebuild and force launches.
 
     Args:
-        model, state: the pair it works on (the state's lists are rebuilt in place).
+        model: the model it works on.
+        state: the state it works on (its lists are rebuilt in place).
         has_spheres: whether the model has spheres (sphere–face contacts).
     """
 
@@ -371,21 +373,25 @@ def eval_fem_contacts(
 ) -> None:
     """Sphere–face, node–face and node–wall forces into ``particle_f/t`` and ``node_f`` (launches only).
 
+    ``normal_body``, ``rest_normal``, ``target_slot``, ``face_origin`` and ``first_scan`` are allocated here when None
+    (a direct call outside a step; survivors on).
+
     Args:
         face_normal: scratch for the faces' unit normals of this evaluation, shape (face_capacity,), vec3
             (``FemContact`` holds one).
         born_relaxed: a node–face spring that starts in this evaluation starts relaxed, its depth carried as an
             offset: the re-evaluation after a topology pass, where nothing moved, so no depth was gained (at set-up
             an initial penetration pushes, and in a step a new spring takes the depth gained in it).
-        normal_body, rest_normal: the rigid normals (``FemContact.rigid_normals``), shape (node_capacity,); None:
-            every node walks its star.
+        normal_body: the body whose pose turns each node's normal, -1 where the node walks its star
+            (``FemContact.rigid_normals``), shape (node_capacity,), int32; None: every node walks its star.
+        rest_normal: each node's normal at the switch positions, turned by that body
+            (``FemContact.rigid_normals``), shape (node_capacity,), vec3.
         target_slot: each spring slot's list slot of its target at the last evaluation, a hint (``FemContact``),
             shape (node_capacity * node_springs,), int32; None: none.
         face_origin: scratch for each face's first vertex x_a at this evaluation, shape (face_capacity,), vec3
             (``FemContact`` holds one; written with the normals, read by the node–face depth tests).
         first_scan: shape (1,), int32: -2, a node's later scans for a new plane test only its first scan's survivors;
             -1, each scans the whole list (``FemContact.survivor_scans``).
-        The five are allocated here when None (a direct call outside a step; survivors on).
     """
     m, s = model, state
     n = max(m.node_capacity, 1)
@@ -718,10 +724,15 @@ def contact_critical_step_at(
     is about h / (2 c_bar sqrt(2 f)), c_bar = sqrt(E/ρ).
 
     Args:
-        points: (N, 3) [m]. tets: (M, 4), positively oriented. young: E per tet [Pa], (M,). density: ρ per tet
-        [kg/m³], (M,). joints: joint faces and sets. joint_props: per set. stiffness_factor: f of other faces.
-        damping_ratio: the largest ζ of the contact dashpots [-]. face_normal_stiffness: k_n / 2 of other faces
-        [Pa/m] (Model.contact_face_normal_stiffness).
+        points: (N, 3) [m].
+        tets: (M, 4), positively oriented.
+        young: E per tet [Pa], (M,).
+        density: ρ per tet [kg/m³], (M,).
+        joints: joint faces and sets.
+        joint_props: per set.
+        stiffness_factor: f of other faces.
+        damping_ratio: the largest ζ of the contact dashpots [-].
+        face_normal_stiffness: k_n / 2 of other faces [Pa/m] (Model.contact_face_normal_stiffness).
 
     Returns:
         The step [s] (inf without tets), the node of the mesh that sets it (-1 for none), its joint set (-1 for none).

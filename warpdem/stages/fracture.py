@@ -102,7 +102,7 @@ class FractureProps:
     Attributes:
         tensile_strength: T_f [Pa]; None: the material never splits.
         fracture_energy: Γ [J/m²] (both faces of a crack counted in A_f); required where tensile_strength is set.
-        alpha: α of the weakening law (LDEC eq. 6), in [0, 1] [-].
+        alpha: α of the weakening law (LDEC eq. 6), in ``[0, 1]`` [-].
     """
 
     tensile_strength: float | None

@@ -308,10 +308,13 @@ class FragmentSeries:
     """What a fragment file holds, frame by frame (:func:`read_fragments`).
 
     Attributes:
-        frame: output frame numbers, shape (F,), int. time: their simulated times [s], shape (F,).
-        count: fragments per frame, shape (F,), int. largest: largest fragment's mass [kg], shape (F,).
+        frame: output frame numbers, shape (F,), int.
+        time: their simulated times [s], shape (F,).
+        count: fragments per frame, shape (F,), int.
+        largest: largest fragment's mass [kg], shape (F,).
         total_mass: mass of all fragments [kg], shape (F,).
-        masses, speeds: per frame, fragment masses [kg] (descending) and centre-of-mass speeds [m/s].
+        masses: per frame, the fragment masses [kg], descending.
+        speeds: per frame, the fragments' centre-of-mass speeds [m/s], in the order of ``masses``.
     """
 
     frame: np.ndarray

@@ -560,7 +560,7 @@ def relax_to_equilibrium(
     of the continuum). Between steps only; reads back every ``check_every`` steps.
 
     Args:
-        sim: the :class:`~warpdem.simulation.Simulation` to relax (its state changes in place).
+        sim (warpdem.simulation.Simulation): the Simulation to relax (its state changes in place).
         damping: α [1/s]; default :func:`default_relaxation_damping`.
         tolerance: kinetic / strain energy at which it stops [-].
         max_steps: the most steps it runs.
@@ -628,11 +628,14 @@ def dashpot_critical_step(
     bound was found about 20 % below the step at which a dashpot column starts to blow up.
 
     Args:
-        points: reference node positions [m], (N, 3). tets: the tets that give the nodes their mass and stiffness,
-        (M, 4). tet_props: ``mu``, ``lam`` [Pa], ``density`` [kg/m³], ``c_lin`` [-] and ``alpha`` [1/s] per tet,
-        (M,) each (kernels/tets.py TetMaterial). faces: the dashpot faces' nodes, (F, 3). impedance: their ρ c_p and
-        ρ c_s [Pa s/m], (F, 2). moving: bool per node, the nodes whose step counts (None: every node; the nodes of
-        rigid blocks have the bodies' step instead, warpdem.stages.rigid).
+        points: reference node positions [m], (N, 3).
+        tets: the tets that give the nodes their mass and stiffness, (M, 4).
+        tet_props: ``mu``, ``lam`` [Pa], ``density`` [kg/m³], ``c_lin`` [-] and ``alpha`` [1/s] per tet, (M,) each
+            (kernels/tets.py TetMaterial).
+        faces: the dashpot faces' nodes, (F, 3).
+        impedance: their ρ c_p and ρ c_s [Pa s/m], (F, 2).
+        moving: bool per node, the nodes whose step counts (None: every node; the nodes of rigid blocks have the
+            bodies' step instead, warpdem.stages.rigid).
     """
     if len(faces) == 0 or len(tets) == 0:
         return math.inf

@@ -89,7 +89,8 @@ class SkinnedList:
         Args:
             inputs: the candidate test's arrays, an instance of the list's ``ListSpec.inputs`` struct.
             grid: the hash grid of the candidates, built.
-            owner_count, owner_q: live owners (shape (1,)) and their positions [m].
+            owner_count: live owners, shape (1,).
+            owner_q: the owners' positions [m].
             candidate_count: live candidates, shape (1,).
             lists: the state's lists, rebuilt in place.
             needed: the largest count seen, shape (1,) (raised, never lowered).

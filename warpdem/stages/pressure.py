@@ -27,7 +27,8 @@ class PressureHistory:
         start: blast start time, Friedlander source time t0 [s].
         rise_time: blast rise time t_rise [s] (0: instantaneous).
         decay_time: blast decay time t_decay [s].
-        times, values: table points t_k [s] (strictly increasing) and p_k [Pa].
+        times: table times t_k [s] (strictly increasing).
+        values: table pressures p_k [Pa].
         duration: Friedlander positive-phase duration t_d [s].
         decay_coefficient: Friedlander decay coefficient b [-].
         source: Friedlander source point [m].

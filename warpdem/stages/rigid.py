@@ -90,16 +90,23 @@ class RigidReport:
     """What a switch to rigid blocks did.
 
     Attributes:
-        bodies: rigid bodies made; fixed: of which held in place; planar: of which on a roller plane (moving in it);
-        lines: of which between two roller planes (moving along their line); nodes: nodes that follow a body; tets:
-        tets made rigid; released: energy booked as ``released_rigid_switch`` [J]; shadow: of which the change of
-        Verlet's shadow term (the forces re-made on the bodies' masses: a switch at rest releases no strain or element
-        kinetic energy, only this) [J]; critical_dt: the stable step after
-        the switch (:func:`rigid_step_after_switch`, before the safety factor) [s]; deformable_dt: the builder's
-        critical step of the deformable model (``Model.critical_dt`` at the switch) [s]; dt_before, dt_after: the
-        run's time step at the switch and after it (with ``dt = "auto"`` the runner takes the rigid step at the
-        switch, warpdem.runner.take_rigid_step; an explicit dt is kept) [s] (all set by the Simulation and the
-        runner).
+        bodies: rigid bodies made.
+        fixed: of which held in place.
+        planar: of which on a roller plane (moving in it).
+        lines: of which between two roller planes (moving along their line).
+        nodes: nodes that follow a body.
+        tets: tets made rigid.
+        released: energy booked as ``released_rigid_switch`` [J].
+        shadow: of which the change of Verlet's shadow term (the forces re-made on the bodies' masses: a switch at
+            rest releases no strain or element kinetic energy, only this) [J].
+        critical_dt: the stable step after the switch (:func:`rigid_step_after_switch`, before the safety factor)
+            [s].
+        deformable_dt: the builder's critical step of the deformable model (``Model.critical_dt`` at the switch)
+            [s]; set by the Simulation.
+        dt_before: the run's time step at the switch [s]; set by the Simulation and the runner.
+        dt_after: the run's time step after the switch (with ``dt = "auto"`` the runner takes the rigid step at the
+            switch, warpdem.runner.take_rigid_step; an explicit dt is kept) [s]; set by the Simulation and the
+            runner.
     """
 
     bodies: int

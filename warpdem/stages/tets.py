@@ -74,7 +74,7 @@ def reference_geometry(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray
         tets: node indices, shape (M, 4).
 
     Returns:
-        D⁻¹ with D = [X1 - X0, X2 - X0, X3 - X0] [1/m], shape (M, 3, 3); V₀ = det D / 6 [m³], shape (M,).
+        D⁻¹ with D = ``[X1 - X0, X2 - X0, X3 - X0]`` [1/m], shape (M, 3, 3); V₀ = det D / 6 [m³], shape (M,).
     """
     x = np.asarray(points, dtype=np.float64)[np.asarray(tets, dtype=np.int64)]
     d = np.transpose(x[:, 1:] - x[:, :1], (0, 2, 1))

@@ -30,7 +30,8 @@ class NodeStars:
     """The star of every node (live, active tets holding it) as a CSR on the device, sorted per node.
 
     Args:
-        node_capacity, tet_capacity: sizes of the node and tet arrays.
+        node_capacity: size of the node arrays.
+        tet_capacity: size of the tet arrays.
         device: Warp device.
     """
 
@@ -139,7 +140,8 @@ class NodeSplitter:
     """Splits nodes whose star the tagged faces cut into several components (module docstring, steps 1–5).
 
     Args:
-        node_capacity, tet_capacity: sizes of the node and tet arrays.
+        node_capacity: size of the node arrays.
+        tet_capacity: size of the tet arrays.
         device: Warp device.
     """
 
