@@ -2,10 +2,13 @@
 
 For every ``<name>_series.csv`` in the folder (warpdem.io.timeseries) it writes:
 
-- ``<name>_energy.png``: the energy balance over time. The lines that hold or dissipate energy are stacked (gravity
-  potential counted from its value at the first frame, so its datum does not matter); the dashed line is what the
-  balance says the stack must reach, the energy at the first frame plus the work put in by walls and loads minus
-  the change of potential. The gap between them is the balance's error, drawn on a second axis (relative, as the
+- ``<name>_energy.png``: the energy balance over time (:func:`energy_stack`). The lines that hold or dissipate
+  energy are stacked: where a line is positive it is stacked upward from 0, where it is negative (a release booked
+  below zero, a step change of the shadow term) downward from 0, so the stack's net, the top of the upward stack
+  less the depth of the downward one, is the sum of the lines. The dashed line is what the balance says that net
+  must be: the energy at the first frame plus the work put in by walls and loads minus the change of gravity
+  potential (counted from the first frame, so its datum does not matter). The net is drawn as a broad grey line
+  under the dashes: the gap between them is the balance's error, also drawn on a second axis (relative, as the
   summary prints it).
 - ``<name>_counts.png``: spheres, contacts, bonds intact and broken, nodes, tets, joints over time, and the
   largest speed.
@@ -22,6 +25,7 @@ from __future__ import annotations
 
 import os
 import pathlib
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -55,28 +59,97 @@ def _save(fig, path: pathlib.Path) -> pathlib.Path:
     return path
 
 
-def plot_energy(data: dict[str, np.ndarray], name: str, path: pathlib.Path, size: tuple[int, int]) -> pathlib.Path:
-    """The stacked energy balance with its relative error on a second axis (module docstring)."""
-    t = data["time"]
-    # Balance: Σ held(t) + potential(t) - Σ work(t) = total(0) up to the error. The stack is Σ held; the supply line
-    # total(0) - potential(t) + Σ work(t) = [held(0) summed] - Δ potential + work in, free of the potential's datum.
-    supplied = np.full(len(t), float(data["energy_total"][0]))
+@dataclass
+class EnergyStack:
+    """The energy plot's stack (module docstring), every array shape (T,) [J].
+
+    Attributes:
+        up: the positive part of each stacked line (0 where it is negative), stacked upward from 0, in order.
+        down: the negative part of each line that goes below 0 somewhere (0 where it is positive), stacked
+            downward from 0, in order.
+        target: what the balance says the net must be: initial energy + work put in − Δ gravity potential.
+    """
+
+    up: dict[str, np.ndarray]
+    down: dict[str, np.ndarray]
+    target: np.ndarray
+
+    @property
+    def net(self) -> np.ndarray:
+        """The stack's net [J]: the top of the upward stack less the depth of the downward one."""
+        return sum(self.up.values(), np.zeros_like(self.target)) + sum(self.down.values(), np.zeros_like(self.target))
+
+
+def energy_stack(data: dict[str, np.ndarray]) -> EnergyStack:
+    """Split a series' energy lines into the stack and its target (module docstring).
+
+    Balance: Σ held(t) + potential(t) − Σ work(t) = total(t), so the net of the stack, Σ held(t), is
+    total(0) − potential(t) + Σ work(t) (the target) plus total(t) − total(0), the books' error [J]. Lines that
+    are 0 throughout are left out.
+
+    Args:
+        data: a time series (warpdem.io.timeseries.read_series): ``energy_<line>`` and ``energy_total`` columns.
+    """
+    target = np.full(len(data["energy_total"]), float(data["energy_total"][0]))
     held = {}
     for line, sign in energy_signs().items():
         values = data.get(f"energy_{line}")
         if values is None:
             continue
         if line == "gravity_potential":
-            supplied -= values
+            target -= values
         elif sign > 0:
             held[line] = values
         else:
-            supplied += values
-    shown = {k: v for k, v in held.items() if np.any(v != 0.0)}
+            target += values
+    up = {k: np.maximum(v, 0.0) for k, v in held.items() if np.any(v > 0.0)}
+    down = {k: np.minimum(v, 0.0) for k, v in held.items() if np.any(v < 0.0)}
+    return EnergyStack(up, down, target)
+
+
+def draw_energy(ax, data: dict[str, np.ndarray]) -> EnergyStack:
+    """Draw the stacked energy balance into ``ax`` (module docstring): the upward stack, the downward stack
+    (hatched, in the colour of the same line), the net and the target. Returns the stack drawn."""
+    t = data["time"]
+    stack = energy_stack(data)
+    lines = list(dict.fromkeys([*stack.up, *stack.down]))
+    colors = dict(zip(lines, _line_colors(len(lines)), strict=True))
+    for parts, hatch in ((stack.up, None), (stack.down, "////")):
+        base = np.zeros_like(t)
+        for line, values in parts.items():
+            label = line.replace("_", " ") + (" (below 0)" if hatch else "")
+            ax.fill_between(
+                t,
+                base,
+                base + values,
+                facecolor=colors[line],
+                alpha=0.85,
+                hatch=hatch,
+                edgecolor="white",
+                linewidth=0.0,
+                label=label,
+            )
+            base = base + values
+    if stack.down:
+        ax.axhline(0.0, color="0.2", lw=0.6)
+    ax.plot(t, stack.net, color="0.45", lw=3.5, alpha=0.6, solid_capstyle="butt", label="net of the stack (up − down)")
+    ax.plot(t, stack.target, "k--", lw=1.2, label="initial + work in − Δ potential")
+    return stack
+
+
+def _line_colors(n: int) -> list:
+    """n distinct colours, the first ten as matplotlib's default cycle (tab10), then tab20's lighter ones."""
+    import matplotlib
+
+    tab10, tab20 = matplotlib.colormaps["tab10"], matplotlib.colormaps["tab20"]
+    return [tab10(k) if k < 10 else tab20((2 * (k - 10) + 1) % 20) for k in range(n)]
+
+
+def plot_energy(data: dict[str, np.ndarray], name: str, path: pathlib.Path, size: tuple[int, int]) -> pathlib.Path:
+    """The stacked energy balance with its relative error on a second axis (module docstring)."""
+    t = data["time"]
     fig, (ax,) = _figure(size)
-    if shown:
-        ax.stackplot(t, *shown.values(), labels=[k.replace("_", " ") for k in shown], alpha=0.85)
-    ax.plot(t, supplied, "k--", lw=1.2, label="initial + work in − Δ potential")
+    draw_energy(ax, data)
     ax.set_xlabel("time [s]")
     ax.set_ylabel("energy [J]")
     ax.set_title(f"{name}: energy balance")
