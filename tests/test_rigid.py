@@ -731,8 +731,8 @@ kind = "roller"
 
 [contact]
 # Softer outer faces than the rock's E / h behind them (1.5e11 Pa/m here): the rigid step assumes every surface node
-# pressed by springs on up to three face planes (warpdem.stages.rigid_step.rigid_critical_step, SPRING_BOUND), and with
-E / h # it would fall just below the deformable step, leaving no step to gain at the switch.
+# pressed by springs on up to three face planes (warpdem.stages.rigid_step.rigid_critical_step, SPRING_BOUND), and
+# with E / h it would fall just below the deformable step, leaving no step to gain at the switch.
 surface_normal_stiffness = 1.2e11
 
 [rigid]
