@@ -1,4 +1,4 @@
-"""The shipped scenes' table (README "The scenes", docs/scenes.md): each scene of ``scenes/`` run to its own end time
+"""The shipped scenes' table (README.md and docs/scenes.md): each scene of ``scenes/`` run to its own end time
 as a user runs it (``python -m warpdem SCENE --summary-json ...``), with its wall time on this machine, its steps, the
 energy books' error and what broke.
 

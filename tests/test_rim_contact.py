@@ -1,7 +1,7 @@
 """Node–face contact at the rim of a joint (kernels/node_face_target.py ``new_plane_face``, kernels/fem_surface.py
 RIM_EPS): two faces that overlap by nearly all of a face, every node of each lying just past an edge of the other.
 
-The limestone tunnel's defect (README, Known limitations): its bricks are one 30 cm cell tall and the slab one cell
+The limestone tunnel's defect (docs/limitations.md): its bricks are one 30 cm cell tall and the slab one cell
 deep, so a head joint's face is one cell, and its four nodes are the corners of the face opposite. The bedding's
 compression shifts the two blocks along the joint, which moves two corners of each face past the far edge of the
 other along z; the other two sit on the edges along y (the rollers align the faces in y exactly), outside or inside
