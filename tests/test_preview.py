@@ -309,6 +309,7 @@ def test_stress_key_in_megapascals(tmp_path):
         von_mises=von_mises,
         max_principal=von_mises,
         colors=ramp_colors(von_mises, 3.0e7),
+        fragment=np.array([0, 0, 1, 1]),  # per vertex, beside colours per triangle: not fragment colours
     )
     path = tmp_path / "stress.usda"
     write_stage(path, ramp_colors(np.array([0.0, 1.0]), 2.0), np.array([0.0, 1.0]), surface)

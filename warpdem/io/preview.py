@@ -292,7 +292,7 @@ def body_key(
 
     if len(colors) == 0:
         return None
-    if "fragment" in values:
+    if "fragment" in values and per_vertex:  # fragment colours are per sphere or rock vertex
         from ..stages.fragments import fragment_colors
 
         if np.abs(colors - fragment_colors(values["fragment"])).max() <= COLOR_TOL:
