@@ -80,17 +80,17 @@ PICTURES = [
     Picture("brazilian_disc", "brazilian_disc", 15, "xz", keys=(("rock", "damage"),)),
     Picture("boulder_impact", "boulder_impact", 9, "xz", keys=(("spheres", "speed"), ("rock", "stress"))),
     # The last frame, 1 s, recoloured on its own largest speed: the run's colours are on the blast's speeds of the
-    # first milliseconds, on which everything at 1 s is blue. The window: the slab's 20 m width and from its foot
-    # up to 20 m above its top, where the thrown courses are.
+    # first milliseconds, on which everything at 1 s is blue. The window: the slab (x -0.3 .. 11 m, z 0 .. 15 m)
+    # and up to 20 m above its foot; the courses thrown higher would shrink the slab to a strip.
     Picture(
         "limestone_tunnel",
         "limestone_tunnel",
         250,
         "xz",
-        size=(700, 1050),
+        size=(640, 1150),
         color_by="speed",
         keys=(("rock", "speed"),),
-        window=(-10.5, 10.5, -10.5, 30.5),
+        window=(-0.8, 11.5, -0.5, 20.5),
     ),
     Picture("masonry_wall_blast", "masonry_wall_blast", 12, "xz", keys=(("spheres", "speed"), ("rock", "stress"))),
     Picture("masonry_tunnel_blast", "masonry_tunnel_blast", 6, "xz", keys=(("spheres", "speed"), ("rock", "stress"))),
