@@ -592,18 +592,21 @@ def draw_key(fig, key: ColorKey, rect: tuple[float, float, float, float], font: 
     sax.set_ylim(0.0, slot_h)
     sax.axis("off")
     sax.text(0.5 * slot_w, 2.55 * font_px, title, ha="center", va="bottom", fontsize=font)
-    # Swatches in a row, as many as fit, the largest categories first; the rest counted.
+    # Swatches in a row under the title, centred: as many as fit, the largest categories first; the rest counted.
     square = 0.95 * font_px
-    cursor, row_y = 0.04 * slot_w, 1.55 * font_px
+    widths = [square + 0.62 * font_px * (len(label) + 2) for label, _ in key.swatches]
+    more = 5.0 * font_px  # room for "+N more"
     shown = 0
-    for label, color in key.swatches:
-        need = square + 0.62 * font_px * (len(label) + 2)
-        if cursor + need > 0.96 * slot_w - (4.0 * font_px if shown < len(key.swatches) - 1 else 0.0):
-            break
+    while (
+        shown < len(widths) and sum(widths[: shown + 1]) + (more if shown + 1 < len(widths) else 0.0) <= 0.92 * slot_w
+    ):
+        shown += 1
+    row = sum(widths[:shown]) + (more if shown < len(widths) else 0.0)
+    cursor, row_y = 0.5 * (slot_w - row), 1.55 * font_px
+    for (label, color), width in zip(key.swatches[:shown], widths, strict=False):
         sax.add_patch(Rectangle((cursor, row_y), square, square, facecolor=color, edgecolor="0.3", linewidth=0.5))
         sax.text(cursor + 1.3 * square, row_y + 0.5 * square, label, va="center", fontsize=0.9 * font)
-        cursor += need
-        shown += 1
+        cursor += width
     if shown < len(key.swatches):
         sax.text(cursor, row_y + 0.5 * square, f"+{len(key.swatches) - shown} more", va="center", fontsize=0.9 * font)
     return None
