@@ -43,6 +43,7 @@ __all__ = [
     "checkpoint_name",
     "latest_checkpoint",
     "read_checkpoint",
+    "read_checkpoint_attrs",
     "read_checkpoint_version",
     "remove_stale_temporaries",
     "write_checkpoint",
@@ -240,18 +241,7 @@ def read_checkpoint_version(path: str | os.PathLike) -> tuple[dict[str, np.ndarr
     """
     import h5py
 
-    file_path = pathlib.Path(path)
-    if not file_path.exists():
-        raise CheckpointError(f"checkpoint {str(file_path)!r}: file not found")
-    if not file_path.is_file():
-        raise CheckpointError(f"checkpoint {str(file_path)!r}: not a regular file")
-    try:
-        is_hdf5 = h5py.is_hdf5(file_path)
-    except OSError as exc:
-        raise CheckpointError(f"checkpoint {str(file_path)!r}: cannot read file ({_one_line(exc)})") from exc
-    if not is_hdf5:
-        raise CheckpointError(f"checkpoint {str(file_path)!r}: not an HDF5 file (corrupt or wrong file type)")
-
+    file_path = _hdf5_file(path)
     try:
         with h5py.File(file_path, "r") as f:
             version = _check_format(file_path, f.attrs)
@@ -269,6 +259,47 @@ def read_checkpoint_version(path: str | os.PathLike) -> tuple[dict[str, np.ndarr
     except (OSError, KeyError, ValueError, TypeError) as exc:
         raise CheckpointError(f"checkpoint {str(file_path)!r}: corrupt HDF5 file ({_one_line(exc)})") from exc
     return arrays, attrs, version
+
+
+def read_checkpoint_attrs(path: str | os.PathLike) -> dict[str, Any]:
+    """The attributes of a checkpoint alone (step, time, frame, what the run stored), without reading its arrays.
+
+    Raises:
+        CheckpointError: as :func:`read_checkpoint`.
+    """
+    import h5py
+
+    file_path = _hdf5_file(path)
+    try:
+        with h5py.File(file_path, "r") as f:
+            _check_format(file_path, f.attrs)
+            return _decode_attrs(file_path, f.attrs)
+    except CheckpointError:
+        raise
+    except (OSError, KeyError, ValueError, TypeError) as exc:
+        raise CheckpointError(f"checkpoint {str(file_path)!r}: corrupt HDF5 file ({_one_line(exc)})") from exc
+
+
+def _hdf5_file(path: str | os.PathLike) -> pathlib.Path:
+    """The path of an existing HDF5 file.
+
+    Raises:
+        CheckpointError: the file is missing, not a regular file, unreadable or not HDF5.
+    """
+    import h5py
+
+    file_path = pathlib.Path(path)
+    if not file_path.exists():
+        raise CheckpointError(f"checkpoint {str(file_path)!r}: file not found")
+    if not file_path.is_file():
+        raise CheckpointError(f"checkpoint {str(file_path)!r}: not a regular file")
+    try:
+        is_hdf5 = h5py.is_hdf5(file_path)
+    except OSError as exc:
+        raise CheckpointError(f"checkpoint {str(file_path)!r}: cannot read file ({_one_line(exc)})") from exc
+    if not is_hdf5:
+        raise CheckpointError(f"checkpoint {str(file_path)!r}: not an HDF5 file (corrupt or wrong file type)")
+    return file_path
 
 
 def _prepare_arrays(arrays: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:

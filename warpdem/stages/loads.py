@@ -517,6 +517,66 @@ def load_forces(model: Model, state: State) -> tuple[list[str], np.ndarray]:
     return list(loads.pressure_names), out.numpy().reshape(-1, 3).astype(np.float64)
 
 
+@dataclass(frozen=True)
+class PressureAmplitudes:
+    """The amplitudes of a model's pressure loads, as :func:`scale_pressure_loads` scales them.
+
+    Attributes:
+        peak: each load's peak pressure [Pa] (blast, Friedlander; unused by a table), shape (L,), float32.
+        table_values: the pressures of every table [Pa], concatenated, float32.
+        table_slices: the (first, count) of each load's entries in ``table_values`` (count 0 but for a table).
+    """
+
+    peak: np.ndarray
+    table_values: np.ndarray
+    table_slices: tuple[tuple[int, int], ...]
+
+
+def pressure_amplitudes(model: Model) -> PressureAmplitudes | None:
+    """The amplitudes of the model's pressure loads now (reads back), None without pressure loads."""
+    loads = model.loads
+    if loads is None or loads.pressure_loads is None:
+        return None
+    params = loads.pressure_loads.numpy()
+    return PressureAmplitudes(
+        peak=params["peak"].copy(),
+        table_values=loads.table_values.numpy().copy(),
+        table_slices=tuple((int(a), int(b)) for a, b in zip(params["table_first"], params["table_count"], strict=True)),
+    )
+
+
+def scale_pressure_loads(model: Model, base: PressureAmplitudes, scales: Sequence[float]) -> None:
+    """Set every pressure load's amplitude to its ``scales`` [-] times ``base``, from the next step on (between
+    steps). The arrays are written in place, so a captured step reads the new values without a re-capture.
+
+    The books stay exact: the load kernels book the work of the forces they apply (the half behind each new force,
+    the half ahead of the kept one, kernels/loads.py), so a force made at the old amplitude is booked at it and the
+    next at the new one. Each scaled value is rounded to float32 once from the base (a power-of-two scale is exact).
+
+    Args:
+        model: the model whose ``loads`` are changed.
+        base: the amplitudes the scales refer to (:func:`pressure_amplitudes` of the model as built).
+        scales: one scale per pressure load, index = load id (``loads.pressure_names``).
+
+    Raises:
+        ValueError: the model has no pressure loads, or not one scale per load.
+    """
+    loads = model.loads
+    if loads is None or loads.pressure_loads is None:
+        raise ValueError("scale_pressure_loads: the model has no pressure loads")
+    scales = np.asarray(scales, dtype=np.float64)
+    if scales.shape != base.peak.shape:
+        raise ValueError(f"scale_pressure_loads: {len(base.peak)} loads, got {scales.shape} scales")
+    params = loads.pressure_loads.numpy().copy()
+    params["peak"] = (base.peak.astype(np.float64) * scales).astype(np.float32)
+    values = base.table_values.astype(np.float64)
+    for k, (first, count) in enumerate(base.table_slices):
+        values[first : first + count] *= scales[k]
+    loads.pressure_loads.assign(params)
+    if len(values):
+        loads.table_values.assign(values.astype(np.float32))
+
+
 def load_work(state: State) -> float:
     """Work done on the FEM nodes by pressure loads and velocity drivers since the start [J] (reads back)."""
     return float(state.node_energy_boundary_work.numpy().sum())
