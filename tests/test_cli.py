@@ -13,6 +13,7 @@ Oracles:
 from __future__ import annotations
 
 import json
+import re
 import shlex
 import signal
 import subprocess
@@ -366,7 +367,8 @@ def test_warp_start_drops_only_the_missing_driver_line(monkeypatch, capfd):
 
     import warp as wp
 
-    from warpdem.cli import CUDA_DRIVER_MISSING, init_warp
+    from warpdem.api import CUDA_DRIVER_MISSING
+    from warpdem.cli import init_warp
 
     real_error = "Warp CUDA error: Failed to get function cuGetProcAddress\n"
 
@@ -498,8 +500,9 @@ def test_end_time_between_frames_ends_with_a_short_frame(tmp_path, capsys):
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_signal_checkpoints_publishes_and_the_resume_command_continues(tmp_path, signum):
-    """A signal after the first frame: the run stops at a frame boundary with a checkpoint of that frame and the
-    stage so far published, exits 128 + signal, and the printed command resumes it into the uninterrupted run."""
+    """A signal after the first frame: the run stops within a piece of steps (between two frames, or at one) with a
+    checkpoint of that state and the frames so far published, exits 128 + signal, and the printed command resumes it
+    into the uninterrupted run."""
     inputs, out, reference = tmp_path / "in", tmp_path / "out", tmp_path / "reference"
     inputs.mkdir()
     scene = scene_file(inputs, GOOD_SCENE)
@@ -519,7 +522,7 @@ def test_signal_checkpoints_publishes_and_the_resume_command_continues(tmp_path,
         proc.kill()
     assert proc.returncode == 128 + signum, err
     line = next(line for line in err.splitlines() if line.startswith("interrupted at t = "))
-    frame = int(line.split(", frame ")[1].split(";")[0])
+    frame = int(re.search(r", after frame (\d+)\); resume with: ", line).group(1))
     command = shlex.split(line.split("resume with: ")[1])
     assert command[:3] == ["python", "-m", "warpdem"] and "Traceback" not in err
     checkpoint = Path(command[command.index("--restart") + 1])
@@ -536,3 +539,45 @@ def test_signal_checkpoints_publishes_and_the_resume_command_continues(tmp_path,
     assert main([*resume, "--quiet"]) == 0
     assert main([str(scene), "--out", str(reference), "--device", "cpu", "--frames", str(frame + 2), "--quiet"]) == 0
     assert_same_run(out, reference)
+
+
+def test_a_second_interrupt_publishes_the_frames_written(tmp_path, capsys, monkeypatch):
+    """Ctrl-C that cannot wait (KeyboardInterrupt out of a step in frame 3): exit 130, one line saying that frames 0..2
+    are published in the stage and no checkpoint was written of that state; the stage is there, with those frames."""
+    from warpdem.simulation import Simulation
+
+    advance = Simulation.advance
+
+    def interrupted(self, n_steps, stop_at_switch=False):
+        if self.time > 0.02 - 1e-9:  # frame 3 of 1/100 s
+            raise KeyboardInterrupt
+        return advance(self, n_steps, stop_at_switch)
+
+    monkeypatch.setattr(Simulation, "advance", interrupted)
+    out = tmp_path / "out"
+    assert tiny_run(out, "--frames", "5") == 130
+    err = capsys.readouterr().err
+    assert err.startswith(f"interrupted at once: 3 frames published in {(out / 'tiny.usdc').resolve()}; no checkpoint")
+    assert len(err.splitlines()) == 1
+    stage = Usd.Stage.Open(str(out / "tiny.usdc"))
+    assert stage.GetPrimAtPath("/World/Particles").GetAttribute("points").GetTimeSamples() == [0.0, 1.0, 2.0]
+    assert not list(out.glob("*.partial*")) and not (out / "checkpoints").exists()
+
+
+def test_frames_and_end_time_together_say_which_wins(tmp_path, capsys):
+    out = tmp_path / "out"
+    scene = scene_file(tmp_path, GOOD_SCENE)
+    assert main([str(scene), "--out", str(out), "--device", "cpu", "--frames", "2", "--end-time", "0.5"]) == 0
+    said = capsys.readouterr().out
+    assert said.startswith("note: --frames 2 wins over --end-time 0.5: the run ends with frame 2")
+    assert read_checkpoint(final_checkpoint(out))[1]["frame"] == 2
+
+
+def test_summary_json_carries_the_compile_time_and_the_ejecta_count(tmp_path, capsys):
+    """The summary's kernel compile time is its own field, left out of the wall time; the ejecta are counted."""
+    out = tmp_path / "out"
+    summary = tmp_path / "summary.json"
+    assert tiny_run(out, "--frames", "1", "--summary-json", str(summary)) == 0
+    data = json.loads(summary.read_text())
+    assert data["compile_time"] >= 0.0 and data["wall_time"] > 0.0
+    assert data["ejecta_count"] == 0 and data["fragment_count"] == 0  # three loose spheres: nothing to break

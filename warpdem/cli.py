@@ -9,11 +9,9 @@ frames published.
 from __future__ import annotations
 
 import argparse
-import logging
 import os
 import shlex
 import sys
-import tempfile
 from pathlib import Path
 
 from .limits import MAX_STEPS
@@ -22,45 +20,13 @@ EXIT_USAGE = 2
 EXIT_UNSTABLE = 3
 """Exit status of a run stopped by the stability guard (warpdem.stages.guard): non-finite or run-away state."""
 
-CUDA_DRIVER_MISSING = "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver"
-"""Start of the line Warp's native library prints on stderr when it finds no CUDA driver (a CPU-only machine)."""
-
 
 def init_warp(quiet: bool = False) -> None:
-    """Initialise Warp without its start-up chatter: no banner, and no warning that a CPU-only machine has no CUDA
-    driver (the CPU is a supported device, not a fault; asking for ``--device cuda:0`` there still fails with a
-    message). Everything else Warp writes to stderr while it starts is passed on, so real errors still show.
+    """Start Warp without its start-up chatter (:func:`warpdem.api.init_warp`, imported when called: ``--help`` and
+    bad input need no Warp)."""
+    from .api import init_warp as start_warp
 
-    Warp's native library prints the driver warning with C ``fprintf``, beyond Python's ``sys.stderr``, so the
-    start is run with file descriptor 2 pointed at a temporary file that is replayed, less that one line, afterwards.
-
-    Args:
-        quiet: also drop Warp's info and warning messages after the start (log level ERROR): ``--quiet`` prints
-            nothing but errors.
-    """
-    import warp as wp
-
-    wp.config.log_level = logging.ERROR if quiet else logging.WARNING  # no init banner
-    sys.stderr.flush()
-    try:
-        saved = os.dup(2)
-    except OSError:  # no file descriptor 2 (an embedding host): nothing to redirect, nothing to show either
-        wp.init()
-        return
-    with tempfile.TemporaryFile() as captured:
-        os.dup2(captured.fileno(), 2)
-        try:
-            wp.init()  # returns at once when Warp has started already (and then prints nothing)
-        finally:
-            sys.stderr.flush()
-            os.dup2(saved, 2)
-            os.close(saved)
-        captured.seek(0)
-        text = captured.read().decode(errors="replace")
-    kept = [line for line in text.splitlines(keepends=True) if not line.startswith(CUDA_DRIVER_MISSING)]
-    if kept:
-        sys.stderr.write("".join(kept))
-        sys.stderr.flush()
+    start_warp(quiet)
 
 
 EXIT_SIGNAL_BASE = 128
@@ -111,7 +77,11 @@ def run_parser() -> argparse.ArgumentParser:
     p.add_argument("scene", nargs="?", help="scene file (.toml); default: the embedded default scene")
     p.add_argument("--device", help="Warp device: cpu or cuda:N (default: the scene's run.device)")
     p.add_argument("--end-time", type=_positive_float, help="simulated end time [s]")
-    p.add_argument("--frames", type=_positive_int, help="number of frames to simulate (overrides --end-time)")
+    p.add_argument(
+        "--frames",
+        type=_positive_int,
+        help="number of frames to simulate (wins over --end-time, with a note, when both are given)",
+    )
     p.add_argument("--out", type=Path, help="output directory (default: the scene's output.directory)")
     p.add_argument("--usd", type=Path, help="USD file to write (.usdc, .usda or .usd)")
     p.add_argument("--checkpoint-every", type=_non_negative_float, help="checkpoint period [s]; 0 = only at the end")
@@ -360,7 +330,7 @@ def main(argv: list[str] | None = None) -> int:
 
     init_warp(quiet=args.quiet)
     from .io.checkpoint import CheckpointError
-    from .runner import NothingToDo, RunOptions, run_scene, summary_json
+    from .runner import NothingToDo, RunInterrupted, RunOptions, run_scene, summary_json
     from .stages.guard import UnstableRunError
 
     options = RunOptions(
@@ -378,6 +348,11 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(f"--usd: {args.usd}: allowed suffixes: .usd, .usda, .usdc")
     if args.restart is not None and not args.restart.is_file():
         return _fail(f"--restart: {args.restart}: file not found")
+    if args.frames is not None and args.end_time is not None and not args.quiet:
+        print(
+            f"note: --frames {args.frames} wins over --end-time {args.end_time:g}: the run ends with frame "
+            f"{args.frames}, at {args.frames} / output_rate"
+        )
     try:
         summary = run_scene(scene, options)
     except (SceneError, CheckpointError) as exc:
@@ -388,13 +363,13 @@ def main(argv: list[str] | None = None) -> int:
     except NothingToDo as exc:
         print(exc)
         return 0
+    except RunInterrupted as exc:
+        # A second signal while the run stopped: what was written is kept, the state it stopped in is not.
+        print(f"interrupted at once: {exc.outputs}", file=sys.stderr)
+        return EXIT_SIGNAL_BASE + 2
     except KeyboardInterrupt:
-        # A second signal while a frame ran (or one before the run started): nothing of this frame was kept.
-        print(
-            "interrupted at once: the USD stage was not published and the frame in progress was not checkpointed; "
-            "a restart can continue from the last checkpoint written, if any",
-            file=sys.stderr,
-        )
+        # A signal before the run had written anything (while it was built).
+        print("interrupted before the first frame: nothing was written", file=sys.stderr)
         return EXIT_SIGNAL_BASE + 2
     except Exception as exc:
         # Every error about the user's input is a SceneError or CheckpointError raised where the key is known; what
@@ -418,8 +393,8 @@ def main(argv: list[str] | None = None) -> int:
             return _fail(f"--summary-json: cannot write {args.summary_json}: {exc.strerror or exc}")
     if summary.interrupted_by is not None:
         print(
-            f"interrupted at t = {summary.simulated_time:.9g} s, frame {summary.frame}; resume with: "
-            f"{resume_command(argv, summary.checkpoints[-1])}",
+            f"interrupted at t = {summary.simulated_time:.9g} s (step {summary.steps}, after frame {summary.frame}); "
+            f"resume with: {resume_command(argv, summary.checkpoints[-1])}",
             file=sys.stderr,
         )
         return EXIT_SIGNAL_BASE + summary.interrupted_by
