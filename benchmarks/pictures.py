@@ -79,9 +79,10 @@ PICTURES = [
     Picture("pmma_plate", "pmma_plate", 7, "xy", keys=(("rock", "stress"),)),
     Picture("brazilian_disc", "brazilian_disc", 15, "xz", keys=(("rock", "damage"),)),
     Picture("boulder_impact", "boulder_impact", 9, "xz", keys=(("spheres", "speed"), ("rock", "stress"))),
-    # The last frame, 1 s, recoloured on its own largest speed: the run's colours are on the blast's speeds of the
-    # first milliseconds, on which everything at 1 s is blue. The window: the slab (x -0.3 .. 11 m, z 0 .. 15 m)
-    # and up to 20 m above its foot; the courses thrown higher would shrink the slab to a strip.
+    # The last frame, 1 s, recoloured on the largest speed in the window (faster pieces above it are drawn red):
+    # the run's own colours are on the blast's speeds of the first milliseconds, on which everything at 1 s is
+    # blue. The window: the slab (x -0.3 .. 11 m, z 0 .. 15 m) and up to 20 m above its foot; the courses thrown
+    # higher would shrink the slab to a strip.
     Picture(
         "limestone_tunnel",
         "limestone_tunnel",
@@ -155,7 +156,7 @@ def run_scene(scene: str, frame: int | None, work: Path) -> Path:
 def draw(picture: Picture, folder: Path, docs: Path) -> str:
     """Draw one picture from a run folder into ``docs``; returns the line saying what it shows."""
     from warpdem.io.plot import plot_energy
-    from warpdem.io.preview import color_keys, key_title, open_stage, read_frame, recolor, render
+    from warpdem.io.preview import color_keys, in_window, key_title, open_stage, read_frame, recolor, render
     from warpdem.io.timeseries import read_series
 
     target = docs / f"{picture.name}.png"
@@ -169,7 +170,10 @@ def draw(picture: Picture, folder: Path, docs: Path) -> str:
         )
     stage_path = folder / f"{picture.scene}.usdc"
     frame = read_frame(open_stage(stage_path), picture.frame)
-    recolor([frame], picture.color_by)
+    # The keys as render makes them (the same recolouring, in the same window), to check and report them.
+    recolor(
+        [frame], picture.color_by, None, None if picture.window is None else in_window(picture.view, picture.window)
+    )
     names = list(picture.part_names) if picture.part_names else None
     keys = color_keys(frame, names)
     found = tuple((k.body, k.quantity) for k in keys)
@@ -194,7 +198,8 @@ def draw(picture: Picture, folder: Path, docs: Path) -> str:
     for key in keys:
         title, unit, size = key_title(key)
         if key.quantity in ("speed", "stress"):
-            shown.append(f"{title.split(' [')[0]} 0 .. {key.scale / size:.3g} {unit}")
+            top = f"{'≥ ' if key.clipped else ''}{key.scale / size:.3g}"
+            shown.append(f"{title.split(' [')[0]} 0 .. {top} {unit}")
         elif key.quantity == "damage":
             shown.append(f"{title.split(' [')[0]} 0 .. 1")
         else:

@@ -230,7 +230,9 @@ def test_recolor_by_speed_uses_the_largest_speed_drawn(run):
     summary, _ = run
     stage = open_stage(summary.usd_path)
     frames = [read_frame(stage, code) for code in (1, 2)]
-    speeds = [v for f in frames for v in (f.sphere_values.get("speed"), f.rock_values.get("speed")) if v is not None]
+    # What is drawn: every sphere, the rock surface's vertices (not the nodes inside the rock).
+    speeds = [f.sphere_values["speed"] for f in frames if len(f.centers)]
+    speeds += [f.rock_values["speed"][np.unique(f.rock_faces)] for f in frames if len(f.rock_faces)]
     recolor(frames, "speed")
     for frame in frames:
         (key,) = color_keys(frame)  # one scale for both bodies: one key
@@ -293,6 +295,17 @@ def test_legend_bar_spans_the_scale_of_the_colours(tmp_path, quantity):
     np.testing.assert_allclose(cax.get_xlim(), (0.0, scale), rtol=SCALE_RTOL)
     assert cax.get_xticklabels()[-1].get_text() == f"{scale:.3g}"
     plt.close(fig)
+
+
+def test_recolor_in_a_window_scales_by_what_it_shows(tmp_path):
+    speed = np.linspace(1.0, 8.0, 8)  # spheres along x from 0 to 1 m, the faster the further
+    path = tmp_path / "row.usda"
+    write_stage(path, ramp_colors(speed, 8.0), speed)
+    frame = read_frame(open_stage(path), 0)
+    recolor([frame], "speed", inside=lambda points: points[:, 0] < 0.5)
+    (key,) = color_keys(frame)
+    np.testing.assert_allclose(key.scale, speed[frame.centers[:, 0] < 0.5].max(), rtol=SCALE_RTOL)
+    assert key.clipped  # the spheres outside are faster: the red end reads "≥"
 
 
 def test_stress_key_in_megapascals(tmp_path):

@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 import os
 import pathlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -340,12 +341,56 @@ def color_keys(frame: StageFrame, part_names: list[str] | None = None) -> list[C
     return keys
 
 
-def recolor(frames: list[StageFrame], color_by: str, scale: float | None = None) -> None:
+def in_window(view: str, window: tuple[float, float, float, float]) -> Callable[[np.ndarray], np.ndarray]:
+    """Which points [m], shape (N, 3), a view shows within ``window`` (left, right, bottom, top) [m] along its screen
+    axes (:func:`camera`): bool, shape (N,)."""
+    cam = camera(view)
+
+    def inside(points: np.ndarray) -> np.ndarray:
+        u, v = (points @ cam[:2].T).T
+        return (u >= window[0]) & (u <= window[1]) & (v >= window[2]) & (v <= window[3])
+
+    return inside
+
+
+def _largest_drawn(
+    frame: StageFrame,
+    spheres: np.ndarray | None,
+    rock: np.ndarray | None,
+    rock_per_face: bool,
+    inside: Callable[[np.ndarray], np.ndarray] | None,
+) -> float:
+    """The largest of a frame's values that are drawn: the spheres', the rock surface's (per vertex, or per triangle
+    at its centroid), where ``inside`` says so. 0 when none is."""
+
+    def keep(points: np.ndarray) -> np.ndarray:
+        return np.ones(len(points), bool) if inside is None else inside(points)
+
+    drawn = []
+    if spheres is not None and len(spheres):
+        drawn.append(spheres[keep(frame.centers)])
+    if rock is not None and len(rock):
+        if rock_per_face:
+            drawn.append(rock[keep(frame.rock_points[frame.rock_faces].mean(axis=1))])
+        else:
+            used = np.unique(frame.rock_faces)
+            drawn.append(rock[used][keep(frame.rock_points[used])])
+    return max((float(v.max()) for v in drawn if len(v)), default=0.0)
+
+
+def recolor(
+    frames: list[StageFrame],
+    color_by: str,
+    scale: float | None = None,
+    inside: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> None:
     """Recolour the frames from the values the stage holds (module docstring), in place.
 
     Args:
         frames: the frames to draw. color_by: one of :data:`COLOR_BY`; ``"stage"`` leaves the colours as stored.
-        scale: the value drawn red [m/s or Pa] for speed and stress [the largest value among the frames].
+        scale: the value drawn red [m/s or Pa] for speed and stress [the largest value drawn: of the spheres, the
+            rock surface's vertices (speed) or triangles (stress) of the frames, those ``inside`` only].
+        inside: which points [m], shape (N, 3), lie in the part of the view drawn (bool, shape (N,)) [all].
 
     Raises:
         PreviewError: an unknown mode, or a stage that holds no value to colour by.
@@ -368,7 +413,9 @@ def recolor(frames: list[StageFrame], color_by: str, scale: float | None = None)
         )
         raise PreviewError(f"--color-by {color_by}: the frames drawn hold no {what}")
     if scale is None and color_by in ("speed", "stress"):
-        scale = max(float(v.max()) for v in present)
+        per_face = color_by == "stress"
+        drawn = zip(frames, sphere_data, rock_data, strict=True)
+        scale = max(_largest_drawn(f, spheres, rock, per_face, inside) for f, spheres, rock in drawn)
     if scale is not None and not scale > 0.0:
         scale = 1.0  # everything at rest or unloaded: blue on any scale
 
@@ -646,7 +693,8 @@ def render(
             size: picture size (width, height) [pixels]. gif: also write ``<stem>_<view>.gif``.
             max_spheres: draw at most this many spheres. fps: GIF frame rate [frames/s].
             color_by: one of :data:`COLOR_BY` (:func:`recolor`) ["stage": the stage's colours].
-            scale: the value drawn red when recolouring by speed [m/s] or stress [Pa] [the largest drawn].
+            scale: the value drawn red when recolouring by speed [m/s] or stress [Pa] [the largest drawn, in the
+                window where one is given].
             legend: draw the colour keys under the view (:func:`color_keys`; only where the colours follow a
                 known scale). window: the part of the view to draw, (left, right, bottom, top) [m] along the
                 screen's axes (:func:`camera`), widened to the picture's shape [everything drawn, with a margin].
@@ -670,10 +718,10 @@ def render(
     stage = open_stage(stage_path)
     codes = pick_frames(stage_frames(stage), frames, gif)
     data = [read_frame(stage, code) for code in codes]
-    recolor(data, color_by, scale)
+    cam = camera(view)
+    recolor(data, color_by, scale, None if window is None else in_window(view, window))
     keys = [color_keys(frame, part_names) if legend else [] for frame in data]
     slots = max(map(len, keys), default=0)
-    cam = camera(view)
     width, height = size
     font = _font_size(size)
     # The keys get a strip under the view, the same in every frame (an animation does not jump), so they hide
