@@ -110,6 +110,8 @@ def energy_stack(data: dict[str, np.ndarray]) -> EnergyStack:
 def draw_energy(ax, data: dict[str, np.ndarray]) -> EnergyStack:
     """Draw the stacked energy balance into ``ax`` (module docstring): the upward stack, the downward stack
     (hatched, in the colour of the same line), the net and the target. Returns the stack drawn."""
+    from matplotlib import patheffects
+
     t = data["time"]
     stack = energy_stack(data)
     lines = list(dict.fromkeys([*stack.up, *stack.down]))
@@ -132,7 +134,9 @@ def draw_energy(ax, data: dict[str, np.ndarray]) -> EnergyStack:
             base = base + values
     if stack.down:
         ax.axhline(0.0, color="0.2", lw=0.6)
-    ax.plot(t, stack.net, color="0.45", lw=3.5, alpha=0.6, solid_capstyle="butt", label="net of the stack (up − down)")
+    # The net as a white band edged in grey, the target's dashes on top: where they agree the dashes run inside it.
+    outline = [patheffects.Stroke(linewidth=4.5, foreground="0.35"), patheffects.Normal()]
+    ax.plot(t, stack.net, color="white", lw=3.0, path_effects=outline, label="net of the stack (up − down)")
     ax.plot(t, stack.target, "k--", lw=1.2, label="initial + work in − Δ potential")
     return stack
 
