@@ -66,7 +66,7 @@ def run_scene(name: str, device: str, work: Path, keep: Path | None = None) -> d
     summary = work / f"{name}.json"
     start = time.perf_counter()
     run = subprocess.run(
-        [*base, "--out", str(work / name), "--summary-json", str(summary)], capture_output=True, text=True
+        [*base, "--out", str((keep or work) / name), "--summary-json", str(summary)], capture_output=True, text=True
     )
     wall = time.perf_counter() - start
     if run.returncode != 0:
