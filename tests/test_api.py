@@ -414,3 +414,19 @@ def test_a_loose_impactor_is_not_ejecta(tmp_path):
     assert summary.fragment_count == 2 and summary.bonds_broken == 0
     assert summary.ejecta_count == 0 and summary.ejecta_speed_max == 0.0
     assert "ejecta" not in summary.format()
+
+
+def test_a_script_that_ends_without_finishing_leaves_its_stage_published(tmp_path):
+    """A script leaves the loop at frame 2 and ends: at exit the stage is published with frames 0..2, no partial
+    file is left."""
+    code = (
+        "import warpdem as wd\n"
+        f"sim = wd.build({str(WAVE)!r}, device='cpu', frames=5, out_dir='out')\n"
+        "for frame in sim.frames():\n"
+        "    if frame.index == 2:\n"
+        "        break\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert frame_codes(tmp_path / "out" / "wave_column.usdc") == [0.0, 1.0, 2.0]
+    assert not list((tmp_path / "out").glob("*.partial*"))

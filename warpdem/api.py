@@ -120,13 +120,14 @@ def init_warp(quiet: bool = False) -> None:
         sys.stderr.flush()
 
 
-def _start_warp(quiet: bool) -> None:
-    """Start Warp as the command line does (:func:`init_warp`), unless this process has set Warp's log level itself
-    (another than Warp's default, INFO): then its settings are its own."""
+def _start_warp() -> None:
+    """Start Warp as the command line does (:func:`init_warp`: no banner, no module-load lines; its warnings still
+    show), unless this process has set Warp's log level itself (another than Warp's default, INFO): then its
+    settings are its own."""
     import warp as wp
 
     if wp.config.log_level == logging.INFO:
-        init_warp(quiet)
+        init_warp()
 
 
 def validate(scene: Scene) -> Scene:
@@ -180,7 +181,7 @@ def build(
         SceneError: the scene is not valid, cannot be built, or cannot run as asked (one line per problem).
     """
     scene = validate(scene) if isinstance(scene, Scene) else load_scene(scene)
-    _start_warp(quiet)
+    _start_warp()
     options = RunOptions(
         device=device,
         end_time=end_time,
@@ -207,7 +208,7 @@ def restart(
     usd: str | os.PathLike | None = None,
     checkpoint_every: float | None = None,
     quiet: bool = True,
-    max_steps: int | None = None,
+    max_steps: int = MAX_STEPS,
 ) -> Run:
     """Continue a run from one of its checkpoints (written by :meth:`Run.checkpoint <warpdem.runner.Run.checkpoint>`
     or the command line): the same scene, end and outputs as the run that wrote it, unless told otherwise. The
@@ -217,7 +218,8 @@ def restart(
     Args:
         checkpoint: the HDF5 checkpoint.
         scene: the scene to continue with (None: the one the checkpoint holds); a scene object, or a TOML file.
-        device, checkpoint_every, quiet, max_steps: as :func:`build` (None: the checkpoint's run's).
+        device: Warp device (None: the checkpoint's run's).
+        checkpoint_every, quiet, max_steps: as :func:`build`.
         end_time, frames: where the run ends (both None: where the checkpoint's run was to end).
         out_dir, usd: where the outputs go (None: where the checkpoint's run wrote them).
 
@@ -238,27 +240,30 @@ def restart(
         scene = parse_scene(json.loads(attrs["scene_json"]), source=str(attrs.get("scene_source", "<checkpoint>")))
     else:
         scene = validate(scene) if isinstance(scene, Scene) else load_scene(scene)
-    _start_warp(quiet)
+    _start_warp()
     held = attrs.get("run_options", {})
     if end_time is None and frames is None:
         end_time, frames = held.get("end_time"), held.get("frames")
 
-    def chosen(value: object, key: str) -> object:
-        return value if value is not None else held.get(key)
-
-    out = chosen(out_dir, "out_dir")
-    stage = usd if usd is not None else (held.get("usd") if out_dir is None else None)
+    # The checkpoint holds its run's outputs relative to its own folder.
+    out = out_dir if out_dir is not None else _beside(path, held.get("out_dir"))
+    stage = usd if usd is not None else (_beside(path, held.get("usd")) if out_dir is None else None)
     options = RunOptions(
-        device=chosen(device, "device"),
+        device=device if device is not None else held.get("device"),
         end_time=end_time,
         frames=frames,
         out_dir=Path(out) if out is not None else None,
         usd=Path(stage) if stage is not None else None,
-        checkpoint_every=chosen(checkpoint_every, "checkpoint_every"),
+        checkpoint_every=checkpoint_every,
         restart=path,
         quiet=quiet,
-        max_steps=int(chosen(max_steps, "max_steps") or MAX_STEPS),
+        max_steps=max_steps,
     )
     run = Run(scene, options)
     run.start()
     return run
+
+
+def _beside(checkpoint: Path, stored: str | None) -> Path | None:
+    """A path a checkpoint holds (relative to its folder, or absolute), as a path here; None stays None."""
+    return None if stored is None else checkpoint.parent / stored

@@ -10,6 +10,7 @@ continues the same run.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import dataclasses
 import functools
@@ -600,6 +601,15 @@ _OPEN_RUNS: weakref.WeakSet[Run] = weakref.WeakSet()
 """Runs of this process whose USD stage is still being written (a restart into the same stage takes it over)."""
 
 
+@atexit.register
+def _close_open_runs() -> None:
+    """At the interpreter's exit, publish the stage of every run left open (a script that stopped iterating, or
+    ended in an error of its own), so that the frames it wrote are not left in a partial file."""
+    for run in list(_OPEN_RUNS):
+        with contextlib.suppress(Exception):
+            run.close()
+
+
 class UnknownArrayError(KeyError):
     """:meth:`Run.array` was asked for an array the model and state do not have; the message lists those they do."""
 
@@ -1073,6 +1083,7 @@ class Run:
         if self.sim is None:
             raise RuntimeError("Run.checkpoint: the run has not started (call start(), or build it with warpdem.build)")
         sim, scene, options = self.sim, self.scene, self.options
+        target = Path(path) if path is not None else self._checkpoint_dir / checkpoint_name(sim.step_count, scene.name)
         extra: dict[str, Any] = {
             "scene": scene.name,
             **self._grid.attrs(),
@@ -1089,10 +1100,10 @@ class Run:
                 "device": self._device_name,
                 "end_time": options.end_time,
                 "frames": options.frames,
-                "out_dir": str(self._out_dir.resolve()),
-                "usd": str(self._usd_path),
-                "checkpoint_every": options.checkpoint_every,
-                "max_steps": options.max_steps,
+                # Relative to the checkpoint's folder: the outputs are found beside it wherever the two are moved
+                # together, and a run restarted into another folder writes the same checkpoint as the original.
+                "out_dir": _relative_to(self._out_dir, target.parent),
+                "usd": _relative_to(self._usd_path, target.parent),
             },
         }
         if self._frame_crc is not None:
@@ -1102,7 +1113,6 @@ class Run:
         if len(self._load_scales):
             names = sim.model.loads.pressure_names
             extra["load_scales"] = {name: float(s) for name, s in zip(names, self._load_scales, strict=True)}
-        target = Path(path) if path is not None else self._checkpoint_dir / checkpoint_name(sim.step_count, scene.name)
         try:
             written = save_checkpoint(target, sim, self._frame_index, extra)
         except OSError as exc:
@@ -1408,6 +1418,14 @@ class Run:
             self.finish()
         else:
             self.close()
+
+
+def _relative_to(path: Path, folder: Path) -> str:
+    """``path`` relative to ``folder`` (both made absolute), or absolute where no relative path leads there."""
+    try:
+        return os.path.relpath(path.resolve(), folder.resolve())
+    except ValueError:  # another drive (Windows)
+        return str(path.resolve())
 
 
 def _take_over(usd_path: Path) -> None:
