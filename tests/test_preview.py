@@ -46,7 +46,6 @@ from warpdem.io.preview import (
     render,
 )
 from warpdem.io.usd import SurfaceFrame, UsdWriter
-from warpdem.runner import PART_PALETTE as RUNNER_PART_PALETTE
 from warpdem.runner import RunOptions, run_scene
 from warpdem.scene import parse_scene
 
@@ -197,11 +196,6 @@ def open_stage(path):
     from pxr import Usd
 
     return Usd.Stage.Open(str(path))
-
-
-def test_part_palette_is_the_runners():
-    # preview sits below the runner and cannot import its palette: the copy must not drift.
-    np.testing.assert_array_equal(PART_PALETTE, RUNNER_PART_PALETTE)
 
 
 def test_keys_read_back_the_runs_scale(run):

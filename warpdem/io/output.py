@@ -30,6 +30,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "MATERIAL_PALETTE",
+    "PART_PALETTE",
     "RockFrames",
     "VtuSeries",
     "max_principal_stress",
@@ -71,6 +72,12 @@ def sphere_damage(model: Model, state: State) -> tuple[np.ndarray, np.ndarray]:
     ends = np.concatenate([state.bond_i.numpy()[:nb][intact], state.bond_j.numpy()[:nb][intact]])
     total = broken + np.bincount(ends, minlength=n)[:n]
     return broken, np.where(total > 0, broken / np.maximum(total, 1), 0.0)
+
+
+PART_PALETTE = np.array(
+    [[0.55, 0.55, 0.6], [0.85, 0.45, 0.2], [0.2, 0.6, 0.85], [0.4, 0.75, 0.3], [0.8, 0.3, 0.5], [0.9, 0.8, 0.3]]
+)
+"""The sphere colours of ``color_by = "part"``, one per part in order (cycled), shape (6, 3)."""
 
 
 def damage_colors(fraction: np.ndarray) -> np.ndarray:

@@ -27,16 +27,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .output import PART_PALETTE
+
 VIEWS = ("xz", "xy", "yz", "3d")
 DEFAULT_MAX_SPHERES = 200_000
 COLOR_BY = ("stage", "speed", "stress", "damage", "fragment")
 """``render``'s colour modes: the stage's own colours, or a body recoloured from the values the stage holds."""
-
-PART_PALETTE = np.array(
-    [[0.55, 0.55, 0.6], [0.85, 0.45, 0.2], [0.2, 0.6, 0.85], [0.4, 0.75, 0.3], [0.8, 0.3, 0.5], [0.9, 0.8, 0.3]]
-)
-"""The sphere colours of ``color_by = "part"`` (warpdem.runner.PART_PALETTE, which sits above this module; a test
-holds the two equal)."""
 
 COLOR_TOL = 2e-4
 """How far [-] a stored colour may lie from a colour scale and still count as on it: float32 colours are exact to
@@ -688,17 +684,22 @@ def render(
     """Render frames of a stage to PNG files (and an animated GIF of them).
 
     Args:
-        stage_path: the USD stage. out_dir: where the pictures go [the stage's folder]. frames: time codes
-            (negative from the end) [the last; with ``gif``, all, at most 100]. view: one of :data:`VIEWS`.
-            size: picture size (width, height) [pixels]. gif: also write ``<stem>_<view>.gif``.
-            max_spheres: draw at most this many spheres. fps: GIF frame rate [frames/s].
-            color_by: one of :data:`COLOR_BY` (:func:`recolor`) ["stage": the stage's colours].
-            scale: the value drawn red when recolouring by speed [m/s] or stress [Pa] [the largest drawn, in the
-                window where one is given].
-            legend: draw the colour keys under the view (:func:`color_keys`; only where the colours follow a
-                known scale). window: the part of the view to draw, (left, right, bottom, top) [m] along the
-                screen's axes (:func:`camera`), widened to the picture's shape [everything drawn, with a margin].
-            part_names: the scene's part names by part id, for the swatches of ``color_by = "part"``.
+        stage_path: the USD stage.
+        out_dir: where the pictures go (default: the stage's folder).
+        frames: time codes, negative from the end (default: the last; with ``gif``, all, at most 100).
+        view: one of :data:`VIEWS`.
+        size: picture size (width, height) [pixels].
+        gif: also write ``<stem>_<view>.gif``.
+        max_spheres: draw at most this many spheres.
+        fps: GIF frame rate [frames/s].
+        color_by: one of :data:`COLOR_BY` (:func:`recolor`; default "stage": the stage's colours).
+        scale: the value drawn red when recolouring by speed [m/s] or stress [Pa] (default: the largest drawn, in
+            the window where one is given).
+        legend: draw the colour keys under the view (:func:`color_keys`; only where the colours follow a known
+            scale).
+        window: the part of the view to draw, (left, right, bottom, top) [m] along the screen's axes
+            (:func:`camera`), widened to the picture's shape (default: everything drawn, with a margin).
+        part_names: the scene's part names by part id, for the swatches of ``color_by = "part"``.
 
     Returns:
         The files written: one ``<stem>_<view>_<code:06d>.png`` per frame, then the GIF.

@@ -13,8 +13,6 @@ from __future__ import annotations
 import atexit
 import contextlib
 import dataclasses
-import functools
-import json
 import math
 import os
 import signal
@@ -24,386 +22,39 @@ import time
 import weakref
 import zlib
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import warp as wp
 
-from ._version import __version__
-from .build.scene_build import finalize_scene, scene_builder, start_as_spheres
-from .io.checkpoint import checkpoint_name
-from .io.restart import restore_checkpoint, save_checkpoint
-from .limits import MAX_STEPS
-from .scene import Scene, SceneError
-from .simulation import Simulation
-from .stages.energy import EnergyBalance, balance_error
-from .stages.guard import UnstableRunError
-from .stages.loads import PressureAmplitudes, pressure_amplitudes, scale_pressure_loads
-from .stages.rigid_step import rigid_step_after_switch, rigid_time_step
-
-
-class NothingToDo(Exception):
-    """A restart from a checkpoint at or past the end of the run: nothing is simulated and nothing is written."""
-
-
-class RunInterrupted(KeyboardInterrupt):
-    """A run stopped at once (a second Ctrl-C, or Ctrl-C in a script): the frames written so far are published in
-    the USD stage, no checkpoint is written of the state the stop found.
-
-    Attributes:
-        outputs: what the run left behind, in words (the stage and its frames, the last checkpoint written).
-    """
-
-    def __init__(self, outputs: str) -> None:
-        super().__init__(outputs)
-        self.outputs = outputs
-
-
-@dataclass
-class RunOptions:
-    """Command-line overrides of a scene's run and output settings (None = the scene's value).
-
-    Attributes:
-        device: Warp device. end_time: simulated end time [s]. frames: number of output frames after the first
-        (wins over end_time). out_dir: output directory. usd: USD file path. checkpoint_every: checkpoint period
-        [s] (0 = at the end only). restart: checkpoint file to continue from. quiet: no progress bar or summary.
-        max_steps: most time steps the run may take; more is refused before the first step (SceneError).
-    """
-
-    device: str | None = None
-    end_time: float | None = None
-    frames: int | None = None
-    out_dir: Path | None = None
-    usd: Path | None = None
-    checkpoint_every: float | None = None
-    restart: Path | None = None
-    quiet: bool = False
-    max_steps: int = MAX_STEPS
-
-
-@dataclass
-class RunSummary:
-    """What a run did: simulated time [s], steps, wall time [s], throughput [particle-steps/s], contacts now,
-    bonds broken, the energy balance at start and end, and the files written; FEM nodes and live tets, throughput
-    [tet-steps/s] and the VTU collection where the scene has a mesh (or writes its spheres as VTU); the time series
-    CSV (warpdem.io.timeseries).
-
-    ``wall_time`` is the time spent stepping and writing the frames, less the time Warp took to compile (or load from
-    its kernel cache) the kernel modules the run used for the first time: that is ``compile_time``, counted over the
-    whole run (the build included), and the throughputs leave it out too.
-
-    ``energy_in_play`` [J] is the largest :attr:`EnergyBalance.in_play` (kinetic + elastic + strain, or the work put
-    in so far; no gravity potential) over the run's frames, and ``energy_error`` the balance's change over the run
-    relative to it: a scale with no arbitrary datum, so the error does not depend on where z = 0 is.
-
-    With fracture on (``fracture``; warpdem.io.timeseries.fracture_values): node ``splits``, cohesive elements
-    ``cohesive_intact`` and ``cohesive_broken``, the crack area made (``crack_area``, one face [m²]) and fully
-    opened (``crack_area_opened``), the energy the cohesive elements dissipated (``dissipated_cohesive`` [J]) and,
-    to compare, Γ A_f of the broken ones (``cohesive_work_broken`` [J]: a broken element has dissipated exactly that,
-    LDEC eq. 9; the intact ones add ½ f_c δ_max each)."""
-
-    simulated_time: float
-    steps: int
-    wall_time: float
-    particle_steps_per_second: float
-    particles: int
-    contacts: int
-    bonds_broken: int
-    bonds_intact: int
-    energy_start: EnergyBalance
-    energy_end: EnergyBalance
-    usd_path: Path | None
-    checkpoints: list[Path]
-    nodes: int = 0
-    tets: int = 0
-    tet_steps_per_second: float = 0.0
-    pvd_path: Path | None = None
-    frame: int = 0
-    """The last frame written (a run stopped between two frames ends after it, at ``simulated_time``)."""
-    interrupted_by: int | None = None
-    """The signal (SIGINT, SIGTERM) that stopped the run after ``frame``, once its checkpoint and stage were written."""
-    series_path: Path | None = None
-    energy_in_play: float = 0.0
-    energy_error: float = 0.0
-    fracture: bool = False
-    splits: int = 0
-    cohesive_intact: int = 0
-    cohesive_broken: int = 0
-    crack_area: float = 0.0
-    crack_area_opened: float = 0.0
-    dissipated_cohesive: float = 0.0
-    cohesive_work_broken: float = 0.0
-    fragments_path: Path | None = None
-    """The per-frame fragment record (warpdem.stages.fragments), for scenes that can break apart; None otherwise."""
-    fragment_count: int = 0
-    fragment_largest: float = 0.0
-    """Mass of the largest fragment at the last frame [kg]."""
-    fragment_mass: float = 0.0
-    """Mass of all fragments at the last frame [kg]."""
-    ejecta_count: int = 0
-    ejecta_speed_max: float = 0.0
-    ejecta_speed_median: float = 0.0
-    """The pieces broken off at the last frame (:func:`ejecta_speeds`: every fragment but the largest breakable one
-    and the loose spheres, such as an impactor), their number and the largest and median speed of their centres of
-    mass [m/s] (0 without any)."""
-    rigid: str = ""
-    """What the switch to rigid blocks did in this run (warpdem.stages.rigid.RigidReport.format), empty without one."""
-    compile_time: float = 0.0
-    """Time Warp spent compiling kernel modules on their first use, or loading them from its kernel cache [s]
-    (:func:`kernel_load_seconds`), over the whole run; not part of ``wall_time``."""
-
-    def format(self) -> str:
-        e0, e1 = self.energy_start, self.energy_end
-        spheres = self.particles > 0
-        lines = [f"simulated time   {self.simulated_time:.6g} s in {self.steps} steps"]
-        wall = f"wall time        {self.wall_time:.3f} s"
-        if spheres:
-            wall += f"  ({self.particle_steps_per_second / 1e6:.3f} M particle-steps/s)"
-        if self.compile_time > 0.0:
-            wall += f"; kernel compiling {self.compile_time:.2f} s more (first use, not counted)"
-        lines.append(wall)
-        if spheres:
-            lines += [
-                f"particles        {self.particles}   contacts {self.contacts}",
-                f"bonds            {self.bonds_intact} intact, {self.bonds_broken} broken",
-            ]
-        if self.nodes:
-            rate = self.tet_steps_per_second / 1e6
-            lines.append(f"rock mesh        {self.nodes} nodes, {self.tets} tets  ({rate:.3f} M tet-steps/s)")
-        if self.rigid:
-            lines.append(f"rigid blocks     {self.rigid.removeprefix('rigid switch: ')}")
-        if self.fracture:
-            lines += [
-                f"fracture         {self.splits} node splits; cohesive elements {self.cohesive_intact} intact, "
-                f"{self.cohesive_broken} broken",
-                f"crack area       {self.crack_area:.6g} m² made, {self.crack_area_opened:.6g} m² opened (one face)",
-                f"cohesive energy  {self.dissipated_cohesive:.6g} J dissipated; Γ × area of the broken elements "
-                f"{self.cohesive_work_broken:.6g} J",
-            ]
-
-        def row(label: str, a: float, b: float) -> str:
-            return f"  {label:<15}{a:<14.6g} {b:.6g}"
-
-        lines += ["energy [J]       start          end", row("kinetic", e0.kinetic, e1.kinetic)]
-        if self.nodes:
-            lines.append(row("  of nodes", e0.kinetic_nodes, e1.kinetic_nodes))
-        if e0.kinetic_rigid or e1.kinetic_rigid:
-            lines.append(row("  of rigid bl.", e0.kinetic_rigid, e1.kinetic_rigid))
-        lines.append(row("Verlet shadow", e0.shadow, e1.shadow))
-        if e1.released_rigid_switch:
-            lines.append(row("rigid switch", e0.released_rigid_switch, e1.released_rigid_switch))
-        if e0.step_change or e1.step_change:
-            # What taking another time step, or the forces of a split pass, changed Verlet's shadow term by
-            # (Simulation.set_time_step, Simulation.fracture_pass).
-            lines.append(row("step change", e0.step_change, e1.step_change))
-        if self.nodes:
-            lines += [
-                row("strain", e0.strain, e1.strain),
-                row("viscous diss.", e0.dissipated_viscous, e1.dissipated_viscous),
-                row("non-refl. abs.", e0.absorbed_boundaries, e1.absorbed_boundaries),
-                row("load work", e0.load_work, e1.load_work),
-                row("contact diss.", e0.dissipated_fem_contact, e1.dissipated_fem_contact),
-            ]
-        if self.fracture:
-            lines += [
-                row("cohesive el.", e0.cohesive_elastic, e1.cohesive_elastic),
-                row("cohesive diss.", e0.dissipated_cohesive, e1.dissipated_cohesive),
-            ]
-        if self.fracture or e1.contact_topology != 0.0:
-            # What split and conversion passes put into the FEM contact springs (Simulation._book_contact_topology).
-            lines.append(row("contact gain", e0.contact_topology, e1.contact_topology))
-        lines.append(row("elastic", e0.elastic, e1.elastic))
-        if e0.gravity_potential != 0.0 or e1.gravity_potential != 0.0:
-            lines.append(row("gravity pot.", e0.gravity_potential, e1.gravity_potential))
-        if spheres:
-            lines += [
-                row("damping diss.", e0.dissipated_damping, e1.dissipated_damping),
-                row("friction diss.", e0.dissipated_friction, e1.dissipated_friction),
-                row("k_t(δ) change", e0.stiffness_change, e1.stiffness_change),
-                row("bond breakage", e0.released_by_bond_breakage, e1.released_by_bond_breakage),
-                row("wall work", e0.boundary_work, e1.boundary_work),
-            ]
-        lines.append(
-            f"  balance        {e0.total:<14.6g} {e1.total:.6g}   "
-            f"(error {self.energy_error:+.2e} of {self.energy_in_play:.3g} J in play)"
-        )
-        if self.usd_path is not None:
-            lines.append(f"USD              {self.usd_path}")
-        if self.pvd_path is not None:
-            lines.append(f"VTU series       {self.pvd_path}")
-        if self.fragments_path is not None:
-            share = self.fragment_largest / self.fragment_mass if self.fragment_mass > 0.0 else 0.0
-            lines.append(
-                f"fragments        {self.fragment_count}, largest {self.fragment_largest:.6g} kg ({share:.1%} of "
-                f"{self.fragment_mass:.6g} kg)"
-            )
-            if self.ejecta_count:
-                pieces = f"{self.ejecta_count} piece{'s' if self.ejecta_count != 1 else ''}"
-                lines.append(
-                    f"ejecta speed     max {self.ejecta_speed_max:.6g} m/s, median {self.ejecta_speed_median:.6g} m/s "
-                    f"of the {pieces} broken off (fragments but the largest; loose spheres such as an impactor "
-                    "left out)"
-                )
-        if self.series_path is not None:
-            lines.append(f"time series      {self.series_path}")
-        if self.fragments_path is not None:
-            lines.append(f"fragment record  {self.fragments_path}")
-        if self.checkpoints:
-            lines.append(f"checkpoint       {self.checkpoints[-1]}")
-        return "\n".join(lines)
-
-
-@dataclass(frozen=True)
-class FrameEnergy:
-    """The energy books at an output frame.
-
-    Attributes:
-        balance: every line of the books [J] (warpdem.stages.energy.EnergyBalance); its fields read through this
-            object too (``frame.energy.kinetic``).
-        error: the balance's drift since the first frame of the run's timeline, relative to ``in_play`` [-] (the
-            time series' ``energy_error``, the number the summary prints).
-        in_play: the largest energy in play over the timeline so far [J] (the error's scale).
-    """
-
-    balance: EnergyBalance
-    error: float
-    in_play: float
-
-    def __getattr__(self, name: str) -> Any:
-        if name == "balance":  # not set yet (copy, unpickling): no recursion through the delegation below
-            raise AttributeError(name)
-        return getattr(self.balance, name)
-
-
-@dataclass(frozen=True)
-class Frame:
-    """An output frame, as :meth:`Run.frames` yields it once its outputs are written.
-
-    Attributes:
-        index: frame number (the USD time code; 0 is the initial state). time: simulated time [s]. step: time steps
-            taken so far.
-        energy: the energy books (:class:`FrameEnergy`; ``energy.error`` is the balance's relative drift).
-        splits: node splits so far (0 without nodal fracture).
-        fragments: the number of fragments, where the run labels them (None elsewhere).
-        series: the frame's row of the time series, column → value (warpdem.io.timeseries: counts, wall and load
-            forces, every energy line).
-    """
-
-    index: int
-    time: float
-    step: int
-    energy: FrameEnergy
-    splits: int = 0
-    fragments: int | None = None
-    series: dict[str, float] = field(default_factory=dict)
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Kernel compile time
-
-_KERNEL_LOADS = {"seconds": 0.0, "depth": 0}
-
-
-def _warp_module_class() -> type | None:
-    """Warp's module class (whose ``load`` compiles or loads a module's kernels), None if this Warp hides it."""
-    for where in ("warp._src.context", "warp.context"):
-        try:
-            module = __import__(where, fromlist=["Module"])
-        except ImportError:
-            continue
-        cls = getattr(module, "Module", None)
-        if isinstance(cls, type) and callable(getattr(cls, "load", None)):
-            return cls
-    return None
-
-
-def kernel_load_seconds() -> float:
-    """Seconds Warp has spent so far in this process building kernel modules for a device: compiling one on its
-    first use or loading it from the kernel cache (the first call starts the clock).
-
-    Warp compiles a module when one of its kernels is first launched, which lands in whatever step or pass launches
-    it; it has no public counter of that time, so ``Module.load`` is wrapped once, timing the calls that made a new
-    executable (the launches of a loaded module pass through in microseconds and are not counted). Without that
-    method (another Warp), the clock stays at 0.
-    """
-    cls = _warp_module_class()
-    if cls is not None and not getattr(cls.load, "_warpdem_clock", False):
-        original = cls.load
-
-        @functools.wraps(original)
-        def load(self: Any, *args: Any, **kwargs: Any) -> Any:
-            if _KERNEL_LOADS["depth"]:
-                return original(self, *args, **kwargs)
-            execs = getattr(self, "execs", None)
-            before = dict(execs) if isinstance(execs, dict) else None
-            start = time.perf_counter()
-            _KERNEL_LOADS["depth"] += 1
-            try:
-                return original(self, *args, **kwargs)
-            finally:
-                _KERNEL_LOADS["depth"] -= 1
-                if before is None or getattr(self, "execs", None) != before:
-                    _KERNEL_LOADS["seconds"] += time.perf_counter() - start
-
-        load._warpdem_clock = True
-        cls.load = load
-    return _KERNEL_LOADS["seconds"]
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Fragments thrown off
-
-
-def ejecta_speeds(model: Any, state: Any, fragments: Any) -> np.ndarray:
-    """Centre-of-mass speeds of the pieces broken off [m/s], shape (K,), float64: every fragment but the largest
-    breakable one, leaving out the loose spheres (reads back; call between steps).
-
-    A loose sphere is one that never had a bond (none intact, none broken) and was not made by conversion: an
-    impactor, a grain poured in. A fragment of loose spheres alone was never part of anything that could break,
-    so its speed (an impactor's own) says nothing about what the impact threw off.
-
-    Args:
-        model, state: the run's model and state, as labelled. fragments: their fragments
-            (warpdem.stages.fragments.FragmentStats).
-    """
-    from .io.output import sphere_damage
-
-    count = fragments.count
-    if count == 0:
-        return np.zeros(0)
-    breakable = np.zeros(count, dtype=bool)
-    nodes = fragments.node_label[fragments.node_label >= 0]
-    breakable[nodes] = True
-    label = fragments.particle_label
-    if len(label):
-        broken, _ = sphere_damage(model, state)
-        n = len(label)
-        nb = int(state.bond_count.numpy()[0]) if model.bond_capacity else 0
-        intact = state.bond_broken.numpy()[:nb] == 0
-        ends = np.concatenate([state.bond_i.numpy()[:nb][intact], state.bond_j.numpy()[:nb][intact]])
-        bonded = (broken > 0) | (np.bincount(ends, minlength=n)[:n] > 0)
-        if model.conversion_interval > 0 or model.tet_may_convert is not None:
-            bonded |= model.particle_part.numpy()[:n] == model.conversion_part
-        breakable[label[(label >= 0) & bonded]] = True
-    kept = np.flatnonzero(breakable)
-    if len(kept) == 0:
-        return np.zeros(0)
-    # The largest of them is the body they broke from; ties keep the id order, as the fragment listing does.
-    largest = kept[np.argsort(-fragments.fragment_mass[kept], kind="stable")[0]]
-    others = kept[kept != largest]
-    return np.linalg.norm(fragments.fragment_velocity[others], axis=1)
-
-
-def speed_colors(speed: np.ndarray, scale: float) -> np.ndarray:
-    """Blue (at rest) → red (at ``scale`` m/s and above), shape (N, 3)."""
-    t = np.clip(speed / max(scale, 1e-12), 0.0, 1.0)[:, None]
-    return (1.0 - t) * np.array([0.15, 0.3, 0.85]) + t * np.array([0.95, 0.25, 0.1])
-
-
-PART_PALETTE = np.array(
-    [[0.55, 0.55, 0.6], [0.85, 0.45, 0.2], [0.2, 0.6, 0.85], [0.4, 0.75, 0.3], [0.8, 0.3, 0.5], [0.9, 0.8, 0.3]]
+from .._version import __version__
+from ..build.scene_build import finalize_scene, scene_builder, start_as_spheres
+from ..io.checkpoint import checkpoint_name
+from ..io.output import PART_PALETTE, ramp_colors
+from ..io.restart import restore_checkpoint, save_checkpoint
+from ..scene import Scene, SceneError
+from ..simulation import Simulation
+from ..stages.energy import balance_error
+from ..stages.guard import UnstableRunError
+from ..stages.loads import PressureAmplitudes, pressure_amplitudes, scale_pressure_loads
+from ..stages.rigid_step import rigid_time_step
+from .access import RunAccess
+from .records import (
+    Frame,
+    FrameEnergy,
+    NothingToDo,
+    RunInterrupted,
+    RunOptions,
+    RunSummary,
+    ejecta_speeds,
+)
+from .timing import (
+    FrameGrid,
+    _check_steps,
+    end_time_note,
+    kernel_load_seconds,
+    take_rigid_step,
 )
 
 
@@ -442,159 +93,10 @@ class _StopRequest:
             )
 
 
-@dataclass
-class FrameGrid:
-    """Where the frames end, in steps: frame k ≥ ``frame`` ends at step ``step`` + (k − ``frame``) × ``substeps``.
-
-    A run starts on one grid (frame 0 at step 0). A change of the time step (the rigid step taken at a switch,
-    :func:`take_rigid_step`) starts a new grid at the frame boundary where the new step takes over: the frames keep
-    their period (substeps × dt = frame period, dt = period / substeps), so frame k still falls at k × period, to the
-    rounding of the device clock's sum of steps. Checkpoints hold the grid (``substeps``, ``grid_step``,
-    ``grid_frame``, ``grid_time``), so a restart continues on it.
-
-    Attributes:
-        substeps: steps per frame. step, frame: the step at which frame ``frame`` ends (the grid's anchor).
-        time: the simulated time then [s].
-    """
-
-    substeps: int
-    step: int = 0
-    frame: int = 0
-    time: float = 0.0
-
-    def end_step(self, frame: int) -> int:
-        """The step frame ``frame`` ends at."""
-        return self.step + (frame - self.frame) * self.substeps
-
-    def last_step(self, end_time: float, frames: int | None, dt: float) -> int:
-        """The run's last step: the end of frame ``frames``, or the step nearest ``end_time`` [s] (:func:`end_step`,
-        counted in steps of ``dt`` [s] from the grid's anchor)."""
-        if frames is not None:
-            return self.end_step(frames)
-        return self.step + end_step(end_time - self.time, dt)
-
-    def frames(self, last_step: int) -> int:
-        """The frames a run that ends at ``last_step`` writes (the last one short when it is not a whole frame)."""
-        return self.frame + -(-(last_step - self.step) // self.substeps)
-
-    def attrs(self) -> dict[str, int | float]:
-        """The checkpoint attributes of the grid."""
-        return {"substeps": self.substeps, "grid_step": self.step, "grid_frame": self.frame, "grid_time": self.time}
-
-    @staticmethod
-    def from_attrs(attrs: dict, substeps: int) -> FrameGrid:
-        """The grid a checkpoint holds (one written before grids were kept: frame 0 at step 0 with its ``substeps``,
-        else ``substeps``)."""
-        return FrameGrid(
-            int(attrs.get("substeps", substeps)),
-            int(attrs.get("grid_step", 0)),
-            int(attrs.get("grid_frame", 0)),
-            float(attrs.get("grid_time", 0.0)),
-        )
-
-
-@dataclass
-class RigidStepChange:
-    """The rigid step taken at a switch (:func:`take_rigid_step`).
-
-    Attributes:
-        grid: the frame grid from the next frame boundary on (anchored there).
-        dt: the time step of that grid, period / substeps [s]; ``pending``: whether it is still to be set at that
-            boundary (a switch inside a frame runs the rest of the frame at a bridge step first).
-    """
-
-    grid: FrameGrid
-    dt: float
-    pending: bool
-
-
-def take_rigid_step(
-    sim: Simulation, safety_factor: float, frame_period: float, grid: FrameGrid, frame: int, end: int
-) -> RigidStepChange | None:
-    """The rigid step, taken at the step of the switch (a run with ``dt = "auto"``; the blocks turned rigid at
-    ``sim.step_count``, inside frame ``frame`` or at its end, ``end``: the step that frame ends at on ``grid``).
-
-    From the next frame boundary on, the step is period / n for the fewest n steps per frame that keep it within
-    ``safety_factor`` × the critical step after the switch (warpdem.stages.rigid_step.rigid_step_after_switch; larger or
-    smaller than the step before), so frames keep landing on k × period. A switch inside a frame leaves the time
-    r = (end − step) × dt_old to the frame's end: it is run as m = ⌈r / dt_new⌉ steps of r / m ≤ dt_new (the bridge),
-    so the rigid step holds from the switch itself and the frame still ends on its time, to the rounding of the
-    device clock. Each change is :meth:`warpdem.simulation.Simulation.set_time_step` (which books the shadow term's
-    change): the bridge step now, the grid's step at the boundary (by the caller, ``pending``).
-
-    Returns:
-        The new grid, anchored at ``end`` (moved to step + m), and its step; None when the step per frame does not
-        change (nothing is changed) or the critical step is not a positive number.
-    """
-    critical = rigid_step_after_switch(sim.model, sim.state)
-    if not (math.isfinite(critical.value) and critical.value > 0.0):
-        return None
-    substeps = max(1, math.ceil(frame_period / (safety_factor * critical.value)))
-    if substeps == grid.substeps:
-        return None
-    dt = frame_period / substeps
-    left = (end - sim.step_count) * sim.model.dt
-    if end == sim.step_count:
-        sim.set_time_step(dt, critical)
-        return RigidStepChange(FrameGrid(substeps, sim.step_count, frame, sim.time), dt, pending=False)
-    # The 1e-9 of slack keeps a remainder that is a whole number of new steps from gaining one by rounding.
-    bridge = max(1, math.ceil(left / dt * (1.0 - 1e-9)))
-    sim.set_time_step(left / bridge, critical)
-    return RigidStepChange(FrameGrid(substeps, sim.step_count + bridge, frame, sim.time + left), dt, pending=True)
-
-
-def end_step(end_time: float, dt: float) -> int:
-    """The step a run to ``end_time`` [s] ends at: the nearest one (at least 1), so it ends within dt/2 of the time
-    asked, never a frame beyond."""
-    return max(1, round(end_time / dt))
-
-
-def end_time_note(end_time: float, fps: float, dt: float, substeps: int, last: int) -> str | None:
-    """What a run to ``end_time`` does when that is not a whole number of frames (or of steps), or None.
-
-    Args:
-        end_time: time asked [s]; fps: output rate [frames/s]; dt: time step [s]; substeps: steps per frame;
-        last: the run's end step (:func:`end_step`).
-    """
-    short = last % substeps
-    ends = last * dt
-    off_step = abs(ends - end_time) > 1e-9 * end_time
-    if not short and not off_step:
-        return None
-    note = f"end time {end_time:g} s"
-    if short:
-        frame = -(-last // substeps)
-        note += (
-            f" is not a whole number of frames of 1/{fps:g} s: the last frame ({frame}) will be short, "
-            f"{short} of {substeps} steps ({short * dt:.6g} s)"
-        )
-    else:
-        note += f" is not a whole number of steps of {dt:.6g} s"
-    if off_step:
-        note += f"; the run ends at the step nearest to it, t = {ends:.9g} s"
-    return note
-
-
 def _output_error(where: str, path: Path, exc: BaseException) -> SceneError:
     """A one-line SceneError for an output file that cannot be written (name too long, no permission, disk full)."""
     reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else " ".join(str(exc).split())
     return SceneError(f"{where}: cannot write {path}: {reason}")
-
-
-def _check_steps(scene: Scene, steps_per_frame: float, options: RunOptions, frames: int | None) -> None:
-    """Refuses a run of more than ``options.max_steps`` steps (``frames`` frames; None: one frame) before it starts.
-
-    Raises:
-        SceneError: naming run.dt, with the step count it would take.
-    """
-    steps = steps_per_frame * (1 if frames is None else frames)
-    if not steps <= options.max_steps:
-        what = "one frame" if frames is None else f"the run ({frames} frames)"
-        raise SceneError(
-            f"{scene.source}: run.dt: {what} would need {steps:.3g} time steps, more than the limit of "
-            f"{options.max_steps} (--max-steps); raise dt, the output_rate or the material numbers that make the "
-            "critical step small, or shorten the run"
-        )
 
 
 _OPEN_RUNS: weakref.WeakSet[Run] = weakref.WeakSet()
@@ -610,14 +112,7 @@ def _close_open_runs() -> None:
             run.close()
 
 
-class UnknownArrayError(KeyError):
-    """:meth:`Run.array` was asked for an array the model and state do not have; the message lists those they do."""
-
-    def __str__(self) -> str:
-        return str(self.args[0])
-
-
-class Run:
+class Run(RunAccess):
     """One run of a scene: the model built (or restored from a checkpoint), stepped frame by frame, with every
     output a frame writes (USD stage, VTU series, time series, fragment record), checkpoints, and the summary.
 
@@ -632,9 +127,12 @@ class Run:
         options: overrides of the scene's run and output settings (None: the scene's own).
 
     Attributes:
-        scene, options: as given. sim: the stepper (warpdem.simulation.Simulation) once started.
+        scene: the scene, as given.
+        options: the options, as given.
+        sim: the stepper (warpdem.simulation.Simulation) once started.
         frame: the last frame written (None before the first, or right after a restart from between two frames).
-        checkpoints: the checkpoints written, oldest first. summary: the summary, once finished.
+        checkpoints: the checkpoints written, oldest first.
+        summary: the summary, once finished.
         piece_seconds: wall time of the pieces of steps a frame is run in [s]: a stop request
             (:meth:`request_stop`) is answered between two; any value gives the same steps, bit for bit.
     """
@@ -796,10 +294,10 @@ class Run:
         self._checkpoint_dir = out_dir / scene.output.checkpoint_dir
         self._frames_per_checkpoint = max(1, round(checkpoint_every / frame_period)) if checkpoint_every > 0 else 0
 
-        from .io.output import RockFrames, VtuSeries
-        from .io.timeseries import TimeSeries
-        from .io.usd import UsdWriter
-        from .stages.fragments import FragmentFile, can_fragment
+        from ..io.output import RockFrames, VtuSeries
+        from ..io.timeseries import TimeSeries
+        from ..io.usd import UsdWriter
+        from ..stages.fragments import FragmentFile, can_fragment
 
         # Colour scales are the largest values seen so far in the run: a restart continues them from its checkpoint.
         self._speed_scale = float(attrs.get("speed_scale", 1e-12))
@@ -981,8 +479,8 @@ class Run:
     def _write_frame(self) -> Frame:
         """Write every output of the frame the run is at; returns it, with its energy balance (read back once, for
         the series, the frame and the summary)."""
-        from .io.output import damage_colors, sphere_damage, sphere_point_data
-        from .stages.fragments import fragment_colors, label_fragments
+        from ..io.output import damage_colors, sphere_damage, sphere_point_data
+        from ..stages.fragments import fragment_colors, label_fragments
 
         sim, scene, frame = self.sim, self.scene, self._frame_index
         energy = sim.energy()
@@ -1013,7 +511,7 @@ class Run:
             colors = fragment_colors(fragments.particle_label)
         else:
             self._speed_scale = max(self._speed_scale, float(speed.max(initial=0.0)))
-            colors = speed_colors(speed, self._speed_scale)
+            colors = ramp_colors(speed, self._speed_scale)
         bonds = None
         if scene.output.bonds_as_curves and sim.model.bond_capacity:
             nb = sim.bond_count
@@ -1236,7 +734,7 @@ class Run:
                 self._wall += time.perf_counter() - start - compiling
 
     def _summarize(self) -> RunSummary:
-        from .io.timeseries import fracture_values
+        from ..io.timeseries import fracture_values
 
         sim = self.sim
         wall = self._wall
@@ -1286,129 +784,6 @@ class Run:
     def _say(self, line: str) -> None:
         if not self.options.quiet:
             print(line)
-
-    # ------------------------------------------------------------------------------------------------------------
-    # Reading and steering the run (warpdem.api)
-
-    @property
-    def time(self) -> float:
-        """Simulated time now [s]."""
-        return self.sim.time
-
-    @property
-    def step(self) -> int:
-        """Time steps taken since the start of the run's timeline."""
-        return self.sim.step_count
-
-    @property
-    def model(self) -> Any:
-        """The model now (warpdem.model.Model; a pass that grows a capacity replaces it)."""
-        return self.sim.model
-
-    @property
-    def state(self) -> Any:
-        """The state now (warpdem.model.State; a pass that grows a capacity replaces it)."""
-        return self.sim.state
-
-    @property
-    def usd_path(self) -> Path:
-        """The USD stage this run writes (published at :meth:`finish` or :meth:`close`)."""
-        return self._usd_path
-
-    @property
-    def series_path(self) -> Path:
-        """The time series CSV this run writes (rewritten at every frame; the HDF5 copy beside it)."""
-        return self._series.csv_path
-
-    def positions(self) -> np.ndarray:
-        """Sphere centres now [m], shape (N,) live spheres × 3, float64: a copy, safe to keep."""
-        return self.sim.state.particle_q.numpy()[: self.sim.particle_count].copy()
-
-    def velocities(self) -> np.ndarray:
-        """Sphere velocities now [m/s], shape (N, 3), float32: a copy."""
-        return self.sim.state.particle_qd.numpy()[: self.sim.particle_count].copy()
-
-    def node_positions(self) -> np.ndarray:
-        """FEM node positions now [m], shape (N,) live nodes × 3, float32: a copy."""
-        return self.sim.state.node_q.numpy()[: self.sim.node_count].copy()
-
-    def node_velocities(self) -> np.ndarray:
-        """FEM node velocities now [m/s], shape (N, 3), float32: a copy."""
-        return self.sim.state.node_qd.numpy()[: self.sim.node_count].copy()
-
-    def warp_array(self, name: str) -> wp.array:
-        """A state (or else model) array by field name, as the Warp array the kernels use: no copy on any device.
-
-        Hand it to ``wp.to_torch``, ``wp.to_jax`` or DLPack (``np.from_dlpack`` on the CPU) to read it without a copy.
-        It is sized by capacity (the live items first: see the field's docstring in warpdem.model) and valid until
-        the run grows a capacity (a later frame may replace it); writing to it changes the run.
-
-        Raises:
-            UnknownArrayError: no such array (the message lists the state's and the model's).
-        """
-        state, model = self.sim.state.arrays(), self.sim.model.arrays()
-        if name in state:
-            return state[name]
-        if name in model:
-            return model[name]
-        import difflib
-
-        close = difflib.get_close_matches(name, [*state, *model], n=3)
-        hint = f" (did you mean {', '.join(close)}?)" if close else ""
-        raise UnknownArrayError(
-            f"no state or model array {name!r}{hint}; state arrays: {', '.join(sorted(state))}; model arrays: "
-            f"{', '.join(sorted(model))}"
-        )
-
-    def array(self, name: str) -> np.ndarray:
-        """A state (or else model) array by field name, as numpy: on the CPU a view of the run's own memory (no
-        copy: it changes as the run steps, and writing to it changes the run), on a GPU a copy. Sized by capacity,
-        the live items first (:meth:`warp_array`; vectors as trailing axes: vec3 → shape (capacity, 3)).
-
-        Raises:
-            UnknownArrayError: no such array (the message lists the state's and the model's).
-        """
-        return self.warp_array(name).numpy()
-
-    @property
-    def load_names(self) -> list[str]:
-        """The scene's pressure loads that :meth:`set_load_scale` can scale, by name (``loads[i]``, i its
-        ``[[loads]]`` entry)."""
-        loads = self.sim.model.loads
-        return list(loads.pressure_names) if loads is not None and loads.pressure_loads is not None else []
-
-    @property
-    def load_scales(self) -> dict[str, float]:
-        """The scale of each pressure load now [-] (1: the scene's amplitude), by name."""
-        return {name: float(s) for name, s in zip(self.load_names, self._load_scales, strict=True)}
-
-    def set_load_scale(self, load: int | str, scale: float) -> None:
-        """Scale a pressure load's amplitude (peak pressure, or a table's pressures) to ``scale`` times the scene's,
-        from the next step on. The books stay closed: the load kernels book the work of the forces they apply
-        (warpdem.stages.loads.scale_pressure_loads). Checkpoints hold the scales, so a restart continues with them.
-
-        Args:
-            load: the ``[[loads]]`` entry, by index (0, 1, ...) or name (``"loads[0]"``); a pressure or airblast load.
-            scale: the factor [-], finite and >= 0.
-
-        Raises:
-            ValueError: no such pressure load (the message lists those there are), or a bad scale.
-        """
-        self._check_running("set_load_scale")
-        names = self.load_names
-        name = f"loads[{load}]" if isinstance(load, int | np.integer) else str(load)
-        if name not in names:
-            loads = self.scene.loads
-            index = int(load) if isinstance(load, int | np.integer) else None
-            why = ""
-            if index is not None and 0 <= index < len(loads):
-                why = f" ({name} is a {loads[index].kind} load: only pressure and airblast loads scale)"
-            listed = ", ".join(names) if names else "none in this scene"
-            raise ValueError(f"set_load_scale: no pressure load {load!r}{why}; pressure loads: {listed}")
-        if not (math.isfinite(scale) and scale >= 0.0):
-            raise ValueError(f"set_load_scale: the scale must be a finite number >= 0, got {scale!r}")
-        self._load_scales[names.index(name)] = float(scale)
-        scale_pressure_loads(self.sim.model, self._load_base, self._load_scales)
 
     def __enter__(self) -> Run:
         return self
@@ -1476,7 +851,7 @@ def _check_stage_continues(
     Raises:
         SceneError: the stage at ``usd_path`` belongs to another run (nothing is written).
     """
-    from .io.usd import stage_frame
+    from ..io.usd import stage_frame
 
     at_frame = frame_time is None or frame_time == sim.time
     if not usd_path.exists():
@@ -1506,14 +881,3 @@ def _check_stage_continues(
             f"frames/s; the checkpoint's frame {frame} is at t = {expected_time:.9g} s, {fps:g} frames/s); move it "
             "away or pass --usd"
         )
-
-
-def summary_json(summary: RunSummary) -> str:
-    """The summary as JSON (for scripts)."""
-    d = dataclasses.asdict(summary)
-    d["usd_path"] = str(summary.usd_path) if summary.usd_path else None
-    d["checkpoints"] = [str(p) for p in summary.checkpoints]
-    d["pvd_path"] = str(summary.pvd_path) if summary.pvd_path else None
-    d["series_path"] = str(summary.series_path) if summary.series_path else None
-    d["fragments_path"] = str(summary.fragments_path) if summary.fragments_path else None
-    return json.dumps(d, indent=1)
