@@ -219,9 +219,13 @@ def restart(
         checkpoint: the HDF5 checkpoint.
         scene: the scene to continue with (None: the one the checkpoint holds); a scene object, or a TOML file.
         device: Warp device (None: the checkpoint's run's).
-        checkpoint_every, quiet, max_steps: as :func:`build`.
-        end_time, frames: where the run ends (both None: where the checkpoint's run was to end).
-        out_dir, usd: where the outputs go (None: where the checkpoint's run wrote them).
+        end_time: simulated end time [s] (None, with ``frames`` None: where the checkpoint's run was to end).
+        frames: number of frames to run to (overrides ``end_time``).
+        out_dir: output folder (None: where the checkpoint's run wrote its outputs).
+        usd: USD stage to extend (None: the checkpoint's run's).
+        checkpoint_every: checkpoint period [s], as :func:`build`.
+        quiet: no progress bar or summary, as :func:`build`.
+        max_steps: most time steps the run may take, as :func:`build`.
 
     Returns:
         The started run. From a checkpoint taken at a frame, that frame is written again and is the first one
