@@ -124,6 +124,25 @@ def test_preview_draws_every_frame_asked(run, view):
         assert ink(f, (320, 240)) > 5 * MIN_INK, f
 
 
+def test_the_command_line_draws_what_render_draws_with_the_same_options(run, tmp_path, capsys):
+    """``preview --color-by --scale --window --no-legend`` forwards each option to render: the pictures are the same
+    bytes as render's with those arguments (oracle: the function the command wraps); a window that is not
+    LEFT < RIGHT, BOTTOM < TOP is refused by the parser, naming the option (exit 2)."""
+    from warpdem.cli import main
+
+    summary, _ = run
+    options = {"color_by": "speed", "scale": 2.0, "window": (-0.5, 0.5, -0.5, 0.5), "legend": False}
+    (direct,) = render(summary.usd_path, tmp_path / "direct", frames=[-1], view="xz", size=(200, 150), **options)
+    argv = ["preview", str(summary.usd_path), "--frames", "-1", "--view", "xz", "--size", "200x150"]
+    argv += ["--out", str(tmp_path / "cli"), "--color-by", "speed", "--scale", "2", "--window=-0.5,0.5,-0.5,0.5"]
+    assert main([*argv, "--no-legend"]) == 0
+    assert (tmp_path / "cli" / direct.name).read_bytes() == direct.read_bytes()
+    with pytest.raises(SystemExit) as exc:
+        main([*argv[:-1], "0.5,-0.5,-0.5,0.5"])
+    assert exc.value.code == 2
+    assert "--window" in capsys.readouterr().err
+
+
 def test_disc_covers_the_area_of_its_sphere(tmp_path):
     radius = 0.1
     path = tmp_path / "one.usda"

@@ -225,7 +225,7 @@ def plot_parser() -> argparse.ArgumentParser:
 
 
 def preview_parser() -> argparse.ArgumentParser:
-    from .io.preview import DEFAULT_MAX_SPHERES, VIEWS
+    from .io.preview import COLOR_BY, DEFAULT_MAX_SPHERES, VIEWS
 
     p = argparse.ArgumentParser(
         prog="python -m warpdem preview",
@@ -243,7 +243,34 @@ def preview_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--max-spheres", type=_positive_int, default=DEFAULT_MAX_SPHERES, help="draw at most this many spheres"
     )
+    p.add_argument(
+        "--color-by",
+        choices=COLOR_BY,
+        default="stage",
+        help="colours: the stage's own, or a body recoloured from the values the stage holds [stage]",
+    )
+    p.add_argument(
+        "--scale", type=_positive_float, help="value drawn red with --color-by speed [m/s] or stress [Pa] [the largest]"
+    )
+    p.add_argument(
+        "--window",
+        type=_window,
+        metavar="LEFT,RIGHT,BOTTOM,TOP",
+        help="draw only this part of the view [m] along the screen's axes [everything]",
+    )
+    p.add_argument("--no-legend", action="store_true", help="leave out the colour keys under the view")
     return p
+
+
+def _window(text: str) -> tuple[float, float, float, float]:
+    """``LEFT,RIGHT,BOTTOM,TOP`` [m], each pair increasing."""
+    try:
+        left, right, bottom, top = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not four numbers LEFT,RIGHT,BOTTOM,TOP") from None
+    if not (left < right and bottom < top):
+        raise argparse.ArgumentTypeError(f"{text!r}: need LEFT < RIGHT and BOTTOM < TOP")
+    return left, right, bottom, top
 
 
 def _fail(lines: list[str] | str) -> int:
@@ -313,7 +340,19 @@ def main(argv: list[str] | None = None) -> int:
 
         args = preview_parser().parse_args(argv[1:])
         try:
-            files = render(args.stage, args.out, args.frames, args.view, args.size, args.gif, args.max_spheres)
+            files = render(
+                args.stage,
+                args.out,
+                args.frames,
+                args.view,
+                args.size,
+                args.gif,
+                args.max_spheres,
+                color_by=args.color_by,
+                scale=args.scale,
+                legend=not args.no_legend,
+                window=args.window,
+            )
         except PreviewError as exc:
             return _fail(str(exc))
         print("\n".join(str(f) for f in files))
