@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 from pxr import Usd
 from stage_compare import assert_stages_equal
+from test_cli import GOOD_SCENE
 
 import warpdem as wd
 from warpdem.io.checkpoint import read_checkpoint
@@ -34,39 +35,7 @@ REPO = Path(__file__).resolve().parent.parent
 WAVE = REPO / "scenes" / "wave_column.toml"  # 960 tets, a blast pulse on the top: 16 steps a frame
 STEPS_PER_WAVE_FRAME = 16
 
-TINY = """\
-schema_version = 1
-name = "tiny"
-[run]
-end_time = 1.0
-output_rate = 100.0
-[materials.rock]
-density = 2500.0
-youngs_modulus = 1.0e7
-poisson_ratio = 0.3
-[parts.grains]
-material = "rock"
-[[particles]]
-kind = "sphere"
-part = "grains"
-center = [0.0, 0.0, 0.05]
-radius = 0.01
-[[particles]]
-kind = "sphere"
-part = "grains"
-center = [0.05, 0.0, 0.05]
-radius = 0.012
-[[particles]]
-kind = "sphere"
-part = "grains"
-center = [0.0, 0.05, 0.08]
-radius = 0.008
-[[walls]]
-kind = "plane"
-point = [0.0, 0.0, 0.0]
-normal = [0.0, 0.0, 1.0]
-material = "rock"
-"""
+TINY = GOOD_SCENE
 """Three spheres falling onto the ground (73 steps a frame): tests/test_cli.py's good scene."""
 
 MESH_BOUND = 5e-3

@@ -53,6 +53,7 @@ import os
 import sys
 import tempfile
 from pathlib import Path
+from typing import Any
 
 from .io.checkpoint import CheckpointError, read_checkpoint_attrs
 from .limits import MAX_STEPS
@@ -182,19 +183,17 @@ def build(
     """
     scene = validate(scene) if isinstance(scene, Scene) else load_scene(scene)
     _start_warp()
-    options = RunOptions(
+    return _started(
+        scene,
         device=device,
         end_time=end_time,
         frames=frames,
-        out_dir=Path(out_dir) if out_dir is not None else None,
-        usd=Path(usd) if usd is not None else None,
+        out_dir=out_dir,
+        usd=usd,
         checkpoint_every=checkpoint_every,
         quiet=quiet,
         max_steps=max_steps,
     )
-    run = Run(scene, options)
-    run.start()
-    return run
 
 
 def restart(
@@ -252,18 +251,31 @@ def restart(
     # The checkpoint holds its run's outputs relative to its own folder.
     out = out_dir if out_dir is not None else _beside(path, held.get("out_dir"))
     stage = usd if usd is not None else (_beside(path, held.get("usd")) if out_dir is None else None)
-    options = RunOptions(
+    return _started(
+        scene,
         device=device if device is not None else held.get("device"),
         end_time=end_time,
         frames=frames,
-        out_dir=Path(out) if out is not None else None,
-        usd=Path(stage) if stage is not None else None,
+        out_dir=out,
+        usd=stage,
         checkpoint_every=checkpoint_every,
         restart=path,
         quiet=quiet,
         max_steps=max_steps,
     )
-    run = Run(scene, options)
+
+
+def _started(scene: Scene, out_dir: str | os.PathLike | None, usd: str | os.PathLike | None, **options: Any) -> Run:
+    """A run of ``scene`` with these options (:class:`~warpdem.runner.RunOptions`; paths as given or None), started:
+    its model built or restored and its first frame written."""
+    run = Run(
+        scene,
+        RunOptions(
+            out_dir=Path(out_dir) if out_dir is not None else None,
+            usd=Path(usd) if usd is not None else None,
+            **options,
+        ),
+    )
     run.start()
     return run
 
