@@ -1,4 +1,4 @@
-"""Step pipeline and between-step work (warpdem/simulation.py, warpdem/runner.py): neighbour-capacity overflow and
+"""Step pipeline and between-step work (warpdem/simulation.py, warpdem/runner/): neighbour-capacity overflow and
 regrowth, restart from a checkpoint, the energy balance, and bond compaction during a run.
 
 Oracles:
