@@ -34,7 +34,7 @@ from warpdem.cli import EXIT_UNSTABLE, main
 from warpdem.io.checkpoint import read_checkpoint
 from warpdem.scene import SceneError, load_scene
 from warpdem.simulation import Simulation
-from warpdem.stages.guard import SPEED_LIMIT_FACTOR, UnstableRunError
+from warpdem.stages.guard import REACH_FRACTION, SPEED_LIMIT_FACTOR, UnstableRunError
 from warpdem.stages.tets import reference_geometry, tet_stable_time_steps
 
 REFUSAL_MARGIN = 1e-3  # relative; far above float64 rounding of dt and of the estimate (~1e-15)
@@ -42,6 +42,7 @@ TIME_RTOL = 1e-12  # the device clock sums dt in float64 a few times
 UNSTABLE_FACTOR = 5.0  # dt / critical step of the unstable run: the stiffest bond mode grows ~(ω dt)² per step
 
 DENSITY, YOUNG, POISSON = 2500.0, 1.0e7, 0.3  # [kg/m³], [Pa], [-] of the sphere scenes' rock
+RADIUS = 0.01  # [m] of the isolated spheres
 YOUNG_G = 6.0e10  # [Pa] of the tet scene's granite (ρ = 2650 kg/m³, ν = 0.25, c_lin = 0.06 by default)
 
 SPHERES = """\
@@ -210,13 +211,13 @@ def test_cli_refusal_is_one_line_exit_2_and_writes_nothing(tmp_path, capsys):
 # Run time, Python API
 
 
-def isolated_spheres(device: str) -> tuple[ModelBuilder, Simulation]:
-    """Four spheres far apart in zero gravity: nothing they do reaches another."""
+def isolated_spheres(device: str, dt: float | None = None) -> tuple[ModelBuilder, Simulation]:
+    """Four spheres far apart in zero gravity: nothing they do reaches another (``dt``: None for auto)."""
     b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
     b.add_material("rock", DENSITY, YOUNG, POISSON)
     centers = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
-    b.add_spheres(centers, 0.01, "rock", velocity=(0.0, 0.0, 0.0))
-    model, state = b.finalize(device)
+    b.add_spheres(centers, RADIUS, "rock", velocity=(0.0, 0.0, 0.0))
+    model, state = b.finalize(device, dt=dt)
     return b, Simulation(model, state)
 
 
@@ -248,7 +249,8 @@ def test_injected_nan_is_caught_on_the_next_advance(device, field):
 def test_speed_bound_is_the_p_wave_speed_or_ten_launch_speeds(device):
     # c_p = sqrt(E (1 - ν) / ((1 + ν)(1 - 2ν) ρ)): a material point that fast would be at 100 % strain.
     c_p = math.sqrt(YOUNG * (1.0 - POISSON) / ((1.0 + POISSON) * (1.0 - 2.0 * POISSON) * DENSITY))
-    b, sim = isolated_spheres(device)
+    # A step short enough that c_p stays below the contact-reach speed 0.5 r / dt (2.5 c_p here).
+    b, sim = isolated_spheres(device, dt=REACH_FRACTION * RADIUS / (2.5 * c_p))
     np.testing.assert_allclose(sim.model.speed_limit, c_p, rtol=1e-12)
     poison(sim.state.particle_qd, 1, np.array([(1.0 - REFUSAL_MARGIN) * c_p, 0.0, 0.0]))
     sim.advance(2)
@@ -322,3 +324,127 @@ def test_unstable_run_stops_with_exit_3_and_keeps_the_good_output(tmp_path, caps
     assert main([*argv, "--restart", str(checkpoints[-1])]) == EXIT_UNSTABLE
     again = capsys.readouterr().err.splitlines()[0]
     assert again.split("; ")[:-2] == line.split("; ")[:-2]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Contact reach (issue 30): a body may move at most REACH_FRACTION of the smallest contact reach per step.
+
+
+def test_fast_launch_bounds_the_step_by_the_contact_reach(device):
+    # reach step = REACH_FRACTION r / v (warpdem.stages.guard.reach_step): far below the Rayleigh step at this speed.
+    speed = 1.0e4
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    b.add_sphere((0.0, 0.0, 0.0), RADIUS, "rock")
+    b.add_sphere((1.0, 0.0, 0.0), RADIUS, "rock", velocity=(0.0, 0.0, -speed))
+    model, _ = b.finalize(device)
+    reach = REACH_FRACTION * RADIUS / speed
+    assert reach < rayleigh_step(RADIUS)
+    np.testing.assert_allclose(model.critical_dt, reach, rtol=1e-12)
+    assert "the contact reach: a sphere of part default at 1e+04 m/s" in model.critical_dt_source
+    np.testing.assert_allclose(model.contact_reach, RADIUS, rtol=1e-12)
+    with pytest.raises(ValueError, match=r"exceeds the critical time step .* set by the contact reach: a sphere"):
+        b.finalize(device, dt=(1.0 + REFUSAL_MARGIN) * reach)
+    b.finalize(device, dt=(1.0 - REFUSAL_MARGIN) * reach)
+
+
+def test_body_too_fast_for_the_contact_reach_is_stopped(device):
+    # The guard's reach speed is REACH_FRACTION r / dt whatever the step's stability; the isolated spheres' auto step
+    # keeps it below the run-away bound c_p, so a sphere between the two is stopped for the reach alone.
+    _, sim = isolated_spheres(device)
+    limit = REACH_FRACTION * RADIUS / sim.model.dt
+    assert (1.0 + REFUSAL_MARGIN) * limit < sim.model.speed_limit
+    # A sphere coasting for two steps adds no speed (no gravity, no contact): the speed checked is the one set.
+    poison(sim.state.particle_qd, 1, np.array([(1.0 - REFUSAL_MARGIN) * limit, 0.0, 0.0]))
+    sim.advance(2)
+    poison(sim.state.particle_qd, 2, np.array([0.0, (1.0 + REFUSAL_MARGIN) * limit, 0.0]))
+    with pytest.raises(UnstableRunError) as info:
+        sim.advance(2)
+    err = info.value
+    assert err.entity == f"sphere {int(sim.model.particle_id.numpy()[2])} (part default)"
+    assert "more than 0.5 x the smallest contact reach 0.01 m" in err.problem
+    assert err.cause.startswith("a body too fast for the time step")
+
+
+def test_sphere_through_a_wall_is_penetration_past_the_reach(device):
+    # A free sphere's centre behind a plane wall has an overlap past its radius: the wall contact pushes it further
+    # through. The same sphere with its centre just in front (gap = r / 2) is a resolved contact.
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    b.add_sphere((0.0, 0.0, 0.5 * RADIUS), RADIUS, "rock")
+    b.add_plane_wall((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "rock")
+    model, state = b.finalize(device)
+    sim = Simulation(model, state)
+    sim.advance(1)
+    host = sim.state.particle_q.numpy()
+    host[0, 2] = -0.1 * RADIUS
+    sim.state.particle_q.assign(host)
+    with pytest.raises(UnstableRunError) as info:
+        sim.advance(1)
+    assert info.value.problem.startswith("penetration past the contact's reach: its centre")
+    assert "behind wall 0" in info.value.problem
+
+
+SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
+
+
+def edge_scene(tmp_path: Path, name: str, replacements: dict[str, str]) -> Path:
+    """A shipped scene with lines replaced (each old text must occur once)."""
+    text = (SCENES_DIR / f"{name}.toml").read_text()
+    for old, new in replacements.items():
+        assert text.count(old) == 1, old
+        text = text.replace(old, new)
+    path = tmp_path / f"{name}.toml"
+    path.write_text(text)
+    return path
+
+
+def run_edge(tmp_path: Path, path: Path, capsys) -> tuple[int, str, str]:
+    code = main([str(path), "--out", str(tmp_path / "out"), "--device", "cpu"])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def test_ball_at_1e5_m_per_s_does_not_tunnel_silently(tmp_path, capsys):
+    # Issue 30, case 1: at 1e5 m/s the ball's Hertz overlap against the ground, (15 m v² / (16 E* sqrt(R)))^(2/5)
+    # ~ 6 m, is far past its 0.1 m radius: no step resolves it. The step now holds the ball to half the shortest
+    # tet edge per step, and the run stops when the ball's centre passes the ground plane.
+    path = edge_scene(
+        tmp_path,
+        "boulder_impact",
+        {"velocity = [0.0, 0.0, -40.0]": "velocity = [0.0, 0.0, -1.0e5]", "end_time = 0.008": "end_time = 0.00002"},
+    )
+    code, out, err = run_edge(tmp_path, path, capsys)
+    assert code == EXIT_UNSTABLE, out + err
+    assert "sphere 0 (part ball): penetration past the contact's reach" in err
+    # The step it ran at: t / step, at most REACH_FRACTION × the shortest edge (0.0569 m, printed) / 1e5 m/s.
+    found = re.search(r"stopped at t = (\S+) s \(step (\d+)\)", err)
+    edge = float(re.search(r"shortest edge (\S+) m", out).group(1))
+    assert float(found.group(1)) / int(found.group(2)) <= REACH_FRACTION * edge / 1.0e5 * (1.0 + REFUSAL_MARGIN)
+
+
+def test_rigid_slope_at_an_allowed_unstable_dt_is_stopped(tmp_path, capsys):
+    # Issue 30, case 2: dt = 0.01 s (allowed) sends blocks off at hundreds of m/s, 2.9 m per step against a 0.18 m
+    # shortest edge; the changed frame rate (40/s is 2.5 steps) is said.
+    path = edge_scene(
+        tmp_path,
+        "rigid_slope",
+        {'dt = "auto"': "dt = 0.01\nallow_unstable_dt = true", "end_time = 1.5": "end_time = 0.04"},
+    )
+    code, out, err = run_edge(tmp_path, path, capsys)
+    assert code == EXIT_UNSTABLE, out + err
+    assert "run.output_rate 40/s is not a whole number of steps of dt = 0.01 s: a frame every 2 steps" in out
+    assert "more than 0.5 x the smallest contact reach" in err and "likely cause: time step too large" in err
+
+
+def test_rigid_slope_under_1e6_gravity_is_stopped(tmp_path, capsys):
+    # Issue 30, case 3: g = 1e6 m/s² drives the blocks through the fixed base; the run stops once a node moves more
+    # than half the shortest edge in a step (g t dt > 0.09 m at t ~ 2 ms), before any falls through.
+    path = edge_scene(
+        tmp_path,
+        "rigid_slope",
+        {"vector = [0.0, 0.0, -9.81]": "vector = [0.0, 0.0, -1.0e6]", "end_time = 1.5": "end_time = 0.025"},
+    )
+    code, out, err = run_edge(tmp_path, path, capsys)
+    assert code == EXIT_UNSTABLE, out + err
+    assert "FEM node" in err and "more than 0.5 x the smallest contact reach" in err

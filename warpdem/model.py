@@ -79,6 +79,10 @@ class Model:
         critical_dt_source: what sets ``critical_dt``, in words (warpdem.stages.guard.CriticalStep).
         speed_limit: run-away bound on the speed of a sphere or node at t = 0 [m/s]; the guard adds |g| t
             (warpdem.stages.guard.run_away_speed; inf: only non-finite values are caught).
+        contact_reach: the smallest contact reach [m]: the smallest sphere radius or shortest tet edge (inf when
+            there is neither). No sphere or node may move more than REACH_FRACTION of it in one step, or a contact
+            can be stepped over (warpdem.stages.guard.reach_step).
+        contact_reach_source: what sets ``contact_reach``, in words.
 
     FEM contact and joints (warpdem.stages.fem_contact, warpdem.stages.joints; the surface topology is rebuilt on the
     device after every topology pass).
@@ -217,6 +221,8 @@ class Model:
     critical_dt: float = math.inf
     critical_dt_source: str = ""
     speed_limit: float = math.inf
+    contact_reach: float = math.inf
+    contact_reach_source: str = ""
     face_capacity: int = 0
     max_sphere_faces: int = 8
     max_node_faces: int = 8

@@ -22,7 +22,7 @@ from ..model import Model, State, pair_table_array
 from ..stages.bonds import bond_critical_step, bonded_group_bonds, sphere_masses
 from ..stages.contact import sphere_contact_steps
 from ..stages.fem_contact import attach_fem_contact, contact_critical_step_at
-from ..stages.guard import CriticalStep, check_time_step, p_wave_speed, run_away_speed
+from ..stages.guard import CriticalStep, check_time_step, p_wave_speed, reach_step, run_away_speed
 from ..stages.joints import JointData, JointProps, count_split_nodes
 from ..stages.loads import LoadSpecs
 from ..stages.ordering import NODE_ORDERS, morton_order
@@ -499,8 +499,9 @@ class ModelBuilder:
         (Hertz) or 2 sqrt(m*/k_n) (linear) of every sphere size and material, the Hertz contact time at the fastest
         initial approach / 10, the bond step (:func:`bond_critical_step`), the tet step (:meth:`tet_critical_step`,
         of ``mesh`` or of the meshes added), the step of the nodes under non-reflecting dashpots
-        (:meth:`warpdem.stages.loads.LoadSpecs.critical_time_step`) and the step of the FEM contact and joint penalty
-        springs (:meth:`contact_critical_step`)."""
+        (:meth:`warpdem.stages.loads.LoadSpecs.critical_time_step`), the step of the FEM contact and joint penalty
+        springs (:meth:`contact_critical_step`) and the step at which the fastest launched body moves REACH_FRACTION
+        of the smallest contact reach (:func:`warpdem.stages.guard.reach_step`)."""
         names = list(self.materials)
         free = particles.motion == 0
         mesh = mesh if mesh is not None else self.tet_mesh_data()
@@ -511,6 +512,7 @@ class ModelBuilder:
             self.tet_critical_step(mesh),
             CriticalStep(dashpots, "the non-reflecting boundary dashpots"),
             self.contact_critical_step(mesh),
+            reach_step(*self.contact_reach(particles, mesh), *self.fastest_launch(particles, mesh)),
         ]
         if np.any(free) or len(bonds):
             props = [self.materials[name] for name in names]
@@ -539,6 +541,38 @@ class ModelBuilder:
                     bond_critical_step(sphere_masses(particles, self.materials), particles.part, bonds, self.parts)
                 )
         return min(steps, key=lambda c: c.value)
+
+    def contact_reach(self, particles: ParticleData, mesh: TetMeshData) -> tuple[float, str]:
+        """The smallest contact reach [m] and what sets it: the smallest sphere radius or the shortest tet edge (inf
+        when there is neither; ``Model.contact_reach``)."""
+        reach, source = math.inf, ""
+        if len(particles):
+            k = int(np.argmin(particles.radius))
+            reach = float(particles.radius[k])
+            source = f"the radius of the spheres of part {self.parts[particles.part[k]]}"
+        if len(mesh.tets):
+            corners = mesh.points[mesh.tets]
+            edges = [corners[:, a] - corners[:, b] for a, b in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))]
+            edge = float(np.sqrt(min(np.einsum("ij,ij->i", e, e).min() for e in edges)))
+            if edge < reach:
+                reach, source = edge, "the shortest tet edge"
+        return reach, source
+
+    def fastest_launch(self, particles: ParticleData, mesh: TetMeshData) -> tuple[float, str]:
+        """The fastest initial speed of a sphere, FEM node, wall or node velocity driver [m/s], and which it is."""
+        found = [(0.0, "")]
+        if len(particles):
+            speed = np.linalg.norm(particles.qd, axis=1)
+            k = int(np.argmax(speed))
+            found.append((float(speed[k]), f"a sphere of part {self.parts[particles.part[k]]}"))
+        if len(mesh.points):
+            found.append((float(np.linalg.norm(mesh.velocity, axis=1).max()), "a FEM node"))
+        walls = self.wall_data()
+        if len(walls):
+            found.append((float(np.linalg.norm(walls.velocity, axis=1).max()), "a wall"))
+        for _, v, _, _ in self.load_specs.drivers:
+            found.append((float(np.linalg.norm(v)), "a node velocity driver"))
+        return max(found, key=lambda f: f[0])
 
     def run_away_speed(self, particles: ParticleData, bonds: BondData, mesh: TetMeshData, walls: WallData) -> float:
         """The guard's run-away speed bound at t = 0 [m/s] (:func:`warpdem.stages.guard.run_away_speed`): from the
@@ -652,6 +686,7 @@ class ModelBuilder:
             return wp.array(out, dtype=int, device=device)
 
         nw = len(walls)
+        reach, reach_source = self.contact_reach(particles, mesh)
         joints = self.joint_data()
         # Room for the nodes the joints split off (counted by the same device pass that splits them below).
         split_count = count_split_nodes(mesh.points, mesh.tets, joints, device)
@@ -689,6 +724,8 @@ class ModelBuilder:
             critical_dt=critical.value,
             critical_dt_source=critical.source,
             speed_limit=self.run_away_speed(particles, bonds, mesh, walls),
+            contact_reach=reach,
+            contact_reach_source=reach_source,
         )
         state = new_state(model, particles, walls, bonds, mesh)
         model, state = attach_fem_contact(

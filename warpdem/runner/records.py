@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -130,11 +131,22 @@ class RunSummary:
     compile_time: float = 0.0
     """Time Warp spent compiling kernel modules on their first use, or loading them from its kernel cache [s]
     (:func:`kernel_load_seconds`), over the whole run; not part of ``wall_time``."""
+    time_step: float = 0.0
+    """The time step at the end of the run [s]."""
+    critical_dt: float = math.inf
+    """The critical time step it is held under [s] (``Model.critical_dt``), and what sets it (``critical_dt_source``:
+    a tet, a contact, a bond, or the contact reach of the fastest body, warpdem.stages.guard.reach_step)."""
+    critical_dt_source: str = ""
 
     def format(self) -> str:
         e0, e1 = self.energy_start, self.energy_end
         spheres = self.particles > 0
         lines = [f"simulated time   {self.simulated_time:.6g} s in {self.steps} steps"]
+        if self.time_step > 0.0:
+            step = f"time step        {self.time_step:.4g} s"
+            if math.isfinite(self.critical_dt):
+                step += f"  (critical {self.critical_dt:.4g} s, set by {self.critical_dt_source})"
+            lines.append(step)
         wall = f"wall time        {self.wall_time:.3f} s"
         if spheres:
             wall += f"  ({self.particle_steps_per_second / 1e6:.3f} M particle-steps/s)"
@@ -327,6 +339,7 @@ def summary_json(summary: RunSummary) -> str:
     """The summary as JSON (for scripts)."""
     d = dataclasses.asdict(summary)
     d["usd_path"] = str(summary.usd_path) if summary.usd_path else None
+    d["critical_dt"] = summary.critical_dt if math.isfinite(summary.critical_dt) else None
     d["checkpoints"] = [str(p) for p in summary.checkpoints]
     d["pvd_path"] = str(summary.pvd_path) if summary.pvd_path else None
     d["series_path"] = str(summary.series_path) if summary.series_path else None

@@ -218,6 +218,13 @@ class Run(RunAccess):
             model = dataclasses.replace(model, dt=frame_period / substeps)
         else:
             substeps = max(1, round(frame_period / model.dt))
+            if abs(substeps * model.dt - frame_period) > 1e-9 * frame_period:
+                # An explicit dt is kept, so the frames take a whole number of its steps: a changed frame rate.
+                self._say(
+                    f"run.output_rate {fps:g}/s is not a whole number of steps of dt = {model.dt:.6g} s: a frame "
+                    f"every {substeps} steps ({substeps * model.dt:.6g} s), {1.0 / (substeps * model.dt):.6g} "
+                    "frames/s"
+                )
 
         # The amplitudes the load scales refer to: the scene's, whatever a checkpoint's run had set them to.
         self._load_base: PressureAmplitudes | None = pressure_amplitudes(model)
@@ -779,6 +786,9 @@ class Run(RunAccess):
             ejecta_speed_median=float(np.median(ejecta)) if len(ejecta) else 0.0,
             rigid=sim.rigid_report.format() if sim.rigid_report is not None else "",
             compile_time=self._compile,
+            time_step=sim.model.dt,
+            critical_dt=sim.model.critical_dt,
+            critical_dt_source=sim.model.critical_dt_source,
         )
 
     def _say(self, line: str) -> None:

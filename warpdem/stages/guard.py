@@ -17,6 +17,14 @@ A material point moving at c_p would be at 100 % strain (v = ε c), a sphere can
 from collisions, and gravity adds at most |g| t: what passes the bound is a blow-up. A blow-up that saturates below
 it (an unconfined bonded cluster whose bonds all break flies apart at about c_p) is not caught here; the energy
 balance of the summary shows it.
+
+Contact reach: a contact acts only while two bodies overlap, and the overlap a step can resolve is bounded by the
+bodies' size: the smallest sphere radius or the shortest tet edge (``Model.contact_reach``). A body moving more than
+REACH_FRACTION of that in one step can step over a contact (a ball tunnelling through a boulder, blocks falling
+through their base). At set-up the fastest launch speed bounds the step (:func:`reach_step`, one more candidate of the
+critical step, so ``dt = "auto"`` respects it and an explicit dt above it is refused); at run time the guard stops a
+run whose sphere or node moves faster than ``REACH_FRACTION × contact_reach / dt`` (:func:`reach_speed`) whether or
+not the step is stable, naming the body and its speed.
 """
 
 from __future__ import annotations
@@ -33,11 +41,17 @@ from ..model import Model, State
 SPEED_LIMIT_FACTOR = 10.0
 """Run-away speed bound relative to the fastest launch speed of the scene (initial, wall, driver, load) [-]."""
 
+REACH_FRACTION = 0.5
+"""The most a sphere or node may move in one step, as a fraction of the smallest contact reach [-]: a sphere moving
+half its radius per step still meets a sphere or face of its own size in at least two steps of overlap."""
+
 PROBLEMS = {
     kg.PROBLEM_POSITION: "non-finite position",
     kg.PROBLEM_VELOCITY: "non-finite velocity",
     kg.PROBLEM_SPIN: "non-finite angular velocity",
     kg.PROBLEM_SPEED: "run-away speed",
+    kg.PROBLEM_REACH: "too fast for the contact reach",
+    kg.PROBLEM_PENETRATION: "penetration past the contact's reach",
 }
 
 
@@ -85,6 +99,24 @@ def run_away_speed(wave_speeds: list[float], launch_speeds: list[float]) -> floa
     are caught)."""
     fastest = max(max(wave_speeds, default=0.0), SPEED_LIMIT_FACTOR * max(launch_speeds, default=0.0))
     return fastest if fastest > 0.0 else math.inf
+
+
+def reach_step(reach: float, reach_source: str, speed: float, body: str) -> CriticalStep:
+    """The step [s] at which a body at ``speed`` [m/s] moves REACH_FRACTION of the smallest contact reach ``reach``
+    [m] (inf when nothing moves or nothing has a reach); ``body`` names the fastest body, ``reach_source`` what sets
+    the reach."""
+    if speed <= 0.0 or not math.isfinite(reach):
+        return CriticalStep(math.inf, "")
+    return CriticalStep(
+        REACH_FRACTION * reach / speed,
+        f"the contact reach: {body} at {speed:.4g} m/s may move at most {REACH_FRACTION:g} x the smallest contact "
+        f"reach {reach:.4g} m ({reach_source}) per step",
+    )
+
+
+def reach_speed(model: Model) -> float:
+    """The fastest a sphere or node may move at the model's step [m/s]: REACH_FRACTION × contact_reach / dt."""
+    return REACH_FRACTION * model.contact_reach / model.dt if model.dt > 0.0 else math.inf
 
 
 class UnstableRunError(RuntimeError):
@@ -138,6 +170,7 @@ class StabilityGuard:
         m, s = model, state
         self.report.assign(self._clean)
         gravity_norm = float(np.linalg.norm(m.gravity))
+        reach = min(reach_speed(m), 3.0e38)  # float32 kernel argument
         if m.particle_capacity:
             wp.launch(
                 kg.check_spheres_kernel,
@@ -145,11 +178,16 @@ class StabilityGuard:
                 inputs=[
                     m.speed_limit,
                     gravity_norm,
+                    reach,
+                    m.num_walls,
+                    m.wall_normal,
+                    m.particle_inv_mass,
                     s.particle_count,
                     s.particle_q,
                     s.particle_qd,
                     s.particle_omega,
                     s.time,
+                    s.wall_point,
                 ],
                 outputs=[self.report],
                 device=m.device,
@@ -158,7 +196,7 @@ class StabilityGuard:
             wp.launch(
                 kg.check_nodes_kernel,
                 dim=m.node_capacity,
-                inputs=[m.speed_limit, gravity_norm, s.node_count, s.node_u, s.node_qd, s.time],
+                inputs=[m.speed_limit, gravity_norm, reach, s.node_count, s.node_u, s.node_qd, s.time],
                 outputs=[self.report],
                 device=m.device,
             )
@@ -186,6 +224,7 @@ class StabilityGuard:
             entity = f"sphere {pid} (part {part})"
             values = {
                 kg.PROBLEM_POSITION: s.particle_q,
+                kg.PROBLEM_PENETRATION: s.particle_q,
                 kg.PROBLEM_SPIN: s.particle_omega,
             }.get(code, s.particle_qd)
         else:
@@ -199,12 +238,41 @@ class StabilityGuard:
             entity = f"FEM node {i}{where}"
             values = s.node_u if code == kg.PROBLEM_POSITION else s.node_qd
         value = values.numpy()[i].astype(np.float64)
+        cause = likely_cause(m)
         if code == kg.PROBLEM_SPEED:
             problem = f"speed {np.linalg.norm(value):.3g} m/s above the run-away bound {bound:.3g} m/s"
+        elif code == kg.PROBLEM_REACH:
+            speed = float(np.linalg.norm(value))
+            problem = (
+                f"speed {speed:.4g} m/s moves it {speed * m.dt:.3g} m per step (dt = {m.dt:.4g} s), more than "
+                f"{REACH_FRACTION:g} x the smallest contact reach {m.contact_reach:.4g} m ({m.contact_reach_source}): "
+                "a contact can be stepped over"
+            )
+            if m.dt <= m.critical_dt:
+                cause = (
+                    f"a body too fast for the time step (tunnelling or penetration past the contact); use "
+                    f"dt <= {REACH_FRACTION * m.contact_reach / speed:.4g} s"
+                )
+        elif code == kg.PROBLEM_PENETRATION:
+            rel = value - s.wall_point.numpy().astype(np.float64)
+            gaps = np.einsum("ij,ij->i", rel, m.wall_normal.numpy().astype(np.float64))
+            w = int(np.argmin(gaps))
+            radius = float(m.particle_radius.numpy()[i])
+            problem = (
+                f"{PROBLEMS[code]}: its centre {np.array2string(value, precision=3)} is {-gaps[w]:.3g} m behind wall "
+                f"{w}, an overlap of {radius - gaps[w]:.3g} m beyond its radius {radius:.3g} m: more than the "
+                "contact resolves"
+            )
+            cause = (
+                "an impact or load the wall's contact cannot stop within the sphere's radius (speeds, gravity or "
+                "forces far beyond what the contact carries)"
+            )
+            if m.dt > m.critical_dt:
+                cause = likely_cause(m)
         else:
             problem = f"{PROBLEMS[code]} {np.array2string(value, precision=3)}"
         problem += f" ({report.spheres_bad} spheres and {report.nodes_bad} FEM nodes bad)"
-        return UnstableRunError(time, step, entity, problem, likely_cause(m))
+        return UnstableRunError(time, step, entity, problem, cause)
 
 
 def likely_cause(model: Model) -> str:
