@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .coupling import current_barycentric
+from .coupling import coupling_gap, current_barycentric
 from .tets import TET_ACTIVE, TetMaterial
 from .topology import local_index
 
@@ -579,6 +579,7 @@ def write_conversion_couplings_kernel(
     coupling_bary: wp.array(dtype=wp.vec4),
     coupling_k: wp.array(dtype=float),
     coupling_energy_prev: wp.array(dtype=float),
+    coupling_rest: wp.array(dtype=wp.vec3),
 ):
     t = wp.tid()  # one thread per tet slot: a converted tet writes its sphere's couplings (after compaction)
     if t >= tet_count[0] or flag[t] == 0:
@@ -614,6 +615,8 @@ def write_conversion_couplings_kernel(
             coupling_bary[c] = bary
             coupling_k[c] = capped_coupling_stiffness(kn, bary, n, node_mass, particle_mass[p])
             coupling_energy_prev[c] = 0.0
+            # The gap N_a leaves in float32 (~ε₃₂ × the tet's size) is the spring's rest gap: born relaxed.
+            coupling_rest[c] = coupling_gap(x, n, bary, node_ref_q, node_u)
             c += 1
 
 

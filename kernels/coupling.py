@@ -86,6 +86,7 @@ def eval_coupling_kernel(
     coupling_tet: wp.array(dtype=int),
     coupling_bary: wp.array(dtype=wp.vec4),
     coupling_k: wp.array(dtype=float),
+    coupling_rest: wp.array(dtype=wp.vec3),
     # In:
     track_energy: int,
     # State out:
@@ -103,7 +104,8 @@ def eval_coupling_kernel(
     nodes = tet_nodes[t]
     bary = coupling_bary[c]
     k = coupling_k[c]
-    g = coupling_gap(particle_q[p], nodes, bary, node_ref_q, node_u)
+    # The gap past its rest value at birth (the float32 rounding of N_a, warpdem.model.State.coupling_rest).
+    g = coupling_gap(particle_q[p], nodes, bary, node_ref_q, node_u) - coupling_rest[c]
     # Penalty form of eq. 9: U = ½ k |g|², f_p = -∂U/∂x_p = k g, f_a = -∂U/∂x_a = -N_a k g.
     f = k * g
     wp.atomic_add(particle_f, p, f)
@@ -127,6 +129,7 @@ def coupling_energy_kernel(
     coupling_tet: wp.array(dtype=int),
     coupling_bary: wp.array(dtype=wp.vec4),
     coupling_k: wp.array(dtype=float),
+    coupling_rest: wp.array(dtype=wp.vec3),
     # Out:
     energy: wp.array(dtype=wp.float64),
 ):
@@ -137,6 +140,7 @@ def coupling_energy_kernel(
     if tet_active[t] == 0:
         return
     g = coupling_gap(particle_q[coupling_particle[c]], tet_nodes[t], coupling_bary[c], node_ref_q, node_u)
+    g -= coupling_rest[c]
     wp.atomic_add(energy, 0, wp.float64(0.5 * coupling_k[c]) * wp.float64(wp.dot(g, g)))
 
 

@@ -23,7 +23,7 @@ from .conversion import (
     lattice_stiffness,
 )
 from .conversion_bonds import write_lattice_bond
-from .coupling import current_barycentric
+from .coupling import coupling_gap, current_barycentric
 
 wp.set_module_options({"enable_backward": False})
 
@@ -282,6 +282,7 @@ def write_sub_couplings_kernel(
     coupling_bary: wp.array(dtype=wp.vec4),
     coupling_k: wp.array(dtype=float),
     coupling_energy_prev: wp.array(dtype=float),
+    coupling_rest: wp.array(dtype=wp.vec3),
 ):
     t = wp.tid()  # one thread per tet slot: a converted tet writes its spheres' couplings (after compaction)
     if t >= tet_count[0] or flag[t] == 0:
@@ -317,6 +318,8 @@ def write_sub_couplings_kernel(
             coupling_bary[c] = bary
             coupling_k[c] = capped_coupling_stiffness(kn, bary, n, node_mass, particle_mass[p])
             coupling_energy_prev[c] = 0.0
+            # The gap N_a leaves in float32 (~ε₃₂ × the tet's size) is the spring's rest gap: born relaxed.
+            coupling_rest[c] = coupling_gap(x, n, bary, node_ref_q, node_u)
             c += 1
 
 

@@ -487,6 +487,8 @@ class State:
             shape functions N_a of eq. 9; may lie slightly outside the tet), vec4.
         coupling_k: penalty stiffness [N/m], float32.
         coupling_energy_prev: spring energy at the last evaluation [J] (for the Verlet books), float32.
+        coupling_rest: the gap g₀ = Σ N_a x_a - x_p [m] at the coupling's birth, vec3: the rounding of N_a to
+            float32 (~ε₃₂ × the tet's size), which the spring's rest state takes so that it is born relaxed.
         tet_sphere: the sphere spawned in place of each tet, -1 while it is a tet, shape (tet_capacity,), int32
             (the bonds of a later conversion find their partner spheres through it).
 
@@ -643,6 +645,7 @@ class State:
     coupling_bary: wp.array
     coupling_k: wp.array
     coupling_energy_prev: wp.array
+    coupling_rest: wp.array
     tet_sphere: wp.array
     rigid_switched: wp.array
     energy_released_rigid: wp.array
@@ -745,7 +748,14 @@ def fracture_state(model: Model) -> dict[str, wp.array]:
     }
 
 
-COUPLING_FIELDS = ("coupling_particle", "coupling_tet", "coupling_bary", "coupling_k", "coupling_energy_prev")
+COUPLING_FIELDS = (
+    "coupling_particle",
+    "coupling_tet",
+    "coupling_bary",
+    "coupling_k",
+    "coupling_energy_prev",
+    "coupling_rest",
+)
 """State fields indexed by penalty coupling (compacted and grown together)."""
 
 
@@ -762,6 +772,7 @@ def conversion_state(model: Model) -> dict[str, wp.array]:
         "coupling_bary": wp.zeros(cap, dtype=wp.vec4, device=d),
         "coupling_k": wp.zeros(cap, dtype=float, device=d),
         "coupling_energy_prev": wp.zeros(cap, dtype=float, device=d),
+        "coupling_rest": wp.zeros(cap, dtype=wp.vec3, device=d),
         "tet_sphere": wp.full(model.tet_capacity, -1, dtype=int, device=d),
     }
 

@@ -311,6 +311,8 @@ FIELD_MIGRATIONS: dict[str, FieldMigration] = {
     # The kicks sum the velocities with a carry (format 5): an older run's velocity was its float32 value, carry 0.
     "state/particle_qd_carry": FieldMigration(5, _always, "state/particle_qd"),
     "state/node_qd_carry": FieldMigration(5, _always, "state/node_qd"),
+    # Coupling springs are born relaxed with a rest gap (format 6): an older run's springs had none (zero).
+    "state/coupling_rest": FieldMigration(6, _always, "state/coupling_particle"),
 }
 """The fields added since checkpoint format 1, by checkpoint key (``state/<name>``, ``model/<name>``, ``attribute
 <name>`` for a model scalar), and when a restart may fill them from the fresh model and state

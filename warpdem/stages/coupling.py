@@ -74,6 +74,7 @@ def _coupling_inputs(model: Model, state: State) -> list:
         s.coupling_tet,
         s.coupling_bary,
         s.coupling_k,
+        s.coupling_rest,
     ]
 
 
@@ -270,6 +271,7 @@ def set_couplings(
         "coupling_bary": np.asarray(bary, dtype=np.float32).reshape(count, 4),
         "coupling_k": np.asarray(k, dtype=np.float32).reshape(count),
         "coupling_energy_prev": np.zeros(count, dtype=np.float32),
+        "coupling_rest": np.zeros((count, 3), dtype=np.float32),
     }
     for name in COUPLING_FIELDS:
         arr = getattr(state, name)
