@@ -393,7 +393,7 @@ def make_node_contact_kernel(track_energy: bool):
         normal_body: wp.array(dtype=int),
         rest_normal: wp.array(dtype=wp.vec3),
         first_scan: wp.array(dtype=int),
-        born_relaxed: int,
+        relaxed_depth: float,
         rims: RimFaces,
         # State out:
         node_face_spring: wp.array(dtype=int),
@@ -510,11 +510,12 @@ def make_node_contact_kernel(track_energy: bool):
                         before = moved_plane_depth(x - dt * xv, face_nodes[best_f], node_q, node_qd, dt)
                         offset = wp.min(wp.max(before, 0.0), best_d)
                         delta = best_d - offset
-                    elif born_relaxed != 0:
-                        # The re-evaluation after a topology pass: nothing moved, so no depth was gained. A node that
-                        # finds itself behind a face only now (a new crack face, or its own surface turned by the
-                        # faces it gained) carries that depth as its offset.
-                        offset = best_d
+                    elif relaxed_depth > 0.0:
+                        # The re-evaluation after a topology pass (relaxed_depth = RELAXED_ALL): nothing moved, so no
+                        # depth was gained. A node that finds itself behind a face only now (a new crack face, or its
+                        # own surface turned by the faces it gained) carries that depth as its offset. At set-up only
+                        # a depth within float32 rounding (a node lying on a face) is carried.
+                        offset = wp.min(best_d, relaxed_depth)
             node_face_spring[i] = best_f
             node_face_offset[i] = offset
             node_face_shear[i] = sh

@@ -19,7 +19,8 @@ version again and adds its rows to that table, with the version it appeared in: 
 kept per node (``node_f_load``) and the rigid bodies' drift scratch (``body_q_before``, ``body_omega_ahead``); 4 holds
 node_springs node–face springs per node (``node_face_spring``, ``_offset``, ``_shear`` rows, and the model scalar
 ``node_springs``) where older files hold one (warpdem.io.restart.FIELD_RESHAPES puts it into slot 0); 5 the velocities'
-kick carries (``particle_qd_carry``, ``node_qd_carry``: zero in an older run, whose kicks carried nothing).
+kick carries (``particle_qd_carry``, ``node_qd_carry``: zero in an older run, whose kicks carried nothing); 6 the
+coupling springs' rest gaps (``coupling_rest``: zero in an older run, whose springs had none).
 
 Files are written to ``<name>.tmp-<pid>`` in the target directory and moved over the final name with
 ``os.replace``, so a crash or an error mid-write never damages the previous checkpoint.

@@ -48,6 +48,11 @@ from .topology import renumber_nodes
 
 DEFAULT_SKIN_FRACTION = 0.25
 """Default ``fem_skin`` as a fraction of the smallest tet height over a boundary face [-]."""
+ROUNDING_ULPS = 8.0
+"""The depth of a node lying on a face at set-up, in float32 spacings of the largest coordinate [-]: the depth is a
+projection of float32 differences of a few float32 sums (X + u), each rounded by half a spacing."""
+RELAXED_ALL = 3.0e38
+"""The relaxed depth of the re-evaluation after a topology pass: every spring that starts then starts relaxed [m]."""
 
 
 def sphere_face_rows(model: Model) -> int:
@@ -219,6 +224,11 @@ class FemContact:
         # list (kernels/node_face_target.py new_plane_face; survivor_scans).
         self.first_scan = wp.full(1, -2, dtype=int, device=d)
         self.rigid_normals(True)
+        # The depth float32 rounding gives a node lying on a face (the two sides of a pre-split joint, a block resting
+        # on its base): a few ulp of the largest coordinate (set-up only: read back once).
+        nn = model.node_capacity
+        extent = float(np.abs(model.node_ref_q.numpy()[:nn]).max(initial=0.0)) if nn else 0.0
+        self.noise_depth = ROUNDING_ULPS * float(np.finfo(np.float32).eps) * extent
 
     def survivor_scans(self, on: bool) -> None:
         """Let a node's later scans for a new plane in one evaluation test only the faces that passed its first scan
@@ -336,8 +346,10 @@ class FemContact:
     def eval(self, track_energy: bool, dt: float | None = None, born_relaxed: bool = False) -> None:
         """Rebuild if needed, then accumulate sphere–face, node–face, node–wall and joint-element forces.
 
-        ``dt`` overrides the model step for the history increments; 0 evaluates forces without advancing any.
-        ``born_relaxed``: node–face springs that start now start relaxed (the evaluation after a topology pass).
+        ``dt`` overrides the model step for the history increments; 0 evaluates forces without advancing any (the
+        set-up evaluation, where a spring whose depth is within float32 rounding, ``noise_depth``, starts relaxed:
+        a state at rest stays at rest). ``born_relaxed``: node–face springs that start now start relaxed (the
+        evaluation after a topology pass).
         """
         self.rebuild_if_needed()
         eval_fem_contacts(
@@ -353,6 +365,7 @@ class FemContact:
             self.target_slot,
             self.face_origin,
             self.first_scan,
+            self.noise_depth if dt == 0.0 else 0.0,
         )
         eval_joints(self.model, self.state, dt)
 
@@ -370,6 +383,7 @@ def eval_fem_contacts(
     target_slot: wp.array | None = None,
     face_origin: wp.array | None = None,
     first_scan: wp.array | None = None,
+    noise_depth: float = 0.0,
 ) -> None:
     """Sphere–face, node–face and node–wall forces into ``particle_f/t`` and ``node_f`` (launches only).
 
@@ -382,6 +396,8 @@ def eval_fem_contacts(
         born_relaxed: a node–face spring that starts in this evaluation starts relaxed, its depth carried as an
             offset: the re-evaluation after a topology pass, where nothing moved, so no depth was gained (at set-up
             an initial penetration pushes, and in a step a new spring takes the depth gained in it).
+        noise_depth: where not ``born_relaxed``, a spring that starts in this evaluation carries up to this depth [m]
+            as an offset: float32 rounding, not a penetration (``FemContact.noise_depth``, at set-up).
         normal_body: the body whose pose turns each node's normal, -1 where the node walks its star
             (``FemContact.rigid_normals``), shape (node_capacity,), int32; None: every node walks its star.
         rest_normal: each node's normal at the switch positions, turned by that body
@@ -512,7 +528,7 @@ def eval_fem_contacts(
                 normal_body,
                 rest_normal,
                 first_scan,
-                int(born_relaxed),
+                RELAXED_ALL if born_relaxed else float(noise_depth),
                 rim_faces(m),
             ],
             outputs=[
