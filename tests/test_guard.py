@@ -15,6 +15,13 @@ Oracles:
   sphere and cause, no traceback; the published stage holds the frames before the failing step, 1 + (step - 1) //
   substeps, all finite; no checkpoint of the bad state; a restart from the last good checkpoint replays the same
   steps bit for bit (CPU) and so stops with the same line.
+- contact reach (issue 30): a sphere launched at v bounds the critical step by REACH_FRACTION r / v exactly, refused
+  at (1 + REFUSAL_MARGIN) of it; a sphere coasting at (1 ∓ REFUSAL_MARGIN) × REACH_FRACTION r / dt passes / is
+  stopped; a free sphere whose centre is behind a wall is stopped for penetration;
+- energy from nowhere: energy_from_nowhere's allowance (a stable step's shadow, (dt/dt_c)² of what can flow, plus
+  BOOKS_SLACK) at its edges; the unstable slab above is now stopped by it, before any speed runs away;
+- the issue's edge runs, shortened: a 1e5 m/s ball, rigid_slope at dt = 0.01 s allowed and under 1e6 m/s² of gravity
+  end with exit 3 and a message naming what went wrong.
 The guard never fires on the shipped scenes: tests/test_scenes.py runs each of them.
 """
 
@@ -34,7 +41,7 @@ from warpdem.cli import EXIT_UNSTABLE, main
 from warpdem.io.checkpoint import read_checkpoint
 from warpdem.scene import SceneError, load_scene
 from warpdem.simulation import Simulation
-from warpdem.stages.guard import REACH_FRACTION, SPEED_LIMIT_FACTOR, UnstableRunError
+from warpdem.stages.guard import BOOKS_SLACK, REACH_FRACTION, SPEED_LIMIT_FACTOR, UnstableRunError, energy_from_nowhere
 from warpdem.stages.tets import reference_geometry, tet_stable_time_steps
 
 REFUSAL_MARGIN = 1e-3  # relative; far above float64 rounding of dt and of the estimate (~1e-15)
@@ -301,7 +308,8 @@ def test_unstable_run_stops_with_exit_3_and_keeps_the_good_output(tmp_path, caps
     assert main(argv) == EXIT_UNSTABLE
     (line,) = capsys.readouterr().err.splitlines()
     found = re.fullmatch(
-        r"error: unstable run stopped at t = (\S+) s \(step (\d+)\): sphere \d+ \(part slab\): (.*); likely cause: "
+        r"error: unstable run stopped at t = (\S+) s \(step (\d+)\): "
+        r"(?:sphere \d+ \(part slab\)|the energy books): (.*); likely cause: "
         r"time step too large: dt = (\S+) s is (\S+) x the critical time step (\S+) s set by the bond between "
         r"spheres of part slab .*; (\d+) good frames published in (\S+); last good checkpoint (\S+)",
         line,
@@ -323,7 +331,8 @@ def test_unstable_run_stops_with_exit_3_and_keeps_the_good_output(tmp_path, caps
     # The last good checkpoint is whole: a restart from it runs the same steps and stops with the same line.
     assert main([*argv, "--restart", str(checkpoints[-1])]) == EXIT_UNSTABLE
     again = capsys.readouterr().err.splitlines()[0]
-    assert again.split("; ")[:-2] == line.split("; ")[:-2]
+    # The same time, step and entity (the energy books of a restart start at its checkpoint: their numbers differ).
+    assert again.split(": ")[:3] == line.split(": ")[:3]
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -448,3 +457,21 @@ def test_rigid_slope_under_1e6_gravity_is_stopped(tmp_path, capsys):
     code, out, err = run_edge(tmp_path, path, capsys)
     assert code == EXIT_UNSTABLE, out + err
     assert "FEM node" in err and "more than 0.5 x the smallest contact reach" in err
+
+
+def test_energy_from_nowhere_allows_a_stable_steps_shadow_only():
+    # A spring of energy U = 1 J at rest, no work, no gravity: at a stable step the shadow term S ≤ (dt/dt_c)² U
+    # (S/U = (ω dt)²/4 per mode, 1 at ω dt = 2), so Δ(total + S) up to (dt/dt_c)² + BOOKS_SLACK of U passes.
+    start = (1.0, 0.0, 1.0, 0.0)  # total, shadow, in play, gravity potential [J]
+    half = 0.25 + BOOKS_SLACK  # allowed at dt = dt_c / 2
+    assert energy_from_nowhere(start, (1.0, (1.0 - REFUSAL_MARGIN) * half, 0.0, 0.0, 0.0, 0.0), 0.5, 1.0) is None
+    appeared, allowed = energy_from_nowhere(start, (1.0, (1.0 + REFUSAL_MARGIN) * half, 0.0, 0.0, 0.0, 0.0), 0.5, 1.0)
+    np.testing.assert_allclose(allowed, half * 1.0 + 16.0 * float(np.finfo(np.float32).eps), rtol=1e-12)
+    np.testing.assert_allclose(appeared, (1.0 + REFUSAL_MARGIN) * half, rtol=1e-12)
+    # Work put in and gravity released (10 J each, booked in the total) enlarge what a stable shadow may hold:
+    # 3 J of shadow passes with them ((0.25 + slack) × 21 J) and not without (× 1 J).
+    assert energy_from_nowhere(start, (1.0, 3.0, -10.0, 10.0, 0.0, 0.0), 0.5, 1.0) is None
+    assert energy_from_nowhere(start, (1.0, 3.0, 0.0, 0.0, 0.0, 0.0), 0.5, 1.0) is not None
+    # Past the critical step the shadow may hold all of it, once: (1 + BOOKS_SLACK) × what can flow.
+    assert energy_from_nowhere(start, (1.0, 1.0, 0.0, 0.0, 0.0, 0.0), 5.0, 1.0) is None
+    assert energy_from_nowhere(start, (1.0, 1.0 + 2.0 * BOOKS_SLACK, 0.0, 0.0, 0.0, 0.0), 5.0, 1.0) is not None

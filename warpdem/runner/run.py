@@ -35,8 +35,8 @@ from ..io.output import PART_PALETTE, ramp_colors
 from ..io.restart import restore_checkpoint, save_checkpoint
 from ..scene import Scene, SceneError
 from ..simulation import Simulation
-from ..stages.energy import balance_error
-from ..stages.guard import UnstableRunError
+from ..stages.energy import EnergyBalance, balance_error
+from ..stages.guard import UnstableRunError, energy_from_nowhere, likely_cause
 from ..stages.loads import PressureAmplitudes, pressure_amplitudes, scale_pressure_loads
 from ..stages.rigid_step import rigid_time_step
 from .access import RunAccess
@@ -423,6 +423,35 @@ class Run(RunAccess):
             self._abort()
             raise
 
+    def _check_energy(self, energy: EnergyBalance) -> None:
+        """Stop the run (warpdem.stages.guard.UnstableRunError) when energy appeared from nowhere since its start
+        (warpdem.stages.guard.energy_from_nowhere): the books close for Verlet at any step, so an unstable step
+        allowed by allow_unstable_dt shows here, not in the balance."""
+        s0, sim = getattr(self, "_energy_start", None), self.sim
+        if s0 is None:  # frame 0: the books start here
+            return
+        found = energy_from_nowhere(
+            (s0.total, s0.shadow, s0.in_play, s0.gravity_potential),
+            (
+                energy.total,
+                energy.shadow,
+                energy.gravity_potential,
+                energy.boundary_work - s0.boundary_work,
+                energy.load_work - s0.load_work,
+                energy.stiffness_change - s0.stiffness_change + energy.contact_topology - s0.contact_topology,
+            ),
+            sim.model.dt,
+            sim.model.critical_dt,
+        )
+        if found is not None:
+            appeared, allowed = found
+            problem = (
+                f"{appeared:.4g} J of energy appeared from nowhere (kinetic {energy.kinetic:.4g} J; more than the "
+                f"{allowed:.4g} J the work put in, the gravity released and a stable step's shadow term allow), "
+                f"while the books close only through Verlet's shadow term {energy.shadow:.4g} J"
+            )
+            raise UnstableRunError(sim.time, sim.step_count, "the energy books", problem, likely_cause(sim.model))
+
     def _advance_frame(self, frame: int) -> bool:
         """Run the steps of frame ``frame`` (to its end on the grid, or the run's last step) in pieces, taking the
         rigid step at a switch inside it, then the grid's step at its end after a bridge. Returns False when a stop
@@ -491,6 +520,7 @@ class Run(RunAccess):
 
         sim, scene, frame = self.sim, self.scene, self._frame_index
         energy = sim.energy()
+        self._check_energy(energy)
         self._rock.write_vtu(frame, sim.time, sim.model, sim.state)
         n = sim.particle_count
         q = sim.state.particle_q.numpy()[:n]

@@ -119,6 +119,43 @@ def reach_speed(model: Model) -> float:
     return REACH_FRACTION * model.contact_reach / model.dt if model.dt > 0.0 else math.inf
 
 
+BOOKS_SLACK = 0.01
+"""What the books may drift by relative to the energy that can flow [-]: twice the bound the shipped scenes' balance
+keeps (tests/test_scenes.py, MESH_BOUND 5e-3)."""
+
+
+def energy_from_nowhere(
+    start: tuple[float, float, float, float],
+    now: tuple[float, float, float, float, float, float],
+    dt: float,
+    critical_dt: float,
+) -> tuple[float, float] | None:
+    """Energy that appeared from nowhere [J] and the most a sane run may show, or None when within it.
+
+    Velocity Verlet conserves kinetic − shadow + the rest of the books (warpdem.stages.energy) at any step, stable or
+    not: past the critical step the shadow term S = dt²/8 Σ |f|²/m grows with the kinetic energy and the books still
+    close. Counting S as the energy it stands for, ``appeared`` = Δ(total + S) is what the kinetic and stored energies
+    gained beyond the work put in, the gravity released and what was dissipated. In a stable step S is at most
+    (dt / critical_dt)² of the energy stored (S/U = (ω dt)²/4 for a mode of frequency ω, ≤ 1 at ω dt = 2), so a sane
+    run keeps ``appeared`` ≤ (min(1, (dt/critical_dt)²) + BOOKS_SLACK) × the energy that can flow (in play at the
+    start, work put in, gravity released) + S at the start + float32 rounding of the largest term.
+
+    Args:
+        start: (total, shadow, in play, gravity potential) of the books at the start [J].
+        now: (total, shadow, gravity potential, work put in by walls and drivers, load work, stiffness and contact
+            topology gains) of the books now [J].
+        dt, critical_dt: the step and the critical step [s].
+    """
+    total0, shadow0, in_play0, gravity0 = start
+    total, shadow, gravity, boundary_work, load_work, gains = now
+    appeared = (total + shadow) - (total0 + shadow0)
+    flow = in_play0 + abs(boundary_work) + abs(load_work) + abs(gains) + max(gravity0 - gravity, 0.0)
+    ratio = min(1.0, (dt / critical_dt) ** 2) if math.isfinite(critical_dt) and critical_dt > 0.0 else 1.0
+    rounding = 16.0 * float(np.finfo(np.float32).eps) * max(abs(gravity0), abs(gravity), flow)
+    allowed = (ratio + BOOKS_SLACK) * flow + abs(shadow0) + rounding
+    return (appeared, allowed) if appeared > allowed else None
+
+
 class UnstableRunError(RuntimeError):
     """A run stopped because its state went non-finite or ran away.
 
