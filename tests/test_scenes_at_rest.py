@@ -9,7 +9,7 @@ Oracles:
   change at all).
 The scene is built as the runner builds it (build_scene, then the start_as_spheres conversion of dam_crest_blast) and
 stepped STEPS times at its own time step; each build costs under a second on a CPU but the two facility scenes'
-(~8 s and ~20 s: their geology meshes).
+(~10 s and ~25 s with their 100 steps: their geology meshes).
 
 Known (strict xfail): the scenes with pre-split joints or contacts between blocks at set-up (jointed_slope,
 tunnel_jointed_rock, tunnel_jointed_rock_nonpersistent, brazilian_disc) move by ~1e-9 m and their FEM contact books
