@@ -581,3 +581,17 @@ def test_summary_json_carries_the_compile_time_and_the_ejecta_count(tmp_path, ca
     data = json.loads(summary.read_text())
     assert data["compile_time"] >= 0.0 and data["wall_time"] > 0.0
     assert data["ejecta_count"] == 0 and data["fragment_count"] == 0  # three loose spheres: nothing to break
+
+
+def test_summary_quotes_the_time_step_and_what_sets_the_critical_one(tmp_path, capsys):
+    """Issue 30: the summary says the step and the critical step with its source, and the JSON carries both."""
+    out, inputs = tmp_path / "out", tmp_path / "in"
+    inputs.mkdir()
+    summary = tmp_path / "summary.json"
+    argv = [str(scene_file(inputs, GOOD_SCENE)), "--out", str(out), "--device", "cpu", "--frames", "1"]
+    assert main([*argv, "--summary-json", str(summary)]) == 0
+    data = json.loads(summary.read_text())
+    assert 0.0 < data["time_step"] <= data["critical_dt"] and data["critical_dt_source"]
+    printed = capsys.readouterr().out
+    line = next(x for x in printed.splitlines() if x.startswith("time step "))
+    assert f"set by {data['critical_dt_source']}" in line
