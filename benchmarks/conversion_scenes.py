@@ -72,7 +72,10 @@ def report(scene, device: str, end_time: float | None) -> list[str]:
         n = sim.particle_count
         speed = np.linalg.norm(sim.state.particle_qd.numpy()[:n], axis=1) if n else np.zeros(1)
         nb = sim.bond_count
-        broken = int(np.count_nonzero(sim.state.bond_broken.numpy()[:nb])) if nb else 0
+        # Broken bonds are compacted out of the live ones between passes: the count since the start is the
+        # state's counter (as the time series' bonds_broken), not the live bonds' flags.
+        broken = int(sim.state.bonds_broken_total.numpy()[0])
+        live_broken = int(np.count_nonzero(sim.state.bond_broken.numpy()[:nb])) if nb else 0
         per_material = ", ".join(
             f"{names[m]} {int(np.count_nonzero(converted & (material == m)))}/{int(np.count_nonzero(material == m))}"
             for m in np.unique(material)
@@ -82,8 +85,9 @@ def report(scene, device: str, end_time: float | None) -> list[str]:
         energy = sim.energy()
         in_play = max(in_play, energy.in_play)
         out.append(
-            f"  t = {sim.time * 1e3:6.3f} ms  converted {per_material}  spheres {n:5d}  bonds {nb - broken:5d} intact "
-            f"{broken:5d} broken  fastest {float(speed.max(initial=0.0)):7.1f} m/s  zone {extent:5.2f} m "
+            f"  t = {sim.time * 1e3:6.3f} ms  converted {per_material}  spheres {n:5d}  "
+            f"bonds {nb - live_broken:5d} intact {broken:5d} broken  "
+            f"fastest {float(speed.max(initial=0.0)):7.1f} m/s  zone {extent:5.2f} m "
             f"({int(np.count_nonzero(adaptive))} tets converted adaptively)  "
             f"balance {(energy.total - e0.total) / in_play:+.1e}"
         )

@@ -142,8 +142,18 @@ def test_the_kernels_import_no_host_module():
     assert not bad, "\n".join(bad)
 
 
-@pytest.mark.parametrize("folder", ["build", "stages", "io"])
+FOLDERS = sorted(p.parent.relative_to(PACKAGE).as_posix() for p in PACKAGE.glob("*/__init__.py"))
+
+
+def test_the_house_has_its_folders():
+    assert {"scene", "build", "stages", "io", "runner", "bench"} <= set(FOLDERS), FOLDERS
+
+
+@pytest.mark.parametrize("folder", FOLDERS)
 def test_each_folder_is_a_package_that_installs(folder):
-    """A folder of the house is a package listed in pyproject.toml, or a wheel would leave it out."""
-    assert (PACKAGE / folder / "__init__.py").is_file()
-    assert f'"warpdem.{folder}"' in (ROOT / "pyproject.toml").read_text()
+    """Every package folder of warpdem/ is listed in pyproject.toml's packages, or a wheel (pip install .) would
+    leave it out and the installed package would fail to import it."""
+    import tomllib
+
+    packages = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]
+    assert f"warpdem.{folder}" in packages, f"warpdem/{folder}/ is not in pyproject.toml [tool.setuptools] packages"

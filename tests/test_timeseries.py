@@ -262,7 +262,7 @@ BAR_FRACTURE = {"tensile_strength": 2.0e6, "fracture_energy": 50.0, "alpha": 1.0
 def run_with_fracture(options: RunOptions):
     """run_scene of BAR_SCENE with nodal fracture attached to the built model (every node may split, a pass every
     step)."""
-    import warpdem.runner as runner
+    import warpdem.runner.run as runner
     from warpdem.stages.fracture import FractureProps, attach_fracture
 
     build = runner.finalize_scene
