@@ -144,7 +144,8 @@ def energy_from_nowhere(
         start: (total, shadow, in play, gravity potential) of the books at the start [J].
         now: (total, shadow, gravity potential, work put in by walls and drivers, load work, stiffness and contact
             topology gains) of the books now [J].
-        dt, critical_dt: the step and the critical step [s].
+        dt: the step [s].
+        critical_dt: the critical step [s].
     """
     total0, shadow0, in_play0, gravity0 = start
     total, shadow, gravity, boundary_work, load_work, gains = now
