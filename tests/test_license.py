@@ -3,9 +3,9 @@ licence file at the repository root, and that file is the Apache License 2.0 as 
 publishes it.
 
 Oracle: the SHA-256 of https://www.apache.org/licenses/LICENSE-2.0.txt, so any edit of the text (a filled-in
-appendix, a changed line ending) fails. Whether the wheel carries the file is checked by building one, which needs
-the network for the build backend and takes seconds, so it is not run here:
-``pip wheel . -w /tmp/whl --no-deps && unzip -l /tmp/whl/warpdem-*.whl | grep licenses/LICENSE``.
+appendix, a changed line ending) fails. Whether the wheel carries the file needs a built wheel, which needs the
+network for the build backend, so .ci/run checks it on the non-editable install it makes anyway (the installed
+distribution's files hold ``licenses/LICENSE``).
 """
 
 from __future__ import annotations

@@ -11,14 +11,14 @@ The scene is built as the runner builds it (build_scene, then the start_as_spher
 stepped STEPS times at its own time step; each build costs under a second on a CPU but the two facility scenes'
 (~10 s and ~25 s with their 100 steps: their geology meshes).
 
-Known (strict xfail): the scenes with pre-split joints or contacts between blocks at set-up (jointed_slope,
-tunnel_jointed_rock, tunnel_jointed_rock_nonpersistent, brazilian_disc) move by ~1e-9 m and their FEM contact books
-a negative dissipation: the set-up evaluation applies node–face spring forces on the joint faces (200 N on one node
-of jointed_slope) that a second evaluation at the same positions does not. Their positions pass; their books do not.
+Known (strict xfail of the books test only, SET_UP_JOINT_FORCES): the scenes with pre-split joints or contacts
+between blocks at set-up (jointed_slope, tunnel_jointed_rock, tunnel_jointed_rock_nonpersistent, brazilian_disc) stay
+within the position bound, checked like every other scene, but their FEM contact books a negative dissipation.
 """
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 from typing import Any
 
@@ -57,18 +57,17 @@ def at_rest(scene: Scene) -> Scene:
     return parse_scene(data, source=scene.source)
 
 
-def params() -> list:
-    out = []
-    for path in SCENES:
-        marks = []
-        if path.stem in JOINT_FORCES_AT_SET_UP:
-            marks.append(pytest.mark.xfail(strict=True, reason="set-up FEM contact forces on joint faces (docstring)"))
-        out.append(pytest.param(path, id=path.stem, marks=marks))
-    return out
+SET_UP_JOINT_FORCES = (
+    "the set-up force evaluation applies node-face spring forces on pre-split joint faces (~200 N on one node of "
+    "jointed_slope) that a second evaluation at the same positions gives as 0, so the FEM contact books a negative "
+    "dissipation and the total drifts by ~1e-3 J over 100 steps on the CPU, every run alike (issue 30, open)"
+)
 
 
-@pytest.mark.parametrize("path", params())
-def test_scene_without_loads_stays_at_rest(path):
+@functools.cache
+def rest_run(path: Path) -> tuple[float, float, float, float, float]:
+    """The scene at rest stepped STEPS times: (largest sphere move [m], largest node move [m], the float noise bound
+    [m], the books' total change [J], the energy in play [J]); one build and run per scene for both tests."""
     scene = at_rest(load_scene(path))
     model, state = build_scene(scene, "cpu")
     sim = Simulation(model, state)
@@ -80,11 +79,33 @@ def test_scene_without_loads_stays_at_rest(path):
     start = sim.energy()
     sim.advance(STEPS)
     end = sim.energy()
-
     extent = max(np.abs(q0).max(initial=0.0), np.abs(x0).max(initial=0.0))
     noise = ROUNDING_ULPS * F32_EPS * extent
-    moved_spheres = np.abs(sim.state.particle_q.numpy()[:n] - q0).max(initial=0.0)
-    moved_nodes = np.abs(sim.state.node_u.numpy()[:nn].astype(np.float64) - u0).max(initial=0.0)
+    moved_spheres = float(np.abs(sim.state.particle_q.numpy()[:n] - q0).max(initial=0.0))
+    moved_nodes = float(np.abs(sim.state.node_u.numpy()[:nn].astype(np.float64) - u0).max(initial=0.0))
+    return moved_spheres, moved_nodes, noise, end.total - start.total, max(start.in_play, end.in_play)
+
+
+@pytest.mark.parametrize("path", SCENES, ids=[p.stem for p in SCENES])
+def test_scene_without_loads_stays_at_rest(path):
+    moved_spheres, moved_nodes, noise, _, _ = rest_run(path)
     assert moved_spheres <= noise and moved_nodes <= noise, (moved_spheres, moved_nodes, noise)
-    in_play = max(start.in_play, end.in_play)
-    assert abs(end.total - start.total) <= BOOKS_RTOL * in_play, (end.total - start.total, in_play)
+
+
+def book_params() -> list:
+    return [
+        pytest.param(
+            path,
+            id=path.stem,
+            marks=[pytest.mark.xfail(strict=True, reason=SET_UP_JOINT_FORCES)]
+            if path.stem in JOINT_FORCES_AT_SET_UP
+            else [],
+        )
+        for path in SCENES
+    ]
+
+
+@pytest.mark.parametrize("path", book_params())
+def test_books_of_a_scene_at_rest_do_not_change(path):
+    *_, change, in_play = rest_run(path)
+    assert abs(change) <= BOOKS_RTOL * in_play, (change, in_play)
