@@ -27,7 +27,10 @@ Stage layout::
 
 The stage is authored into ``<stem>.partial<suffix>`` next to the final file and moved over the final name
 with ``os.replace`` at :meth:`UsdWriter.close`, so a crashed run never leaves a half-written file under the
-name a viewer or a later pipeline step would pick up.
+name a viewer or a later pipeline step would pick up. A crate stage is saved after every frame (crate saves append
+the new samples and a new table of contents, the header pointing at it written last), so the partial file holds
+every frame written when the process is killed (kill -9, the OOM killer, pre-emption), and a restart continues it
+(``continue_partial``); :meth:`UsdWriter.flush` saves (and syncs) it on demand, before a checkpoint is written.
 
 A restarted run continues the same animation (``append=True``): the published stage is copied to the partial
 name, its time samples from the restart frame on are dropped, and the new frames are authored after the kept ones,
@@ -48,7 +51,7 @@ import numpy as np
 
 from .usd_frames import CurveSet, SurfaceFrame, as_float32, check_curves, check_surface, empty_curves, empty_surface
 
-__all__ = ["CurveSet", "SurfaceFrame", "UsdWriter", "stage_frame"]
+__all__ = ["CurveSet", "SurfaceFrame", "UsdWriter", "partial_stage_path", "stage_frame"]
 
 _SUFFIXES = (".usd", ".usdc", ".usda")
 
@@ -73,12 +76,14 @@ class UsdWriter:
 
     Attributes:
         save_interval_frames: For crate files (``.usd``/``.usdc``), the partial file is saved every this many
-            frames; crate saves hand the authored samples over to the file, which bounds the writer's memory
-            on long runs. Text files (``.usda``) are rewritten whole on every save, so they are saved only at
-            :meth:`close`. ``0`` saves only at close.
+            frames. A crate save appends the new samples to the file (measured: 200 frames of 10 000 spheres saved
+            every frame take no longer than saved every 50, and the file is 3 % larger), hands them over to the
+            file, which bounds the writer's memory, and makes them survive a killed process. Text files (``.usda``)
+            are rewritten whole on every save, so they are saved only at :meth:`flush` and :meth:`close`. ``0``
+            saves only there.
     """
 
-    save_interval_frames: int = 50
+    save_interval_frames: int = 1
 
     def __init__(
         self,
@@ -88,6 +93,7 @@ class UsdWriter:
         comment: str | None = None,
         first_frame: int = 0,
         append: bool = False,
+        continue_partial: bool = False,
     ) -> None:
         """Creates the partial stage and authors the stage metadata (or copies the stage a restart extends).
 
@@ -101,6 +107,9 @@ class UsdWriter:
             append: If the final file exists, continue it: keep its samples before ``first_frame``, drop the rest,
                 and author from ``first_frame`` on (its timeline start stays). Without the file, a new stage starts
                 at ``first_frame``.
+            continue_partial: With ``append``, continue the partial file a killed writer left (in place) rather than
+                the final file; the caller has checked that it holds the frames to keep. Otherwise a partial file on
+                disk is deleted.
 
         Raises:
             ValueError: If the suffix is not one of ``.usd``, ``.usdc``, ``.usda``, the frame rate is not a
@@ -122,16 +131,18 @@ class UsdWriter:
 
         final_path.parent.mkdir(parents=True, exist_ok=True)
         final_path = final_path.resolve()
-        # USD picks the file format from the extension, so the suffix stays last on the temporary name.
-        partial_path = final_path.with_name(f"{final_path.stem}.partial{final_path.suffix}")
+        partial_path = partial_stage_path(final_path)
         if Sdf.Layer.Find(str(partial_path)) is not None:
             raise RuntimeError(f"USD output {str(final_path)!r} is already being written by another writer")
-        # A partial file on disk is the leftover of a crashed run: nothing can resume it.
-        partial_path.unlink(missing_ok=True)
+        resume_partial = append and continue_partial and partial_path.exists()
+        if not resume_partial:
+            # A partial file the caller does not continue is the leftover of another run.
+            partial_path.unlink(missing_ok=True)
 
-        existing = append and final_path.exists()
+        existing = append and (resume_partial or final_path.exists())
         if existing:
-            shutil.copyfile(final_path, partial_path)
+            if not resume_partial:
+                shutil.copyfile(final_path, partial_path)
             layer = Sdf.Layer.FindOrOpen(str(partial_path))
             if layer is None:
                 partial_path.unlink(missing_ok=True)
@@ -188,6 +199,7 @@ class UsdWriter:
         self._damage_primvar: Any = None  # primvars:bondsBroken, defined on the first frame that carries it
         self._fragment_primvars: dict[str, Any] = {}  # primvars:fragment of the spheres and the rock, likewise
         self._frame_count = 0
+        self._open_code: float | None = None  # the time code of a frame being authored (None between frames)
         self._first_frame = int(first_frame)
         self._start = start  # time code of the stage's first frame (before first_frame in an extended stage)
         self._closed = False
@@ -327,6 +339,8 @@ class UsdWriter:
         checked_cohesive = check_curves(cohesive) if cohesive is not None else None
 
         code = float(self._first_frame + self._frame_count)
+        # Until the frame is complete, :meth:`close` drops what it authored (an interrupt inside this method).
+        self._open_code = code
         self._time_attr.Set(t, code)
         # A scene of rock alone has no /World/Particles (an empty Points prim would carry an inverted extent).
         if n and self._points is None:
@@ -374,10 +388,32 @@ class UsdWriter:
             self._write_cohesive(code, *empty_curves())
 
         self._frame_count += 1
+        self._open_code = None
         if self._crate and self.save_interval_frames > 0 and self._frame_count % self.save_interval_frames == 0:
-            self._stage.SetEndTimeCode(code)
-            self._layer.Save()
+            self._save()
         return int(code)
+
+    def flush(self, sync: bool = False) -> None:
+        """Saves the partial file now, so that it holds every frame written (also a text stage).
+
+        Args:
+            sync: Also force the file to the disk (``os.fsync``), so that it survives a power loss; done before a
+                checkpoint is written, so that the stage holds the checkpoint's frame whatever happens after.
+
+        Raises:
+            RuntimeError: If the writer is closed, or the save fails.
+        """
+        self._check_open()
+        self._save()
+        if sync:
+            _fsync(self._partial_path)
+
+    def _save(self) -> None:
+        """Saves the layer with the timeline ending at the last complete frame."""
+        self._stage.SetStartTimeCode(self._start)
+        self._stage.SetEndTimeCode(max(self._start, float(self._first_frame + self._frame_count - 1)))
+        if not self._layer.Save():
+            raise RuntimeError(f"USD output {str(self._final_path)!r}: saving {str(self._partial_path)!r} failed")
 
     def _set_fragment(self, path: str, prim: Any, code: float, label: np.ndarray) -> None:
         """Sets ``primvars:fragment`` (vertex, int) of a prim at one time code, defining it on first use."""
@@ -416,17 +452,20 @@ class UsdWriter:
         """
         self._check_open()
         try:
-            self._stage.SetStartTimeCode(self._start)
-            self._stage.SetEndTimeCode(max(self._start, float(self._first_frame + self._frame_count - 1)))
-            if not self._layer.Save():
-                raise RuntimeError(f"USD output {str(self._final_path)!r}: saving {str(self._partial_path)!r} failed")
+            if self._open_code is not None:
+                # Interrupted while authoring a frame: publish the complete frames only.
+                _drop_samples_from(self._stage, self._open_code)
+                self._open_code = None
+            self._save()
         except BaseException:
             self.abort()
             raise
         # Release the layer before the rename so no memory map still points at the old name.
         self._release()
         try:
+            _fsync(self._partial_path)
             os.replace(self._partial_path, self._final_path)
+            _fsync(self._final_path.parent)
         except BaseException:
             self._partial_path.unlink(missing_ok=True)
             raise
@@ -607,6 +646,28 @@ class UsdWriter:
         self._cohesive_attrs = {}
         self._stage = None
         self._layer = None
+
+
+def partial_stage_path(path: str | os.PathLike) -> pathlib.Path:
+    """The temporary name a stage is authored under until it is published: ``<stem>.partial<suffix>`` beside it
+    (USD picks the file format from the extension, so the suffix stays last)."""
+    final = pathlib.Path(path)
+    return final.with_name(f"{final.stem}.partial{final.suffix}")
+
+
+def _fsync(path: pathlib.Path) -> None:
+    """Forces a file (or a directory's entries) to the disk; a file system that cannot (some network ones) is let
+    be."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def _define_curves(stage: Any, path: str) -> Any:

@@ -38,6 +38,7 @@ from ..simulation import Simulation
 from ..stages.energy import EnergyBalance, balance_error
 from ..stages.guard import UnstableRunError, energy_from_nowhere, likely_cause
 from ..stages.loads import PressureAmplitudes, pressure_amplitudes, scale_pressure_loads
+from ..stages.rigid import RigidReport
 from ..stages.rigid_step import rigid_time_step
 from .access import RunAccess
 from .records import (
@@ -154,7 +155,9 @@ class Run(RunAccess):
         self._wall = 0.0  # [s] stepping and writing frames, kernel compiling left out
         self._stepping_since = 0.0  # perf_counter at the start of the frame being stepped (the progress rate)
         self._time_at_start = 0.0  # [s] simulated time when the run started
-        self._in_play = 0.0  # [J] the largest energy in play over this run's frames
+        self._in_play = 0.0  # [J] the largest energy in play over the timeline's frames
+        self._energy_start: EnergyBalance | None = None  # the books at the timeline's first frame
+        self._energy_end: EnergyBalance | None = None  # the books at the last frame written (or where it stopped)
         self._compile = 0.0  # [s] kernel compiling and loading in this run's calls
         self._steps_per_piece = 1
         self._writer: Any = None
@@ -250,10 +253,14 @@ class Run(RunAccess):
         self._end_time = end_time = options.end_time if options.end_time is not None else run.end_time
         last_step = grid.last_step(end_time, options.frames, model.dt)
         total_frames = grid.frames(last_step)
+        self._out_dir = out_dir = Path(options.out_dir) if options.out_dir is not None else Path(scene.output.directory)
+        usd_path = Path(options.usd) if options.usd is not None else out_dir / scene.output.usd
         if step >= last_step:
+            held = _StageCheck(1.0 / frame_period, first_frame, state, attrs)
+            published = _publish_left_stage(usd_path, held)
             raise NothingToDo(
                 f"nothing to do: the checkpoint is at t = {sim_time:.9g} s (frame {first_frame}), the run ends at "
-                f"t = {grid.time + (last_step - grid.step) * model.dt:.9g} s (frame {total_frames})"
+                f"t = {grid.time + (last_step - grid.step) * model.dt:.9g} s (frame {total_frames}){published}"
             )
         # The note counts frames from step 0: on the first grid only.
         if options.frames is None and grid.step == 0:
@@ -287,14 +294,11 @@ class Run(RunAccess):
         between = restart and self._frame_step != step
         first_written = first_frame + 1 if between else first_frame
 
-        self._out_dir = out_dir = Path(options.out_dir) if options.out_dir is not None else Path(scene.output.directory)
-        usd_path = Path(options.usd) if options.usd is not None else out_dir / scene.output.usd
         output_stem = usd_path.stem  # VTU files are named like the stage; a restart continues both
         _take_over(usd_path)
-        if restart:
-            _check_stage_continues(
-                usd_path, 1.0 / frame_period, first_frame, sim, options.quiet, self._frame_time, self._frame_crc
-            )
+        continue_partial = restart and _stage_to_continue(
+            usd_path, _StageCheck(1.0 / frame_period, first_frame, sim.state, attrs)
+        )
         checkpoint_every = (
             options.checkpoint_every if options.checkpoint_every is not None else scene.output.checkpoint_every
         )
@@ -336,6 +340,7 @@ class Run(RunAccess):
                 comment=f"warpdem {__version__}: {scene.name}",
                 first_frame=first_written,
                 append=restart,
+                continue_partial=continue_partial,
             )
         except (OSError, RuntimeError) as exc:  # pxr reports a layer it cannot create as a RuntimeError
             if options.usd is not None or options.out_dir is not None:
@@ -360,12 +365,21 @@ class Run(RunAccess):
         # between two frames: to the end of the next frame on the grid).
         frame = self._frame_index
         self._adopt_rigid_step(frame if sim.step_count == grid.end_step(frame) else frame + 1)
+        if "rigid_report" in attrs:
+            sim.rigid_report = RigidReport(**attrs["rigid_report"])
+        if "energy_start" in attrs:
+            # The timeline's first frame (a checkpoint of an older format: the restart's first frame, as before).
+            self._energy_start = EnergyBalance(**attrs["energy_start"])
+            self._in_play = float(attrs.get("energy_in_play", 0.0))
+            if self._series.energy_start is None:  # the series file was not found: the checkpoint's reference
+                self._series.energy_start, self._series.in_play = self._energy_start, self._in_play
         if between:
-            self._energy_start = self._energy_end = sim.energy()
-            self._in_play = self._energy_start.in_play
+            self._energy_end = sim.energy()
+            self._energy_start = self._energy_start or self._energy_end
+            self._in_play = max(self._in_play, self._energy_end.in_play)
         else:
             self._unyielded = self._write_frame()
-            self._energy_start = self._unyielded.energy.balance
+            self._energy_start = self._energy_start or self._unyielded.energy.balance
 
     # ------------------------------------------------------------------------------------------------------------
     # Frames
@@ -395,8 +409,12 @@ class Run(RunAccess):
             for callback in self._callbacks:
                 callback(frame)
             yield frame
-        if not self._stop and self._frame_index >= self._total_frames and self._phase == "running":
-            self.finish()
+        if self._reached_end() and self._phase == "running":
+            self.finish()  # also when a stop request came during the last frame: the run is complete
+
+    def _reached_end(self) -> bool:
+        """Whether the run has written its last frame (the end it was asked to reach)."""
+        return self._frame_index >= self._total_frames and self.sim.step_count >= self._last_step
 
     def _next_frame(self) -> Frame | None:
         """Advance to the next frame and write it (None: a stop request came first)."""
@@ -420,14 +438,14 @@ class Run(RunAccess):
         except KeyboardInterrupt:
             raise self._interrupted() from None
         except BaseException:
-            self._abort()
+            self._keep_written()
             raise
 
     def _check_energy(self, energy: EnergyBalance) -> None:
         """Stop the run (warpdem.stages.guard.UnstableRunError) when energy appeared from nowhere since its start
         (warpdem.stages.guard.energy_from_nowhere): the books close for Verlet at any step, so an unstable step
         allowed by allow_unstable_dt shows here, not in the balance."""
-        s0, sim = getattr(self, "_energy_start", None), self.sim
+        s0, sim = self._energy_start, self.sim
         if s0 is None:  # frame 0: the books start here
             return
         found = energy_from_nowhere(
@@ -645,10 +663,20 @@ class Run(RunAccess):
             extra["frame_points_crc32"] = self._frame_crc
         if self._pending_dt is not None:
             extra["pending_dt"] = self._pending_dt
+        # The books of the timeline's first frame and its largest energy in play: a restart's summary, series and
+        # energy-from-nowhere check measure from the run's start, as the uninterrupted run's do.
+        extra["energy_start"] = dataclasses.asdict(self._energy_start)
+        extra["energy_in_play"] = self._in_play
+        if sim.rigid_report is not None:
+            extra["rigid_report"] = dataclasses.asdict(sim.rigid_report)
         if len(self._load_scales):
             names = sim.model.loads.pressure_names
             extra["load_scales"] = {name: float(s) for name, s in zip(names, self._load_scales, strict=True)}
         try:
+            if self._writer is not None:
+                # The stage on disk holds the checkpoint's frame before the checkpoint exists, so that a restart from
+                # it always finds the frames it continues, whenever the process is killed.
+                self._writer.flush(sync=True)
             written = save_checkpoint(target, sim, self._frame_index, extra)
         except OSError as exc:
             where = f"{scene.source}: output.checkpoint_dir" if path is None else "checkpoint"
@@ -673,6 +701,8 @@ class Run(RunAccess):
                     # Stopped between two frames: the books where it stopped, not at the last frame.
                     self._energy_end = sim.energy()
                     self._in_play = max(self._in_play, self._energy_end.in_play)
+                if self._stop and self._reached_end() and not self.options.quiet:
+                    print("the run finished: the stop came during its last frame (nothing to resume)", file=sys.stderr)
                 default = self._checkpoint_dir / checkpoint_name(sim.step_count, self.scene.name)
                 if not self.checkpoints or self.checkpoints[-1] != default:
                     self.checkpoint()
@@ -680,7 +710,7 @@ class Run(RunAccess):
         except KeyboardInterrupt:
             raise self._interrupted() from None
         except BaseException:
-            self._abort()
+            self._keep_written()
             raise
         self.summary = self._summarize()
         self._phase = "finished"
@@ -744,6 +774,14 @@ class Run(RunAccess):
             else:
                 writer.abort()
 
+    def _keep_written(self) -> None:
+        """After an error while running: publish the complete frames written (a frame the error cut short is
+        dropped), or drop the stage where even that fails; the error is what to report."""
+        try:
+            self.close()
+        except Exception:
+            self._abort()
+
     def _abort(self) -> None:
         """Drop the partial stage after an error (the final path is left as it was)."""
         if self._phase in ("new", "running"):
@@ -800,7 +838,8 @@ class Run(RunAccess):
             tet_steps_per_second=tets * steps / wall if wall > 0 else 0.0,
             pvd_path=self._vtu.pvd_path if self._vtu is not None else None,
             frame=self._frame_index,
-            interrupted_by=self.stop_signal if self._stop else None,
+            # A stop request during the last frame came too late to stop anything: the run is complete.
+            interrupted_by=self.stop_signal if self._stop and not self._reached_end() else None,
             series_path=self._series.csv_path,
             energy_in_play=self._in_play,
             energy_error=balance_error(self._energy_start, end, self._in_play),
@@ -871,53 +910,105 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
         return run.run()
 
 
-def _check_stage_continues(
-    usd_path: Path,
-    fps: float,
-    frame: int,
-    sim: Simulation,
-    quiet: bool,
-    frame_time: float | None = None,
-    frame_crc: int | None = None,
-) -> None:
-    """Before a restart writes anything: the stage it extends must hold the checkpoint's frame, at that frame's time
-    and the checkpoint's frame rate and with its sphere centres (float32, as the stage stores them), so that the
-    frames it keeps are this run's own. Without a stage, a new one starts at the restart frame.
+@dataclasses.dataclass(frozen=True)
+class _StageCheck:
+    """What a restart's checkpoint says the stage it continues must hold: its frame ``frame`` at the frame rate
+    ``fps`` [frames/s], at the frame's simulated time and with its sphere centres (float32, as the stage stores them).
 
-    A checkpoint taken between two frames (a stop request) says where its last frame was: ``frame_time`` [s] and
-    ``frame_crc`` (CRC-32 of its float32 sphere centres; None: no spheres, or an older checkpoint). One taken at a
-    frame is compared with the state itself.
+    A checkpoint taken at a frame is compared with its state itself; one taken between two frames (a stop request)
+    says where its last frame was: ``frame_time`` [s] and ``frame_points_crc32`` (CRC-32 of its float32 sphere
+    centres; absent: no spheres, or an older checkpoint).
+
+    Args:
+        fps: the run's frame rate [frames/s].
+        frame: the checkpoint's frame.
+        state: the restored state.
+        attrs: the checkpoint's attributes.
+    """
+
+    fps: float
+    frame: int
+    state: Any
+    attrs: dict
+
+    @property
+    def between(self) -> bool:
+        """Whether the checkpoint was taken between two frames (its next frame is the first the restart writes)."""
+        return float(self.attrs.get("frame_time", self.attrs["time"])) != float(self.attrs["time"])
+
+    def mismatch(self, path: Path) -> str | None:
+        """None when the stage at ``path`` holds the checkpoint's frame; otherwise what it holds instead."""
+        from ..io.usd import stage_frame
+
+        try:
+            rate, held_time, held_points = stage_frame(path, self.frame)
+        except ValueError as exc:
+            return " ".join(str(exc).split())
+        frame_time = float(self.attrs.get("frame_time", self.attrs["time"]))
+        if not self.between:
+            n = int(self.state.particle_count.numpy()[0])
+            points = self.state.particle_q.numpy()[:n].astype(np.float32) if n else None
+            same_points = (held_points is None) == (points is None) and (
+                points is None or np.array_equal(held_points, points)
+            )
+        else:
+            crc = self.attrs.get("frame_points_crc32")
+            held_crc = zlib.crc32(np.ascontiguousarray(held_points).tobytes()) if held_points is not None else None
+            same_points = crc is None or held_crc == int(crc)
+        if rate == self.fps and held_time == frame_time and same_points:
+            return None
+        held = f"frame {self.frame} at t = {held_time:.9g} s" if held_time is not None else f"no frame {self.frame}"
+        why = "" if same_points else ", other sphere positions"
+        return (
+            f"it holds {held}{why}, {rate:g} frames/s; the checkpoint's frame {self.frame} is at t = {frame_time:.9g} "
+            f"s, {self.fps:g} frames/s"
+        )
+
+
+def _warn(line: str) -> None:
+    """A line about frames kept or lost: on stderr, also with --quiet (a user must not lose frames silently)."""
+    print(line, file=sys.stderr)
+
+
+def _stage_to_continue(usd_path: Path, check: _StageCheck) -> bool:
+    """Before a restart writes anything, pick the stage it continues, so that the frames it keeps are this run's own:
+    the partial file a killed or stopped run left (it holds every frame that run wrote, saved frame by frame; True),
+    else the published stage (False). Without either, a new stage starts at the restart frame, said on stderr.
 
     Raises:
-        SceneError: the stage at ``usd_path`` belongs to another run (nothing is written).
+        SceneError: the published stage belongs to another run and no partial one continues this (nothing is
+            written).
     """
-    from ..io.usd import stage_frame
+    from ..io.usd import partial_stage_path
 
-    at_frame = frame_time is None or frame_time == sim.time
+    partial = partial_stage_path(usd_path)
+    if partial.exists():
+        why = check.mismatch(partial)
+        if why is None:
+            _warn(f"restart: continuing {partial}, the stage a stopped run left (every frame it wrote is kept)")
+            return True
+        _warn(f"restart: {partial}, left by a stopped run, does not continue this checkpoint ({why}); it is replaced")
     if not usd_path.exists():
-        if not quiet:
-            first = frame if at_frame else frame + 1
-            print(f"restart: {usd_path} is not there; writing a new stage whose timeline starts at frame {first}")
-        return
-    try:
-        rate, held_time, held_points = stage_frame(usd_path, frame)
-    except ValueError as exc:
-        raise SceneError(f"--restart: cannot extend {exc}") from None
-    expected_time = sim.time if frame_time is None else frame_time
-    if at_frame:
-        n = sim.particle_count
-        points = sim.state.particle_q.numpy()[:n].astype(np.float32) if n else None
-        same_points = (held_points is None) == (points is None) and (
-            points is None or np.array_equal(held_points, points)
+        _warn(
+            f"restart: {usd_path} is not there; writing a new stage whose timeline starts at frame "
+            f"{check.frame + check.between} (the frames before it are not in it)"
         )
-    else:
-        held_crc = zlib.crc32(np.ascontiguousarray(held_points).tobytes()) if held_points is not None else None
-        same_points = frame_crc is None or held_crc == frame_crc
-    if rate != fps or held_time != expected_time or not same_points:
-        held = f"frame {frame} at t = {held_time:.9g} s" if held_time is not None else f"no frame {frame}"
-        why = "" if same_points else ", other sphere positions"
+        return False
+    why = check.mismatch(usd_path)
+    if why is not None:
         raise SceneError(
-            f"--restart: {usd_path} is not the stage of this checkpoint's run (it holds {held}{why}, {rate:g} "
-            f"frames/s; the checkpoint's frame {frame} is at t = {expected_time:.9g} s, {fps:g} frames/s); move it "
-            "away or pass --usd"
+            f"--restart: {usd_path} is not the stage of this checkpoint's run ({why}); move it away or pass --usd"
         )
+    return False
+
+
+def _publish_left_stage(usd_path: Path, check: _StageCheck) -> str:
+    """A restart with nothing left to run: publish the stage a run killed after its last frame left in the partial
+    file (when it holds the checkpoint's frame). Returns what was done, for the message ("" when nothing)."""
+    from ..io.usd import partial_stage_path
+
+    partial = partial_stage_path(usd_path)
+    if not partial.exists() or check.mismatch(partial) is not None:
+        return ""
+    os.replace(partial, usd_path)
+    return f"; published {usd_path}, which the run had left complete in {partial.name}"
