@@ -85,6 +85,12 @@ def cases() -> list[tuple[str, str, str, float]]:
     return out
 
 
+def resume_argv(scene: Path, out: Path) -> list[str]:
+    """The user's resume: the newest checkpoint, the same command (none: the run again from the start)."""
+    checkpoint = latest_checkpoint(out / "checkpoints", "struck_bar")
+    return [*argv(scene, out), *(["--restart", str(checkpoint)] if checkpoint is not None else [])]
+
+
 def outputs(out: Path) -> dict[str, object]:
     """Everything a run leaves, in comparable form."""
     arrays, attrs = read_checkpoint(max((out / "checkpoints").glob("*.h5")))
@@ -108,11 +114,26 @@ def test_resume_after_a_fault_equals_the_uninterrupted_run(reference, tmp_path, 
     # A fault after the last event of the run may find it complete (exit 0); otherwise it stopped it.
     assert status in (stopped, 0), status
 
-    # The user's resume: the newest checkpoint, the same command (none: the run again from the start).
-    checkpoint = latest_checkpoint(out / "checkpoints", "struck_bar")
-    resume = ["--restart", str(checkpoint)] if checkpoint is not None else []
-    assert main([*argv(scene, out), "--quiet", *resume]) == 0
+    assert main([*resume_argv(scene, out), "--quiet"]) == 0
+    assert_same_outputs(out, ref_out)
 
+
+def test_a_resume_killed_in_turn_is_resumed_again(reference, tmp_path):
+    """Killed after the second stage save, its resume killed after writing its second frame (the partial stage it
+    continues then holds frames of both runs), resumed again: the outputs are still the uninterrupted run's."""
+    ref_out, _ = reference
+    scene = scene_file(tmp_path / "in")
+    out = tmp_path / "out"
+    counts = tmp_path / "counts.json"
+    assert wrapped(argv(scene, out), "stage_save", 3, "after", "kill", counts).returncode == -signal.SIGKILL
+    assert wrapped(resume_argv(scene, out), "frame", 2, "after", "kill", counts).returncode == -signal.SIGKILL
+    assert main([*resume_argv(scene, out), "--quiet"]) == 0
+    assert_same_outputs(out, ref_out)
+
+
+def assert_same_outputs(out: Path, ref_out: Path) -> None:
+    """Every output under ``out`` equals the uninterrupted run's under ``ref_out`` (module docstring), and no
+    temporary file is left."""
     assert_stages_equal(Usd.Stage.Open(str(out / "struck_bar.usdc")), Usd.Stage.Open(str(ref_out / "struck_bar.usdc")))
     got, want = outputs(out), outputs(ref_out)
     arrays, position = got["checkpoint"]
@@ -130,7 +151,7 @@ def test_resume_after_a_fault_equals_the_uninterrupted_run(reference, tmp_path, 
     assert got["vtu"].keys() == want["vtu"].keys()
     for name, data in want["vtu"].items():
         assert got["vtu"][name] == data, name
-    assert not [p for p in out.rglob("*") if ".partial" in p.name or p.name.endswith(".tmp")]
+    assert not [p for p in out.rglob("*") if ".partial" in p.name or ".tmp" in p.name]
 
 
 def test_a_signal_during_the_last_frame_finds_the_run_finished(reference, tmp_path):

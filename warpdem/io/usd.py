@@ -145,7 +145,8 @@ class UsdWriter:
                 shutil.copyfile(final_path, partial_path)
             layer = Sdf.Layer.FindOrOpen(str(partial_path))
             if layer is None:
-                partial_path.unlink(missing_ok=True)
+                if not resume_partial:  # a killed run's frames are never deleted
+                    partial_path.unlink(missing_ok=True)
                 raise ValueError(f"USD output {str(final_path)!r}: cannot open the stage to extend")
         else:
             # ".usd" may be either encoding; the brief for this format is crate, whatever USD_DEFAULT_FILE_FORMAT says.
@@ -161,7 +162,8 @@ class UsdWriter:
             rate = stage.GetTimeCodesPerSecond()
             if rate != fps:
                 layer = stage = None
-                partial_path.unlink(missing_ok=True)
+                if not resume_partial:  # a killed run's frames are never deleted
+                    partial_path.unlink(missing_ok=True)
                 raise ValueError(
                     f"USD output {str(final_path)!r}: its frame rate is {rate:g} frames/s, this run's {fps:g}; "
                     "cannot continue its timeline"
@@ -205,6 +207,7 @@ class UsdWriter:
         self._closed = False
         self.extended = existing
         """Whether this writer continues an existing stage (``append`` and the file was there)."""
+        self._continues_partial = resume_partial  # the partial file holds a killed run's frames: never deleted
         if existing:
             self._attach(float(first_frame) - 1.0)
 
@@ -472,14 +475,16 @@ class UsdWriter:
         return self._final_path
 
     def abort(self) -> None:
-        """Drops the stage and deletes the partial file; the final path is left as it was.
+        """Drops the stage and deletes the partial file; the final path is left as it was. A partial file this
+        writer continues (``continue_partial``) is kept: it holds the frames of the run that left it, as saved.
 
         Does nothing if the writer is already closed or aborted.
         """
         if self._closed:
             return
         self._release()
-        self._partial_path.unlink(missing_ok=True)
+        if not self._continues_partial:
+            self._partial_path.unlink(missing_ok=True)
 
     def __enter__(self) -> UsdWriter:
         return self
