@@ -311,6 +311,109 @@ def test_unexpected_exception_is_one_line_exit_1(tmp_path, capsys, monkeypatch):
 
 
 # ----------------------------------------------------------------------------------------------------------------
+# The last inputs that escaped (issue 29): each ends with one line naming the file and key, exit 2
+
+
+def cli_error(tmp_path: Path, capsys: pytest.CaptureFixture[str], scene: Path) -> str:
+    """The one stderr line of ``python -m warpdem SCENE`` in-process; asserts exit 2 and that nothing was written."""
+    status = main([str(scene), "--frames", "1", "--quiet", "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert status == 2, err
+    assert len(err.splitlines()) == 1 and err.startswith(f"error: {scene}: "), err
+    assert not (tmp_path / "out").exists()
+    return err
+
+
+def test_brick_longer_than_any_cell_count_is_refused():
+    # 1e30 m / h = 0.25 m is 4e30 cells along a block, past int64 (numpy's rint failed on it as an object array):
+    # refused at validation, with the largest brick this h allows, MAX_ELEMENTS × h = 2147483647 × 0.25 m.
+    mesh = {"kind": "bricks", "lo": [0.0, 0.0, 0.0], "hi": [1.0, 1.0, 1.0], "brick": [1e30, 0.5, 0.5], "h": 0.25}
+    problems = problems_of(with_changes(mesh={**mesh, "material": "rock"}))
+    assert problems == [
+        "s.toml: mesh.brick[0]: a block 1e+30 m long spans 4e+30 cells of h = 0.25 m; allowed: at most 2147483647 "
+        "cells along a block (mesh.brick[0] <= 5.37e+08 m at this h)"
+    ]
+
+
+def test_bricks_with_a_tiny_cell_are_estimated_before_meshing():
+    # A 1 m box of cells h = 1e-4 m: 1e4 cells a side, 6 tets each, 6e12 tets: refused with the estimate (the mesher
+    # had asked numpy for a 7 TiB array).
+    mesh = {"kind": "bricks", "lo": [0.0] * 3, "hi": [1.0] * 3, "brick": [0.5] * 3, "h": 1e-4, "material": "rock"}
+    (line,) = problems_of(with_changes(mesh=mesh))
+    assert line.startswith("s.toml: mesh.h: would need") and "6e+12 tets" in line, line
+
+
+@pytest.mark.parametrize("offset", [1e8, 1e15], ids=["1e8", "1e15"])
+def test_mesh_file_far_from_the_origin_is_refused(tmp_path, capsys, offset):
+    # A 1 m cube 1e8 m out: float32 steps there are 8 m, the device's faces collapse and the contact grid's cell size
+    # became NaN. Oracle of the bound: |x| 2^-24 <= 1e-3 of the shortest edge (1 m), i.e. |x| <= 1e-3 · 2^24 m.
+    points, tets = cube()
+    scene = write_mesh_scene(tmp_path, points + offset, tets)
+    err = cli_error(tmp_path, capsys, scene)
+    assert err.startswith(f"error: {scene}: mesh.path: {tmp_path / 'rock.vtu'}: node "), err
+    assert f"lies {offset:.3g} m from the origin" in err
+    assert f"allowed: coordinates within {1e-3 * 2**24:.3g} m of the origin" in err
+
+
+def test_box_mesh_far_from_the_origin_names_its_corner():
+    # The same bound for a mesh the scene makes: the key is the box's corner.
+    mesh = {"kind": "box", "lo": [1e8] * 3, "hi": [1e8 + 1.0] * 3, "divisions": [1, 1, 1], "material": "rock"}
+    scene = parse_scene(with_changes(mesh=mesh, particles=[], walls=[]), source="s.toml")
+    with pytest.raises(SceneError, match=r"^s\.toml: mesh\.lo: node \d+ lies 1e\+08 m from the origin") as info:
+        scene_builder(scene)
+    assert "\n" not in str(info.value)
+
+
+def test_neighbor_slots_of_a_scene_without_spheres_are_estimated():
+    # No sphere, but the builder makes one sphere slot with its neighbour slots: 2^40 of them (numpy's shape limit
+    # raised a ValueError) are refused with the estimate.
+    mesh = {"kind": "box", "lo": [0.0] * 3, "hi": [1.0] * 3, "divisions": [1, 1, 1], "material": "rock"}
+    data = with_changes(mesh=mesh, particles=[], walls=[], capacity={"neighbors_per_particle": 2**40})
+    (line,) = problems_of(data)
+    assert line.startswith("s.toml: capacity.neighbors_per_particle: would need 1.1e+12 neighbor slots"), line
+
+
+@pytest.mark.parametrize(
+    ("value", "phrase"),
+    [
+        ("[" * 5000 + "]" * 5000, "line 3: run.end_time: arrays and inline tables nested too deeply to read"),
+        ("{ a = " * 5000 + "1" + " }" * 5000, "line 3: run.end_time: arrays and inline tables nested too deeply"),
+        ("[" * 100 + "]" * 100, "run.end_time[0][0]...: tables and arrays nested more than 32 levels deep"),
+    ],
+    ids=["arrays", "inline_tables", "readable_but_deep"],
+)
+def test_deeply_nested_toml_is_refused(tmp_path, capsys, value, phrase):
+    # tomllib recurses once per level and raised RecursionError past ~490; the bound is MAX_NESTING = 32 levels,
+    # checked on the parsed data below the parser's limit and located by a bracket count above it.
+    scene = tmp_path / "deep.toml"
+    scene.write_text(f"schema_version = 1\n[run]\nend_time = {value}\n")
+    err = cli_error(tmp_path, capsys, scene)
+    assert phrase in err and "allowed: at most 32" in err, err
+
+
+def test_integer_longer_than_python_reads_is_refused(tmp_path, capsys):
+    # 4301 digits: past sys.get_int_max_str_digits() (4300), where tomllib raised ValueError; the line says which key
+    # and that a scene integer has 64 bits (what a shorter one that still overflows int64 is told by the schema).
+    scene = tmp_path / "long.toml"
+    scene.write_text("schema_version = 1\n[run]\nend_time = 0.01\nseed = " + "1" * 4301 + "\n")
+    err = cli_error(tmp_path, capsys, scene)
+    assert "line 4: run.seed: an integer of 4301 digits; allowed: integers from -9223372036854775808 to " in err
+    problems = problems_of(with_changes(run__seed=10**30))
+    assert any(p.startswith("s.toml: run.seed: must be an integer from") and "(got 10000000000" in p for p in problems)
+
+
+def test_joint_spacing_tiny_next_to_the_box_is_refused_before_gmsh():
+    # 1733 planes (under MAX_JOINT_SURFACES) 0.1 m apart in a 100 m box of h = 10 m: Gmsh fragmented for minutes and
+    # gave up. The estimate, volume / regular tet of edge min(h, spacing) = 1e6 m³ · 6√2 / 0.1³ = 8.49e9 tets, is
+    # above MAX_ELEMENTS and refused at validation (parse_scene never meshes, so this test takes milliseconds).
+    mesh = {"kind": "geology", "lo": [0.0] * 3, "hi": [100.0] * 3, "h": 10.0, "material": "rock"}
+    mesh["joint_sets"] = [{"dip": 30.0, "dip_direction": 90.0, "spacing": 0.1}]
+    (line,) = problems_of(with_changes(mesh=mesh))
+    assert line.startswith("s.toml: mesh.joint_sets[0].spacing: would need ") and " 8.49e+09 tets" in line, line
+    assert line.endswith("make the spacing larger compared with the model"), line
+
+
+# ----------------------------------------------------------------------------------------------------------------
 # Coincident spheres: finite, equal and opposite forces (no NaN from the first frame)
 
 

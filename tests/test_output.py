@@ -236,6 +236,139 @@ def test_one_collection_lists_mesh_and_spheres_of_every_frame(tmp_path: Path):
         np.testing.assert_array_equal(mesh.point_data["radius"], radius)
 
 
+VTK_HEADER = {"UInt32": np.uint32, "UInt64": np.uint64}
+VTK_TYPE = {"Float64": np.float64, "Float32": np.float32, "Int64": np.int64, "Int32": np.int32, "UInt8": np.uint8}
+
+
+def read_vtu(path: Path) -> tuple[int, int, dict[str, np.ndarray]]:
+    """(NumberOfPoints, NumberOfCells, section/name → array of shape (tuples, components)) of a VTU file, decoded by
+    the VTK XML format's rules (binary DataArrays: base64 of a header of block sizes, then each zlib block).
+
+    meshio 5.3.5 reads no VTU file without cells (nschloe/meshio#1412: it indexes the first cell type), which ParaView
+    reads; this reader is the oracle there, and :func:`test_vtu_reader_agrees_with_meshio` holds it to meshio's
+    arrays where both read."""
+    import base64
+    import zlib
+
+    root = ET.parse(path).getroot()
+    header_type = np.dtype(VTK_HEADER[root.get("header_type", "UInt32")]).newbyteorder("<")
+    compressed = root.get("compressor") is not None
+    piece = root.find("UnstructuredGrid").find("Piece")
+    arrays = {}
+    for section in piece:
+        for array in section.iter("DataArray"):
+            assert array.get("format") == "binary", array.attrib
+            text = array.text.strip()
+            size = header_type.itemsize
+            if compressed:
+                first = np.frombuffer(base64.b64decode(text[: 4 * -(-3 * size // 3)]), header_type)
+                blocks = int(first[0])
+                head_chars = 4 * -(-(3 + blocks) * size // 3)
+                sizes = np.frombuffer(base64.b64decode(text[:head_chars]), header_type)[3:].astype(np.int64)
+                raw = base64.b64decode(text[head_chars:])
+                ends = np.cumsum(sizes)
+                data = b"".join(zlib.decompress(raw[e - n : e]) for n, e in zip(sizes, ends, strict=True))
+            else:
+                head_chars = 4 * -(-size // 3)
+                data = base64.b64decode(text[head_chars:])
+            values = np.frombuffer(data, np.dtype(VTK_TYPE[array.get("type")]).newbyteorder("<"))
+            arrays[f"{section.tag}/{array.get('Name')}"] = values.reshape(-1, int(array.get("NumberOfComponents", 1)))
+    return int(piece.get("NumberOfPoints")), int(piece.get("NumberOfCells")), arrays
+
+
+def test_vtu_reader_agrees_with_meshio(tmp_path: Path):
+    """The oracle of the empty-series test: on a file meshio reads, the decoder gives meshio's arrays exactly."""
+    points, tets = box_mesh((0, 0, 0), (1, 1, 1), (1, 1, 1))
+    stress = np.random.default_rng(2).normal(size=(len(tets), 3, 3))
+    path = VtuSeries(tmp_path, "rock").write(
+        0, 0.0, points, tets, point_data={"displacement": points * 0.5}, cell_data={"stress": stress}
+    )
+    n_points, n_cells, arrays = read_vtu(path)
+    mesh = meshio.read(path)
+    assert (n_points, n_cells) == (len(points), len(tets))
+    np.testing.assert_array_equal(arrays["Points/Points"], mesh.points)
+    np.testing.assert_array_equal(arrays["PointData/displacement"], mesh.point_data["displacement"])
+    np.testing.assert_array_equal(arrays["CellData/stress"], mesh.cell_data["stress"][0])
+    np.testing.assert_array_equal(arrays["Cells/connectivity"].reshape(-1, 4), mesh.cells_dict["tetra"])
+
+
+def test_vtu_series_with_no_tet_and_no_sphere(tmp_path: Path):
+    """A frame after every tet converted (nodes left, no cell) and a frame without spheres are written with every
+    field at 0 rows (tensors still 9 components) and listed in the collection: ParaView shows nothing there
+    instead of the last frame that had tets. Oracle: :func:`read_vtu` (meshio reads no cell-less file)."""
+    points, _ = box_mesh((0, 0, 0), (1, 1, 1), (1, 1, 1))
+    series = VtuSeries(tmp_path, "empty")
+    no_tets = np.zeros((0, 4), np.int64)
+    stress = np.zeros((0, 3, 3))
+    mesh_path = series.write(
+        0,
+        0.0,
+        points,
+        no_tets,
+        point_data={"displacement": np.zeros_like(points), "velocity": np.zeros_like(points)},
+        cell_data={
+            "stress": stress.reshape(-1, 9),
+            "von_mises": von_mises_stress(stress),
+            "max_principal": max_principal_stress(stress),
+            "material": np.zeros(0, np.int32),
+        },
+    )
+    sphere_path = series.write_particles(0, 0.0, np.zeros((0, 3)), {"radius": np.zeros(0)})
+
+    n_points, n_cells, arrays = read_vtu(mesh_path)
+    assert (n_points, n_cells) == (len(points), 0)
+    np.testing.assert_array_equal(arrays["Points/Points"], points)
+    assert arrays["CellData/stress"].shape == (0, 9)
+    for name in ("von_mises", "max_principal", "material"):
+        assert arrays[f"CellData/{name}"].shape == (0, 1), name
+    assert arrays["Cells/connectivity"].size == arrays["Cells/offsets"].size == arrays["Cells/types"].size == 0
+    n_points, n_cells, arrays = read_vtu(sphere_path)
+    assert (n_points, n_cells) == (0, 0)
+    assert arrays["Points/Points"].shape == (0, 3) and arrays["PointData/radius"].shape == (0, 1)
+    datasets = ET.parse(series.pvd_path).getroot().find("Collection").findall("DataSet")
+    assert [d.get("file") for d in datasets] == ["empty_vtu/empty_000000.vtu", "empty_particles/empty_000000.vtu"]
+
+
+def test_run_that_starts_as_spheres_writes_a_readable_vtu_series(tmp_path: Path, capsys):
+    """A box whose every tet starts as spheres, with the mesh and sphere series on: exit 0 and every .vtu of the
+    collection readable, the mesh with 0 cells and the spheres with one vertex per converted tet (6 Kuhn tets, one
+    sphere each)."""
+    import tomli_w
+
+    from warpdem.cli import main
+
+    scene = {
+        "name": "all_spheres",
+        "run": {"end_time": 0.002, "output_rate": 1000.0},
+        "materials": {
+            "rock": {"density": 2500.0, "youngs_modulus": 1.0e8, "poisson_ratio": 0.25, "tresca_strength": 1.0e6}
+        },
+        "mesh": {
+            "kind": "box",
+            "lo": [0.0, 0.0, 0.0],
+            "hi": [0.2, 0.2, 0.2],
+            "divisions": [1, 1, 1],
+            "material": "rock",
+        },
+        "conversion": {"enabled": True, "start_as_spheres": {"box": {"lo": [-1.0, -1.0, -1.0], "hi": [1.0, 1.0, 1.0]}}},
+        "output": {"vtu": True, "particles_vtu": True},
+    }
+    path = tmp_path / "all_spheres.toml"
+    path.write_text(tomli_w.dumps(scene))
+    status = main([str(path), "--quiet", "--out", str(tmp_path / "out")])
+    assert status == 0, capsys.readouterr().err
+    datasets = ET.parse(tmp_path / "out" / "all_spheres.pvd").getroot().find("Collection").findall("DataSet")
+    assert [d.get("part") for d in datasets] == ["0", "1"] * 3  # frames 0, 1, 2
+    for d in datasets:
+        _, n_cells, _ = read_vtu(tmp_path / "out" / d.get("file"))
+        assert n_cells == (0 if d.get("part") == "0" else 6), d.get("file")
+        if d.get("part") == "1":
+            assert meshio.read(tmp_path / "out" / d.get("file")).cells_dict["vertex"].shape == (6, 1)
+    assert sorted(p.relative_to(tmp_path / "out").as_posix() for p in (tmp_path / "out").rglob("*.vtu")) == sorted(
+        d.get("file") for d in datasets
+    )
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # Runs
 

@@ -20,12 +20,12 @@ piece).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
-from fractions import Fraction
 
 import numpy as np
 
+from ..limits import MAX_ELEMENTS
+from ..scene.continuum import block_cells, brick_cells
 from ..tables import BOX_FACE_NAMES, OPENING_FACE_NAME, TET_FACES
 from .geology import GeologyMesh, Room, Shaft, Tunnel
 from .mesh import box_mesh
@@ -34,13 +34,6 @@ __all__ = ["BRICK_JOINT_SETS", "brick_cells", "mesh_bricks"]
 
 BRICK_JOINT_SETS = ("bedding", "head")
 """Joint sets of a brick mesh: 0 between courses (normal z), 1 between the blocks of a course (normal x or y)."""
-
-
-def brick_cells(length: float, stagger: float, h: float) -> int:
-    """Cells along a block's length: at least length / h, and a multiple of the stagger's denominator so that every
-    course's head joints lie on grid lines (stagger 0.5: even)."""
-    step = Fraction(stagger).limit_denominator(64).denominator
-    return step * max(1, math.ceil(length / h / step - 1e-9))
 
 
 def _inside(opening: Tunnel | Shaft | Room, x: np.ndarray) -> np.ndarray:
@@ -155,9 +148,15 @@ def mesh_bricks(
     limits = [0.0] * len(openings) if min_pieces is None else [float(v) for v in min_pieces]
     if len(limits) != len(openings) or not all(0.0 <= v < 1.0 for v in limits):
         raise ValueError(f"bricks: need one min_piece in [0, 1) per opening, got {limits} for {len(openings)}")
-    per = np.array(
-        [brick_cells(size[0], stagger, h), max(1, math.ceil(size[1] / h - 1e-9)), max(1, math.ceil(size[2] / h - 1e-9))]
-    )
+    grid = block_cells(tuple(size.tolist()), stagger, h)
+    if max(grid) > MAX_ELEMENTS:
+        # Scene validation refuses this first (Scene.size_problems); here for Python callers, before numpy would hold
+        # the count as an object array.
+        raise ValueError(
+            f"bricks: a block of {size.tolist()} m is {list(grid)} cells of h = {h} m; allowed: at most "
+            f"{MAX_ELEMENTS} along each edge"
+        )
+    per = np.array(grid, dtype=np.int64)
     cell = size / per
     n = np.maximum(np.rint((hi_a - lo_a) / cell).astype(np.int64), 1)
     top = lo_a + n * cell

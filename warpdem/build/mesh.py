@@ -22,8 +22,19 @@ DEGENERATE_VOLUME = 1.0e-12
 """A tet is degenerate when |V| <= DEGENERATE_VOLUME · h³, h its longest edge [-]."""
 
 
+FLOAT32_ROUNDING = 1.0e-3
+"""Largest float32 rounding of a node coordinate, |x| 2⁻²⁴ (half a float32 step), as a fraction of the shortest tet
+edge [-]. The device holds node positions in float32 (warpdem.model: node_ref_q, node_q): a mesh far from the origin
+compared with its tets loses its shape there (at 1e8 m a float32 step is 8 m, and the faces of a 1 m tet collapse to
+zero area, their depth to NaN), so such a mesh is refused before the build."""
+
+
 class MeshError(ValueError):
     """A mesh that cannot be used: bad shapes or indices, non-finite points, or a degenerate tet."""
+
+
+class MeshTooFarError(MeshError):
+    """A mesh whose coordinates float32 cannot hold to :data:`FLOAT32_ROUNDING` of its shortest edge."""
 
 
 @dataclass
@@ -181,7 +192,9 @@ def check_tets(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, MeshQu
 
     Raises:
         MeshError: wrong shapes, non-finite points, an index out of range, or a degenerate tet
-            (|V| <= :data:`DEGENERATE_VOLUME` · h³, h its longest edge), named by its index.
+            (|V| <= :data:`DEGENERATE_VOLUME` · h³, h its longest edge), named by its index; MeshTooFarError (a
+            MeshError): coordinates so far from the origin, compared with the shortest edge, that the device's
+            float32 cannot hold the tets' shape (:data:`FLOAT32_ROUNDING`).
     """
     points = np.asarray(points, dtype=np.float64)
     tets = np.asarray(tets)
@@ -203,7 +216,8 @@ def check_tets(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, MeshQu
         return tets.astype(np.int32), tet_quality(points, tets)
     vol = tet_signed_volumes(points, tets)
     x = points[tets]
-    h = np.linalg.norm(x[:, TET_EDGES[:, 1]] - x[:, TET_EDGES[:, 0]], axis=2).max(axis=1)
+    edges = np.linalg.norm(x[:, TET_EDGES[:, 1]] - x[:, TET_EDGES[:, 0]], axis=2)
+    h = edges.max(axis=1)
     degenerate = np.nonzero(np.abs(vol) <= DEGENERATE_VOLUME * h**3)[0]
     if len(degenerate):
         t = int(degenerate[0])
@@ -212,10 +226,26 @@ def check_tets(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, MeshQu
             f"tet {t} is degenerate: volume {vol[t]:.3g} m³ with longest edge {h[t]:.3g} m, nodes "
             f"{tets[t].tolist()}{more}"
         )
+    _check_float32_positions(points, float(edges.min()))
     oriented = tets.copy()
     inverted = vol < 0.0
     oriented[inverted, 1], oriented[inverted, 2] = tets[inverted, 2], tets[inverted, 1]
     return oriented.astype(np.int32), tet_quality(points, oriented)
+
+
+def _check_float32_positions(points: np.ndarray, shortest: float) -> None:
+    """Refuses a mesh whose farthest coordinate rounds in float32 by more than :data:`FLOAT32_ROUNDING` of its
+    shortest edge [m] (:class:`MeshTooFarError`, naming the node and the distance allowed)."""
+    far = np.abs(points).max(axis=1)
+    node = int(np.argmax(far))
+    allowed = FLOAT32_ROUNDING * shortest * 2.0**24
+    if far[node] > allowed:
+        raise MeshTooFarError(
+            f"node {node} lies {far[node]:.3g} m from the origin (coordinates {points[node].tolist()}), where the "
+            f"device's float32 positions round by {far[node] * 2.0**-24:.2g} m, more than {FLOAT32_ROUNDING:g} of the "
+            f"shortest tet edge ({shortest:.3g} m); allowed: coordinates within {allowed:.3g} m of the origin for "
+            "this mesh (move it nearer the origin)"
+        )
 
 
 def boundary_faces(tets: np.ndarray) -> np.ndarray:

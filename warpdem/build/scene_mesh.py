@@ -49,7 +49,7 @@ from .geology import (
     mesh_geology_cached,
     read_mesh,
 )
-from .mesh import MeshError, boundary_faces, box_mesh
+from .mesh import MeshError, MeshTooFarError, boundary_faces, box_mesh
 
 if TYPE_CHECKING:
     from ..stages.joints import JointProps
@@ -391,8 +391,11 @@ def add_scene_mesh(builder: ModelBuilder, scene: Scene) -> tuple[GeologyMesh, np
             mesh.points, mesh.tets, per_tet, fixed_nodes=fixed, velocity=spec.velocity, **joints
         )
     except MeshError as exc:
-        # A degenerate tet of a mesh file is the file's fault; of a box or Gmsh mesh, that of the sizes that made it.
+        # A degenerate tet of a mesh file is the file's fault; of a box or Gmsh mesh, that of the sizes that made it,
+        # and a mesh too far from the origin for float32, that of its corner or centre.
         where = f"mesh.path: {spec.path}" if spec.kind == "file" else "mesh"
+        if isinstance(exc, MeshTooFarError) and spec.kind != "file":
+            where = "mesh.lo" if hasattr(spec, "lo") else "mesh.center"
         raise SceneError(f"{scene.source}: {where}: {exc}") from None
     _add_loads(builder, scene, mesh, nodes)
     return mesh, nodes

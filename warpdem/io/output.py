@@ -14,6 +14,7 @@ after every frame, so a run that stops part way leaves a valid series of the fra
 
 from __future__ import annotations
 
+import math
 import os
 import pathlib
 from typing import TYPE_CHECKING
@@ -322,7 +323,10 @@ class VtuSeries:
         path = folder / f"{self.name}_{frame:06d}.vtu"
         flat_cells = {}
         for name, a in cell_data.items():
-            flat = np.asarray(a).reshape(len(cells), -1)
+            # The components per cell from the trailing shape, not by -1: a frame may have no cell left (every tet
+            # converted, or none to begin with), and numpy cannot infer -1 from an empty array.
+            a = np.asarray(a)
+            flat = a.reshape(len(cells), math.prod(a.shape[1:]))
             flat_cells[name] = flat[:, 0] if flat.shape[1] == 1 else flat
         mesh = meshio.Mesh(
             np.asarray(points, dtype=np.float64),

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from fractions import Fraction
 from typing import Annotated, Any, Literal
 
 from pydantic import (
@@ -378,6 +379,23 @@ class ArchMesh(_Model):
                 f"radius must exceed the thickness (and any inward bulge): radius {self.radius}, thickness {thickest}"
             )
         return self
+
+
+def brick_cells(length: float, stagger: float, h: float) -> int:
+    """Cells along a block's length: at least length / h, and a multiple of the stagger's denominator so that every
+    course's head joints lie on grid lines (stagger 0.5: even). A Python int, however long the block."""
+    step = Fraction(stagger).limit_denominator(64).denominator
+    return step * max(1, math.ceil(length / h / step - 1e-9))
+
+
+def block_cells(brick: tuple[float, float, float], stagger: float, h: float) -> tuple[int, int, int]:
+    """Cells along the length, depth and height of a block of a bricks mesh (warpdem.build.bricks): the length's
+    from :func:`brick_cells`, the others at least size / h. Python ints, however large the block is against h."""
+    return (
+        brick_cells(brick[0], stagger, h),
+        max(1, math.ceil(brick[1] / h - 1e-9)),
+        max(1, math.ceil(brick[2] / h - 1e-9)),
+    )
 
 
 class BrickMeshSpec(_Model):

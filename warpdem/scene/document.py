@@ -17,6 +17,7 @@ from pydantic import (
 from ..limits import (
     BYTES_PER_NEIGHBOR_SLOT,
     BYTES_PER_SPHERE,
+    MAX_ELEMENTS,
     size_problem,
 )
 from ..tables import BOX_FACE_NAMES, OPENING_FACE_NAME, SURFACE_FACE_NAME
@@ -24,11 +25,13 @@ from .continuum import (
     ARCH_FACE_NAMES,
     ArchMesh,
     BoxMesh,
+    BrickMeshSpec,
     CylinderMesh,
     EllipsoidMesh,
     GeologyMeshSpec,
     JointDefaults,
     Mesh,
+    block_cells,
 )
 from .failure import CONVERSION_STRENGTH, Conversion, Fracture, MaterialRegion, Rigid
 from .fields import (
@@ -228,14 +231,18 @@ class Scene(_Model):
         """Sizes this scene would allocate, estimated before anything is packed, meshed or allocated.
 
         Spheres of a packing: region volume × solid fraction / sphere volume (hcp π/(3√2), cubic π/6, random its
-        target), capped by ``count``; tets of a box mesh: 6 per cell, of a geology mesh: model volume / the volume of
-        a regular tet of edge h, h³/(6√2) (and of edge h_opening, as if the refinement filled the model: an upper
-        bound), a node per 4 tets; neighbour slots: sphere slots × neighbors_per_particle; explicit capacities as
-        given. Spheres of files are counted when read (the builder).
+        target), capped by ``count``; tets of a box mesh: 6 per cell, of a bricks mesh: 6 per cell of its grid (the
+        box in whole cells of a block's, warpdem.build.bricks), of a geology mesh: model volume / the volume of a
+        regular tet of edge e, e³/(6√2), e the smaller of h and the closest joint spacing (Gmsh conforms the tets to
+        every joint plane; with planes closer than h it makes tets of their spacing or flat ones it cannot finish),
+        and of edge h_opening, as if the refinement filled the model: an upper bound, a node per 4 tets; neighbour
+        slots: sphere slots (at least the one the builder always makes) × neighbors_per_particle; explicit
+        capacities as given. Spheres of files are counted when read (the builder).
 
         Returns:
             ``(key path, message)`` when the estimate exceeds :data:`warpdem.limits.MAX_ELEMENTS` of a kind or the
-            memory of this machine (the key is that of the largest contributor); else an empty list.
+            memory of this machine (the key is that of the largest contributor), or when a block of a bricks mesh
+            spans more than MAX_ELEMENTS cells along an edge; else an empty list.
         """
         contributions: list[tuple[str, str, float]] = []  # (key, kind, count)
         for i, src in enumerate(self.particles):
@@ -251,22 +258,52 @@ class Scene(_Model):
         if self.capacity.particles is not None and self.capacity.particles > spheres:
             contributions.append(("capacity.particles", "spheres", self.capacity.particles - spheres))
             spheres = float(self.capacity.particles)
+        # The builder allocates one sphere slot even without spheres (conversion may add some), each with its slots.
+        slots = max(spheres, 1.0)
         contributions.append(
-            ("capacity.neighbors_per_particle", "neighbor slots", spheres * self.capacity.neighbors_per_particle)
+            ("capacity.neighbors_per_particle", "neighbor slots", slots * self.capacity.neighbors_per_particle)
         )
         mesh = self.scaled_mesh()
         tets = nodes = 0.0
+        key, why = "", ""
         if isinstance(mesh, BoxMesh | ArchMesh):
             cells = math.prod(float(d) for d in mesh.divisions)
             tets, nodes = 6.0 * cells, math.prod(float(d) + 1.0 for d in mesh.divisions)
             key = "mesh.divisions"
+        elif isinstance(mesh, BrickMeshSpec):
+            grid = block_cells(mesh.brick, mesh.stagger, mesh.h)
+            if max(grid) > MAX_ELEMENTS:
+                axis = max(range(3), key=lambda a: grid[a])
+                return [
+                    (
+                        f"mesh.brick[{axis}]",
+                        f"a block {mesh.brick[axis]:g} m {('long', 'deep', 'high')[axis]} spans {grid[axis]:.3g} cells "
+                        f"of h = {mesh.h:g} m; allowed: at most {MAX_ELEMENTS} cells along a block "
+                        f"(mesh.brick[{axis}] <= {MAX_ELEMENTS * mesh.h:.3g} m at this h)",
+                    )
+                ]
+            # The box is a whole number of cells of the block's grid (warpdem.build.bricks.mesh_bricks).
+            sides = zip(mesh.lo, mesh.hi, mesh.brick, grid, strict=True)
+            counts = [max(1.0, float(round((hi - lo) / (b / n)))) for lo, hi, b, n in sides]
+            tets, nodes = 6.0 * math.prod(counts), math.prod(c + 1.0 for c in counts)
+            key = "mesh.h"
         elif isinstance(mesh, GeologyMeshSpec):
             volume = math.prod(h - l for h, l in zip(mesh.hi, mesh.lo, strict=True))
-            tets = volume / _regular_tet_volume(mesh.h)
-            if mesh.openings and mesh.h_opening is not None and mesh.h_opening < mesh.h:
+            # Gmsh conforms the tets to every joint plane, so the blocks between planes closer than h get tets of
+            # about their spacing (or flat ones it cannot finish): the edge is the smaller of h and the spacing.
+            edge, key = mesh.h, "mesh.h"
+            for i, js in enumerate(mesh.joint_sets):
+                if js.spacing < edge:
+                    edge, key = js.spacing, f"mesh.joint_sets[{i}].spacing"
+            tets = volume / _regular_tet_volume(edge)
+            if mesh.openings and mesh.h_opening is not None and mesh.h_opening < edge:
                 tets += volume / _regular_tet_volume(mesh.h_opening)
             nodes = tets / 4.0
-            key = "mesh.h"
+            if key != "mesh.h":
+                why = (
+                    f" (the mesh conforms to the joints: tets of about the spacing, {edge:g} m, where it is below "
+                    f"h = {mesh.h:g} m); make the spacing larger compared with the model"
+                )
         elif isinstance(mesh, CylinderMesh | EllipsoidMesh):
             tets = mesh.volume() / _regular_tet_volume(mesh.h)
             nodes = tets / 4.0
@@ -296,11 +333,11 @@ class Scene(_Model):
             if c[1] == "spheres":
                 return c[2] * sphere_bytes
             if c[1] == "neighbor slots":
-                return spheres * max(k - default_k, 0) * BYTES_PER_NEIGHBOR_SLOT
+                return slots * max(k - default_k, 0) * BYTES_PER_NEIGHBOR_SLOT
             return c[2] * _BYTES_EACH[c[1]]
 
         worst = max(contributions, key=blame)
-        return [(worst[0], problem)]
+        return [(worst[0], problem + (why if worst[0] == key else ""))]
 
     def scaled_mesh(self) -> Mesh | None:
         """The ``[mesh]`` at ``run.resolution``: edge lengths h and h_opening divided by it, box and arch divisions

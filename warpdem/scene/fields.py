@@ -46,6 +46,11 @@ MAX_GRAVITY = 1e6
 MAX_JOINT_SURFACES = 5000
 """Most joint planes and discs a geology mesh may be fragmented by (Gmsh's boolean fragment grows faster than
 linearly in their number)."""
+MAX_NESTING = 32
+"""Deepest nesting of tables and arrays a scene may have (the schema's deepest is a handful: a table of a list entry
+of a table); far deeper input (thousands of levels) would exhaust Python's recursion limit in the parser."""
+INT64_MIN, INT64_MAX = -(2**63), 2**63 - 1
+"""The integers a scene may give: those of 64 bits, as numpy and the device hold them."""
 _LATTICE_FRACTION = {"hcp": math.pi / (3.0 * math.sqrt(2.0)), "cubic": math.pi / 6.0}
 _BYTES_EACH = {
     "spheres": BYTES_PER_SPHERE,
@@ -104,7 +109,17 @@ def _check_float32(value: float) -> float:
 # ints are still accepted for floats because TOML writers often drop the ".0". Every float of a scene lies in the
 # range float32 represents (warpdem.limits.F32_MIN .. F32_MAX).
 Float = Annotated[float, Strict(), AllowInfNan(False), AfterValidator(_check_float32)]
-Int = Annotated[int, Strict()]
+
+
+def _check_int64(value: int) -> int:
+    # Every integer of a scene becomes a numpy or device integer (a count, an index, a seed): one beyond 64 bits would
+    # fail there, after the set-up, rather than here naming the key.
+    if not INT64_MIN <= value <= INT64_MAX:
+        raise ValueError(f"must be an integer from {INT64_MIN} to {INT64_MAX} (64 bits)")
+    return value
+
+
+Int = Annotated[int, Strict(), AfterValidator(_check_int64)]
 Bool = Annotated[bool, Strict()]
 Str = Annotated[str, Strict()]
 

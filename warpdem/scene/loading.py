@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import math
 import os
+import re
+import sys
 import tomllib
 import types
 import typing
@@ -20,6 +23,9 @@ from .fields import (
     _BARE_KEY,
     _MAX_GOT_CHARS,
     _PLAIN_MESSAGES,
+    INT64_MAX,
+    INT64_MIN,
+    MAX_NESTING,
     RESERVED_SECTIONS,
     SCHEMA_VERSION,
     SceneError,
@@ -59,14 +65,101 @@ def load_scene(path: str | os.PathLike[str]) -> Scene:
         raise SceneError(f"{source}: is a directory, expected a TOML scene file")
     try:
         with path.open("rb") as f:
-            data = tomllib.load(f)
+            text = f.read().decode("utf-8")
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise SceneError(f"{source}: invalid TOML: {err}") from None
     except UnicodeDecodeError as err:
         raise SceneError(f"{source}: not UTF-8 text ({err.reason} at byte {err.start})") from None
     except OSError as err:
         raise SceneError(f"{source}: cannot read: {err.strerror or err}") from None
+    except RecursionError:
+        # tomllib recurses once per level of nested arrays and inline tables and gives up at about 490.
+        line, key = _deepest_value(text)
+        raise SceneError(
+            f"{source}: line {line}: {key}: arrays and inline tables nested too deeply to read; allowed: at most "
+            f"{MAX_NESTING} levels"
+        ) from None
+    except ValueError as err:
+        # Python refuses to read an integer of more than sys.get_int_max_str_digits() digits (4300).
+        line, key, digits = _longest_integer(text)
+        if not digits:
+            raise SceneError(f"{source}: invalid TOML: {' '.join(str(err).split())}") from None
+        raise SceneError(
+            f"{source}: line {line}: {key}: an integer of {digits} digits; allowed: integers from {INT64_MIN} to "
+            f"{INT64_MAX} (64 bits)"
+        ) from None
     return _parse(data, source, path.resolve().parent, default_name=path.stem or "scene")
+
+
+def _key_on(line: str, table: str) -> str:
+    """The key a TOML line assigns (its text before ``=``), under the table header in force; ``?`` for none."""
+    key = line.split("=", 1)[0].strip() if "=" in line else ""
+    return ".".join(part for part in (table, key) if part) or "?"
+
+
+_LONG_INTEGER = re.compile(r"[+-]?[0-9][0-9_]*")
+_TABLE_HEADER = re.compile(r"\s*\[\[?\s*([^\]]*?)\s*\]\]?\s*(#.*)?$")
+
+
+def _longest_integer(text: str) -> tuple[int, str, int]:
+    """(line number, key, digits) of the integer with the most digits in a TOML text, for the message about an
+    integer too long to read; digits 0 when none is longer than Python reads."""
+    limit = sys.get_int_max_str_digits()
+    table, best = "", (0, "?", 0)
+    for number, line in enumerate(text.splitlines(), start=1):
+        header = _TABLE_HEADER.match(line)
+        if header:
+            table = header.group(1)
+            continue
+        for match in _LONG_INTEGER.finditer(line):
+            digits = sum(c.isdigit() for c in match.group())
+            if limit and digits > limit and digits > best[2]:
+                best = (number, _key_on(line, table), digits)
+    return best
+
+
+def _line_end(text: str, i: int) -> int:
+    """Index of the newline that ends the line holding ``text[i]`` (the text's length on the last line)."""
+    end = text.find("\n", i)
+    return len(text) if end < 0 else end
+
+
+def _deepest_value(text: str) -> tuple[int, str]:
+    """(line number, key) where the nesting of arrays and inline tables of a TOML text first exceeds MAX_NESTING,
+    counting brackets outside strings and comments; table headers set the table of the keys after them."""
+    table, key, depth, number, line_start, i = "", "?", 0, 1, 0, 0
+    while i < len(text):
+        c = text[i]
+        if c == "\n":
+            number, line_start = number + 1, i + 1
+        elif c == "#":
+            i = _line_end(text, i)
+            continue
+        elif c in "\"'":
+            quote = text[i : i + 3] if text[i : i + 3] in ('"""', "'''") else c
+            j = i + len(quote)
+            while j < len(text) and not text.startswith(quote, j):
+                j += 2 if c == '"' and text[j] == "\\" else 1
+            number += text.count("\n", i, j)
+            i = j + len(quote)
+            continue
+        elif c == "[" and depth == 0 and not text[line_start:i].strip():
+            end = _line_end(text, i)
+            header = _TABLE_HEADER.match(text[line_start:end])
+            table = header.group(1) if header else table
+            i = end
+            continue
+        elif c in "[{":
+            if depth == 0:
+                key = _key_on(text[line_start:i], table)
+            depth += 1
+            if depth > MAX_NESTING:
+                return number, key
+        elif c in "]}":
+            depth = max(depth - 1, 0)
+        i += 1
+    return number, key
 
 
 def parse_scene(data: Mapping[str, Any], source: str = "<scene>", base_dir: Path | None = None) -> Scene:
@@ -91,6 +184,13 @@ def parse_scene(data: Mapping[str, Any], source: str = "<scene>", base_dir: Path
 def _parse(data: Any, source: str, base_dir: Path | None, default_name: str) -> Scene:
     if not isinstance(data, Mapping):
         raise SceneError(f"{source}: a scene must be a table (dict), got {type(data).__name__}")
+    deep = _too_deep(data)
+    if deep is not None:
+        # Before pydantic, whose validation and messages recurse once per level too.
+        raise SceneError(
+            f"{source}: {_format_path(deep)}...: tables and arrays nested more than {MAX_NESTING} levels deep; "
+            f"allowed: at most {MAX_NESTING}"
+        )
     try:
         scene = Scene.model_validate(data, context={"default_name": default_name})
     except ValidationError as err:
@@ -105,6 +205,21 @@ def _parse(data: Any, source: str, base_dir: Path | None, default_name: str) -> 
     if problems:
         raise SceneError(problems)
     return scene
+
+
+def _too_deep(data: Mapping[str, Any]) -> list[str | int] | None:
+    """Key path of the first value nested more than MAX_NESTING tables and arrays deep (cut after the first few
+    keys), or None. Walks without recursion, so any depth is measured."""
+    stack: list[tuple[Any, list[str | int]]] = [(data, [])]
+    while stack:
+        value, path = stack.pop()
+        if len(path) > MAX_NESTING:
+            return path[:4]
+        if isinstance(value, Mapping):
+            stack += [(v, [*path, str(k)]) for k, v in value.items()]
+        elif isinstance(value, list | tuple):
+            stack += [(v, [*path, i]) for i, v in enumerate(value)]
+    return None
 
 
 def _resolve_files(scene: Scene, source: str, base_dir: Path) -> list[str]:
@@ -226,6 +341,9 @@ def _walk(loc: tuple[str | int, ...]) -> tuple[list[str | int], Any, Any]:
 
 
 def _got(value: Any) -> str:
+    if isinstance(value, int) and value.bit_length() > 200:
+        # repr of an integer past sys.get_int_max_str_digits() raises; its size is what the user needs to see.
+        return f" (got an integer of {math.floor(value.bit_length() * math.log10(2)) + 1} digits)"
     text = repr(value)
     if len(text) > _MAX_GOT_CHARS:
         text = text[: _MAX_GOT_CHARS - 3] + "..."
