@@ -30,7 +30,9 @@ sum, in the force evaluation and in the books alike. Candidates exclude every fa
 it, and near a crack tip the rock is still continuous. An intact joint element's pair is excluded too (the element
 carries it).
 
-Node–wall: as sphere–wall, with the node's penalty stiffness.
+Node–wall: as sphere–wall, with the node's penalty stiffness. A wall the rock is meshed onto is seated on it at set-up
+(``seat_walls_kernel``, warpdem.stages.fem_contact.FemContact.seat_walls): moved back by the deepest node behind it
+within float32 rounding, as a node–face spring within it starts relaxed (a wall spring holds no offset).
 
 Rigid normals. A node of a rigid block whose star holds rigid tets only moves rigidly with every face of its star, so
 its outward normal n_v is its normal at the switch turned by the body's rotation, R(q) n_v0 (``rest_normals_kernel``
@@ -202,10 +204,12 @@ __all__ = [
     "rest_positions_kernel",
     "same_plane",
     "scatter_boundary_faces_kernel",
+    "seat_walls_kernel",
     "sphere_face_contact",
     "sphere_face_search_radius",
     "spring_depth",
     "tet_face_slots_kernel",
+    "wall_gap",
     "within_reach",
 ]
 
@@ -293,6 +297,14 @@ def face_contact_pair(
 
 
 @wp.func
+def wall_gap(x: wp.vec3, point: wp.vec3d, normal: wp.vec3) -> float:
+    """Gap of a node at x in front of a plane wall through ``point`` with unit ``normal`` [m] (negative behind it):
+    the difference in float64 (the wall's point moves by dt v_w a step), the dot in float32. The forces, the energy
+    books and the set-up seating (``seat_walls_kernel``) read this one expression, so that they agree to the bit."""
+    return wp.dot(wp.vec3(wp.vec3d(x) - point), normal)
+
+
+@wp.func
 def node_spring_energy(
     v: int,
     x: wp.vec3,
@@ -330,7 +342,7 @@ def node_spring_energy(
             sh = node_face_shear[i]
             e += 0.5 * kn * d * d + 0.5 * p.kt_ratio * kn * wp.dot(sh, sh)
     for wall in range(num_walls):
-        gap = wp.dot(wp.vec3(wp.vec3d(x) - wall_point[wall]), wall_normal[wall])
+        gap = wall_gap(x, wall_point[wall], wall_normal[wall])
         if gap < 0.0:
             p = fem_pair_table[mat_v * num_materials + wall_material[wall]]
             sh = node_wall_shear[v * num_walls + wall]
@@ -514,8 +526,12 @@ def make_node_contact_kernel(track_energy: bool):
                         # The re-evaluation after a topology pass (relaxed_depth = RELAXED_ALL): nothing moved, so no
                         # depth was gained. A node that finds itself behind a face only now (a new crack face, or its
                         # own surface turned by the faces it gained) carries that depth as its offset. At set-up only
-                        # a depth within float32 rounding (a node lying on a face) is carried.
+                        # a depth within float32 rounding (a node lying on a face) is carried. The spring pushes
+                        # with what is left, as the energy books and every later evaluation read it: a force of the
+                        # whole depth here, with ½ k (δ - offset)² = 0 booked, pushed a model at rest with a force
+                        # that no stored energy paid for (a negative contact dissipation, issue 30).
                         offset = wp.min(best_d, relaxed_depth)
+                        delta = best_d - offset
             node_face_spring[i] = best_f
             node_face_offset[i] = offset
             node_face_shear[i] = sh
@@ -560,7 +576,7 @@ def make_node_contact_kernel(track_energy: bool):
         for wall in range(num_walls):
             nw = wall_normal[wall]
             slot = v * num_walls + wall
-            gap = wp.dot(wp.vec3(wp.vec3d(x) - wall_point[wall]), nw)
+            gap = wall_gap(x, wall_point[wall], nw)
             if gap < 0.0:
                 touching = 1
             if gap >= 0.0 or inv_mv == 0.0:
@@ -622,6 +638,30 @@ def make_node_contact_kernel(track_energy: bool):
                 node_energy_boundary_work[v] = node_energy_boundary_work[v] + wp.float64(w_wall)
 
     return eval_node_contacts_kernel
+
+
+@wp.kernel
+def seat_walls_kernel(
+    # Model:
+    node_contact_stiffness: wp.array(dtype=float),
+    wall_normal: wp.array(dtype=wp.vec3),
+    num_walls: int,
+    # State in:
+    node_count: wp.array(dtype=int),
+    node_q: wp.array(dtype=wp.vec3),
+    wall_point: wp.array(dtype=wp.vec3d),
+    # In:
+    rounding_depth: float,
+    # Out:
+    deepest: wp.array(dtype=float),
+):
+    v = wp.tid()  # one thread per node slot: the deepest gap within rounding_depth behind each wall (atomic min)
+    if v >= node_count[0] or node_contact_stiffness[v] == 0.0:
+        return  # past the live nodes, or a node inside the rock (no wall spring)
+    for wall in range(num_walls):
+        gap = wall_gap(node_q[v], wall_point[wall], wall_normal[wall])
+        if gap < 0.0 and gap >= -rounding_depth:
+            wp.atomic_min(deepest, wall, gap)
 
 
 @wp.kernel

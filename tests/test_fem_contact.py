@@ -16,6 +16,10 @@ Oracles:
   momentum conserved to float32 round-off, and once apart their kinetic and strain energy add up to the initial
   kinetic energy (elastic contact, no damping anywhere);
 - a block resting on a wall: the wall carries its weight, each bottom node at the penetration of its own share;
+- at set-up (issue 30): a body meshed into another or onto a wall within float32 rounding (ROUNDING_ULPS spacings of
+  the largest coordinate) feels no force, and a second evaluation at the same positions gives the set-up's forces bit
+  for bit, whether the depth is within that rounding or a real penetration beyond it; the model within rounding stays
+  at rest with its books unchanged to the bit (a wall is seated: moved back by the rounding depth, never further);
 - energy books of the node–wall, node–face and sphere–face contacts with dashpots and friction (a tet block bouncing
   off a wall, two tet blocks colliding, a sphere bouncing off a tet slab; no gravity, no bulk viscosity): the
   contacts book their dissipation as velocity Verlet does their work (D = -W - ΔU, the trapezoid), so the total
@@ -62,6 +66,7 @@ from warpdem.build.builder import InteractionProps, ModelBuilder
 from warpdem.build.mesh import box_mesh
 from warpdem.host_data import BondData
 from warpdem.simulation import Simulation
+from warpdem.stages.fem_contact import ROUNDING_ULPS
 from warpdem.stages.guard import UnstableRunError
 from warpdem.stages.joints import JointProps
 from warpdem.stages.tets import TetProps
@@ -474,6 +479,65 @@ def test_block_rests_on_wall(device):
     np.testing.assert_allclose((k * depth).sum(), weight, rtol=REST_RTOL)
     assert np.abs(sim.state.node_qd.numpy()[:n]).max() < 1e-3
     assert wp.get_device(device) == model.device
+
+
+REST_STEPS = 50
+"""Steps of a set-up within rounding that must change nothing."""
+
+
+def assert_set_up_agrees_and_rests(sim: Simulation, within: bool) -> None:
+    """The set-up forces are those of a second evaluation at the same positions (bit for bit); within rounding they are
+    0, and REST_STEPS steps move nothing and change no line of the books."""
+    n = sim.node_count
+    first = sim.state.node_f.numpy()[:n].copy()
+    sim.evaluate_forces()
+    np.testing.assert_array_equal(sim.state.node_f.numpy()[:n], first)
+    if not within:
+        assert np.abs(first).max() > 0.0  # a real penetration pushes
+        return
+    assert not np.any(first)
+    e0 = sim.energy()
+    u0 = sim.state.node_u.numpy()[:n].copy()
+    sim.advance(REST_STEPS)
+    np.testing.assert_array_equal(sim.state.node_u.numpy()[:n], u0)
+    assert e0.in_play == 0.0 and sim.energy().total == e0.total
+
+
+@pytest.mark.parametrize("depth", [0.1, 10.0], ids=["within_rounding", "beyond"])
+def test_set_up_forces_across_faces_are_those_of_the_next_evaluation(device, depth):
+    # Two free blocks without gravity, the upper meshed into the lower by depth × the rounding depth (the largest
+    # coordinate is 2 m): the set-up springs carry up to the rounding depth as an offset and push with the rest (they
+    # pushed with the whole depth, which the books and every later evaluation read as 0).
+    d = depth * ROUNDING_ULPS * F32_EPS * 2.0
+    parts = {
+        "lower": ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (1, 1, 1)),
+        "upper": ((0.0, 0.0, 1.0 - d), (1.0, 1.0, 2.0 - d), (1, 1, 1)),
+    }
+    b, _ = block_parts(device, parts, (0.0, 0.0, 0.0))
+    model, state = b.finalize(device, safety_factor=0.5)
+    sim = Simulation(model, state)
+    assert np.any(sim.state.node_face_spring.numpy() >= 0)  # the blocks touch
+    assert_set_up_agrees_and_rests(sim, within=depth < 1.0)
+
+
+@pytest.mark.parametrize("depth", [0.1, 10.0], ids=["within_rounding", "beyond"])
+def test_block_meshed_onto_a_wall_is_seated_within_rounding(device, depth):
+    # A block on z = 0 and a wall depth × the rounding depth above that (the largest coordinate is 1 m): within it the
+    # wall is moved back by the block's depth (no further), beyond it the wall stays and the block is pushed out.
+    d = depth * ROUNDING_ULPS * F32_EPS * 1.0
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 0.5), (2, 2, 1))
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    b.add_plane_wall((0.0, 0.0, d), (0.0, 0.0, 1.0), "rock")
+    b.add_tet_mesh(points, tets, "rock")
+    model, state = b.finalize(device, safety_factor=0.5)
+    sim = Simulation(model, state)
+    z = float(sim.state.wall_point.numpy()[0, 2])
+    if depth < 1.0:
+        assert -F32_EPS * d <= z <= 0.0  # seated on z = 0, moved by the depth to float32 rounding of it
+    else:
+        assert z == d
+    assert_set_up_agrees_and_rests(sim, within=depth < 1.0)
 
 
 def bounce(device, case: str, safety_factor: float) -> Simulation:

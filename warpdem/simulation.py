@@ -151,6 +151,8 @@ class Simulation:
             self._conversion = ConversionPass(model)
             self._conversion.build_stars(model, state)
         if not primed:
+            if self.fem_contact is not None:
+                self.fem_contact.seat_walls()  # rock meshed onto a wall does not press on it at rest
             self.evaluate_forces()
             # The set-up build is checked like any other: a list that overflowed here would be the snapshot the
             # first advance restores, so grow until it fits and evaluate again.

@@ -230,6 +230,42 @@ class FemContact:
         extent = float(np.abs(model.node_ref_q.numpy()[:nn]).max(initial=0.0)) if nn else 0.0
         self.noise_depth = ROUNDING_ULPS * float(np.finfo(np.float32).eps) * extent
 
+    def seat_walls(self) -> None:
+        """Seat each plane wall on the rock that lies on it: move the wall back along its normal (away from the model)
+        by the deepest gap of a node behind it within ``noise_depth`` (float32 rounding, as a node lying on a face,
+        the brazilian disc's nodes 3.7e-10 m behind its platens). Set-up only, before the first force evaluation and
+        not at a restart (the checkpoint's walls are seated): a wall spring holds no offset, so a node meshed onto
+        the wall would otherwise press on it with k δ at rest, energy that float32 positions cannot book (a
+        displacement below a coordinate's spacing moves the node but not the gap). Nodes deeper than that are a real
+        initial penetration and are left to push (less the shift, at most ``noise_depth``). Moving a wall away never
+        starts a contact. Reads back a float per wall, one round or two."""
+        m, s, d = self.model, self.state, self.model.device
+        if m.num_walls == 0 or m.node_capacity == 0 or self.noise_depth <= 0.0:
+            return
+        deepest = wp.zeros(m.num_walls, dtype=float, device=d)
+        normal = m.wall_normal.numpy().astype(np.float64)
+        for _ in range(4):  # the float64 shift leaves the float32 gap at 0 or a spacing above; a second round checks
+            deepest.zero_()
+            wp.launch(
+                kf.seat_walls_kernel,
+                dim=m.node_capacity,
+                inputs=[
+                    m.node_contact_stiffness,
+                    m.wall_normal,
+                    m.num_walls,
+                    s.node_count,
+                    s.node_q,
+                    s.wall_point,
+                    float(self.noise_depth),
+                ],
+                outputs=[deepest],
+                device=d,
+            )
+            gaps = deepest.numpy().astype(np.float64)
+            if not np.any(gaps < 0.0):
+                return
+            s.wall_point.assign(s.wall_point.numpy() + gaps[:, None] * normal)
+
     def survivor_scans(self, on: bool) -> None:
         """Let a node's later scans for a new plane in one evaluation test only the faces that passed its first scan
         (``on``, the default) or scan its whole candidate list each time (the path it is tested against: the same
