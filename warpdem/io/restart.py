@@ -4,7 +4,10 @@
 and its scalars (:func:`model_scalars`: capacities as grown by the run); :func:`restore_checkpoint` reads them back onto
 a model built from the same scene, refusing a file of another scene. A file of an older format lacks the fields
 added since: :data:`FIELD_MIGRATIONS` says, per field, from which format on it is written and how an older file's
-value is filled exactly, or why it cannot be (then the restart is refused, naming the file and the field).
+value is filled exactly, or why it cannot be (then the restart is refused, naming the file and the field). Before any
+array reaches the device, warpdem.io.restart_check checks that the kernels can trust the file: every array as long as
+its capacities say, every count within its capacity, every index within the count it indexes, the run's attributes in
+range.
 """
 
 from __future__ import annotations
@@ -20,10 +23,11 @@ import warp as wp
 
 from .._version import __version__
 from ..limits import MAX_ELEMENTS
-from ..model import NEIGHBOR_FIELDS, RIGID_BODY_FIELDS, RIGID_NODE_FIELDS, Model, State
+from ..model import RIGID_BODY_FIELDS, RIGID_NODE_FIELDS, Model, State
 from ..simulation import Simulation
 from ..stages.loads import pressure_node_forces
 from .checkpoint import CheckpointError, read_checkpoint_version, write_checkpoint
+from .restart_check import check_restart
 
 
 def model_checkpoint_arrays(model: Model) -> list[str]:
@@ -73,26 +77,6 @@ def _restore_loads(model: Model, arrays: dict[str, np.ndarray]) -> Model:
             a.assign(arrays[key])
     return model
 
-
-NOT_PER_PARTICLE = (
-    "node_",
-    "tet_",
-    "face_",
-    "star_",
-    "joint_",
-    "cohesive_",
-    "ref_",
-    "bond_",
-    "coupling_",
-    "body_",
-    "rigid_",
-)
-"""Array names that are never sized by the particle capacity (nodes, tets, faces, joints, cohesive elements and bonds
-grow by their own capacities, which may equal it by chance)."""
-
-SPHERE_FACE_SLOTS = ("sphere_face_index", "sphere_face_shear")
-"""Sphere–face candidate slots: particle_capacity × max_sphere_faces long (empty without boundary faces), so as long
-as the per-sphere arrays when one slot per sphere is left; told by name, not by length."""
 
 SCENE_FIXED_SCALARS = ("bond_capacity", "num_walls", "num_materials")
 """Model scalars that no run changes: a checkpoint whose values differ was taken of another scene."""
@@ -401,8 +385,10 @@ def restore_checkpoint(
     (:data:`FIELD_MIGRATIONS`), so a run can always be resumed from its last checkpoint, or is refused saying why.
 
     Raises:
-        CheckpointError: unreadable file, one that belongs to another scene (``scene``: this scene's name), or one
-            that lacks a field that cannot be filled exactly (one line: the file, the field, why).
+        CheckpointError: unreadable file, one that belongs to another scene (``scene``: this scene's name), one
+            that lacks a field that cannot be filled exactly, or one a kernel could not safely read: a length, count,
+            index or attribute out of range (warpdem.io.restart_check.check_restart). One line: the file, the field,
+            what was found or why.
     """
     arrays, attrs, version = read_checkpoint_version(path)
     if scene is not None and "scene" in attrs and attrs["scene"] != scene:
@@ -434,35 +420,14 @@ def restore_checkpoint(
     _check_attrs(path, attrs, [name for name, value in scalars.items() if isinstance(value, int)])
     if missing:
         raise CheckpointError(f"{path}: missing {', '.join(missing)} (written by an older warpdem?)")
+    check_restart(path, arrays, attrs, model, template)
     device = model.device
-    slots = {
-        "particle_capacity": int(attrs["particle_capacity"]),
-        "neighbor slots": int(attrs["particle_capacity"]) * int(attrs["max_neighbors"]),
-    }
 
     def load(key: str, like: wp.array) -> wp.array:
         data = arrays[key]
         if data.dtype.kind in "fc" and not np.all(np.isfinite(data)):
             bad = int(np.count_nonzero(~np.isfinite(data)))
             raise CheckpointError(f"{path}: {key} holds {bad} non-finite value(s); the run it saved had already failed")
-        # Arrays sized by the particle capacity (or its neighbour slots) must agree with the attributes, or the
-        # kernels would index past their ends.
-        # Neighbour slots by name: with one slot per sphere they are as long as the per-sphere arrays.
-        if key.removeprefix("state/") in NEIGHBOR_FIELDS:
-            expected = slots["neighbor slots"]
-        elif key.removeprefix("state/") in SPHERE_FACE_SLOTS:
-            expected = None
-        elif (
-            like.shape
-            and like.shape[0] == template.particle_q.shape[0] > 1  # capacity 1 (no spheres yet): counters look alike
-            and key.startswith(("state/", "model/"))
-            and not key.split("/", 1)[1].startswith(NOT_PER_PARTICLE)
-        ):
-            expected = slots["particle_capacity"]
-        else:
-            expected = None
-        if expected is not None and (data.ndim == 0 or len(data) != expected):
-            raise CheckpointError(f"{path}: {key} has shape {data.shape}, not {expected} items as its attributes say")
         try:
             return wp.array(data, dtype=like.dtype, device=device)
         except (ValueError, TypeError, RuntimeError) as exc:
