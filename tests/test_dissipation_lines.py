@@ -1,0 +1,84 @@
+"""Every dissipation line of the energy books runs forwards (issue 28): on every shipped scene, shortened, each
+``energy_dissipated_*`` and ``energy_absorbed_*`` column of the time series is non-decreasing from frame to frame.
+
+A dashpot, friction, a softening law and a non-reflecting boundary cannot give energy back; a line that runs
+backwards books on the wrong line something that the books' total still closes on (a bond stretched in a step in which
+it broke, booked as released and minus it as damping: -4.8 kJ on masonry_wall_blast before the fix, kernels/bonds.py).
+
+Oracle: monotonicity up to rounding. The lines are float64 sums of float32 terms, each step's work and change of
+stored energy rounded to a few ε₃₂ of the energy in play and the roundings of successive steps adding as a random walk:
+a line may fall over a frame by at most BOOK_ROUNDOFF ε₃₂ √n of the energy in play (n the frame's steps), the bound of
+tests/test_scenes.py on the whole balance.
+
+Shortening: each scene runs FRAMES frames of 1/SPLIT of its own frame (output_rate × SPLIT), one frame of its own in
+all: a blast scene's first conversion pass (masonry_wall_blast at step 25) and the first splits of limestone_tunnel
+fall in it. Two scenes still run a line backwards there (strict xfails, the causes and measured figures in KNOWN;
+issue 28). Closest to the bound among the passing scenes: dam_crest_blast's damping line falls by 8.6 J in a frame
+against 9.8 J, after its first conversion: the trapezoid error of the lattice bonds (stiff springs, no dashpot, in a
+blast's velocity field), which the damping line holds as the bonds' D = -W - ΔU.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from warpdem.io.timeseries import read_series
+from warpdem.runner import RunOptions, run_scene
+from warpdem.scene import load_scene
+
+SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
+SCENES = sorted(SCENES_DIR.glob("*.toml"))
+SPLIT = 4
+FRAMES = 4
+F32_EPS = float(np.finfo(np.float32).eps)
+BOOK_ROUNDOFF = 16.0
+"""float32 roundings per step relative to the energy in play (tests/test_scenes.py, tests/test_energy_balance.py)."""
+LINE_PREFIXES = ("energy_dissipated_", "energy_absorbed_")
+
+KNOWN = {
+    "masonry_tunnel_blast": (
+        "dissipated_fem_contact falls by 146 J in a frame here (-514 J by 0.5 ms; -24 J on dam_crest_blast by 1.2 ms "
+        "and -14 J on masonry_wall_blast by 3 ms, past this test's frames): a sphere-face contact books the half of "
+        "its work ahead on the face's nodes on that line and the rest on the sphere's lines, so only their sum is a "
+        "dissipation (kernels/sphere_face.py); the face's share needs a node force sum and a line of its own (issue 28)"
+    ),
+    "limestone_tunnel": (
+        "dissipated_cohesive falls by 1.8 kJ in a frame here (-2.4 kJ by 4 ms): cohesive elements whose daughters "
+        "cross (r·dir < 0) break after their pre-opening force, along dir while its energy and history follow |r|, "
+        "pulled them through: -4.4 kJ over 236 of 564 breaks by 4 ms (kernels/cohesive.py; issue 28)"
+    ),
+}
+
+
+def scene_params() -> list:
+    params = []
+    for path in SCENES:
+        marks = [pytest.mark.xfail(reason=KNOWN[path.stem], strict=True)] if path.stem in KNOWN else []
+        params.append(pytest.param(path, id=path.stem, marks=marks))
+    return params
+
+
+@pytest.mark.parametrize("path", scene_params())
+def test_dissipation_lines_never_run_backwards(tmp_path, path):
+    scene = load_scene(path)
+    run = scene.run.model_copy(update={"output_rate": SPLIT * scene.run.output_rate})
+    summary = run_scene(
+        scene.model_copy(update={"run": run}),
+        RunOptions(device="cpu", frames=FRAMES, out_dir=tmp_path, quiet=True),
+    )
+    series = read_series(next(tmp_path.glob("*_series.csv")))
+    steps_per_frame = summary.steps / FRAMES
+    tolerance = BOOK_ROUNDOFF * F32_EPS * np.sqrt(steps_per_frame) * summary.energy_in_play
+    lines = [name for name in series if name.startswith(LINE_PREFIXES)]
+    assert lines
+    backwards = {}
+    for name in lines:
+        values = np.asarray(series[name], dtype=np.float64)
+        assert values[0] == 0.0, name  # every line starts the books at zero
+        fall = -float(np.min(np.diff(values)))
+        if fall > tolerance:
+            backwards[name] = fall
+    assert not backwards, f"{path.stem}: lines fall by {backwards} J in a frame (tolerance {tolerance:.3g} J)"
