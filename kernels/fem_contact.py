@@ -28,7 +28,8 @@ new plane) starts at the depth gained in the step, the depth the node already ha
 sum, in the force evaluation and in the books alike. Candidates exclude every face with a vertex in the node's 1-ring
 (the node itself or a node it shares a tet with): a node never touches a face of a tet holding it, nor a face that holds
 it, and near a crack tip the rock is still continuous. An intact joint element's pair is excluded too (the element
-carries it).
+carries it). A spring let go of because its node went through the face (``passed_face``) is recorded for the
+stability guard, which stops the run (warpdem.stages.guard).
 
 Node–wall: as sphere–wall, with the node's penalty stiffness. A wall the rock is meshed onto is seated on it at set-up
 (``seat_walls_kernel``, warpdem.stages.fem_contact.FemContact.seat_walls): moved back by the deepest node behind it
@@ -108,6 +109,7 @@ from .fem_surface import (
     remap_face_ids_kernel,
     rest_normals_kernel,
     rest_positions_kernel,
+    rim_margins,
     scatter_boundary_faces_kernel,
     tet_face_slots_kernel,
 )
@@ -153,6 +155,7 @@ __all__ = [
     "KEEP_EPS",
     "NODE_FACE_LIST",
     "NODE_SPRINGS",
+    "PASSED_COMPRESSION",
     "PLANE_GROUP_COS",
     "RIM_REACH",
     "SPHERE_FACE_LIST",
@@ -195,6 +198,7 @@ __all__ = [
     "node_surface_normal",
     "on_surface",
     "own_body_face",
+    "passed_face",
     "penalty_contact",
     "plane_depth",
     "projection_barycentric",
@@ -248,6 +252,40 @@ def spring_depth(
     if f < 0:
         return 0.0
     return wp.max(plane_depth(x, f, face_nodes, node_q) - offset, 0.0)
+
+
+PASSED_COMPRESSION = wp.constant(0.5)
+"""The compression of a spring let go of past its face's reach, as a fraction of that reach, from which the node has
+gone through the face (:func:`passed_face`) [-]. A spring at its design load is compressed by σ / (f E) of the tet's
+height, 1e-3 or less for rock; a relaxed one (its depth carried as an offset) carries nothing: a node lying on a
+block's top next to a neighbour's side face holds one on that face at its whole depth, which a settling of a few µm
+takes past the reach (facility_nonpersistent)."""
+
+
+@wp.func
+def passed_face(
+    x: wp.vec3,
+    f: int,
+    offset: float,
+    face_nodes: wp.array(dtype=wp.vec3i),
+    face_depth: wp.array(dtype=float),
+    node_q: wp.array(dtype=wp.vec3),
+    rims: RimFaces,
+) -> bool:
+    """Whether a node at x, let go of by face f, went through it: at least ``face_depth[f]`` (half the height of the
+    tet over f, the contact's reach) behind its plane with the spring (``offset`` its relaxed depth) compressed by at
+    least PASSED_COMPRESSION of that, while it still projects into f within the margin a kept target has
+    (``kept_face_holds``'s other tests). The spring was let go for its depth alone, after pushing back over half the
+    reach, and nothing pushes the node back out of the rock it is in (warpdem.stages.guard stops the run)."""
+    fn = face_nodes[f]
+    a = node_q[fn[0]]
+    b = node_q[fn[1]]
+    c = node_q[fn[2]]
+    area2 = wp.cross(b - a, c - a)
+    depth = -wp.dot(x - a, wp.normalize(area2))
+    if depth < face_depth[f] or depth - offset < PASSED_COMPRESSION * face_depth[f]:
+        return False
+    return min3(projection_barycentric(x, a, b, c, area2)) >= -rim_margins(f, rims)[1]
 
 
 @wp.func
@@ -420,6 +458,7 @@ def make_node_contact_kernel(track_energy: bool):
         node_energy_boundary_work: wp.array(dtype=wp.float64),
         # Out:
         node_target_slot: wp.array(dtype=int),  # read too: the last evaluation's slot, a hint (kept_face_holds)
+        node_passed_face: wp.array(dtype=int),  # the face a node went past the reach of (-1 none; the guard clears)
     ):
         v = wp.tid()  # one thread per node slot
         if v >= node_count[0]:
@@ -510,6 +549,9 @@ def make_node_contact_kernel(track_energy: bool):
                             num_materials,
                         )
                         r_v += 0.5 * p_old.kt_ratio * kn * wp.dot(sh, sh)
+                        if dt > 0.0:
+                            if passed_face(x, old_f, offset, face_nodes, face_depth, node_q, rims):
+                                node_passed_face[v] = old_f
                 sh = wp.vec3(0.0)  # history lives only as long as the node touches the plane
                 offset = float(0.0)
                 delta = best_d

@@ -8,7 +8,9 @@ positions do. The force is the sphere contact law of the model (kernels/contact.
 ``make_pair_laws``) with the face as a flat body (R* = r, as a wall), m* = 1 / (1/m_s + Σ w_i²/m_i), and the equal
 and opposite force goes to the face's nodes with the weights w_i. A sphere may touch several faces; a contact at a
 face's edge or vertex counts only if no other face is nearer (the same edge point seen from the two faces that share
-the edge counts once, and a contact in a face's interior shadows its neighbours' edges).
+the edge counts once, and a contact in a face's interior shadows its neighbours' edges). A centre behind a face it
+projects into has gone past the contact's reach (an overlap past r): the face is recorded for the stability guard,
+which stops the run (warpdem.stages.guard).
 """
 
 from __future__ import annotations
@@ -211,6 +213,8 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
         energy_damping: wp.array(dtype=wp.float64),
         energy_friction: wp.array(dtype=wp.float64),
         energy_stiffness_change: wp.array(dtype=wp.float64),
+        # Out:
+        sphere_passed_face: wp.array(dtype=int),  # a face whose reach the sphere went past (-1 none; the guard clears)
     ):
         i = wp.tid()  # one thread per particle slot; it owns its sphere–face pairs
         if i >= particle_count[0]:
@@ -272,6 +276,11 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
             fn = face_nodes[f]
             w, n, dist, touching, interior = sphere_face_contact(x, r, fn, node_q)
             if not (touching and (interior or f == best_f)):
+                if dt > 0.0 and interior and dist < r and not touching:
+                    # The centre lies behind a face it projects into, less than r deep: an overlap past the radius,
+                    # the contact's reach. It acts only while the centre is in front, so nothing pushes the sphere
+                    # back out of the rock (warpdem.stages.guard stops the run).
+                    sphere_passed_face[i] = f
                 continue
             inv_sum = inv_mi
             inv_sum += w[0] * w[0] * node_inv_mass[fn[0]] + w[1] * w[1] * node_inv_mass[fn[1]]

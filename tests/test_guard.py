@@ -18,10 +18,15 @@ Oracles:
 - contact reach (issue 30): a sphere launched at v bounds the critical step by REACH_FRACTION r / v exactly, refused
   at (1 + REFUSAL_MARGIN) of it; a sphere coasting at (1 ∓ REFUSAL_MARGIN) × REACH_FRACTION r / dt passes / is
   stopped; a free sphere whose centre is behind a wall is stopped for penetration;
+- penetration past the contact's reach (issue 30): of two spheres the smaller's centre at (1 ∓ REFUSAL_MARGIN) × the
+  larger radius from the larger's passes / is reported (an overlap of the smaller radius); a sphere moved a tenth of its
+  radius behind a slab's face it projects into stops the run at its next step, resting on it at a tenth of its radius
+  in front it does not; two blocks thrown together at 20 m/s: with the default penalty the contact holds, with a
+  hundredth of it they pass each other and the run stops naming the node, the face, the depth and the face's reach;
 - energy from nowhere: energy_from_nowhere's allowance (a stable step's shadow, (dt/dt_c)² of what can flow, plus
   BOOKS_SLACK) at its edges; the unstable slab above is now stopped by it, before any speed runs away;
 - the issue's edge runs, shortened: a 1e5 m/s ball, rigid_slope at dt = 0.01 s allowed and under 1e6 m/s² of gravity
-  end with exit 3 and a message naming what went wrong.
+  end with exit 3 and a message naming what went wrong (under 1e6 m/s², a node past a face of the base).
 The guard never fires on the shipped scenes: tests/test_scenes.py runs each of them.
 """
 
@@ -34,8 +39,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
+from warpdem.kernels import guard as kg
 
 from warpdem.build.builder import ModelBuilder
+from warpdem.build.mesh import box_mesh
 from warpdem.build.scene_build import build_scene, scene_builder
 from warpdem.cli import EXIT_UNSTABLE, main
 from warpdem.io.checkpoint import read_checkpoint
@@ -394,6 +401,93 @@ def test_sphere_through_a_wall_is_penetration_past_the_reach(device):
     assert "behind wall 0" in info.value.problem
 
 
+def test_sphere_centre_inside_another_is_penetration_past_the_reach(device):
+    # Spheres of radii r and r/2 touching at set-up (their pair is in the neighbour list), then the small one moved
+    # to d = (1 ∓ REFUSAL_MARGIN) r from the big one's centre: an overlap 3r/2 - d just below / above the smaller
+    # radius r/2. The guard's pass alone decides (no step: the contact would throw them apart).
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    b.add_sphere((0.0, 0.0, 0.0), RADIUS, "rock")
+    b.add_sphere((1.5 * RADIUS, 0.0, 0.0), 0.5 * RADIUS, "rock")
+    sim = Simulation(*b.finalize(device))
+    small = int(np.argmin(sim.model.particle_radius.numpy()[:2]))
+    big = 1 - small
+
+    def moved(d: float):
+        q = sim.state.particle_q.numpy()
+        q[small] = q[big] + np.array([d, 0.0, 0.0])
+        sim.state.particle_q.assign(q)
+        return sim.guard.check(sim.model, sim.state)
+
+    assert moved((1.0 + REFUSAL_MARGIN) * RADIUS) is None
+    report = moved((1.0 - REFUSAL_MARGIN) * RADIUS)
+    assert report is not None and report.sphere == 0 and report.sphere_problem == kg.PROBLEM_OVERLAP
+    err = str(sim.guard.error(sim.model, sim.state, report, 0, 0.0))
+    assert "penetration past the contact's reach: its centre" in err
+    assert f"overlap by {0.5 * RADIUS * (1 + 2 * REFUSAL_MARGIN):.3g} m, past the smaller radius 0.005 m" in err
+
+
+def sphere_over_slab(device, height: float) -> Simulation:
+    """A sphere of radius RADIUS at rest with its centre ``height`` over the top face (z = 0.2) of a fixed tet slab,
+    over a face's interior, no gravity."""
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 0.2), (4, 4, 1))
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    b.add_tet_mesh(points, tets, "rock", fixed_nodes=np.arange(len(points)))
+    b.add_sphere((0.43, 0.37, 0.2 + height), RADIUS, "rock")
+    return Simulation(*b.finalize(device))
+
+
+def test_sphere_behind_a_face_stops_the_run(device):
+    # The sphere–face contact acts while the centre is in front of the face: resting a tenth of its radius deep it is
+    # pushed out; moved a tenth of its radius behind the face, nothing pushes it back, and the step that sees it
+    # records the face (kernels/sphere_face.py), which the guard reports.
+    sim = sphere_over_slab(device, 0.9 * RADIUS)
+    sim.advance(5)
+    sim = sphere_over_slab(device, -0.1 * RADIUS)
+    with pytest.raises(UnstableRunError) as info:
+        sim.advance(5)
+    err = info.value
+    assert err.step == 1 and err.entity == "sphere 0 (part default)"
+    assert re.search(
+        r"its centre .* went 0.001 m behind face \d+ \(of tet \d+, material rock\), an overlap of "
+        r"0.011 m past its radius 0.01 m",
+        err.problem,
+    ), err.problem
+
+
+def thrown_blocks(device, stiffness_factor: float) -> Simulation:
+    """A 1 × 1 × 0.5 m block held at its base and a second one 1 cm over it thrown down at 20 m/s, no gravity, the
+    contact's penalty factor ``stiffness_factor`` (2 × 2 × 1 cells: a face's reach is 0.25 m)."""
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0), contact_stiffness_factor=stiffness_factor)
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    lower, lower_tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 0.5), (2, 2, 1))
+    upper, upper_tets = box_mesh((0.0, 0.0, 0.51), (1.0, 1.0, 1.01), (2, 2, 1))
+    b.add_tet_mesh(lower, lower_tets, "rock", fixed_nodes=np.nonzero(lower[:, 2] == 0.0)[0])
+    b.add_tet_mesh(upper, upper_tets, "rock", velocity=(0.0, 0.0, -20.0))
+    return Simulation(*b.finalize(device, safety_factor=0.5))
+
+
+def test_blocks_thrown_together_are_held_or_stopped(device):
+    # Issue 30: "either the contact holds or the run stops saying the penetration exceeded what the contact
+    # resolves". The default penalty stops the block within a few cm; a hundredth of it (the block's 1.2 kJ per
+    # bottom node against ½ k (0.25 m)² ~ 0.2 kJ) lets the blocks pass each other: a node is let go of by a face it
+    # went past the face's reach behind (kernels/fem_contact.py passed_face), and the run stops.
+    thrown_blocks(device, 1.0).advance(400)
+    with pytest.raises(UnstableRunError) as info:
+        thrown_blocks(device, 0.01).advance(400)
+    err = info.value
+    assert err.entity.startswith("FEM node ")
+    found = re.search(
+        r"it is at .*, (\S+) m behind face \d+ \(of tet \d+, material rock\), past the face's reach "
+        r"(\S+) m \(half the tet's height over it\)",
+        err.problem,
+    )
+    assert found, err.problem
+    assert float(found.group(1)) >= float(found.group(2)) == 0.25
+    assert "likely cause: an impact or load the node–face contact cannot stop within its reach" in str(err)
+
+
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 
 
@@ -447,8 +541,9 @@ def test_rigid_slope_at_an_allowed_unstable_dt_is_stopped(tmp_path, capsys):
 
 
 def test_rigid_slope_under_1e6_gravity_is_stopped(tmp_path, capsys):
-    # Issue 30, case 3: g = 1e6 m/s² drives the blocks through the fixed base; the run stops once a node moves more
-    # than half the shortest edge in a step (g t dt > 0.09 m at t ~ 2 ms), before any falls through.
+    # Issue 30, case 3: g = 1e6 m/s² drives the blocks through the fixed base ("853 of 1198 nodes fall through the
+    # base to z = −309 m"); the run stops at the first node that goes past a face's reach (at ~0.6 ms, before any
+    # node moves more than half the shortest edge in a step, g t dt > 0.09 m at t ~ 2 ms).
     path = edge_scene(
         tmp_path,
         "rigid_slope",
@@ -456,7 +551,8 @@ def test_rigid_slope_under_1e6_gravity_is_stopped(tmp_path, capsys):
     )
     code, out, err = run_edge(tmp_path, path, capsys)
     assert code == EXIT_UNSTABLE, out + err
-    assert "FEM node" in err and "more than 0.5 x the smallest contact reach" in err
+    assert "FEM node" in err and "penetration past the contact's reach: it is at" in err, err
+    assert "behind face" in err and "past the face's reach" in err and err.count("\n") == 1
 
 
 def test_energy_from_nowhere_allows_a_stable_steps_shadow_only():

@@ -182,6 +182,8 @@ class Simulation:
         self.has_spheres = self.model.max_radius > 0.0
         self.neighbors = NeighborList(self.model, self.state) if self.has_spheres else None
         self.fem_contact = FemContact(self.model, self.state, self.has_spheres) if self.model.face_capacity else None
+        fem = self.fem_contact
+        self.guard.watch(*((fem.node_passed, fem.sphere_passed) if fem is not None else (None, None)))
         self.bond_compactor = Compactor(self.model.bond_capacity, self.model.device)
         self.cohesive_compactor = Compactor(self.model.cohesive_capacity, self.model.device)
         self.coupling_compactor = Compactor(self.model.coupling_capacity, self.model.device)

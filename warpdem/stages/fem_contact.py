@@ -223,6 +223,11 @@ class FemContact:
         # -2: a node's later scans for a new plane test only the first scan's survivors; -1: each scans its whole
         # list (kernels/node_face_target.py new_plane_face; survivor_scans).
         self.first_scan = wp.full(1, -2, dtype=int, device=d)
+        # The face each node and sphere went past the contact's reach of in a step since the stability guard last
+        # looked (-1: none; kernels/fem_contact.py passed_face, kernels/sphere_face.py): written where the contact lets
+        # go, since the body then moves on through the rock, read and cleared by warpdem.stages.guard between steps.
+        self.node_passed = wp.full(max(model.node_capacity, 1), -1, dtype=int, device=d)
+        self.sphere_passed = wp.full(max(sphere_face_rows(model), 1), -1, dtype=int, device=d)
         self.rigid_normals(True)
         # The depth float32 rounding gives a node lying on a face (the two sides of a pre-split joint, a block resting
         # on its base): a few ulp of the largest coordinate (set-up only: read back once).
@@ -402,6 +407,8 @@ class FemContact:
             self.face_origin,
             self.first_scan,
             self.noise_depth if dt == 0.0 else 0.0,
+            self.node_passed,
+            self.sphere_passed,
         )
         eval_joints(self.model, self.state, dt)
 
@@ -420,6 +427,8 @@ def eval_fem_contacts(
     face_origin: wp.array | None = None,
     first_scan: wp.array | None = None,
     noise_depth: float = 0.0,
+    node_passed: wp.array | None = None,
+    sphere_passed: wp.array | None = None,
 ) -> None:
     """Sphere–face, node–face and node–wall forces into ``particle_f/t`` and ``node_f`` (launches only).
 
@@ -444,6 +453,9 @@ def eval_fem_contacts(
             (``FemContact`` holds one; written with the normals, read by the node–face depth tests).
         first_scan: shape (1,), int32: -2, a node's later scans for a new plane test only its first scan's survivors;
             -1, each scans the whole list (``FemContact.survivor_scans``).
+        node_passed: the face each node went past the reach of in a step (-1 none), written here and cleared by the
+            stability guard (``FemContact.node_passed``), shape (node_capacity,), int32; None: a scratch array.
+        sphere_passed: the same for the spheres' faces (``FemContact.sphere_passed``), shape (particle_capacity,).
     """
     m, s = model, state
     n = max(m.node_capacity, 1)
@@ -456,6 +468,10 @@ def eval_fem_contacts(
         face_origin = wp.zeros(face_normal.shape[0], dtype=wp.vec3, device=m.device)
     if first_scan is None:
         first_scan = wp.full(1, -2, dtype=int, device=m.device)
+    if node_passed is None:
+        node_passed = wp.full(n, -1, dtype=int, device=m.device)
+    if sphere_passed is None:
+        sphere_passed = wp.full(max(sphere_face_rows(m), 1), -1, dtype=int, device=m.device)
     step = m.dt if dt is None else dt
     if m.node_capacity:
         if step > 0.0:
@@ -511,6 +527,8 @@ def eval_fem_contacts(
                 s.energy_damping,
                 s.energy_friction,
                 s.energy_stiffness_change,
+                # Out:
+                sphere_passed,
             ],
             device=m.device,
         )
@@ -578,7 +596,9 @@ def eval_fem_contacts(
                 s.node_contact_energy_prev,
                 s.node_energy_contact,
                 s.node_energy_boundary_work,
+                # Out:
                 target_slot,
+                node_passed,
             ],
             device=m.device,
         )

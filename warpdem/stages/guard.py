@@ -25,6 +25,13 @@ through their base). At set-up the fastest launch speed bounds the step (:func:`
 critical step, so ``dt = "auto"`` respects it and an explicit dt above it is refused); at run time the guard stops a
 run whose sphere or node moves faster than ``REACH_FRACTION × contact_reach / dt`` (:func:`reach_speed`) whether or
 not the step is stable, naming the body and its speed.
+
+Penetration past what a contact resolves, whether or not the step is stable (``kernels/guard.py`` says each rule and
+its threshold): a sphere's centre behind a wall, inside another sphere or behind a face it projects into (unless a
+coupling ties it to the rock), an FEM
+node let go of by a face it went half the tet's height behind, or a surface node behind a wall by more than that for
+the largest tets. The message names the body, the depth and the reach it passed. The FEM contact records the faces
+passed in the step, where they happen (:meth:`StabilityGuard.watch`); the guard reads and clears them.
 """
 
 from __future__ import annotations
@@ -52,6 +59,8 @@ PROBLEMS = {
     kg.PROBLEM_SPEED: "run-away speed",
     kg.PROBLEM_REACH: "too fast for the contact reach",
     kg.PROBLEM_PENETRATION: "penetration past the contact's reach",
+    kg.PROBLEM_OVERLAP: "penetration past the contact's reach",
+    kg.PROBLEM_PASSED_FACE: "penetration past the contact's reach",
 }
 
 
@@ -190,6 +199,10 @@ class GuardReport:
     node: int
     node_problem: int
     nodes_bad: int
+    sphere_face: int = -1
+    """The face the first bad sphere went past the reach of (its problem ``PROBLEM_PASSED_FACE``), else -1."""
+    node_face: int = -1
+    """The same for the first bad node."""
 
 
 class StabilityGuard:
@@ -202,14 +215,33 @@ class StabilityGuard:
     def __init__(self, device: wp.context.Device) -> None:
         self.report = wp.zeros(4, dtype=int, device=device)
         self._clean = np.array([kg.NO_KEY, 0, kg.NO_KEY, 0], dtype=np.int32)
+        self._none = wp.empty(0, dtype=int, device=device)
+        self._no_stiffness = wp.empty(0, dtype=float, device=device)
+        self.node_passed: wp.array | None = None
+        self.sphere_passed: wp.array | None = None
+
+    def watch(self, node_passed: wp.array | None, sphere_passed: wp.array | None) -> None:
+        """Read the faces each node and sphere went past the reach of in the steps since the last check (the FEM
+        contact stage's records, warpdem.stages.fem_contact.FemContact ``node_passed`` / ``sphere_passed``; None for a
+        model without FEM contact), and clear them once read."""
+        self.node_passed, self.sphere_passed = node_passed, sphere_passed
 
     def check(self, model: Model, state: State) -> GuardReport | None:
-        """Check the state now; None when every sphere and node is finite and below the run-away bound."""
+        """Check the state now; None when every sphere and node is finite, below the run-away bound and the contact
+        reach's speed, and no contact was passed since the last check."""
         m, s = model, state
         self.report.assign(self._clean)
         gravity_norm = float(np.linalg.norm(m.gravity))
         reach = min(reach_speed(m), 3.0e38)  # float32 kernel argument
         if m.particle_capacity:
+            if self.sphere_passed is not None and m.coupling_capacity:
+                wp.launch(
+                    kg.drop_coupled_records_kernel,
+                    dim=m.coupling_capacity,
+                    inputs=[s.coupling_count, s.coupling_particle],
+                    outputs=[self.sphere_passed],
+                    device=m.device,
+                )
             wp.launch(
                 kg.check_spheres_kernel,
                 dim=m.particle_capacity,
@@ -220,21 +252,43 @@ class StabilityGuard:
                     m.num_walls,
                     m.wall_normal,
                     m.particle_inv_mass,
+                    m.particle_radius,
+                    m.max_neighbors if m.max_radius > 0.0 else 0,  # no sphere contact stage: no lists
                     s.particle_count,
                     s.particle_q,
                     s.particle_qd,
                     s.particle_omega,
                     s.time,
                     s.wall_point,
+                    s.nbr_count,
+                    s.nbr_index,
+                    self._none if self.sphere_passed is None else self.sphere_passed,
                 ],
                 outputs=[self.report],
                 device=m.device,
             )
         if m.node_capacity:
+            stiffness = m.node_contact_stiffness
             wp.launch(
                 kg.check_nodes_kernel,
                 dim=m.node_capacity,
-                inputs=[m.speed_limit, gravity_norm, reach, s.node_count, s.node_u, s.node_qd, s.time],
+                inputs=[
+                    m.speed_limit,
+                    gravity_norm,
+                    reach,
+                    m.num_walls,
+                    m.wall_normal,
+                    m.node_inv_mass,
+                    self._no_stiffness if stiffness is None else stiffness,
+                    m.face_depth_max,
+                    s.node_count,
+                    s.node_u,
+                    s.node_q,
+                    s.node_qd,
+                    s.time,
+                    s.wall_point,
+                    self._none if self.node_passed is None else self.node_passed,
+                ],
                 outputs=[self.report],
                 device=m.device,
             )
@@ -242,7 +296,7 @@ class StabilityGuard:
         if not bad_s and not bad_n:
             return None
         np_ = kg.NUM_PROBLEMS
-        return GuardReport(
+        report = GuardReport(
             sphere=key_s // np_ if bad_s else -1,
             sphere_problem=key_s % np_,
             spheres_bad=bad_s,
@@ -250,6 +304,15 @@ class StabilityGuard:
             node_problem=key_n % np_,
             nodes_bad=bad_n,
         )
+        # The faces passed, read before the records are cleared (a replay of the steps writes them again).
+        if report.sphere >= 0 and report.sphere_problem == kg.PROBLEM_PASSED_FACE:
+            report.sphere_face = int(self.sphere_passed.numpy()[report.sphere])
+        if report.node >= 0 and report.node_problem == kg.PROBLEM_PASSED_FACE:
+            report.node_face = int(self.node_passed.numpy()[report.node])
+        for record in (self.node_passed, self.sphere_passed):
+            if record is not None:
+                record.fill_(-1)
+        return report
 
     def error(self, model: Model, state: State, report: GuardReport, step: int, time: float) -> UnstableRunError:
         """The error for a report: the first bad sphere (else node) in words, what is wrong, the likely cause."""
@@ -263,6 +326,8 @@ class StabilityGuard:
             values = {
                 kg.PROBLEM_POSITION: s.particle_q,
                 kg.PROBLEM_PENETRATION: s.particle_q,
+                kg.PROBLEM_OVERLAP: s.particle_q,
+                kg.PROBLEM_PASSED_FACE: s.particle_q,
                 kg.PROBLEM_SPIN: s.particle_omega,
             }.get(code, s.particle_qd)
         else:
@@ -274,7 +339,11 @@ class StabilityGuard:
                 t = int(in_tet[0])
                 where = f" (of tet {t}, material {m.material_names[int(m.tet_material.numpy()[t])]})"
             entity = f"FEM node {i}{where}"
-            values = s.node_u if code == kg.PROBLEM_POSITION else s.node_qd
+            values = {
+                kg.PROBLEM_POSITION: s.node_u,
+                kg.PROBLEM_PENETRATION: s.node_q,
+                kg.PROBLEM_PASSED_FACE: s.node_q,
+            }.get(code, s.node_qd)
         value = values.numpy()[i].astype(np.float64)
         cause = likely_cause(m)
         if code == kg.PROBLEM_SPEED:
@@ -291,19 +360,14 @@ class StabilityGuard:
                     f"a body too fast for the time step (tunnelling or penetration past the contact); use "
                     f"dt <= {REACH_FRACTION * m.contact_reach / speed:.4g} s"
                 )
-        elif code == kg.PROBLEM_PENETRATION:
-            rel = value - s.wall_point.numpy().astype(np.float64)
-            gaps = np.einsum("ij,ij->i", rel, m.wall_normal.numpy().astype(np.float64))
-            w = int(np.argmin(gaps))
-            radius = float(m.particle_radius.numpy()[i])
-            problem = (
-                f"{PROBLEMS[code]}: its centre {np.array2string(value, precision=3)} is {-gaps[w]:.3g} m behind wall "
-                f"{w}, an overlap of {radius - gaps[w]:.3g} m beyond its radius {radius:.3g} m: more than the "
-                "contact resolves"
-            )
+        elif code in (kg.PROBLEM_PENETRATION, kg.PROBLEM_OVERLAP, kg.PROBLEM_PASSED_FACE):
+            sphere = report.sphere >= 0
+            face = report.sphere_face if sphere else report.node_face
+            problem, what = penetration(m, s, i, sphere, code, value, face)
+            problem = f"{PROBLEMS[code]}: {problem}: more than the contact resolves"
             cause = (
-                "an impact or load the wall's contact cannot stop within the sphere's radius (speeds, gravity or "
-                "forces far beyond what the contact carries)"
+                f"an impact or load {what} cannot stop within its reach (speeds, gravity or forces far beyond what "
+                "the contact carries)"
             )
             if m.dt > m.critical_dt:
                 cause = likely_cause(m)
@@ -311,6 +375,69 @@ class StabilityGuard:
             problem = f"{PROBLEMS[code]} {np.array2string(value, precision=3)}"
         problem += f" ({report.spheres_bad} spheres and {report.nodes_bad} FEM nodes bad)"
         return UnstableRunError(time, step, entity, problem, cause)
+
+
+def penetration(
+    model: Model, state: State, i: int, sphere: bool, code: int, x: np.ndarray, face: int
+) -> tuple[str, str]:
+    """What a penetration report says of sphere or node ``i`` at ``x`` [m] (``face``: the face it passed, for
+    ``PROBLEM_PASSED_FACE``): the depth and the reach it passed, in words, and the contact it passed (for the cause).
+    Reads back (the error path only)."""
+    m, s = model, state
+    where = f"{np.array2string(x, precision=3)}"
+    if code == kg.PROBLEM_PENETRATION:
+        gaps = np.einsum(
+            "ij,ij->i", x - s.wall_point.numpy().astype(np.float64), m.wall_normal.numpy().astype(np.float64)
+        )
+        w = int(np.argmin(gaps))
+        if sphere:
+            radius = float(m.particle_radius.numpy()[i])
+            return (
+                f"its centre {where} is {-gaps[w]:.3g} m behind wall {w}, an overlap of {radius - gaps[w]:.3g} m "
+                f"beyond its radius {radius:.3g} m",
+                "the wall's contact",
+            )
+        return (
+            f"it is at {where}, {-gaps[w]:.3g} m behind wall {w}, deeper than the node contact's largest reach "
+            f"{m.face_depth_max:.3g} m (half the tallest tet over a boundary face)",
+            "the wall's contact",
+        )
+    if code == kg.PROBLEM_OVERLAP:
+        k = m.max_neighbors
+        count = min(int(s.nbr_count.numpy()[i]), k)
+        partners = s.nbr_index.numpy()[i * k : i * k + count]
+        q = s.particle_q.numpy().astype(np.float64)
+        r = m.particle_radius.numpy().astype(np.float64)
+        overlap = r[i] + r[partners] - np.linalg.norm(q[partners] - q[i], axis=1)
+        smaller = np.minimum(r[i], r[partners])
+        best = int(np.argmax(overlap / smaller))
+        j = int(partners[best])
+        pid = int(m.particle_id.numpy()[j])
+        part = m.part_names[int(m.particle_part.numpy()[j])]
+        return (
+            f"its centre {where} and sphere {pid}'s (part {part}) overlap by {overlap[best]:.3g} m, past the smaller "
+            f"radius {smaller[best]:.3g} m: the smaller one's centre is inside the larger",
+            "the spheres' contact",
+        )
+    fn = m.face_nodes.numpy()[face]
+    a, b, c = s.node_q.numpy()[fn].astype(np.float64)
+    normal = np.cross(b - a, c - a)
+    depth = -float((x - a) @ normal) / float(np.linalg.norm(normal))
+    t = int(m.face_tet.numpy()[face])
+    of = f"face {face} (of tet {t}, material {m.material_names[int(m.tet_material.numpy()[t])]})"
+    if sphere:
+        radius = float(m.particle_radius.numpy()[i])
+        return (
+            f"its centre {where} went {depth:.3g} m behind {of}, an overlap of {radius + depth:.3g} m past its "
+            f"radius {radius:.3g} m, where the face's contact lets go",
+            "the face's contact",
+        )
+    reach = float(m.face_depth.numpy()[face])
+    return (
+        f"it is at {where}, {depth:.3g} m behind {of}, past the face's reach {reach:.3g} m (half the tet's height over "
+        "it), where the node–face contact lets go",
+        "the node–face contact",
+    )
 
 
 def likely_cause(model: Model) -> str:
