@@ -23,6 +23,7 @@ Oracles:
   radius behind a slab's face it projects into stops the run at its next step, resting on it at a tenth of its radius
   in front it does not; two blocks thrown together at 20 m/s: with the default penalty the contact holds, with a
   hundredth of it they pass each other and the run stops naming the node, the face, the depth and the face's reach;
+  a block moved (1 ∓ REFUSAL_MARGIN) × the node contact's largest reach behind a wall passes / is reported;
 - energy from nowhere: energy_from_nowhere's allowance (a stable step's shadow, (dt/dt_c)² of what can flow, plus
   BOOKS_SLACK) at its edges; the unstable slab above is now stopped by it, before any speed runs away;
 - the issue's edge runs, shortened: a 1e5 m/s ball, rigid_slope at dt = 0.01 s allowed and under 1e6 m/s² of gravity
@@ -454,6 +455,33 @@ def test_sphere_behind_a_face_stops_the_run(device):
         r"0.011 m past its radius 0.01 m",
         err.problem,
     ), err.problem
+
+
+def test_node_deep_behind_a_wall_is_penetration_past_the_reach(device):
+    # A tet block resting on a wall, moved down by (1 ∓ REFUSAL_MARGIN) × the node contact's largest reach
+    # (face_depth_max, half the tallest tet over a boundary face): its bottom nodes are that deep behind the wall.
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 0.5), (2, 2, 1))
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_material("rock", DENSITY, YOUNG, POISSON)
+    b.add_plane_wall((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "rock")
+    b.add_tet_mesh(points, tets, "rock")
+    sim = Simulation(*b.finalize(device))
+    reach = sim.model.face_depth_max
+    np.testing.assert_allclose(reach, 0.25, rtol=1e-6)  # half a 0.5 m tall cell
+    x_ref = sim.model.node_ref_q.numpy()
+
+    def sunk(depth: float):
+        u = np.zeros_like(x_ref)
+        u[:, 2] = -depth
+        sim.state.node_u.assign(u)
+        sim.state.node_q.assign(x_ref + u)
+        return sim.guard.check(sim.model, sim.state)
+
+    assert sunk((1.0 - REFUSAL_MARGIN) * reach) is None
+    report = sunk((1.0 + REFUSAL_MARGIN) * reach)
+    assert report is not None and report.node >= 0 and report.node_problem == kg.PROBLEM_PENETRATION
+    err = str(sim.guard.error(sim.model, sim.state, report, 0, 0.0))
+    assert f"{(1.0 + REFUSAL_MARGIN) * reach:.3g} m behind wall 0, deeper than the node contact's largest reach" in err
 
 
 def thrown_blocks(device, stiffness_factor: float) -> Simulation:
