@@ -35,6 +35,7 @@ from warpdem.io.checkpoint import remove_stale_temporaries, write_checkpoint
 from warpdem.runner import RunOptions, run_scene
 from warpdem.scene import SceneError, load_scene, parse_scene
 from warpdem.simulation import Simulation
+from warpdem.stages.guard import UnstableRunError
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -428,7 +429,10 @@ def test_coincident_spheres_get_finite_opposite_forces(device):
     np.testing.assert_array_equal(f[0], -f[1])  # the kernel adds +f to i and -f to j
     assert f[0, 2] != 0.0
     np.testing.assert_array_equal(f[:, :2], 0.0)  # along the fallback normal ±z
-    sim.advance(3)
+    # Their overlap (0.02 m) is past the smaller radius: the guard stops the run with the pair named (issue 30),
+    # and the state it stops on is still finite.
+    with pytest.raises(UnstableRunError, match=r"overlap by 0\.02 m, past the smaller radius 0\.01 m"):
+        sim.advance(3)
     assert np.all(np.isfinite(sim.state.particle_q.numpy()[:2]))
 
 
