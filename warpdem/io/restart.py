@@ -48,6 +48,17 @@ def model_scalars(model: Model) -> dict[str, int | float]:
     }
 
 
+MODEL_TEXTS = ("critical_dt_source", "contact_reach_source")
+"""The text fields of a model that a run may change (the rigid switch sets the step's source): a checkpoint holds
+them, so a restart's summary and the guard's messages say what the uninterrupted run's do. One without them (an older
+format) keeps the built model's."""
+
+
+def model_texts(model: Model) -> dict[str, str]:
+    """The :data:`MODEL_TEXTS` of a model."""
+    return {name: getattr(model, name) for name in MODEL_TEXTS}
+
+
 def load_checkpoint_arrays(model: Model) -> dict[str, wp.array]:
     """The arrays of the model's LoadModel that a run changes, by checkpoint name: the node drivers (per node, grown
     with the node capacity by a split pass) and the node triples of the loaded and dashpot faces (remapped onto the
@@ -92,6 +103,7 @@ def save_checkpoint(path: Path, sim: Simulation, frame: int, extra: dict) -> Pat
         arrays[f"loads/{name}"] = a.numpy()
     attrs = {
         **model_scalars(sim.model),
+        **model_texts(sim.model),
         "step": sim.step_count,
         "time": sim.time,
         "frame": frame,
@@ -439,6 +451,7 @@ def restore_checkpoint(
     model = dataclasses.replace(
         model,
         **{name: type(value)(attrs[name]) for name, value in scalars.items()},
+        **{name: attrs[name] for name in MODEL_TEXTS if isinstance(attrs.get(name), str)},
         **{name: load(f"model/{name}", getattr(model, name)) for name in model_checkpoint_arrays(model)},
     )
     state = State(**{name: load(f"state/{name}", a) for name, a in template.arrays().items()})
