@@ -170,7 +170,7 @@ def write_checkpoint(
     except BaseException:
         tmp_path.unlink(missing_ok=True)
         raise
-    _fsync_directory(final_path.parent)
+    fsync_path(final_path.parent)
     return final_path
 
 
@@ -448,16 +448,17 @@ def _check_format(file_path: pathlib.Path, stored: Any) -> int:
     return version
 
 
-def _fsync_directory(directory: pathlib.Path) -> None:
-    """Flushes a directory entry so a completed rename survives a power loss; best effort.
+def fsync_path(path: pathlib.Path) -> None:
+    """Forces a file, or a directory's entries (a completed rename), to the disk so it survives a power loss; best
+    effort: a platform or file system that cannot (Windows, some network ones) is let be.
 
     Args:
-        directory: Directory holding the renamed file.
+        path: The file or directory.
     """
     try:
-        fd = os.open(directory, os.O_RDONLY)
+        fd = os.open(path, os.O_RDONLY)
     except OSError:
-        return  # not supported on this platform or file system (e.g. Windows)
+        return
     try:
         os.fsync(fd)
     except OSError:

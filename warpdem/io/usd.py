@@ -49,6 +49,7 @@ from typing import Any
 
 import numpy as np
 
+from .checkpoint import fsync_path
 from .usd_frames import CurveSet, SurfaceFrame, as_float32, check_curves, check_surface, empty_curves, empty_surface
 
 __all__ = ["CurveSet", "SurfaceFrame", "UsdWriter", "partial_stage_path", "stage_frame"]
@@ -409,7 +410,7 @@ class UsdWriter:
         self._check_open()
         self._save()
         if sync:
-            _fsync(self._partial_path)
+            fsync_path(self._partial_path)
 
     def _save(self) -> None:
         """Saves the layer with the timeline ending at the last complete frame."""
@@ -466,9 +467,9 @@ class UsdWriter:
         # Release the layer before the rename so no memory map still points at the old name.
         self._release()
         try:
-            _fsync(self._partial_path)
+            fsync_path(self._partial_path)
             os.replace(self._partial_path, self._final_path)
-            _fsync(self._final_path.parent)
+            fsync_path(self._final_path.parent)
         except BaseException:
             self._partial_path.unlink(missing_ok=True)
             raise
@@ -658,21 +659,6 @@ def partial_stage_path(path: str | os.PathLike) -> pathlib.Path:
     (USD picks the file format from the extension, so the suffix stays last)."""
     final = pathlib.Path(path)
     return final.with_name(f"{final.stem}.partial{final.suffix}")
-
-
-def _fsync(path: pathlib.Path) -> None:
-    """Forces a file (or a directory's entries) to the disk; a file system that cannot (some network ones) is let
-    be."""
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 def _define_curves(stage: Any, path: str) -> Any:
