@@ -4,7 +4,7 @@ Real checkpoints of short runs of six scenes, each field damaged one way with h5
 
 - pmma_plate mid-crack (nodes split, cohesive elements alive, pressure loads), rigid_slope (rigid bodies from the
   start), masonry_wall_blast (tets converted: spheres, bonds, neighbour lists), jointed_slope with bonded joints
-  (joint interface elements), boulder_impact (a wall), dam_crest_blast (bonded spheres penalty-coupled to the tets,
+  (joint interface elements) and its top held by a velocity load (node drivers), boulder_impact (a wall), dam_crest_blast (bonded spheres penalty-coupled to the tets,
   spheres listing boundary faces, non-reflecting dashpot faces).
 
 Oracles:
@@ -53,7 +53,8 @@ RUNS: dict[str, tuple[str, list[str]]] = {
     "pmma_plate": ("scenes/pmma_plate.toml", ["--end-time", "2e-5"]),
     "rigid_slope": ("scenes/rigid_slope.toml", ["--frames", "1"]),
     "masonry_wall_blast": ("scenes/masonry_wall_blast.toml", ["--frames", "1"]),
-    "bonded_joints": ("", ["--frames", "1"]),  # jointed_slope with cohesive joints (written by the fixture)
+    # jointed_slope with cohesive joints (elements exist) and its top held by a velocity load (written by the fixture)
+    "bonded_joints": ("", ["--frames", "1"]),
     "boulder_impact": ("scenes/boulder_impact.toml", ["--frames", "1"]),
     "dam_crest_blast": ("scenes/dam_crest_blast.toml", ["--frames", "1"]),
 }
@@ -78,6 +79,8 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Checkpoint]:
             text = (REPO / "scenes/jointed_slope.toml").read_text()
             text = text.replace('name = "jointed_slope"', 'name = "bonded_joints"', 1)
             text = text.replace("\ncohesion = 0.0", "\ncohesion = 1.0e5", 1)  # [joints]: bonded, so elements exist
+            # The top held by a velocity load, so that loads/node_driver has live entries.
+            text += '\n[[loads]]\nkind = "velocity"\nfaces = "z+"\nvelocity = [0.0, 0.0, 0.0]\n'
             scene = folder / "bonded_joints.toml"
             scene.write_text(text)
         else:
