@@ -4,8 +4,9 @@ Real checkpoints of short runs of six scenes, each field damaged one way with h5
 
 - pmma_plate mid-crack (nodes split, cohesive elements alive, pressure loads), rigid_slope (rigid bodies from the
   start), masonry_wall_blast (tets converted: spheres, bonds, neighbour lists), jointed_slope with bonded joints
-  (joint interface elements) and its top held by a velocity load (node drivers), boulder_impact (a wall), dam_crest_blast (bonded spheres penalty-coupled to the tets,
-  spheres listing boundary faces, non-reflecting dashpot faces).
+  (joint interface elements) and its top held by a velocity load (node drivers), boulder_impact (a wall),
+  dam_crest_blast (bonded spheres penalty-coupled to the tets, spheres listing boundary faces, non-reflecting
+  dashpot faces).
 
 Oracles:
 
