@@ -290,7 +290,9 @@ def book_half_ahead_kernel(
     it is its velocity at the pose the force was made at (kernels/rigid.py ``node_velocity_ahead``; ``node_body`` is
     empty before a switch: no node follows a body). The kinds: the FEM contacts and joint dashpots (``node_f_contact``
     into ``node_energy_contact``, sign −1: what they take out; the half behind: kernels/fem_contact.py,
-    kernels/joints.py), the non-reflecting dashpots (``node_f_absorbed`` into ``node_energy_absorbed``, −1) and the
+    kernels/joints.py), the sphere–face contacts' forces on the face nodes (``node_f_sphere_face`` into
+    ``node_energy_sphere_face``, −1; the rest: kernels/sphere_face.py), the non-reflecting dashpots
+    (``node_f_absorbed`` into ``node_energy_absorbed``, −1) and the
     pressure loads (``node_f_load`` into ``node_energy_boundary_work``, +1: work put in; kernels/loads.py), and with
     ``rigid_only`` the viscous forces of deformable tets on rigid blocks' nodes (``node_f_viscous`` into
     ``node_energy_damping``, −1; the other nodes' are booked in the drift, :func:`drift_node`)."""

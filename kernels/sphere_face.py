@@ -19,11 +19,7 @@ import functools
 
 import warp as wp
 
-from .contact import (
-    ContactPair,
-    book_contact_force,
-    make_pair_laws,
-)
+from .contact import ContactPair, make_pair_laws
 from .fem_surface import BARY_EPS, TIE_EPS, closest_point_barycentric, min3, nearer, relative_position
 from .neighbors import ListSpec, make_list_kernels
 
@@ -124,15 +120,18 @@ def sphere_face_contact(x: wp.vec3d, r: float, fn: wp.vec3i, node_q: wp.array(dt
 def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_energy: bool):
     """The sphere–face kernels for one choice of the sphere contact laws (kernels/contact.py).
 
-    Energy books (``track_energy``) as for the sphere contacts (kernels/contact.py ``make_contact_kernels``): each
-    pair books the half of its work that lies behind, ½ dt f·v_rel (with the rolling torque's ½ dt M·ω), and adds
-    its forces to the sphere's sums (``contact_f_normal`` …) and to the face nodes' ``node_f_contact``, whose half
-    ahead the integrator and ``book_half_ahead_kernel`` (kernels/integrate.py) book against v_{n+1/2} (the
-    sphere's share to ``energy_damping`` / ``energy_friction``, the nodes' to ``node_energy_contact``). The
-    dissipation is then
-    D = -W - ΔU exactly, ΔU from the sphere's sphere–face spring energies at the last evaluation,
-    ``sphere_face_energy_prev`` (normal → ``energy_damping``, tangential → ``energy_friction``; the change of a
-    tangential spring's energy with k_t at fixed ξ → ``energy_stiffness_change``).
+    Energy books (``track_energy``), as velocity Verlet does the work (kernels/contact.py ``make_contact_kernels``):
+    a force f_n works ½ dt f_n·(v_{n-1/2} + v_{n+1/2}) on each body it acts on, and v_{n-1/2} is the velocity during
+    its evaluation. A contact's dissipation D = -W - ΔU is booked whole on the sphere–face line (the spheres'
+    ``sphere_face_dissipated`` and the nodes' ``node_energy_sphere_face``, ``dissipated_sphere_face`` in the books),
+    never split between lines of which only the sum would be a dissipation: the half of its work behind,
+    -½ dt (f·v_rel + M·ω) (v_rel against the face's velocity at the contact point, M the rolling torque), and -ΔU,
+    ΔU from the sphere's sphere–face spring energies at the last evaluation (``sphere_face_energy_prev``), are
+    booked here on the sphere; its forces are kept, the sphere's sums in ``sphere_face_f`` / ``sphere_face_t`` and
+    the face nodes' shares in ``node_f_sphere_face``, and the half ahead against v_{n+1/2} is booked at the next
+    evaluation: the sphere's here, -½ dt (f·v + t·ω), the nodes' by ``book_half_ahead_kernel`` (kernels/integrate.py)
+    before it. The change of a tangential spring's energy with k_t at fixed ξ is no dissipation: it goes to
+    ``energy_stiffness_change``.
 
     Returns:
         (eval_sphere_faces_kernel, sphere_face_energy_kernel).
@@ -205,13 +204,11 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
         particle_f: wp.array(dtype=wp.vec3),
         particle_t: wp.array(dtype=wp.vec3),
         node_f: wp.array(dtype=wp.vec3),
-        contact_f_normal: wp.array(dtype=wp.vec3),
-        contact_f_tangential: wp.array(dtype=wp.vec3),
-        contact_t_tangential: wp.array(dtype=wp.vec3),
-        node_f_contact: wp.array(dtype=wp.vec3),
+        sphere_face_f: wp.array(dtype=wp.vec3),
+        sphere_face_t: wp.array(dtype=wp.vec3),
+        node_f_sphere_face: wp.array(dtype=wp.vec3),
         sphere_face_energy_prev: wp.array(dtype=wp.vec2),
-        energy_damping: wp.array(dtype=wp.float64),
-        energy_friction: wp.array(dtype=wp.float64),
+        sphere_face_dissipated: wp.array(dtype=wp.float64),
         energy_stiffness_change: wp.array(dtype=wp.float64),
         # Out:
         sphere_passed_face: wp.array(dtype=int),  # a face whose reach the sphere went past (-1 none; the guard clears)
@@ -219,6 +216,19 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
         i = wp.tid()  # one thread per particle slot; it owns its sphere–face pairs
         if i >= particle_count[0]:
             return
+        vi = particle_qd[i]
+        wi = particle_omega[i]
+        if wp.static(track_energy):
+            # The half ahead of the last evaluation's forces on the sphere, now that v_{n+1/2} is known; a set-up or
+            # re-evaluation (dt = 0) replaces them: the next kick works with the forces evaluated now.
+            f_last = sphere_face_f[i]
+            t_last = sphere_face_t[i]
+            if dt > 0.0 and (wp.length_sq(f_last) > 0.0 or wp.length_sq(t_last) > 0.0):
+                ahead = 0.5 * dt * (wp.dot(f_last, vi) + wp.dot(t_last, wi))
+                sphere_face_dissipated[i] = sphere_face_dissipated[i] - wp.float64(ahead)
+            if wp.length_sq(f_last) > 0.0 or wp.length_sq(t_last) > 0.0:  # a sphere far from faces keeps its zeros
+                sphere_face_f[i] = wp.vec3(0.0)
+                sphere_face_t[i] = wp.vec3(0.0)
         count = wp.min(sphere_face_count[i], max_sphere_faces)
         if count == 0:
             if wp.static(track_energy):
@@ -226,8 +236,7 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
                 if prev[0] != 0.0 or prev[1] != 0.0:  # the last springs went with the lists: their energy dissipated
                     sphere_face_energy_prev[i] = wp.vec2(0.0)
                     if dt > 0.0:
-                        energy_damping[i] = energy_damping[i] + wp.float64(prev[0])
-                        energy_friction[i] = energy_friction[i] + wp.float64(prev[1])
+                        sphere_face_dissipated[i] = sphere_face_dissipated[i] + wp.float64(prev[0] + prev[1])
             return
         x = particle_q[i]
         r = particle_radius[i]
@@ -259,17 +268,11 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
                     orphan = sh
                 sphere_face_shear[slot] = wp.vec3(0.0)
         # Pass 3: forces.
-        vi = particle_qd[i]
-        wi = particle_omega[i]
         f_i = wp.vec3(0.0)
         t_i = wp.vec3(0.0)
-        d_damp = float(0.0)  # minus the work behind [J]
-        d_fric = float(0.0)  # the same, tangential and rolling [J]
+        d_behind = float(0.0)  # minus the work behind, normal, tangential and rolling [J]
         e_n = float(0.0)  # normal spring energy of the sphere's face pairs [J]
         e_t = float(0.0)  # tangential spring energy, ½ k_t(δ_{n+1}) |ξ_{n+1}|² [J]
-        fn_i = wp.vec3(0.0)  # the sphere's contact force sums
-        ft_i = wp.vec3(0.0)
-        tt_i = wp.vec3(0.0)
         for s in range(count):
             slot = i * max_sphere_faces + s
             f = sphere_face_index[slot]
@@ -317,26 +320,21 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
                 e_n += elastic_energy(delta, fnv[2])
                 e_t += 0.5 * kt * wp.dot(out[2], out[2])
                 a_t += 0.5 * kt * wp.dot(shear_old, shear_old)
-                f_normal = wp.dot(force, n)
-                d_damp -= 0.5 * dt * f_normal * wp.dot(v_rel, n)
-                d_fric -= 0.5 * dt * (wp.dot(ft, v_rel) + wp.dot(roll, wi))
-                fn_i += f_normal * n
-                ft_i += ft
-                tt_i += wp.cross(-ci * n, ft) + roll
-                wp.atomic_add(node_f_contact, fn[0], -w[0] * force)
-                wp.atomic_add(node_f_contact, fn[1], -w[1] * force)
-                wp.atomic_add(node_f_contact, fn[2], -w[2] * force)
+                d_behind -= 0.5 * dt * (wp.dot(force, v_rel) + wp.dot(roll, wi))
+                wp.atomic_add(node_f_sphere_face, fn[0], -w[0] * force)
+                wp.atomic_add(node_f_sphere_face, fn[1], -w[1] * force)
+                wp.atomic_add(node_f_sphere_face, fn[2], -w[2] * force)
         wp.atomic_add(particle_f, i, f_i)
         wp.atomic_add(particle_t, i, t_i)
         if wp.static(track_energy):
-            book_contact_force(i, fn_i, ft_i, tt_i, contact_f_normal, contact_f_tangential, contact_t_tangential)
+            sphere_face_f[i] = f_i
+            sphere_face_t[i] = t_i
             prev = sphere_face_energy_prev[i]
             sphere_face_energy_prev[i] = wp.vec2(e_n, e_t)
             if dt > 0.0:  # the set-up evaluation (dt = 0) only records the springs' energies
-                d_n = wp.float64(d_damp) - (wp.float64(e_n) - wp.float64(prev[0]))
-                d_t = wp.float64(d_fric) - (wp.float64(e_t) - wp.float64(a_t))
-                energy_damping[i] = energy_damping[i] + d_n
-                energy_friction[i] = energy_friction[i] + d_t
+                d = wp.float64(d_behind) - (wp.float64(e_n) - wp.float64(prev[0]))
+                d -= wp.float64(e_t) - wp.float64(a_t)
+                sphere_face_dissipated[i] = sphere_face_dissipated[i] + d
                 energy_stiffness_change[i] = energy_stiffness_change[i] + (wp.float64(a_t) - wp.float64(prev[1]))
 
     @wp.kernel(enable_backward=False, module="unique")

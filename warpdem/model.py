@@ -404,12 +404,19 @@ class State:
         sphere_face_needed: the most candidate faces a sphere had at a build (overflow when > max_sphere_faces),
             shape (1,).
         sphere_face_count: candidate faces of each sphere, shape (particle_capacity,). In a model without boundary
-            faces (face_capacity 0) this and the next three per-sphere arrays are empty
+            faces (face_capacity 0) this and the next six per-sphere arrays are empty
             (warpdem.stages.fem_contact.sphere_face_rows).
         sphere_face_index: candidate face of each slot, shape (particle_capacity * max_sphere_faces,), int32.
         sphere_face_shear: tangential spring of each slot [m], shape (particle_capacity * max_sphere_faces,), vec3.
         sphere_face_energy_prev: (normal, tangential) spring energy of each sphere's face contacts at the last
             evaluation [J] (ΔU of their dissipation D = -W - ΔU), shape (particle_capacity,), vec2.
+        sphere_face_f: sum of the sphere–face contact forces on each sphere at the last evaluation [N], whose work over
+            the half step ahead the next evaluation books into ``sphere_face_dissipated`` (kernels/sphere_face.py;
+            zero without energy tracking), shape (particle_capacity,), vec3.
+        sphere_face_t: the same for their torques [N m], shape (particle_capacity,), vec3.
+        sphere_face_dissipated: energy dissipated by each sphere's face contacts [J]: the half of their work behind
+            each evaluation and the sphere's half ahead, less the change of their springs' energy (the face nodes'
+            half ahead: ``node_energy_sphere_face``), shape (particle_capacity,), float64.
         node_face_needed: the most candidate faces a node had at a build (overflow when > max_node_faces), shape
             (1,).
         node_face_count: candidate faces of each node, shape (node_capacity,).
@@ -434,6 +441,13 @@ class State:
             (ΔU of the contact dissipation D = -W - ΔU), shape (node_capacity,), float64.
         node_energy_contact: energy dissipated by the FEM contacts and joint elements of each node [J] (dashpots,
             friction, released by failed joints), shape (node_capacity,), float64.
+        node_f_sphere_face: the sphere–face contact forces on each node as a face node at the last evaluation [N],
+            whose work over the half step ahead the next evaluation books into ``node_energy_sphere_face``
+            (kernels/integrate.py ``book_half_ahead_kernel``; zero without energy tracking), shape (node_capacity,),
+            vec3.
+        node_energy_sphere_face: the face nodes' share of the sphere–face contacts' dissipation [J] (minus the half
+            of their work on the node that lies ahead of each evaluation; with ``sphere_face_dissipated`` the
+            contacts' D = -W - ΔU, kernels/sphere_face.py), shape (node_capacity,), float64.
         joint_count: joint interface elements, shape (1,), int32.
         joint_broken: 0 intact, 1 failed in tension, 2 failed in shear, shape (joint_capacity,), int32.
         joints_broken_total: joint elements failed since the start, shape (1,), int32.
@@ -601,6 +615,9 @@ class State:
     sphere_face_index: wp.array
     sphere_face_shear: wp.array
     sphere_face_energy_prev: wp.array
+    sphere_face_f: wp.array
+    sphere_face_t: wp.array
+    sphere_face_dissipated: wp.array
     node_face_needed: wp.array
     node_face_count: wp.array
     node_face_index: wp.array
@@ -612,6 +629,8 @@ class State:
     node_f_contact: wp.array
     node_contact_energy_prev: wp.array
     node_energy_contact: wp.array
+    node_f_sphere_face: wp.array
+    node_energy_sphere_face: wp.array
     joint_count: wp.array
     joint_broken: wp.array
     joints_broken_total: wp.array

@@ -63,6 +63,7 @@ from .stages.fem_contact import (
     fem_contact_growth,
     hold_contact_stiffness,
     regrow_fem_contacts,
+    sphere_face_dissipated,
 )
 from .stages.fem_surface import face_slots, rebuild_surface, remap_face_ids
 from .stages.fracture import FracturePass, SplitReport
@@ -176,6 +177,9 @@ class Simulation:
         if changed:
             self._graphs = None
             self.state.node_f_contact.zero_()
+            self.state.node_f_sphere_face.zero_()
+            self.state.sphere_face_f.zero_()
+            self.state.sphere_face_t.zero_()
 
     def _setup(self) -> None:
         # A model of tets alone has no sphere to size the contact grid by: its sphere contact stages are skipped.
@@ -579,15 +583,13 @@ class Simulation:
         return SplitReport(splits, rounds, grew)
 
     def _contact_books(self) -> float:
-        """The FEM contacts' lines of the energy books now [J]: their stored energy plus what they dissipated, with the
-        spheres' damping and friction lines (where the sphere–face springs book theirs); 0 when energy is not tracked.
+        """The FEM contacts' lines of the energy books now [J]: their stored energy (the sphere–face springs' with the
+        node springs') plus what they dissipated, the sphere–face line with the others; 0 when energy is not tracked.
         Reads back: call between steps."""
         if not self.track_energy:
             return 0.0
         elastic, dissipated = fem_contact_energy(self.model, self.state)
-        n, s = self.particle_count, self.state
-        spheres = float(s.energy_damping.numpy()[:n].sum()) + float(s.energy_friction.numpy()[:n].sum())
-        return elastic + dissipated + spheres
+        return elastic + dissipated + sphere_face_dissipated(self.model, self.state)
 
     def _book_contact_topology(self, before: float) -> None:
         """Book what the FEM contacts' lines gained across a topology pass (``before``: :meth:`_contact_books` just

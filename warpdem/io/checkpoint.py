@@ -20,7 +20,10 @@ kept per node (``node_f_load``) and the rigid bodies' drift scratch (``body_q_be
 node_springs node–face springs per node (``node_face_spring``, ``_offset``, ``_shear`` rows, and the model scalar
 ``node_springs``) where older files hold one (warpdem.io.restart.FIELD_RESHAPES puts it into slot 0); 5 the velocities'
 kick carries (``particle_qd_carry``, ``node_qd_carry``: zero in an older run, whose kicks carried nothing); 6 the
-coupling springs' rest gaps (``coupling_rest``: zero in an older run, whose springs had none).
+coupling springs' rest gaps (``coupling_rest``: zero in an older run, whose springs had none); 7 the sphere–face
+contacts' line and the sums of their forces kept for its half ahead (``sphere_face_f``, ``_t``, ``_dissipated``,
+``node_f_sphere_face``, ``node_energy_sphere_face``: an older run booked those contacts on the sphere and FEM contact
+lines).
 
 Files are written to ``<name>.tmp-<pid>`` in the target directory and moved over the final name with
 ``os.replace``, so a crash or an error mid-write never damages the previous checkpoint.
@@ -53,7 +56,7 @@ __all__ = [
 FORMAT_NAME = "warpdem-checkpoint"
 """Value of the root attribute ``warpdem_format`` identifying a warpdem checkpoint."""
 
-FORMAT_VERSION = 6
+FORMAT_VERSION = 7
 """Newest checkpoint format this module writes and reads (module docstring, "Versions"); bump when the layout changes
 or fields are added, and list what older files may lack in warpdem.io.restart.FIELD_MIGRATIONS."""
 

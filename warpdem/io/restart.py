@@ -198,6 +198,16 @@ def _no_sphere_face(arrays: dict[str, np.ndarray], attrs: dict, model: Model) ->
     return None
 
 
+def _no_sphere_face_books(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    """Exact where no sphere could have touched a face: no spheres, or no boundary faces (empty sphere–face rows).
+    An older run booked the sphere–face contacts' dissipation on the damping, friction and FEM contact lines, and kept
+    the half ahead of their forces in the sphere contacts' and the node contacts' sums."""
+    rows = arrays.get("state/sphere_face_count")
+    if _total(arrays, "particle_count") and (rows is None or len(rows)):
+        return "spheres and faces were in it, and it booked their contacts on the damping, friction and contact lines"
+    return None
+
+
 def _no_cohesive(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
     """Exact where no cohesive element was ever born (none alive, none broken and removed)."""
     if _total(arrays, "cohesive_count") or _total(arrays, "cohesive_broken_total"):
@@ -309,6 +319,15 @@ FIELD_MIGRATIONS: dict[str, FieldMigration] = {
     "state/node_qd_carry": FieldMigration(5, _always, "state/node_qd"),
     # Coupling springs are born relaxed with a rest gap (format 6): an older run's springs had none (zero).
     "state/coupling_rest": FieldMigration(6, _always, "state/coupling_particle"),
+    # The sphere–face contacts' dissipation on a line of its own (format 7), their forces' half ahead kept apart.
+    **{
+        f"state/{name}": FieldMigration(7, _no_sphere_face_books, "state/sphere_face_count")
+        for name in ("sphere_face_f", "sphere_face_t", "sphere_face_dissipated")
+    },
+    **{
+        f"state/{name}": FieldMigration(7, _no_sphere_face_books, "state/node_u")
+        for name in ("node_f_sphere_face", "node_energy_sphere_face")
+    },
 }
 """The fields added since checkpoint format 1, by checkpoint key (``state/<name>``, ``model/<name>``, ``attribute
 <name>`` for a model scalar), and when a restart may fill them from the fresh model and state

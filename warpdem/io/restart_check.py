@@ -123,10 +123,13 @@ _STATE_SIZES: dict[str, Size] = {
     **_each("node_u node_q node_qd node_qd_carry node_f node_f_viscous node_f_absorbed node_f_load", _N),
     **_each("node_energy_damping node_energy_absorbed node_energy_boundary_work node_energy_contact", _N),
     **_each("node_q_at_fem_build node_face_count node_contact_hold node_f_contact node_contact_energy_prev", _N),
-    **_each("node_damage node_energy_cohesive", _N),
+    **_each("node_damage node_energy_cohesive node_f_sphere_face node_energy_sphere_face", _N),
     **_each("tet_active tet_stress tet_sphere", _T),
     # Sphere–face rows: empty in a model without boundary faces (warpdem.stages.fem_contact.sphere_face_rows).
-    **_each("sphere_face_count sphere_face_energy_prev", Size(("particle_capacity",), or_empty=True)),
+    **_each(
+        "sphere_face_count sphere_face_energy_prev sphere_face_f sphere_face_t sphere_face_dissipated",
+        Size(("particle_capacity",), or_empty=True),
+    ),
     **_each("sphere_face_index sphere_face_shear", Size(("particle_capacity", "max_sphere_faces"), or_empty=True)),
     **_each("node_face_index", Size(("node_capacity", "max_node_faces"))),
     **_each("node_face_spring node_face_offset node_face_shear", Size(("node_capacity", "node_springs"))),

@@ -195,6 +195,8 @@ class RunSummary:
                 row("load work", e0.load_work, e1.load_work),
                 row("contact diss.", e0.dissipated_fem_contact, e1.dissipated_fem_contact),
             ]
+            if spheres:
+                lines.append(row("sph-face diss.", e0.dissipated_sphere_face, e1.dissipated_sphere_face))
         if self.fracture:
             lines += [
                 row("cohesive el.", e0.cohesive_elastic, e1.cohesive_elastic),

@@ -439,7 +439,13 @@ def regrow_particles(model: Model, state: State, capacity: int) -> tuple[Model, 
         )
     sfields["wall_shear"] = _grow_rows(state.wall_shear, old, model.num_walls, capacity)
     if model.face_capacity:  # warpdem.stages.fem_contact.sphere_face_rows: per-sphere FEM lists only with faces
-        for name in ("sphere_face_count", "sphere_face_energy_prev"):
+        for name in (
+            "sphere_face_count",
+            "sphere_face_energy_prev",
+            "sphere_face_f",
+            "sphere_face_t",
+            "sphere_face_dissipated",
+        ):
             sfields[name] = _grow_rows(getattr(state, name), old, 1, capacity)
         for name in ("sphere_face_index", "sphere_face_shear"):
             sfields[name] = _grow_rows(getattr(state, name), old, model.max_sphere_faces, capacity)

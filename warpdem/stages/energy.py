@@ -15,7 +15,7 @@ from .bonds import bond_energy
 from .cohesive import cohesive_energy
 from .contact import contact_energy
 from .coupling import coupling_energy
-from .fem_contact import fem_contact_energy
+from .fem_contact import fem_contact_energy, sphere_face_dissipated
 from .rigid import NODE_FREE_DIRECTIONS, body_energy
 from .tets import tet_energy
 
@@ -40,10 +40,10 @@ class EnergyBalance:
     strain energy, ``dissipated_viscous`` what bulk viscosity and mass-proportional damping took from the continuum,
     ``absorbed_boundaries`` what the non-reflecting boundaries' dashpots took out of the model, ``load_work`` the work
     of pressure loads and velocity drivers on the FEM nodes. ``elastic`` is the energy of the springs of the sphere
-    contacts, the bonds, the FEM contacts and intact joint elements; ``dissipated_fem_contact`` is what the FEM
-    contacts' dashpots and friction took (as Verlet does their work, kernels/fem_contact.py; a sphere–face contact
-    books the half ahead of its work on the face's nodes here and on the sphere in the sphere's lines, so only the sum
-    of the lines is its dissipation), and the springs of failed joints. ``cohesive_elastic`` is the spring
+    contacts, the bonds, the FEM contacts and intact joint elements; ``dissipated_fem_contact`` is what the node–face
+    and node–wall contacts' dashpots and friction took (as Verlet does their work, kernels/fem_contact.py), and the
+    springs of failed joints; ``dissipated_sphere_face`` what the sphere–face contacts took, each contact's -W - ΔU
+    whole (its work on the sphere and on the face's nodes; kernels/sphere_face.py). ``cohesive_elastic`` is the spring
     energy stored in the intact cohesive elements of split nodes (½ k d², counted in ``in_play``) and
     ``dissipated_cohesive`` what they dissipated (½ f_c per unit growth of δ_max, and what a breaking element still
     held; warpdem.stages.cohesive). ``released_conversion`` is what left the mechanical books when tets turned into
@@ -87,6 +87,7 @@ class EnergyBalance:
     released_rigid_switch: float = 0.0
     contact_topology: float = 0.0
     step_change: float = 0.0
+    dissipated_sphere_face: float = 0.0
 
     @property
     def kinetic(self) -> float:
@@ -124,6 +125,7 @@ class EnergyBalance:
             + self.released_rigid_switch
             - self.contact_topology
             + self.step_change
+            + self.dissipated_sphere_face
         )
 
 
@@ -183,6 +185,7 @@ def energy_balance(m: Model, s: State) -> EnergyBalance:
         released_rigid_switch=float(s.energy_released_rigid.numpy()[0]),
         contact_topology=float(s.energy_contact_topology.numpy()[0]),
         step_change=float(s.energy_step_change.numpy()[0]),
+        dissipated_sphere_face=sphere_face_dissipated(m, s),
     )
 
 

@@ -81,6 +81,9 @@ def fem_contact_state(model: Model) -> dict[str, wp.array]:
         "sphere_face_index": wp.zeros(pcap * model.max_sphere_faces, dtype=int, device=d),
         "sphere_face_shear": wp.zeros(pcap * model.max_sphere_faces, dtype=wp.vec3, device=d),
         "sphere_face_energy_prev": wp.zeros(pcap, dtype=wp.vec2, device=d),
+        "sphere_face_f": wp.zeros(pcap, dtype=wp.vec3, device=d),
+        "sphere_face_t": wp.zeros(pcap, dtype=wp.vec3, device=d),
+        "sphere_face_dissipated": wp.zeros(pcap, dtype=wp.float64, device=d),
         "node_face_needed": one(),
         "node_face_count": wp.zeros(ncap, dtype=int, device=d),
         "node_face_index": wp.zeros(ncap * model.max_node_faces, dtype=int, device=d),
@@ -92,6 +95,8 @@ def fem_contact_state(model: Model) -> dict[str, wp.array]:
         "node_f_contact": wp.zeros(ncap, dtype=wp.vec3, device=d),
         "node_contact_energy_prev": wp.zeros(ncap, dtype=wp.float64, device=d),
         "node_energy_contact": wp.zeros(ncap, dtype=wp.float64, device=d),
+        "node_f_sphere_face": wp.zeros(ncap, dtype=wp.vec3, device=d),
+        "node_energy_sphere_face": wp.zeros(ncap, dtype=wp.float64, device=d),
         "joint_count": one(model.joint_capacity),
         "joint_broken": wp.zeros(model.joint_capacity, dtype=int, device=d),
         "joints_broken_total": one(),
@@ -481,10 +486,14 @@ def eval_fem_contacts(
             # of `bench blocks`).
             if track_energy or m.joint_capacity > 0:
                 book_half_ahead(m, s, step, s.node_f_contact, s.node_energy_contact, -1.0)
+            # The sphere–face contacts' share on the face nodes, on their own line (kernels/sphere_face.py).
+            if track_energy and has_spheres and m.face_capacity:
+                book_half_ahead(m, s, step, s.node_f_sphere_face, s.node_energy_sphere_face, -1.0)
         else:
             # Set-up or re-evaluation after a pass: the next kick works with the forces evaluated now, so the next
             # step books the half ahead of exactly these, whatever the forces before the pass were.
             s.node_f_contact.zero_()
+            s.node_f_sphere_face.zero_()
     if has_spheres and m.face_capacity:
         kernel, _ = kf.make_sphere_face_kernel(m.normal_model, m.tangential_model, m.rolling_model, track_energy)
         wp.launch(
@@ -519,13 +528,11 @@ def eval_fem_contacts(
                 s.particle_f,
                 s.particle_t,
                 s.node_f,
-                s.contact_f_normal,
-                s.contact_f_tangential,
-                s.contact_t_tangential,
-                s.node_f_contact,
+                s.sphere_face_f,
+                s.sphere_face_t,
+                s.node_f_sphere_face,
                 s.sphere_face_energy_prev,
-                s.energy_damping,
-                s.energy_friction,
+                s.sphere_face_dissipated,
                 s.energy_stiffness_change,
                 # Out:
                 sphere_passed,
@@ -767,6 +774,18 @@ def fem_contact_energy(model: Model, state: State) -> tuple[float, float]:
         elastic += float(sphere_e.numpy().sum())
     dissipated = float(s.node_energy_contact.numpy()[: int(s.node_count.numpy()[0])].sum())
     return elastic, dissipated
+
+
+def sphere_face_dissipated(model: Model, state: State) -> float:
+    """What the sphere–face contacts dissipated [J]: the spheres' share (the half of the work behind each evaluation,
+    the sphere's half ahead, minus the change of the springs' energy) and the face nodes' (their half ahead), one line
+    (kernels/sphere_face.py). Reads back: call between steps."""
+    m, s = model, state
+    if m.face_capacity == 0:
+        return 0.0
+    n, nn = int(s.particle_count.numpy()[0]), int(s.node_count.numpy()[0])
+    spheres = float(s.sphere_face_dissipated.numpy()[:n].sum()) if sphere_face_rows(m) else 0.0
+    return spheres + float(s.node_energy_sphere_face.numpy()[:nn].sum())
 
 
 def contact_critical_step_at(
