@@ -7,13 +7,19 @@ and the pair is then an ordinary frictional contact (contact stage). Broken bond
 compaction pass.
 
 Energy books, as velocity Verlet does the work (the same scheme as the sphere contacts, kernels/contact.py
-``make_contact_kernels``): a bond books the half of its work behind its evaluation, ½ dt f_{n+1}·v_rel, adds its
-forces to the spheres' sums for the half ahead, and books D = -W - ΔU with ΔU from the springs' energies at its last
-evaluation (``bond_energy_prev``): the normal spring and dashpot → ``energy_damping``, the shear spring and dashpot
-→ ``energy_friction`` (with the contacts' tangential dashpots). A bond that breaks applies no force at that
-evaluation: it hands what its springs held at their last evaluation, less the work they did over the half step
-after it, to ``energy_bond_broken``, and that work back to the two lines (:func:`spring_work_ahead`), so the
-springs leave no trace on the dissipation lines.
+``make_contact_kernels``): a bond books the half of its work behind its evaluation, ½ dt f_{n+1}·v_rel, and adds its
+forces to the spheres' sums, whose half ahead the integrator books on the damping (normal) and friction (shear) lines.
+The dashpots' work goes to those lines: ``energy_damping`` (normal) and ``energy_friction`` (shear, with the contacts'
+tangential dashpots). The springs' work and their energy change go together to ``energy_bond_trapezoid``: at each
+evaluation a bond books there its springs' -W - ΔU (the half ahead of its last evaluation, recovered to rounding by
+:func:`spring_work_ahead` and handed back to the damping and friction lines, the half behind, and ΔU from the
+springs' energies at the last evaluation, ``bond_energy_prev``). That is no dissipation: a spring that turns by θ in a
+step does the trapezoid work along n_n and n_{n+1}, which differs from ½ k Δ(s²) by ½ k (1 - cos θ)(s_{n+1} L_n -
+s_n L_{n+1}), of either sign (negative while it is compressed: the lattice bonds of a blast's first conversion pass,
+born relaxed and crushed and turned in their first steps, booked -33 J in one step on masonry_tunnel_blast as
+"damping"). A bond that breaks applies no force at that evaluation: it hands what its springs held at their last
+evaluation, less the work they did over the half step after it, to ``energy_bond_broken``, and that work back to the
+two lines, so the springs leave no trace on the dissipation lines.
 """
 
 from __future__ import annotations
@@ -38,9 +44,11 @@ def bond_arms(ri: float, rj: float, dist: float) -> wp.vec2:
 
 @wp.func
 def spring_work_ahead(
-    d: wp.vec3,
+    xi: wp.vec3d,
+    xj: wp.vec3d,
     dt: float,
-    dv: wp.vec3,
+    vi: wp.vec3,
+    vj: wp.vec3,
     wi: wp.vec3,
     wj: wp.vec3,
     ri: float,
@@ -54,14 +62,16 @@ def spring_work_ahead(
     ½ dt f_n·v_{n+1/2} (normal; shear with the moments of its force: ½ dt f_s·v_rel), which the integrator booked as
     minus it on the damping and friction lines (kernels/integrate.py ``book_contact_work_ahead``).
 
-    Called at the next evaluation, where the velocities are v_{n+1/2} (``dv`` = v_i - v_j, spins ``wi``, ``wj``) and
-    the centres have drifted by dt v_{n+1/2}: the last evaluation's geometry is d - dt dv (``d`` = x_i - x_j now), its
-    shear spring ``shear`` (in that contact plane), so the springs' forces there are recovered to rounding.
+    Called at the next evaluation, where the velocities are v_{n+1/2} (``vi``, ``vj``, spins ``wi``, ``wj``) and the
+    centres ``xi``, ``xj`` have drifted by dt v_{n+1/2} (kernels/integrate.py ``drift_particle``: x + dt v in float64,
+    which x - dt v undoes to float64 rounding): the last evaluation's centres and its shear spring ``shear`` (in that
+    contact plane) give the springs' forces there as that evaluation made them, to float64 rounding of the centres.
 
     Returns:
         (normal, shear) work [J].
     """
-    d_old = d - dt * dv
+    d_old = wp.vec3((xi - wp.vec3d(dt * vi)) - (xj - wp.vec3d(dt * vj)))  # as the evaluation formed x_i - x_j
+    dv = vi - vj
     dist = wp.length(d_old)
     if dist <= 0.0:
         return wp.vec2d(wp.float64(0.0), wp.float64(0.0))
@@ -108,6 +118,7 @@ def eval_bonds_kernel(
     energy_damping: wp.array(dtype=wp.float64),
     energy_friction: wp.array(dtype=wp.float64),
     energy_bond_broken: wp.array(dtype=wp.float64),
+    energy_bond_trapezoid: wp.array(dtype=wp.float64),
     particle_bonds_broken: wp.array(dtype=int),
 ):
     b = wp.tid()  # one thread per bond slot
@@ -158,12 +169,25 @@ def eval_bonds_kernel(
         # first step after a conversion.)
         if track_energy != 0:
             w = spring_work_ahead(
-                d, dt, particle_qd[i] - particle_qd[j], wi, wj, ri, rj, bond_rest_length[b], kn, ks, bond_shear[b]
+                particle_q[i],
+                particle_q[j],
+                dt,
+                particle_qd[i],
+                particle_qd[j],
+                wi,
+                wj,
+                ri,
+                rj,
+                bond_rest_length[b],
+                kn,
+                ks,
+                bond_shear[b],
             )
             wp.atomic_add(energy_bond_broken, i, wp.float64(prev[0]) + wp.float64(prev[1]) - w[0] - w[1])
             wp.atomic_add(energy_damping, i, w[0])
             wp.atomic_add(energy_friction, i, w[1])
         return
+    shear_old = bond_shear[b]
     bond_shear[b] = us
     bond_energy_prev[b] = wp.vec2(e_n, e_s)
     inv_sum = particle_inv_mass[i] + particle_inv_mass[j]
@@ -189,11 +213,35 @@ def eval_bonds_kernel(
         j, -fn * n, -ft, wp.cross(arms[1] * n, -ft), contact_f_normal, contact_f_tangential, contact_t_tangential
     )
     if dt > 0.0:  # the set-up evaluation (dt = 0) only records the springs' energies
-        # The half of the work behind, ½ dt f·v_rel, and ΔU in float64 (its sum telescopes exactly).
-        d_n = wp.float64(-0.5 * dt * fn * vn) - (wp.float64(e_n) - wp.float64(prev[0]))
-        d_s = wp.float64(-0.5 * dt * wp.dot(ft, vt)) - (wp.float64(e_s) - wp.float64(prev[1]))
-        wp.atomic_add(energy_damping, i, d_n)
-        wp.atomic_add(energy_friction, i, d_s)
+        # The half of the work behind, ½ dt f·v_rel, as one float32 product per spring and dashpot pair (so the books'
+        # total is the same sum, to float64 rounding, as with both on one line), split in float64: the dashpots' part,
+        # ½ dt γ v², to the dissipation lines; the springs' -W - ΔU to the trapezoid line: their half behind (the
+        # rest), their half ahead of the last evaluation (which the integrator booked on the dissipation lines: handed
+        # back there, so those keep the dashpots' work alone, to rounding) and ΔU in float64 (its sum telescopes).
+        w = spring_work_ahead(
+            particle_q[i],
+            particle_q[j],
+            dt,
+            particle_qd[i],
+            particle_qd[j],
+            wi,
+            wj,
+            ri,
+            rj,
+            bond_rest_length[b],
+            kn,
+            ks,
+            shear_old,
+        )
+        behind_n = wp.float64(-0.5 * dt * fn * vn)
+        behind_s = wp.float64(-0.5 * dt * wp.dot(ft, vt))
+        dash_n = wp.float64(0.5 * dt * gn * vn * vn)
+        dash_s = wp.float64(0.5 * dt * gs * wp.dot(vt, vt))
+        t_n = (behind_n - dash_n) - (wp.float64(e_n) - wp.float64(prev[0])) - w[0]
+        t_s = (behind_s - dash_s) - (wp.float64(e_s) - wp.float64(prev[1])) - w[1]
+        wp.atomic_add(energy_damping, i, dash_n + w[0])
+        wp.atomic_add(energy_friction, i, dash_s + w[1])
+        wp.atomic_add(energy_bond_trapezoid, i, t_n + t_s)
 
 
 @wp.kernel

@@ -12,9 +12,10 @@ tests/test_scenes.py on the whole balance.
 
 Shortening: each scene runs FRAMES frames of 1/SPLIT of its own frame (output_rate × SPLIT), one frame of its own in
 all: a blast scene's first conversion pass (masonry_wall_blast at step 25) and the first splits of limestone_tunnel
-fall in it. Three scenes still run a line backwards there (strict xfails, the causes and measured figures in KNOWN;
-issue 28): two of them run the damping line backwards since the sphere–face contacts no longer book a share of their
-work on it (kernels/sphere_face.py), which hid part of its falls.
+fall in it. One scene still runs a line backwards there (a strict xfail, the cause and measured figures in KNOWN;
+issue 28). The bonds' springs book their -W - ΔU on a line of their own, ``bond_trapezoid``, which has either sign and
+is not checked here: on the damping line it fell by 65 J in a frame on masonry_tunnel_blast and 11.5 J on
+dam_crest_blast, lattice bonds crushed and turned in their first steps after a conversion pass (kernels/bonds.py).
 """
 
 from __future__ import annotations
@@ -38,17 +39,6 @@ BOOK_ROUNDOFF = 16.0
 LINE_PREFIXES = ("energy_dissipated_", "energy_absorbed_")
 
 KNOWN = {
-    "dam_crest_blast": (
-        "dissipated_damping falls by 11.5 J in a frame here against 9.8 J (-2.2 J in a frame by 1.2 ms): 8.6 J while "
-        "the sphere-face contacts booked a share of their work on this line, which hid part of the fall; the lattice "
-        "bonds' trapezoid error in a blast's velocity field, which this line holds as the bonds' D = -W - ΔU, is the "
-        "suspect, not yet traced (issue 28)"
-    ),
-    "masonry_tunnel_blast": (
-        "dissipated_damping falls by 65 J in the first frame here, its first conversion pass in it (20.6 J while the "
-        "sphere-face contacts booked a share of their work on this line; their own line, dissipated_sphere_face, and "
-        "dissipated_fem_contact now run forwards): the converted spheres' bonds or contacts, not yet traced (issue 28)"
-    ),
     "limestone_tunnel": (
         "dissipated_cohesive falls by 1.8 kJ in a frame here (-2.7 kJ by 4 ms, almost all of it in single steps "
         "right after split passes, -640 to -770 J each): an element born in a pass (force f_c along dir, nothing "

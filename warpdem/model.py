@@ -347,6 +347,9 @@ class State:
             (particle_capacity,), float64.
         energy_bond_broken: spring energy released by breaking bonds [J], per particle, shape (particle_capacity,),
             float64.
+        energy_bond_trapezoid: the bonds' springs' -W - ΔU [J], their work as Verlet does it (the trapezoid) less the
+            change of their energy: no dissipation, of either sign where a bond turns within a step (kernels/bonds.py),
+            per particle, shape (particle_capacity,), float64.
         energy_stiffness_change: energy the contacts' tangential springs gained without work because k_t follows
             the overlap (Mindlin, or a linear k_t on a Hertz k_n) [J], per particle, shape (particle_capacity,),
             float64.
@@ -584,6 +587,7 @@ class State:
     energy_friction: wp.array
     energy_boundary_work: wp.array
     energy_bond_broken: wp.array
+    energy_bond_trapezoid: wp.array
     energy_stiffness_change: wp.array
     contact_f_normal: wp.array
     contact_f_tangential: wp.array

@@ -76,6 +76,7 @@ def new_state(
         energy_friction=wp.zeros(cap, dtype=wp.float64, device=device),
         energy_boundary_work=wp.zeros(cap, dtype=wp.float64, device=device),
         energy_bond_broken=wp.zeros(cap, dtype=wp.float64, device=device),
+        energy_bond_trapezoid=wp.zeros(cap, dtype=wp.float64, device=device),
         energy_stiffness_change=wp.zeros(cap, dtype=wp.float64, device=device),
         contact_f_normal=vec(None, cap),
         contact_f_tangential=vec(None, cap),

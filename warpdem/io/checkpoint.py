@@ -23,7 +23,8 @@ kick carries (``particle_qd_carry``, ``node_qd_carry``: zero in an older run, wh
 coupling springs' rest gaps (``coupling_rest``: zero in an older run, whose springs had none); 7 the sphere–face
 contacts' line and the sums of their forces kept for its half ahead (``sphere_face_f``, ``_t``, ``_dissipated``,
 ``node_f_sphere_face``, ``node_energy_sphere_face``: an older run booked those contacts on the sphere and FEM contact
-lines).
+lines); 8 the bonds' springs' trapezoid line (``energy_bond_trapezoid``: zero in an older run, which booked it on the
+damping and friction lines).
 
 Files are written to ``<name>.tmp-<pid>`` in the target directory and moved over the final name with
 ``os.replace``, so a crash or an error mid-write never damages the previous checkpoint.
@@ -56,7 +57,7 @@ __all__ = [
 FORMAT_NAME = "warpdem-checkpoint"
 """Value of the root attribute ``warpdem_format`` identifying a warpdem checkpoint."""
 
-FORMAT_VERSION = 7
+FORMAT_VERSION = 8
 """Newest checkpoint format this module writes and reads (module docstring, "Versions"); bump when the layout changes
 or fields are added, and list what older files may lack in warpdem.io.restart.FIELD_MIGRATIONS."""
 

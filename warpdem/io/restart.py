@@ -328,6 +328,9 @@ FIELD_MIGRATIONS: dict[str, FieldMigration] = {
         f"state/{name}": FieldMigration(7, _no_sphere_face_books, "state/node_u")
         for name in ("node_f_sphere_face", "node_energy_sphere_face")
     },
+    # The bonds' springs' -W - ΔU on a line of its own (format 8): an older run booked it on the damping and friction
+    # lines, which keep it; the books close with the new line from zero.
+    "state/energy_bond_trapezoid": FieldMigration(8, _always, "state/energy_damping"),
 }
 """The fields added since checkpoint format 1, by checkpoint key (``state/<name>``, ``model/<name>``, ``attribute
 <name>`` for a model scalar), and when a restart may fill them from the fresh model and state

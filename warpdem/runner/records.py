@@ -214,6 +214,7 @@ class RunSummary:
                 row("friction diss.", e0.dissipated_friction, e1.dissipated_friction),
                 row("k_t(δ) change", e0.stiffness_change, e1.stiffness_change),
                 row("bond breakage", e0.released_by_bond_breakage, e1.released_by_bond_breakage),
+                row("bond trapezoid", e0.bond_trapezoid, e1.bond_trapezoid),
                 row("wall work", e0.boundary_work, e1.boundary_work),
             ]
         lines.append(

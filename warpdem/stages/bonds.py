@@ -65,6 +65,7 @@ def eval_bonds(model: Model, state: State, dt: float | None = None, track_energy
             s.energy_damping,
             s.energy_friction,
             s.energy_bond_broken,
+            s.energy_bond_trapezoid,
             s.particle_bonds_broken,
         ],
         device=m.device,

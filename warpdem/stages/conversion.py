@@ -404,6 +404,7 @@ PARTICLE_STATE_FIELDS = (
     "energy_friction",
     "energy_boundary_work",
     "energy_bond_broken",
+    "energy_bond_trapezoid",
     "energy_stiffness_change",
     "contact_f_normal",
     "contact_f_tangential",

@@ -33,7 +33,9 @@ class EnergyBalance:
     the leapfrog kinetic energy, and where every force books the trapezoid the total is constant up to rounding. The
     sphere
     contacts book their dissipation as the scheme does their work (kernels/contact.py): ``dissipated_damping`` (normal
-    dashpots, bond dashpots), ``dissipated_friction`` (tangential springs and dashpots, rolling resistance) and
+    dashpots, bond dashpots), ``dissipated_friction`` (tangential springs and dashpots, rolling resistance),
+    ``bond_trapezoid`` the bonds' springs' -W - ΔU (no dissipation: Verlet's trapezoid work of a spring that turns
+    within a step is not its energy change, and the difference has either sign; kernels/bonds.py) and
     ``stiffness_change``, the energy their tangential springs gained without work because k_t follows the overlap
     (Mindlin's k_t = 8 G* sqrt(R* δ); zero for linear laws), which enters the total like work put in. Spheres and FEM
     nodes share the gravity potential; ``kinetic_nodes`` is the FEM nodes' kinetic energy, ``strain`` the tets'
@@ -88,6 +90,7 @@ class EnergyBalance:
     contact_topology: float = 0.0
     step_change: float = 0.0
     dissipated_sphere_face: float = 0.0
+    bond_trapezoid: float = 0.0
 
     @property
     def kinetic(self) -> float:
@@ -126,6 +129,7 @@ class EnergyBalance:
             - self.contact_topology
             + self.step_change
             + self.dissipated_sphere_face
+            + self.bond_trapezoid
         )
 
 
@@ -186,6 +190,7 @@ def energy_balance(m: Model, s: State) -> EnergyBalance:
         contact_topology=float(s.energy_contact_topology.numpy()[0]),
         step_change=float(s.energy_step_change.numpy()[0]),
         dissipated_sphere_face=sphere_face_dissipated(m, s),
+        bond_trapezoid=float(s.energy_bond_trapezoid.numpy()[:n].sum()),
     )
 
 
