@@ -344,3 +344,35 @@ def test_axial_oscillation_period(device):
     # Sharper: velocity Verlet's exact discrete period for a linear oscillator, 2π / ((2/dt) arcsin(ω dt / 2)).
     discrete = 2.0 * math.pi / (2.0 / DT * math.asin(omega * DT / 2.0))
     np.testing.assert_allclose(measured, discrete, rtol=rtol_measure)
+
+
+def test_undamped_turning_bond_books_its_spring_error_apart_from_dissipation(device):
+    # An undamped bond (ζ = 0) dissipates nothing: the damping and friction lines hold only dashpot work, ½ dt γ v²
+    # with γ = 0 (issue 28: the springs' -W - ΔU had run the damping line backwards in blasts). That -W - ΔU,
+    # Verlet's trapezoid against the springs' energy, goes to the bond_trapezoid line: a bond that turns within a
+    # step does work ½ k (1 - cos θ)(…) off its energy change, and the stretch is taken from float32 centres.
+    # Oracles: the two dissipation lines stay within one float32 rounding of the energy in play per step, ε₃₂ √n of
+    # it (what a γ = 0 product split in float64 can leave); the books' total with the trapezoid line closes within the
+    # scenes' bound, 16 ε₃₂ √n of it; and the trapezoid line is larger than that bound, so on the damping line (as
+    # before the fix) it would fail the first check and without a line the second.
+    amplitude = 1.0e-5  # [m]: B leaves along the bond and across it at the same speed, so the bond turns
+    mass = DENSITY * 4.0 / 3.0 * math.pi * RADIUS**3
+    speed = amplitude * math.sqrt(YOUNG * math.pi * RADIUS / 2.0 / mass)
+    sim = bonded_pair(
+        device,
+        velocity_b=(speed, speed, 0.0),
+        motion_b="free",
+        tensile_strength=UNBREAKABLE,
+        shear_strength=UNBREAKABLE,
+    )
+    start = sim.energy()
+    n_steps = 400
+    sim.advance(n_steps)
+    now = sim.energy()
+    in_play = max(start.in_play, now.in_play)
+    one_rounding = F32_EPS * math.sqrt(n_steps) * in_play
+    books = 16.0 * one_rounding
+    assert abs(now.dissipated_damping) <= one_rounding, (now.dissipated_damping, one_rounding)
+    assert abs(now.dissipated_friction) <= one_rounding, (now.dissipated_friction, one_rounding)
+    assert abs(now.total - start.total) <= books, (now.total - start.total, books)
+    assert abs(now.bond_trapezoid) > books, (now.bond_trapezoid, books)
