@@ -154,6 +154,26 @@ def eval_bonds_kernel(
     e_n = 0.5 * kn * stretch * stretch
     e_s = 0.5 * ks * wp.dot(us, us)
     prev = bond_energy_prev[b]
+    # The springs' work over the half step ahead of their last evaluation, with its shear spring (still in
+    # bond_shear): released at a break, handed back to the dissipation lines either way (0 at the set-up evaluation,
+    # dt = 0, which books nothing else).
+    w = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
+    if track_energy != 0:
+        w = spring_work_ahead(
+            particle_q[i],
+            particle_q[j],
+            dt,
+            particle_qd[i],
+            particle_qd[j],
+            wi,
+            wj,
+            ri,
+            rj,
+            bond_rest_length[b],
+            kn,
+            ks,
+            bond_shear[b],
+        )
     if mode != BOND_INTACT:
         bond_broken[b] = mode
         wp.atomic_add(bonds_broken_total, 0, 1)
@@ -168,26 +188,10 @@ def eval_bonds_kernel(
         # line and minus it on damping: -4.8 kJ on masonry_wall_blast, where lattice bonds born relaxed break in the
         # first step after a conversion.)
         if track_energy != 0:
-            w = spring_work_ahead(
-                particle_q[i],
-                particle_q[j],
-                dt,
-                particle_qd[i],
-                particle_qd[j],
-                wi,
-                wj,
-                ri,
-                rj,
-                bond_rest_length[b],
-                kn,
-                ks,
-                bond_shear[b],
-            )
             wp.atomic_add(energy_bond_broken, i, wp.float64(prev[0]) + wp.float64(prev[1]) - w[0] - w[1])
             wp.atomic_add(energy_damping, i, w[0])
             wp.atomic_add(energy_friction, i, w[1])
         return
-    shear_old = bond_shear[b]
     bond_shear[b] = us
     bond_energy_prev[b] = wp.vec2(e_n, e_s)
     inv_sum = particle_inv_mass[i] + particle_inv_mass[j]
@@ -218,21 +222,6 @@ def eval_bonds_kernel(
         # ½ dt γ v², to the dissipation lines; the springs' -W - ΔU to the trapezoid line: their half behind (the
         # rest), their half ahead of the last evaluation (which the integrator booked on the dissipation lines: handed
         # back there, so those keep the dashpots' work alone, to rounding) and ΔU in float64 (its sum telescopes).
-        w = spring_work_ahead(
-            particle_q[i],
-            particle_q[j],
-            dt,
-            particle_qd[i],
-            particle_qd[j],
-            wi,
-            wj,
-            ri,
-            rj,
-            bond_rest_length[b],
-            kn,
-            ks,
-            shear_old,
-        )
         behind_n = wp.float64(-0.5 * dt * fn * vn)
         behind_s = wp.float64(-0.5 * dt * wp.dot(ft, vt))
         dash_n = wp.float64(0.5 * dt * gn * vn * vn)
