@@ -55,13 +55,18 @@ over a step the nodes do on it the trapezoid
 (f the force on A, −f on B, v_{n+1/2} the velocities during the evaluation of f_{n+1}; for a node of a rigid block
 the half of f_n is taken at the pose f_n was made at, as the body's kick works it: kernels/rigid.py
 ``node_velocity_ahead``), of which its spring now holds
-U_{n+1} = ½ k d²; dissipated += ΔW − (U_{n+1} − U_n), half on A and half on B (``node_energy_cohesive``), with f_n
-and U_n kept per element (``cohesive_f_prev``, ``cohesive_energy_prev``). Stored + dissipated is then the work done
-on the element exactly, and the energy balance closes however coarsely the step resolves δ_c; on a resolved opening
-the trapezoid equals the law's integral (exactly on its linear pieces), so the books still give ½ f_c δ_max while
-intact and Γ A_f at the break (tests/test_cohesive.py). The break step books ½ dt f_n · v_rel + U_n: the element
-applies no force from then on, so nothing is left ahead. A split gives the new element f_prev = its force at birth
-(f_c along ``cohesive_dir``) and U = 0; a hand-over keeps both.
+U_{n+1} = ½ k d²; spent += ΔW − (U_{n+1} − U_n), half on A and half on B, with f_n and U_n kept per element
+(``cohesive_f_prev``, ``cohesive_energy_prev``). Stored + spent is then the work done on the element exactly, and the
+energy balance closes however coarsely the step resolves δ_c. Of what is spent, the law's dissipation over the step,
+the growth of G(δ_max) (:func:`law_dissipation`: ½ f_c δ_max once open) and at the break what is left of Γ A_f, goes
+to the cohesive line (``node_energy_cohesive``): it never falls and ends at Γ A_f. The rest, Verlet's work off the
+law, goes to a line of its own (``node_energy_cohesive_trapezoid``): on a resolved opening the trapezoid equals the
+law's integral (exactly on its linear pieces) and it holds rounding (tests/test_cohesive.py); where a blast moves the
+daughters past δ_c, or through each other, in a step it holds what the force did off the law, of either sign (on
+limestone_tunnel: elements born in a split pass whose daughters cross by 40–100 δ_c in their first step; issue 28).
+The break step books ½ dt f_n · v_rel + U_n: the element applies no force from then on, so nothing is left ahead. A
+split gives the new element f_prev = its force at birth (f_c along ``cohesive_dir``) and U = 0; a hand-over keeps
+both.
 """
 
 from __future__ import annotations
@@ -137,6 +142,17 @@ def spring_energy(d: float, d_max: float, fc: float, delta_c: float, alpha: floa
 
 
 @wp.func
+def law_dissipation(d_max: float, fc: float, delta_c: float, alpha: float, s: float) -> float:
+    """G(δ_max) [J]: what the law spends for good loading along its envelope to δ_max = min(d_max, δ_c), the envelope's
+    work less what :func:`spring_energy` holds at d = δ_max (module docstring): ½ f_c δ_max once open (δ_max ≥ s),
+    f_c δ_max²/(2 s) (1 + α (s − δ_max)/δ_c) below s (the same at s, increasing in δ_max, at most ½ f_c δ_max)."""
+    delta_max = capped_opening(d_max, delta_c)
+    if delta_max >= s:
+        return 0.5 * fc * delta_max
+    return fc * delta_max * delta_max / (2.0 * s) * (1.0 + alpha * (s - delta_max) / delta_c)
+
+
+@wp.func
 def opening(a: int, b: int, node_ref_q: wp.array(dtype=wp.vec3), node_u: wp.array(dtype=wp.vec3)) -> wp.vec3:
     """r = x_B − x_A = (X_B − X_A) + (u_B − u_A) [m] (LDEC eq. 5). The daughters of a split share X, so the first
     difference is exact (0 for the two daughters of one node) and r keeps the displacements' float32 precision."""
@@ -154,20 +170,30 @@ def book_step(
     track_energy: int,
     node_qd: wp.array(dtype=wp.vec3),
     v_rel_ahead: wp.vec3,
+    law: float,
     cohesive_f_prev: wp.array(dtype=wp.vec3),
     cohesive_energy_prev: wp.array(dtype=float),
     node_energy_cohesive: wp.array(dtype=wp.float64),
+    node_energy_cohesive_trapezoid: wp.array(dtype=wp.float64),
 ):
-    """Book element i's dissipation over the step that made its force ``f`` [N] (on A) and spring energy ``energy``
-    [J]: the trapezoid ΔW = ½ dt (f_n·(v_B − v_A)_ahead + f·(v_B − v_A)_{n+1/2}) the nodes did on it, less the change
-    of its spring energy, half on A and half on B (module docstring); then keep f and the energy for the next step.
+    """Book element i's step that made its force ``f`` [N] (on A) and spring energy ``energy`` [J]: of the trapezoid
+    ΔW = ½ dt (f_n·(v_B − v_A)_ahead + f·(v_B − v_A)_{n+1/2}) the nodes did on it, less the change of its spring
+    energy, the law's dissipation over the step ``law`` [J] (≥ 0: the growth of :func:`law_dissipation`, or what is
+    left of Γ A_f at the break) goes to the cohesive line and the rest, Verlet's work off the law, to the trapezoid
+    line, each half on A and half on B (module docstring); then keep f and the energy for the next step.
     ``v_rel_ahead`` is the relative velocity the half ahead of f_n is booked against: v_{n+1/2} for nodes of their
     own, a rigid body's velocity at the pose f_n was made at for its nodes (:func:`relative_velocity_ahead`)."""
     v_rel = node_qd[b] - node_qd[a]
     work = wp.float64(0.5 * dt * (wp.dot(cohesive_f_prev[i], v_rel_ahead) + wp.dot(f, v_rel)))
-    half = wp.float64(0.5) * (work - (wp.float64(energy) - wp.float64(cohesive_energy_prev[i])))
-    wp.atomic_add(node_energy_cohesive, a, half)
-    wp.atomic_add(node_energy_cohesive, b, half)
+    spent = work - (wp.float64(energy) - wp.float64(cohesive_energy_prev[i]))
+    half_law = wp.float64(0.0)  # without the books (track_energy 0) the law's line stays as it is too
+    if track_energy != 0:
+        half_law = wp.float64(0.5) * wp.float64(law)
+    half_rest = wp.float64(0.5) * spent - half_law
+    wp.atomic_add(node_energy_cohesive, a, half_law)
+    wp.atomic_add(node_energy_cohesive, b, half_law)
+    wp.atomic_add(node_energy_cohesive_trapezoid, a, half_rest)
+    wp.atomic_add(node_energy_cohesive_trapezoid, b, half_rest)
     cohesive_f_prev[i] = f
     cohesive_energy_prev[i] = energy
 
@@ -213,6 +239,7 @@ def eval_cohesive_kernel(
     node_f: wp.array(dtype=wp.vec3),
     node_damage: wp.array(dtype=float),
     node_energy_cohesive: wp.array(dtype=wp.float64),
+    node_energy_cohesive_trapezoid: wp.array(dtype=wp.float64),
 ):
     i = wp.tid()  # one thread per cohesive element slot
     if i >= cohesive_count[0] or cohesive_broken[i] != 0:
@@ -228,6 +255,8 @@ def eval_cohesive_kernel(
         v_rel_ahead = relative_velocity_ahead(a, b, ahead)
     d_max_old = cohesive_d_max[i]
     d_max = wp.max(d_max_old, wp.length(r))  # LDEC eq. 8
+    s = open_length(fc, delta_c, step, node_inv_mass[a], node_inv_mass[b])
+    spent_before = law_dissipation(d_max_old, fc, delta_c, alpha, s)
     # An intact element has d_max_old < δ_c, so δ_max before this step is d_max_old itself.
     if dt > 0.0 and d_max >= delta_c:
         # Broken: no force from now on. The books take the last trapezoid ½ dt f_n·v_rel and release what the spring
@@ -244,6 +273,8 @@ def eval_cohesive_kernel(
         fem_rebuild_flag[0] = 1  # the crack faces at A and B may now touch: rebuild the FEM contact lists
         wp.atomic_max(node_damage, a, 1.0)
         wp.atomic_max(node_damage, b, 1.0)
+        # The law's dissipation ends at its life total Γ A_f = (1 − α/2) f_c δ_c (eq. 9): what the spring still held
+        # and the rest of the envelope a step past δ_c skipped.
         book_step(
             i,
             a,
@@ -254,13 +285,14 @@ def eval_cohesive_kernel(
             track_energy,
             node_qd,
             v_rel_ahead,
+            (1.0 - 0.5 * alpha) * fc * delta_c - spent_before,
             cohesive_f_prev,
             cohesive_energy_prev,
             node_energy_cohesive,
+            node_energy_cohesive_trapezoid,
         )
         return
     # The set-up and post-split evaluation (dt = 0) sees the history including the present opening, but keeps none.
-    s = open_length(fc, delta_c, step, node_inv_mass[a], node_inv_mass[b])
     f = cohesive_force(r, d_max, fc, delta_c, alpha, cohesive_dir[i], s)
     # Held nodes (inverse mass 0) take the force too: the integrator holds them, and the sums stay symmetric.
     wp.atomic_add(node_f, a, f)
@@ -283,9 +315,11 @@ def eval_cohesive_kernel(
         track_energy,
         node_qd,
         v_rel_ahead,
+        law_dissipation(d_max, fc, delta_c, alpha, s) - spent_before,
         cohesive_f_prev,
         cohesive_energy_prev,
         node_energy_cohesive,
+        node_energy_cohesive_trapezoid,
     )
 
 

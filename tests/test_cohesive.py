@@ -147,6 +147,11 @@ def unit(v) -> np.ndarray:
     return (v / np.linalg.norm(v)).astype(np.float32)
 
 
+def spent_books(state: State) -> np.ndarray:
+    """Per node: what its cohesive elements spent, -W - ΔU, on the law's line and the trapezoid line together [J]."""
+    return state.node_energy_cohesive.numpy() + state.node_energy_cohesive_trapezoid.numpy()
+
+
 def forces_at(model: Model, state: State, u: np.ndarray, dt: float | None = None) -> np.ndarray:
     """Set the displacements, evaluate the cohesive forces alone, return node_f (float64, live nodes).
 
@@ -218,10 +223,11 @@ def test_broken_elements_dissipate_fracture_energy(device):
         assert int(state.fem_rebuild_flag.numpy()[0]) == 0
         d_max = state.cohesive_d_max.numpy()[:3].astype(np.float64)
         books = per_element(state.node_energy_cohesive.numpy()[:6])
-        stored, _ = cohesive_energy(model, state)
-        # ½ f_c δ_max dissipated while intact (independent of α); stored + dissipated = the work so far.
+        stored, spent = cohesive_energy(model, state)
+        # ½ f_c δ_max dissipated while intact (independent of α); stored + spent (the law's line and the trapezoid
+        # line) = the work so far.
         np.testing.assert_allclose(books, 0.5 * fc * d_max, rtol=BOOK_RTOL)
-        np.testing.assert_allclose(stored + books.sum(), work.sum(), rtol=FORCE_RTOL)
+        np.testing.assert_allclose(stored + spent, work.sum(), rtol=FORCE_RTOL)
         np.testing.assert_allclose(state.node_damage.numpy()[:6], np.repeat(d_max / delta_c, 2), rtol=FORCE_RTOL)
         # Loading: the force is on the envelope (eq. 6 at d = δ_max), along the opening; for α = 0 it stays f_c up to
         # the break, then drops to zero (the jump of a law discontinuous in time). Absolute tolerance: float32
@@ -231,9 +237,13 @@ def test_broken_elements_dissipate_fracture_energy(device):
     # Each broke in the step that took its opening past δ_c, and applies no force since.
     assert n - 0.63 >= STEPS and n - 1 - 0.63 < STEPS
     np.testing.assert_array_equal(f_prev, 0.0)
-    books = state.node_energy_cohesive.numpy()[:6]
+    books = spent_books(state)[:6]
     np.testing.assert_array_equal(books[::2], books[1::2])  # half on A, half on B
     books = per_element(books)
+    # The law's line holds its life total Γ A_f (eq. 9) exactly, however the step ends the opening; the trapezoid
+    # line the rest of the work (a float32 rounding of Γ A_f in each fc δ_c product).
+    law = per_element(state.node_energy_cohesive.numpy()[:6])
+    np.testing.assert_allclose(law, gamma_af, rtol=BOOK_RTOL)
     for k, alpha in enumerate(alphas):
         print(
             f"alpha={alpha}: books/ΓA_f - 1 = {books[k] / gamma_af - 1:.2e}, "
@@ -745,7 +755,7 @@ def test_node_with_several_elements_books_each_half(device):
     # The work is Γ A_f but for the break step: ½ f_c Δd²/δ_c (α = 1) and ½ (1 − α) f_c Δd (α = 0.5), Δd = 0.05 δ_c.
     bound = np.array([0.5 * FC * 0.05**2 * delta_c[0], 0.25 * FC * 0.05 * delta_c[1]])
     assert np.all(np.abs(work - gamma_af) <= bound + FORCE_RTOL * gamma_af)  # plus the float32 rounding
-    books = state.node_energy_cohesive.numpy()[:3]
+    books = spent_books(state)[:3]
     np.testing.assert_allclose(books, 0.5 * np.array([work.sum(), work[0], work[1]]), rtol=FORCE_RTOL)
     np.testing.assert_array_equal(state.node_damage.numpy()[:3], 1.0)
     assert int(state.cohesive_broken_total.numpy()[0]) == 2

@@ -12,10 +12,12 @@ tests/test_scenes.py on the whole balance.
 
 Shortening: each scene runs FRAMES frames of 1/SPLIT of its own frame (output_rate × SPLIT), one frame of its own in
 all: a blast scene's first conversion pass (masonry_wall_blast at step 25) and the first splits of limestone_tunnel
-fall in it. One scene still runs a line backwards there (a strict xfail, the cause and measured figures in KNOWN;
-issue 28). The bonds' springs book their -W - ΔU on a line of their own, ``bond_trapezoid``, which has either sign and
-is not checked here: on the damping line it fell by 65 J in a frame on masonry_tunnel_blast and 11.5 J on
-dam_crest_blast, lattice bonds crushed and turned in their first steps after a conversion pass (kernels/bonds.py).
+fall in it. Two lines are Verlet's work off a conservative law, of either sign, and are not checked here: the bonds'
+springs' -W - ΔU, ``bond_trapezoid`` (on the damping line it fell by 65 J in a frame on masonry_tunnel_blast and
+11.5 J on dam_crest_blast: lattice bonds crushed and turned in their first steps after a conversion pass;
+kernels/bonds.py), and the cohesive elements' work beyond their law's dissipation, ``cohesive_trapezoid`` (on the
+cohesive line it fell by 1.8 kJ in a frame on limestone_tunnel: elements born in a split pass whose daughters cross by
+40-100 δ_c in their first step and break in it; kernels/cohesive.py).
 """
 
 from __future__ import annotations
@@ -38,29 +40,8 @@ BOOK_ROUNDOFF = 16.0
 """float32 roundings per step relative to the energy in play (tests/test_scenes.py, tests/test_energy_balance.py)."""
 LINE_PREFIXES = ("energy_dissipated_", "energy_absorbed_")
 
-KNOWN = {
-    "limestone_tunnel": (
-        "dissipated_cohesive falls by 1.8 kJ in a frame here (-2.7 kJ by 4 ms, almost all of it in single steps "
-        "right after split passes, -640 to -770 J each): an element born in a pass (force f_c along dir, nothing "
-        "stored) sees its daughters cross by 40-100 delta_c in their first step (bulk viscosity and contact forces "
-        "differ between them; f_c dt^2/m* >> delta_c, the law is not resolved in time) and breaks in that step, "
-        "booking the half-kick's work 1/2 f_c·dir·Δr < 0 on the cohesive line: the books close, the line falls. "
-        "Making the force the exact derivative of the booked energy (kernels/cohesive.py) moved the worst frame "
-        "only from -723 to -709 J; the fix is a birth step the law resolves, or booking only the softening work "
-        "as dissipated and the unresolved rest on an exchange line of its own (issue 28)"
-    ),
-}
 
-
-def scene_params() -> list:
-    params = []
-    for path in SCENES:
-        marks = [pytest.mark.xfail(reason=KNOWN[path.stem], strict=True)] if path.stem in KNOWN else []
-        params.append(pytest.param(path, id=path.stem, marks=marks))
-    return params
-
-
-@pytest.mark.parametrize("path", scene_params())
+@pytest.mark.parametrize("path", SCENES, ids=[p.stem for p in SCENES])
 def test_dissipation_lines_never_run_backwards(tmp_path, path):
     scene = load_scene(path)
     run = scene.run.model_copy(update={"output_rate": SPLIT * scene.run.output_rate})

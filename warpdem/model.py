@@ -481,8 +481,12 @@ class State:
         cohesive_work_broken: Σ Γ A_f = Σ (1 − α/2) f_c δ_c of the broken elements [J] (eq. 9), shape (1,), float64.
         node_damage: largest δ_max/δ_c of the node's cohesive elements so far, 1 once one broke [-], shape
             (node_capacity,), float32 (a daughter inherits its parent's).
-        node_energy_cohesive: energy the node's cohesive elements dissipated (½ f_c per unit growth of δ_max, and
-            the spring energy left at the break) [J], shape (node_capacity,), float64.
+        node_energy_cohesive: energy the node's cohesive elements dissipated by their law (½ f_c per unit growth of
+            δ_max once open, up to Γ A_f at the break; kernels/cohesive.py ``law_dissipation``) [J], shape
+            (node_capacity,), float64.
+        node_energy_cohesive_trapezoid: the rest of what the node's cohesive elements spent, their work as Verlet does
+            it (the trapezoid) less the change of their energy and the law's dissipation: 0 where the steps resolve
+            the opening, of either sign where an element crosses δ_c in a step [J], shape (node_capacity,), float64.
         node_splits_total: node splits since the start, shape (1,), int32.
         crack_area_total: Σ A_f of every cohesive element born [m²] (both faces), shape (1,), float64.
         energy_contact_topology: energy the FEM contacts' springs gained without work at split and conversion passes
@@ -656,6 +660,7 @@ class State:
     cohesive_work_broken: wp.array
     node_damage: wp.array
     node_energy_cohesive: wp.array
+    node_energy_cohesive_trapezoid: wp.array
     node_splits_total: wp.array
     crack_area_total: wp.array
     energy_contact_topology: wp.array
@@ -765,6 +770,7 @@ def fracture_state(model: Model) -> dict[str, wp.array]:
         "cohesive_work_broken": wp.zeros(1, dtype=wp.float64, device=d),
         "node_damage": wp.zeros(ncap, dtype=float, device=d),
         "node_energy_cohesive": wp.zeros(ncap, dtype=wp.float64, device=d),
+        "node_energy_cohesive_trapezoid": wp.zeros(ncap, dtype=wp.float64, device=d),
         "node_splits_total": wp.zeros(1, **one),
         "crack_area_total": wp.zeros(1, dtype=wp.float64, device=d),
         "energy_contact_topology": wp.zeros(1, dtype=wp.float64, device=d),

@@ -331,6 +331,9 @@ FIELD_MIGRATIONS: dict[str, FieldMigration] = {
     # The bonds' springs' -W - ΔU on a line of its own (format 8): an older run booked it on the damping and friction
     # lines, which keep it; the books close with the new line from zero.
     "state/energy_bond_trapezoid": FieldMigration(8, _always, "state/energy_damping"),
+    # The cohesive elements' work off their law on a line of its own (format 9): an older run booked it on the
+    # cohesive line, which keeps it; the books close with the new line from zero.
+    "state/node_energy_cohesive_trapezoid": FieldMigration(9, _always, "state/node_energy_cohesive"),
 }
 """The fields added since checkpoint format 1, by checkpoint key (``state/<name>``, ``model/<name>``, ``attribute
 <name>`` for a model scalar), and when a restart may fill them from the fresh model and state

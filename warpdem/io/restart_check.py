@@ -123,7 +123,9 @@ _STATE_SIZES: dict[str, Size] = {
     **_each("node_u node_q node_qd node_qd_carry node_f node_f_viscous node_f_absorbed node_f_load", _N),
     **_each("node_energy_damping node_energy_absorbed node_energy_boundary_work node_energy_contact", _N),
     **_each("node_q_at_fem_build node_face_count node_contact_hold node_f_contact node_contact_energy_prev", _N),
-    **_each("node_damage node_energy_cohesive node_f_sphere_face node_energy_sphere_face", _N),
+    **_each(
+        "node_damage node_energy_cohesive node_energy_cohesive_trapezoid node_f_sphere_face node_energy_sphere_face", _N
+    ),
     **_each("tet_active tet_stress tet_sphere", _T),
     # Sphere–face rows: empty in a model without boundary faces (warpdem.stages.fem_contact.sphere_face_rows).
     **_each(

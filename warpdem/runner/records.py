@@ -201,6 +201,7 @@ class RunSummary:
             lines += [
                 row("cohesive el.", e0.cohesive_elastic, e1.cohesive_elastic),
                 row("cohesive diss.", e0.dissipated_cohesive, e1.dissipated_cohesive),
+                row("coh. trapezoid", e0.cohesive_trapezoid, e1.cohesive_trapezoid),
             ]
         if self.fracture or e1.contact_topology != 0.0:
             # What split and conversion passes put into the FEM contact springs (Simulation._book_contact_topology).

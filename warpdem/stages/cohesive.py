@@ -77,18 +77,20 @@ def eval_cohesive(model: Model, state: State, dt: float | None = None, track_ene
             s.node_f,
             s.node_damage,
             s.node_energy_cohesive,
+            s.node_energy_cohesive_trapezoid,
         ],
         device=m.device,
     )
 
 
 def cohesive_energy(model: Model, state: State) -> tuple[float, float]:
-    """The cohesive elements' energy [J]: (stored, dissipated).
+    """The cohesive elements' energy [J]: (stored, spent).
 
     stored: Σ over the intact live elements of the spring energy on their unloading lines at their last evaluation
     (``cohesive_energy_prev``: ½ k d², k = f(δ_max)/δ_max, once open; kernels/cohesive.py ``spring_energy``);
-    dissipated: Σ ``node_energy_cohesive`` over the live nodes (the work done on the elements less what they hold:
-    ½ f_c δ_max per intact element and Γ A_f per broken one where the steps resolve δ_c).
+    spent: the work done on the elements less what they hold, Σ ``node_energy_cohesive`` (the law's dissipation:
+    ½ f_c δ_max per intact element, Γ A_f per broken one) + Σ ``node_energy_cohesive_trapezoid`` (Verlet's work off
+    the law, 0 where the steps resolve δ_c) over the live nodes.
     Allocates and reads back: call between steps.
     """
     m, s = model, state
@@ -102,8 +104,8 @@ def cohesive_energy(model: Model, state: State) -> tuple[float, float]:
             device=m.device,
         )
     nodes = int(s.node_count.numpy()[0])
-    dissipated = float(s.node_energy_cohesive.numpy()[:nodes].sum())
-    return float(stored.numpy()[0]), dissipated
+    spent = float(s.node_energy_cohesive.numpy()[:nodes].sum() + s.node_energy_cohesive_trapezoid.numpy()[:nodes].sum())
+    return float(stored.numpy()[0]), spent
 
 
 def compact_cohesive(model: Model, state: State, compactor: Compactor) -> int:

@@ -47,10 +47,13 @@ class EnergyBalance:
     springs of failed joints; ``dissipated_sphere_face`` what the sphere–face contacts took, each contact's -W - ΔU
     whole (its work on the sphere and on the face's nodes; kernels/sphere_face.py). ``cohesive_elastic`` is the spring
     energy stored in the intact cohesive elements of split nodes (½ k d², counted in ``in_play``) and
-    ``dissipated_cohesive`` what they dissipated (½ f_c per unit growth of δ_max, and what a breaking element still
-    held; warpdem.stages.cohesive). ``released_conversion`` is what left the mechanical books when tets turned into
-    spheres (their strain energy and the kinetic energy of their motion about the centroid beyond the spheres' spin, the
-    springs of released couplings and the pass's change of the shadow term; warpdem.stages.conversion) and
+    ``dissipated_cohesive`` what their law dissipated (½ f_c per unit growth of δ_max once open, up to Γ A_f at the
+    break), ``cohesive_trapezoid`` the rest of their -W - ΔU: Verlet's work off the law where an element crosses δ_c
+    (or its daughters cross each other) within a step, of either sign, 0 where the steps resolve the opening
+    (kernels/cohesive.py; warpdem.stages.cohesive). ``released_conversion`` is what left the mechanical books when
+    tets turned into spheres (their strain energy and the kinetic energy of their motion about the centroid beyond the
+    spheres' spin, the springs of released couplings and the pass's change of the shadow term;
+    warpdem.stages.conversion) and
     ``coupling_elastic`` the spring energy of the penalty couplings between converted spheres and the continuum (in
     ``in_play``; warpdem.stages.coupling). ``kinetic_rigid`` is the rigid blocks' kinetic energy ½ M v² + ½ L·ω (their
     nodes are not counted in ``kinetic_nodes``) and ``released_rigid_switch`` what left the books when blocks turned
@@ -91,6 +94,7 @@ class EnergyBalance:
     step_change: float = 0.0
     dissipated_sphere_face: float = 0.0
     bond_trapezoid: float = 0.0
+    cohesive_trapezoid: float = 0.0
 
     @property
     def kinetic(self) -> float:
@@ -130,6 +134,7 @@ class EnergyBalance:
             + self.step_change
             + self.dissipated_sphere_face
             + self.bond_trapezoid
+            + self.cohesive_trapezoid
         )
 
 
@@ -155,7 +160,7 @@ def energy_balance(m: Model, s: State) -> EnergyBalance:
     e_bond, _ = bond_energy(m, s)
     g = np.asarray(m.gravity, dtype=np.float64)
     nn = int(s.node_count.numpy()[0])
-    e_cohesive, d_cohesive = cohesive_energy(m, s) if m.cohesive_capacity else (0.0, 0.0)
+    e_cohesive = cohesive_energy(m, s)[0] if m.cohesive_capacity else 0.0
     node_mass = m.node_mass.numpy()[:nn].astype(np.float64)
     node_v = s.node_qd.numpy()[:nn].astype(np.float64)
     # The nodes of rigid bodies move with them: the bodies' own kinetic energy counts (kinetic_rigid).
@@ -182,7 +187,8 @@ def energy_balance(m: Model, s: State) -> EnergyBalance:
         absorbed_boundaries=float(s.node_energy_absorbed.numpy()[:nn].sum()),
         stiffness_change=float(s.energy_stiffness_change.numpy()[:n].sum()),
         cohesive_elastic=e_cohesive,
-        dissipated_cohesive=d_cohesive,
+        dissipated_cohesive=float(s.node_energy_cohesive.numpy()[:nn].sum()),
+        cohesive_trapezoid=float(s.node_energy_cohesive_trapezoid.numpy()[:nn].sum()),
         released_conversion=float(s.energy_released_conversion.numpy()[0]),
         coupling_elastic=coupling_energy(m, s),
         kinetic_rigid=kinetic_rigid,
