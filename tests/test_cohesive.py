@@ -761,3 +761,29 @@ def test_node_with_several_elements_books_each_half(device):
     assert int(state.cohesive_broken_total.numpy()[0]) == 2
     np.testing.assert_allclose(state.cohesive_work_broken.numpy()[0], gamma_af.sum(), rtol=BOOK_RTOL)
     np.testing.assert_allclose(state.cohesive_area_broken.numpy()[0], 4.0 * AREA, rtol=F32_EPS)
+
+
+def test_daughters_that_cross_in_a_step_leave_the_law_line_at_fracture_energy(device):
+    """A blast's first step after a split: B goes 50 δ_c through A, against the birth force f_c along p1 (limestone
+    tunnel's elements cross by 40–100 δ_c; issue 28). The element breaks in that step. Oracles: the nodes did the
+    trapezoid -½ (f_c p1 + 0)·Δr on it (negative: the force pulled B through), all of which the two lines hold together
+    (stored 0 after the break); the law's line holds exactly Γ A_f (eq. 9: what it spends for good is a function of
+    δ_max alone, topped up at the break) and the trapezoid line the rest, negative."""
+    model, state = daughter_model(device, 1, capacity=2)
+    p1 = unit([0.0, 0.6, 0.8])
+    set_elements(state, [0], [1], 1.0, p1)
+    _, delta_c, _ = stored_f32(state)
+    u_prev = np.zeros((2, 3))
+    f_prev = forces_at(model, state, u_prev)
+    u = np.zeros((2, 3))
+    u[1] = (-50.0 * delta_c * p1.astype(np.float64)).astype(np.float32)
+    f = forces_at(model, state, u)
+    assert int(state.cohesive_broken.numpy()[0]) == 1
+    np.testing.assert_array_equal(f, 0.0)
+    work = -float(np.sum(0.5 * (f_prev + f) * (u - u_prev)))  # the nodes' work on the element (A does not move)
+    assert work < 0.0
+    law = float(state.node_energy_cohesive.numpy()[:2].sum())
+    spent = float(spent_books(state)[:2].sum())
+    np.testing.assert_allclose(law, GAMMA * AREA, rtol=BOOK_RTOL)
+    np.testing.assert_allclose(spent, work, rtol=FORCE_RTOL)
+    assert cohesive_energy(model, state) == (0.0, pytest.approx(spent, rel=BOOK_RTOL))
