@@ -137,13 +137,18 @@ def test_tension_breaks_within_one_increment_of_strength(device):
     assert strength - f_before <= increment + tol_f, (strength, f_before, increment)
     # A broken bond applies no force.
     np.testing.assert_array_equal(s.particle_f.numpy()[:2], np.zeros((2, 3), dtype=np.float32))
-    # Released energy: what the spring held at its last evaluation, ½ k_n s_n², less the work it did over the half
-    # step after it, ½ dt (-k_n s_n) v (no shear: motion along the bond axis). No force stretched the spring from
-    # there to the breaking step's stretch: ½ k_n s² would book energy that was never stored (issue 28).
+    # Released energy: what the spring holds half a step after its last evaluation, where it lets go, ½ k_n (s_n +
+    # ½ v dt)² (no shear: motion along the bond axis), not the breaking step's ½ k_n s², which no force stretched it
+    # to (issue 28). What it held then less its work over that half step, ½ k_n s_n² + ½ dt k_n s_n v, differs from
+    # it by Verlet's ⅛ k_n (v dt)², on the trapezoid line.
     released = float(s.energy_bond_broken.numpy().sum())
-    expected = 0.5 * kn * stretch_before**2 + 0.5 * DT * kn * stretch_before * v
+    expected = 0.5 * kn * (stretch_before + 0.5 * v * DT) ** 2
     rtol_e = 2.0 * stretch_tolerance(rest) / stretch_before + 4 * F32_EPS
     np.testing.assert_allclose(released, expected, rtol=rtol_e)
+    held_less_work = 0.5 * kn * stretch_before**2 + 0.5 * DT * kn * stretch_before * v
+    np.testing.assert_allclose(
+        float(s.energy_bond_trapezoid.numpy().sum()), held_less_work - expected, atol=rtol_e * expected
+    )
     # Without a dashpot nothing dissipates: a linear spring stretched at a constant speed has an exact trapezoid, and
     # the break hands the spring's half step of work back. Left: the float32 stretch's rounding in the forces, k_n
     # stretch_tolerance per step, worked over the whole stretch (twice for the margin).
@@ -156,6 +161,29 @@ def test_tension_breaks_within_one_increment_of_strength(device):
     assert int(sim.state.bonds_broken_total.numpy()[0]) == 1
     n_slots = int(min(sim.state.nbr_count.numpy()[0], sim.model.max_neighbors))
     np.testing.assert_array_equal(sim.state.nbr_bond.numpy()[:n_slots], np.full(n_slots, -1))
+
+
+def test_bond_pulled_past_its_strength_in_one_step_releases_what_its_spring_holds_half_a_step_on(device):
+    # B leaves the rest length at v and the bond breaks at the first evaluation after (k_n v dt far above σ_t A).
+    # In Verlet's step the spring never pushed (its force at the set-up evaluation is 0), so what it held less its
+    # work over the half step is 0; what it holds half a step on, where it lets go, is ½ k_n (½ v dt)². The release
+    # line takes that (never negative: a crushed bond pulled past its strength in one step had booked -6 kJ of
+    # "released" energy on masonry_tunnel_blast), the trapezoid line minus it, the damping line nothing; the total
+    # is unchanged. Oracle: the closed form, to float32 rounding of the stretch.
+    v = 1.0  # [m/s]
+    sim = bonded_pair(
+        device, velocity_b=(v, 0.0, 0.0), motion_b="prescribed", tensile_strength=1.0e3, shear_strength=UNBREAKABLE
+    )
+    kn, _, area, rest = bond_props(sim)
+    assert kn * v * DT > 10.0 * 1.0e3 * area
+    sim.step()
+    s = sim.state
+    assert int(s.bond_broken.numpy()[0]) == BOND_BROKEN_TENSION
+    expected = 0.5 * kn * (0.5 * v * DT) ** 2
+    rtol = 2.0 * stretch_tolerance(rest) / (0.5 * v * DT) + 4 * F32_EPS
+    np.testing.assert_allclose(float(s.energy_bond_broken.numpy().sum()), expected, rtol=rtol)
+    np.testing.assert_allclose(float(s.energy_bond_trapezoid.numpy().sum()), -expected, rtol=rtol)
+    assert float(s.energy_damping.numpy().sum()) == 0.0
 
 
 def test_shear_breaks_within_one_increment_of_strength(device):
@@ -200,18 +228,18 @@ def test_shear_breaks_within_one_increment_of_strength(device):
     assert strength - f_before <= increment + tol_f, (strength, f_before, increment)
     np.testing.assert_array_equal(s.particle_f.numpy()[:2], np.zeros((2, 3), dtype=np.float32))
 
-    # Released energy, recomputed in float64 from the state one step before: what the springs held then (shear
-    # spring u_s, the tiny normal stretch) less their work over the half step after it, ½ dt f·(v_A - v_B) (A fixed,
-    # B not spinning: no lever-arm terms).
-    q = q_before
+    # Released energy, recomputed in float64 from the state one step before: what the springs hold half a step
+    # after that evaluation, where they let go: B half a drift on, the shear spring turned into that contact plane
+    # and grown by half a step of sliding, ½ dt v_t (A fixed, B not spinning: no lever-arm terms).
+    q = q_before + np.array([[0.0, 0.0, 0.0], [0.0, 0.5 * v * DT, 0.0]])
     d = q[0] - q[1]
     dist = float(np.linalg.norm(d))
     n = d / dist
     v_rel = -np.array([0.0, v, 0.0])  # v_A - v_B
+    projected = shear_before - (shear_before @ n) * n
+    u_s = projected * np.linalg.norm(shear_before) / np.linalg.norm(projected) + 0.5 * DT * (v_rel - (v_rel @ n) * n)
     stretch = dist - rest
-    held = 0.5 * ks * float(shear_before @ shear_before) + 0.5 * kn * stretch**2
-    work = 0.5 * DT * float((-ks * shear_before - kn * stretch * n) @ v_rel)
-    expected = held - work
+    expected = 0.5 * ks * float(u_s @ u_s) + 0.5 * kn * stretch**2
     rtol_e = 2 * rtol_u + kn * abs(stretch) * stretch_tolerance(rest) / expected
     np.testing.assert_allclose(float(s.energy_bond_broken.numpy().sum()), expected, rtol=rtol_e)
 
