@@ -12,13 +12,13 @@ forces to the spheres' sums, whose half ahead the integrator books on the dampin
 The dashpots' work goes to those lines: ``energy_damping`` (normal) and ``energy_friction`` (shear, with the contacts'
 tangential dashpots). The springs' work and their energy change go together to ``energy_bond_trapezoid``: at each
 evaluation a bond books there its springs' -W - ΔU (the half ahead of its last evaluation, recovered to rounding by
-:func:`spring_work_ahead` and handed back to the damping and friction lines, the half behind, and ΔU from the
+:func:`spring_half_step` and handed back to the damping and friction lines, the half behind, and ΔU from the
 springs' energies at the last evaluation, ``bond_energy_prev``). That is no dissipation: a spring that turns by θ in a
 step does the trapezoid work along n_n and n_{n+1}, which differs from ½ k Δ(s²) by ½ k (1 - cos θ)(s_{n+1} L_n -
 s_n L_{n+1}), of either sign (negative while it is compressed: the lattice bonds of a blast's first conversion pass,
 born relaxed and crushed and turned in their first steps, booked -33 J in one step on masonry_tunnel_blast as
 "damping"). A bond that breaks applies no force at that evaluation: it releases what its springs hold half a step
-past their last evaluation (:func:`spring_energy_half_ahead`) to ``energy_bond_broken``, hands their work over that
+past their last evaluation (:func:`spring_half_step`) to ``energy_bond_broken``, hands their work over that
 half step back to the two dissipation lines, and books what they held at the evaluation less that work and less the
 release, Verlet's error over the half step, on the trapezoid line, so the springs leave no trace on the dissipation
 lines and the release is never negative.
@@ -45,7 +45,7 @@ def bond_arms(ri: float, rj: float, dist: float) -> wp.vec2:
 
 
 @wp.func
-def spring_work_ahead(
+def spring_half_step(
     xi: wp.vec3d,
     xj: wp.vec3d,
     dt: float,
@@ -59,67 +59,53 @@ def spring_work_ahead(
     kn: float,
     ks: float,
     shear: wp.vec3,
-) -> wp.vec2d:
-    """Work [J] of a bond's springs, as evaluated at the last step, over the half step ahead of that evaluation,
-    ½ dt f_n·v_{n+1/2} (normal; shear with the moments of its force: ½ dt f_s·v_rel), which the integrator booked as
-    minus it on the damping and friction lines (kernels/integrate.py ``book_contact_work_ahead``).
+) -> wp.vec4d:
+    """A bond's springs over the half step ahead of their last evaluation, called at the next evaluation, where the
+    velocities are v_{n+1/2} (``vi``, ``vj``, spins ``wi``, ``wj``) and the centres ``xi``, ``xj`` have drifted by
+    dt v_{n+1/2} (kernels/integrate.py ``drift_particle``: x + dt v in float64, which x - dt v undoes to float64
+    rounding); ``shear`` is the shear spring of the last evaluation (in its contact plane).
 
-    Called at the next evaluation, where the velocities are v_{n+1/2} (``vi``, ``vj``, spins ``wi``, ``wj``) and the
-    centres ``xi``, ``xj`` have drifted by dt v_{n+1/2} (kernels/integrate.py ``drift_particle``: x + dt v in float64,
-    which x - dt v undoes to float64 rounding): the last evaluation's centres and its shear spring ``shear`` (in that
-    contact plane) give the springs' forces there as that evaluation made them, to float64 rounding of the centres.
+    - Their work [J] over that half step, ½ dt f_n·v_{n+1/2} (normal; shear with the moments of its force:
+      ½ dt f_s·v_rel), which the integrator booked as minus it on the damping and friction lines (kernels/integrate.py
+      ``book_contact_work_ahead``): the last evaluation's centres and shear spring give its forces as it made them,
+      to float64 rounding of the centres.
+    - The energy [J] they hold at the end of it, (½ k_n s², ½ k_s |u_s|²) at the centres x - ½ dt v, the shear spring
+      turned into that contact plane and grown by half a step of sliding: where a bond that breaks at the next
+      evaluation lets go. Never negative; what the springs held at their last evaluation less their work over the
+      half step differs from it by Verlet's error, the same to O(dt²) where the step resolves the motion, negative
+      where it overshoots (a bond crushed by a blast and pulled past its strength in the next step).
 
     Returns:
-        (normal, shear) work [J].
+        (normal work, shear work, normal energy, shear energy) [J].
     """
+    work_n = wp.float64(0.0)
+    work_s = wp.float64(0.0)
     d_old = wp.vec3((xi - wp.vec3d(dt * vi)) - (xj - wp.vec3d(dt * vj)))  # as the evaluation formed x_i - x_j
     dv = vi - vj
-    dist = wp.length(d_old)
-    if dist <= 0.0:
-        return wp.vec2d(wp.float64(0.0), wp.float64(0.0))
-    n = d_old / dist
-    arms = bond_arms(ri, rj, dist)
-    fn = -kn * (dist - rest_length)
-    fs = -ks * shear
-    v_rel = (dv - arms[0] * wp.cross(wi, n)) - arms[1] * wp.cross(wj, n)
-    return wp.vec2d(wp.float64(0.5 * dt * fn * wp.dot(n, dv)), wp.float64(0.5 * dt * wp.dot(fs, v_rel)))
-
-
-@wp.func
-def spring_energy_half_ahead(
-    xi: wp.vec3d,
-    xj: wp.vec3d,
-    dt: float,
-    vi: wp.vec3,
-    vj: wp.vec3,
-    wi: wp.vec3,
-    wj: wp.vec3,
-    ri: float,
-    rj: float,
-    rest_length: float,
-    kn: float,
-    ks: float,
-    shear: wp.vec3,
-) -> wp.vec2d:
-    """Energy [J] a bond's springs hold half a step after their last evaluation, (½ k_n s², ½ k_s |u_s|²) at the
-    centres x - ½ dt v_{n+1/2} (the evaluation's centres, recovered as in :func:`spring_work_ahead`, moved on by half
-    the drift), the shear spring ``shear`` turned into that contact plane and grown by half a step of sliding: the
-    springs' energy where a bond that breaks at the next evaluation lets go. Never negative; what the springs held at
-    their last evaluation less their work over that half step (:func:`spring_work_ahead`) differs from it by
-    Verlet's error, the same to O(dt²) where the step resolves the motion, negative where it overshoots (a bond
-    crushed by a blast and pulled past its strength in the next step)."""
+    dist_old = wp.length(d_old)
+    if dist_old > 0.0:
+        n_old = d_old / dist_old
+        arms_old = bond_arms(ri, rj, dist_old)
+        fn = -kn * (dist_old - rest_length)
+        fs = -ks * shear
+        v_rel_old = (dv - arms_old[0] * wp.cross(wi, n_old)) - arms_old[1] * wp.cross(wj, n_old)
+        work_n = wp.float64(0.5 * dt * fn * wp.dot(n_old, dv))
+        work_s = wp.float64(0.5 * dt * wp.dot(fs, v_rel_old))
+    energy_n = wp.float64(0.0)
+    energy_s = wp.float64(0.0)
     half = wp.float64(0.5 * dt)
     d = wp.vec3((xi - half * wp.vec3d(vi)) - (xj - half * wp.vec3d(vj)))
     dist = wp.length(d)
-    if dist <= 0.0:
-        return wp.vec2d(wp.float64(0.0), wp.float64(0.0))
-    n = d / dist
-    arms = bond_arms(ri, rj, dist)
-    v_rel = (vi - arms[0] * wp.cross(wi, n)) - (vj + arms[1] * wp.cross(wj, n))
-    vt = v_rel - wp.dot(v_rel, n) * n
-    us = rotate_into_plane(shear, n) + vt * (0.5 * dt)
-    stretch = dist - rest_length
-    return wp.vec2d(wp.float64(0.5 * kn * stretch * stretch), wp.float64(0.5 * ks * wp.dot(us, us)))
+    if dist > 0.0:
+        n = d / dist
+        arms = bond_arms(ri, rj, dist)
+        v_rel = (vi - arms[0] * wp.cross(wi, n)) - (vj + arms[1] * wp.cross(wj, n))
+        vt = v_rel - wp.dot(v_rel, n) * n
+        us = rotate_into_plane(shear, n) + vt * (0.5 * dt)
+        stretch = dist - rest_length
+        energy_n = wp.float64(0.5 * kn * stretch * stretch)
+        energy_s = wp.float64(0.5 * ks * wp.dot(us, us))
+    return wp.vec4d(work_n, work_s, energy_n, energy_s)
 
 
 @wp.kernel
@@ -193,12 +179,12 @@ def eval_bonds_kernel(
     e_n = 0.5 * kn * stretch * stretch
     e_s = 0.5 * ks * wp.dot(us, us)
     prev = bond_energy_prev[b]
-    # The springs' work over the half step ahead of their last evaluation, with its shear spring (still in
-    # bond_shear): released at a break, handed back to the dissipation lines either way (0 at the set-up evaluation,
-    # dt = 0, which books nothing else).
-    w = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
+    # The springs over the half step ahead of their last evaluation, with its shear spring (still in bond_shear):
+    # their work, handed back to the dissipation lines either way (0 at the set-up evaluation, dt = 0, which books
+    # nothing else), and the energy they hold at its end, released at a break.
+    half_step = wp.vec4d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
     if track_energy != 0:
-        w = spring_work_ahead(
+        half_step = spring_half_step(
             particle_q[i],
             particle_q[j],
             dt,
@@ -213,6 +199,7 @@ def eval_bonds_kernel(
             ks,
             bond_shear[b],
         )
+    w = wp.vec2d(half_step[0], half_step[1])
     if mode != BOND_INTACT:
         bond_broken[b] = mode
         wp.atomic_add(bonds_broken_total, 0, 1)
@@ -222,7 +209,7 @@ def eval_bonds_kernel(
         # A broken bond applies no force now: its springs did work only over the half step after their last
         # evaluation, which the integrator booked from the spheres' force sums as minus that work on the dissipation
         # lines. That work is handed back to them and what the springs held then, less it, is released
-        # (:func:`spring_work_ahead`): the springs' share of the lines ends at zero, only the dashpots' work stays.
+        # (:func:`spring_half_step`): the springs' share of the lines ends at zero, only the dashpots' work stays.
         # (Booking the energy at the new positions instead put a stretch that no force had worked for on the release
         # line and minus it on damping: -4.8 kJ on masonry_wall_blast, where lattice bonds born relaxed break in the
         # first step after a conversion.)
@@ -231,22 +218,7 @@ def eval_bonds_kernel(
         # the trapezoid line (negative where a crushed bond is pulled past its strength in one step: -6 kJ of
         # "released" energy on masonry_tunnel_blast booked it on the release line).
         if track_energy != 0:
-            held = spring_energy_half_ahead(
-                particle_q[i],
-                particle_q[j],
-                dt,
-                particle_qd[i],
-                particle_qd[j],
-                wi,
-                wj,
-                ri,
-                rj,
-                bond_rest_length[b],
-                kn,
-                ks,
-                bond_shear[b],
-            )
-            released = held[0] + held[1]
+            released = half_step[2] + half_step[3]
             if dt <= 0.0:  # the set-up evaluation: no step was taken, what the springs held is what they had
                 released = wp.float64(prev[0]) + wp.float64(prev[1])
             wp.atomic_add(energy_bond_broken, i, released)
