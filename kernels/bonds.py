@@ -217,15 +217,12 @@ def eval_bonds_kernel(
         wp.atomic_add(particle_bonds_broken, j, 1)
         # A broken bond applies no force now: its springs did work only over the half step after their last
         # evaluation, which the integrator booked from the spheres' force sums as minus that work on the dissipation
-        # lines. That work is handed back to them and what the springs held then, less it, is released
-        # (:func:`spring_half_step`): the springs' share of the lines ends at zero, only the dashpots' work stays.
-        # (Booking the energy at the new positions instead put a stretch that no force had worked for on the release
-        # line and minus it on damping: -4.8 kJ on masonry_wall_blast, where lattice bonds born relaxed break in the
-        # first step after a conversion.)
-        # Released is what the springs hold half a step past their last evaluation, where they let go (never
-        # negative); their energy then less their work since, minus it, is Verlet's error over that half step, on
-        # the trapezoid line (negative where a crushed bond is pulled past its strength in one step: -6 kJ of
-        # "released" energy on masonry_tunnel_blast booked it on the release line).
+        # lines; that work is handed back to them, so only the dashpots' work stays there. Released is what the
+        # springs hold at the end of that half step, where they let go (:func:`spring_half_step`; never negative):
+        # not their energy at the new positions, a stretch no force worked for (-4.8 kJ on masonry_wall_blast, where
+        # lattice bonds born relaxed break in the first step after a conversion), nor what they held less their work
+        # since, which overshoots where a crushed bond is pulled past its strength in one step (-6.1 kJ "released" on
+        # masonry_tunnel_blast). That difference, Verlet's error over the half step, goes to the trapezoid line.
         if track_energy != 0:
             released = half_step[2] + half_step[3]
             if dt <= 0.0:  # the set-up evaluation: no step was taken, what the springs held is what they had
