@@ -83,16 +83,10 @@ def eval_cohesive(model: Model, state: State, dt: float | None = None, track_ene
     )
 
 
-def cohesive_energy(model: Model, state: State) -> tuple[float, float]:
-    """The cohesive elements' energy [J]: (stored, spent).
-
-    stored: Σ over the intact live elements of the spring energy on their unloading lines at their last evaluation
-    (``cohesive_energy_prev``: ½ k d², k = f(δ_max)/δ_max, once open; kernels/cohesive.py ``spring_energy``);
-    spent: the work done on the elements less what they hold, Σ ``node_energy_cohesive`` (the law's dissipation:
-    ½ f_c δ_max per intact element, Γ A_f per broken one) + Σ ``node_energy_cohesive_trapezoid`` (Verlet's work off
-    the law, 0 where the steps resolve δ_c) over the live nodes.
-    Allocates and reads back: call between steps.
-    """
+def cohesive_stored(model: Model, state: State) -> float:
+    """The spring energy of the intact live cohesive elements on their unloading lines at their last evaluation [J]
+    (``cohesive_energy_prev``: ½ k d², k = f(δ_max)/δ_max, once open; kernels/cohesive.py ``spring_energy``).
+    Allocates and reads back: call between steps."""
     m, s = model, state
     stored = wp.zeros(1, dtype=wp.float64, device=m.device)
     if m.cohesive_capacity:
@@ -103,9 +97,21 @@ def cohesive_energy(model: Model, state: State) -> tuple[float, float]:
             outputs=[stored],
             device=m.device,
         )
+    return float(stored.numpy()[0])
+
+
+def cohesive_energy(model: Model, state: State) -> tuple[float, float]:
+    """The cohesive elements' energy [J]: (stored, spent).
+
+    stored: :func:`cohesive_stored`; spent: the work done on the elements less what they hold, Σ
+    ``node_energy_cohesive`` (the law's dissipation: ½ f_c δ_max per intact element, Γ A_f per broken one) +
+    Σ ``node_energy_cohesive_trapezoid`` (Verlet's work off the law, 0 where the steps resolve δ_c) over the live nodes.
+    Allocates and reads back: call between steps.
+    """
+    s = state
     nodes = int(s.node_count.numpy()[0])
     spent = float(s.node_energy_cohesive.numpy()[:nodes].sum() + s.node_energy_cohesive_trapezoid.numpy()[:nodes].sum())
-    return float(stored.numpy()[0]), spent
+    return cohesive_stored(model, state), spent
 
 
 def compact_cohesive(model: Model, state: State, compactor: Compactor) -> int:

@@ -12,7 +12,7 @@ import numpy as np
 from ..kernels import rigid as kernels_rigid
 from ..model import Model, State
 from .bonds import bond_energy
-from .cohesive import cohesive_energy
+from .cohesive import cohesive_stored
 from .contact import contact_energy
 from .coupling import coupling_energy
 from .fem_contact import fem_contact_energy, sphere_face_dissipated
@@ -160,7 +160,7 @@ def energy_balance(m: Model, s: State) -> EnergyBalance:
     e_bond, _ = bond_energy(m, s)
     g = np.asarray(m.gravity, dtype=np.float64)
     nn = int(s.node_count.numpy()[0])
-    e_cohesive = cohesive_energy(m, s)[0] if m.cohesive_capacity else 0.0
+    e_cohesive = cohesive_stored(m, s) if m.cohesive_capacity else 0.0
     node_mass = m.node_mass.numpy()[:nn].astype(np.float64)
     node_v = s.node_qd.numpy()[:nn].astype(np.float64)
     # The nodes of rigid bodies move with them: the bodies' own kinetic energy counts (kinetic_rigid).
