@@ -140,15 +140,12 @@ def test_tension_breaks_within_one_increment_of_strength(device):
     # Released energy: what the spring holds half a step after its last evaluation, where it lets go, ½ k_n (s_n +
     # ½ v dt)² (no shear: motion along the bond axis), not the breaking step's ½ k_n s², which no force stretched it
     # to (issue 28). What it held then less its work over that half step, ½ k_n s_n² + ½ dt k_n s_n v, differs from
-    # it by Verlet's ⅛ k_n (v dt)², on the trapezoid line.
+    # it by Verlet's ⅛ k_n (v dt)², on the trapezoid line: 2e-5 of the release here, under the stretch's rounding
+    # (rtol_e), so that share is checked where it is all of it (the one-step break below).
     released = float(s.energy_bond_broken.numpy().sum())
     expected = 0.5 * kn * (stretch_before + 0.5 * v * DT) ** 2
     rtol_e = 2.0 * stretch_tolerance(rest) / stretch_before + 4 * F32_EPS
     np.testing.assert_allclose(released, expected, rtol=rtol_e)
-    held_less_work = 0.5 * kn * stretch_before**2 + 0.5 * DT * kn * stretch_before * v
-    np.testing.assert_allclose(
-        float(s.energy_bond_trapezoid.numpy().sum()), held_less_work - expected, atol=rtol_e * expected
-    )
     # Without a dashpot nothing dissipates: a linear spring stretched at a constant speed has an exact trapezoid, and
     # the break hands the spring's half step of work back. Left: the float32 stretch's rounding in the forces, k_n
     # stretch_tolerance per step, worked over the whole stretch (twice for the margin).
