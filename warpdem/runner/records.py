@@ -203,6 +203,14 @@ class RunSummary:
                 row("cohesive diss.", e0.dissipated_cohesive, e1.dissipated_cohesive),
                 row("coh. trapezoid", e0.cohesive_trapezoid, e1.cohesive_trapezoid),
             ]
+        if e0.released_conversion or e1.released_conversion or e0.coupling_elastic or e1.coupling_elastic:
+            # FEM → DEM conversion: what left the mechanical books as tets turned into spheres, and the penalty
+            # springs tying the spheres to the continuum (warpdem.stages.conversion, warpdem.stages.coupling), so the
+            # lines printed add up to the balance.
+            lines += [
+                row("conversion", e0.released_conversion, e1.released_conversion),
+                row("coupling el.", e0.coupling_elastic, e1.coupling_elastic),
+            ]
         if self.fracture or e1.contact_topology != 0.0:
             # What split and conversion passes put into the FEM contact springs (Simulation._book_contact_topology).
             lines.append(row("contact gain", e0.contact_topology, e1.contact_topology))
