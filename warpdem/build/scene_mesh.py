@@ -2,8 +2,9 @@
 
 Every mesh kind becomes a :class:`warpdem.build.geology.GeologyMesh`: ``"box"`` through the Kuhn box mesher
 (:func:`warpdem.build.mesh.box_mesh`) with the six box faces picked by their outward normals, ``"geology"``,
-``"cylinder"`` and ``"ellipsoid"`` through Gmsh (:func:`warpdem.build.geology.mesh_geology`,
-:func:`~warpdem.build.geology.mesh_cylinder`, :func:`~warpdem.build.geology.mesh_ellipsoid`), ``"file"`` through meshio
+``"cylinder"``, ``"ellipsoid"`` and ``"arch_dam"`` through Gmsh (:func:`warpdem.build.geology.mesh_geology`,
+:func:`~warpdem.build.geology.mesh_cylinder`, :func:`~warpdem.build.geology.mesh_ellipsoid`,
+:func:`warpdem.build.arch_dam.mesh_arch_dam`), ``"file"`` through meshio
 (:func:`warpdem.build.geology.read_mesh`). The ``[[fracture.seed_cracks]]`` become joint faces of open, frictional joint
 sets (:func:`seed_crack_faces`). Loads and boundaries select faces by name (``boundary_faces`` of the mesh) or by a
 region (the outer faces whose three nodes lie inside it), and velocity loads select nodes the same way. Problems are
@@ -33,6 +34,7 @@ from ..scene import (
 )
 from ..stages.tets import TetProps
 from ..tables import BOX_FACE_NAMES
+from .arch_dam import mesh_arch_dam
 from .bricks import mesh_bricks
 from .geology import (
     Geology,
@@ -257,6 +259,8 @@ def _rock_mesh(scene: Scene) -> GeologyMesh:
             return _box(spec)
         if spec.kind == "arch":
             return arch_mesh(spec)
+        if spec.kind == "arch_dam":
+            return mesh_arch_dam(spec)
         if spec.kind == "geology":
             seed = spec.seed if spec.seed is not None else scene.run.seed
             return mesh_geology_cached(_geology(spec, seed))
@@ -395,7 +399,7 @@ def add_scene_mesh(builder: ModelBuilder, scene: Scene) -> tuple[GeologyMesh, np
         # and a mesh too far from the origin for float32, that of its corner or centre.
         where = f"mesh.path: {spec.path}" if spec.kind == "file" else "mesh"
         if isinstance(exc, MeshTooFarError) and spec.kind != "file":
-            where = "mesh.lo" if hasattr(spec, "lo") else "mesh.center"
+            where = "mesh.lo" if hasattr(spec, "lo") else "mesh.origin" if spec.kind == "arch_dam" else "mesh.center"
         raise SceneError(f"{scene.source}: {where}: {exc}") from None
     _add_loads(builder, scene, mesh, nodes)
     return mesh, nodes

@@ -23,7 +23,9 @@ This module is pure host code: it must not import warp, so ``warpdem --help`` an
 from __future__ import annotations
 
 from .continuum import (
+    ARCH_DAM_FACE_NAMES,
     ARCH_FACE_NAMES,
+    ArchDamMesh,
     ArchMesh,
     BoxMesh,
     BrickMeshSpec,
@@ -92,6 +94,7 @@ from .run import (
 )
 
 __all__ = [
+    "ARCH_DAM_FACE_NAMES",
     "ARCH_FACE_NAMES",
     "CONVERSION_STRENGTH",
     "MAX_FILE_NAME_BYTES",
@@ -101,6 +104,7 @@ __all__ = [
     "RESERVED_SECTIONS",
     "SCHEMA_VERSION",
     "AirblastLoad",
+    "ArchDamMesh",
     "ArchMesh",
     "AutoOrNonNegative",
     "AutoOrPositive",

@@ -1,5 +1,5 @@
-"""The continuum of a scene: the rock [mesh] (box, geology, file, cylinder, ellipsoid, arch, bricks), its openings
-and its joints ([joints], [[mesh.joint_sets]])."""
+"""The continuum of a scene: the rock [mesh] (box, geology, file, cylinder, ellipsoid, arch, arch_dam, bricks), its
+openings and its joints ([joints], [[mesh.joint_sets]])."""
 
 from __future__ import annotations
 
@@ -381,6 +381,151 @@ class ArchMesh(_Model):
         return self
 
 
+ARCH_DAM_FACE_NAMES = ("upstream", "downstream", "crest", "charge", "foundation")
+"""Face sets of an arch dam mesh: the convex (water) face, the concave face, the crest less the charge disc, the charge
+disc on the crest, and the dam's contact with the valley (the floor and both abutments)."""
+
+EM36_FOOT = 0.3048
+"""One foot [m]: EM36's base-thickness rule has a factor (H/400)^(H/400) with H in feet."""
+
+ARCH_DAM_RADIUS_RATIO = 0.6
+"""Radius of every arch's downstream (intrados) face over the valley's width at its elevation [-]: a constant-angle
+layout, each arch subtending 2 asin(1 / (2 · 0.6)) = 112.9° between the valley walls (EM36's crest arch: a radius of
+0.6 L1 at the crest)."""
+
+ARCH_DAM_SECTOR = 75.0
+"""Half-angle of the arch sections Gmsh lofts [deg], beyond the valley walls (56.4° at ARCH_DAM_RADIUS_RATIO) so that
+the valley, not the section's ends, cuts the abutments."""
+
+
+class ArchDamMesh(_Model):
+    """A whole double-curvature arch dam in a trapezoidal valley, laid out by the rules of the US Bureau of
+    Reclamation's Engineering Monograph 36 (H. L. Boggs, *Guide for Preliminary Design of Arch Dams*, 1977) from its
+    height H, the valley's width L1 at the crest and L2 at 0.15 H, and meshed with Gmsh, fine at a charge disc at the
+    crest centre and coarse away from it (warpdem.build.arch_dam). ζ = z / H:
+
+        crown cantilever thickness  T_C = 0.01 (H + 1.2 L1),  T_B = (0.0012 H L1 L2 (H'/400)^(H'/400))^(1/3)
+        (H' = H in feet), T(ζ) the parabola through T_B at ζ = 0, 0.95 T_B at 0.45, T_C at 1;
+        upstream face of the crown  u(ζ) the parabola through 0.67 T_B, 0.95 T_B, 0 (upstream of the crest's edge);
+        arch at ζ: concentric circular arcs, downstream radius R_d = 0.6 L(ζ), upstream R_u = R_d + T(ζ), L(ζ) the
+        valley's width (linear through L2 at 0.15 and L1 at 1), centred on the crown at x = 0.
+
+    Upstream is +y (the arches' convex side); the valley runs along y with its floor at ``origin``'s z."""
+
+    kind: Literal["arch_dam"] = Field(description="Mesh kind.")
+    origin: Vec3 = Field(
+        description="Point of the valley floor under the upstream edge of the crest at the crown [m]; x = origin.x "
+        "is the valley's centre line."
+    )
+    height: Float = Field(gt=0, description="Height H from the valley floor to the crest [m].")
+    crest_length: Float = Field(gt=0, description="Width L1 of the valley at the crest [m].")
+    lower_length: Float = Field(gt=0, description="Width L2 of the valley 0.15 H above the floor [m].")
+    charge_radius: Float = Field(
+        gt=0, description="Radius of the charge disc on the crest centre [m], less than half the crest thickness."
+    )
+    h_charge: Float = Field(gt=0, description="Tet edge at the charge [m] (run.resolution divides it).")
+    h: Float = Field(gt=0, description="Largest tet edge, far from the charge [m] (run.resolution divides it).")
+    fine_distance: Float = Field(ge=0, description="Distance from the charge disc with tets of edge h_charge [m].")
+    grading_distance: Float = Field(
+        gt=0, description="Distance beyond fine_distance over which the edge grows linearly to h [m]."
+    )
+    material: Str = Field(description="Name of a material defined in [materials].")
+    fixed: Bool = _fixed_field()
+    velocity: Vec3 = _velocity_field()
+
+    @model_validator(mode="after")
+    def _layout(self) -> ArchDamMesh:
+        if not self.lower_length < self.crest_length:
+            raise ValueError(
+                f"lower_length must be less than crest_length (the valley widens upwards): lower_length "
+                f"{self.lower_length}, crest_length {self.crest_length}"
+            )
+        if not self.floor_width() > 0.0:
+            raise ValueError(
+                f"the valley's floor width L2 - 0.15/0.85 (L1 - L2) must be > 0: got {self.floor_width():.4g} m "
+                f"(raise lower_length or lower crest_length)"
+            )
+        if not self.charge_radius < 0.5 * self.crest_thickness:
+            raise ValueError(
+                f"charge_radius must be less than half the crest thickness T_C = 0.01 (H + 1.2 L1) = "
+                f"{self.crest_thickness:.4g} m: got {self.charge_radius}"
+            )
+        if not self.h_charge <= self.h:
+            raise ValueError(f"h_charge must not exceed h: h_charge {self.h_charge}, h {self.h}")
+        return self
+
+    @property
+    def crest_thickness(self) -> float:
+        """T_C = 0.01 (H + 1.2 L1) [m] (EM36; homogeneous, so in metres as in feet)."""
+        return 0.01 * (self.height + 1.2 * self.crest_length)
+
+    @property
+    def base_thickness(self) -> float:
+        """T_B = (0.0012 H L1 L2 (H'/400)^(H'/400))^(1/3) [m], H' the height in feet (EM36)."""
+        hf = self.height / EM36_FOOT / 400.0
+        return (0.0012 * self.height * self.crest_length * self.lower_length * hf**hf) ** (1.0 / 3.0)
+
+    def valley_width(self, zeta: Any) -> Any:
+        """L(ζ) [m]: the valley's width at ζ = z / H, linear through L2 at 0.15 and L1 at 1; array or float."""
+        slope = (self.crest_length - self.lower_length) / 0.85
+        return self.crest_length - slope * (1.0 - zeta)
+
+    def floor_width(self) -> float:
+        """L(0) [m]: the valley floor's width."""
+        return float(self.valley_width(0.0))
+
+    def thickness(self, zeta: Any) -> Any:
+        """T(ζ) [m]: the crown cantilever's (and every arch's) thickness, the parabola through T_B, 0.95 T_B, T_C at
+        ζ = 0, 0.45, 1."""
+        tb = self.base_thickness
+        return _parabola(zeta, (tb, 0.95 * tb, self.crest_thickness))
+
+    def upstream_offset(self, zeta: Any) -> Any:
+        """u(ζ) [m]: how far upstream (+y) of the crest's upstream edge the crown's upstream face lies, the parabola
+        through 0.67 T_B, 0.95 T_B, 0 at ζ = 0, 0.45, 1."""
+        tb = self.base_thickness
+        return _parabola(zeta, (0.67 * tb, 0.95 * tb, 0.0))
+
+    def radii(self, zeta: Any) -> tuple[Any, Any]:
+        """(R_u, R_d) [m]: the upstream and downstream radii of the arch at ζ."""
+        inner = ARCH_DAM_RADIUS_RATIO * self.valley_width(zeta)
+        return inner + self.thickness(zeta), inner
+
+    def arch_center_y(self, zeta: Any) -> Any:
+        """y of the centre of the arch at ζ [m]: its upstream face passes through the crown's upstream point."""
+        return self.origin[1] + self.upstream_offset(zeta) - self.radii(zeta)[0]
+
+    def charge_center(self) -> tuple[float, float, float]:
+        """Centre of the charge disc [m]: the crest's centre at the crown."""
+        return (self.origin[0], self.origin[1] - 0.5 * self.crest_thickness, self.origin[2] + self.height)
+
+    def volume(self) -> float:
+        """The dam's volume [m³] by 64-point Gauss-Legendre over ζ of the arch section, the ring between R_d and R_u
+        cut by the valley walls |x| <= L/2: A(R) − A(R_d), A(R) = a √(R² − a²) + R² asin(a / R), a = L / 2."""
+        import numpy as np
+
+        nodes, weights = np.polynomial.legendre.leggauss(64)
+        zeta = 0.5 * (nodes + 1.0)
+        a = 0.5 * self.valley_width(zeta)
+        outer, inner = self.radii(zeta)
+
+        def part(r: Any) -> Any:
+            return a * np.sqrt(r * r - a * a) + r * r * np.arcsin(a / r)
+
+        return float(0.5 * self.height * np.sum(weights * (part(outer) - part(inner))))
+
+
+def _parabola(zeta: Any, values: tuple[float, float, float]) -> Any:
+    """The parabola through values at ζ = 0, 0.45, 1 (Lagrange form); array or float."""
+    z0, z1, z2 = 0.0, 0.45, 1.0
+    v0, v1, v2 = values
+    return (
+        v0 * (zeta - z1) * (zeta - z2) / ((z0 - z1) * (z0 - z2))
+        + v1 * (zeta - z0) * (zeta - z2) / ((z1 - z0) * (z1 - z2))
+        + v2 * (zeta - z0) * (zeta - z1) / ((z2 - z0) * (z2 - z1))
+    )
+
+
 def brick_cells(length: float, stagger: float, h: float) -> int:
     """Cells along a block's length: at least length / h, and a multiple of the stagger's denominator so that every
     course's head joints lie on grid lines (stagger 0.5: even). A Python int, however long the block."""
@@ -437,7 +582,7 @@ class BrickMeshSpec(_Model):
 
 
 Mesh = Annotated[
-    BoxMesh | GeologyMeshSpec | FileMesh | CylinderMesh | EllipsoidMesh | ArchMesh | BrickMeshSpec,
+    BoxMesh | GeologyMeshSpec | FileMesh | CylinderMesh | EllipsoidMesh | ArchMesh | ArchDamMesh | BrickMeshSpec,
     Field(discriminator="kind"),
 ]
 """The ``[mesh]`` section, selected by ``kind``."""

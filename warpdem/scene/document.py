@@ -22,7 +22,9 @@ from ..limits import (
 )
 from ..tables import BOX_FACE_NAMES, OPENING_FACE_NAME, SURFACE_FACE_NAME
 from .continuum import (
+    ARCH_DAM_FACE_NAMES,
     ARCH_FACE_NAMES,
+    ArchDamMesh,
     ArchMesh,
     BoxMesh,
     BrickMeshSpec,
@@ -308,6 +310,14 @@ class Scene(_Model):
             tets = mesh.volume() / _regular_tet_volume(mesh.h)
             nodes = tets / 4.0
             key = "mesh.h"
+        elif isinstance(mesh, ArchDamMesh):
+            # The coarse body, plus the crest's slab around the charge as if all of it had edge h_charge out to the
+            # middle of the grading (an over-estimate: the edge grows there).
+            reach = mesh.fine_distance + 0.5 * mesh.grading_distance
+            fine = min(mesh.volume(), 0.5 * math.pi * reach**2 * mesh.base_thickness)
+            tets = mesh.volume() / _regular_tet_volume(mesh.h) + fine / _regular_tet_volume(mesh.h_charge)
+            nodes = tets / 4.0
+            key = "mesh.h_charge"
         if tets:
             contributions += [(key, "tets", tets), (key, "nodes", nodes)]
         surfaces = self._joint_surface_problem()
@@ -348,6 +358,8 @@ class Scene(_Model):
         if mesh.kind in ("box", "arch"):
             return mesh.model_copy(update={"divisions": tuple(max(1, round(d * k)) for d in mesh.divisions)})
         update = {"h": mesh.h / k}
+        if mesh.kind == "arch_dam":
+            update["h_charge"] = mesh.h_charge / k
         if mesh.kind == "geology" and mesh.h_opening is not None:
             update["h_opening"] = mesh.h_opening / k
         return mesh.model_copy(update=update)
@@ -437,6 +449,8 @@ class Scene(_Model):
             return [SURFACE_FACE_NAME]
         if mesh.kind == "arch":
             return list(ARCH_FACE_NAMES)
+        if mesh.kind == "arch_dam":
+            return list(ARCH_DAM_FACE_NAMES)
         names = list(BOX_FACE_NAMES)
         if mesh.kind in ("geology", "bricks") and mesh.openings:
             names.append(OPENING_FACE_NAME)
@@ -466,7 +480,7 @@ class Scene(_Model):
         if self.fracture.enabled:
             problems += self.fracture_material_problems(self.mesh_material_names() or [])
         problems += self.conversion_material_problems(self.mesh_material_names() or [])
-        if mesh.kind in ("box", "geology", "cylinder", "ellipsoid", "arch", "bricks"):
+        if mesh.kind in ("box", "geology", "cylinder", "ellipsoid", "arch", "arch_dam", "bricks"):
             check("mesh.material", mesh.material, materials, "material")
         if mesh.kind == "file":
             if mesh.material is not None:
