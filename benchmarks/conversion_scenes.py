@@ -6,9 +6,9 @@ Each scene is built as ``warpdem run`` builds it (:func:`warpdem.build.scene_bui
 ``start_as_spheres`` region converted on the new Simulation) and stepped in Python, sampling between steps (conversion
 passes run inside ``Simulation.advance``). A converted tet is a live tet with ``tet_active`` = 0; its place is its
 centroid at the reference positions. Per sample: converted tets (per material), spheres, intact and broken bonds, the
-fastest sphere, and the fractured zone's extent: the distance of the farthest converted tet from the scene's charge (the
-centre of the pressure load's region); the tets converted by the passes (not the start_as_spheres region) are counted
-apart.
+fastest sphere, and the fractured zone: its extent, the distance of the farthest converted tet from the scene's charge
+(the centre of the pressure load's region, or an arch dam's charge disc), and its volume, the converted tets' reference
+volumes; the tets converted by the passes (not the start_as_spheres region) are counted apart.
 """
 
 from __future__ import annotations
@@ -26,12 +26,15 @@ SAMPLES = 20
 
 
 def charge_point(scene) -> np.ndarray:
-    """Centre of the first pressure load's region (the charge) [m]; the opening's centre for a load on 'opening'."""
+    """Centre of the first pressure load's region (the charge) [m]; the opening's centre for a load on 'opening'; an
+    arch dam's charge disc's centre."""
     load = next(entry for entry in scene.loads if entry.kind == "pressure")
     if load.region is not None:
         lo, hi = load.region.bounds()
         return 0.5 * (lo + hi)
     mesh = scene.mesh
+    if mesh.kind == "arch_dam":
+        return np.asarray(mesh.charge_center(), dtype=np.float64)
     opening = mesh.openings[0]
     centre = 0.5 * (np.asarray(mesh.lo) + np.asarray(mesh.hi))
     centre[[1 if opening.axis == "x" else 0, 2]] = opening.center
@@ -48,7 +51,9 @@ def report(scene, device: str, end_time: float | None) -> list[str]:
     started = start_as_spheres(scene, sim)
     nt = int(sim.state.tet_count.numpy()[0])
     tets = sim.model.tet_nodes.numpy()[:nt]
-    centroid = sim.model.node_ref_q.numpy()[tets].astype(np.float64).mean(axis=1)
+    corners = sim.model.node_ref_q.numpy()[tets].astype(np.float64)
+    centroid = corners.mean(axis=1)
+    volume = np.abs(np.linalg.det(corners[:, 1:] - corners[:, :1])) / 6.0
     material = sim.model.tet_material.numpy()[:nt]
     names = sim.model.material_names
     charge = charge_point(scene)
@@ -87,7 +92,8 @@ def report(scene, device: str, end_time: float | None) -> list[str]:
         out.append(
             f"  t = {sim.time * 1e3:6.3f} ms  converted {per_material}  spheres {n:5d}  "
             f"bonds {nb - live_broken:5d} intact {broken:5d} broken  "
-            f"fastest {float(speed.max(initial=0.0)):7.1f} m/s  zone {extent:5.2f} m "
+            f"fastest {float(speed.max(initial=0.0)):7.1f} m/s  "
+            f"zone {extent:5.2f} m {float(volume[converted].sum()):7.2f} m³ "
             f"({int(np.count_nonzero(adaptive))} tets converted adaptively)  "
             f"balance {(energy.total - e0.total) / in_play:+.1e}"
         )

@@ -1,12 +1,12 @@
 """A damaged restart file is refused before any kernel touches it (issue 29; warpdem.io.restart_check).
 
-Real checkpoints of short runs of six scenes, each field damaged one way with h5py, one field per file:
+Real checkpoints of short runs of seven scenes, each field damaged one way with h5py, one field per file:
 
 - pmma_plate mid-crack (nodes split, cohesive elements alive, pressure loads), rigid_slope (rigid bodies from the
   start), masonry_wall_blast (tets converted: spheres, bonds, neighbour lists), jointed_slope with bonded joints
   (joint interface elements) and its top held by a velocity load (node drivers), boulder_impact (a wall),
-  dam_crest_blast (bonded spheres penalty-coupled to the tets, spheres listing boundary faces, non-reflecting
-  dashpot faces).
+  dam_crest_blast (bonded spheres penalty-coupled to the tets, spheres listing boundary faces), masonry_tunnel_blast
+  (non-reflecting dashpot faces).
 
 Oracles:
 
@@ -58,6 +58,7 @@ RUNS: dict[str, tuple[str, list[str]]] = {
     "bonded_joints": ("", ["--frames", "1"]),
     "boulder_impact": ("scenes/boulder_impact.toml", ["--frames", "1"]),
     "dam_crest_blast": ("scenes/dam_crest_blast.toml", ["--frames", "1"]),
+    "masonry_tunnel_blast": ("scenes/masonry_tunnel_blast.toml", ["--frames", "1"]),
 }
 
 
@@ -267,7 +268,7 @@ def test_every_index_array_out_of_range_is_refused(runs, fresh, tmp_path, key):
 
 
 RUN_OF = {
-    # The run whose arrays of each capacity are the largest of the six (every run holds every capacity).
+    # The run whose arrays of each capacity are the largest of the seven (every run holds every capacity).
     "particle_capacity": "masonry_wall_blast",
     "max_neighbors": "masonry_wall_blast",
     "max_sphere_faces": "masonry_wall_blast",
