@@ -96,6 +96,14 @@ PICTURES = [
     Picture("masonry_wall_blast", "masonry_wall_blast", 12, "xz", keys=(("spheres", "speed"), ("rock", "stress"))),
     Picture("masonry_tunnel_blast", "masonry_tunnel_blast", 6, "xz", keys=(("spheres", "speed"), ("rock", "stress"))),
     Picture("dam_crest_blast", "dam_crest_blast", 10, keys=(("spheres", "speed"), ("rock", "stress"))),
+    Picture(
+        "dam_crest_blast_crater",
+        "dam_crest_blast",
+        10,
+        "xz",
+        keys=(("spheres", "speed"), ("rock", "stress")),
+        window=(-9.0, 9.0, 50.0, 64.0),
+    ),
 ]
 
 NOT_FROM_STAGES = {
