@@ -132,6 +132,19 @@ def test_face_sets_cover_the_surface_once(shipped):
     np.testing.assert_allclose(rel[crown, 1], spec.upstream_offset(rel[crown, 2] / spec.height), atol=1e-6)
 
 
+def test_resolution_and_size_estimate(shipped):
+    """run.resolution k divides both edges (h, h_charge) by k; the memory check's tet estimate
+    (ArchDamMesh.estimated_tets, regular tetrahedra of the threshold's edge) is an upper bound on Gmsh's count,
+    within a factor ESTIMATE_SLACK (Gmsh's tets are not regular: more of them fill a volume than edge³ / (6√2) says)."""
+    ESTIMATE_SLACK = 5.0
+    scene = load_scene(SCENE)
+    fine = scene.model_copy(update={"run": scene.run.model_copy(update={"resolution": 2.0})}).scaled_mesh()
+    assert (fine.h, fine.h_charge) == (scene.mesh.h / 2.0, scene.mesh.h_charge / 2.0)
+    spec, mesh = shipped
+    for dam, count in ((spec, len(mesh.tets)), (_small(), len(mesh_arch_dam(_small()).tets))):
+        assert count <= dam.estimated_tets() <= ESTIMATE_SLACK * count
+
+
 def test_mesh_is_deterministic():
     spec = _small()
     a, b = mesh_arch_dam(spec), mesh_arch_dam(spec)

@@ -499,6 +499,24 @@ class ArchDamMesh(_Model):
         """Centre of the charge disc [m]: the crest's centre at the crown."""
         return (self.origin[0], self.origin[1] - 0.5 * self.crest_thickness, self.origin[2] + self.height)
 
+    def estimated_tets(self) -> float:
+        """About how many tets Gmsh makes [-]: the dam at edge h, plus the graded zone about the charge as a half disc
+        in the dam's plane, as thick as the dam at its deepest point, of tets of the threshold's edge e(d) (h_charge
+        out to charge_radius + fine_distance from the centre, then linear to h over grading_distance), regular
+        tetrahedra of volume e³ / (6√2): ∫ π d t / (e(d)³ / (6√2)) dd by the midpoint rule. An over-estimate, for the
+        memory check: 2 to 4 times Gmsh's count on the shipped and test dams (tests/test_arch_dam.py)."""
+        import numpy as np
+
+        inner = self.charge_radius + self.fine_distance
+        reach = inner + self.grading_distance
+        d = (np.arange(400) + 0.5) * reach / 400
+        edge = self.h_charge + (self.h - self.h_charge) * np.clip((d - inner) / self.grading_distance, 0.0, 1.0)
+        depth = max(0.0, 1.0 - reach / self.height)
+        thick = float(np.max(self.thickness(np.linspace(depth, 1.0, 32))))
+        regular = 1.0 / (6.0 * math.sqrt(2.0))
+        graded = float(np.sum(math.pi * d * thick / (regular * edge**3))) * reach / 400
+        return self.volume() / (regular * self.h**3) + graded
+
     def volume(self) -> float:
         """The dam's volume [m³] by 64-point Gauss-Legendre over ζ of the arch section, the ring between R_d and R_u
         cut by the valley walls |x| <= L/2: A(R) − A(R_d), A(R) = a √(R² − a²) + R² asin(a / R), a = L / 2."""

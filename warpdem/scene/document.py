@@ -311,11 +311,7 @@ class Scene(_Model):
             nodes = tets / 4.0
             key = "mesh.h"
         elif isinstance(mesh, ArchDamMesh):
-            # The coarse body, plus the crest's slab around the charge as if all of it had edge h_charge out to the
-            # middle of the grading (an over-estimate: the edge grows there).
-            reach = mesh.fine_distance + 0.5 * mesh.grading_distance
-            fine = min(mesh.volume(), 0.5 * math.pi * reach**2 * mesh.base_thickness)
-            tets = mesh.volume() / _regular_tet_volume(mesh.h) + fine / _regular_tet_volume(mesh.h_charge)
+            tets = mesh.estimated_tets()
             nodes = tets / 4.0
             key = "mesh.h_charge"
         if tets:
