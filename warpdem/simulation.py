@@ -704,7 +704,8 @@ class Simulation:
         if tets == 0:
             return ConversionReport(0, 0, 0, 0, False)
         spawned = tets * self.model.spheres_per_tet
-        grew = self._grow_for_conversion(spawned, bonds, couplings)
+        # The band replaces the tie's couplings by one per band sphere: slots for each new sphere and the live ones.
+        grew = self._grow_for_conversion(spawned, bonds, max(couplings, spawned) if band else couplings)
         m, s = self.model, self.state
         old_faces = int(s.face_count.numpy()[0]) if m.face_capacity else 0
         if m.face_capacity:

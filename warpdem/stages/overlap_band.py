@@ -136,7 +136,8 @@ def apply_band(model: Model, state: State, before: BandSnapshot, incidence: np.n
         incidence: :func:`edge_incidence` of the live tets.
 
     Raises:
-        ValueError: the coupling slots cannot hold the band's couplings (never, by the count the tie wrote).
+        ValueError: the coupling slots cannot hold the band's couplings (Simulation grows them first to the live
+            couplings plus one per new sphere, which always holds them).
     """
     m, s = model, state
     nt = int(s.tet_count.numpy()[0])
