@@ -181,7 +181,7 @@ def test_free_run_conserves_momentum_and_closes_books(device):
 
 
 def test_schema_band_options():
-    assert Conversion().band_width == 2
+    assert Conversion().coupling == "band" and Conversion().band_width == 3
     assert Conversion(spheres_per_tet=4).coupling == "tie"  # the default falls back where the band cannot go
     with pytest.raises(pydantic.ValidationError, match="spheres_per_tet = 1"):
         Conversion(spheres_per_tet=4, coupling="band")
@@ -207,5 +207,6 @@ def test_default_reflects_less(device):
         default.band_penalty,
     )
     print(f"R tie {tie.r_energy:.3f} / {tie.r_gauge:.3f}, band {band.r_energy:.3f} / {band.r_gauge:.3f}")
+    assert default.coupling == "band"
     assert band.r_energy < tie.r_energy
     assert abs(band.r_gauge) < abs(tie.r_gauge)

@@ -87,14 +87,15 @@ class Conversion(_Model):
         default="converted", description="Part of the spawned spheres (created if [parts] does not name it)."
     )
     coupling: Literal["tie", "band"] = Field(
-        default="tie",
+        default="band",
         description="How spheres meet the continuum: 'band' (a blended DEM/FEM overlap band, CIMNE eqs. 8–9: "
         "converted tets within band_width tet layers of the continuum keep α of their FEM element, their spheres "
         "1 − α, tied to the element by penalty springs; it reflects less) or 'tie' (each converted tet dropped, its "
-        "spheres tied to the tets around). The band needs spheres_per_tet = 1.",
+        "spheres tied to the tets around). Default 'band' (benchmarks/overlap_band.py), 'tie' with spheres_per_tet = 4 "
+        "(the band needs 1).",
     )
     band_width: Int = Field(
-        default=2,
+        default=3,
         ge=1,
         description="Tet layers of the band, counted through shared edges from the continuum; α steps from 1 to 0 "
         "in band_width + 1 equal steps [-].",
