@@ -72,10 +72,18 @@ class Reflection:
     steps: int
 
 
-def build_bar(device: str, cells: int, spheres_from: float | None, band_width: int = 0, penalty: float = 1.0):
-    """The bar (module docstring), ``cells`` long; tets with centroid past ``spheres_from`` [cells] converted (None:
-    none). Returns (sim, points, tets)."""
-    points, tets = box_mesh((0.0, 0.0, 0.0), (cells * CELL, 2 * CELL, 2 * CELL), (cells, 2, 2))
+def build_bar(
+    device: str,
+    cells: int,
+    spheres_from: float | None,
+    band_width: int = 0,
+    penalty: float = 1.0,
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
+):
+    """The bar (module docstring), ``cells`` long, its corner at ``origin`` [m]; tets with centroid past
+    ``spheres_from`` [cells] from the corner converted (None: none). Returns (sim, points, tets)."""
+    lo = np.asarray(origin, dtype=np.float64)
+    points, tets = box_mesh(tuple(lo), tuple(lo + np.array([cells * CELL, 2 * CELL, 2 * CELL])), (cells, 2, 2))
     b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
     b.add_material("rock", DENSITY, YOUNG, POISSON)
     b.set_tet_properties("rock", TetProps(bulk_viscosity_linear=0.0, bulk_viscosity_quadratic=0.0))
@@ -88,16 +96,19 @@ def build_bar(device: str, cells: int, spheres_from: float | None, band_width: i
     )
     sim = Simulation(model, state, use_graph=False)
     if spheres_from is not None:
-        sim.convert_tets(points[tets].mean(axis=1)[:, 0] / CELL > spheres_from)
+        sim.convert_tets((points[tets].mean(axis=1)[:, 0] - lo[0]) / CELL > spheres_from)
     return sim, points, tets
 
 
-def launch_pulse(sim: Simulation, centre: float, width: float, amplitude: float) -> None:
+def launch_pulse(
+    sim: Simulation, centre: float, width: float, amplitude: float, origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
+) -> None:
     """A right-going bar wave on the nodes, u = a cos²(π (x − x_c)/w), v = −c u', with the lateral contraction of
-    uniaxial stress (as tests/test_coupling.py launches it)."""
+    uniaxial stress (as tests/test_coupling.py launches it); ``centre`` from the bar's corner ``origin`` [m]."""
     m, s = sim.model, sim.state
     nn = int(s.node_count.numpy()[0])
-    x = m.node_ref_q.numpy()[:nn].astype(np.float64)
+    corner = np.asarray(origin, dtype=np.float64)
+    x = m.node_ref_q.numpy()[:nn].astype(np.float64) - corner
     xi = (x[:, 0] - centre) / width
     inside = np.abs(xi) < 0.5
     strain = np.where(inside, -amplitude * np.pi / width * np.sin(2.0 * np.pi * xi), 0.0)
@@ -112,7 +123,7 @@ def launch_pulse(sim: Simulation, centre: float, width: float, amplitude: float)
     s.node_u.assign(u)
     s.node_qd.assign(v)
     q = np.zeros((m.node_capacity, 3), dtype=np.float32)
-    q[:nn] = x + u[:nn]
+    q[:nn] = x + corner + u[:nn]
     s.node_q.assign(q)
     sim.evaluate_forces()
 
