@@ -4,11 +4,12 @@ dam_crest_blast (default: all three).
 
 Each scene is built as ``warpdem run`` builds it (:func:`warpdem.build.scene_build.build_scene`, the
 ``start_as_spheres`` region converted on the new Simulation) and stepped in Python, sampling between steps (conversion
-passes run inside ``Simulation.advance``). A converted tet is a live tet with ``tet_active`` = 0; its place is its
-centroid at the reference positions. Per sample: converted tets (per material), spheres, intact and broken bonds, the
-fastest sphere, and the fractured zone: its extent, the distance of the farthest converted tet from the scene's charge
-(the centre of the pressure load's region, or an arch dam's charge disc), and its volume, the converted tets' reference
-volumes; the tets converted by the passes (not the start_as_spheres region) are counted apart.
+passes run inside ``Simulation.advance``). A converted tet is a live tet with a sphere (``tet_sphere`` >= 0; with the
+overlap band, the default, those in the band stay active with weight alpha); its place is its centroid at the reference
+positions. Per sample: converted tets (per material), spheres, intact and broken bonds, the fastest sphere, and the
+fractured zone: its extent, the distance of the farthest converted tet from the scene's charge (the centre of the
+pressure load's region, or an arch dam's charge disc), and its volume, the converted tets' reference volumes; the tets
+converted by the passes (not the start_as_spheres region) are counted apart.
 """
 
 from __future__ import annotations
@@ -58,7 +59,7 @@ def report(scene, device: str, end_time: float | None) -> list[str]:
     names = sim.model.material_names
     charge = charge_point(scene)
     distance = np.linalg.norm(centroid - charge, axis=1)
-    initial = sim.state.tet_active.numpy()[:nt] == 0  # the start_as_spheres region
+    initial = sim.state.tet_sphere.numpy()[:nt] >= 0  # the start_as_spheres region
     steps = max(1, round((end_time or scene.run.end_time) / sim.model.dt))
     out = [
         f"{scene.name}: {nt} tets, {int(sim.state.node_count.numpy()[0])} nodes, dt = {sim.model.dt * 1e6:.3f} µs, "
@@ -73,7 +74,7 @@ def report(scene, device: str, end_time: float | None) -> list[str]:
         if target > done:
             sim.advance(target - done)
             done = target
-        converted = sim.state.tet_active.numpy()[:nt] == 0
+        converted = sim.state.tet_sphere.numpy()[:nt] >= 0
         n = sim.particle_count
         speed = np.linalg.norm(sim.state.particle_qd.numpy()[:n], axis=1) if n else np.zeros(1)
         nb = sim.bond_count

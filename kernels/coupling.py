@@ -176,3 +176,29 @@ def material_point_kernel(
 ):
     i = wp.tid()  # one thread per queried point
     bary[i] = current_barycentric(points[i], tet_nodes[tets[i]], node_ref_q, node_u)
+
+
+@wp.kernel
+def coupling_rest_kernel(
+    # Model:
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    node_ref_q: wp.array(dtype=wp.vec3),
+    # State in:
+    particle_q: wp.array(dtype=wp.vec3d),
+    node_u: wp.array(dtype=wp.vec3),
+    coupling_count: wp.array(dtype=int),
+    coupling_particle: wp.array(dtype=int),
+    coupling_tet: wp.array(dtype=int),
+    coupling_bary: wp.array(dtype=wp.vec4),
+    # In:
+    first: int,
+    # State out:
+    coupling_rest: wp.array(dtype=wp.vec3),
+):
+    c = wp.tid()  # one thread per coupling slot; only the slots from ``first`` on (new couplings) are written
+    if c < first or c >= coupling_count[0]:
+        return
+    # Born relaxed: the gap now, as eval_coupling_kernel forms it, is the rest it subtracts (the float32 rounding
+    # of N_a and of X_a - x_p, a few ε₃₂ of the tet's size).
+    p = coupling_particle[c]
+    coupling_rest[c] = coupling_gap(particle_q[p], tet_nodes[coupling_tet[c]], coupling_bary[c], node_ref_q, node_u)

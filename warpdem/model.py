@@ -156,6 +156,12 @@ class Model:
             int32.
         conversion_material_table: criterion, fraction and strengths of every material id, shape (num_materials,),
             ConversionMaterial (kernels/conversion.py).
+        band_width: tet layers of the blended DEM/FEM overlap band (CIMNE eq. 8, warpdem.stages.overlap_band); 0: no
+            band, each converted tet is dropped and its spheres tied to the continuum around (the tie).
+        band_penalty: factor on the band's penalty stiffness (eq. 9) over warpdem.stages.coupling's rule [-].
+        tet_band_volume: α_t V₀ of each tet [m³], the volume its FEM forces, strain energy and lumped mass stand for
+            (α = 1 on the continuum, 0 < α < 1 on a converted tet in the band, 0 on an inactive one), shape
+            (tet_capacity,); None without a band (α = 1 wherever a tet is active).
         tet_edge_degree: Z_t, the live tets sharing an edge with each tet (converted or not: the bonds' V_b = V_t /
             Z_t + V_n / Z_n, warpdem.stages.lattice), 0 past the live tets, shape (tet_capacity,), int32; set at attach
             (the mesh's topology then; a conversion pass recomputes what it reads where nodes may split).
@@ -265,6 +271,9 @@ class Model:
     tet_may_convert: wp.array | None = None
     conversion_material_table: wp.array | None = None
     tet_edge_degree: wp.array | None = None
+    band_width: int = 0
+    band_penalty: float = 1.0
+    tet_band_volume: wp.array | None = None
     rigid_switch: bool = False
     rigid_switch_time: float = 0.0
     rigid_energy_fraction: float = 0.0

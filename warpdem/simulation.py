@@ -43,6 +43,7 @@ import warp as wp
 from .kernels import rigid as kernels_rigid
 from .kernels.tets import TET_ACTIVE
 from .model import NEIGHBOR_FIELDS, Model, State
+from .stages import overlap_band
 from .stages.bonds import compact_bonds, eval_bonds
 from .stages.cohesive import compact_cohesive, eval_cohesive, regrow_cohesive
 from .stages.compaction import Compactor
@@ -148,6 +149,7 @@ class Simulation:
         # The conversion pass's scratch and the stars of all live tets live as long as the simulation (grown with
         # the capacities): made here, not at the first pass.
         self._conversion: ConversionPass | None = None
+        self._band_edges: np.ndarray | None = None  # the band's edge ids (Simulation._band_incidence)
         if model.tet_may_convert is not None:
             self._conversion = ConversionPass(model)
             self._conversion.build_stars(model, state)
@@ -694,11 +696,16 @@ class Simulation:
         """A conversion pass of the tets the criterion flags (``forced`` None) or of ``forced`` (int per tet slot)."""
         if self._conversion is None or not self._conversion.fits(self.model):
             self._conversion = ConversionPass(self.model)
+        band = self.model.band_width > 0
+        if band and forced is not None:
+            # A band tet is converted already (it keeps α of its FEM element): it does not convert again.
+            forced = np.where(self.state.tet_sphere.numpy() >= 0, 0, forced).astype(np.int32)
         tets, bonds, couplings = self._conversion.find(self.model, self.state, forced)
         if tets == 0:
             return ConversionReport(0, 0, 0, 0, False)
         spawned = tets * self.model.spheres_per_tet
-        grew = self._grow_for_conversion(spawned, bonds, couplings)
+        # The band replaces the tie's couplings by one per band sphere: slots for each new sphere and the live ones.
+        grew = self._grow_for_conversion(spawned, bonds, max(couplings, spawned) if band else couplings)
         m, s = self.model, self.state
         old_faces = int(s.face_count.numpy()[0]) if m.face_capacity else 0
         if m.face_capacity:
@@ -706,7 +713,10 @@ class Simulation:
         before = self.shadow() - coupling_energy(m, s) if self.track_energy else 0.0
         hold_contact_stiffness(m, s)
         contacts_before = self._contact_books()
+        snap = overlap_band.snapshot(m, s) if band else None
         self._conversion.convert(m, s, self.coupling_compactor)
+        if snap is not None:
+            overlap_band.apply_band(m, s, snap, self._band_incidence())
         self._after_conversion(old_faces)
         self._book_contact_topology(contacts_before)
         if self.track_energy:
@@ -718,6 +728,14 @@ class Simulation:
             released = self.state.energy_released_conversion
             released.assign(released.numpy() + (after - before))
         return ConversionReport(tets, spawned, bonds, couplings, grew)
+
+    def _band_incidence(self) -> np.ndarray:
+        """The live tets' edge ids (warpdem.stages.overlap_band.edge_incidence), kept while nodes cannot split."""
+        m = self.model
+        if self._band_edges is None or m.fracture_material_table is not None:
+            nt = int(self.state.tet_count.numpy()[0])
+            self._band_edges = overlap_band.edge_incidence(m.tet_nodes.numpy()[:nt])
+        return self._band_edges
 
     def _grow_for_conversion(self, spheres: int, bonds: int, couplings: int) -> bool:
         """Grow the particle, bond and coupling capacities ×2 until they hold ``spheres``, ``bonds`` and

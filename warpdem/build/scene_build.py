@@ -282,6 +282,8 @@ def attach_scene_conversion(scene: Scene, model: Model, state: State) -> tuple[M
             may_convert=may_convert,
             spheres_per_tet=conversion.spheres_per_tet,
             part=model.part_names.index(conversion.part),
+            band_width=conversion.band_width if conversion.coupling == "band" else 0,
+            band_penalty=conversion.band_penalty,
         )
     except ValueError as exc:
         # Values the schema already checks; a direct caller's mistake still names the key.

@@ -159,6 +159,17 @@ def _no_pass(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | 
     return None
 
 
+def _no_band_needed(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
+    """Exact where the restarted model has no overlap band (the older run had none either), or no tet had converted
+    (the band's α is then 1 on every tet, its volumes the tets')."""
+    if model.band_width and _total(arrays, "tets_converted_total"):
+        return (
+            "the older run tied its converted spheres without an overlap band; restart it with [conversion] "
+            "coupling = 'tie'"
+        )
+    return None
+
+
 def _no_bodies(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> str | None:
     """Exact where the blocks have not turned rigid (the rigid fields are then empty, their lines zero)."""
     bodies = arrays.get("state/body_mass")
@@ -334,6 +345,11 @@ FIELD_MIGRATIONS: dict[str, FieldMigration] = {
     # The cohesive elements' work off their law on a line of its own (format 9): an older run booked it on the
     # cohesive line, which keeps it; the books close with the new line from zero.
     "state/node_energy_cohesive_trapezoid": FieldMigration(9, _always, "state/node_energy_cohesive"),
+    # The blended overlap band (format 10): an older run tied its spheres (band_width 0); a band model takes it where
+    # nothing had converted yet.
+    "attribute band_width": FieldMigration(10, _no_band_needed),
+    "attribute band_penalty": FieldMigration(10, _always),
+    "model/tet_band_volume": FieldMigration(10, _no_band_needed, "model/tet_volume"),
 }
 """The fields added since checkpoint format 1, by checkpoint key (``state/<name>``, ``model/<name>``, ``attribute
 <name>`` for a model scalar), and when a restart may fill them from the fresh model and state

@@ -99,7 +99,7 @@ _MODEL_SIZES: dict[str, Size] = {
     **_each("ref_tet_face_nbr", Size(("tet_capacity",), scale=4, floor=1)),
     **_each("tet_face_joint", Size(("tet_capacity",), scale=4)),
     **_each("tet_nodes tet_inv_ref tet_volume tet_length tet_material", _T),
-    **_each("tet_may_convert tet_edge_degree tet_may_rigid", _T),
+    **_each("tet_may_convert tet_edge_degree tet_may_rigid tet_band_volume", _T),
     **_each("face_nodes face_tet face_joint face_depth", Size(("face_capacity",))),
     **_each("joint_a joint_b joint_area joint_kn joint_tet_face joint_set", Size(("joint_capacity",))),
 }
@@ -318,9 +318,9 @@ frame period [s], the step still to take at the next frame boundary, the colour 
 RUN_RECORDS: dict[str, type] = {"energy_start": EnergyBalance, "rigid_report": RigidReport}
 """Attributes holding a record (a dict of its fields) that a restart rebuilds."""
 
-SCENE_SETTINGS = ("node_springs", "spheres_per_tet", "conversion_part")
+SCENE_SETTINGS = ("node_springs", "spheres_per_tet", "conversion_part", "band_width")
 """Model scalars a run never changes and the kernels or passes rely on (node_springs: the kernels are compiled for it;
-the spheres and part of a converted tet): the scene's."""
+the spheres and part of a converted tet; the overlap band's layers, whose α the tets' volumes hold): the scene's."""
 
 # ----------------------------------------------------------------------------------------------------------------
 # The checks

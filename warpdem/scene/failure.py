@@ -86,6 +86,23 @@ class Conversion(_Model):
     part: Name = Field(
         default="converted", description="Part of the spawned spheres (created if [parts] does not name it)."
     )
+    coupling: Literal["tie", "band"] = Field(
+        default="band",
+        description="How spheres meet the continuum: 'band' (a blended DEM/FEM overlap band, CIMNE eqs. 8–9: "
+        "converted tets within band_width tet layers of the continuum keep α of their FEM element, their spheres "
+        "1 − α, tied to the element by penalty springs; it reflects less) or 'tie' (each converted tet dropped, its "
+        "spheres tied to the tets around). Default 'band' (benchmarks/overlap_band.py), 'tie' with spheres_per_tet = 4 "
+        "(the band needs 1).",
+    )
+    band_width: Int = Field(
+        default=3,
+        ge=1,
+        description="Tet layers of the band, counted through shared edges from the continuum; α steps from 1 to 0 "
+        "in band_width + 1 equal steps [-].",
+    )
+    band_penalty: Float = Field(
+        default=1.0, gt=0, description="Factor on the band's penalty stiffness over the coupling rule [-]."
+    )
 
     @field_validator("spheres_per_tet")
     @classmethod
@@ -94,6 +111,16 @@ class Conversion(_Model):
         if value not in (1, 4):
             raise ValueError("must be 1 or 4")
         return value
+
+    @model_validator(mode="after")
+    def _band_needs_one_sphere(self) -> Conversion:
+        if self.spheres_per_tet != 1 and self.coupling == "band":
+            if "coupling" in self.model_fields_set:
+                raise ValueError(
+                    "coupling = 'band' needs spheres_per_tet = 1 (use coupling = 'tie' with four spheres per tet)"
+                )
+            object.__setattr__(self, "coupling", "tie")  # the default falls back to what four spheres support
+        return self
 
 
 class Rigid(_Model):

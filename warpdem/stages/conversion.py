@@ -50,7 +50,9 @@ Rules of the conversion pass (others rely on them):
   against 10.5 % with face neighbours alone) at its current barycentric coordinates there (born relaxed), with
   warpdem.stages.coupling.coupling_stiffness's rule k = k_b min(1, 2 / (1 + m_s Σ N_a² / m_a)), k_b the bond the sphere
   would have with a sphere at that tet's centroid; couplings to the tets converting now are released first
-  (compact_coupling).
+  (compact_coupling). With the blended overlap band (``Model.band_width`` ≥ 1) Simulation re-weights the pass's
+  result right after it (warpdem.stages.overlap_band.apply_band): converted tets within the band stay FEM elements
+  of weight α, their spheres take 1 − α, and the tie's couplings are replaced by one per band sphere to its own tet.
 - Energy: ``energy_released_conversion`` += strain energy + kinetic energy of the tet's nodes' shares − the sphere's
   translational and spin energy (bonds and couplings are born relaxed, so they hold nothing), + the springs of the
   released couplings, + the change of Verlet's shadow term over the pass (Simulation: the scheme conserves kinetic −
@@ -216,6 +218,8 @@ def attach_conversion(
     spheres_per_tet: int = 1,
     part: int = 0,
     coupling_capacity: int | None = None,
+    band_width: int = 0,
+    band_penalty: float = 1.0,
 ) -> tuple[Model, State]:
     """Turn FEM→DEM conversion on for a built model (before its Simulation is made).
 
@@ -230,6 +234,9 @@ def attach_conversion(
             warpdem.stages.multisphere).
         part: part id of the spawned spheres (< len(model.part_names) when the model names parts).
         coupling_capacity: initial penalty coupling slots (grown ×2 on demand); None: max(64, tet_count // 8).
+        band_width: tet layers of the blended overlap band (warpdem.stages.overlap_band; CIMNE eq. 8); 0: the tie
+            (each converted tet dropped, its spheres tied to the continuum around, warpdem.stages.coupling).
+        band_penalty: factor on the band's penalty stiffness over the coupling rule (> 0) [-].
 
     Returns:
         The model (``conversion_interval``, ``spheres_per_tet``, ``conversion_part``, ``coupling_capacity``,
@@ -259,6 +266,15 @@ def attach_conversion(
         raise ValueError(f"attach_conversion: part must be a part id in [0, {len(model.part_names)}), got {part!r}")
     if model.tet_capacity == 0:
         raise ValueError("attach_conversion: the model has no tets to convert")
+    if not _is_count(band_width, 0):
+        raise ValueError(f"attach_conversion: band_width must be an integer >= 0 (tet layers), got {band_width!r}")
+    if band_width and spheres_per_tet != 1:
+        raise ValueError(
+            f"attach_conversion: the overlap band (band_width = {band_width}) needs spheres_per_tet = 1, got "
+            f"{spheres_per_tet}"
+        )
+    if isinstance(band_penalty, bool) or not (math.isfinite(band_penalty) and band_penalty > 0.0):
+        raise ValueError(f"attach_conversion: band_penalty must be a finite number > 0, got {band_penalty!r}")
     nt = int(state.tet_count.numpy()[0])
     flags = live_flags(may_convert, nt, model.tet_capacity, "attach_conversion", "may_convert", "tet")
     if coupling_capacity is None:
@@ -302,6 +318,9 @@ def attach_conversion(
         if model.ref_tet_face_nbr is not None
         else reference_face_neighbors(model, state),
         conversion_material_table=table,
+        band_width=int(band_width),
+        band_penalty=float(band_penalty),
+        tet_band_volume=wp.clone(model.tet_volume) if band_width else None,
         tet_edge_degree=wp.array(
             np.bincount(pairs.ravel(), minlength=model.tet_capacity).astype(np.int32), dtype=int, device=d
         ),

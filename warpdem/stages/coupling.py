@@ -11,8 +11,10 @@ support of the remaining tet's shape functions extended past its face, and eq. 9
 continuum's kinematics. The constraint is imposed by a penalty, as CIMNE do (after Rojek & Oñate 2007):
 U = ½ k |g|², g = Σ_a N_a x_a - x_p; the sphere feels k g and node a feels -N_a k g. A coupling is released (its
 slot removed by :func:`compact_coupling`) when its tet converts too; the sphere is then bonded to the new sphere
-instead. Nothing blends α linearly through a band of several tets: the band is one tet deep, and the gradual hand-over
-of stiffness that eq. 8's linear α gives is replaced by one interface spring per sphere–tet pair.
+instead. This is the tie: nothing blends α linearly through a band of several tets, and the gradual hand-over of
+stiffness that eq. 8's linear α gives is replaced by one interface spring per sphere–tet pair. The blended band
+(``Model.band_width`` ≥ 1, the scenes' default) is warpdem.stages.overlap_band: it uses these springs to tie each band
+sphere to its own, α-weighted tet, and reflects less (benchmarks/overlap_band.py).
 
 What holds. Σ forces = k g (1 - Σ_a N_a) = 0 (Σ N_a = 1; in float32 to a few ε₃₂ |k g|). The forces are a
 collinear pair: k g at x_p and -k g at x_mp (node a's share -N_a k g at x_a has the same moment as -k g at x_mp,

@@ -196,7 +196,7 @@ def eval_tets(model: Model, state: State, dt: float | None = None) -> None:
             # Model:
             m.tet_nodes,
             m.tet_inv_ref,
-            m.tet_volume,
+            m.tet_volume if m.tet_band_volume is None else m.tet_band_volume,
             m.tet_length,
             m.tet_material,
             m.tet_material_table,
@@ -252,7 +252,7 @@ def tet_energies(model: Model, state: State, active: wp.array | None = None, out
                 # Model:
                 m.tet_nodes,
                 m.tet_inv_ref,
-                m.tet_volume,
+                m.tet_volume if m.tet_band_volume is None else m.tet_band_volume,
                 m.tet_material,
                 m.tet_material_table,
                 # State in:
