@@ -11,7 +11,8 @@ a line may fall over a frame by at most BOOK_ROUNDOFF ε₃₂ √n of the energ
 tests/test_scenes.py on the whole balance.
 
 Shortening: each scene runs FRAMES frames of 1/SPLIT of its own frame (output_rate × SPLIT), one frame of its own in
-all: a blast scene's first conversion pass (masonry_wall_blast at step 25) and the first splits of limestone_tunnel
+all: a blast scene's first conversion pass (masonry_tunnel_blast's lining), a charge crushing bonded spheres
+(masonry_wall_blast's box, spheres from the start, under its handed-over push) and the first splits of limestone_tunnel
 fall in it. Two lines are Verlet's work off a conservative law, of either sign, and are not checked here: the bonds'
 springs' -W - ΔU, ``bond_trapezoid`` (on the damping line it fell by 65 J in a frame on masonry_tunnel_blast and
 11.5 J on dam_crest_blast when it was a 10 m arch piece: lattice bonds crushed and turned in their first steps after a

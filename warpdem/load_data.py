@@ -24,6 +24,13 @@ class FaceSet:
         edge_b: reference edge X2 - X0 [m] (float64 on the host), shape (F,), vec3.
         index: pressure load of each face (into LoadModel.pressure_loads), shape (F,), int32; or None.
         impedance: (ρ c_p, ρ c_s) of the tet behind each dashpot face [Pa s/m], shape (F,), vec2; or None.
+        tet: the tet behind each pressure face, shape (F,), int32; or None (dashpots).
+        handed_area: the area vector of each pressure face when its tet converted [m²], shape (F,), vec3: the face's
+            push p(t) a then acts on that tet's spheres (kernels/loads.py, "Hand-over"); zero while the tet is a tet,
+            and for a face dropped before the hand-over existed (a restart of such a run). Written by the
+            conversion pass; or None (dashpots).
+        first: the set's first slot in the State's per-loaded-face arrays (``load_face_force``, ``load_face_work``:
+            the pressure sets one after the other, in ``LoadModel.pressure``'s order).
     """
 
     nodes: wp.array
@@ -31,6 +38,9 @@ class FaceSet:
     edge_b: wp.array
     index: wp.array | None = None
     impedance: wp.array | None = None
+    tet: wp.array | None = None
+    handed_area: wp.array | None = None
+    first: int = 0
 
     @property
     def count(self) -> int:
@@ -43,8 +53,19 @@ class FaceSet:
         device,
         index: np.ndarray | None = None,
         impedance: np.ndarray | None = None,
+        tet: np.ndarray | None = None,
+        first: int = 0,
     ) -> FaceSet:
+        """Faces (F, 3) of ``points`` [m] (N, 3); with ``tet`` (F,), the tet behind each, the hand-over arrays of a
+        pressure face set (zero: no face handed over yet), its State slots from ``first``."""
         x = np.asarray(points, dtype=np.float64)[faces]
+        handed = {}
+        if tet is not None:
+            handed = {
+                "tet": wp.array(np.asarray(tet, dtype=np.int32), dtype=int, device=device),
+                "handed_area": wp.zeros(len(faces), dtype=wp.vec3, device=device),
+                "first": int(first),
+            }
         return FaceSet(
             nodes=wp.array(faces.astype(np.int32), dtype=wp.vec3i, device=device),
             edge_a=wp.array((x[:, 1] - x[:, 0]).astype(np.float32), dtype=wp.vec3, device=device),
@@ -53,6 +74,7 @@ class FaceSet:
             impedance=None
             if impedance is None
             else wp.array(impedance.astype(np.float32), dtype=wp.vec2, device=device),
+            **handed,
         )
 
 

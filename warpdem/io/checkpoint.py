@@ -27,7 +27,10 @@ lines); 8 the bonds' springs' trapezoid line (``energy_bond_trapezoid``: zero in
 damping and friction lines); 9 the cohesive elements' trapezoid line (``node_energy_cohesive_trapezoid``: zero in an
 older run, which booked it on the cohesive line); 10 the blended overlap band (the model scalars ``band_width``,
 ``band_penalty`` and the array ``tet_band_volume``: an older run had no band, so a band model restarts from it only
-where no tet had converted).
+where no tet had converted); 11 the pressure loads' hand-over to the spheres of converted tets
+(``loads/pressure_<kind>_handed_area``, ``state/load_face_force``, ``state/load_face_work``: zero in an older run,
+which dropped the faces of converted tets without a hand-over, so its dropped faces stay dropped and the books close
+from zero).
 
 Files are written to ``<name>.tmp-<pid>`` in the target directory and moved over the final name with
 ``os.replace``, so a crash or an error mid-write never damages the previous checkpoint.
@@ -60,7 +63,7 @@ __all__ = [
 FORMAT_NAME = "warpdem-checkpoint"
 """Value of the root attribute ``warpdem_format`` identifying a warpdem checkpoint."""
 
-FORMAT_VERSION = 10
+FORMAT_VERSION = 11
 """Newest checkpoint format this module writes and reads (module docstring, "Versions"); bump when the layout changes
 or fields are added, and list what older files may lack in warpdem.io.restart.FIELD_MIGRATIONS."""
 

@@ -62,11 +62,17 @@ def model_texts(model: Model) -> dict[str, str]:
 def load_checkpoint_arrays(model: Model) -> dict[str, wp.array]:
     """The arrays of the model's LoadModel that a run changes, by checkpoint name: the node drivers (per node, grown
     with the node capacity by a split pass) and the node triples of the loaded and dashpot faces (remapped onto the
-    daughters of split nodes). The rest of the loads comes from the scene."""
+    daughters of split nodes), and the area vectors of the pressure faces handed over to converted tets' spheres
+    (kernels/loads.py, Hand-over; format 11: the forces kept and their work are State fields). The rest of the loads
+    comes from the scene. An older checkpoint lacks the area vectors: its faces keep the fresh zeros, exactly that
+    run's state (it handed nothing over: its dropped faces stay dropped)."""
     loads = model.loads
     if loads is None:
         return {}
     out = {f"pressure_{kind}_nodes": faces.nodes for kind, faces in loads.pressure.items()}
+    for kind, faces in loads.pressure.items():
+        if faces.handed_area is not None:
+            out[f"pressure_{kind}_handed_area"] = faces.handed_area
     if loads.dashpots is not None:
         out["dashpots_nodes"] = loads.dashpots.nodes
     if isinstance(loads.node_driver, wp.array):
@@ -350,6 +356,10 @@ FIELD_MIGRATIONS: dict[str, FieldMigration] = {
     "attribute band_width": FieldMigration(10, _no_band_needed),
     "attribute band_penalty": FieldMigration(10, _always),
     "model/tet_band_volume": FieldMigration(10, _no_band_needed, "model/tet_volume"),
+    # The pressure loads' hand-over to converted tets' spheres (format 11): an older run handed nothing over (its
+    # dropped faces pushed nothing), so its kept forces and their work are zero.
+    "state/load_face_force": FieldMigration(11, _always),
+    "state/load_face_work": FieldMigration(11, _always),
 }
 """The fields added since checkpoint format 1, by checkpoint key (``state/<name>``, ``model/<name>``, ``attribute
 <name>`` for a model scalar), and when a restart may fill them from the fresh model and state
