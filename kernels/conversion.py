@@ -638,18 +638,36 @@ def drop_converted_faces_kernel(
     star_offset: wp.array(dtype=int),
     star_count: wp.array(dtype=int),
     star_tets: wp.array(dtype=int),
+    face_tet: wp.array(dtype=int),
+    hand_over: int,
+    # State in:
+    node_u: wp.array(dtype=wp.vec3),
+    tet_sphere: wp.array(dtype=int),
     # Model out:
     face_nodes: wp.array(dtype=wp.vec3i),
     face_edge_a: wp.array(dtype=wp.vec3),
     face_edge_b: wp.array(dtype=wp.vec3),
+    face_handed_area: wp.array(dtype=wp.vec3),
 ):
     f = wp.tid()  # one thread per loaded face: it stays while an active tet holds its three nodes
     n = face_nodes[f]
-    if n[0] != n[1]:
-        start = star_offset[n[0]]
-        for e in range(start, start + star_count[n[0]]):
-            if shares_face(tet_nodes[star_tets[e]], n):
-                return
+    if n[0] == n[1]:
+        # Dropped before (a restart's collapsed triple, its edges from the scene: zeroed again; its hand-over, if
+        # any, came with the checkpoint).
+        face_edge_a[f] = wp.vec3(0.0)
+        face_edge_b[f] = wp.vec3(0.0)
+        return
+    start = star_offset[n[0]]
+    for e in range(start, start + star_count[n[0]]):
+        if shares_face(tet_nodes[star_tets[e]], n):
+            return
+    if hand_over != 0:
+        if tet_sphere[face_tet[f]] >= 0:
+            # A pressure face of a tet that turned into spheres: its push goes on there with the area vector it has
+            # now (kernels/loads.py, Hand-over), ½ (x1 - x0) × (x2 - x0) from its reference edges and displacements.
+            ea = face_edge_a[f] + (node_u[n[1]] - node_u[n[0]])
+            eb = face_edge_b[f] + (node_u[n[2]] - node_u[n[0]])
+            face_handed_area[f] = 0.5 * wp.cross(ea, eb)
     # Its tet converted: the face is dropped, collapsed onto its first node with zero reference edges (zero area, so
     # no force and no work; a collapsed triple, as a checkpoint keeps it, is recognised as dropped).
     face_nodes[f] = wp.vec3i(n[0], n[0], n[0])

@@ -21,6 +21,21 @@ is not f_n for a turning block. The kept forces need no list of the loaded nodes
 a split or conversion pass re-evaluates every force at dt = 0, which makes ``node_f_load`` again from the faces as
 they are then (the daughters' shares included), and the next kick works with exactly those forces.
 
+Hand-over: a pressure face whose tet turns into spheres (a conversion pass, or a region that starts as spheres) is
+dropped from the nodes, but its push goes on, on that tet's spheres, for the rest of the load's history: the force
+-p(t) a_c, a_c the face's area vector when its tet converted (``handed_area``, written by the pass:
+kernels/conversion.py ``drop_converted_faces_kernel``), shared equally among the tet's ``spheres_per_tet`` spheres,
+p evaluated at their mean position (where a Friedlander front arrives). Why this rule: the spheres hold no faces, so
+the area and direction can only be those the face had; frozen, the load delivers exactly the impulse ∫p dt a_c that
+the face would have delivered had it stayed (up to the face's small stretch and turn), whichever way the material
+is then modelled, and equal shares keep it a push on the tet's mass as a whole (the lumped face load put a third on
+each face node, ρV/4 of the tet's mass at each). A sphere flying off keeps its push in its own frozen direction,
+as a fragment driven by the gas behind it. Its work is booked per face by the same trapezoid as the nodes' (the
+evaluation of f_{n+1} books ½ dt (f_n + f_{n+1})·v_{n+1/2} at once, against the spheres' mean v_{n+1/2}: the half
+ahead of the kept f_n and the half behind f_{n+1} are both against that velocity), into ``handed_work``, which the
+energy balance adds to the load work line. A pass between steps re-evaluates at dt = 0 (no work): the handed face's
+kept force is then exactly the force the nodes last felt (same time, same area vector), so the books run on.
+
 Non-reflecting boundary (Lysmer & Kuhlemeyer 1969): the traction t = -ρ c_p (v·n) n - ρ c_s (v - (v·n) n) of a
 semi-infinite continuum carrying a plane wave away normally. It is lumped per node (each node's dashpot sees its
 own velocity, a third of each adjacent face's area), at the half-step velocity as the mass-proportional damping of
@@ -167,6 +182,31 @@ def face_area_vector(n: wp.vec3i, edge_a: wp.vec3, edge_b: wp.vec3, node_u: wp.a
 
 
 @wp.func
+def handed_spheres(
+    f: int,
+    face_tet: wp.array(dtype=int),
+    face_handed_area: wp.array(dtype=wp.vec3),
+    tet_sphere: wp.array(dtype=int),
+) -> int:
+    """The first sphere slot of the tet behind a dropped pressure face whose push was handed over to its spheres, or
+    -1: a face dropped without a hand-over (zero area: its tet had no spheres when it was dropped, or a restart of a
+    run from before the hand-over)."""
+    if wp.length_sq(face_handed_area[f]) == 0.0:
+        return -1
+    return tet_sphere[face_tet[f]]
+
+
+@wp.func
+def spheres_centre(particle_q: wp.array(dtype=wp.vec3d), first: int, count: int) -> wp.vec3:
+    """Mean position of the spheres first .. first + count - 1 [m] (float64 centres, the mean rounded once)."""
+    x = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    for k in range(count):
+        x = x + particle_q[first + k]
+    x = x / wp.float64(count)
+    return wp.vec3(float(x[0]), float(x[1]), float(x[2]))
+
+
+@wp.func
 def lysmer_traction(v: wp.vec3, normal: wp.vec3, impedance: wp.vec2) -> wp.vec3:
     """Viscous traction of a non-reflecting boundary [Pa] (Lysmer & Kuhlemeyer 1969):
     t = -ρ c_p (v·n) n - ρ c_s (v - (v·n) n), impedance = (ρ c_p, ρ c_s) [Pa s/m], n the unit normal."""
@@ -216,6 +256,9 @@ def make_face_pressure_kernel(kind: str) -> wp.Kernel:
         loads: wp.array(dtype=PressureLoad),
         table_times: wp.array(dtype=wp.float64),
         table_values: wp.array(dtype=float),
+        face_tet: wp.array(dtype=int),
+        face_handed_area: wp.array(dtype=wp.vec3),
+        spheres_per_tet: int,
         dt: float,
         dt64: wp.float64,
         # State in:
@@ -223,14 +266,41 @@ def make_face_pressure_kernel(kind: str) -> wp.Kernel:
         node_u: wp.array(dtype=wp.vec3),
         node_q: wp.array(dtype=wp.vec3),
         node_qd: wp.array(dtype=wp.vec3),
+        tet_sphere: wp.array(dtype=int),
+        particle_q: wp.array(dtype=wp.vec3d),
+        particle_qd: wp.array(dtype=wp.vec3),
         # State out:
         node_f: wp.array(dtype=wp.vec3),
         node_f_load: wp.array(dtype=wp.vec3),
         node_energy_boundary_work: wp.array(dtype=wp.float64),
+        particle_f: wp.array(dtype=wp.vec3),
+        face_handed_force: wp.array(dtype=wp.vec3),
+        face_handed_work: wp.array(dtype=wp.float64),
     ):
         f = wp.tid()  # one thread per loaded face
         n = face_nodes[f]
         load = loads[face_load[f]]
+        if n[0] == n[1]:
+            # Dropped: its tet converted. Handed over to the tet's spheres where the pass recorded its area.
+            first = handed_spheres(f, face_tet, face_handed_area, tet_sphere)
+            if first < 0:
+                return
+            share = 1.0 / float(spheres_per_tet)
+            v = wp.vec3(0.0)
+            for k in range(spheres_per_tet):
+                v = v + particle_qd[first + k]
+            x = spheres_centre(particle_q, first, spheres_per_tet)
+            p = history(load, time[0] + dt64, x, table_times, table_values)
+            force = -p * face_handed_area[f]
+            if dt > 0.0:
+                # ½ dt (f_n + f_{n+1})·v_{n+1/2} on the spheres, each with its share (module docstring, Hand-over).
+                kept = face_handed_force[f]
+                face_handed_work[f] = face_handed_work[f] + wp.float64(0.5 * dt * wp.dot(kept + force, v * share))
+            face_handed_force[f] = force
+            if p != 0.0:
+                for k in range(spheres_per_tet):
+                    wp.atomic_add(particle_f, first + k, force * share)
+            return
         centroid = (node_q[n[0]] + node_q[n[1]] + node_q[n[2]]) / 3.0
         # The forces belong to the new positions, at t_{n+1} = t_n + dt (the clock advances at the end of the step).
         p = history(load, time[0] + dt64, centroid, table_times, table_values)
@@ -266,19 +336,34 @@ def make_load_force_kernel(kind: str) -> wp.Kernel:
         loads: wp.array(dtype=PressureLoad),
         table_times: wp.array(dtype=wp.float64),
         table_values: wp.array(dtype=float),
+        face_tet: wp.array(dtype=int),
+        face_handed_area: wp.array(dtype=wp.vec3),
+        spheres_per_tet: int,
         # State in:
         time: wp.array(dtype=wp.float64),
         node_u: wp.array(dtype=wp.vec3),
         node_q: wp.array(dtype=wp.vec3),
+        tet_sphere: wp.array(dtype=int),
+        particle_q: wp.array(dtype=wp.vec3d),
         # Out:
         load_force: wp.array(dtype=wp.vec3d),
     ):
         f = wp.tid()  # one thread per loaded face
         n = face_nodes[f]
         index = face_load[f]
-        centroid = (node_q[n[0]] + node_q[n[1]] + node_q[n[2]]) / 3.0
-        p = history(loads[index], time[0], centroid, table_times, table_values)
-        force = -p * area_vector(face_edge_a[f], face_edge_b[f], node_u[n[0]], node_u[n[1]], node_u[n[2]])
+        force = wp.vec3(0.0)
+        if n[0] == n[1]:
+            # Handed over to its tet's spheres (:func:`make_face_pressure_kernel`), or dropped before the hand-over.
+            first = handed_spheres(f, face_tet, face_handed_area, tet_sphere)
+            if first < 0:
+                return
+            x = spheres_centre(particle_q, first, spheres_per_tet)
+            p = history(loads[index], time[0], x, table_times, table_values)
+            force = -p * face_handed_area[f]
+        else:
+            centroid = (node_q[n[0]] + node_q[n[1]] + node_q[n[2]]) / 3.0
+            p = history(loads[index], time[0], centroid, table_times, table_values)
+            force = -p * area_vector(face_edge_a[f], face_edge_b[f], node_u[n[0]], node_u[n[1]], node_u[n[2]])
         wp.atomic_add(load_force, index, wp.vec3d(wp.float64(force[0]), wp.float64(force[1]), wp.float64(force[2])))
 
     return sum_load_forces_kernel

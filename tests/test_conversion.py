@@ -621,7 +621,8 @@ def test_material_that_never_converts_stays_a_continuum(device):
 
 def test_pressure_on_faces_of_converted_tets_is_dropped(device):
     # Pressure on both ends of a bar; the tets of the x = 0 end convert. Their loaded faces are dropped (collapsed,
-    # zero area): from then on the load does no work there (the work of the x = 0 faces' nodes stays constant), while
+    # zero area): from then on the load does no work on those nodes (the work of the x = 0 faces' nodes stays constant;
+    # the push goes on on the spheres: tests/test_loads_handover.py), while
     # the x = 4 end, still a continuum, keeps being pushed (its work grows).
     from warpdem.stages.loads import PressureHistory
 

@@ -24,6 +24,15 @@ class FaceSet:
         edge_b: reference edge X2 - X0 [m] (float64 on the host), shape (F,), vec3.
         index: pressure load of each face (into LoadModel.pressure_loads), shape (F,), int32; or None.
         impedance: (ρ c_p, ρ c_s) of the tet behind each dashpot face [Pa s/m], shape (F,), vec2; or None.
+        tet: the tet behind each pressure face, shape (F,), int32; or None (dashpots).
+        handed_area: the area vector of each pressure face when its tet converted [m²], shape (F,), vec3: the face's
+            push p(t) a then acts on that tet's spheres (kernels/loads.py, "Hand-over"); zero while the tet is a tet,
+            and for a face dropped before the hand-over existed (a restart of such a run). Written by the
+            conversion pass; or None (dashpots).
+        handed_force: the force -p a on each handed-over face's spheres made by the last evaluation [N], shape (F,),
+            vec3, kept for the half ahead of its work; or None.
+        handed_work: the work of that force on the spheres since the start [J], shape (F,), float64, a part of the
+            load work line; or None.
     """
 
     nodes: wp.array
@@ -31,6 +40,10 @@ class FaceSet:
     edge_b: wp.array
     index: wp.array | None = None
     impedance: wp.array | None = None
+    tet: wp.array | None = None
+    handed_area: wp.array | None = None
+    handed_force: wp.array | None = None
+    handed_work: wp.array | None = None
 
     @property
     def count(self) -> int:
@@ -43,8 +56,19 @@ class FaceSet:
         device,
         index: np.ndarray | None = None,
         impedance: np.ndarray | None = None,
+        tet: np.ndarray | None = None,
     ) -> FaceSet:
+        """Faces (F, 3) of ``points`` [m] (N, 3); with ``tet`` (F,), the tet behind each, the hand-over arrays of a
+        pressure face set (zero: no face handed over yet)."""
         x = np.asarray(points, dtype=np.float64)[faces]
+        handed = {}
+        if tet is not None:
+            handed = {
+                "tet": wp.array(np.asarray(tet, dtype=np.int32), dtype=int, device=device),
+                "handed_area": wp.zeros(len(faces), dtype=wp.vec3, device=device),
+                "handed_force": wp.zeros(len(faces), dtype=wp.vec3, device=device),
+                "handed_work": wp.zeros(len(faces), dtype=wp.float64, device=device),
+            }
         return FaceSet(
             nodes=wp.array(faces.astype(np.int32), dtype=wp.vec3i, device=device),
             edge_a=wp.array((x[:, 1] - x[:, 0]).astype(np.float32), dtype=wp.vec3, device=device),
@@ -53,6 +77,7 @@ class FaceSet:
             impedance=None
             if impedance is None
             else wp.array(impedance.astype(np.float32), dtype=wp.vec2, device=device),
+            **handed,
         )
 
 
@@ -83,3 +108,7 @@ class LoadModel:
     @property
     def num_drivers(self) -> int:
         return 0 if self.drivers is None else self.drivers.shape[0]
+
+    def handed_work(self) -> float:
+        """Work of the pressure loads on the spheres of converted tets since the start [J] (reads back)."""
+        return float(sum(f.handed_work.numpy().sum() for f in self.pressure.values() if f.handed_work is not None))

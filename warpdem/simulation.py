@@ -143,7 +143,7 @@ class Simulation:
         if model.tet_may_convert is not None:
             # A restart: the checkpoint keeps dropped load faces as collapsed node triples; their edges come from the
             # scene and are zeroed again (a no-op at t = 0).
-            drop_converted_load_faces(model)
+            drop_converted_load_faces(model, state)
         self._setup()
         # The conversion pass's scratch and the stars of all live tets live as long as the simulation (grown with
         # the capacities): made here, not at the first pass.
@@ -753,7 +753,7 @@ class Simulation:
             model, slot_to_face = rebuild_surface(m, s)
             remap_face_ids(model, s, self._face_slot, old_faces, slot_to_face)
             self.model = model
-            drop_converted_load_faces(model)
+            drop_converted_load_faces(model, s)
         self._setup()
         if self.fem_contact is not None and self.has_spheres:
             # The new spheres' face lists, sized first: an overflowing build would redo the whole force evaluation

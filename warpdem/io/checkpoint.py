@@ -25,7 +25,9 @@ contacts' line and the sums of their forces kept for its half ahead (``sphere_fa
 ``node_f_sphere_face``, ``node_energy_sphere_face``: an older run booked those contacts on the sphere and FEM contact
 lines); 8 the bonds' springs' trapezoid line (``energy_bond_trapezoid``: zero in an older run, which booked it on the
 damping and friction lines); 9 the cohesive elements' trapezoid line (``node_energy_cohesive_trapezoid``: zero in an
-older run, which booked it on the cohesive line).
+older run, which booked it on the cohesive line); 10 the pressure loads' hand-over to the spheres of converted tets
+(``loads/pressure_<kind>_handed_area``, ``_handed_force``, ``_handed_work``: zero in an older run, which dropped the
+faces of converted tets without a hand-over, so its dropped faces stay dropped and the books close from zero).
 
 Files are written to ``<name>.tmp-<pid>`` in the target directory and moved over the final name with
 ``os.replace``, so a crash or an error mid-write never damages the previous checkpoint.
@@ -58,7 +60,7 @@ __all__ = [
 FORMAT_NAME = "warpdem-checkpoint"
 """Value of the root attribute ``warpdem_format`` identifying a warpdem checkpoint."""
 
-FORMAT_VERSION = 9
+FORMAT_VERSION = 10
 """Newest checkpoint format this module writes and reads (module docstring, "Versions"); bump when the layout changes
 or fields are added, and list what older files may lack in warpdem.io.restart.FIELD_MIGRATIONS."""
 

@@ -62,11 +62,19 @@ def model_texts(model: Model) -> dict[str, str]:
 def load_checkpoint_arrays(model: Model) -> dict[str, wp.array]:
     """The arrays of the model's LoadModel that a run changes, by checkpoint name: the node drivers (per node, grown
     with the node capacity by a split pass) and the node triples of the loaded and dashpot faces (remapped onto the
-    daughters of split nodes). The rest of the loads comes from the scene."""
+    daughters of split nodes), and the pressure faces' hand-over to converted tets' spheres (the area vectors, the
+    forces kept for the half ahead of their work, and that work: kernels/loads.py, Hand-over; format 10). The rest of
+    the loads comes from the scene. An older checkpoint lacks the hand-over: its faces keep the fresh zeros, exactly
+    that run's state (it handed nothing over: its dropped faces stay dropped)."""
     loads = model.loads
     if loads is None:
         return {}
     out = {f"pressure_{kind}_nodes": faces.nodes for kind, faces in loads.pressure.items()}
+    for kind, faces in loads.pressure.items():
+        if faces.handed_area is not None:
+            out[f"pressure_{kind}_handed_area"] = faces.handed_area
+            out[f"pressure_{kind}_handed_force"] = faces.handed_force
+            out[f"pressure_{kind}_handed_work"] = faces.handed_work
     if loads.dashpots is not None:
         out["dashpots_nodes"] = loads.dashpots.nodes
     if isinstance(loads.node_driver, wp.array):

@@ -58,9 +58,10 @@ Rules of the conversion pass (others rely on them):
   (EnergyBalance, line ``released_conversion``) exactly, to the float64 rounding of the sums.
 - After a pass (Simulation): boundary faces rebuilt on the device (the faces of converted tets' neighbours become
   contact faces for the spheres), the face ids of the contact state carried over, pressure and dashpot faces of
-  converted tets dropped (:func:`drop_converted_load_faces`: collapsed to zero area, so the blast pressure stops
-  acting where the material turned into spheres — the spheres carry no face load — and the loads' work stops with
-  it; a face that a crack only split stays, on the daughters of its tet's side), the stages set up again (sphere
+  converted tets dropped (:func:`drop_converted_load_faces`: collapsed to zero area, so the nodes lose that load;
+  a pressure face's push is handed over to its tet's spheres, with the face's area vector at that moment, for the
+  rest of the history, its work booked on the load line: kernels/loads.py, Hand-over; a face that a crack only
+  split stays, on the daughters of its tet's side), the stages set up again (sphere
   contact comes alive after the first conversion) and the forces re-evaluated at dt = 0.
 """
 
@@ -751,20 +752,38 @@ def sort_bonds(model: Model, state: State) -> None:
         wp.launch(kc.remap_indices_kernel, dim=s.nbr_bond.shape[0], inputs=[old_to_new], outputs=[s.nbr_bond], device=d)
 
 
-def drop_converted_load_faces(model: Model) -> None:
+def drop_converted_load_faces(model: Model, state: State) -> None:
     """Drop the pressure and dashpot faces of converted tets (those no active tet holds any more): each is collapsed
-    to zero area on its first node, so the load stops acting where the material turned into spheres (the spheres
-    carry no face load). Reads the model's star CSR (valid after a surface rebuild). Launches only; idempotent."""
+    to zero area on its first node, so it stops acting on the nodes; a pressure face whose tet turned into spheres is
+    handed over to them first, its area vector now recorded (``handed_area``; kernels/loads.py, Hand-over), so the
+    charge's push goes on there. Reads the model's star CSR (valid after a surface rebuild). Launches only;
+    idempotent."""
     loads = model.loads
     if loads is None or model.star_offset is None:
         return
     sets = list(loads.pressure.values()) + ([loads.dashpots] if loads.dashpots is not None else [])
     for faces in sets:
         if faces.count:
+            pressure = faces.handed_area is not None
+            unused = wp.zeros(0, dtype=int, device=model.device)
             wp.launch(
                 kcv.drop_converted_faces_kernel,
                 dim=faces.count,
-                inputs=[model.tet_nodes, model.star_offset, model.star_count, model.star_tets],
-                outputs=[faces.nodes, faces.edge_a, faces.edge_b],
+                inputs=[
+                    model.tet_nodes,
+                    model.star_offset,
+                    model.star_count,
+                    model.star_tets,
+                    faces.tet if pressure else unused,
+                    int(pressure),
+                    state.node_u,
+                    state.tet_sphere,
+                ],
+                outputs=[
+                    faces.nodes,
+                    faces.edge_a,
+                    faces.edge_b,
+                    faces.handed_area if pressure else wp.zeros(0, dtype=wp.vec3, device=model.device),
+                ],
                 device=model.device,
             )

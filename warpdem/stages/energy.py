@@ -41,7 +41,8 @@ class EnergyBalance:
     nodes share the gravity potential; ``kinetic_nodes`` is the FEM nodes' kinetic energy, ``strain`` the tets'
     strain energy, ``dissipated_viscous`` what bulk viscosity and mass-proportional damping took from the continuum,
     ``absorbed_boundaries`` what the non-reflecting boundaries' dashpots took out of the model, ``load_work`` the work
-    of pressure loads and velocity drivers on the FEM nodes. ``elastic`` is the energy of the springs of the sphere
+    of pressure loads and velocity drivers on the FEM nodes, and of the pressure loads handed over to the spheres of
+    converted tets (kernels/loads.py, Hand-over). ``elastic`` is the energy of the springs of the sphere
     contacts, the bonds, the FEM contacts and intact joint elements; ``dissipated_fem_contact`` is what the node–face
     and node–wall contacts' dashpots and friction took (as Verlet does their work, kernels/fem_contact.py), and the
     springs of failed joints; ``dissipated_sphere_face`` what the sphere–face contacts took, each contact's -W - ΔU
@@ -182,7 +183,9 @@ def energy_balance(m: Model, s: State) -> EnergyBalance:
         kinetic_nodes=float(0.5 * np.sum(node_mass * np.sum(node_v * node_v, axis=1))),
         strain=tet_energy(m, s),
         dissipated_viscous=float(s.node_energy_damping.numpy()[:nn].sum()),
-        load_work=float(s.node_energy_boundary_work.numpy()[:nn].sum()),
+        # The pressure faces handed over to converted tets' spheres book their work per face, on the same line.
+        load_work=float(s.node_energy_boundary_work.numpy()[:nn].sum())
+        + (m.loads.handed_work() if m.loads is not None else 0.0),
         dissipated_fem_contact=d_fem,
         absorbed_boundaries=float(s.node_energy_absorbed.numpy()[:nn].sum()),
         stiffness_change=float(s.energy_stiffness_change.numpy()[:n].sum()),

@@ -226,9 +226,10 @@ class LoadSpecs:
                 dashpot too stiff for dt is refused by ModelBuilder.finalize, warpdem.stages.guard.check_time_step).
         """
         self.check_nodes(len(mesh.points))
-        loads, faces, face_load, kinds, table_times, table_values = [], [], [], [], [], []
+        loads, faces, owners, face_load, kinds, table_times, table_values = [], [], [], [], [], [], []
         for k, (f, history, name) in enumerate(self.pressures):
-            oriented, _ = boundary_face_owners(mesh.tets, f, f"pressure {name!r}")
+            oriented, owner = boundary_face_owners(mesh.tets, f, f"pressure {name!r}")
+            owners.append(owner)
             loads.append(history.device_load(sum(len(t) for t in table_times)))
             table_times.append(np.asarray(history.times, dtype=np.float64))
             table_values.append(np.asarray(history.values, dtype=np.float64))
@@ -238,10 +239,13 @@ class LoadSpecs:
         pressure: dict[str, FaceSet] = {}
         if loads:
             all_faces, all_load, all_kind = np.concatenate(faces), np.concatenate(face_load), np.concatenate(kinds)
+            all_owner = np.concatenate(owners)
             for i, kind in enumerate(kl.PRESSURE_KINDS):
                 mine = all_kind == i
                 if np.any(mine):
-                    pressure[kind] = FaceSet.create(mesh.points, all_faces[mine], device, index=all_load[mine])
+                    pressure[kind] = FaceSet.create(
+                        mesh.points, all_faces[mine], device, index=all_load[mine], tet=all_owner[mine]
+                    )
         dashpots = self.build_dashpots(mesh, table, device)
         node_driver, drivers = self.build_drivers(len(mesh.points), node_capacity, device)
         return LoadModel(
@@ -391,7 +395,16 @@ def eval_loads(model: Model, state: State, dt: float | None = None) -> None:
         else:
             s.node_f_load.zero_()
         add_pressure_forces(
-            m, s.time, s.node_u, s.node_q, s.node_qd, s.node_f, s.node_f_load, s.node_energy_boundary_work, dt
+            m,
+            s.time,
+            s.node_u,
+            s.node_q,
+            s.node_qd,
+            s.node_f,
+            s.node_f_load,
+            s.node_energy_boundary_work,
+            dt,
+            SphereArrays(s.tet_sphere, s.particle_q, s.particle_qd, s.particle_f),
         )
     if loads.dashpots is not None and dt == 0.0:
         # Set-up or re-evaluation after a pass: the dashpots are left out of these forces, so the next kick does no
@@ -419,9 +432,11 @@ def eval_loads(model: Model, state: State, dt: float | None = None) -> None:
         )
 
 
-def _pressure_face_inputs(loads: LoadModel, faces: FaceSet) -> list:
+def _pressure_face_inputs(model: Model, faces: FaceSet) -> list:
     """The Model inputs every pressure kernel of one history kind starts with (kernels/loads.py): the loaded faces'
-    nodes, reference edges and load index, the loads and their tables."""
+    nodes, reference edges and load index, the loads and their tables, the tet behind each face, the area vectors
+    handed over to converted tets' spheres and the spheres per tet."""
+    loads = model.loads
     return [
         faces.nodes,
         faces.edge_a,
@@ -430,7 +445,28 @@ def _pressure_face_inputs(loads: LoadModel, faces: FaceSet) -> list:
         loads.pressure_loads,
         loads.table_times,
         loads.table_values,
+        faces.tet,
+        faces.handed_area,
+        int(model.spheres_per_tet),
     ]
+
+
+@dataclass
+class SphereArrays:
+    """The sphere arrays a pressure load's handed-over faces read and push (kernels/loads.py, Hand-over).
+
+    Attributes:
+        tet_sphere: first sphere of each converted tet or -1, shape (tet_capacity,), int32 (all -1: no face is
+            handed over, the nodes' loads alone).
+        particle_q: sphere positions [m], shape (particle_capacity,), vec3d.
+        particle_qd: sphere velocities v_{n+1/2} [m/s], vec3.
+        particle_f: sphere forces [N], vec3 (written).
+    """
+
+    tet_sphere: wp.array
+    particle_q: wp.array
+    particle_qd: wp.array
+    particle_f: wp.array
 
 
 def add_pressure_forces(
@@ -443,18 +479,23 @@ def add_pressure_forces(
     node_f_load: wp.array,
     node_energy_boundary_work: wp.array,
     dt: float,
+    spheres: SphereArrays,
+    handed: Sequence[tuple[wp.array, wp.array]] | None = None,
 ) -> None:
     """Add every pressure load's force at time[0] + dt and the displacements ``node_u`` (positions ``node_q``) to
     ``node_f`` and ``node_f_load`` [N], booking the half of its work behind it against ``node_qd`` into
-    ``node_energy_boundary_work`` [J] (none at dt = 0); arrays shaped as the State's (launches only)."""
+    ``node_energy_boundary_work`` [J] (none at dt = 0); the handed-over faces' force to ``spheres.particle_f``, kept in
+    each face set's ``handed_force`` and its work booked into ``handed_work`` (``handed``: other (force, work) arrays
+    per face set, in the order of ``loads.pressure``); arrays shaped as the State's (launches only)."""
     loads = model.loads
-    for kind, faces in loads.pressure.items():
+    for k, (kind, faces) in enumerate(loads.pressure.items()):
+        force, work = (faces.handed_force, faces.handed_work) if handed is None else handed[k]
         wp.launch(
             kl.make_face_pressure_kernel(kind),
             dim=faces.count,
             inputs=[
                 # Model:
-                *_pressure_face_inputs(loads, faces),
+                *_pressure_face_inputs(model, faces),
                 dt,
                 # The float64 step, so that t_n + dt is the clock's own next value (kernels/integrate.py).
                 wp.float64(dt),
@@ -463,8 +504,11 @@ def add_pressure_forces(
                 node_u,
                 node_q,
                 node_qd,
+                spheres.tet_sphere,
+                spheres.particle_q,
+                spheres.particle_qd,
             ],
-            outputs=[node_f, node_f_load, node_energy_boundary_work],
+            outputs=[node_f, node_f_load, node_energy_boundary_work, spheres.particle_f, force, work],
             device=model.device,
         )
 
@@ -473,11 +517,19 @@ def pressure_node_forces(model: Model, time: float, node_u: np.ndarray, node_q: 
     """The pressure loads' forces on each node [N], shape (node_capacity, 3), float32, at ``time`` [s] and the
     displacements ``node_u`` and positions ``node_q`` (shape (node_capacity, 3)): what an evaluation there keeps in
     ``node_f_load``, accumulated in the same order (allocates and reads back; a restart from a checkpoint that lacks
-    them, warpdem.runner)."""
+    them, warpdem.runner). Faces handed over to spheres are left out (no tet has spheres here): such a checkpoint's
+    run had no hand-over."""
     d = model.device
     n = model.node_capacity
     f_load = wp.zeros(n, dtype=wp.vec3, device=d)
     if model.loads is not None and model.loads.pressure:
+        one = wp.zeros(1, dtype=wp.vec3, device=d)
+        no_tet_spheres = wp.full(max(model.tet_capacity, 1), -1, dtype=int, device=d)
+        no_spheres = SphereArrays(no_tet_spheres, wp.zeros(1, dtype=wp.vec3d, device=d), one, one)
+        scratch = [
+            (wp.zeros(f.count, dtype=wp.vec3, device=d), wp.zeros(f.count, dtype=wp.float64, device=d))
+            for f in model.loads.pressure.values()
+        ]
         add_pressure_forces(
             model,
             wp.array([time], dtype=wp.float64, device=d),
@@ -488,6 +540,8 @@ def pressure_node_forces(model: Model, time: float, node_u: np.ndarray, node_q: 
             f_load,
             wp.zeros(n, dtype=wp.float64, device=d),
             0.0,
+            no_spheres,
+            scratch,
         )
     return f_load.numpy()
 
@@ -505,11 +559,13 @@ def load_forces(model: Model, state: State) -> tuple[list[str], np.ndarray]:
             dim=faces.count,
             inputs=[
                 # Model:
-                *_pressure_face_inputs(loads, faces),
+                *_pressure_face_inputs(model, faces),
                 # State in:
                 state.time,
                 state.node_u,
                 state.node_q,
+                state.tet_sphere,
+                state.particle_q,
             ],
             outputs=[out],
             device=model.device,
@@ -577,9 +633,11 @@ def scale_pressure_loads(model: Model, base: PressureAmplitudes, scales: Sequenc
         loads.table_values.assign(values.astype(np.float32))
 
 
-def load_work(state: State) -> float:
-    """Work done on the FEM nodes by pressure loads and velocity drivers since the start [J] (reads back)."""
-    return float(state.node_energy_boundary_work.numpy().sum())
+def load_work(state: State, model: Model | None = None) -> float:
+    """Work done on the FEM nodes by pressure loads and velocity drivers since the start [J], with ``model`` that of
+    the pressure loads handed over to converted tets' spheres too (reads back)."""
+    handed = model.loads.handed_work() if model is not None and model.loads is not None else 0.0
+    return float(state.node_energy_boundary_work.numpy().sum()) + handed
 
 
 # ----------------------------------------------------------------------------------------------------------------
