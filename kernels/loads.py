@@ -24,17 +24,17 @@ they are then (the daughters' shares included), and the next kick works with exa
 Hand-over: a pressure face whose tet turns into spheres (a conversion pass, or a region that starts as spheres) is
 dropped from the nodes, but its push goes on, on that tet's spheres, for the rest of the load's history: the force
 -p(t) a_c, a_c the face's area vector when its tet converted (``handed_area``, written by the pass:
-kernels/conversion.py ``drop_converted_faces_kernel``), shared equally among the tet's ``spheres_per_tet`` spheres,
-p evaluated at their mean position (where a Friedlander front arrives). Why this rule: the spheres hold no faces, so
-the area and direction can only be those the face had; frozen, the load delivers exactly the impulse ∫p dt a_c that
-the face would have delivered had it stayed (up to the face's small stretch and turn), whichever way the material
-is then modelled, and equal shares keep it a push on the tet's mass as a whole (the lumped face load put a third on
-each face node, ρV/4 of the tet's mass at each). A sphere flying off keeps its push in its own frozen direction,
-as a fragment driven by the gas behind it. Its work is booked per face by the same trapezoid as the nodes' (the
-evaluation of f_{n+1} books ½ dt (f_n + f_{n+1})·v_{n+1/2} at once, against the spheres' mean v_{n+1/2}: the half
-ahead of the kept f_n and the half behind f_{n+1} are both against that velocity), into ``handed_work``, which the
-energy balance adds to the load work line. A pass between steps re-evaluates at dt = 0 (no work): the handed face's
-kept force is then exactly the force the nodes last felt (same time, same area vector), so the books run on.
+kernels/conversion.py ``drop_converted_faces_kernel``), shared equally among the tet's ``spheres_per_tet`` spheres, p
+evaluated at their mean position (where a Friedlander front arrives). Why this rule: the spheres hold no faces, so the
+area and direction can only be those the face had; frozen, the load delivers exactly the impulse ∫p dt a_c that the
+face would have delivered had it stayed (up to the face's small stretch and turn), whichever way the material is then
+modelled, and equal shares keep it a push on the tet's mass as a whole (the lumped face load put a third on each face
+node, ρV/4 of the tet's mass at each). A sphere flying off keeps its push in its own frozen direction, as a fragment
+driven by the gas behind it. Its work is booked per face by the same trapezoid as the nodes' (the evaluation of
+f_{n+1} books ½ dt (f_n + f_{n+1})·v_{n+1/2} at once, against the spheres' mean v_{n+1/2}: the half ahead of the kept
+f_n and the half behind f_{n+1} are both against that velocity), into the State's ``load_face_work``, which the energy
+balance adds to the load work line. A pass between steps re-evaluates at dt = 0 (no work): the handed face's kept
+force is then exactly the force the nodes last felt (same time, same area vector), so the books run on.
 
 Non-reflecting boundary (Lysmer & Kuhlemeyer 1969): the traction t = -ρ c_p (v·n) n - ρ c_s (v - (v·n) n) of a
 semi-infinite continuum carrying a plane wave away normally. It is lumped per node (each node's dashpot sees its
@@ -258,6 +258,7 @@ def make_face_pressure_kernel(kind: str) -> wp.Kernel:
         table_values: wp.array(dtype=float),
         face_tet: wp.array(dtype=int),
         face_handed_area: wp.array(dtype=wp.vec3),
+        face_first: int,
         spheres_per_tet: int,
         dt: float,
         dt64: wp.float64,
@@ -274,8 +275,8 @@ def make_face_pressure_kernel(kind: str) -> wp.Kernel:
         node_f_load: wp.array(dtype=wp.vec3),
         node_energy_boundary_work: wp.array(dtype=wp.float64),
         particle_f: wp.array(dtype=wp.vec3),
-        face_handed_force: wp.array(dtype=wp.vec3),
-        face_handed_work: wp.array(dtype=wp.float64),
+        load_face_force: wp.array(dtype=wp.vec3),
+        load_face_work: wp.array(dtype=wp.float64),
     ):
         f = wp.tid()  # one thread per loaded face
         n = face_nodes[f]
@@ -292,11 +293,12 @@ def make_face_pressure_kernel(kind: str) -> wp.Kernel:
             x = spheres_centre(particle_q, first, spheres_per_tet)
             p = history(load, time[0] + dt64, x, table_times, table_values)
             force = -p * face_handed_area[f]
+            slot = face_first + f
             if dt > 0.0:
                 # ½ dt (f_n + f_{n+1})·v_{n+1/2} on the spheres, each with its share (module docstring, Hand-over).
-                kept = face_handed_force[f]
-                face_handed_work[f] = face_handed_work[f] + wp.float64(0.5 * dt * wp.dot(kept + force, v * share))
-            face_handed_force[f] = force
+                kept = load_face_force[slot]
+                load_face_work[slot] = load_face_work[slot] + wp.float64(0.5 * dt * wp.dot(kept + force, v * share))
+            load_face_force[slot] = force
             if p != 0.0:
                 for k in range(spheres_per_tet):
                     wp.atomic_add(particle_f, first + k, force * share)
@@ -338,6 +340,7 @@ def make_load_force_kernel(kind: str) -> wp.Kernel:
         table_values: wp.array(dtype=float),
         face_tet: wp.array(dtype=int),
         face_handed_area: wp.array(dtype=wp.vec3),
+        face_first: int,
         spheres_per_tet: int,
         # State in:
         time: wp.array(dtype=wp.float64),

@@ -29,10 +29,8 @@ class FaceSet:
             push p(t) a then acts on that tet's spheres (kernels/loads.py, "Hand-over"); zero while the tet is a tet,
             and for a face dropped before the hand-over existed (a restart of such a run). Written by the
             conversion pass; or None (dashpots).
-        handed_force: the force -p a on each handed-over face's spheres made by the last evaluation [N], shape (F,),
-            vec3, kept for the half ahead of its work; or None.
-        handed_work: the work of that force on the spheres since the start [J], shape (F,), float64, a part of the
-            load work line; or None.
+        first: the set's first slot in the State's per-loaded-face arrays (``load_face_force``, ``load_face_work``:
+            the pressure sets one after the other, in ``LoadModel.pressure``'s order).
     """
 
     nodes: wp.array
@@ -42,8 +40,7 @@ class FaceSet:
     impedance: wp.array | None = None
     tet: wp.array | None = None
     handed_area: wp.array | None = None
-    handed_force: wp.array | None = None
-    handed_work: wp.array | None = None
+    first: int = 0
 
     @property
     def count(self) -> int:
@@ -57,17 +54,17 @@ class FaceSet:
         index: np.ndarray | None = None,
         impedance: np.ndarray | None = None,
         tet: np.ndarray | None = None,
+        first: int = 0,
     ) -> FaceSet:
         """Faces (F, 3) of ``points`` [m] (N, 3); with ``tet`` (F,), the tet behind each, the hand-over arrays of a
-        pressure face set (zero: no face handed over yet)."""
+        pressure face set (zero: no face handed over yet), its State slots from ``first``."""
         x = np.asarray(points, dtype=np.float64)[faces]
         handed = {}
         if tet is not None:
             handed = {
                 "tet": wp.array(np.asarray(tet, dtype=np.int32), dtype=int, device=device),
                 "handed_area": wp.zeros(len(faces), dtype=wp.vec3, device=device),
-                "handed_force": wp.zeros(len(faces), dtype=wp.vec3, device=device),
-                "handed_work": wp.zeros(len(faces), dtype=wp.float64, device=device),
+                "first": int(first),
             }
         return FaceSet(
             nodes=wp.array(faces.astype(np.int32), dtype=wp.vec3i, device=device),
@@ -108,7 +105,3 @@ class LoadModel:
     @property
     def num_drivers(self) -> int:
         return 0 if self.drivers is None else self.drivers.shape[0]
-
-    def handed_work(self) -> float:
-        """Work of the pressure loads on the spheres of converted tets since the start [J] (reads back)."""
-        return float(sum(f.handed_work.numpy().sum() for f in self.pressure.values() if f.handed_work is not None))

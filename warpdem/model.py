@@ -398,6 +398,11 @@ class State:
             float64.
         node_energy_boundary_work: work done on the nodes by pressure loads and velocity drivers [J], shape
             (node_capacity,), float64.
+        load_face_force: the force -p a_c of each pressure face handed over to its converted tet's spheres, made by
+            the last evaluation and kept for the half ahead of its work [N], shape (loaded faces,), vec3 (the faces of
+            ``Model.loads.pressure`` in its order, each set from its ``first``; zero for a face not handed over).
+        load_face_work: the work of that force on the spheres since the start [J], shape (loaded faces,), float64:
+            a part of the load work line (kernels/loads.py, Hand-over).
         face_count: live boundary faces, shape (1,), int32.
         fem_rebuild_flag: 1 when the FEM contact lists must be rebuilt, shape (1,), int32.
         fem_rebuild_total: FEM contact-list builds since the start, shape (1,), int32.
@@ -613,6 +618,8 @@ class State:
     tet_stress: wp.array
     time: wp.array
     node_energy_boundary_work: wp.array
+    load_face_force: wp.array
+    load_face_work: wp.array
     face_count: wp.array
     fem_rebuild_flag: wp.array
     fem_rebuild_total: wp.array

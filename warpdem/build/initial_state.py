@@ -20,6 +20,7 @@ def new_state(
     n, nb = len(particles), len(bonds)
     mesh = mesh if mesh is not None else TetMeshData.empty()
     nn, nt = len(mesh.points), len(mesh.tets)
+    loaded_faces = sum(f.count for f in model.loads.pressure.values()) if model.loads is not None else 0
 
     def vec(a: np.ndarray | None, size: int, dtype=wp.vec3) -> wp.array:
         out = np.zeros((size, 3), dtype=np.float64 if dtype == wp.vec3d else np.float32)
@@ -98,6 +99,8 @@ def new_state(
         tet_stress=wp.zeros(model.tet_capacity, dtype=wp.mat33, device=device),
         time=wp.zeros(1, dtype=wp.float64, device=device),
         node_energy_boundary_work=wp.zeros(model.node_capacity, dtype=wp.float64, device=device),
+        load_face_force=wp.zeros(loaded_faces, dtype=wp.vec3, device=device),
+        load_face_work=wp.zeros(loaded_faces, dtype=wp.float64, device=device),
         **fem_contact_state(model),
         **fracture_state(model),
         **conversion_state(model),

@@ -26,8 +26,9 @@ contacts' line and the sums of their forces kept for its half ahead (``sphere_fa
 lines); 8 the bonds' springs' trapezoid line (``energy_bond_trapezoid``: zero in an older run, which booked it on the
 damping and friction lines); 9 the cohesive elements' trapezoid line (``node_energy_cohesive_trapezoid``: zero in an
 older run, which booked it on the cohesive line); 10 the pressure loads' hand-over to the spheres of converted tets
-(``loads/pressure_<kind>_handed_area``, ``_handed_force``, ``_handed_work``: zero in an older run, which dropped the
-faces of converted tets without a hand-over, so its dropped faces stay dropped and the books close from zero).
+(``loads/pressure_<kind>_handed_area``, ``state/load_face_force``, ``state/load_face_work``: zero in an older run,
+which dropped the faces of converted tets without a hand-over, so its dropped faces stay dropped and the books close
+from zero).
 
 Files are written to ``<name>.tmp-<pid>`` in the target directory and moved over the final name with
 ``os.replace``, so a crash or an error mid-write never damages the previous checkpoint.

@@ -62,10 +62,10 @@ def model_texts(model: Model) -> dict[str, str]:
 def load_checkpoint_arrays(model: Model) -> dict[str, wp.array]:
     """The arrays of the model's LoadModel that a run changes, by checkpoint name: the node drivers (per node, grown
     with the node capacity by a split pass) and the node triples of the loaded and dashpot faces (remapped onto the
-    daughters of split nodes), and the pressure faces' hand-over to converted tets' spheres (the area vectors, the
-    forces kept for the half ahead of their work, and that work: kernels/loads.py, Hand-over; format 10). The rest of
-    the loads comes from the scene. An older checkpoint lacks the hand-over: its faces keep the fresh zeros, exactly
-    that run's state (it handed nothing over: its dropped faces stay dropped)."""
+    daughters of split nodes), and the area vectors of the pressure faces handed over to converted tets' spheres
+    (kernels/loads.py, Hand-over; format 10: the forces kept and their work are State fields). The rest of the loads
+    comes from the scene. An older checkpoint lacks the area vectors: its faces keep the fresh zeros, exactly that
+    run's state (it handed nothing over: its dropped faces stay dropped)."""
     loads = model.loads
     if loads is None:
         return {}
@@ -73,8 +73,6 @@ def load_checkpoint_arrays(model: Model) -> dict[str, wp.array]:
     for kind, faces in loads.pressure.items():
         if faces.handed_area is not None:
             out[f"pressure_{kind}_handed_area"] = faces.handed_area
-            out[f"pressure_{kind}_handed_force"] = faces.handed_force
-            out[f"pressure_{kind}_handed_work"] = faces.handed_work
     if loads.dashpots is not None:
         out["dashpots_nodes"] = loads.dashpots.nodes
     if isinstance(loads.node_driver, wp.array):
@@ -342,6 +340,10 @@ FIELD_MIGRATIONS: dict[str, FieldMigration] = {
     # The cohesive elements' work off their law on a line of its own (format 9): an older run booked it on the
     # cohesive line, which keeps it; the books close with the new line from zero.
     "state/node_energy_cohesive_trapezoid": FieldMigration(9, _always, "state/node_energy_cohesive"),
+    # The pressure loads' hand-over to converted tets' spheres (format 10): an older run handed nothing over (its
+    # dropped faces pushed nothing), so its kept forces and their work are zero.
+    "state/load_face_force": FieldMigration(10, _always),
+    "state/load_face_work": FieldMigration(10, _always),
 }
 """The fields added since checkpoint format 1, by checkpoint key (``state/<name>``, ``model/<name>``, ``attribute
 <name>`` for a model scalar), and when a restart may fill them from the fresh model and state

@@ -156,8 +156,12 @@ by the scene's faces."""
 SIZED_BY_BODIES = tuple(f"state/{name}" for name in RIGID_BODY_FIELDS)
 """State fields of one item per rigid body (as many as ``state/body_mass``)."""
 
-UNSIZED = ("state/rigid_nodes",)
-"""Arrays no capacity sizes (the nodes of the bodies; the load face sets ``loads/*_nodes`` too)."""
+LOADED_FACES = ("state/load_face_force", "state/load_face_work")
+"""State fields of one item per loaded face of the scene's pressure loads (:func:`check_sizes`)."""
+
+UNSIZED = ("state/rigid_nodes", *LOADED_FACES)
+"""Arrays no capacity sizes (the nodes of the bodies, the items per loaded face; the load face sets ``loads/*_nodes``
+too)."""
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -396,6 +400,14 @@ def check_sizes(path: Path, arrays: dict[str, np.ndarray], attrs: dict, model: M
         item = tuple(like.shape[1:]) + tuple(getattr(like.dtype, "_shape_", ()))
         if data is not None and data.ndim and data.shape[1:] != item:
             raise CheckpointError(f"{path}: {key} has shape {data.shape}; its items have shape {item}")
+    faces = sum(f.count for f in model.loads.pressure.values()) if model.loads is not None else 0
+    for key in LOADED_FACES:
+        data = arrays.get(key)
+        if data is not None and (data.ndim == 0 or len(data) != faces):
+            raise CheckpointError(
+                f"{path}: {key} has shape {data.shape}, not one item per loaded face of the scene's pressure loads "
+                f"({faces})"
+            )
     node_driver = arrays.get("loads/node_driver")
     if node_driver is not None and node_driver.ndim != 1:
         raise CheckpointError(f"{path}: loads/node_driver has shape {node_driver.shape}; its items have shape ()")

@@ -184,8 +184,7 @@ def energy_balance(m: Model, s: State) -> EnergyBalance:
         strain=tet_energy(m, s),
         dissipated_viscous=float(s.node_energy_damping.numpy()[:nn].sum()),
         # The pressure faces handed over to converted tets' spheres book their work per face, on the same line.
-        load_work=float(s.node_energy_boundary_work.numpy()[:nn].sum())
-        + (m.loads.handed_work() if m.loads is not None else 0.0),
+        load_work=float(s.node_energy_boundary_work.numpy()[:nn].sum()) + float(s.load_face_work.numpy().sum()),
         dissipated_fem_contact=d_fem,
         absorbed_boundaries=float(s.node_energy_absorbed.numpy()[:nn].sum()),
         stiffness_change=float(s.energy_stiffness_change.numpy()[:n].sum()),

@@ -240,12 +240,14 @@ class LoadSpecs:
         if loads:
             all_faces, all_load, all_kind = np.concatenate(faces), np.concatenate(face_load), np.concatenate(kinds)
             all_owner = np.concatenate(owners)
+            first = 0
             for i, kind in enumerate(kl.PRESSURE_KINDS):
                 mine = all_kind == i
                 if np.any(mine):
                     pressure[kind] = FaceSet.create(
-                        mesh.points, all_faces[mine], device, index=all_load[mine], tet=all_owner[mine]
+                        mesh.points, all_faces[mine], device, index=all_load[mine], tet=all_owner[mine], first=first
                     )
+                    first += int(np.count_nonzero(mine))
         dashpots = self.build_dashpots(mesh, table, device)
         node_driver, drivers = self.build_drivers(len(mesh.points), node_capacity, device)
         return LoadModel(
@@ -404,7 +406,7 @@ def eval_loads(model: Model, state: State, dt: float | None = None) -> None:
             s.node_f_load,
             s.node_energy_boundary_work,
             dt,
-            SphereArrays(s.tet_sphere, s.particle_q, s.particle_qd, s.particle_f),
+            SphereArrays(s.tet_sphere, s.particle_q, s.particle_qd, s.particle_f, s.load_face_force, s.load_face_work),
         )
     if loads.dashpots is not None and dt == 0.0:
         # Set-up or re-evaluation after a pass: the dashpots are left out of these forces, so the next kick does no
@@ -447,6 +449,7 @@ def _pressure_face_inputs(model: Model, faces: FaceSet) -> list:
         loads.table_values,
         faces.tet,
         faces.handed_area,
+        faces.first,
         int(model.spheres_per_tet),
     ]
 
@@ -461,12 +464,17 @@ class SphereArrays:
         particle_q: sphere positions [m], shape (particle_capacity,), vec3d.
         particle_qd: sphere velocities v_{n+1/2} [m/s], vec3.
         particle_f: sphere forces [N], vec3 (written).
+        face_force: the handed-over faces' forces kept from the last evaluation [N], shape (loaded faces,), vec3
+            (State ``load_face_force``; rewritten).
+        face_work: their work [J], shape (loaded faces,), float64 (State ``load_face_work``; added to).
     """
 
     tet_sphere: wp.array
     particle_q: wp.array
     particle_qd: wp.array
     particle_f: wp.array
+    face_force: wp.array
+    face_work: wp.array
 
 
 def add_pressure_forces(
@@ -480,16 +488,14 @@ def add_pressure_forces(
     node_energy_boundary_work: wp.array,
     dt: float,
     spheres: SphereArrays,
-    handed: Sequence[tuple[wp.array, wp.array]] | None = None,
 ) -> None:
     """Add every pressure load's force at time[0] + dt and the displacements ``node_u`` (positions ``node_q``) to
     ``node_f`` and ``node_f_load`` [N], booking the half of its work behind it against ``node_qd`` into
     ``node_energy_boundary_work`` [J] (none at dt = 0); the handed-over faces' force to ``spheres.particle_f``, kept in
-    each face set's ``handed_force`` and its work booked into ``handed_work`` (``handed``: other (force, work) arrays
-    per face set, in the order of ``loads.pressure``); arrays shaped as the State's (launches only)."""
+    ``spheres.face_force`` and its work booked into ``spheres.face_work``; arrays shaped as the State's (launches
+    only)."""
     loads = model.loads
-    for k, (kind, faces) in enumerate(loads.pressure.items()):
-        force, work = (faces.handed_force, faces.handed_work) if handed is None else handed[k]
+    for kind, faces in loads.pressure.items():
         wp.launch(
             kl.make_face_pressure_kernel(kind),
             dim=faces.count,
@@ -508,7 +514,14 @@ def add_pressure_forces(
                 spheres.particle_q,
                 spheres.particle_qd,
             ],
-            outputs=[node_f, node_f_load, node_energy_boundary_work, spheres.particle_f, force, work],
+            outputs=[
+                node_f,
+                node_f_load,
+                node_energy_boundary_work,
+                spheres.particle_f,
+                spheres.face_force,
+                spheres.face_work,
+            ],
             device=model.device,
         )
 
@@ -525,11 +538,15 @@ def pressure_node_forces(model: Model, time: float, node_u: np.ndarray, node_q: 
     if model.loads is not None and model.loads.pressure:
         one = wp.zeros(1, dtype=wp.vec3, device=d)
         no_tet_spheres = wp.full(max(model.tet_capacity, 1), -1, dtype=int, device=d)
-        no_spheres = SphereArrays(no_tet_spheres, wp.zeros(1, dtype=wp.vec3d, device=d), one, one)
-        scratch = [
-            (wp.zeros(f.count, dtype=wp.vec3, device=d), wp.zeros(f.count, dtype=wp.float64, device=d))
-            for f in model.loads.pressure.values()
-        ]
+        faces = sum(f.count for f in model.loads.pressure.values())
+        no_spheres = SphereArrays(
+            no_tet_spheres,
+            wp.zeros(1, dtype=wp.vec3d, device=d),
+            one,
+            one,
+            wp.zeros(faces, dtype=wp.vec3, device=d),
+            wp.zeros(faces, dtype=wp.float64, device=d),
+        )
         add_pressure_forces(
             model,
             wp.array([time], dtype=wp.float64, device=d),
@@ -541,7 +558,6 @@ def pressure_node_forces(model: Model, time: float, node_u: np.ndarray, node_q: 
             wp.zeros(n, dtype=wp.float64, device=d),
             0.0,
             no_spheres,
-            scratch,
         )
     return f_load.numpy()
 
@@ -633,11 +649,10 @@ def scale_pressure_loads(model: Model, base: PressureAmplitudes, scales: Sequenc
         loads.table_values.assign(values.astype(np.float32))
 
 
-def load_work(state: State, model: Model | None = None) -> float:
-    """Work done on the FEM nodes by pressure loads and velocity drivers since the start [J], with ``model`` that of
-    the pressure loads handed over to converted tets' spheres too (reads back)."""
-    handed = model.loads.handed_work() if model is not None and model.loads is not None else 0.0
-    return float(state.node_energy_boundary_work.numpy().sum()) + handed
+def load_work(state: State) -> float:
+    """Work done since the start by pressure loads and velocity drivers on the FEM nodes, and by the pressure loads
+    handed over to converted tets' spheres [J] (reads back)."""
+    return float(state.node_energy_boundary_work.numpy().sum()) + float(state.load_face_work.numpy().sum())
 
 
 # ----------------------------------------------------------------------------------------------------------------
