@@ -20,6 +20,13 @@ couplings; the wall's nodes and the spheres of its converted tets), the crest's 
 time of failure: the first sample at which the largest intact piece holds less than half the wall's mass
 (FAILED_SHARE) — the wall is then in pieces, none of which carries the rest; a wall that keeps a piece of more than
 half its mass to the end has not failed.
+
+A scene whose charge sits in a solid inside a circular tunnel (masonry_tunnel_blast: the concrete box in the lined
+tunnel) also reports its fragments (the spheres the start_as_spheres region became, known by their ids) and the
+lining (the tets ``[conversion].region`` lets convert, less that region): per sample the fastest fragment and the
+lining's converted fraction, and, checked every :data:`HIT_CHECK` steps, the first time a fragment reaches the
+tunnel's wall (its centre's distance from the axis plus its radius reaches the tunnel's radius, where the sphere–face
+contact starts) and the first time a lining tet converts.
 """
 
 from __future__ import annotations
@@ -34,11 +41,13 @@ SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 SCENES = ("masonry_wall_blast", "masonry_tunnel_blast", "dam_crest_blast")
 SAMPLES = 20
 """Samples over a run."""
+HIT_CHECK = 5
+"""Steps between the checks for the first fragment at the tunnel's wall (6.5 µs on masonry_tunnel_blast)."""
 
 
 def charge_point(scene) -> np.ndarray:
-    """Centre of the first pressure load's region (the charge) [m]; the opening's centre for a load on 'opening'; an
-    arch dam's charge disc's centre."""
+    """Centre of the first pressure load's region (the charge) [m]; for a load on a solid's cavity the cavity's
+    centre, on 'opening' the opening's; an arch dam's charge disc's centre."""
     load = next(entry for entry in scene.loads if entry.kind == "pressure")
     if load.region is not None:
         lo, hi = load.region.bounds()
@@ -46,10 +55,42 @@ def charge_point(scene) -> np.ndarray:
     mesh = scene.mesh
     if mesh.kind == "arch_dam":
         return np.asarray(mesh.charge_center(), dtype=np.float64)
+    for solid in getattr(mesh, "solids", []):
+        if load.faces == f"{solid.name}_cavity":
+            return 0.5 * (np.asarray(solid.cavity.lo) + np.asarray(solid.cavity.hi))
     opening = mesh.openings[0]
     centre = 0.5 * (np.asarray(mesh.lo) + np.asarray(mesh.hi))
     centre[[1 if opening.axis == "x" else 0, 2]] = opening.center
     return centre
+
+
+def tunnel_wall(scene) -> tuple[np.ndarray, int, float] | None:
+    """The circular tunnel a solid stands in: a point of its axis [m], the axis (0 x, 1 y) and its radius [m]; None
+    for a scene without a solid in a circular tunnel."""
+    mesh = scene.mesh
+    if not getattr(mesh, "solids", None):
+        return None
+    for opening in mesh.openings:
+        if opening.kind == "tunnel" and opening.shape == "circular":
+            point = np.zeros(3)
+            point[[1 if opening.axis == "x" else 0, 2]] = opening.center
+            return point, 0 if opening.axis == "x" else 1, float(opening.radius)
+    return None
+
+
+def wall_reach(sim, started: int, wall: tuple[np.ndarray, int, float]) -> tuple[float, float]:
+    """How far the fragments (spheres with id < ``started``) reach towards the tunnel's wall: the largest distance
+    from the axis plus radius [m], and the fastest fragment's speed [m/s]."""
+    n = sim.particle_count
+    if not n or not started:
+        return 0.0, 0.0
+    fragment = sim.model.particle_id.numpy()[:n] < started
+    q = sim.state.particle_q.numpy()[:n][fragment]
+    point, axis, _ = wall
+    across = np.delete(q - point, axis, axis=1)
+    reach = np.linalg.norm(across, axis=1) + sim.model.particle_radius.numpy()[:n][fragment]
+    speed = np.linalg.norm(sim.state.particle_qd.numpy()[:n][fragment], axis=1)
+    return float(reach.max()), float(speed.max())
 
 
 def report(scene, device: str, end_time: float | None) -> list[str]:
@@ -75,15 +116,28 @@ def report(scene, device: str, end_time: float | None) -> list[str]:
         f"{scene.name}: {nt} tets, {int(sim.state.node_count.numpy()[0])} nodes, dt = {sim.model.dt * 1e6:.3f} µs, "
         f"{steps} steps; {started} tets start as spheres; charge at {np.round(charge, 3).tolist()} m"
     ]
+    wall = tunnel_wall(scene)
+    lining = np.zeros(nt, dtype=bool)
+    if wall is not None:
+        region = scene.conversion.region
+        lining = ~initial if region is None else region.contains(centroid) & ~initial
+    first_hit = first_lining = None
     e0 = sim.energy()
     in_play = e0.in_play
     done = 0
     wall0 = time.perf_counter()
     for k in range(1, SAMPLES + 1):
         target = steps * k // SAMPLES
-        if target > done:
-            sim.advance(target - done)
-            done = target
+        while target > done:
+            chunk = min(target - done, HIT_CHECK) if wall is not None else target - done
+            sim.advance(chunk)
+            done += chunk
+            if wall is None:
+                continue
+            if first_hit is None and wall_reach(sim, started, wall)[0] >= wall[2]:
+                first_hit = sim.time
+            if first_lining is None and np.any((sim.state.tet_sphere.numpy()[:nt] >= 0) & lining):
+                first_lining = sim.time
         converted = sim.state.tet_sphere.numpy()[:nt] >= 0
         n = sim.particle_count
         speed = np.linalg.norm(sim.state.particle_qd.numpy()[:n], axis=1) if n else np.zeros(1)
@@ -100,16 +154,32 @@ def report(scene, device: str, end_time: float | None) -> list[str]:
         adaptive = converted & ~initial
         energy = sim.energy()
         in_play = max(in_play, energy.in_play)
-        out.append(
+        line = (
             f"  t = {sim.time * 1e3:6.3f} ms  converted {per_material}  spheres {n:5d}  "
             f"bonds {nb - live_broken:5d} intact {broken:5d} broken  "
             f"fastest {float(speed.max(initial=0.0)):7.1f} m/s  "
             f"zone {extent:5.2f} m {float(volume[converted].sum()):7.2f} m³ "
             f"({int(np.count_nonzero(adaptive))} tets converted adaptively)  "
-            f"balance {(energy.total - e0.total) / in_play:+.1e}"
+            # A scene at rest (a charge that has not fired) has nothing in play to scale by.
+            f"balance {(energy.total - e0.total) / in_play if in_play > 0.0 else 0.0:+.1e}"
         )
-    wall = time.perf_counter() - wall0
-    out.append(f"{scene.name}: {done} steps in {wall:.0f} s wall on {device}")
+        if wall is not None:
+            reach, fastest = wall_reach(sim, started, wall)
+            share = np.count_nonzero(converted & lining) / max(1, np.count_nonzero(lining))
+            line += f"  fragments: fastest {fastest:6.1f} m/s, reach {reach:4.2f} m  lining converted {share:6.1%}"
+        out.append(line)
+    seconds = time.perf_counter() - wall0
+    if wall is not None:
+
+        def when(t: float | None) -> str:
+            return "not by the end" if t is None else f"at {t * 1e3:.3f} ms"
+
+        out.append(
+            f"{scene.name}: the first fragment reaches the tunnel's wall (radius {wall[2]:g} m) {when(first_hit)}; the "
+            f"first lining tet converts {when(first_lining)} (checked every {HIT_CHECK} steps); "
+            f"{int(np.count_nonzero(lining))} lining tets"
+        )
+    out.append(f"{scene.name}: {done} steps in {seconds:.0f} s wall on {device}")
     return out
 
 

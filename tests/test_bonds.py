@@ -161,12 +161,12 @@ def test_tension_breaks_within_one_increment_of_strength(device):
 
 
 def test_bond_pulled_past_its_strength_in_one_step_releases_what_its_spring_holds_half_a_step_on(device):
-    # B leaves the rest length at v and the bond breaks at the first evaluation after (k_n v dt far above σ_t A).
-    # In Verlet's step the spring never pushed (its force at the set-up evaluation is 0), so what it held less its
-    # work over the half step is 0; what it holds half a step on, where it lets go, is ½ k_n (½ v dt)². The release
-    # line takes that (never negative: a crushed bond pulled past its strength in one step had booked -6 kJ of
-    # "released" energy on masonry_tunnel_blast), the trapezoid line minus it, the damping line nothing; the total
-    # is unchanged. Oracle: the closed form, to float32 rounding of the stretch.
+    # B leaves the rest length at v and the bond breaks at the first evaluation after (k_n v dt far above σ_t A). In
+    # Verlet's step the spring never pushed (its force at the set-up evaluation is 0), so what it held less its work
+    # over the half step is 0; what it holds half a step on, where it lets go, is ½ k_n (½ v dt)². The release line
+    # takes that (never negative: a crushed bond pulled past its strength in one step had booked -6 kJ of "released"
+    # energy on masonry_tunnel_blast before its concrete box, 1bc3e42), the trapezoid line minus it, the damping line
+    # nothing; the total is unchanged. Oracle: the closed form, to float32 rounding of the stretch.
     v = 1.0  # [m/s]
     sim = bonded_pair(
         device, velocity_b=(v, 0.0, 0.0), motion_b="prescribed", tensile_strength=1.0e3, shear_strength=UNBREAKABLE

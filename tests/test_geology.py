@@ -35,6 +35,7 @@ from warpdem.build.geology import (
     RockMass,
     Room,
     Shaft,
+    Solid,
     Tunnel,
     joint_normal,
     mesh_geology,
@@ -257,6 +258,131 @@ def test_opening_volume(kind: str) -> None:
         assert -REL_FLAT * exact <= excess <= curved_area * sagitta(radius, CHORD_FACTOR * h)
     assert len(mesh.boundary_faces["opening"]) > 0
     assert mesh.num_blocks == 1
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Solids put back inside the openings
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def solid_in_tunnel(cavity: bool) -> Geology:
+    """A 4 m box (0.5 m thick) with a circular tunnel of radius 1 along y, a horizontal joint through its axis, and
+    a 1 m square box standing in the tunnel, with a 0.4 m square chamber through the slice."""
+    return Geology(
+        RockMass((0, 0, 0), (4.0, 0.5, 4.0)),
+        openings=[Tunnel("y", (2.0, 2.0), radius=1.0)],
+        joint_sets=[JointSet(0.0, 0.0, spacing=10.0, offset=2.0)],
+        h=0.5,
+        h_opening=0.2,
+        refine_distance=1.0,
+        solids=[
+            Solid(
+                "box",
+                (1.5, 0.0, 1.5),
+                (2.5, 0.5, 2.5),
+                (1.8, 0.0, 1.8) if cavity else None,
+                (2.2, 0.5, 2.2) if cavity else None,
+            )
+        ],
+    )
+
+
+@pytest.mark.parametrize("cavity", [True, False], ids=["chamber", "full"])
+def test_solid_in_tunnel_is_a_separate_piece_of_exact_volume(cavity: bool) -> None:
+    """The rock's volume is the box less the tunnel (within the chord error of its faceted wall, as in
+    :func:`test_circular_tunnel_volume_walls_and_clipped_joint`); the solid's, bounded by planes only, is its box less
+    its chamber to round-off (REL_FLAT). The solid is one block of its own with no node of the rock's, the joint
+    through the axis does not cut it (its area stays (L − 2R) L), and its walls are face sets of their own whose
+    areas are exact: the outer walls 4 · 1 m · 0.5 m, the chamber's 4 · 0.4 m · 0.5 m, its faces on y± the square
+    less the chamber."""
+    side, depth, radius, h_wall = 4.0, 0.5, 1.0, 0.2
+    mesh = mesh_geology(solid_in_tunnel(cavity))
+    assert_valid(mesh)
+    assert_conforming(mesh)
+    assert mesh.num_blocks == 3  # the rock above and below the joint, then the solid
+    rock, solid = mesh.tet_block < 2, mesh.tet_block == 2
+    volumes = tet_volumes(mesh.points, mesh.tets)
+
+    chamber = 0.4 * 0.4 * depth if cavity else 0.0
+    np.testing.assert_allclose(volumes[solid].sum(), 1.0 * depth - chamber, rtol=REL_FLAT)
+    walls = mesh.boundary_faces["opening"]
+    sag = sagitta(radius, CHORD_FACTOR * h_wall)
+    assert max_edge(mesh.points, walls) <= CHORD_FACTOR * h_wall
+    excess = volumes[rock].sum() - (side * side - math.pi * radius**2) * depth
+    assert 0.0 <= excess <= 2.0 * math.pi * radius * depth * sag, f"rock volume excess {excess:.3e} m³"
+
+    rock_nodes, solid_nodes = np.unique(mesh.tets[rock]), np.unique(mesh.tets[solid])
+    assert len(np.intersect1d(rock_nodes, solid_nodes)) == 0, "the solid shares nodes with the rock"
+    np.testing.assert_allclose(
+        face_areas(mesh.points, mesh.joint_faces).sum(), (side - 2 * radius) * depth, rtol=REL_FLAT
+    )
+    assert np.all(np.isin(mesh.joint_faces, rock_nodes))
+
+    # "opening" is the tunnel's wall alone: every node on the exact cylinder.
+    wall_points = mesh.points[np.unique(walls)]
+    np.testing.assert_allclose(np.hypot(wall_points[:, 0] - 2.0, wall_points[:, 2] - 2.0), radius, atol=1e-9)
+    np.testing.assert_allclose(face_areas(mesh.points, mesh.boundary_faces["box"]).sum(), 4.0 * depth, rtol=REL_FLAT)
+    if cavity:
+        np.testing.assert_allclose(
+            face_areas(mesh.points, mesh.boundary_faces["box_cavity"]).sum(), 4.0 * 0.4 * depth, rtol=REL_FLAT
+        )
+    else:
+        assert "box_cavity" not in mesh.boundary_faces
+    for name in ("y-", "y+"):
+        faces = mesh.boundary_faces[name]
+        on_solid = np.all(np.isin(faces, solid_nodes), axis=1)
+        np.testing.assert_allclose(face_areas(mesh.points, faces[on_solid]).sum(), 1.0 - 0.16 * cavity, rtol=REL_FLAT)
+    # Every outer face is in exactly one set.
+    outer = sum(len(faces) for faces in mesh.boundary_faces.values())
+    table = tets_on_faces(mesh.tets)
+    assert outer == sum(1 for owners in table.values() if len(owners) == 1)
+
+
+def test_closed_chamber_in_a_room() -> None:
+    """A solid with a chamber closed on every side, in a room: volumes exact (planes only, REL_FLAT), the chamber's
+    walls (all six) of area 2 (ab + bc + ca)."""
+    geology = Geology(
+        RockMass((0, 0, 0), (3.0, 3.0, 3.0)),
+        openings=[Room((0.5, 0.5, 0.5), (2.5, 2.5, 2.5))],
+        h=0.3,
+        solids=[Solid("casing", (1.0, 1.0, 1.0), (2.0, 2.0, 2.0), (1.3, 1.2, 1.4), (1.7, 1.8, 1.6))],
+    )
+    mesh = mesh_geology(geology)
+    assert_valid(mesh)
+    volumes = tet_volumes(mesh.points, mesh.tets)
+    a, b, c = 0.4, 0.6, 0.2
+    np.testing.assert_allclose(volumes[mesh.tet_block == 1].sum(), 1.0 - a * b * c, rtol=REL_FLAT)
+    np.testing.assert_allclose(volumes[mesh.tet_block == 0].sum(), 27.0 - 8.0, rtol=REL_FLAT)
+    np.testing.assert_allclose(
+        face_areas(mesh.points, mesh.boundary_faces["casing_cavity"]).sum(),
+        2.0 * (a * b + b * c + c * a),
+        rtol=REL_FLAT,
+    )
+    np.testing.assert_allclose(face_areas(mesh.points, mesh.boundary_faces["casing"]).sum(), 6.0, rtol=REL_FLAT)
+    np.testing.assert_allclose(face_areas(mesh.points, mesh.boundary_faces["opening"]).sum(), 24.0, rtol=REL_FLAT)
+
+
+def test_solid_errors() -> None:
+    with pytest.raises(ValueError, match="solid 'box' overlaps the rock by"):
+        mesh_geology(
+            Geology(
+                RockMass((0, 0, 0), (4.0, 0.5, 4.0)),
+                openings=[Tunnel("y", (2.0, 2.0), radius=1.0)],
+                h=0.5,
+                solids=[Solid("box", (0.5, 0.0, 1.5), (2.5, 0.5, 2.5))],
+            )
+        )
+    with pytest.raises(ValueError, match="along z is not inside the solid"):
+        Solid("box", (0, 0, 0), (1, 1, 1), (0.2, 0.2, 0.2), (0.8, 0.8, 1.0))  # a notch, flush with one face
+    with pytest.raises(ValueError, match="more than one axis"):
+        Solid("box", (0, 0, 0), (1, 1, 1), (0.2, 0.0, 0.0), (0.8, 1.0, 1.0))  # through along y and z: two pieces
+    with pytest.raises(ValueError, match="needs both cavity_lo and cavity_hi"):
+        Solid("box", (0, 0, 0), (1, 1, 1), (0.2, 0.2, 0.2))
+    rock = RockMass((0, 0, 0), (4.0, 4.0, 4.0))
+    with pytest.raises(ValueError, match=r"solids 0 \('a'\) and 1 \('b'\) overlap"):
+        Geology(rock, solids=[Solid("a", (1, 1, 1), (2, 2, 2)), Solid("b", (1.5, 1, 1), (3, 2, 2))])
+    with pytest.raises(ValueError, match="'a' is used twice"):
+        Geology(rock, solids=[Solid("a", (1, 1, 1), (2, 2, 2)), Solid("a", (2.5, 1, 1), (3, 2, 2))])
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -612,6 +612,38 @@ MESH_BAD_SCENES = [
         "less than 1",
     ),
     (
+        "geology_solid_overlaps_the_rock",
+        GEOLOGY_BASE + '\n[[mesh.solids]]\nname = "box"\nlo = [3.0, 0.0, 3.5]\nhi = [5.5, 10.0, 4.5]\n',
+        "mesh.solids",
+        "solids[0] ('box'): not inside any opening with a gap all round",
+    ),
+    (
+        "geology_solid_outside_the_box",
+        GEOLOGY_BASE + '\n[[mesh.solids]]\nname = "box"\nlo = [4.5, -1.0, 3.5]\nhi = [5.5, 10.0, 4.5]\n',
+        "mesh.solids",
+        "is not inside the model's box",
+    ),
+    (
+        "geology_solid_name_taken",
+        GEOLOGY_BASE + '\n[[mesh.solids]]\nname = "opening"\nlo = [4.5, 0.0, 3.5]\nhi = [5.5, 10.0, 4.5]\n',
+        "mesh.solids",
+        "the face set name 'opening' is taken",
+    ),
+    (
+        "geology_solid_cavity_notch",
+        GEOLOGY_BASE + '\n[[mesh.solids]]\nname = "box"\nlo = [4.5, 0.0, 3.5]\nhi = [5.5, 10.0, 4.5]\n'
+        "cavity = { lo = [4.8, 0.0, 3.8], hi = [5.5, 10.0, 4.2] }\n",
+        "mesh.solids[0]",
+        "cavity: the cavity [4.8, 5.5] along x is not inside the solid [4.5, 5.5]",
+    ),
+    (
+        "geology_solid_unknown_face_set",
+        GEOLOGY_BASE + '\n[[mesh.solids]]\nname = "box"\nlo = [4.5, 0.0, 3.5]\nhi = [5.5, 10.0, 4.5]\n'
+        '\n[[boundaries]]\nfaces = "box_cavity"\nkind = "fixed"\n',
+        "boundaries[0].faces",
+        "the geology mesh has: 'x-', 'x+', 'y-', 'y+', 'z-', 'z+', 'opening', 'box'",
+    ),
+    (
         "geology_joint_set_restitution_zero",
         edit("spacing = 3.0", "spacing = 3.0\nrestitution = 0.0", base=GEOLOGY_BASE),
         "mesh.joint_sets[0].restitution",

@@ -40,6 +40,7 @@ from .jointing import (
     RockMass,
     Room,
     Shaft,
+    Solid,
     Tunnel,
     _in_plane_axes,
     _joint_geometry,
@@ -70,6 +71,7 @@ __all__ = [
     "RockMass",
     "Room",
     "Shaft",
+    "Solid",
     "Tunnel",
     "component_labels",
     "interior_faces",
@@ -299,11 +301,16 @@ def mesh_geology(geology: Geology) -> GeologyMesh:
     Args:
         geology: The rock mass, openings, joint sets, mesh size and seed.
 
+    Solids (boxes put back inside the openings, :class:`Solid`) are added after the joints cut the rock, as
+    volumes of their own: the joints do not cut them and they share no node with the rock; each is one block, after
+    the rock's.
+
     Returns:
-        The mesh; ``boundary_faces`` holds the six box faces and ``"opening"``.
+        The mesh; ``boundary_faces`` holds the six box faces, ``"opening"`` (the rock's walls inside the box) and, for
+        each solid, its walls off the box faces (its name) and its cavity's (its name + ``"_cavity"``).
 
     Raises:
-        ValueError: If the openings remove the whole box.
+        ValueError: If the openings remove the whole box, or a solid overlaps the rock.
         RuntimeError: If Gmsh fails to build or mesh the model (its message included).
     """
     rock = geology.rock
@@ -349,12 +356,16 @@ def mesh_geology(geology: Geology) -> GeologyMesh:
                 for dim, tag in out:
                     if dim == 2 and kind >= 0:
                         surface_set[tag] = min(kind, surface_set.get(tag, kind))
+        # The solids come after the fragment, so the joints do not cut them, and are not fragmented with the rock, so
+        # they share no node with it (a box standing in a tunnel is a body of its own).
+        rock_tags = sorted(tag for _, tag in occ.getEntities(3))
+        solid_tags = [_add_solid(occ, solid, rock_tags, margin, tol) for solid in geology.solids]
         occ.synchronize()
 
         # Drop joint pieces that bound no block and are embedded in none: outside the box or inside openings.
         # Removing them from the Gmsh model only (the OCC shapes stay) is several times faster than
         # occ.remove + synchronize on models with hundreds of blocks.
-        volume_tags = sorted(tag for _, tag in gmsh.model.getEntities(3))
+        volume_tags = rock_tags + solid_tags  # blocks: the rock's, then one per solid in input order
         embedded = {tag for v in volume_tags for dim, tag in gmsh.model.mesh.getEmbedded(3, v) if dim == 2}
         free = [
             (2, s)
@@ -410,18 +421,92 @@ def mesh_geology(geology: Geology) -> GeologyMesh:
         joint_faces[flip] = joint_faces[flip][:, [0, 2, 1]]
 
     centroid_z = points[tets][:, :, 2].mean(axis=1)
+    block = np.concatenate(block_parts)
+    boundary = _classify_boundary(points, tets, lo, hi, 1e3 * tol)
+    _solid_face_sets(boundary, geology.solids, points, tets, block, len(rock_tags), 1e3 * tol)
     return GeologyMesh(
         points=points,
         tets=tets,
-        tet_block=np.concatenate(block_parts),
+        tet_block=block,
         tet_material=rock.material_of_z(centroid_z),
         material_names=rock.material_names(),
         joint_faces=joint_faces,
         joint_face_set=joint_face_set,
         joint_set_names=geology.joint_set_names(),
-        boundary_faces=_classify_boundary(points, tets, lo, hi, 1e3 * tol),
+        boundary_faces=boundary,
         num_blocks=len(volume_tags),
     )
+
+
+def _add_solid(occ: Any, solid: Solid, rock_tags: Sequence[int], margin: float, tol: float) -> int:
+    """Adds a solid (its box less its cavity) as an OCC volume and returns its tag.
+
+    A cavity that passes right through the box is built ``margin`` [m] longer at both ends, so that the cut is
+    transversal. The solid must not overlap the rock: the volume common to it and the rock volumes ``rock_tags``
+    (measured on copies) must be below ``tol`` [m] cubed.
+
+    Raises:
+        ValueError: the solid overlaps the rock, or its cavity leaves it in pieces.
+    """
+    lo, hi = np.asarray(solid.lo, float), np.asarray(solid.hi, float)
+    probe = occ.addBox(*lo, *(hi - lo))
+    common, _ = occ.intersect(occ.copy([(3, t) for t in rock_tags]), [(3, probe)])
+    overlap = sum(occ.getMass(dim, tag) for dim, tag in common if dim == 3)
+    if common:
+        occ.remove(common, recursive=True)
+    if overlap > tol**3 + _REL_TOL * float(np.prod(hi - lo)):
+        raise ValueError(
+            f"mesh_geology: solid {solid.name!r} overlaps the rock by {overlap:.3g} m³: a solid must lie inside the "
+            "openings, clear of the rock"
+        )
+    tag = occ.addBox(*lo, *(hi - lo))
+    if solid.cavity_lo is None or solid.cavity_hi is None:
+        return tag
+    clo, chi = np.asarray(solid.cavity_lo, float), np.asarray(solid.cavity_hi, float)
+    for axis in solid.through_axes():
+        clo[axis], chi[axis] = lo[axis] - margin, hi[axis] + margin
+    out, _ = occ.cut([(3, tag)], [(3, occ.addBox(*clo, *(chi - clo)))])
+    pieces = [t for dim, t in out if dim == 3]
+    if len(pieces) != 1:
+        raise ValueError(f"mesh_geology: solid {solid.name!r} less its cavity is {len(pieces)} pieces, not one")
+    return pieces[0]
+
+
+def _solid_face_sets(
+    boundary: dict[str, np.ndarray],
+    solids: Sequence[Solid],
+    points: np.ndarray,
+    tets: np.ndarray,
+    block: np.ndarray,
+    first_block: int,
+    tol: float,
+) -> None:
+    """Moves each solid's walls out of the ``"opening"`` face set into its own sets, in place: ``name`` (its outer
+    walls off the model's box faces) and ``name + "_cavity"`` (its cavity's walls, with a cavity).
+
+    Args:
+        boundary: the face sets of :func:`_classify_boundary`, changed in place. solids: the geology's solids.
+        points: node positions [m], shape (N, 3). tets: shape (M, 4). block: each tet's block, shape (M,); solid i
+        is block ``first_block + i``. tol: distance under which a node counts as on a cavity wall [m].
+    """
+    walls = boundary[OPENING_FACE_NAME]
+    for i, solid in enumerate(solids):
+        node_in_solid = np.zeros(len(points), dtype=bool)
+        node_in_solid[tets[block == first_block + i].ravel()] = True
+        mine = np.all(node_in_solid[walls], axis=1)
+        faces = walls[mine]
+        walls = walls[~mine]
+        if solid.cavity_lo is None or solid.cavity_hi is None:
+            boundary[solid.name] = faces
+            continue
+        p = points[faces]
+        # A cavity wall's nodes lie within the cavity's box, closed by the tolerance; the outer walls' do not.
+        in_cavity = np.all(
+            np.all((p >= np.asarray(solid.cavity_lo) - tol) & (p <= np.asarray(solid.cavity_hi) + tol), axis=2), axis=1
+        )
+        boundary[solid.name] = faces[~in_cavity]
+        boundary[f"{solid.name}_cavity"] = faces[in_cavity]
+    boundary[OPENING_FACE_NAME] = walls
 
 
 def _mesh_solid(add: Callable[[Any], int], h: float, material: str, what: str) -> GeologyMesh:

@@ -1,9 +1,10 @@
 """The description of a jointed rock mass and the geometry of its joints (pure numpy).
 
 A :class:`Geology` is a rock mass (a box of layered materials) with openings (:class:`Tunnel`, :class:`Shaft`,
-:class:`Room`) and joint sets (:class:`JointSet`); the joint surfaces it implies (planes clipped to the box, discs,
-planes that persist through a few layers) are polygons computed here, ready for the Gmsh model of
-:mod:`warpdem.build.geology`. Conventions (coordinates, dip and dip direction) are :mod:`warpdem.build.geology`'s.
+:class:`Room`), solids put back inside the openings (:class:`Solid`) and joint sets (:class:`JointSet`); the joint
+surfaces it implies (planes clipped to the box, discs, planes that persist through a few layers) are polygons computed
+here, ready for the Gmsh model of :mod:`warpdem.build.geology`. Conventions (coordinates, dip and dip direction) are
+:mod:`warpdem.build.geology`'s.
 """
 
 from __future__ import annotations
@@ -14,6 +15,8 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
+
+from ..scene.continuum import cavity_flush, cavity_problem
 
 # Openings spanning the model and joint polygons are built this fraction of the box diagonal past the box, so
 # every boolean intersection with the box faces is transversal rather than coincident.
@@ -158,6 +161,52 @@ Opening = Tunnel | Shaft | Room
 
 
 @dataclass
+class Solid:
+    """An axis-aligned box put back inside the openings (a concrete box in a tunnel, a charge's casing): a body of its
+    own, meshed with the rock but sharing no node with it, with an optional box-shaped cavity (a charge chamber).
+
+    Attributes:
+        name: Name of the solid; its walls are the face set ``name`` and its cavity's walls ``name + "_cavity"``.
+        lo: Lower corner (x, y, z) [m].
+        hi: Upper corner (x, y, z) [m].
+        cavity_lo: Lower corner of the cavity [m], or ``None`` for a full box.
+        cavity_hi: Upper corner of the cavity [m], or ``None``.
+
+    The cavity lies strictly inside the box, except that it may pass right through along one axis (the thickness of
+    a 2-D slice): a cavity flush with a face along another axis would leave a notch, or cut the box in two.
+    """
+
+    name: str
+    lo: tuple[float, float, float]
+    hi: tuple[float, float, float]
+    cavity_lo: tuple[float, float, float] | None = None
+    cavity_hi: tuple[float, float, float] | None = None
+
+    def __post_init__(self) -> None:
+        lo, hi = np.asarray(self.lo, float), np.asarray(self.hi, float)
+        if np.any(hi <= lo):
+            raise ValueError(f"Solid {self.name!r}: hi {self.hi!r} must exceed lo {self.lo!r} on every axis")
+        if (self.cavity_lo is None) != (self.cavity_hi is None):
+            raise ValueError(f"Solid {self.name!r}: a cavity needs both cavity_lo and cavity_hi")
+        if self.cavity_lo is None:
+            return
+        problem = cavity_problem(self.lo, self.hi, self.cavity_lo, self.cavity_hi)
+        if problem:
+            raise ValueError(f"Solid {self.name!r}: {problem}")
+
+    def through_axes(self) -> list[int]:
+        """The axes along which the cavity passes right through the box (at most one)."""
+        if self.cavity_lo is None or self.cavity_hi is None:
+            return []
+        return [
+            a
+            for a in range(3)
+            if cavity_flush(self.cavity_lo[a], self.lo[a], self.hi[a] - self.lo[a])
+            and cavity_flush(self.cavity_hi[a], self.hi[a], self.hi[a] - self.lo[a])
+        ]
+
+
+@dataclass
 class JointSet:
     """A set of parallel joints.
 
@@ -239,6 +288,8 @@ class Geology:
         seed: Seed of the jitter draws. Every joint surface draws from its own generator keyed by (seed, set
             index, plane index k, and the slab group or in-plane disc position), so a surface's jitter does not
             change when sets are added or the box is resized.
+        solids: Boxes put back inside the openings (:class:`Solid`), each a separate body of the mesh; joints do not
+            cut them.
     """
 
     rock: RockMass
@@ -248,8 +299,16 @@ class Geology:
     h_opening: float | None = None
     refine_distance: float | None = None
     seed: int = 0
+    solids: list[Solid] = field(default_factory=list)
 
     def __post_init__(self) -> None:
+        names = [s.name for s in self.solids]
+        for name in names:
+            if names.count(name) > 1:
+                raise ValueError(f"Geology.solids: the name {name!r} is used twice")
+        for (i, a), (j, b) in itertools.combinations(enumerate(self.solids), 2):
+            if all(a.lo[k] < b.hi[k] and b.lo[k] < a.hi[k] for k in range(3)):
+                raise ValueError(f"Geology.solids: solids {i} ({a.name!r}) and {j} ({b.name!r}) overlap")
         if not self.h > 0:
             raise ValueError(f"Geology.h must be > 0, got {self.h!r}")
         if self.h_opening is not None and not self.h_opening > 0:

@@ -44,6 +44,7 @@ from .geology import (
     RockMass,
     Room,
     Shaft,
+    Solid,
     Tunnel,
     interior_faces,
     mesh_cylinder,
@@ -137,7 +138,17 @@ def _geology(spec: GeologyMeshSpec, seed: int) -> Geology:
         for js in spec.joint_sets
     ]
     rock = RockMass(spec.lo, spec.hi, [(layer.z_top, layer.material) for layer in spec.layers], spec.material)
-    return Geology(rock, openings, joint_sets, spec.h, spec.h_opening, spec.refine_distance, seed)
+    solids = [
+        Solid(
+            s.name,
+            s.lo,
+            s.hi,
+            None if s.cavity is None else s.cavity.lo,
+            None if s.cavity is None else s.cavity.hi,
+        )
+        for s in spec.solids
+    ]
+    return Geology(rock, openings, joint_sets, spec.h, spec.h_opening, spec.refine_distance, seed, solids)
 
 
 def _box(spec: BoxMesh) -> GeologyMesh:

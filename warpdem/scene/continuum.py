@@ -4,7 +4,7 @@ openings and its joints ([joints], [[mesh.joint_sets]])."""
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from fractions import Fraction
 from typing import Annotated, Any, Literal
 
@@ -17,6 +17,7 @@ from pydantic import (
     model_validator,
 )
 
+from ..tables import BOX_FACE_NAMES, OPENING_FACE_NAME
 from .fields import Bool, FilePath, Float, Int, Name, Str, Vec3, _array_to_list, _Model
 from .regions import _hi_above_lo
 
@@ -146,6 +147,115 @@ Opening = Annotated[TunnelOpening | ShaftOpening | RoomOpening, Field(discrimina
 """One ``[[mesh.openings]]`` entry, selected by ``kind``."""
 
 
+CAVITY_FLUSH_TOL = 1e-9
+"""A cavity's face within this fraction of its solid's size of the solid's face is flush with it (passes through)."""
+
+
+def cavity_flush(a: float, b: float, size: float) -> bool:
+    """Whether a cavity's face at coordinate ``a`` [m] is flush with its solid's face at ``b`` [m] (a solid ``size``
+    [m] across on that axis), within :data:`CAVITY_FLUSH_TOL` of the size."""
+    return abs(a - b) <= CAVITY_FLUSH_TOL * size
+
+
+def cavity_problem(
+    lo: Sequence[float], hi: Sequence[float], cavity_lo: Sequence[float], cavity_hi: Sequence[float]
+) -> str:
+    """What is wrong with a cavity in the box [lo, hi] (all corners [m]), or ``""``: the cavity must have positive
+    size and lie strictly inside the box on every axis but at most one, along which it may pass right through (flush
+    with both faces; the thickness of a 2-D slice). A cavity flush with one face only would leave a notch; through on
+    two axes, the box in pieces."""
+    if any(ch <= cl for cl, ch in zip(cavity_lo, cavity_hi, strict=True)):
+        return f"the cavity's hi {list(cavity_hi)} must exceed its lo {list(cavity_lo)} on every axis"
+    through = 0
+    for a in range(3):
+        size = hi[a] - lo[a]
+        flush_lo, flush_hi = cavity_flush(cavity_lo[a], lo[a], size), cavity_flush(cavity_hi[a], hi[a], size)
+        if flush_lo and flush_hi:
+            through += 1
+            continue
+        if flush_lo or flush_hi or not (lo[a] < cavity_lo[a] and cavity_hi[a] < hi[a]):
+            return (
+                f"the cavity [{cavity_lo[a]:g}, {cavity_hi[a]:g}] along {'xyz'[a]} is not inside the solid "
+                f"[{lo[a]:g}, {hi[a]:g}] (allowed: strictly inside, or flush with both faces along one axis)"
+            )
+    if through > 1:
+        return "the cavity passes right through the solid along more than one axis (it would cut it in pieces)"
+    return ""
+
+
+def _box_corners(lo: Sequence[float], hi: Sequence[float]) -> list[tuple[float, float, float]]:
+    return [(x, y, z) for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+
+
+def _inside_opening(opening: Any, p: Sequence[float], box_lo: Sequence[float], box_hi: Sequence[float]) -> bool:
+    """Whether point ``p`` [m] lies strictly inside an opening (one that spans the model: inside along its axis
+    wherever it lies in the box [box_lo, box_hi])."""
+    x, y, z = p
+    if opening.kind == "room":
+        return all(lo < c < hi for lo, c, hi in zip(opening.lo, p, opening.hi, strict=True))
+    if opening.kind == "shaft":
+        bottom = box_lo[2] - 1.0 if opening.bottom is None else opening.bottom
+        top = box_hi[2] + 1.0 if opening.top is None else opening.top
+        return math.hypot(x - opening.center[0], y - opening.center[1]) < opening.radius and bottom < z < top
+    along, across = (x, y) if opening.axis == "x" else (y, x)
+    a = 0 if opening.axis == "x" else 1
+    s0, s1 = opening.span if opening.span is not None else (box_lo[a] - 1.0, box_hi[a] + 1.0)
+    if not s0 < along < s1:
+        return False
+    c, zc = opening.center
+    if opening.shape == "circular":
+        return math.hypot(across - c, z - zc) < opening.radius
+    half_w, half_h = 0.5 * opening.width, 0.5 * opening.height
+    if opening.shape == "rectangular":
+        return abs(across - c) < half_w and abs(z - zc) < half_h
+    # Horseshoe: floor, walls up to the springing line, then a half circle of radius w/2 (warpdem.build.geology).
+    z_spring = zc + half_h - half_w
+    if not (abs(across - c) < half_w and z > zc - half_h):
+        return False
+    return z <= z_spring or math.hypot(across - c, z - z_spring) < half_w
+
+
+class CavitySpec(_Model):
+    """The cavity of a solid: an axis-aligned box inside it."""
+
+    lo: Vec3 = Field(description="Lower corner [m].")
+    hi: Vec3 = Field(description="Upper corner [m]; greater than lo in every component.")
+
+    @field_validator("hi")
+    @classmethod
+    def _check_hi(cls, value: tuple[float, float, float], info: ValidationInfo) -> tuple[float, float, float]:
+        return _hi_above_lo(value, info)
+
+
+class SolidSpec(_Model):
+    """A box put back inside an opening of a geology mesh (a concrete box in a tunnel): a body of its own, meshed with
+    the rock but sharing no node with it, not cut by the joints, with an optional cavity (a charge chamber)."""
+
+    name: Name = Field(
+        description="Name of the solid: its walls are the face set '<name>', its cavity's walls '<name>_cavity'."
+    )
+    lo: Vec3 = Field(description="Lower corner [m]; the solid lies inside the model's box.")
+    hi: Vec3 = Field(description="Upper corner [m]; greater than lo in every component.")
+    cavity: CavitySpec | None = Field(
+        default=None,
+        description="A box-shaped cavity: strictly inside the solid, or flush with both its faces along one axis "
+        "(through the thickness of a slice); omitted: a full box.",
+    )
+
+    @field_validator("hi")
+    @classmethod
+    def _check_hi(cls, value: tuple[float, float, float], info: ValidationInfo) -> tuple[float, float, float]:
+        return _hi_above_lo(value, info)
+
+    @model_validator(mode="after")
+    def _check_cavity(self) -> SolidSpec:
+        if self.cavity is not None:
+            problem = cavity_problem(self.lo, self.hi, self.cavity.lo, self.cavity.hi)
+            if problem:
+                raise ValueError(f"cavity: {problem}")
+        return self
+
+
 def _check_one_stiffness(model: Any) -> None:
     # A joint's normal spring is either relative to the rock behind it or a physical k_n: both would be ambiguous.
     if model.stiffness_factor is not None and model.normal_stiffness is not None:
@@ -236,6 +346,9 @@ class GeologyMeshSpec(_Model):
     layers: list[Layer] = Field(default_factory=list, description="Horizontal material layers, bottom up.")
     openings: list[Opening] = Field(default_factory=list, description="Tunnels, shafts and rooms.")
     joint_sets: list[JointSetSpec] = Field(default_factory=list, description="Joint sets.")
+    solids: list[SolidSpec] = Field(
+        default_factory=list, description="Boxes put back inside the openings, each clear of the rock all round."
+    )
     h: Float = Field(gt=0, description="Target tet edge length [m].")
     h_opening: Float | None = Field(default=None, gt=0, description="Edge length on the opening walls [m]; default h.")
     refine_distance: Float | None = Field(
@@ -256,6 +369,38 @@ class GeologyMeshSpec(_Model):
         # Gmsh conforms the tets to the joints, so no opening leaves cell-sized pieces to take.
         if any(o.min_piece > 0 for o in value):
             raise ValueError("'min_piece' is for bricks meshes only")
+        return value
+
+    @field_validator("solids")
+    @classmethod
+    def _check_solids(cls, value: list[SolidSpec], info: ValidationInfo) -> list[SolidSpec]:
+        # A solid sits in the air of an opening: inside the model's box (its faces may lie on the box's, where the
+        # box's boundaries act on it too), inside one opening with a gap all round (a solid touching the rock would
+        # meet it on faces whose nodes do not match), and clear of the other solids.
+        lo, hi, openings = info.data.get("lo"), info.data.get("hi"), info.data.get("openings")
+        if lo is None or hi is None or openings is None:
+            return value  # the box or the openings are already refused
+        taken = {*BOX_FACE_NAMES, OPENING_FACE_NAME}
+        for i, solid in enumerate(value):
+            where = f"solids[{i}] ({solid.name!r})"
+            for name in (solid.name, f"{solid.name}_cavity"):
+                if name in taken:
+                    raise ValueError(f"{where}: the face set name {name!r} is taken (by {sorted(taken)})")
+                taken.add(name)
+            if not all(m <= a and b <= n for m, a, b, n in zip(lo, solid.lo, solid.hi, hi, strict=True)):
+                raise ValueError(
+                    f"{where}: [{list(solid.lo)}, {list(solid.hi)}] is not inside the model's box [{list(lo)}, "
+                    f"{list(hi)}]"
+                )
+            corners = _box_corners(solid.lo, solid.hi)
+            if not any(all(_inside_opening(o, p, lo, hi) for p in corners) for o in openings):
+                raise ValueError(
+                    f"{where}: not inside any opening with a gap all round (allowed: a box within one tunnel, shaft "
+                    "or room, clear of the rock)"
+                )
+            for j, other in enumerate(value[:i]):
+                if all(a < d and c < b for a, b, c, d in zip(solid.lo, solid.hi, other.lo, other.hi, strict=True)):
+                    raise ValueError(f"{where}: overlaps solids[{j}] ({other.name!r})")
         return value
 
 

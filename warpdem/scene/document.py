@@ -450,6 +450,9 @@ class Scene(_Model):
         names = list(BOX_FACE_NAMES)
         if mesh.kind in ("geology", "bricks") and mesh.openings:
             names.append(OPENING_FACE_NAME)
+        if mesh.kind == "geology":
+            for solid in mesh.solids:
+                names += [solid.name] + ([f"{solid.name}_cavity"] if solid.cavity is not None else [])
         return names
 
     def _mesh_problems(self, check: Any) -> list[tuple[str, str]]:
