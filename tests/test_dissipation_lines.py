@@ -14,11 +14,11 @@ Shortening: each scene runs FRAMES frames of 1/SPLIT of its own frame (output_ra
 all: a blast scene's first conversion pass (masonry_tunnel_blast's lining), a charge crushing bonded spheres
 (masonry_wall_blast's box, spheres from the start, under its handed-over push) and the first splits of limestone_tunnel
 fall in it. Two lines are Verlet's work off a conservative law, of either sign, and are not checked here: the bonds'
-springs' -W - ΔU, ``bond_trapezoid`` (on the damping line it fell by 65 J in a frame on masonry_tunnel_blast before
-its concrete box, 1bc3e42, and 11.5 J on dam_crest_blast when it was a 10 m arch piece: lattice bonds crushed and turned in their first steps after
-a conversion pass; kernels/bonds.py), and the cohesive elements' work beyond their law's dissipation,
-``cohesive_trapezoid`` (on the cohesive line it fell by 1.8 kJ in a frame on limestone_tunnel: elements born in a split
-pass whose daughters cross by 40-100 δ_c in their first step and break in it; kernels/cohesive.py).
+springs' -W - ΔU, ``bond_trapezoid`` (on the damping line it fell by 65 J in a frame on masonry_tunnel_blast before its
+concrete box, 1bc3e42, and 11.5 J on dam_crest_blast when it was a 10 m arch piece: lattice bonds crushed and turned in
+their first steps after a conversion pass; kernels/bonds.py), and the cohesive elements' work beyond their law's
+dissipation, ``cohesive_trapezoid`` (on the cohesive line it fell by 1.8 kJ in a frame on limestone_tunnel: elements
+born in a split pass whose daughters cross by 40-100 δ_c in their first step and break in it; kernels/cohesive.py).
 """
 
 from __future__ import annotations
