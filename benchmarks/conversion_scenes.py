@@ -193,11 +193,30 @@ WALL_FACE_X = 1.45
 """The wall's face towards the box [m] (scenes/masonry_wall_blast.toml)."""
 
 
+def largest_piece_share(sim, tets: np.ndarray, nodes: np.ndarray) -> float:
+    """The largest intact piece of a part of the mesh as a share of the part's mass [-]: the part is the tets flagged
+    in ``tets`` (shape (T,), bool) and their nodes (``nodes``, shape (N,), bool); its mass is its nodes' lumped mass
+    and the spheres of its converted tets (with the overlap band a band tet's mass is split between the two, so the
+    sum is the part's mass whatever has converted). Pieces are label_fragments' (tets through shared nodes, bonds,
+    couplings)."""
+    from warpdem.stages.fragments import label_fragments
+
+    m, s = sim.model, sim.state
+    nt, nn, n = len(tets), len(nodes), sim.particle_count
+    sphere = s.tet_sphere.numpy()[:nt]
+    mine = sphere[tets & (sphere >= 0)]
+    fragments = label_fragments(m, s)
+    labels = np.concatenate([fragments.node_label[:nn][nodes], fragments.particle_label[:n][mine]])
+    masses = np.concatenate([m.node_mass.numpy()[:nn][nodes], m.particle_mass.numpy()[:n][mine]]).astype(np.float64)
+    whole = labels >= 0
+    pieces = np.bincount(labels[whole], weights=masses[whole])
+    return float(pieces.max() / masses.sum()) if len(pieces) else 0.0
+
+
 def wall_report(scene, device: str, end_time: float | None) -> list[str]:
     """The masonry wall's first hit, DEM zone, largest intact piece and failure over the run (module docstring)."""
     from warpdem.build.scene_build import build_scene, start_as_spheres
     from warpdem.simulation import Simulation
-    from warpdem.stages.fragments import label_fragments
 
     wall0 = time.perf_counter()
     model, state = build_scene(scene, device)
@@ -245,14 +264,8 @@ def wall_report(scene, device: str, end_time: float | None) -> list[str]:
             continue
         next_sample = sim.time + WALL_EVERY
         converted = s.tet_sphere.numpy()[:nt] >= 0  # a tet with a sphere; band tets stay active (weight alpha)
-        mine = s.tet_sphere.numpy()[:nt][wall & converted]
-        fragments = label_fragments(m, s)
+        share = largest_piece_share(sim, wall, wall_nodes)
         n = sim.particle_count
-        labels = np.concatenate([fragments.node_label[wall_nodes], fragments.particle_label[:n][mine]])
-        masses = np.concatenate([m.node_mass.numpy()[:nn][wall_nodes], m.particle_mass.numpy()[:n][mine]])
-        whole = labels >= 0
-        pieces = np.bincount(labels[whole], weights=masses[whole].astype(np.float64))
-        share = float(pieces.max() / masses.astype(np.float64).sum()) if len(pieces) else 0.0
         if failed is None and share < FAILED_SHARE:
             failed = sim.time
         energy = sim.energy()
