@@ -261,6 +261,18 @@ def test_injected_nan_is_caught_on_the_next_advance(device, field):
     assert "\n" not in str(err)
 
 
+def test_sphere_of_an_unnamed_part_is_described_by_its_id(device):
+    # Spheres a conversion pass makes in a model built without spheres carry a part id the model has no name for;
+    # the error names it by id rather than failing on the description (an IndexError hid the real message).
+    _, sim = isolated_spheres(device)
+    sim.model.part_names.clear()
+    sphere_id = int(sim.model.particle_id.numpy()[0])
+    poison(sim.state.particle_q, 0, np.array([np.nan, 0.0, 0.0]))
+    with pytest.raises(UnstableRunError) as info:
+        sim.advance(1)
+    assert info.value.entity == f"sphere {sphere_id} (part #0)"
+
+
 def test_speed_bound_is_the_p_wave_speed_or_ten_launch_speeds(device):
     # c_p = sqrt(E (1 - ν) / ((1 + ν)(1 - 2ν) ρ)): a material point that fast would be at 100 % strain.
     c_p = math.sqrt(YOUNG * (1.0 - POISSON) / ((1.0 + POISSON) * (1.0 - 2.0 * POISSON) * DENSITY))

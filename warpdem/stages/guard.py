@@ -321,7 +321,7 @@ class StabilityGuard:
         if report.sphere >= 0:
             i, code = report.sphere, report.sphere_problem
             pid = int(m.particle_id.numpy()[i])
-            part = m.part_names[int(m.particle_part.numpy()[i])]
+            part = _part_name(m, int(m.particle_part.numpy()[i]))
             entity = f"sphere {pid} (part {part})"
             values = {
                 kg.PROBLEM_POSITION: s.particle_q,
@@ -413,7 +413,7 @@ def penetration(
         best = int(np.argmax(overlap / smaller))
         j = int(partners[best])
         pid = int(m.particle_id.numpy()[j])
-        part = m.part_names[int(m.particle_part.numpy()[j])]
+        part = _part_name(m, int(m.particle_part.numpy()[j]))
         return (
             f"its centre {where} and sphere {pid}'s (part {part}) overlap by {overlap[best]:.3g} m, past the smaller "
             f"radius {smaller[best]:.3g} m: the smaller one's centre is inside the larger",
@@ -454,3 +454,10 @@ def likely_cause(model: Model) -> str:
         "overlaps, loads or velocities far beyond what the materials carry, or a contact stiffer than estimated; "
         "try a smaller run.safety_factor or dt"
     )
+
+
+def _part_name(model: Model, part: int) -> str:
+    """A sphere's part in words: its name, or its id where the model names no such part (spheres made by a conversion
+    pass in a model built without spheres), so that describing a bad run never fails on the description."""
+    names = model.part_names
+    return names[part] if 0 <= part < len(names) else f"#{part}"
