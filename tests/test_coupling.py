@@ -26,6 +26,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from warpdem.bench.overlap_band import launch_pulse  # the bar wave of the band benchmark: same bar, same launch
 from warpdem.build.builder import InteractionProps, ModelBuilder
 from warpdem.build.geology import Geology, RockMass, mesh_geology
 from warpdem.build.mesh import box_mesh
@@ -409,32 +410,6 @@ def bar(
         sim.convert_tets(mask)  # spheres, the edge-bond network (warpdem.stages.lattice) and the couplings
     return sim, points, tets
 
-
-def launch_pulse(sim: Simulation, centre: float, width: float, amplitude: float) -> None:
-    """A right-going bar wave on the nodes: u = a cos²(π (x - x_c) / w) for |x - x_c| < w / 2, v = -c u' with
-    c = sqrt(E/ρ), and the lateral Poisson contraction of uniaxial stress, u_y = -ν ε (y - y_c) with ε = u' (and its
-    rate): without it the launch holds the uniaxial-strain energy E (1 - ν) / ((1 + ν)(1 - 2ν)) ε² / 2, 20 % more
-    than the bar wave's, which stays behind as slow breathing modes of the cross-section."""
-    m, s = sim.model, sim.state
-    nn = int(s.node_count.numpy()[0])
-    x = m.node_ref_q.numpy()[:nn].astype(np.float64)
-    xi = (x[:, 0] - centre) / width
-    inside = np.abs(xi) < 0.5
-    strain = np.where(inside, -amplitude * np.pi / width * np.sin(2.0 * np.pi * xi), 0.0)  # ε = u'
-    slope = np.where(inside, -2.0 * amplitude * (np.pi / width) ** 2 * np.cos(2.0 * np.pi * xi), 0.0)  # ε'
-    lateral = x[:, 1:] - CELL  # from the bar's axis (2 × 2 cells across)
-    u = np.zeros((m.node_capacity, 3), dtype=np.float32)
-    v = np.zeros((m.node_capacity, 3), dtype=np.float32)
-    u[:nn, 0] = np.where(inside, amplitude * np.cos(np.pi * xi) ** 2, 0.0)
-    u[:nn, 1:] = -BAR_NU * strain[:, None] * lateral
-    # A right-going wave f(x - c t): ∂/∂t = -c ∂/∂x.
-    v[:nn, 0] = -BAR_WAVE * strain
-    v[:nn, 1:] = BAR_NU * BAR_WAVE * slope[:, None] * lateral
-    s.node_u.assign(u)
-    s.node_qd.assign(v)
-    q = np.zeros((m.node_capacity, 3), dtype=np.float32)
-    q[:nn] = x + u[:nn]
-    s.node_q.assign(q)
     sim.evaluate_forces()
 
 

@@ -137,18 +137,7 @@ def mesh_arch_dam(spec: ArchDamMesh) -> GeologyMesh:
     if not tet_parts or not sum(len(t) for t in tet_parts):
         raise RuntimeError(f"{what}: Gmsh produced no tetrahedra")
     points, tets, _ = _used_nodes(coords, np.concatenate(tet_parts))
-    return GeologyMesh(
-        points=points,
-        tets=tets,
-        tet_block=np.zeros(len(tets), np.int64),
-        tet_material=np.zeros(len(tets), np.int64),
-        material_names=[spec.material],
-        joint_faces=np.zeros((0, 3), np.int64),
-        joint_face_set=np.zeros(0, np.int64),
-        joint_set_names=[],
-        boundary_faces=arch_dam_face_sets(spec, points, tets),
-        num_blocks=1,
-    )
+    return GeologyMesh.single(points, tets, spec.material, arch_dam_face_sets(spec, points, tets))
 
 
 def arch_dam_face_sets(spec: ArchDamMesh, points: np.ndarray, tets: np.ndarray) -> dict[str, np.ndarray]:

@@ -520,18 +520,7 @@ def _mesh_solid(add: Callable[[Any], int], h: float, material: str, what: str) -
     if not tet_parts or not sum(len(t) for t in tet_parts):
         raise RuntimeError(f"{what}: Gmsh produced no tetrahedra")
     points, tets, _ = _used_nodes(coords, np.concatenate(tet_parts))
-    return GeologyMesh(
-        points=points,
-        tets=tets,
-        tet_block=np.zeros(len(tets), np.int64),
-        tet_material=np.zeros(len(tets), np.int64),
-        material_names=[material],
-        joint_faces=np.zeros((0, 3), np.int64),
-        joint_face_set=np.zeros(0, np.int64),
-        joint_set_names=[],
-        boundary_faces={SURFACE_FACE_NAME: outer_faces(tets).astype(np.int64)},
-        num_blocks=1,
-    )
+    return GeologyMesh.single(points, tets, material, {SURFACE_FACE_NAME: outer_faces(tets).astype(np.int64)})
 
 
 def mesh_cylinder(

@@ -76,6 +76,25 @@ class GeologyMesh:
     boundary_faces: dict[str, np.ndarray]
     num_blocks: int
 
+    @classmethod
+    def single(
+        cls, points: np.ndarray, tets: np.ndarray, material: str, boundary_faces: dict[str, np.ndarray]
+    ) -> GeologyMesh:
+        """One block of one material with no joints (a box, an arch, a dam, a solid): ``points`` shape (N, 3) [m],
+        ``tets`` shape (M, 4), ``boundary_faces`` name → node triples shape (F, 3)."""
+        return cls(
+            points=points,
+            tets=tets,
+            tet_block=np.zeros(len(tets), np.int64),
+            tet_material=np.zeros(len(tets), np.int64),
+            material_names=[material],
+            joint_faces=np.zeros((0, 3), np.int64),
+            joint_face_set=np.zeros(0, np.int64),
+            joint_set_names=[],
+            boundary_faces=boundary_faces,
+            num_blocks=1,
+        )
+
     def tet_volumes(self) -> np.ndarray:
         """Volume of each tet [m³], shape (M,)."""
         p = self.points[self.tets]

@@ -154,18 +154,7 @@ def _geology(spec: GeologyMeshSpec, seed: int) -> Geology:
 def _box(spec: BoxMesh) -> GeologyMesh:
     points, tets = box_mesh(spec.lo, spec.hi, spec.divisions)
     tets = tets.astype(np.int64)
-    return GeologyMesh(
-        points=points,
-        tets=tets,
-        tet_block=np.zeros(len(tets), np.int64),
-        tet_material=np.zeros(len(tets), np.int64),
-        material_names=[spec.material],
-        joint_faces=np.zeros((0, 3), np.int64),
-        joint_face_set=np.zeros(0, np.int64),
-        joint_set_names=[],
-        boundary_faces=box_face_sets(points, tets),
-        num_blocks=1,
-    )
+    return GeologyMesh.single(points, tets, spec.material, box_face_sets(points, tets))
 
 
 def arch_mesh(spec: ArchMesh) -> GeologyMesh:
@@ -193,17 +182,11 @@ def arch_mesh(spec: ArchMesh) -> GeologyMesh:
         [r * np.sin(theta), r * np.cos(theta), zeta * spec.height], axis=1
     )
     sets = box_face_sets(unit, tets)
-    return GeologyMesh(
-        points=points,
-        tets=tets,
-        tet_block=np.zeros(len(tets), np.int64),
-        tet_material=np.zeros(len(tets), np.int64),
-        material_names=[spec.material],
-        joint_faces=np.zeros((0, 3), np.int64),
-        joint_face_set=np.zeros(0, np.int64),
-        joint_set_names=[],
-        boundary_faces={name: sets[box] for name, box in zip(ARCH_FACE_NAMES, BOX_FACE_NAMES, strict=True)},
-        num_blocks=1,
+    return GeologyMesh.single(
+        points,
+        tets,
+        spec.material,
+        {name: sets[box] for name, box in zip(ARCH_FACE_NAMES, BOX_FACE_NAMES, strict=True)},
     )
 
 
