@@ -93,7 +93,7 @@ PICTURES = [
         keys=(("rock", "speed"),),
         window=(-0.8, 11.5, -0.5, 20.5),
     ),
-    Picture("masonry_wall_blast", "masonry_wall_blast", 12, "xz", keys=(("spheres", "speed"), ("rock", "stress"))),
+    Picture("masonry_wall_blast", "masonry_wall_blast", 30, "xz", keys=(("spheres", "speed"), ("rock", "stress"))),
     Picture("masonry_tunnel_blast", "masonry_tunnel_blast", 12, "xz", keys=(("spheres", "speed"), ("rock", "stress"))),
     Picture("dam_crest_blast", "dam_crest_blast", 10, keys=(("spheres", "speed"), ("rock", "stress"))),
     Picture(
