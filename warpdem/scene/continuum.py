@@ -19,7 +19,7 @@ from pydantic import (
 
 from ..tables import BOX_FACE_NAMES, OPENING_FACE_NAME
 from .fields import Bool, FilePath, Float, Int, Name, Str, Vec3, _array_to_list, _Model
-from .regions import _hi_above_lo
+from .regions import Box, _hi_above_lo
 
 # ----------------------------------------------------------------------------------------------------------------------
 # Continuum: the rock mesh, its joints, loads and boundaries
@@ -215,16 +215,8 @@ def _inside_opening(opening: Any, p: Sequence[float], box_lo: Sequence[float], b
     return z <= z_spring or math.hypot(across - c, z - z_spring) < half_w
 
 
-class CavitySpec(_Model):
-    """The cavity of a solid: an axis-aligned box inside it."""
-
-    lo: Vec3 = Field(description="Lower corner [m].")
-    hi: Vec3 = Field(description="Upper corner [m]; greater than lo in every component.")
-
-    @field_validator("hi")
-    @classmethod
-    def _check_hi(cls, value: tuple[float, float, float], info: ValidationInfo) -> tuple[float, float, float]:
-        return _hi_above_lo(value, info)
+class CavitySpec(Box):
+    """The cavity of a solid: an axis-aligned box inside it (a region's box, the same fields and checks)."""
 
 
 class SolidSpec(_Model):
