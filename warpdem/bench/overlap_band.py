@@ -245,20 +245,16 @@ def bar_speed(device: str, converted: bool, cells: int = 12) -> float:
     sim, _, _ = build_bar(device, cells, -1.0 if converted else None)
     m, s = sim.model, sim.state
     length = cells * CELL
+    # The bodies that carry the bar: its spheres, or its nodes.
     if converted:
-        n = sim.particle_count
-        x = s.particle_q.numpy()[:n, 0].astype(np.float64)
-        mass = m.particle_mass.numpy()[:n].astype(np.float64)
-        v = np.zeros((m.particle_capacity, 3), dtype=np.float32)
-        v[:n, 0] = 0.01 * np.cos(np.pi * x / length)
-        s.particle_qd.assign(v)
+        n, place, masses, velocity = sim.particle_count, s.particle_q, m.particle_mass, s.particle_qd
     else:
-        n = sim.node_count
-        x = m.node_ref_q.numpy()[:n, 0].astype(np.float64)
-        mass = m.node_mass.numpy()[:n].astype(np.float64)
-        v = np.zeros((m.node_capacity, 3), dtype=np.float32)
-        v[:n, 0] = 0.01 * np.cos(np.pi * x / length)
-        s.node_qd.assign(v)
+        n, place, masses, velocity = sim.node_count, m.node_ref_q, m.node_mass, s.node_qd
+    x = place.numpy()[:n, 0].astype(np.float64)
+    mass = masses.numpy()[:n].astype(np.float64)
+    v = np.zeros((*velocity.shape, 3), dtype=np.float32)
+    v[:n, 0] = 0.01 * np.cos(np.pi * x / length)
+    velocity.assign(v)
     sim.evaluate_forces()
     left = x < 0.5 * length
     times, momenta = [], []
