@@ -5,8 +5,15 @@ a = ½ (x1 - x0) × (x2 - x0) is formed from reference edges E (float64 on the h
 displacement differences, e = E + (u_k - u_0), so it keeps the precision of the displacements wherever the body sits
 (as the tets do, kernels/tets.py).
 
-Pressure: a pressure p pushes into the solid, f = -p a, lumped a third to each node. Histories are picked at
-code-generation time (:func:`make_face_pressure_kernel`); their parameters sit in one :class:`PressureLoad` per load.
+Pressure: a pressure p pushes into the solid, f = -p a, lumped onto the nodes by their weights w_k: a third each on
+a face inside its load's region, less where the region's edge crosses the face, so that a load pushes on exactly
+the area its region covers, whatever the mesh (warpdem.build.face_cover: w_k = (1/A) ∫_{face ∩ region} N_k dA).
+Histories are picked at code-generation time (:func:`make_face_pressure_kernel`); their parameters sit in one
+:class:`PressureLoad` per load.
+
+Impulse: each evaluation in a step adds dt |f_{n+1}| = dt p |a| Σ_k w_k per face to ``load_face_impulse`` (the
+State's, per loaded face), the normal impulse ∫∫ p dA dt the two half kicks around it deliver, so that a report can
+say what a load gave (a sum of magnitudes: on a cavity's wall the vector sum cancels).
 
 Work of the loads: velocity Verlet's energy identity per step is, exactly,
 ΔK = ½ dt (f_n + f_{n+1}) · v_{n+1/2} + dt²/8 (|f_{n+1}|²_{M⁻¹} - |f_n|²_{M⁻¹}) (v_{n+1/2} = v_n + dt/2 M⁻¹ f_n,
@@ -23,7 +30,7 @@ they are then (the daughters' shares included), and the next kick works with exa
 
 Hand-over: a pressure face whose tet turns into spheres (a conversion pass, or a region that starts as spheres) is
 dropped from the nodes, but its push goes on, on that tet's spheres, for the rest of the load's history: the force
--p(t) a_c, a_c the face's area vector when its tet converted (``handed_area``, written by the pass:
+-p(t) a_c Σ_k w_k, a_c the face's area vector when its tet converted (``handed_area``, written by the pass:
 kernels/conversion.py ``drop_converted_faces_kernel``), shared equally among the tet's ``spheres_per_tet`` spheres, p
 evaluated at their mean position (where a Friedlander front arrives). Why this rule: the spheres hold no faces, so the
 area and direction can only be those the face had; frozen, the load delivers exactly the impulse ∫p dt a_c that the
@@ -258,6 +265,7 @@ def make_face_pressure_kernel(kind: str) -> wp.Kernel:
         table_values: wp.array(dtype=float),
         face_tet: wp.array(dtype=int),
         face_handed_area: wp.array(dtype=wp.vec3),
+        face_weight: wp.array(dtype=wp.vec3),
         face_first: int,
         spheres_per_tet: int,
         dt: float,
@@ -277,10 +285,14 @@ def make_face_pressure_kernel(kind: str) -> wp.Kernel:
         particle_f: wp.array(dtype=wp.vec3),
         load_face_force: wp.array(dtype=wp.vec3),
         load_face_work: wp.array(dtype=wp.float64),
+        load_face_impulse: wp.array(dtype=wp.float64),
     ):
         f = wp.tid()  # one thread per loaded face
         n = face_nodes[f]
         load = loads[face_load[f]]
+        w = face_weight[f]  # 3 w_k: 1 each on a whole face, so its force rounds as -p/3 a did
+        covered = (w[0] + w[1] + w[2]) / 3.0  # the share of the face the load's region covers (1 for a whole face)
+        slot = face_first + f
         if n[0] == n[1]:
             # Dropped: its tet converted. Handed over to the tet's spheres where the pass recorded its area.
             first = handed_spheres(f, face_tet, face_handed_area, tet_sphere)
@@ -292,9 +304,10 @@ def make_face_pressure_kernel(kind: str) -> wp.Kernel:
                 v = v + particle_qd[first + k]
             x = spheres_centre(particle_q, first, spheres_per_tet)
             p = history(load, time[0] + dt64, x, table_times, table_values)
-            force = -p * face_handed_area[f]
-            slot = face_first + f
+            force = (-p * covered) * face_handed_area[f]
             if dt > 0.0:
+                # The impulse the next kicks deliver, dt |f_{n+1}| (module docstring, Impulse).
+                load_face_impulse[slot] = load_face_impulse[slot] + wp.float64(dt * wp.length(force))
                 # ½ dt (f_n + f_{n+1})·v_{n+1/2} on the spheres, each with its share (module docstring, Hand-over).
                 kept = load_face_force[slot]
                 load_face_work[slot] = load_face_work[slot] + wp.float64(0.5 * dt * wp.dot(kept + force, v * share))
@@ -308,10 +321,13 @@ def make_face_pressure_kernel(kind: str) -> wp.Kernel:
         p = history(load, time[0] + dt64, centroid, table_times, table_values)
         if p == 0.0:
             return
-        # f = -p a pushes into the solid; a third on each node.
-        force = (-p / 3.0) * area_vector(face_edge_a[f], face_edge_b[f], node_u[n[0]], node_u[n[1]], node_u[n[2]])
+        # f = -p a pushes into the solid; node k takes its share w_k (a third each on a whole face).
+        area = area_vector(face_edge_a[f], face_edge_b[f], node_u[n[0]], node_u[n[1]], node_u[n[2]])
+        if dt > 0.0:
+            load_face_impulse[slot] = load_face_impulse[slot] + wp.float64(dt * covered * p * wp.length(area))
         for k in range(3):
             node = n[k]
+            force = ((-p / 3.0) * w[k]) * area
             wp.atomic_add(node_f, node, force)
             wp.atomic_add(node_f_load, node, force)
             if dt > 0.0:
@@ -340,6 +356,7 @@ def make_load_force_kernel(kind: str) -> wp.Kernel:
         table_values: wp.array(dtype=float),
         face_tet: wp.array(dtype=int),
         face_handed_area: wp.array(dtype=wp.vec3),
+        face_weight: wp.array(dtype=wp.vec3),
         face_first: int,
         spheres_per_tet: int,
         # State in:
@@ -354,6 +371,8 @@ def make_load_force_kernel(kind: str) -> wp.Kernel:
         f = wp.tid()  # one thread per loaded face
         n = face_nodes[f]
         index = face_load[f]
+        w = face_weight[f]  # 3 w_k (:func:`make_face_pressure_kernel`)
+        covered = (w[0] + w[1] + w[2]) / 3.0
         force = wp.vec3(0.0)
         if n[0] == n[1]:
             # Handed over to its tet's spheres (:func:`make_face_pressure_kernel`), or dropped before the hand-over.
@@ -362,11 +381,12 @@ def make_load_force_kernel(kind: str) -> wp.Kernel:
                 return
             x = spheres_centre(particle_q, first, spheres_per_tet)
             p = history(loads[index], time[0], x, table_times, table_values)
-            force = -p * face_handed_area[f]
+            force = (-p * covered) * face_handed_area[f]
         else:
             centroid = (node_q[n[0]] + node_q[n[1]] + node_q[n[2]]) / 3.0
             p = history(loads[index], time[0], centroid, table_times, table_values)
-            force = -p * area_vector(face_edge_a[f], face_edge_b[f], node_u[n[0]], node_u[n[1]], node_u[n[2]])
+            area = area_vector(face_edge_a[f], face_edge_b[f], node_u[n[0]], node_u[n[1]], node_u[n[2]])
+            force = (-p * covered) * area
         wp.atomic_add(load_force, index, wp.vec3d(wp.float64(force[0]), wp.float64(force[1]), wp.float64(force[2])))
 
     return sum_load_forces_kernel

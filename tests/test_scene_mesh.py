@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from warpdem.build.builder import NODE_MOTIONS
+from warpdem.build.face_cover import SUBDIVISIONS, covered_area
 from warpdem.build.geology import GeologyMesh, write_mesh
 from warpdem.build.mesh import boundary_faces
 from warpdem.build.scene_build import finalize_scene, scene_builder
@@ -330,9 +331,15 @@ def test_loads_and_boundaries_map_onto_the_builder():
     def same_faces(faces: np.ndarray, name: str) -> bool:
         return {tuple(sorted(f)) for f in faces.tolist()} == faces_of[name]
 
-    (f0, h0, _), (f1, h1, _), (f2, h2, _), (f3, h3, _) = specs.pressures
+    (f0, h0, *_), (f1, h1, *_), (f2, h2, *_), (f3, h3, *_) = specs.pressures
     assert same_faces(f0, "z+") and (h0.kind, h0.peak, h0.decay_time, h0.rise_time) == ("blast", 1e6, 1e-3, 0.0)
-    assert same_faces(f1, "x+") and h1.kind == "table" and h1.values == (0.0, 5e5)
+    # The region holds the x+ face whole and a 0.01 m strip of the four faces around it: those faces it covers in part
+    # (warpdem.build.face_cover), so it loads A = 1 × 3 + 0.01 × (2 × 3 + 2 × 1) m², to the midpoint rule's error,
+    # at most the strips' edge (8 m) times a sub-triangle's size (the faces' 0.5 m legs / SUBDIVISIONS).
+    w1 = specs.pressures[1].weights
+    whole = np.isclose(w1.sum(axis=1), 1.0)
+    assert same_faces(f1[whole], "x+") and h1.kind == "table" and h1.values == (0.0, 5e5)
+    assert covered_area(mesh.points, f1, w1) == pytest.approx(3.08, abs=8.0 * 0.5 * np.sqrt(2.0) / SUBDIVISIONS)
     assert same_faces(f2, "y-") and (h2.kind, h2.duration, h2.start, h2.front_speed) == (
         "friedlander",
         1e-3,

@@ -25,6 +25,9 @@ class FaceSet:
         index: pressure load of each face (into LoadModel.pressure_loads), shape (F,), int32; or None.
         impedance: (ρ c_p, ρ c_s) of the tet behind each dashpot face [Pa s/m], shape (F,), vec2; or None.
         tet: the tet behind each pressure face, shape (F,), int32; or None (dashpots).
+        weight: three times the share w_k of the face's pressure force each of its nodes takes [-], shape (F,),
+            vec3: (1, 1, 1) for a face inside its load's region, less where the region's edge crosses it
+            (warpdem.build.face_cover: Σ w_k = the covered fraction of the face); or None (dashpots).
         handed_area: the area vector of each pressure face when its tet converted [m²], shape (F,), vec3: the face's
             push p(t) a then acts on that tet's spheres (kernels/loads.py, "Hand-over"); zero while the tet is a tet,
             and for a face dropped before the hand-over existed (a restart of such a run). Written by the
@@ -39,6 +42,7 @@ class FaceSet:
     index: wp.array | None = None
     impedance: wp.array | None = None
     tet: wp.array | None = None
+    weight: wp.array | None = None
     handed_area: wp.array | None = None
     first: int = 0
 
@@ -55,15 +59,22 @@ class FaceSet:
         impedance: np.ndarray | None = None,
         tet: np.ndarray | None = None,
         first: int = 0,
+        weight: np.ndarray | None = None,
     ) -> FaceSet:
         """Faces (F, 3) of ``points`` [m] (N, 3); with ``tet`` (F,), the tet behind each, the hand-over arrays of a
-        pressure face set (zero: no face handed over yet), its State slots from ``first``."""
+        pressure face set (zero: no face handed over yet), its State slots from ``first``, and the nodes' shares
+        ``weight`` (F, 3) (None: a third each)."""
         x = np.asarray(points, dtype=np.float64)[faces]
         handed = {}
         if tet is not None:
             handed = {
                 "tet": wp.array(np.asarray(tet, dtype=np.int32), dtype=int, device=device),
                 "handed_area": wp.zeros(len(faces), dtype=wp.vec3, device=device),
+                "weight": wp.array(
+                    np.ones((len(faces), 3)) if weight is None else 3.0 * np.asarray(weight, dtype=np.float64),
+                    dtype=wp.vec3,
+                    device=device,
+                ),
                 "first": int(first),
             }
         return FaceSet(
@@ -101,6 +112,24 @@ class LoadModel:
     dashpots: FaceSet | None
     node_driver: wp.array | None
     drivers: wp.array | None
+
+    def loaded_areas(self) -> np.ndarray:
+        """The reference area each pressure load pushes on, Σ |A_f| Σ_k w_fk over its faces [m²], shape (L,),
+        float64 (index = load id; faces handed over to spheres count as they were)."""
+        areas = np.zeros(len(self.pressure_names))
+        for faces in self.pressure.values():
+            a, b = faces.edge_a.numpy().astype(np.float64), faces.edge_b.numpy().astype(np.float64)
+            covered = faces.weight.numpy().astype(np.float64).sum(axis=1) / 3.0
+            np.add.at(areas, faces.index.numpy(), 0.5 * np.linalg.norm(np.cross(a, b), axis=1) * covered)
+        return areas
+
+    def impulses(self, load_face_impulse: np.ndarray) -> np.ndarray:
+        """The normal impulse each pressure load delivered [N s], shape (L,), float64, from the State's
+        ``load_face_impulse`` (per loaded face, each face set from its ``first``)."""
+        impulses = np.zeros(len(self.pressure_names))
+        for faces in self.pressure.values():
+            np.add.at(impulses, faces.index.numpy(), load_face_impulse[faces.first : faces.first + faces.count])
+        return impulses
 
     @property
     def num_drivers(self) -> int:

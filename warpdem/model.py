@@ -412,6 +412,8 @@ class State:
             ``Model.loads.pressure`` in its order, each set from its ``first``; zero for a face not handed over).
         load_face_work: the work of that force on the spheres since the start [J], shape (loaded faces,), float64:
             a part of the load work line (kernels/loads.py, Hand-over).
+        load_face_impulse: the normal impulse each pressure face delivered since the start, Σ dt p |a| Σ_k w_k
+            [N s], shape (loaded faces,), float64 (kernels/loads.py, Impulse).
         face_count: live boundary faces, shape (1,), int32.
         fem_rebuild_flag: 1 when the FEM contact lists must be rebuilt, shape (1,), int32.
         fem_rebuild_total: FEM contact-list builds since the start, shape (1,), int32.
@@ -629,6 +631,7 @@ class State:
     node_energy_boundary_work: wp.array
     load_face_force: wp.array
     load_face_work: wp.array
+    load_face_impulse: wp.array
     face_count: wp.array
     fem_rebuild_flag: wp.array
     fem_rebuild_total: wp.array

@@ -376,7 +376,9 @@ class ModelBuilder:
         self._bond_groups.append((np.asarray(ids, dtype=np.int64), props))
 
     # -- loads and boundaries ----------------------------------------------------------------------------------
-    def add_face_pressure(self, faces: np.ndarray, history: PressureHistory, name: str = "") -> None:
+    def add_face_pressure(
+        self, faces: np.ndarray, history: PressureHistory, name: str = "", weights: np.ndarray | None = None
+    ) -> None:
         """A pressure history on a set of boundary faces (stage 8, :mod:`warpdem.stages.loads`).
 
         Args:
@@ -384,11 +386,15 @@ class ModelBuilder:
                 boundary face of one tet, and is re-ordered to point out of it. The pressure pushes into the rock.
             history: p(t, x), e.g. ``PressureHistory.blast(peak, rise_time, decay_time)``.
             name: a name for reports (default: kind and index).
+            weights: the share of each face's force -p a each of its nodes takes [-], shape (F, 3), in ``faces``'
+                node order, each row ≥ 0 and summing to the share of the face loaded (None: a third each, the whole
+                face; :func:`warpdem.build.face_cover.face_cover_weights` makes them for a region that covers part of
+                a face).
 
         Raises:
             ValueError: bad faces or history (faces that are no boundary faces are found at :meth:`finalize`).
         """
-        self.load_specs.add_face_pressure(faces, history, name)
+        self.load_specs.add_face_pressure(faces, history, name, weights)
 
     def add_node_velocity(
         self, nodes: np.ndarray, velocity: Sequence[float], start: float = 0.0, end: float = math.inf
@@ -591,7 +597,7 @@ class ModelBuilder:
         if self.load_specs.pressures and len(mesh.tets):
             # A pressure p launches the rock at p / (ρ c_p), twice that where the pulse reflects from a free face.
             impedance = min(m.density * m.c_p for m in self.tet_material_table() if m.density > 0.0)
-            peak = max(max([abs(h.peak), *map(abs, h.values)]) for _, h, _ in self.load_specs.pressures)
+            peak = max(max([abs(p.history.peak), *map(abs, p.history.values)]) for p in self.load_specs.pressures)
             speeds.append(2.0 * peak / impedance)
         return run_away_speed(waves, speeds)
 

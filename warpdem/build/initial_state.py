@@ -101,6 +101,7 @@ def new_state(
         node_energy_boundary_work=wp.zeros(model.node_capacity, dtype=wp.float64, device=device),
         load_face_force=wp.zeros(loaded_faces, dtype=wp.vec3, device=device),
         load_face_work=wp.zeros(loaded_faces, dtype=wp.float64, device=device),
+        load_face_impulse=wp.zeros(loaded_faces, dtype=wp.float64, device=device),
         **fem_contact_state(model),
         **fracture_state(model),
         **conversion_state(model),

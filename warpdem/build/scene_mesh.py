@@ -36,6 +36,7 @@ from ..stages.tets import TetProps
 from ..tables import BOX_FACE_NAMES
 from .arch_dam import mesh_arch_dam
 from .bricks import mesh_bricks
+from .face_cover import face_cover_weights
 from .geology import (
     Geology,
     GeologyMesh,
@@ -311,6 +312,32 @@ def select_faces(mesh: GeologyMesh, faces: str | None, region: Region | None, wh
     return selected
 
 
+def select_load_faces(
+    mesh: GeologyMesh, faces: str | None, region: Region | None, where: str
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The outer faces a pressure load pushes on and each node's share of each face's push: a named face set whole
+    (weights None: a third each), or every outer face a region covers at least in part, with the weights that make the
+    load push on exactly the area the region covers (warpdem.build.face_cover).
+
+    Args: as :func:`select_faces`.
+
+    Returns:
+        Outward-oriented triangles (F, 3), int64, and their weights (F, 3) or None.
+
+    Raises:
+        SceneError: an unknown face set name, or a selection with no face.
+    """
+    if faces is not None:
+        return select_faces(mesh, faces, None, where), None
+    assert region is not None  # guaranteed by the scene schema
+    outer = boundary_faces(mesh.tets).astype(np.int64)
+    weights = face_cover_weights(mesh.points, outer, region)
+    hit = weights.sum(axis=1) > 0.0
+    if not np.any(hit):
+        raise SceneError(f"{where}.region: covers no outer face of the mesh")
+    return outer[hit], weights[hit]
+
+
 def seed_crack_faces(points: np.ndarray, tets: np.ndarray, crack: SeedCrack, where: str) -> np.ndarray:
     """The interior faces of a mesh that a seed crack cuts: all three nodes on its plane (within
     :data:`SEED_PLANE_TOLERANCE` of the mesh diagonal) and inside its region, with a tet on either side.
@@ -501,7 +528,8 @@ def _add_loads(builder: ModelBuilder, scene: Scene, mesh: GeologyMesh, nodes: np
                 end = load.end if load.end is not None else float("inf")
                 builder.add_node_velocity(ids, load.velocity, start=load.start, end=end)
                 continue
-            faces = nodes[select_faces(mesh, load.faces, load.region, where)]
+            local, weights = select_load_faces(mesh, load.faces, load.region, where)
+            faces = nodes[local]
             if load.kind == "airblast":
                 history = PressureHistory.friedlander(
                     load.peak,
@@ -521,7 +549,7 @@ def _add_loads(builder: ModelBuilder, scene: Scene, mesh: GeologyMesh, nodes: np
                     history = PressureHistory.friedlander(
                         h.peak, h.positive_duration, h.decay_coefficient, (0.0, 0.0, 0.0), start=h.start
                     )
-            builder.add_face_pressure(faces, history, name=f"loads[{i}]")
+            builder.add_face_pressure(faces, history, name=f"loads[{i}]", weights=weights)
         except ValueError as exc:
             if isinstance(exc, SceneError):
                 raise

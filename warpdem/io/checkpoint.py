@@ -30,7 +30,8 @@ older run, which booked it on the cohesive line); 10 the blended overlap band (t
 where no tet had converted); 11 the pressure loads' hand-over to the spheres of converted tets
 (``loads/pressure_<kind>_handed_area``, ``state/load_face_force``, ``state/load_face_work``: zero in an older run,
 which dropped the faces of converted tets without a hand-over, so its dropped faces stay dropped and the books close
-from zero).
+from zero); 12 the impulse each pressure face delivered (``state/load_face_impulse``: a report's counter, counted
+from the restart of an older run).
 
 Files are written to ``<name>.tmp-<pid>`` in the target directory and moved over the final name with
 ``os.replace``, so a crash or an error mid-write never damages the previous checkpoint.
@@ -63,7 +64,7 @@ __all__ = [
 FORMAT_NAME = "warpdem-checkpoint"
 """Value of the root attribute ``warpdem_format`` identifying a warpdem checkpoint."""
 
-FORMAT_VERSION = 11
+FORMAT_VERSION = 12
 """Newest checkpoint format this module writes and reads (module docstring, "Versions"); bump when the layout changes
 or fields are added, and list what older files may lack in warpdem.io.restart.FIELD_MIGRATIONS."""
 

@@ -360,6 +360,9 @@ FIELD_MIGRATIONS: dict[str, FieldMigration] = {
     # dropped faces pushed nothing), so its kept forces and their work are zero.
     "state/load_face_force": FieldMigration(11, _always),
     "state/load_face_work": FieldMigration(11, _always),
+    # The impulse each pressure face delivered (format 12): a report's counter, not a part of the books or of the
+    # motion; an older run's restart counts it from the restart.
+    "state/load_face_impulse": FieldMigration(12, _always),
 }
 """The fields added since checkpoint format 1, by checkpoint key (``state/<name>``, ``model/<name>``, ``attribute
 <name>`` for a model scalar), and when a restart may fill them from the fresh model and state

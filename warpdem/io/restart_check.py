@@ -156,7 +156,7 @@ by the scene's faces."""
 SIZED_BY_BODIES = tuple(f"state/{name}" for name in RIGID_BODY_FIELDS)
 """State fields of one item per rigid body (as many as ``state/body_mass``)."""
 
-LOADED_FACES = ("state/load_face_force", "state/load_face_work")
+LOADED_FACES = ("state/load_face_force", "state/load_face_work", "state/load_face_impulse")
 """State fields of one item per loaded face of the scene's pressure loads (:func:`check_sizes`)."""
 
 UNSIZED = ("state/rigid_nodes", *LOADED_FACES)

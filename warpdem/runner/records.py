@@ -137,6 +137,9 @@ class RunSummary:
     """The critical time step it is held under [s] (``Model.critical_dt``), and what sets it (``critical_dt_source``:
     a tet, a contact, a bond, or the contact reach of the fastest body, warpdem.stages.guard.reach_step)."""
     critical_dt_source: str = ""
+    loads: list[tuple[str, float, float]] = field(default_factory=list)
+    """Each pressure load's name, the area it pushes on [m²] and the normal impulse ∫∫ p dA dt it delivered [N s]
+    (warpdem.load_data.LoadModel.loaded_areas, .impulses)."""
 
     def format(self) -> str:
         e0, e1 = self.energy_start, self.energy_end
@@ -163,6 +166,8 @@ class RunSummary:
             lines.append(f"rock mesh        {self.nodes} nodes, {self.tets} tets  ({rate:.3f} M tet-steps/s)")
         if self.rigid:
             lines.append(f"rigid blocks     {self.rigid.removeprefix('rigid switch: ')}")
+        for name, area, impulse in self.loads:
+            lines.append(f"load {name:<11} {area:.6g} m² loaded, impulse {impulse:.6g} N s")
         if self.fracture:
             lines += [
                 f"fracture         {self.splits} node splits; cohesive elements {self.cohesive_intact} intact, "

@@ -858,7 +858,16 @@ class Run(RunAccess):
             time_step=sim.model.dt,
             critical_dt=sim.model.critical_dt,
             critical_dt_source=sim.model.critical_dt_source,
+            loads=self._load_records(),
         )
+
+    def _load_records(self) -> list[tuple[str, float, float]]:
+        """Each pressure load's name, loaded area [m²] and delivered impulse [N s] (reads back)."""
+        loads = self.sim.model.loads
+        if loads is None or loads.pressure_loads is None:
+            return []
+        areas, impulses = loads.loaded_areas(), loads.impulses(self.sim.state.load_face_impulse.numpy())
+        return [(n, float(a), float(j)) for n, a, j in zip(loads.pressure_names, areas, impulses, strict=True)]
 
     def _say(self, line: str) -> None:
         if not self.options.quiet:

@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 import warp as wp
@@ -54,6 +55,25 @@ HELD_OF_MOTION = np.argsort(MOTION_OF_HELD).astype(np.int32)
 
 # ----------------------------------------------------------------------------------------------------------------
 # What a builder collects
+
+
+class PressureSpec(NamedTuple):
+    """A pressure load as given: ``faces`` node triples (F, 3), its ``history``, a ``name`` for reports, and the share
+    of the face's force each node takes, ``weights`` (F, 3) in the faces' node order (None: a third each; fewer where
+    the load's region covers part of a face, warpdem.build.face_cover)."""
+
+    faces: np.ndarray
+    history: PressureHistory
+    name: str
+    weights: np.ndarray | None = None
+
+
+def oriented_weights(faces: np.ndarray, oriented: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """``weights`` (F, 3) of ``faces`` (F, 3) re-ordered as the same faces' nodes are in ``oriented`` (F, 3)
+    (:func:`boundary_face_owners` turns each face to point out of its tet)."""
+    faces, oriented = np.asarray(faces), np.asarray(oriented)
+    position = np.argmax(oriented[:, :, None] == faces[:, None, :], axis=2)  # oriented k sits at input position[k]
+    return np.take_along_axis(np.asarray(weights, dtype=np.float64), position, axis=1)
 
 
 def node_indices(nodes: np.ndarray | Sequence[int], what: str) -> np.ndarray:
@@ -112,21 +132,31 @@ class LoadSpecs:
     """The loads and boundaries a builder has been given, validated as they come (node ranges at finalize).
 
     Attributes:
-        pressures: (faces (F, 3), history, name) per pressure load.
+        pressures: a :class:`PressureSpec` per pressure load.
         drivers: (nodes (K,), velocity [m/s] (3,), start [s], end [s]) per velocity driver.
         boundaries: (kind, nodes (K,) or faces (F, 3), axis or None) per boundary.
     """
 
-    pressures: list[tuple[np.ndarray, PressureHistory, str]] = field(default_factory=list)
+    pressures: list[PressureSpec] = field(default_factory=list)
     drivers: list[tuple[np.ndarray, np.ndarray, float, float]] = field(default_factory=list)
     boundaries: list[tuple[str, np.ndarray, int | None]] = field(default_factory=list)
 
-    def add_face_pressure(self, faces: np.ndarray, history: PressureHistory, name: str = "") -> None:
+    def add_face_pressure(
+        self, faces: np.ndarray, history: PressureHistory, name: str = "", weights: np.ndarray | None = None
+    ) -> None:
         """See :meth:`warpdem.build.builder.ModelBuilder.add_face_pressure`."""
         if not isinstance(history, PressureHistory):
             raise ValueError(f"history must be a PressureHistory, got {type(history).__name__}")
         name = name or f"{history.kind}{len(self.pressures)}"
-        self.pressures.append((face_indices(faces, f"pressure {name!r}"), history, name))
+        what = f"pressure {name!r}"
+        f = face_indices(faces, what)
+        if weights is not None:
+            weights = np.asarray(weights, dtype=np.float64)
+            if weights.shape != f.shape:
+                raise ValueError(f"{what}: weights must have the faces' shape {f.shape}, got {weights.shape}")
+            if np.any(weights < 0.0) or np.any(weights.sum(axis=1) > 1.0 + 1e-9):
+                raise ValueError(f"{what}: each face's weights must be ≥ 0 and sum to at most 1 (its covered share)")
+        self.pressures.append(PressureSpec(f, history, name, weights))
 
     def add_node_velocity(
         self, nodes: np.ndarray, velocity: Sequence[float], start: float = 0.0, end: float = math.inf
@@ -171,7 +201,7 @@ class LoadSpecs:
     # -- finalize --------------------------------------------------------------------------------------------
     def check_nodes(self, num_nodes: int) -> None:
         """Raise ValueError if a load or boundary names a node past the ``num_nodes`` of the meshes."""
-        named = [(f"pressure {name!r}", f) for f, _, name in self.pressures]
+        named = [(f"pressure {p.name!r}", p.faces) for p in self.pressures]
         named += [(f"node velocity {k}", d[0]) for k, d in enumerate(self.drivers)]
         named += [(f"{b[0]} boundary {k}", b[1]) for k, b in enumerate(self.boundaries)]
         for what, ids in named:
@@ -226,10 +256,11 @@ class LoadSpecs:
                 dashpot too stiff for dt is refused by ModelBuilder.finalize, warpdem.stages.guard.check_time_step).
         """
         self.check_nodes(len(mesh.points))
-        loads, faces, owners, face_load, kinds, table_times, table_values = [], [], [], [], [], [], []
-        for k, (f, history, name) in enumerate(self.pressures):
+        loads, faces, owners, weights, face_load, kinds, table_times, table_values = [], [], [], [], [], [], [], []
+        for k, (f, history, name, w) in enumerate(self.pressures):
             oriented, owner = boundary_face_owners(mesh.tets, f, f"pressure {name!r}")
             owners.append(owner)
+            weights.append(np.full(oriented.shape, 1.0 / 3.0) if w is None else oriented_weights(f, oriented, w))
             loads.append(history.device_load(sum(len(t) for t in table_times)))
             table_times.append(np.asarray(history.times, dtype=np.float64))
             table_values.append(np.asarray(history.values, dtype=np.float64))
@@ -239,13 +270,19 @@ class LoadSpecs:
         pressure: dict[str, FaceSet] = {}
         if loads:
             all_faces, all_load, all_kind = np.concatenate(faces), np.concatenate(face_load), np.concatenate(kinds)
-            all_owner = np.concatenate(owners)
+            all_owner, all_weight = np.concatenate(owners), np.concatenate(weights)
             first = 0
             for i, kind in enumerate(kl.PRESSURE_KINDS):
                 mine = all_kind == i
                 if np.any(mine):
                     pressure[kind] = FaceSet.create(
-                        mesh.points, all_faces[mine], device, index=all_load[mine], tet=all_owner[mine], first=first
+                        mesh.points,
+                        all_faces[mine],
+                        device,
+                        index=all_load[mine],
+                        tet=all_owner[mine],
+                        first=first,
+                        weight=all_weight[mine],
                     )
                     first += int(np.count_nonzero(mine))
         dashpots = self.build_dashpots(mesh, table, device)
@@ -253,7 +290,7 @@ class LoadSpecs:
         return LoadModel(
             pressure=pressure,
             pressure_loads=wp.array(loads, dtype=kl.PressureLoad, device=device) if loads else None,
-            pressure_names=[p[2] for p in self.pressures],
+            pressure_names=[p.name for p in self.pressures],
             table_times=wp.array(np.concatenate([np.zeros(0), *table_times]), dtype=wp.float64, device=device),
             table_values=wp.array(np.concatenate([np.zeros(0), *table_values]), dtype=float, device=device),
             dashpots=dashpots,
@@ -406,7 +443,15 @@ def eval_loads(model: Model, state: State, dt: float | None = None) -> None:
             s.node_f_load,
             s.node_energy_boundary_work,
             dt,
-            SphereArrays(s.tet_sphere, s.particle_q, s.particle_qd, s.particle_f, s.load_face_force, s.load_face_work),
+            SphereArrays(
+                s.tet_sphere,
+                s.particle_q,
+                s.particle_qd,
+                s.particle_f,
+                s.load_face_force,
+                s.load_face_work,
+                s.load_face_impulse,
+            ),
         )
     if loads.dashpots is not None and dt == 0.0:
         # Set-up or re-evaluation after a pass: the dashpots are left out of these forces, so the next kick does no
@@ -449,6 +494,7 @@ def _pressure_face_inputs(model: Model, faces: FaceSet) -> list:
         loads.table_values,
         faces.tet,
         faces.handed_area,
+        faces.weight,
         faces.first,
         int(model.spheres_per_tet),
     ]
@@ -467,6 +513,8 @@ class SphereArrays:
         face_force: the handed-over faces' forces kept from the last evaluation [N], shape (loaded faces,), vec3
             (State ``load_face_force``; rewritten).
         face_work: their work [J], shape (loaded faces,), float64 (State ``load_face_work``; added to).
+        face_impulse: every loaded face's impulse ∫ p |a| Σw dt [N s], shape (loaded faces,), float64 (State
+            ``load_face_impulse``; added to).
     """
 
     tet_sphere: wp.array
@@ -475,6 +523,7 @@ class SphereArrays:
     particle_f: wp.array
     face_force: wp.array
     face_work: wp.array
+    face_impulse: wp.array
 
 
 def add_pressure_forces(
@@ -521,6 +570,7 @@ def add_pressure_forces(
                 spheres.particle_f,
                 spheres.face_force,
                 spheres.face_work,
+                spheres.face_impulse,
             ],
             device=model.device,
         )
@@ -545,6 +595,7 @@ def pressure_node_forces(model: Model, time: float, node_u: np.ndarray, node_q: 
             one,
             one,
             wp.zeros(faces, dtype=wp.vec3, device=d),
+            wp.zeros(faces, dtype=wp.float64, device=d),
             wp.zeros(faces, dtype=wp.float64, device=d),
         )
         add_pressure_forces(
