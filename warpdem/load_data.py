@@ -11,6 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from .build.face_cover import covered_areas
+
 __all__ = ["FaceSet", "LoadModel"]
 
 
@@ -118,9 +120,8 @@ class LoadModel:
         float64 (index = load id; faces handed over to spheres count as they were)."""
         areas = np.zeros(len(self.pressure_names))
         for faces in self.pressure.values():
-            a, b = faces.edge_a.numpy().astype(np.float64), faces.edge_b.numpy().astype(np.float64)
             covered = faces.weight.numpy().astype(np.float64).sum(axis=1) / 3.0
-            np.add.at(areas, faces.index.numpy(), 0.5 * np.linalg.norm(np.cross(a, b), axis=1) * covered)
+            np.add.at(areas, faces.index.numpy(), covered_areas(faces.edge_a.numpy(), faces.edge_b.numpy(), covered))
         return areas
 
     def impulses(self, load_face_impulse: np.ndarray) -> np.ndarray:

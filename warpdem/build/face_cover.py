@@ -77,8 +77,14 @@ def face_cover_weights(
     return weights
 
 
+def covered_areas(edge_a: np.ndarray, edge_b: np.ndarray, covered: np.ndarray) -> np.ndarray:
+    """The area each face's load covers [m²], |½ E_a × E_b| × ``covered`` (the share Σ_k w_k), from the faces'
+    edges X1 − X0, X2 − X0 [m] (each (F, 3)); shape (F,), float64."""
+    a, b = np.asarray(edge_a, dtype=np.float64), np.asarray(edge_b, dtype=np.float64)
+    return 0.5 * np.linalg.norm(np.cross(a, b), axis=1) * np.asarray(covered, dtype=np.float64)
+
+
 def covered_area(points: np.ndarray, faces: np.ndarray, weights: np.ndarray) -> float:
     """The area the weights load [m²]: Σ_f A_f Σ_k w_fk over the faces at ``points`` (shape (N, 3))."""
     x = np.asarray(points, dtype=np.float64)[np.asarray(faces, dtype=np.int64)]
-    area = 0.5 * np.linalg.norm(np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), axis=1)
-    return float(np.sum(area * np.asarray(weights, dtype=np.float64).sum(axis=1)))
+    return float(np.sum(covered_areas(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], np.asarray(weights).sum(axis=1))))
