@@ -11,9 +11,14 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from .build.face_cover import covered_areas
+__all__ = ["FaceSet", "LoadModel", "covered_areas"]
 
-__all__ = ["FaceSet", "LoadModel"]
+
+def covered_areas(edge_a: np.ndarray, edge_b: np.ndarray, covered: np.ndarray) -> np.ndarray:
+    """The area each face's load covers [m²], |½ E_a × E_b| × ``covered`` (the share Σ_k w_k), from the faces'
+    edges X1 − X0, X2 − X0 [m] (each (F, 3)); shape (F,), float64."""
+    a, b = np.asarray(edge_a, dtype=np.float64), np.asarray(edge_b, dtype=np.float64)
+    return 0.5 * np.linalg.norm(np.cross(a, b), axis=1) * np.asarray(covered, dtype=np.float64)
 
 
 @dataclass

@@ -23,6 +23,8 @@ from typing import Protocol
 
 import numpy as np
 
+from ..load_data import covered_areas
+
 SUBDIVISIONS = 32
 """Sub-triangles per face edge of the midpoint rule (n² = 1024 per crossed face)."""
 
@@ -75,13 +77,6 @@ def face_cover_weights(
         inside = region.contains(q)
         weights[f] = shape[inside].sum(axis=0) / len(st)
     return weights
-
-
-def covered_areas(edge_a: np.ndarray, edge_b: np.ndarray, covered: np.ndarray) -> np.ndarray:
-    """The area each face's load covers [m²], |½ E_a × E_b| × ``covered`` (the share Σ_k w_k), from the faces'
-    edges X1 − X0, X2 − X0 [m] (each (F, 3)); shape (F,), float64."""
-    a, b = np.asarray(edge_a, dtype=np.float64), np.asarray(edge_b, dtype=np.float64)
-    return 0.5 * np.linalg.norm(np.cross(a, b), axis=1) * np.asarray(covered, dtype=np.float64)
 
 
 def covered_area(points: np.ndarray, faces: np.ndarray, weights: np.ndarray) -> float:
