@@ -138,3 +138,80 @@ def replicate_kernel(
         if (dst + 1) * per_row <= a.shape[0]:
             for r in range(per_row):
                 a[dst * per_row + r] = a[k * per_row + r]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Fused passes over many arrays (issue 24): one launch carries a pass over every array of a set, whatever their
+# number and types. Each array is seen as 32-bit words (every field type here is a multiple of 4 bytes: int32,
+# float32, vectors, matrices, float64), through a table of (pointer, words per slot, words in all) built on the host
+# once per set of arrays; a launch is (array, slot). Copying words copies values bit for bit.
+
+
+@wp.kernel
+def replicate_words_kernel(
+    # In:
+    count: wp.array(dtype=int),
+    copies: wp.array(dtype=int),
+    first_new: wp.array(dtype=int),
+    pointers: wp.array(dtype=wp.uint64),
+    slot_words: wp.array(dtype=int),
+    total_words: wp.array(dtype=int),
+):
+    i, k = wp.tid()  # one thread per (array, parent slot); it writes its parent's appended slots of that array
+    if k >= count[0]:
+        return
+    w = slot_words[i]
+    n = total_words[i]
+    words = wp.array(ptr=pointers[i], shape=(n,), dtype=wp.int32)
+    first = first_new[k]
+    for c in range(copies[k]):
+        dst = first + c
+        # Past capacity: the host grows and redoes the pass, nothing is written out of bounds.
+        if (dst + 1) * w <= n:
+            for r in range(w):
+                words[dst * w + r] = words[k * w + r]
+
+
+@wp.kernel
+def gather_survivor_words_kernel(
+    # In:
+    count: wp.array(dtype=int),
+    old_to_new: wp.array(dtype=int),
+    pointers: wp.array(dtype=wp.uint64),
+    slot_words: wp.array(dtype=int),
+    total_words: wp.array(dtype=int),
+    scratch_offset: wp.array(dtype=int),
+    # Out:
+    scratch: wp.array(dtype=wp.int32),
+):
+    i, k = wp.tid()  # one thread per (array, old slot): its survivor's words go to the new slot in the scratch
+    if k >= count[0]:
+        return
+    new = old_to_new[k]
+    if new < 0:
+        return
+    w = slot_words[i]
+    words = wp.array(ptr=pointers[i], shape=(total_words[i],), dtype=wp.int32)
+    base = scratch_offset[i]
+    for r in range(w):
+        scratch[base + new * w + r] = words[k * w + r]
+
+
+@wp.kernel
+def copy_back_words_kernel(
+    # In:
+    pointers: wp.array(dtype=wp.uint64),
+    slot_words: wp.array(dtype=int),
+    total_words: wp.array(dtype=int),
+    scratch_offset: wp.array(dtype=int),
+    scratch: wp.array(dtype=wp.int32),
+):
+    i, k = wp.tid()  # one thread per (array, slot over the capacity): the compacted slot, zero past the survivors
+    w = slot_words[i]
+    n = total_words[i]
+    if (k + 1) * w > n:
+        return
+    words = wp.array(ptr=pointers[i], shape=(n,), dtype=wp.int32)
+    base = scratch_offset[i]
+    for r in range(w):
+        words[k * w + r] = scratch[base + k * w + r]

@@ -23,6 +23,8 @@ LAYERS: dict[str, int] = {
     "warpdem.kernels": 0,
     "warpdem._version": 1,
     "warpdem.limits": 1,
+    "warpdem.budget": 1,
+    "warpdem.fused": 1,
     "warpdem.tables": 1,
     "warpdem.host_data": 1,
     "warpdem.materials": 1,

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 
 import warp as wp
 
+from .fused import copy_arrays
 from .kernels.contact import ContactPair
 
 if TYPE_CHECKING:
@@ -727,9 +728,10 @@ class State:
         return State(**{name: wp.clone(a) for name, a in self.arrays().items()})
 
     def assign(self, other: State) -> None:
-        """Copy another state of the same capacities into this one, array by array (no reallocation)."""
-        for name, a in self.arrays().items():
-            wp.copy(a, getattr(other, name))
+        """Copy another state of the same capacities into this one, bit for bit, in one launch for all its arrays
+        (warpdem.fused.copy_arrays; no reallocation)."""
+        mine = self.arrays()
+        copy_arrays(list(mine.values()), [getattr(other, name) for name in mine])
 
 
 BOND_FIELDS = (

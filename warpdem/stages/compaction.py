@@ -17,7 +17,11 @@ from collections.abc import Sequence
 
 import warp as wp
 
+from ..fused import WordTable
 from ..kernels import compaction as kc
+
+MAX_TABLES = 16
+"""Word tables a Compactor keeps (one per set of arrays it has seen since the last growth)."""
 
 
 class Compactor:
@@ -35,7 +39,7 @@ class Compactor:
         self.offset = wp.zeros(capacity, dtype=int, device=device)
         self.old_to_new = wp.zeros(capacity, dtype=int, device=device)
         self.new_count = wp.zeros(1, dtype=int, device=device)
-        self._scratch: dict[tuple, wp.array] = {}
+        self._tables: dict[tuple, WordTable] = {}
 
     def plan(self, count: wp.array, dead: wp.array) -> wp.array:
         """Flag the survivors (slot < count and dead == 0), scan, and build ``old_to_new``.
@@ -64,22 +68,26 @@ class Compactor:
         return self.old_to_new
 
     def scatter(self, count: wp.array, arrays: Sequence[wp.array]) -> None:
-        """Move the survivors of each array to their new slots, in place (through a scratch buffer)."""
-        for a in arrays:
-            key = (a.dtype, a.shape)
-            tmp = self._scratch.get(key)
-            if tmp is None:
-                tmp = self._scratch[key] = wp.zeros_like(a)
-            else:
-                tmp.zero_()  # slots past the survivors must not keep another array's leftovers (bitwise restarts)
-            wp.launch(
-                kc.scatter_kernel,
-                dim=self.capacity,
-                inputs=[count, self.old_to_new, a],
-                outputs=[tmp],
-                device=self.device,
-            )
-            wp.copy(a, tmp)
+        """Move the survivors of each array to their new slots, in place: three launches for all the arrays together
+        (zero a scratch buffer, gather the survivors' words into it, copy it back; slots past the survivors come back
+        zero, so they do not keep a removed slot's leftovers and restarts stay bitwise)."""
+        table = self._table(arrays)
+        if table.rows == 0:
+            return
+        table.scratch.zero_()
+        wp.launch(
+            kc.gather_survivor_words_kernel,
+            dim=(table.rows, self.capacity),
+            inputs=[count, self.old_to_new, *table.args(), table.offset],
+            outputs=[table.scratch],
+            device=self.device,
+        )
+        wp.launch(
+            kc.copy_back_words_kernel,
+            dim=(table.rows, self.capacity),
+            inputs=[*table.args(), table.offset, table.scratch],
+            device=self.device,
+        )
 
     def remap(self, indices: wp.array) -> None:
         """Rewrite an index array that points into the compacted set (negative entries stay as they are)."""
@@ -152,16 +160,39 @@ class Compactor:
     def replicate(self, count: wp.array, arrays: Sequence[wp.array], per_row: int = 1) -> None:
         """Copy every live slot of each array into its appended slots (after :meth:`plan_append`), in place; with
         ``per_row`` > 1 each slot is a row of that many entries (e.g. a node's wall springs, one per wall)."""
+        self.replicate_rows(count, [(a, per_row) for a in arrays])
+
+    def replicate_rows(self, count: wp.array, rows: Sequence[tuple[wp.array, int]]) -> None:
+        """:meth:`replicate` for many arrays at once, each with its own row length: (array, entries per slot). One
+        launch, whatever the number of arrays."""
         if self.capacity == 0:
             return
-        for a in arrays:
+        table = self._table([a for a, _ in rows], [per_row for _, per_row in rows])
+        if table.rows:
             wp.launch(
-                kc.replicate_kernel,
-                dim=self.capacity,
-                inputs=[count, self.keep, self.old_to_new, per_row],
-                outputs=[a],
+                kc.replicate_words_kernel,
+                dim=(table.rows, self.capacity),
+                inputs=[count, self.keep, self.old_to_new, *table.args()],
                 device=self.device,
             )
+
+    def _table(self, arrays: Sequence[wp.array], per_row: Sequence[int] | None = None) -> WordTable:
+        """The word table of a set of arrays (kept while the same arrays come again: no allocation per pass)."""
+        per_row = [1] * len(arrays) if per_row is None else list(per_row)
+        # Empty arrays (a set of no slots) have no address and nothing to move.
+        kept = [(a, n) for a, n in zip(arrays, per_row, strict=True) if a.size]
+        arrays, per_row = [a for a, _ in kept], [n for _, n in kept]
+        # By address, length and type size: a table is the arrays' layout, so arrays allocated anew at the same
+        # address and of the same layout use it as well as the ones it was built for.
+        key = tuple(
+            (a.ptr, a.size, wp.types.type_size_in_bytes(a.dtype), n) for a, n in zip(arrays, per_row, strict=True)
+        )
+        table = self._tables.get(key)
+        if table is None:
+            if len(self._tables) >= MAX_TABLES:  # arrays reallocated by a growth: their old tables are dead
+                self._tables.clear()
+            table = self._tables[key] = WordTable(arrays, per_row, self.capacity, self.device)
+        return table
 
     def finish(self, count: wp.array) -> None:
         """Set the live count to the pass's new count (the survivors of a removal, count + copies of an append)."""

@@ -136,6 +136,15 @@ def node_rows(model: Model, state: State) -> list[tuple[wp.array, int]]:
     return out
 
 
+def carried_node_rows(
+    model: Model, state: State, extra_node_arrays: Sequence[wp.array] = ()
+) -> list[tuple[wp.array, int]]:
+    """Every per-node array a split carries into the daughters' slots, with its row length (:func:`node_arrays` of
+    the model and the state, ``extra_node_arrays``, then :func:`node_rows`): the set one fused launch replicates."""
+    single = node_arrays(model, model.node_capacity) + node_arrays(state, model.node_capacity) + list(extra_node_arrays)
+    return [(a, 1) for a in single] + node_rows(model, state)
+
+
 class NodeSplitter:
     """Splits nodes whose star the tagged faces cut into several components (module docstring, steps 1–5).
 
@@ -206,10 +215,7 @@ class NodeSplitter:
         """Carry out the planned split in place: replicate every per-node array into the new slots, re-lump the
         masses, remap the tets and set the node count. The new count must fit the capacity."""
         m, s = model, state
-        arrays = node_arrays(m, m.node_capacity) + node_arrays(s, m.node_capacity) + list(extra_node_arrays)
-        self.compactor.replicate(s.node_count, arrays)
-        for rows, per_row in node_rows(m, s):
-            self.compactor.replicate(s.node_count, [rows], per_row)
+        self.compactor.replicate_rows(s.node_count, carried_node_rows(m, s, extra_node_arrays))
         if m.node_capacity:
             wp.launch(
                 kt.relump_split_nodes_kernel,
@@ -287,10 +293,7 @@ class NodeSplitter:
         """Carry out a planned independent-set split in place: replicate every per-node array into the new slots,
         re-lump both sides' masses, move the + side's tets onto B and set the node count."""
         m, s = model, state
-        arrays = node_arrays(m, m.node_capacity) + node_arrays(s, m.node_capacity) + list(extra_node_arrays)
-        self.compactor.replicate(s.node_count, arrays)
-        for rows, per_row in node_rows(m, s):
-            self.compactor.replicate(s.node_count, [rows], per_row)
+        self.compactor.replicate_rows(s.node_count, carried_node_rows(m, s, extra_node_arrays))
         if m.node_capacity == 0:
             return
         wp.launch(
