@@ -83,6 +83,7 @@ from .stages.rigid import (
     reduce_body_forces,
 )
 from .stages.rigid_step import rigid_step_after_switch
+from .stages.status import ChunkStatus, StatusReader
 from .stages.tets import eval_tet_stresses, eval_tets
 from .stages.topology import regrow_nodes
 
@@ -140,6 +141,7 @@ class Simulation:
         self.time = time
         self.growths = 0
         self.guard = StabilityGuard(model.device)
+        self.status = StatusReader(model.device)
         self.rigid_report: RigidReport | None = None
         if model.tet_may_convert is not None:
             # A restart: the checkpoint keeps dropped load faces as collapsed node triples; their edges come from the
@@ -469,19 +471,22 @@ class Simulation:
             self._snapshot.assign(self.state)
         while True:
             self._run(n_steps)
+            # Everything the host needs to know now, in one read-back (warpdem.stages.status).
+            self.guard.launch(self.model, self.state, sphere_lists=self.has_spheres)
+            status = self.status.read(self.model, self.state, self.guard.report, self.guard.clean)
             # A particle had more neighbours than slots: some contacts were not seen. Grow, restore, redo.
-            if not self._grow_if_overflowed(self._snapshot):
+            if not self._grow_if_overflowed(self._snapshot, status):
                 break
             self._snapshot = self.state.clone()
         self.step_count += n_steps
         # The device clock is the reference (time-dependent loads read it); the host copy follows it bit for bit, so
         # a restart from a checkpoint continues on the same clock.
-        self.time = float(self.state.time.numpy()[0])
-        report = self.guard.check(self.model, self.state)
+        self.time = status.time
+        report = self.guard.interpret(status.guard)
         if report is not None:
             raise self._first_bad_step(report, n_steps)
-        self.remove_broken_bonds()
-        self.remove_broken_cohesive()
+        self.remove_broken_bonds(status.bonds_broken)
+        self.remove_broken_cohesive(status.cohesive_broken, status.cohesive_count)
         # No stage of the step reads the tet stresses; they are brought up to date for whoever reads the state now.
         eval_tet_stresses(self.model, self.state)
 
@@ -503,11 +508,16 @@ class Simulation:
         self.time = float(self.state.time.numpy()[0])
         return self.guard.error(self.model, self.state, report, step, self.time)
 
-    def _grow_if_overflowed(self, restore_from: State) -> bool:
+    def _grow_if_overflowed(self, restore_from: State, status: ChunkStatus | None = None) -> bool:
         """If the last neighbour build (or FEM contact build) needed more slots than there are, grow ×2 until they
-        fit and continue from ``restore_from`` (a state whose own lists fit). Returns whether it grew."""
-        needed = int(self.state.nbr_needed.numpy()[0])
-        fem = fem_contact_growth(self.model, self.state)
+        fit and continue from ``restore_from`` (a state whose own lists fit). Returns whether it grew. ``status``: the
+        counts as the chunk status read them (None: read them now)."""
+        if status is None:
+            needed = int(self.state.nbr_needed.numpy()[0])
+            fem = fem_contact_growth(self.model, self.state)
+        else:
+            needed = status.nbr_needed
+            fem = fem_contact_growth(self.model, self.state, status.sphere_face_needed, status.node_face_needed)
         if needed <= self.model.max_neighbors and fem is None:
             return False
         model, state = self.model, restore_from
@@ -523,22 +533,27 @@ class Simulation:
         self._setup()
         return True
 
-    def remove_broken_bonds(self) -> int:
-        """Compact broken bonds away (a topology pass between steps). Returns the live bond count."""
+    def remove_broken_bonds(self, broken: int | None = None) -> int:
+        """Compact broken bonds away (a topology pass between steps). Returns the live bond count (reads back).
+        ``broken``: how many live bonds are broken, as the chunk status counted them (None: count them now)."""
         if self.model.bond_capacity == 0:
             return 0
-        broken = int(np.count_nonzero(self.state.bond_broken.numpy()[: self.bond_count]))
+        if broken is None:
+            broken = int(np.count_nonzero(self.state.bond_broken.numpy()[: self.bond_count]))
         if broken:
             compact_bonds(self.model, self.state, self.bond_compactor)
         return self.bond_count
 
-    def remove_broken_cohesive(self) -> int:
-        """Compact broken cohesive elements away (between steps). Returns the live element count."""
+    def remove_broken_cohesive(self, broken: int | None = None, count: int | None = None) -> int:
+        """Compact broken cohesive elements away (between steps). Returns the live element count. ``broken`` and
+        ``count``: the broken and live elements as the chunk status counted them (None: read them back now)."""
         if self.model.cohesive_capacity == 0:
             return 0
         s = self.state
-        n = int(s.cohesive_count.numpy()[0])
-        if n and np.any(s.cohesive_broken.numpy()[:n]):
+        n = int(s.cohesive_count.numpy()[0]) if count is None else count
+        if broken is None:
+            broken = int(np.count_nonzero(s.cohesive_broken.numpy()[:n])) if n else 0
+        if broken:
             return compact_cohesive(self.model, s, self.cohesive_compactor)
         return n
 

@@ -663,13 +663,18 @@ def contact_stiffness_in_use(model: Model, state: State) -> np.ndarray:
     return np.where((hold > 0.0) & (lumped != 0.0), held, lumped)
 
 
-def fem_contact_growth(model: Model, state: State) -> tuple[int, int] | None:
-    """New (max_sphere_faces, max_node_faces), ×2 until the largest counts seen fit, or None when both fit."""
+def fem_contact_growth(
+    model: Model, state: State, need_s: int | None = None, need_n: int | None = None
+) -> tuple[int, int] | None:
+    """New (max_sphere_faces, max_node_faces), ×2 until the largest counts seen fit, or None when both fit.
+    ``need_s``, ``need_n``: those counts as already read back (None: read them from the state now)."""
     if model.node_capacity == 0:
         return None
     ks, kn = model.max_sphere_faces, model.max_node_faces
-    need_s = int(state.sphere_face_needed.numpy()[0])
-    need_n = int(state.node_face_needed.numpy()[0])
+    if need_s is None:
+        need_s = int(state.sphere_face_needed.numpy()[0])
+    if need_n is None:
+        need_n = int(state.node_face_needed.numpy()[0])
     if need_s <= ks and need_n <= kn:
         return None
     while ks < need_s:

@@ -37,6 +37,7 @@ passed in the step, where they happen (:meth:`StabilityGuard.watch`); the guard 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -206,15 +207,17 @@ class GuardReport:
 
 
 class StabilityGuard:
-    """The run-time check of a simulation: two launches and a read-back of four ints, between runs of steps.
+    """The run-time check of a simulation: two launches and a read-back of four ints, between runs of steps (the
+    read-back shared with the chunk status's, warpdem.stages.status, in a run).
 
     Args:
         device: Warp device of the model.
     """
 
     def __init__(self, device: wp.context.Device) -> None:
-        self.report = wp.zeros(4, dtype=int, device=device)
         self._clean = np.array([kg.NO_KEY, 0, kg.NO_KEY, 0], dtype=np.int32)
+        self.report = wp.array(self._clean, dtype=int, device=device)
+        self.clean = wp.array(self._clean, dtype=int, device=device)  # on the device: a reset without a transfer
         self._none = wp.empty(0, dtype=int, device=device)
         self._no_stiffness = wp.empty(0, dtype=float, device=device)
         self.node_passed: wp.array | None = None
@@ -229,8 +232,17 @@ class StabilityGuard:
     def check(self, model: Model, state: State) -> GuardReport | None:
         """Check the state now; None when every sphere and node is finite, below the run-away bound and the contact
         reach's speed, and no contact was passed since the last check."""
-        m, s = model, state
         self.report.assign(self._clean)
+        self.launch(model, state)
+        return self.interpret(self.report.numpy())
+
+    def launch(self, model: Model, state: State, sphere_lists: bool | None = None) -> None:
+        """The check's launches (no read-back): they raise ``self.report`` from clean (its state after the last
+        :meth:`check`, or after the chunk status read it: warpdem.stages.status). ``sphere_lists``: whether the
+        spheres have contact lists (the caller knows; None: read the radii back to find out)."""
+        m, s = model, state
+        if sphere_lists is None:
+            sphere_lists = m.max_radius > 0.0
         gravity_norm = float(np.linalg.norm(m.gravity))
         reach = min(reach_speed(m), 3.0e38)  # float32 kernel argument
         if m.particle_capacity:
@@ -253,7 +265,7 @@ class StabilityGuard:
                     m.wall_normal,
                     m.particle_inv_mass,
                     m.particle_radius,
-                    m.max_neighbors if m.max_radius > 0.0 else 0,  # no sphere contact stage: no lists
+                    m.max_neighbors if sphere_lists else 0,  # no sphere contact stage: no lists
                     s.particle_count,
                     s.particle_q,
                     s.particle_qd,
@@ -292,7 +304,11 @@ class StabilityGuard:
                 outputs=[self.report],
                 device=m.device,
             )
-        key_s, bad_s, key_n, bad_n = (int(v) for v in self.report.numpy())
+
+    def interpret(self, values: Sequence[float]) -> GuardReport | None:
+        """The report of the check's values (key and count of bad spheres, of bad nodes: ``self.report`` read back, or
+        the chunk status's copy of it); None when all is well. Reads back the faces passed when one was."""
+        key_s, bad_s, key_n, bad_n = (int(v) for v in values)
         if not bad_s and not bad_n:
             return None
         np_ = kg.NUM_PROBLEMS

@@ -1,0 +1,99 @@
+"""The counted budget (issue 24): what a step, the work between two chunks of steps and a split pass ask of the
+device — eager launches, graph replays, captures, read-backs, copies, allocations — counted with warpdem.budget on the
+fracture benchmark's blocks, at two sizes (what does not grow with the body count is the point), and the cracking
+run's throughput with a pass every 1 and 10 steps against none.
+
+    python benchmarks/budget.py [--cells 6 10] [--split-cells 12 20] [--no-run]
+
+The counter is loaded from this checkout's ``warpdem/budget.py`` by path, and the simulation from whatever
+``warpdem`` Python finds, so the same script counts an older checkout too (``PYTHONPATH=/path/to/old python
+benchmarks/budget.py``: the figures "before" in docs/benchmarks.md came that way).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+_spec = importlib.util.spec_from_file_location(
+    "warpdem_budget", Path(__file__).resolve().parent.parent / "warpdem" / "budget.py"
+)
+budget_module = importlib.util.module_from_spec(_spec)
+sys.modules[_spec.name] = budget_module  # its dataclass looks itself up there
+_spec.loader.exec_module(budget_module)
+counted = budget_module.counted
+
+
+def step_and_chunk(cells: int) -> tuple[str, str]:
+    """The counts of 5 steps (``Simulation._run``) and of one step with its between-steps work (``advance(1)``: the
+    chunk epilogue and a split pass that finds nothing), on the cracking block of ``cells``³ cells before it
+    cracks."""
+    from warpdem.bench.fracture import cracking_block
+
+    sim = cracking_block(cells, "cpu", steps=200, interval=1)
+    sim.advance(2)
+    with counted() as steps:
+        sim._run(5)
+    with counted() as chunk:
+        sim.advance(1)
+    return steps.line(), chunk.line()
+
+
+def split_pass(cells: int) -> tuple[int, int, str]:
+    """The counts of one split pass that splits (1 % of the nodes, the stretched block of ``bench fracture``)."""
+    from warpdem.bench.fracture import spread_nodes, stretched_block
+    from warpdem.simulation import Simulation
+
+    may_split = spread_nodes(cells, 0.01, 0)
+    capacity = (cells + 1) ** 3 + int(np.count_nonzero(may_split))
+    model, state = stretched_block(cells, "cpu", may_split, node_capacity=capacity)
+    sim = Simulation(model, state, track_energy=False)
+    sim.fracture_pass()  # compiles; a second block is timed
+    model, state = stretched_block(cells, "cpu", may_split, node_capacity=capacity)
+    sim = Simulation(model, state, track_energy=False)
+    with counted() as b:
+        report = sim.fracture_pass()
+    return 6 * cells**3, report.splits, b.line()
+
+
+def cracking(interval: int, repeat: int = 2) -> str:
+    from warpdem.bench.fracture import bench_cracking_run
+
+    best = min(
+        (bench_cracking_run(10_000, steps=200, interval=interval) for _ in range(repeat)), key=lambda r: r.wall_time
+    )
+    return (
+        f"cracking run, a pass every {interval:2d} steps: {best.tet_steps_per_second / 1e6:6.3f} M tet-steps/s "
+        f"({best.wall_time:.2f} s for {best.steps} steps, {best.splits} splits)"
+    )
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--cells", type=int, nargs="+", default=[6, 10], help="cracking blocks' cells per side")
+    p.add_argument("--split-cells", type=int, nargs="+", default=[12, 20], help="stretched blocks' cells per side")
+    p.add_argument("--no-run", action="store_true", help="skip the cracking run's throughput")
+    a = p.parse_args()
+    from warpdem.cli import init_warp
+
+    init_warp()
+    for cells in a.cells:
+        steps, chunk = step_and_chunk(cells)
+        print(f"{6 * cells**3:>7} tets  5 steps:               {steps}")
+        print(f"{6 * cells**3:>7} tets  1 step + between-steps: {chunk}")
+    for cells in a.split_cells:
+        tets, splits, line = split_pass(cells)
+        print(f"{tets:>7} tets  split pass ({splits} splits):  {line}")
+    if not a.no_run:
+        for interval in (0, 1, 10):
+            t = time.perf_counter()
+            print(cracking(interval), f"[{time.perf_counter() - t:.0f} s]", flush=True)
+
+
+if __name__ == "__main__":
+    main()

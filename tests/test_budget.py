@@ -1,0 +1,138 @@
+"""The counted budget (issue 24; warpdem.budget) and the fused passes that keep it (warpdem.fused).
+
+Oracles:
+- invariants of a run that stays on the device, counted (warpdem.budget.counted wraps Warp's launch, read-back, copy,
+  capture and allocation calls): a step replays captured graphs and asks nothing else of the host (0 eager launches,
+  0 read-backs, 0 copies, 0 allocations); what the work between two chunks of steps asks is the same for a block of
+  1 296 tets as for one of 6 000 (a fixed number of read-backs, whatever the body count); a split pass that splits
+  nothing allocates nothing and captures nothing; a replicate pass is one launch whatever the number of arrays;
+- brute-force references, exact (the passes only move bits): ``wp.copy`` array by array for the fused State copy,
+  NumPy's append for the fused replicate on every field type (int32, float32, vec3, mat33, quat, float64, rows).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+
+from warpdem.bench.fracture import cracking_block
+from warpdem.budget import Budget, counted
+from warpdem.stages.compaction import Compactor
+
+# Per-chunk read-backs (simulation.Simulation._advance_chunk and the pass after it) on a block with nodal fracture
+# and FEM contact: the chunk status (warpdem.stages.status: the lists' counts, the clock, the guard's report, the broken
+# bonds and cohesive elements) and the split pass's candidate count.
+CHUNK_READBACKS = 2
+
+
+def test_counting_counts_and_restores(device):
+    """Each wrapped call is counted once, and Warp's functions are back as they were after the block."""
+    launch, numpy_ = wp.launch, wp.array.numpy
+    a = wp.zeros(4, dtype=float, device=device)
+    with counted() as budget:
+        b = wp.zeros(8, dtype=wp.vec3, device=device)
+        wp.copy(a, wp.full(4, 2.0, dtype=float, device=device))
+        a.numpy()
+        with pytest.raises(RuntimeError, match="does not nest"), counted():
+            pass
+    assert wp.launch is launch and wp.array.numpy is numpy_
+    assert budget.copies == 1 and budget.readbacks == 1
+    assert budget.allocations == 2 and budget.allocated_bytes >= b.capacity + 4 * 4
+    assert budget - budget == Budget()
+
+
+@pytest.mark.parametrize("cells", [6, 10])
+def test_steps_replay_graphs_and_ask_nothing_else(device, cells):
+    sim = cracking_block(cells, device, steps=200, interval=1)
+    sim.advance(2)  # compile and capture
+    with counted() as budget:
+        sim._run(5)
+    # head, four bodies, tail: one graph replay each.
+    assert budget == Budget(graph_launches=6)
+
+
+def chunk_budget(cells: int, device: str) -> Budget:
+    """What one step with its between-steps work (a split pass that finds nothing) asks of the device, on the
+    cracking block of ``cells``³ cells, before anything splits."""
+    sim = cracking_block(cells, device, steps=200, interval=1)
+    sim.advance(2)
+    with counted() as budget:
+        sim.advance(1)
+    assert int(sim.state.node_splits_total.numpy()[0]) == 0  # a quarter of the run before the first split
+    return budget
+
+
+def test_work_between_chunks_does_not_grow_with_the_body_count(device):
+    small, large = chunk_budget(6, device), chunk_budget(10, device)  # 1 296 and 6 000 tets
+    assert small == large
+    assert small.readbacks == CHUNK_READBACKS
+    # The snapshot a redo starts from is one fused copy (warpdem.fused.copy_arrays), not one per State array.
+    assert small.copies == 0 and small.allocations == 0 and small.captures == 0 and small.syncs == 0
+    assert small.graph_launches == 2  # the step: head and tail
+
+
+def test_a_pass_that_finds_nothing_allocates_and_captures_nothing(device):
+    sim = cracking_block(6, device, steps=200, interval=1)
+    sim.advance(2)
+    with counted() as budget:
+        report = sim.fracture_pass()
+    assert report.splits == 0
+    assert budget.allocations == 0 and budget.captures == 0 and budget.graph_launches == 0
+
+
+FIELD_TYPES = (int, float, wp.vec3, wp.mat33, wp.quat, wp.float64)
+
+
+def random_field(rng: np.random.Generator, dtype: type, entries: int, device: str) -> wp.array:
+    """An array of ``entries`` of ``dtype`` holding random bits (any pattern: the passes move bits, not values)."""
+    h = wp.zeros(entries, dtype=dtype, device="cpu").numpy()
+    h.view(np.uint8)[...] = rng.integers(0, 256, size=h.view(np.uint8).shape, dtype=np.uint8)
+    return wp.array(h, dtype=dtype, device=device)
+
+
+@pytest.mark.parametrize("per_row", [1, 3])
+def test_replicate_rows_is_one_launch_and_numpys_append(device, per_row):
+    rng = np.random.default_rng(7)
+    capacity, count = 40, 23
+    copies = np.where(rng.random(capacity) < 0.3, rng.integers(1, 3, capacity), 0).astype(np.int32)
+    copies[count:] = 0
+    compactor = Compactor(capacity, device)
+    w_count = wp.array([count], dtype=int, device=device)
+    compactor.plan_append(w_count, wp.array(copies, dtype=int, device=device))
+    arrays = [random_field(rng, t, capacity * per_row, device) for t in FIELD_TYPES]
+    host = [a.numpy().copy() for a in arrays]
+    rows = [(a, per_row) for a in arrays]
+    compactor.replicate_rows(w_count, rows)  # builds the arrays' word table (kept for the next pass)
+    with counted() as budget:
+        compactor.replicate_rows(w_count, rows)  # the same pass again: parents unchanged, the same result
+    assert budget == Budget(launches=1)
+    # Reference: parent k's row goes to its appended slots first_new[k] + c, c < copies[k] (NumPy, slot by slot).
+    first_new = count + np.concatenate([[0], np.cumsum(copies[:count])[:-1]])
+    for h, a in zip(host, arrays, strict=True):
+        want = h.copy().reshape(capacity, per_row, *h.shape[1:])
+        for k in range(count):
+            for c in range(copies[k]):
+                if first_new[k] + c < capacity:
+                    want[first_new[k] + c] = want[k]
+        got = a.numpy().reshape(want.shape)
+        assert np.array_equal(got.view(np.uint8), want.view(np.uint8)), a.dtype
+
+
+def test_state_assign_is_wp_copy_bit_for_bit(device):
+    sim = cracking_block(6, device, steps=200, interval=1)
+    sim.advance(3)
+    other = sim.state.clone()
+    other.assign(sim.state)  # builds the pair's word tables (kept for the next copy between the same arrays)
+    rng = np.random.default_rng(3)
+    for a in other.arrays().values():  # every array scrambled: any bit pattern
+        if a.size:
+            h = a.numpy().copy()
+            h.view(np.uint8)[...] = rng.integers(0, 256, size=h.view(np.uint8).shape, dtype=np.uint8)
+            a.assign(h)
+    with counted() as budget:
+        other.assign(sim.state)
+    assert budget == Budget(launches=1)
+    for name, a in sim.state.arrays().items():
+        b = getattr(other, name)
+        assert np.array_equal(a.numpy().view(np.uint8), b.numpy().view(np.uint8)), name
