@@ -136,3 +136,32 @@ def test_state_assign_is_wp_copy_bit_for_bit(device):
     for name, a in sim.state.arrays().items():
         b = getattr(other, name)
         assert np.array_equal(a.numpy().view(np.uint8), b.numpy().view(np.uint8)), name
+
+
+def split_pass_budget(cells: int, device: str) -> tuple[int, Budget]:
+    """What one split pass that splits asks of the device (the stretched block of ``bench fracture``, 5 % of its
+    nodes free to split, every one of them above T_f), with the splits it made."""
+    from warpdem.bench.fracture import spread_nodes, stretched_block
+    from warpdem.simulation import Simulation
+
+    may_split = spread_nodes(cells, 0.05, 0)
+    capacity = (cells + 1) ** 3 + int(np.count_nonzero(may_split))
+    model, state = stretched_block(cells, device, may_split, node_capacity=capacity)
+    sim = Simulation(model, state, track_energy=False)
+    with counted() as budget:
+        report = sim.fracture_pass()
+    return report.splits, budget
+
+
+def test_a_split_pass_asks_the_same_of_a_larger_mesh(device):
+    """Launches, read-backs, copies and allocations of a split pass do not grow with the mesh or with the splits
+    (rounds equal): the replicate of every node array is one launch (warpdem.fused), whatever their number."""
+    (few, small), (more, large) = split_pass_budget(4, device), split_pass_budget(7, device)  # 384 and 2 058 tets
+    assert 0 < few < more
+    assert (small.launches, small.readbacks, small.copies, small.allocations, small.captures) == (
+        large.launches,
+        large.readbacks,
+        large.copies,
+        large.allocations,
+        large.captures,
+    )
