@@ -157,19 +157,20 @@ def replicate_words_kernel(
     slot_words: wp.array(dtype=int),
     total_words: wp.array(dtype=int),
 ):
-    i, k = wp.tid()  # one thread per (array, parent slot); it writes its parent's appended slots of that array
-    if k >= count[0]:
+    k = wp.tid()  # one thread per parent slot; it writes its appended slots in every array of the table
+    if k >= count[0] or copies[k] == 0:  # most parents have no copies: one test each, not one per array
         return
-    w = slot_words[i]
-    n = total_words[i]
-    words = wp.array(ptr=pointers[i], shape=(n,), dtype=wp.int32)
     first = first_new[k]
-    for c in range(copies[k]):
-        dst = first + c
-        # Past capacity: the host grows and redoes the pass, nothing is written out of bounds.
-        if (dst + 1) * w <= n:
-            for r in range(w):
-                words[dst * w + r] = words[k * w + r]
+    for i in range(pointers.shape[0]):
+        w = slot_words[i]
+        n = total_words[i]
+        words = wp.array(ptr=pointers[i], shape=(n,), dtype=wp.int32)
+        for c in range(copies[k]):
+            dst = first + c
+            # Past capacity: the host grows and redoes the pass, nothing is written out of bounds.
+            if (dst + 1) * w <= n:
+                for r in range(w):
+                    words[dst * w + r] = words[k * w + r]
 
 
 @wp.kernel

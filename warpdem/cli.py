@@ -114,7 +114,17 @@ def bench_parser() -> argparse.ArgumentParser:
         help="folder with init_N*.txt(.gz) and box_N*.json (default: the cases shipped in warpdem/data/bench)",
     )
     p.add_argument("--repeat", type=_positive_int, default=3, help="runs per size; the fastest counts")
+    _books_option(p)
     return p
+
+
+def _books_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--books",
+        choices=("on", "off"),
+        default="on",
+        help="keep the energy books in the timed steps, as every run does [on]; off: the step without them",
+    )
 
 
 def tet_bench_parser() -> argparse.ArgumentParser:
@@ -126,6 +136,7 @@ def tet_bench_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", help="Warp device")
     p.add_argument("--json", type=Path, help="also write the results as JSON")
     p.add_argument("--repeat", type=_positive_int, default=3, help="timed runs per size; the fastest counts")
+    _books_option(p)
     return p
 
 
@@ -294,7 +305,7 @@ def main(argv: list[str] | None = None) -> int:
 
         args = tet_bench_parser().parse_args(argv[2:])
         init_warp()
-        return run_tet_bench(args.sizes, args.steps, args.device, args.json, args.repeat)
+        return run_tet_bench(args.sizes, args.steps, args.device, args.json, args.repeat, args.books == "on")
     if argv[:2] == ["bench", "blocks"]:
         from .bench import run_block_bench
 
@@ -324,7 +335,7 @@ def main(argv: list[str] | None = None) -> int:
 
         args = bench_parser().parse_args(argv[1:])
         init_warp()
-        return run_bench(args.sizes, args.steps, args.device, args.json, args.data, args.repeat)
+        return run_bench(args.sizes, args.steps, args.device, args.json, args.data, args.repeat, args.books == "on")
     if argv[:1] == ["plot"]:
         from .io.plot import PlotError, plot_run
 

@@ -28,13 +28,15 @@ gzip-compressed text, so the numbers read back are exactly those of the original
 
 @dataclass
 class BenchResult:
-    """One benchmark row: sizes, throughput [particle-steps/s], mean contacts per particle, memory [MB], and the
-    physics at the end (kinetic energies [J], mean height [m]) for comparison with other codes."""
+    """One benchmark row: sizes, whether the energy books were kept, throughput [particle-steps/s], mean contacts per
+    particle, memory [MB], and the physics at the end (kinetic energies [J], mean height [m]) for comparison with
+    other codes."""
 
     device: str
     particles: int
     steps: int
     dt: float
+    books: bool
     wall_time: float
     particle_steps_per_second: float
     mean_contacts_per_particle: float
@@ -84,9 +86,10 @@ def settling_case(n: int, device: str, track_energy: bool = False, data_dir: Pat
 
 
 def bench_settling(
-    n: int, steps: int = 2000, device: str = "cpu", data_dir: Path | None = None, repeat: int = 3
+    n: int, steps: int = 2000, device: str = "cpu", data_dir: Path | None = None, repeat: int = 3, books: bool = True
 ) -> BenchResult:
-    """Run the settling case and measure it (compilation and graph capture happen before the clock starts).
+    """Run the settling case and measure it (compilation and graph capture happen before the clock starts), with the
+    energy books kept as every run keeps them (``books``; off: the step without them, for comparison).
 
     The case runs ``repeat`` times from its initial state and the fastest run counts, as ``timeit`` does: the
     slower ones measured whatever else the machine was doing.
@@ -95,7 +98,7 @@ def bench_settling(
 
     wall = float("inf")
     for _ in range(repeat):
-        sim = settling_case(n, device, data_dir=data_dir)
+        sim = settling_case(n, device, track_energy=books, data_dir=data_dir)
         z0 = float(sim.state.particle_q.numpy()[:n, 2].mean())
         sim.advance(2)  # compile kernels and capture the step graph outside the timed part
         rebuilds0 = int(sim.state.rebuild_total.numpy()[0])
@@ -118,6 +121,7 @@ def bench_settling(
         particles=n,
         steps=steps,
         dt=m.dt,
+        books=books,
         wall_time=wall,
         particle_steps_per_second=n * (steps - 2) / wall,
         mean_contacts_per_particle=2.0 * pairs / n,
@@ -133,13 +137,14 @@ def bench_settling(
 
 def format_table(rows: list[BenchResult]) -> str:
     head = (
-        f"{'device':<8}{'N':>8}{'steps':>7}{'wall s':>9}{'M p-steps/s':>13}{'contacts/p':>11}"
+        f"{'device':<8}{'N':>8}{'steps':>7}{'books':>6}{'wall s':>9}{'M p-steps/s':>13}{'contacts/p':>11}"
         f"{'rebuilds':>9}{'mem MB':>9}{'RSS MB':>9}{'KE_t J':>11}{'KE_r J':>11}{'z_mean m':>10}"
     )
     lines = [head, "-" * len(head)]
     for r in rows:
         lines.append(
-            f"{r.device:<8}{r.particles:>8}{r.steps:>7}{r.wall_time:>9.3f}{r.particle_steps_per_second / 1e6:>13.2f}"
+            f"{r.device:<8}{r.particles:>8}{r.steps:>7}{'on' if r.books else 'off':>6}{r.wall_time:>9.3f}"
+            f"{r.particle_steps_per_second / 1e6:>13.2f}"
             f"{r.mean_contacts_per_particle:>11.2f}{r.neighbor_rebuilds:>9}{r.state_memory_mb:>9.1f}{r.peak_rss_mb:>9.0f}"
             f"{r.kinetic_translational:>11.3e}{r.kinetic_rotational:>11.3e}{r.mean_height:>10.4f}"
         )
@@ -153,12 +158,13 @@ def run_bench(
     json_path: Path | None = None,
     data_dir: Path | None = None,
     repeat: int = 3,
+    books: bool = True,
 ) -> int:
     """``python -m warpdem bench``: print the table; returns the exit status."""
     rows = []
     for n in sizes:
         try:
-            rows.append(bench_settling(n, steps, device, data_dir, repeat))
+            rows.append(bench_settling(n, steps, device, data_dir, repeat, books))
         except FileNotFoundError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2

@@ -171,7 +171,7 @@ class Compactor:
         if table.rows:
             wp.launch(
                 kc.replicate_words_kernel,
-                dim=(table.rows, self.capacity),
+                dim=self.capacity,
                 inputs=[count, self.keep, self.old_to_new, *table.args()],
                 device=self.device,
             )
