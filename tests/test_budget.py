@@ -57,6 +57,7 @@ def chunk_budget(cells: int, device: str) -> Budget:
     cracking block of ``cells``³ cells, before anything splits."""
     sim = cracking_block(cells, device, steps=200, interval=1)
     sim.advance(2)
+    sim.advance(1)  # the first snapshot copied into, not cloned: builds its word tables
     with counted() as budget:
         sim.advance(1)
     assert int(sim.state.node_splits_total.numpy()[0]) == 0  # a quarter of the run before the first split
@@ -165,3 +166,18 @@ def test_a_split_pass_asks_the_same_of_a_larger_mesh(device):
         large.allocations,
         large.captures,
     )
+
+
+def test_chunks_that_change_nothing_share_one_snapshot(device):
+    """Ten chunks of one step, each followed by a split pass that finds nothing, copy the State once (the redo
+    snapshot of the advance call), not once per chunk: ten times one chunk's launches less nine snapshots."""
+    sim = cracking_block(6, device, steps=200, interval=1)
+    sim.advance(2)
+    sim.advance(1)  # builds the snapshot's word tables
+    with counted() as one:
+        sim.advance(1)
+    with counted() as ten:
+        sim.advance(10)
+    assert int(sim.state.node_splits_total.numpy()[0]) == 0
+    assert ten.launches == 10 * one.launches - 9
+    assert (ten.readbacks, ten.copies, ten.allocations) == (10 * one.readbacks, 0, 0)

@@ -198,6 +198,8 @@ class Simulation:
         self._fracture: FracturePass | None = None
         self._face_slot: wp.array | None = None
         self._snapshot: State | None = None
+        self._snapshot_step: int | None = None  # the step of the snapshot; None: take one at the next chunk
+        self._snapshot_time = 0.0
         self._graphs: tuple | None = None
         self.rigid = has_bodies(self.state)
         # Every node a rigid body's, none driven: the bodies' pose does all the node kernels' drift would (fixed
@@ -344,6 +346,8 @@ class Simulation:
                 simulation is left at the first bad step.
         """
         remaining = n_steps
+        # The caller may have changed the state since the last call: the redo snapshot is taken afresh.
+        self._snapshot_step = None
         while remaining > 0:
             kc, kf = self.model.conversion_interval, self.model.fracture_interval
             intervals = [k for k in (kc, kf, self._rigid_check_interval()) if k > 0]
@@ -351,7 +355,10 @@ class Simulation:
             if self.model.rigid_switch and not self.rigid and switch > self.step_count:
                 intervals.append(switch)  # a chunk ends on the switch step (counted from step 0, as the passes)
             chunk = min(remaining, *(k - self.step_count % k for k in intervals)) if intervals else remaining
-            self._advance_chunk(chunk)
+            rewound = self._advance_chunk(chunk)
+            if rewound:  # a list overflowed and grew: back at the snapshot, the chunks since run again, passes too
+                remaining += rewound
+                continue
             remaining -= chunk
             if kc > 0 and self.step_count % kc == 0:
                 self.conversion_pass()
@@ -463,12 +470,22 @@ class Simulation:
             self.rigid_report.dt_after = float(dt)
         return booked
 
-    def _advance_chunk(self, n_steps: int) -> None:
-        """:meth:`advance` without split passes."""
-        if self._snapshot is None:
-            self._snapshot = self.state.clone()
-        else:
-            self._snapshot.assign(self.state)
+    def _advance_chunk(self, n_steps: int) -> int:
+        """:meth:`advance` without split passes. Returns the steps it went back (0 normally): when a list overflowed
+        and the snapshot it restored is from an earlier chunk, the caller runs the chunks since it again.
+
+        The snapshot a redo starts from is a copy of the whole State (one launch, warpdem.fused), taken at the first
+        chunk of an :meth:`advance` call and again after any chunk whose between-steps work changed something (a
+        compaction, a pass that split or converted, a growth, a switch: each sets ``_snapshot_step`` to None). Chunks
+        whose work changed nothing share it, so a pass every step does not copy the State every step; a redo from an
+        earlier chunk runs those chunks again with their passes, as the run would have with the larger lists."""
+        if self._snapshot_step is None:
+            if self._snapshot is None:
+                self._snapshot = self.state.clone()
+            else:
+                self._snapshot.assign(self.state)
+            self._snapshot_step, self._snapshot_time = self.step_count, self.time
+        start, start_time = self._snapshot_step, self._snapshot_time  # a growth's set-up clears them
         while True:
             self._run(n_steps)
             # Everything the host needs to know now, in one read-back (warpdem.stages.status).
@@ -477,24 +494,31 @@ class Simulation:
             # A particle had more neighbours than slots: some contacts were not seen. Grow, restore, redo.
             if not self._grow_if_overflowed(self._snapshot, status):
                 break
+            # The state is the snapshot now, grown: it is the snapshot of the redo.
             self._snapshot = self.state.clone()
+            self._snapshot_step, self._snapshot_time = start, start_time
+            back = self.step_count - start
+            if back:
+                self.step_count, self.time = start, start_time
+                return back
         self.step_count += n_steps
         # The device clock is the reference (time-dependent loads read it); the host copy follows it bit for bit, so
         # a restart from a checkpoint continues on the same clock.
         self.time = status.time
         report = self.guard.interpret(status.guard)
         if report is not None:
-            raise self._first_bad_step(report, n_steps)
+            raise self._first_bad_step(report, self.step_count - self._snapshot_step)
         self.remove_broken_bonds(status.bonds_broken)
         self.remove_broken_cohesive(status.cohesive_broken, status.cohesive_count)
         # No stage of the step reads the tet stresses; they are brought up to date for whoever reads the state now.
         eval_tet_stresses(self.model, self.state)
 
     def _first_bad_step(self, report: GuardReport, n_steps: int) -> UnstableRunError:
-        """The error for a run of ``n_steps`` that ended in a bad state: the run is replayed from its snapshot one
-        step at a time (bit for bit the same steps, warpdem.simulation._run) up to the first step the guard refuses,
-        so that the error names where the blow-up began, not where the run ended (where the replay differs, as atomics
-        may on a GPU, and stays good, the run's own end)."""
+        """The error for a run of ``n_steps`` that ended in a bad state (the steps since the snapshot: the chunks
+        between changed nothing but the steps): the run is replayed from its snapshot one step at a time (bit for bit
+        the same steps, warpdem.simulation._run) up to the first step the guard refuses, so that the error names where
+        the blow-up began, not where the run ended (where the replay differs, as atomics may on a GPU, and stays good,
+        the run's own end)."""
         step = self.step_count
         if n_steps > 1:
             self.state.assign(self._snapshot)
@@ -542,6 +566,7 @@ class Simulation:
             broken = int(np.count_nonzero(self.state.bond_broken.numpy()[: self.bond_count]))
         if broken:
             compact_bonds(self.model, self.state, self.bond_compactor)
+            self._snapshot_step = None  # a redo must not cross a topology change
         return self.bond_count
 
     def remove_broken_cohesive(self, broken: int | None = None, count: int | None = None) -> int:
@@ -554,6 +579,7 @@ class Simulation:
         if broken is None:
             broken = int(np.count_nonzero(s.cohesive_broken.numpy()[:n])) if n else 0
         if broken:
+            self._snapshot_step = None  # a redo must not cross a topology change
             return compact_cohesive(self.model, s, self.cohesive_compactor)
         return n
 
@@ -580,6 +606,7 @@ class Simulation:
             if not self._grow_for_split(found):
                 break
             grew = True
+        self._snapshot_step = None  # the pass may split: a redo must not cross it
         m, s = self.model, self.state
         old_faces = int(s.face_count.numpy()[0]) if m.face_capacity else 0
         if m.face_capacity:
@@ -718,6 +745,7 @@ class Simulation:
         tets, bonds, couplings = self._conversion.find(self.model, self.state, forced)
         if tets == 0:
             return ConversionReport(0, 0, 0, 0, False)
+        self._snapshot_step = None  # a redo must not cross a conversion
         spawned = tets * self.model.spheres_per_tet
         # The band replaces the tie's couplings by one per band sphere: slots for each new sphere and the live ones.
         grew = self._grow_for_conversion(spawned, bonds, max(couplings, spawned) if band else couplings)
