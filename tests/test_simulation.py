@@ -15,6 +15,7 @@ Oracles:
 
 from __future__ import annotations
 
+import dataclasses
 import tomllib
 
 import numpy as np
@@ -181,9 +182,25 @@ def test_overflowing_build_counts_and_stays_in_bounds(device, max_neighbors):
     check_neighbor_slots(grown, n, grown.model.max_neighbors)
 
 
-def run_to_end(builder: ModelBuilder, n: int, device: str, max_neighbors: int, chunks: int, steps: int) -> Simulation:
+def run_to_end(
+    builder: ModelBuilder, n: int, device: str, max_neighbors: int, chunks: int, steps: int, every: int = 0
+) -> Simulation:
+    """Run ``chunks`` calls of ``advance(steps)``; with ``every`` > 0 each call runs in chunks of that many steps
+    with between-steps work that changes nothing (a rigid-switch check no sphere model can pass), so that a redo
+    may go back past several of them to the call's snapshot (Simulation._advance_chunk)."""
     model, state = builder.finalize(device, dt=OVERFLOW_DT, max_neighbors=max_neighbors, particle_capacity=n + PAD)
+    if every:
+        model = dataclasses.replace(model, rigid_energy_fraction=1.0e-30, rigid_check_interval=every)
     sim = Simulation(model, state)
+    sim.rewound = 0
+    chunk = sim._advance_chunk
+
+    def counting(n_steps: int) -> int:
+        back = chunk(n_steps)
+        sim.rewound += back
+        return back
+
+    sim._advance_chunk = counting
     for _ in range(chunks):
         sim.advance(steps)
     return sim
@@ -191,24 +208,29 @@ def run_to_end(builder: ModelBuilder, n: int, device: str, max_neighbors: int, c
 
 @pytest.mark.parametrize(
     ("case", "max_neighbors"),
-    [("initial", 1), ("initial", 2), ("during_run", 3)],
-    ids=["initial-K1", "initial-K2", "during-run-K3"],
+    [("initial", 1), ("initial", 2), ("during_run", 3), ("chunked", 3)],
+    ids=["initial-K1", "initial-K2", "during-run-K3", "chunked-K3"],
 )
 def test_overflow_regrowth_reproduces_large_capacity_run(device, case, max_neighbors):
     # "initial": a dense hcp block whose very first neighbour build (in Simulation.__init__) overflows.
     # "during_run": a contracting cloud that fits 3 slots at the start (checked) and overflows later.
+    # "chunked": the same in chunks of 5 steps whose between-steps work changes nothing: they share one snapshot, so
+    # a redo goes back past the chunks since it and runs them again.
     builder, n = hcp_block_builder() if case == "initial" else contracting_cloud_builder()
     chunks, steps = 10, 25
-    reference = run_to_end(builder, n, device, 64, chunks, steps)
+    every = 5 if case == "chunked" else 0
+    reference = run_to_end(builder, n, device, 64, chunks, steps, every)
     needed = int(reference.state.nbr_needed.numpy()[0])
     assert reference.growths == 0 and needed <= 64
-    if case == "during_run":
+    if case != "initial":
         model0, state0 = builder.finalize(device, dt=OVERFLOW_DT, max_neighbors=64, particle_capacity=n + PAD)
         Simulation(model0, state0)  # builds the first neighbour list
         assert int(state0.nbr_needed.numpy()[0]) <= max_neighbors < needed
 
-    grown = run_to_end(builder, n, device, max_neighbors, chunks, steps)
+    grown = run_to_end(builder, n, device, max_neighbors, chunks, steps, every)
     assert grown.growths >= 1
+    if case == "chunked":
+        assert grown.rewound > 0  # some redo went back past a chunk
     assert grown.model.max_neighbors > max_neighbors
     assert int(grown.state.nbr_needed.numpy()[0]) <= grown.model.max_neighbors
     assert grown.step_count == reference.step_count

@@ -512,6 +512,7 @@ class Simulation:
         self.remove_broken_cohesive(status.cohesive_broken, status.cohesive_count)
         # No stage of the step reads the tet stresses; they are brought up to date for whoever reads the state now.
         eval_tet_stresses(self.model, self.state)
+        return 0
 
     def _first_bad_step(self, report: GuardReport, n_steps: int) -> UnstableRunError:
         """The error for a run of ``n_steps`` that ended in a bad state (the steps since the snapshot: the chunks
