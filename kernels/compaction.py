@@ -7,8 +7,6 @@ steps around it.
 
 from __future__ import annotations
 
-from typing import Any
-
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})
@@ -47,23 +45,6 @@ def old_to_new_kernel(
     last = keep.shape[0] - 1
     if k == last:
         new_count[0] = offset[last] + keep[last]
-
-
-@wp.kernel
-def scatter_kernel(
-    # In:
-    count: wp.array(dtype=int),
-    old_to_new: wp.array(dtype=int),
-    src: wp.array(dtype=Any),
-    # Out:
-    dst: wp.array(dtype=Any),
-):
-    k = wp.tid()  # one thread per old slot
-    if k >= count[0]:
-        return
-    new = old_to_new[k]
-    if new >= 0:
-        dst[new] = src[k]
 
 
 @wp.kernel
@@ -118,33 +99,11 @@ def mask_copies_kernel(
         copies[k] = 0
 
 
-@wp.kernel
-def replicate_kernel(
-    # In:
-    count: wp.array(dtype=int),
-    copies: wp.array(dtype=int),
-    first_new: wp.array(dtype=int),
-    per_row: int,
-    # State out:
-    a: wp.array(dtype=Any),
-):
-    k = wp.tid()  # one thread per parent slot; it writes its own appended slots (a row of per_row entries each)
-    if k >= count[0]:
-        return
-    first = first_new[k]
-    for c in range(copies[k]):
-        dst = first + c
-        # Past capacity: the host grows and redoes the pass, nothing is written out of bounds.
-        if (dst + 1) * per_row <= a.shape[0]:
-            for r in range(per_row):
-                a[dst * per_row + r] = a[k * per_row + r]
-
-
 # ----------------------------------------------------------------------------------------------------------------
 # Fused passes over many arrays (issue 24): one launch carries a pass over every array of a set, whatever their
 # number and types. Each array is seen as 32-bit words (every field type here is a multiple of 4 bytes: int32,
 # float32, vectors, matrices, float64), through a table of (pointer, words per slot, words in all) built on the host
-# once per set of arrays; a launch is (array, slot). Copying words copies values bit for bit.
+# once per set of arrays (warpdem.fused.WordTable). Copying words copies values bit for bit.
 
 
 @wp.kernel

@@ -68,18 +68,40 @@ class WordTable:
         return self._scratch
 
 
+def cached_table(
+    cache: dict[tuple, WordTable],
+    arrays: Sequence[wp.array],
+    per_row: Sequence[int],
+    capacity: int,
+    device: wp.context.Device,
+    limit: int,
+) -> WordTable:
+    """The word table of ``arrays`` from ``cache``, built and kept on a miss (no allocation when the same arrays come
+    again, as they do pass after pass). Keyed by address, length, type size and row: a table describes the arrays'
+    layout, so arrays allocated anew at the same address and of the same layout use it as well as the ones it was built
+    for. A full cache (``limit`` tables: arrays reallocated by growths leave dead ones) is emptied first."""
+    key = tuple((a.ptr, a.size, wp.types.type_size_in_bytes(a.dtype), n) for a, n in zip(arrays, per_row, strict=True))
+    table = cache.get(key)
+    if table is None:
+        if len(cache) >= limit:
+            cache.clear()
+        table = cache[key] = WordTable(arrays, per_row, capacity, device)
+    return table
+
+
 COPY_THREADS_CUDA = 1 << 15
 """Threads per array of a fused copy on a GPU (each strides over its array, so neighbouring threads touch
 neighbouring words); on the CPU one thread copies an array front to back."""
 
-_COPY_TABLES: dict[tuple, tuple[WordTable, WordTable]] = {}
-MAX_COPY_TABLES = 8
-"""Pairs of tables :func:`copy_arrays` keeps (a state and its snapshot are one pair; a growth makes a new one)."""
+_COPY_TABLES: dict[tuple, WordTable] = {}
+MAX_COPY_TABLES = 16
+"""Tables :func:`copy_arrays` keeps (a state and its snapshot are two; a growth makes new ones)."""
 
 
 def copy_arrays(dst: Sequence[wp.array], src: Sequence[wp.array]) -> None:
     """``wp.copy(d, s)`` for every pair, as one launch: arrays of the same lengths and types, contiguous, on one
-    device (a State into another of the same capacities: ``warpdem.model.State.assign``).
+    device (a State into another of the same capacities: ``warpdem.model.State.assign``). Each array is one slot of
+    all its words in the tables.
 
     Raises:
         ValueError: two arrays of a pair differ in type or length, or an array is not contiguous 4-byte words.
@@ -90,17 +112,10 @@ def copy_arrays(dst: Sequence[wp.array], src: Sequence[wp.array]) -> None:
     for d, s in pairs:
         if d.dtype != s.dtype or d.shape != s.shape:
             raise ValueError(f"copy_arrays: {d.dtype.__name__}{d.shape} <- {s.dtype.__name__}{s.shape}")
-    key = tuple((d.ptr, s.ptr, d.size, wp.types.type_size_in_bytes(d.dtype)) for d, s in pairs)
-    tables = _COPY_TABLES.get(key)
-    if tables is None:
-        if len(_COPY_TABLES) >= MAX_COPY_TABLES:
-            _COPY_TABLES.clear()
-        device = pairs[0][0].device
-        tables = _COPY_TABLES[key] = tuple(
-            WordTable([p[k] for p in pairs], [p[k].size for p in pairs], 1, device) for k in (0, 1)
-        )
-    to, of = tables
-    device = to.pointers.device
+    device = pairs[0][0].device
+    whole = [d.size for d, _ in pairs]
+    to = cached_table(_COPY_TABLES, [d for d, _ in pairs], whole, 1, device, MAX_COPY_TABLES)
+    of = cached_table(_COPY_TABLES, [s for _, s in pairs], whole, 1, device, MAX_COPY_TABLES)
     threads = COPY_THREADS_CUDA if device.is_cuda else 1
     wp.launch(
         kf.copy_words_kernel,

@@ -23,8 +23,7 @@ if TYPE_CHECKING:
 @dataclass
 class TetBenchResult:
     """One tet benchmark row: sizes, whether the energy books were kept, throughput [tet-steps/s], device memory of
-    the node and tet arrays per tet [B],
-    peak host RSS [MB], and whether the energy stayed finite."""
+    the node and tet arrays per tet [B], peak host RSS [MB], and whether the energy stayed finite."""
 
     device: str
     tets: int

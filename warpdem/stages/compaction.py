@@ -17,7 +17,7 @@ from collections.abc import Sequence
 
 import warp as wp
 
-from ..fused import WordTable
+from ..fused import WordTable, cached_table
 from ..kernels import compaction as kc
 
 MAX_TABLES = 16
@@ -182,17 +182,7 @@ class Compactor:
         # Empty arrays (a set of no slots) have no address and nothing to move.
         kept = [(a, n) for a, n in zip(arrays, per_row, strict=True) if a.size]
         arrays, per_row = [a for a, _ in kept], [n for _, n in kept]
-        # By address, length and type size: a table is the arrays' layout, so arrays allocated anew at the same
-        # address and of the same layout use it as well as the ones it was built for.
-        key = tuple(
-            (a.ptr, a.size, wp.types.type_size_in_bytes(a.dtype), n) for a, n in zip(arrays, per_row, strict=True)
-        )
-        table = self._tables.get(key)
-        if table is None:
-            if len(self._tables) >= MAX_TABLES:  # arrays reallocated by a growth: their old tables are dead
-                self._tables.clear()
-            table = self._tables[key] = WordTable(arrays, per_row, self.capacity, self.device)
-        return table
+        return cached_table(self._tables, arrays, per_row, self.capacity, self.device, MAX_TABLES)
 
     def finish(self, count: wp.array) -> None:
         """Set the live count to the pass's new count (the survivors of a removal, count + copies of an append)."""

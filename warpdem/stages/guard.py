@@ -215,9 +215,9 @@ class StabilityGuard:
     """
 
     def __init__(self, device: wp.context.Device) -> None:
-        self._clean = np.array([kg.NO_KEY, 0, kg.NO_KEY, 0], dtype=np.int32)
-        self.report = wp.array(self._clean, dtype=int, device=device)
-        self.clean = wp.array(self._clean, dtype=int, device=device)  # on the device: a reset without a transfer
+        clean = np.array([kg.NO_KEY, 0, kg.NO_KEY, 0], dtype=np.int32)
+        self.report = wp.array(clean, dtype=int, device=device)
+        self.clean = wp.array(clean, dtype=int, device=device)  # on the device: a reset without a transfer
         self._none = wp.empty(0, dtype=int, device=device)
         self._no_stiffness = wp.empty(0, dtype=float, device=device)
         self.node_passed: wp.array | None = None
@@ -232,7 +232,7 @@ class StabilityGuard:
     def check(self, model: Model, state: State) -> GuardReport | None:
         """Check the state now; None when every sphere and node is finite, below the run-away bound and the contact
         reach's speed, and no contact was passed since the last check."""
-        self.report.assign(self._clean)
+        wp.copy(self.report, self.clean)
         self.launch(model, state)
         return self.interpret(self.report.numpy())
 
