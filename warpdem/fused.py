@@ -114,6 +114,8 @@ def copy_arrays(dst: Sequence[wp.array], src: Sequence[wp.array]) -> None:
             raise ValueError(f"copy_arrays: {d.dtype.__name__}{d.shape} <- {s.dtype.__name__}{s.shape}")
     device = pairs[0][0].device
     whole = [d.size for d, _ in pairs]
+    if len(_COPY_TABLES) >= MAX_COPY_TABLES - 1:  # room for both tables of the pair: one must not evict the other
+        _COPY_TABLES.clear()
     to = cached_table(_COPY_TABLES, [d for d, _ in pairs], whole, 1, device, MAX_COPY_TABLES)
     of = cached_table(_COPY_TABLES, [s for _, s in pairs], whole, 1, device, MAX_COPY_TABLES)
     threads = COPY_THREADS_CUDA if device.is_cuda else 1
