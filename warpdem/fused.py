@@ -68,6 +68,11 @@ class WordTable:
         return self._scratch
 
 
+def table_key(arrays: Sequence[wp.array], per_row: Sequence[int]) -> tuple:
+    """What a word table depends on: each array's address, length, type size and row."""
+    return tuple((a.ptr, a.size, wp.types.type_size_in_bytes(a.dtype), n) for a, n in zip(arrays, per_row, strict=True))
+
+
 def cached_table(
     cache: dict[tuple, WordTable],
     arrays: Sequence[wp.array],
@@ -80,7 +85,7 @@ def cached_table(
     again, as they do pass after pass). Keyed by address, length, type size and row: a table describes the arrays'
     layout, so arrays allocated anew at the same address and of the same layout use it as well as the ones it was built
     for. A full cache (``limit`` tables: arrays reallocated by growths leave dead ones) is emptied first."""
-    key = tuple((a.ptr, a.size, wp.types.type_size_in_bytes(a.dtype), n) for a, n in zip(arrays, per_row, strict=True))
+    key = table_key(arrays, per_row)
     table = cache.get(key)
     if table is None:
         if len(cache) >= limit:
@@ -114,7 +119,9 @@ def copy_arrays(dst: Sequence[wp.array], src: Sequence[wp.array]) -> None:
             raise ValueError(f"copy_arrays: {d.dtype.__name__}{d.shape} <- {s.dtype.__name__}{s.shape}")
     device = pairs[0][0].device
     whole = [d.size for d, _ in pairs]
-    if len(_COPY_TABLES) >= MAX_COPY_TABLES - 1:  # room for both tables of the pair: one must not evict the other
+    # Room for both tables of the pair, so that building one never evicts the other; a pair already kept is kept.
+    missing = sum(table_key(side, whole) not in _COPY_TABLES for side in ([d for d, _ in pairs], [s for _, s in pairs]))
+    if missing and len(_COPY_TABLES) + missing > MAX_COPY_TABLES:
         _COPY_TABLES.clear()
     to = cached_table(_COPY_TABLES, [d for d, _ in pairs], whole, 1, device, MAX_COPY_TABLES)
     of = cached_table(_COPY_TABLES, [s for _, s in pairs], whole, 1, device, MAX_COPY_TABLES)
