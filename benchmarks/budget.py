@@ -1,9 +1,9 @@
-"""The counted budget (issue 24): what a step, the work between two chunks of steps and a split pass ask of the
-device — eager launches, graph replays, captures, read-backs, copies, allocations — counted with warpdem.budget on the
-fracture benchmark's blocks, at two sizes (what does not grow with the body count is the point), and the cracking
-run's throughput with a pass every 1 and 10 steps against none.
+"""The counted budget (issue 24): what a step, the work between two chunks of steps, a split pass, the energy books
+and a frame of a shipped scene ask of the device — eager launches, graph replays, captures, read-backs, copies,
+allocations — counted with warpdem.budget on the fracture benchmark's blocks, at two sizes (what does not grow with
+the body count is the point), and the cracking run's throughput with a pass every 1 and 10 steps against none.
 
-    python benchmarks/budget.py [--cells 6 10] [--split-cells 12 20] [--no-run]
+    python benchmarks/budget.py [--cells 6 10] [--split-cells 12 20] [--frame-scenes SCENE ...] [--no-run]
 
 The counter is loaded from this checkout's ``warpdem/budget.py`` by path, and the simulation from whatever
 ``warpdem`` Python finds, so the same script counts an older checkout too (``PYTHONPATH=/path/to/old python
@@ -64,6 +64,41 @@ def split_pass(cells: int) -> tuple[int, int, str]:
     return 6 * cells**3, report.splits, b.line()
 
 
+def books(cells: int) -> str:
+    """The counts of reading the energy books and the shadow term (``Simulation.energy()`` and ``shadow()``) on the
+    cracking block of ``cells``³ cells, their scratch made."""
+    from warpdem.bench.fracture import cracking_block
+
+    sim = cracking_block(cells, "cpu", steps=200, interval=1)
+    sim.advance(2)
+    sim.energy()
+    with counted() as b:
+        sim.energy()
+        sim.shadow()
+    return b.line()
+
+
+def frame(scene: str) -> str:
+    """The counts of writing one frame of a shipped scene (``Run._write_frame``: the books, the USD frame, the time
+    series, fragments, VTU as the scene asks), after its first frame; ``default`` is the embedded scene."""
+    import tempfile
+
+    from warpdem.api import build
+    from warpdem.scene import default_scene_path
+
+    root = Path(__file__).resolve().parent.parent
+    path = default_scene_path() if scene == "default" else root / "scenes" / f"{scene}.toml"
+    with tempfile.TemporaryDirectory() as out:
+        run = build(path, device="cpu", frames=2, out_dir=out)
+        try:
+            next(iter(run.frames()))
+            with counted() as b:
+                run._write_frame()
+        finally:
+            run.close()
+    return b.line()
+
+
 def cracking(interval: int, repeat: int = 2) -> str:
     from warpdem.bench.fracture import bench_cracking_run
 
@@ -80,6 +115,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--cells", type=int, nargs="+", default=[6, 10], help="cracking blocks' cells per side")
     p.add_argument("--split-cells", type=int, nargs="+", default=[12, 20], help="stretched blocks' cells per side")
+    p.add_argument("--frame-scenes", nargs="*", default=["default", "pmma_plate", "masonry_wall_blast"])
     p.add_argument("--no-run", action="store_true", help="skip the cracking run's throughput")
     a = p.parse_args()
     from warpdem.cli import init_warp
@@ -90,9 +126,12 @@ def main() -> None:
         print(f"{6 * cells**3:>7} tets  5 steps:                  {steps}")
         print(f"{6 * cells**3:>7} tets  1 step + between-steps:   {chunk}")
         print(f"{6 * cells**3:>7} tets  10 steps + between-steps: {chunks}")
+        print(f"{6 * cells**3:>7} tets  energy() + shadow():       {books(cells)}")
     for cells in a.split_cells:
         tets, splits, line = split_pass(cells)
         print(f"{tets:>7} tets  split pass ({splits} splits):  {line}")
+    for scene in a.frame_scenes:
+        print(f"a frame of {scene}: {frame(scene)}", flush=True)
     if not a.no_run:
         for interval in (0, 1, 10):
             t = time.perf_counter()

@@ -289,6 +289,8 @@ def bond_energy_kernel(
     energy: wp.array(dtype=wp.float64),
     intact: wp.array(dtype=int),
 ):
+    """Each intact live bond's spring energy ½ k_n (|x_i − x_j| − L)² + ½ k_s |u_s|² [J] into ``energy[b]`` (other
+    slots are not written), and the count of intact bonds into ``intact[0]``."""
     b = wp.tid()  # one thread per bond slot
     if b >= bond_count[0]:
         return
@@ -297,7 +299,7 @@ def bond_energy_kernel(
     stretch = wp.length(wp.vec3(particle_q[bond_i[b]] - particle_q[bond_j[b]])) - bond_rest_length[b]
     us = bond_shear[b]
     e = 0.5 * bond_kn[b] * stretch * stretch + 0.5 * bond_ks[b] * wp.dot(us, us)
-    wp.atomic_add(energy, 0, wp.float64(e))
+    energy[b] = wp.float64(e)
     wp.atomic_add(intact, 0, 1)
 
 

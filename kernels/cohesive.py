@@ -337,4 +337,4 @@ def cohesive_energy_kernel(
         return
     # The spring energy of the last evaluation, at the positions the state holds between steps: the very figure the
     # books subtracted (eval_cohesive_kernel), so stored + dissipated is the work done on the elements exactly.
-    wp.atomic_add(energy, 0, wp.float64(cohesive_energy_prev[i]))
+    energy[i] = wp.float64(cohesive_energy_prev[i])

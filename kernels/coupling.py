@@ -133,6 +133,8 @@ def coupling_energy_kernel(
     # Out:
     energy: wp.array(dtype=wp.float64),
 ):
+    """Each live coupling's spring energy ½ k |g|² [J] into ``energy[c]`` where its tet is active (other slots are not
+    written)."""
     c = wp.tid()  # one thread per coupling slot
     if c >= coupling_count[0]:
         return
@@ -141,7 +143,7 @@ def coupling_energy_kernel(
         return
     g = coupling_gap(particle_q[coupling_particle[c]], tet_nodes[t], coupling_bary[c], node_ref_q, node_u)
     g -= coupling_rest[c]
-    wp.atomic_add(energy, 0, wp.float64(0.5 * coupling_k[c]) * wp.float64(wp.dot(g, g)))
+    energy[c] = wp.float64(0.5 * coupling_k[c]) * wp.float64(wp.dot(g, g))
 
 
 @wp.kernel

@@ -57,7 +57,7 @@ from .stages.conversion import (
     regrow_particles,
 )
 from .stages.coupling import coupling_energy, eval_coupling, regrow_coupling
-from .stages.energy import EnergyBalance, energy_balance, shadow_term
+from .stages.energy import DeviceBooks, EnergyBalance
 from .stages.fem_contact import (
     FemContact,
     fem_contact_energy,
@@ -132,6 +132,7 @@ class Simulation:
         self.model = model
         self.state = state
         self.track_energy = track_energy
+        self._device_books: DeviceBooks | None = None
         self.use_graph = use_graph
         self.step_count = step
         if time is None:
@@ -853,15 +854,19 @@ class Simulation:
 
     # ------------------------------------------------------------------------------------------------------------
     def energy(self) -> EnergyBalance:
-        """The energy balance now (warpdem.stages.energy.energy_balance; reads back; call between steps)."""
-        return energy_balance(self.model, self.state)
+        """The energy balance now, reduced on the device (warpdem.stages.energy.DeviceBooks; one read-back; call
+        between steps)."""
+        return self._books().read(self.model, self.state)
 
     def shadow(self) -> float:
-        """Verlet's shadow term of the energy books now [J] (warpdem.stages.energy.shadow_term; reads back)."""
-        m, n = self.model, self.particle_count
-        mass = m.particle_mass.numpy()[:n].astype(np.float64)
-        free = m.particle_motion.numpy()[:n] == 0
-        return shadow_term(m, self.state, mass, free, np.asarray(m.gravity, dtype=np.float64))
+        """Verlet's shadow term of the energy books now [J] (warpdem.stages.energy.DeviceBooks; one read-back)."""
+        return self._books().shadow(self.model, self.state)
+
+    def _books(self) -> DeviceBooks:
+        """The device books' scratch, made again when the capacities have grown."""
+        if self._device_books is None or not self._device_books.fits(self.model, self.has_spheres):
+            self._device_books = DeviceBooks(self.model, self.has_spheres)
+        return self._device_books
 
     def contact_count(self) -> int:
         """Touching sphere–sphere pairs now (reads back)."""

@@ -72,30 +72,37 @@ def eval_bonds(model: Model, state: State, dt: float | None = None, track_energy
     )
 
 
+def launch_bond_energy(model: Model, state: State, energy: wp.array, intact: wp.array) -> None:
+    """Each intact live bond's elastic energy [J] into ``energy`` (float64, shape (bond_capacity,); other slots left
+    as they are: zero it first) and the number of intact bonds added to ``intact[0]`` (launch only)."""
+    if model.bond_capacity == 0:
+        return
+    s = state
+    wp.launch(
+        kb.bond_energy_kernel,
+        dim=model.bond_capacity,
+        inputs=[
+            s.particle_q,
+            s.bond_count,
+            s.bond_i,
+            s.bond_j,
+            s.bond_rest_length,
+            s.bond_kn,
+            s.bond_ks,
+            s.bond_shear,
+            s.bond_broken,
+        ],
+        outputs=[energy, intact],
+        device=model.device,
+    )
+
+
 def bond_energy(model: Model, state: State) -> tuple[float, int]:
     """Elastic energy of the intact bonds [J] and their number. Allocates and reads back: call between steps."""
-    energy = wp.zeros(1, dtype=wp.float64, device=model.device)
+    energy = wp.zeros(model.bond_capacity, dtype=wp.float64, device=model.device)
     intact = wp.zeros(1, dtype=int, device=model.device)
-    if model.bond_capacity:
-        s = state
-        wp.launch(
-            kb.bond_energy_kernel,
-            dim=model.bond_capacity,
-            inputs=[
-                s.particle_q,
-                s.bond_count,
-                s.bond_i,
-                s.bond_j,
-                s.bond_rest_length,
-                s.bond_kn,
-                s.bond_ks,
-                s.bond_shear,
-                s.bond_broken,
-            ],
-            outputs=[energy, intact],
-            device=model.device,
-        )
-    return float(energy.numpy()[0]), int(intact.numpy()[0])
+    launch_bond_energy(model, state, energy, intact)
+    return float(energy.numpy().sum()), int(intact.numpy()[0])
 
 
 def compact_bonds(model: Model, state: State, compactor: Compactor) -> None:

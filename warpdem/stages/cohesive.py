@@ -83,21 +83,27 @@ def eval_cohesive(model: Model, state: State, dt: float | None = None, track_ene
     )
 
 
+def launch_cohesive_stored(model: Model, state: State, energy: wp.array) -> None:
+    """Each intact live cohesive element's spring energy at its last evaluation [J] into ``energy`` (float64, shape
+    (cohesive_capacity,); other slots left as they are: zero it first; launch only)."""
+    if model.cohesive_capacity:
+        s = state
+        wp.launch(
+            kc.cohesive_energy_kernel,
+            dim=model.cohesive_capacity,
+            inputs=[s.cohesive_count, s.cohesive_energy_prev, s.cohesive_broken],
+            outputs=[energy],
+            device=model.device,
+        )
+
+
 def cohesive_stored(model: Model, state: State) -> float:
     """The spring energy of the intact live cohesive elements on their unloading lines at their last evaluation [J]
     (``cohesive_energy_prev``: ½ k d², k = f(δ_max)/δ_max, once open; kernels/cohesive.py ``spring_energy``).
     Allocates and reads back: call between steps."""
-    m, s = model, state
-    stored = wp.zeros(1, dtype=wp.float64, device=m.device)
-    if m.cohesive_capacity:
-        wp.launch(
-            kc.cohesive_energy_kernel,
-            dim=m.cohesive_capacity,
-            inputs=[s.cohesive_count, s.cohesive_energy_prev, s.cohesive_broken],
-            outputs=[stored],
-            device=m.device,
-        )
-    return float(stored.numpy()[0])
+    energy = wp.zeros(model.cohesive_capacity, dtype=wp.float64, device=model.device)
+    launch_cohesive_stored(model, state, energy)
+    return float(energy.numpy().sum())
 
 
 def cohesive_energy(model: Model, state: State) -> tuple[float, float]:

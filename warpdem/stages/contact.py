@@ -125,13 +125,11 @@ def eval_contacts(model: Model, state: State, track_energy: bool, dt: float | No
     )
 
 
-def contact_energy(model: Model, state: State) -> tuple[float, int]:
-    """Elastic energy stored in the contacts [J] (normal and tangential springs) and the number of touching
-    sphere–sphere pairs. Allocates and reads back: call between steps."""
+def launch_contact_energy(model: Model, state: State, energy: wp.array, count: wp.array) -> None:
+    """Each live sphere's share of the elastic energy of its contacts [J] into ``energy`` (float64, shape
+    (particle_capacity,)) and the number of touching sphere–sphere pairs added to ``count[0]`` (launch only)."""
     _, kernel = kc.make_contact_kernels(model.normal_model, model.tangential_model, model.rolling_model, False)
     m, s = model, state
-    energy = wp.zeros(m.particle_capacity, dtype=wp.float64, device=m.device)
-    count = wp.zeros(1, dtype=int, device=m.device)
     wp.launch(
         kernel,
         dim=m.particle_capacity,
@@ -158,6 +156,14 @@ def contact_energy(model: Model, state: State) -> tuple[float, int]:
         outputs=[energy, count],
         device=m.device,
     )
+
+
+def contact_energy(model: Model, state: State) -> tuple[float, int]:
+    """Elastic energy stored in the contacts [J] (normal and tangential springs) and the number of touching
+    sphere–sphere pairs. Allocates and reads back: call between steps."""
+    energy = wp.zeros(model.particle_capacity, dtype=wp.float64, device=model.device)
+    count = wp.zeros(1, dtype=int, device=model.device)
+    launch_contact_energy(model, state, energy, count)
     return float(energy.numpy().sum()), int(count.numpy()[0])
 
 

@@ -103,10 +103,9 @@ def eval_coupling(model: Model, state: State, dt: float | None = None, track_ene
     )
 
 
-def coupling_energy(model: Model, state: State) -> float:
-    """Σ ½ k |g|² over the live couplings whose tet is active [J], at the current positions (the ``coupling_elastic``
-    line of the energy books). Allocates and reads back: call between steps."""
-    energy = wp.zeros(1, dtype=wp.float64, device=model.device)
+def launch_coupling_energy(model: Model, state: State, energy: wp.array) -> None:
+    """Each live coupling's spring energy ½ k |g|² [J] where its tet is active, into ``energy`` (float64, shape
+    (coupling_capacity,); other slots left as they are: zero it first; launch only)."""
     if model.coupling_capacity:
         wp.launch(
             kcp.coupling_energy_kernel,
@@ -115,7 +114,14 @@ def coupling_energy(model: Model, state: State) -> float:
             outputs=[energy],
             device=model.device,
         )
-    return float(energy.numpy()[0])
+
+
+def coupling_energy(model: Model, state: State) -> float:
+    """Σ ½ k |g|² over the live couplings whose tet is active [J], at the current positions (the ``coupling_elastic``
+    line of the energy books). Allocates and reads back: call between steps."""
+    energy = wp.zeros(model.coupling_capacity, dtype=wp.float64, device=model.device)
+    launch_coupling_energy(model, state, energy)
+    return float(energy.numpy().sum())
 
 
 def compact_coupling(model: Model, state: State, compactor: Compactor) -> int:

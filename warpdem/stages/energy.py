@@ -1,25 +1,30 @@
 """The energy books (DESIGN.md, "Numerics that users trust"): :class:`EnergyBalance`, what every force's work and
-every store of energy add up to, read from a model and state (:func:`energy_balance`), with Verlet's shadow term
-(:func:`shadow_term`) and the balance's relative error (:func:`balance_error`). ``Simulation.energy`` calls these.
+every store of energy add up to, reduced on the device from a model and state (:class:`DeviceBooks`,
+:func:`energy_balance`; kernels/books.py) with Verlet's shadow term among them, and the balance's relative error
+(:func:`balance_error`). ``Simulation.energy`` and ``Simulation.shadow`` call these: one read-back of a few float64
+values each.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
+import warp as wp
 
-from ..kernels import rigid as kernels_rigid
+from ..kernels import books as kbk
 from ..model import Model, State
-from .bonds import bond_energy
-from .cohesive import cohesive_stored
-from .contact import contact_energy
-from .coupling import coupling_energy
-from .fem_contact import fem_contact_energy, sphere_face_dissipated
-from .rigid import NODE_FREE_DIRECTIONS, body_energy
-from .tets import tet_energy
-
-NODE_RIGID = int(kernels_rigid.NODE_RIGID)
+from .bonds import launch_bond_energy
+from .cohesive import launch_cohesive_stored
+from .contact import launch_contact_energy
+from .coupling import launch_coupling_energy
+from .fem_contact import (
+    launch_fem_contact_energy,
+    launch_sphere_face_energy,
+    sphere_face_rows,
+)
+from .rigid import has_bodies
+from .tets import tet_energies
 
 
 @dataclass
@@ -146,78 +151,250 @@ def balance_error(start: EnergyBalance, now: EnergyBalance, in_play: float) -> f
     return (now.total - start.total) / max(in_play, 1e-300)
 
 
-def energy_balance(m: Model, s: State) -> EnergyBalance:
-    """The energy balance of a model and state now (reads back; call between steps)."""
-    n = int(s.particle_count.numpy()[0])
-    mass = m.particle_mass.numpy()[:n].astype(np.float64)
-    radius = m.particle_radius.numpy()[:n].astype(np.float64)
-    free = m.particle_motion.numpy()[:n] == 0
-    v = s.particle_qd.numpy()[:n].astype(np.float64)
-    w = s.particle_omega.numpy()[:n].astype(np.float64)
-    q = s.particle_q.numpy()[:n].astype(np.float64)
-    inertia = 0.4 * mass * radius**2
-    e_contact, _ = contact_energy(m, s)
-    e_fem, d_fem = fem_contact_energy(m, s)
-    e_bond, _ = bond_energy(m, s)
-    g = np.asarray(m.gravity, dtype=np.float64)
-    nn = int(s.node_count.numpy()[0])
-    e_cohesive = cohesive_stored(m, s) if m.cohesive_capacity else 0.0
-    node_mass = m.node_mass.numpy()[:nn].astype(np.float64)
-    node_v = s.node_qd.numpy()[:nn].astype(np.float64)
-    # The nodes of rigid bodies move with them: the bodies' own kinetic energy counts (kinetic_rigid).
-    node_v[m.node_motion.numpy()[:nn] == NODE_RIGID] = 0.0
-    kinetic_rigid, _ = body_energy(m, s)
-    # X + u in float64 rather than the float32 sum node_q, so the potential keeps the displacements' precision.
-    node_q = m.node_ref_q.numpy()[:nn].astype(np.float64) + s.node_u.numpy()[:nn].astype(np.float64)
-    moving = m.node_inv_mass.numpy()[:nn] > 0.0
-    return EnergyBalance(
-        shadow=shadow_term(m, s, mass, free, g),
-        kinetic_translational=float(0.5 * np.sum(mass * np.sum(v * v, axis=1))),
-        kinetic_rotational=float(0.5 * np.sum(inertia * np.sum(w * w, axis=1))),
-        elastic=e_contact + e_bond + e_fem,
-        gravity_potential=float(-np.sum(mass[free] * (q[free] @ g)) - np.sum(node_mass[moving] * (node_q[moving] @ g))),
-        dissipated_damping=float(s.energy_damping.numpy()[:n].sum()),
-        dissipated_friction=float(s.energy_friction.numpy()[:n].sum()),
-        released_by_bond_breakage=float(s.energy_bond_broken.numpy()[:n].sum()),
-        boundary_work=float(s.energy_boundary_work.numpy()[:n].sum()),
-        kinetic_nodes=float(0.5 * np.sum(node_mass * np.sum(node_v * node_v, axis=1))),
-        strain=tet_energy(m, s),
-        dissipated_viscous=float(s.node_energy_damping.numpy()[:nn].sum()),
-        # The pressure faces handed over to converted tets' spheres book their work per face, on the same line.
-        load_work=float(s.node_energy_boundary_work.numpy()[:nn].sum()) + float(s.load_face_work.numpy().sum()),
-        dissipated_fem_contact=d_fem,
-        absorbed_boundaries=float(s.node_energy_absorbed.numpy()[:nn].sum()),
-        stiffness_change=float(s.energy_stiffness_change.numpy()[:n].sum()),
-        cohesive_elastic=e_cohesive,
-        dissipated_cohesive=float(s.node_energy_cohesive.numpy()[:nn].sum()),
-        cohesive_trapezoid=float(s.node_energy_cohesive_trapezoid.numpy()[:nn].sum()),
-        released_conversion=float(s.energy_released_conversion.numpy()[0]),
-        coupling_elastic=coupling_energy(m, s),
-        kinetic_rigid=kinetic_rigid,
-        released_rigid_switch=float(s.energy_released_rigid.numpy()[0]),
-        contact_topology=float(s.energy_contact_topology.numpy()[0]),
-        step_change=float(s.energy_step_change.numpy()[0]),
-        dissipated_sphere_face=sphere_face_dissipated(m, s),
-        bond_trapezoid=float(s.energy_bond_trapezoid.numpy()[:n].sum()),
+LINE = {f.name: k for k, f in enumerate(fields(EnergyBalance))}
+"""Index of each line of :class:`EnergyBalance` in the device books' vector (kernels/books.py)."""
+assert len(LINE) == kbk.LINES and all(
+    LINE[name] == int(index)
+    for name, index in (
+        ("kinetic_translational", kbk.KINETIC_TRANSLATIONAL),
+        ("kinetic_rotational", kbk.KINETIC_ROTATIONAL),
+        ("elastic", kbk.ELASTIC),
+        ("gravity_potential", kbk.GRAVITY_POTENTIAL),
+        ("kinetic_nodes", kbk.KINETIC_NODES),
+        ("shadow", kbk.SHADOW),
+        ("kinetic_rigid", kbk.KINETIC_RIGID),
     )
+), "kernels/books.py's line indices must follow EnergyBalance's fields"
+
+GPU_PARTIALS = 8192
+"""Partial sums per line on a GPU (kernels/books.py): threads enough to fill one, each item read once."""
 
 
-def shadow_term(m: Model, s: State, mass: np.ndarray, free: np.ndarray, g: np.ndarray) -> float:
-    """Verlet's shadow term dt²/8 Σ (|f + m g|²/m + |t|²/I) [J] of the free spheres and the kicked velocity
-    components of the FEM nodes (not those a velocity driver holds), at the forces held now; ``mass`` and
-    ``free`` of the live spheres, ``g`` the gravity [m/s²]."""
-    n, nn = int(s.particle_count.numpy()[0]), int(s.node_count.numpy()[0])
-    f = s.particle_f.numpy()[:n].astype(np.float64)[free] + mass[free, None] * g
-    t = s.particle_t.numpy()[:n].astype(np.float64)[free]
-    inv_inertia = m.particle_inv_inertia.numpy()[:n].astype(np.float64)[free]
-    total = np.sum(np.sum(f * f, axis=1) / mass[free]) + np.sum(inv_inertia * np.sum(t * t, axis=1))
-    if nn:
-        inv_mass = m.node_inv_mass.numpy()[:nn].astype(np.float64)
-        kicked = inv_mass > 0.0
-        if m.loads is not None and m.loads.num_drivers:
-            kicked &= m.loads.node_driver.numpy()[:nn] < 0
-        a = s.node_f.numpy()[:nn].astype(np.float64) * inv_mass[:, None] + g
-        a *= NODE_FREE_DIRECTIONS[m.node_motion.numpy()[:nn]]
-        node_mass = m.node_mass.numpy()[:nn].astype(np.float64)
-        total += np.sum((node_mass * np.sum(a * a, axis=1))[kicked])
-    return float(m.dt**2 / 8.0 * total) + body_energy(m, s)[1]
+class DeviceBooks:
+    """The energy books reduced on the device (kernels/books.py): every line of :class:`EnergyBalance` summed into
+    one float64 vector of ``LINES`` values, read back once. Holds its scratch (a float64 per sphere, node, tet, bond,
+    coupling and cohesive slot, and the partial sums), sized for one model's capacities (:meth:`fits`); evaluating
+    allocates nothing.
+
+    The order of every sum is fixed by the launch (``stride`` partials per line, added in thread order), so two
+    evaluations of one state on one device give the same bits; the CPU (one partial) and a GPU add in different
+    orders, which changes a line by float64 rounding only.
+    """
+
+    def __init__(self, model: Model, spheres: bool | None = None) -> None:
+        """``spheres``: whether the model has spheres of non-zero radius (None: read the radii back), which decides
+        whether sphere–face contacts hold energy; a simulation knows (``Simulation.has_spheres``)."""
+        m, d = model, model.device
+        self.device = d
+        self.sphere_faces = bool(m.face_capacity and m.particle_capacity) and (
+            m.max_radius > 0.0 if spheres is None else spheres
+        )
+        self.capacities = self._capacities(m, self.sphere_faces)
+        self.stride = 1 if wp.get_device(d).is_cpu else GPU_PARTIALS
+        self.partials = wp.zeros((kbk.LINES, self.stride), dtype=wp.float64, device=d)
+        self.books = wp.zeros(kbk.LINES, dtype=wp.float64, device=d)
+        f64 = dict(dtype=wp.float64, device=d)
+        self.sphere_e = wp.zeros(m.particle_capacity, **f64)
+        self.sphere_face_e = wp.zeros(m.particle_capacity if self.sphere_faces else 0, **f64)
+        self.node_e = wp.zeros(m.node_capacity if m.face_capacity else 0, **f64)
+        self.tet_e = wp.zeros(m.tet_capacity, **f64)
+        self.bond_e = wp.zeros(m.bond_capacity, **f64)
+        self.coupling_e = wp.zeros(m.coupling_capacity, **f64)
+        self.cohesive_e = wp.zeros(m.cohesive_capacity, **f64)
+        self.touching = wp.zeros(2, dtype=int, device=d)  # scratch of the contact and bond counts
+        ratios = [p.shear_stiffness_ratio for p in m.joint_set_props] or [0.0]
+        self.shear_ratio = wp.array(np.asarray(ratios, dtype=np.float64), dtype=wp.float64, device=d)
+
+    @staticmethod
+    def _capacities(m: Model, sphere_faces: bool) -> tuple:
+        return (
+            m.particle_capacity,
+            m.node_capacity,
+            m.tet_capacity,
+            m.bond_capacity,
+            m.coupling_capacity,
+            m.cohesive_capacity,
+            m.face_capacity,
+            sphere_faces,
+            tuple(p.shear_stiffness_ratio for p in m.joint_set_props),
+            str(m.device),
+        )
+
+    def fits(self, model: Model, spheres: bool) -> bool:
+        """Whether this scratch serves ``model`` (same capacities, joint sets and device; ``spheres`` as for the
+        constructor)."""
+        return self._capacities(model, bool(model.face_capacity and model.particle_capacity) and spheres) == (
+            self.capacities
+        )
+
+    def evaluate(self, model: Model, state: State, shadow_only: bool = False) -> wp.array:
+        """Launch the books of ``state`` into :attr:`books` (float64, shape (LINES,), indexed by :data:`LINE`) and
+        return it; ``shadow_only``: only the passes that feed the ``shadow`` line (the other lines hold partial sums
+        then). Launches only: no read-back, no allocation."""
+        m, s = model, state
+        self.partials.zero_()
+        g = wp.vec3d(*(float(c) for c in m.gravity))
+        h = wp.float64(m.dt**2 / 8.0)
+        launch = self._launch
+        launch(
+            kbk.sphere_books_kernel,
+            [
+                m.particle_mass,
+                m.particle_radius,
+                m.particle_motion,
+                m.particle_inv_inertia,
+                g,
+                h,
+                s.particle_count,
+                s.particle_q,
+                s.particle_qd,
+                s.particle_omega,
+                s.particle_f,
+                s.particle_t,
+            ],
+        )
+        drivers = m.loads.node_driver if m.loads is not None and m.loads.num_drivers else None
+        launch(
+            kbk.node_books_kernel,
+            [
+                m.node_mass,
+                m.node_inv_mass,
+                m.node_motion,
+                m.node_ref_q,
+                drivers if drivers is not None else s.node_count,
+                int(drivers is not None),
+                g,
+                h,
+                s.node_count,
+                s.node_u,
+                s.node_qd,
+                s.node_f,
+            ],
+        )
+        if has_bodies(s):
+            launch(
+                kbk.body_books_kernel,
+                [
+                    g,
+                    h,
+                    s.body_mass,
+                    s.body_inertia,
+                    s.body_axes,
+                    s.body_fixed,
+                    s.body_constraint,
+                    s.body_axis,
+                    s.body_v,
+                    s.body_q,
+                    s.body_l,
+                    s.body_f,
+                    s.body_t,
+                ],
+            )
+        if not shadow_only:
+            self._stores(m, s)
+            self._booked_lines(m, s)
+        wp.launch(
+            kbk.finish_books_kernel, dim=kbk.LINES, inputs=[self.partials], outputs=[self.books], device=self.device
+        )
+        return self.books
+
+    def read(self, model: Model, state: State) -> EnergyBalance:
+        """:meth:`evaluate` and read the vector back (one read-back) as an :class:`EnergyBalance`."""
+        values = self.evaluate(model, state).numpy()
+        return EnergyBalance(**{name: float(values[k]) for name, k in LINE.items()})
+
+    def shadow(self, model: Model, state: State) -> float:
+        """Verlet's shadow term now [J] (:meth:`evaluate` with ``shadow_only``; one read-back)."""
+        return float(self.evaluate(model, state, shadow_only=True).numpy()[LINE["shadow"]])
+
+    def _launch(self, kernel: wp.Kernel, inputs: list) -> None:
+        wp.launch(kernel, dim=self.stride, inputs=[*inputs, self.stride], outputs=[self.partials], device=self.device)
+
+    def _sum(self, values: wp.array, count: wp.array | None, line: str) -> None:
+        """Add Σ values[:count[0]] (the whole array when ``count`` is None) to ``line``."""
+        self._launch(
+            kbk.add_sum_kernel,
+            [values, count if count is not None else self.touching, int(count is not None), LINE[line]],
+        )
+
+    def _stores(self, m: Model, s: State) -> None:
+        """The energy the springs and the tets hold now: each stage's per-item energies, then their sums."""
+        launch_contact_energy(m, s, self.sphere_e, self.touching)
+        self._sum(self.sphere_e, s.particle_count, "elastic")
+        if m.bond_capacity:
+            self.bond_e.zero_()
+            launch_bond_energy(m, s, self.bond_e, self.touching)
+            self._sum(self.bond_e, s.bond_count, "elastic")
+        if m.node_capacity and m.face_capacity:
+            launch_fem_contact_energy(m, s, self.node_e)
+            self._sum(self.node_e, s.node_count, "elastic")
+        if m.joint_capacity:
+            self._launch(
+                kbk.joint_books_kernel,
+                [
+                    m.tet_nodes,
+                    m.joint_a,
+                    m.joint_b,
+                    m.joint_kn,
+                    m.joint_tet_face,
+                    m.joint_set,
+                    self.shear_ratio,
+                    s.joint_count,
+                    s.joint_broken,
+                    s.node_u,
+                    s.node_q,
+                ],
+            )
+        if self.sphere_faces:
+            launch_sphere_face_energy(m, s, self.sphere_face_e)
+            self._sum(self.sphere_face_e, s.particle_count, "elastic")
+        if m.tet_capacity:
+            tet_energies(m, s, out=self.tet_e)
+            self._sum(self.tet_e, s.tet_count, "strain")
+        if m.cohesive_capacity:
+            self.cohesive_e.zero_()
+            launch_cohesive_stored(m, s, self.cohesive_e)
+            self._sum(self.cohesive_e, s.cohesive_count, "cohesive_elastic")
+        if m.coupling_capacity:
+            self.coupling_e.zero_()
+            launch_coupling_energy(m, s, self.coupling_e)
+            self._sum(self.coupling_e, s.coupling_count, "coupling_elastic")
+
+    def _booked_lines(self, m: Model, s: State) -> None:
+        """The lines the kernels book as they go: per-sphere, per-node, per-face and single accumulators."""
+        n, nn = s.particle_count, s.node_count
+        for values, count, line in (
+            (s.energy_damping, n, "dissipated_damping"),
+            (s.energy_friction, n, "dissipated_friction"),
+            (s.energy_bond_broken, n, "released_by_bond_breakage"),
+            (s.energy_boundary_work, n, "boundary_work"),
+            (s.energy_stiffness_change, n, "stiffness_change"),
+            (s.energy_bond_trapezoid, n, "bond_trapezoid"),
+            (s.node_energy_damping, nn, "dissipated_viscous"),
+            (s.node_energy_boundary_work, nn, "load_work"),
+            # The pressure faces handed over to converted tets' spheres book their work per face, on the same line.
+            (s.load_face_work, None, "load_work"),
+            (s.node_energy_absorbed, nn, "absorbed_boundaries"),
+            (s.node_energy_cohesive, nn, "dissipated_cohesive"),
+            (s.node_energy_cohesive_trapezoid, nn, "cohesive_trapezoid"),
+            (s.energy_released_conversion, None, "released_conversion"),
+            (s.energy_released_rigid, None, "released_rigid_switch"),
+            (s.energy_contact_topology, None, "contact_topology"),
+            (s.energy_step_change, None, "step_change"),
+        ):
+            self._sum(values, count, line)
+        if m.node_capacity and m.face_capacity:
+            self._sum(s.node_energy_contact, nn, "dissipated_fem_contact")
+        if m.face_capacity:
+            if sphere_face_rows(m):
+                self._sum(s.sphere_face_dissipated, n, "dissipated_sphere_face")
+            self._sum(s.node_energy_sphere_face, nn, "dissipated_sphere_face")
+
+
+def energy_balance(m: Model, s: State, books: DeviceBooks | None = None) -> EnergyBalance:
+    """The energy balance of a model and state now, reduced on the device (:class:`DeviceBooks`; ``books``: its
+    scratch, made here when None or when it does not fit ``m``). One read-back: call between steps."""
+    spheres = m.max_radius > 0.0
+    if books is None or not books.fits(m, spheres):
+        books = DeviceBooks(m, spheres)
+    return books.read(m, s)

@@ -703,14 +703,13 @@ def regrow_fem_contacts(model: Model, state: State, max_sphere_faces: int, max_n
     return model, dataclasses.replace(state, **fields)
 
 
-def fem_contact_energy(model: Model, state: State) -> tuple[float, float]:
-    """Elastic energy of the FEM contacts and intact joint elements [J], and the energy they dissipated [J].
-    Allocates and reads back: call between steps."""
+def launch_fem_contact_energy(model: Model, state: State, node_e: wp.array) -> None:
+    """Each live node's share of the elastic energy of its node–face and node–wall contacts [J] into ``node_e``
+    (float64, shape (node_capacity,); launch only; nothing without nodes or faces)."""
     m, s = model, state
     if m.node_capacity == 0 or m.face_capacity == 0:
-        return 0.0, 0.0
+        return
     d = m.device
-    node_e = wp.zeros(m.node_capacity, dtype=wp.float64, device=d)
     wp.launch(
         kf.fem_contact_energy_kernel,
         dim=m.node_capacity,
@@ -747,35 +746,58 @@ def fem_contact_energy(model: Model, state: State) -> tuple[float, float]:
         outputs=[node_e],
         device=d,
     )
+
+
+def has_sphere_face_energy(model: Model) -> bool:
+    """Whether the model has sphere–face contacts whose springs hold energy: spheres and boundary faces (reads the
+    radii back)."""
+    return bool(model.face_capacity and model.particle_capacity and model.max_radius > 0.0)
+
+
+def launch_sphere_face_energy(model: Model, state: State, sphere_e: wp.array) -> None:
+    """Each live sphere's elastic energy of its sphere–face contacts [J] into ``sphere_e`` (float64, shape
+    (particle_capacity,); launch only: call where :func:`has_sphere_face_energy` holds)."""
+    m, s, d = model, state, model.device
+    _, kernel = kf.make_sphere_face_kernel(m.normal_model, m.tangential_model, m.rolling_model, False)
+    wp.launch(
+        kernel,
+        dim=m.particle_capacity,
+        inputs=[
+            m.particle_radius,
+            m.particle_inv_mass,
+            m.particle_material,
+            m.pair_table,
+            m.num_materials,
+            m.node_inv_mass,
+            m.tet_material,
+            m.face_nodes,
+            m.face_tet,
+            m.face_radius,
+            m.max_sphere_faces,
+            s.particle_count,
+            s.particle_q,
+            s.sphere_face_count,
+            s.sphere_face_index,
+            s.sphere_face_shear,
+            s.node_q,
+        ],
+        outputs=[sphere_e],
+        device=d,
+    )
+
+
+def fem_contact_energy(model: Model, state: State) -> tuple[float, float]:
+    """Elastic energy of the FEM contacts and intact joint elements [J], and the energy they dissipated [J].
+    Allocates and reads back: call between steps."""
+    m, s = model, state
+    if m.node_capacity == 0 or m.face_capacity == 0:
+        return 0.0, 0.0
+    node_e = wp.zeros(m.node_capacity, dtype=wp.float64, device=m.device)
+    launch_fem_contact_energy(m, s, node_e)
     elastic = float(node_e.numpy().sum()) + joint_energy(m, s)
-    if m.particle_capacity and m.max_radius > 0.0:
-        _, kernel = kf.make_sphere_face_kernel(m.normal_model, m.tangential_model, m.rolling_model, False)
-        sphere_e = wp.zeros(m.particle_capacity, dtype=wp.float64, device=d)
-        wp.launch(
-            kernel,
-            dim=m.particle_capacity,
-            inputs=[
-                m.particle_radius,
-                m.particle_inv_mass,
-                m.particle_material,
-                m.pair_table,
-                m.num_materials,
-                m.node_inv_mass,
-                m.tet_material,
-                m.face_nodes,
-                m.face_tet,
-                m.face_radius,
-                m.max_sphere_faces,
-                s.particle_count,
-                s.particle_q,
-                s.sphere_face_count,
-                s.sphere_face_index,
-                s.sphere_face_shear,
-                s.node_q,
-            ],
-            outputs=[sphere_e],
-            device=d,
-        )
+    if has_sphere_face_energy(m):
+        sphere_e = wp.zeros(m.particle_capacity, dtype=wp.float64, device=m.device)
+        launch_sphere_face_energy(m, s, sphere_e)
         elastic += float(sphere_e.numpy().sum())
     dissipated = float(s.node_energy_contact.numpy()[: int(s.node_count.numpy()[0])].sum())
     return elastic, dissipated
