@@ -26,7 +26,7 @@ GRAVITY_POTENTIAL = wp.constant(3)
 KINETIC_NODES = wp.constant(8)
 SHADOW = wp.constant(15)
 KINETIC_RIGID = wp.constant(20)
-LINES = 27
+LINES = wp.constant(27)
 """Number of lines (fields of EnergyBalance)."""
 
 
@@ -238,3 +238,38 @@ def finish_books_kernel(partials: wp.array2d(dtype=wp.float64), books: wp.array(
     for t in range(partials.shape[1]):
         acc += partials[line, t]
     books[line] = acc
+
+
+@wp.func
+def weighted_lines(books: wp.array(dtype=wp.float64), weights: wp.array(dtype=wp.float64)) -> wp.float64:
+    """Σ weights[line] × books[line], in line order."""
+    acc = wp.float64(0.0)
+    for line in range(LINES):
+        acc += weights[line] * books[line]
+    return acc
+
+
+@wp.kernel
+def mark_books_kernel(
+    books: wp.array(dtype=wp.float64),
+    weights: wp.array(dtype=wp.float64),
+    slot: int,
+    # Out:
+    marks: wp.array(dtype=wp.float64),
+):
+    """marks[slot] = Σ weights × books: the lines before a pass. One thread."""
+    marks[slot] = weighted_lines(books, weights)
+
+
+@wp.kernel
+def book_change_kernel(
+    books: wp.array(dtype=wp.float64),
+    weights: wp.array(dtype=wp.float64),
+    marks: wp.array(dtype=wp.float64),
+    slot: int,
+    # Out:
+    into: wp.array(dtype=wp.float64),
+):
+    """into[0] += Σ weights × books − marks[slot]: what a pass changed the lines by, booked where the state keeps
+    it. One thread."""
+    into[0] = into[0] + (weighted_lines(books, weights) - marks[slot])

@@ -20,6 +20,7 @@ from warpdem import fused
 from warpdem.bench.fracture import cracking_block
 from warpdem.budget import Budget, counted
 from warpdem.stages.compaction import Compactor
+from warpdem.stages.energy import CONTACT, SHADOW
 
 # Per-chunk read-backs (simulation.Simulation._advance_chunk and the pass after it) on a block with nodal fracture
 # and FEM contact: the chunk status (warpdem.stages.status: the lists' counts, the clock, the guard's report, the broken
@@ -140,19 +141,39 @@ def test_state_assign_is_wp_copy_bit_for_bit(device):
         assert np.array_equal(a.numpy().view(np.uint8), b.numpy().view(np.uint8)), name
 
 
-def split_pass_budget(cells: int, device: str) -> tuple[int, int, Budget]:
+def split_pass_budget(cells: int, device: str, books: bool = False) -> tuple[int, int, Budget]:
     """What one split pass that splits asks of the device (the stretched block of ``bench fracture``, 5 % of its
-    nodes free to split, every one of them above T_f), with the splits and the rounds it made."""
+    nodes free to split, every one of them above T_f), with the splits and the rounds it made; ``books``: with the
+    energy books kept, their scratch and marks made by an earlier pass (as in a run)."""
     from warpdem.bench.fracture import spread_nodes, stretched_block
     from warpdem.simulation import Simulation
 
     may_split = spread_nodes(cells, 0.05, 0)
     capacity = (cells + 1) ** 3 + int(np.count_nonzero(may_split))
     model, state = stretched_block(cells, device, may_split, node_capacity=capacity)
-    sim = Simulation(model, state, track_energy=False)
+    sim = Simulation(model, state, track_energy=books)
+    if books:
+        sim._mark_books(SHADOW, 0)  # the scratch, the marks and the weights, made once in a run
+        sim._book_change(SHADOW, 0, wp.zeros(1, dtype=wp.float64, device=device))
+        sim._mark_books(CONTACT, 0)
     with counted() as budget:
         report = sim.fracture_pass()
     return report.splits, report.rounds, budget
+
+
+def test_a_split_pass_books_its_energy_on_the_device(device):
+    """Invariant: keeping the books costs a split pass launches only: the contact lines' and the shadow term's change
+    across it are booked on the device (warpdem.stages.energy.DeviceBooks.mark / book), no read-back, copy or
+    allocation more than without books (20 more read-backs when they were summed on the host)."""
+    splits, rounds, off = split_pass_budget(4, device)
+    splits_on, rounds_on, on = split_pass_budget(4, device, books=True)
+    assert splits_on == splits > 0 and rounds_on == rounds
+    assert (on.readbacks, on.copies, on.allocations, on.syncs) == (
+        off.readbacks,
+        off.copies,
+        off.allocations,
+        off.syncs,
+    )
 
 
 def test_a_split_pass_asks_the_same_of_a_larger_mesh(device):

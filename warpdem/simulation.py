@@ -56,15 +56,13 @@ from .stages.conversion import (
     regrow_bonds,
     regrow_particles,
 )
-from .stages.coupling import coupling_energy, eval_coupling, regrow_coupling
-from .stages.energy import DeviceBooks, EnergyBalance
+from .stages.coupling import eval_coupling, regrow_coupling
+from .stages.energy import CONTACT, CONVERSION, SHADOW, BookTerms, DeviceBooks, EnergyBalance
 from .stages.fem_contact import (
     FemContact,
-    fem_contact_energy,
     fem_contact_growth,
     hold_contact_stiffness,
     regrow_fem_contacts,
-    sphere_face_dissipated,
 )
 from .stages.fem_surface import face_slots, rebuild_surface, remap_face_ids
 from .stages.fracture import FracturePass, SplitReport
@@ -88,6 +86,9 @@ from .stages.tets import eval_tet_stresses, eval_tets
 from .stages.topology import regrow_nodes
 
 NODE_RIGID = int(kernels_rigid.NODE_RIGID)
+MARK_CONTACT, MARK_SHADOW, MARK_SLOTS = 0, 1, 2
+"""Slots of the energy books' marks across a topology pass (Simulation._mark_books): the FEM contacts' lines, and
+the shadow term (with the couplings' springs in a conversion pass)."""
 
 
 def regrow_neighbors(model: Model, state: State, max_neighbors: int) -> tuple[Model, State]:
@@ -133,6 +134,7 @@ class Simulation:
         self.state = state
         self.track_energy = track_energy
         self._device_books: DeviceBooks | None = None
+        self._book_marks: wp.array | None = None
         self.use_graph = use_graph
         self.step_count = step
         if time is None:
@@ -614,32 +616,39 @@ class Simulation:
         if m.face_capacity:
             self._face_slot = face_slots(m, s, self._face_slot)
         hold_contact_stiffness(m, s)
-        before = self._contact_books()
-        shadow_before = self.shadow() if self.track_energy else 0.0
+        self._mark_books(CONTACT, MARK_CONTACT)
+        self._mark_books(SHADOW, MARK_SHADOW)
         splits, rounds = self._fracture.split(m, s)
         if splits:
             self._after_split(old_faces)
-            self._book_contact_topology(before)
-            if self.track_energy:
-                # The pass changes the forces the next kick uses (daughters lighter than their parent, a face's share
-                # of a contact force on one daughter, the re-evaluation at dt = 0) with the velocities as they were:
-                # Verlet's shadow term moves by S(f_new) - S(f_old) with no force working, as at a change of step.
-                line = self.state.energy_step_change
-                line.assign(line.numpy() + (self.shadow() - shadow_before))
+            self._book_contact_topology()
+            # The pass changes the forces the next kick uses (daughters lighter than their parent, a face's share of
+            # a contact force on one daughter, the re-evaluation at dt = 0) with the velocities as they were:
+            # Verlet's shadow term moves by S(f_new) - S(f_old) with no force working, as at a change of step.
+            self._book_change(SHADOW, MARK_SHADOW, self.state.energy_step_change)
         return SplitReport(splits, rounds, grew)
 
-    def _contact_books(self) -> float:
-        """The FEM contacts' lines of the energy books now [J]: their stored energy (the sphere–face springs' with the
-        node springs') plus what they dissipated, the sphere–face line with the others; 0 when energy is not tracked.
-        Reads back: call between steps."""
-        if not self.track_energy:
-            return 0.0
-        elastic, dissipated = fem_contact_energy(self.model, self.state)
-        return elastic + dissipated + sphere_face_dissipated(self.model, self.state)
+    def _mark_books(self, terms: BookTerms, slot: int) -> None:
+        """Keep ``terms`` of the energy books now on the device (warpdem.stages.energy.DeviceBooks.mark; launches
+        only; nothing when energy is not tracked)."""
+        if self.track_energy:
+            self._books().mark(self.model, self.state, terms, self._marks(), slot)
 
-    def _book_contact_topology(self, before: float) -> None:
-        """Book what the FEM contacts' lines gained across a topology pass (``before``: :meth:`_contact_books` just
-        before it) as energy put in without work (``energy_contact_topology``).
+    def _book_change(self, terms: BookTerms, slot: int, into: wp.array) -> None:
+        """Add what ``terms`` changed by since :meth:`_mark_books` to ``into[0]`` (DeviceBooks.book; launches only;
+        nothing when energy is not tracked)."""
+        if self.track_energy:
+            self._books().book(self.model, self.state, terms, self._marks(), slot, into)
+
+    def _marks(self) -> wp.array:
+        """The books' marks across a pass (float64, one slot per MARK_*), made once."""
+        if self._book_marks is None:
+            self._book_marks = wp.zeros(MARK_SLOTS, dtype=wp.float64, device=self.model.device)
+        return self._book_marks
+
+    def _book_contact_topology(self) -> None:
+        """Book what the FEM contacts' lines gained across a topology pass (their mark taken just before it) as
+        energy put in without work (``energy_contact_topology``).
 
         A pass moves nothing, so no contact force works across it. The surface is rebuilt, and the penalty stiffness
         of a split node's daughters (and of a converted tet's neighbours) is re-lumped over their new faces, but a
@@ -650,11 +659,7 @@ class Simulation:
         overlap, springs the dt = 0 re-evaluation starts or lets go of on the new faces, and rounding. Before the
         hold, each pass created ½ Δk δ² at every split node pressed by δ into the ground or a face: 8.8 kJ by 4.5 ms
         on the boulder scene, a third of its energy in play, which its dashpots then took out."""
-        if not self.track_energy:
-            return
-        gained = self._contact_books() - before
-        books = self.state.energy_contact_topology
-        books.assign(books.numpy() + gained)
+        self._book_change(CONTACT, MARK_CONTACT, self.state.energy_contact_topology)
 
     def _grow_for_split(self, candidates: int) -> bool:
         """Grow the node and cohesive capacities ×2 until they hold ``candidates`` more of each (the most a pass can
@@ -755,23 +760,20 @@ class Simulation:
         old_faces = int(s.face_count.numpy()[0]) if m.face_capacity else 0
         if m.face_capacity:
             self._face_slot = face_slots(m, s, self._face_slot)
-        before = self.shadow() - coupling_energy(m, s) if self.track_energy else 0.0
+        self._mark_books(CONVERSION, MARK_SHADOW)
         hold_contact_stiffness(m, s)
-        contacts_before = self._contact_books()
+        self._mark_books(CONTACT, MARK_CONTACT)
         snap = overlap_band.snapshot(m, s) if band else None
         self._conversion.convert(m, s, self.coupling_compactor)
         if snap is not None:
             overlap_band.apply_band(m, s, snap, self._band_incidence())
         self._after_conversion(old_faces)
-        self._book_contact_topology(contacts_before)
-        if self.track_energy:
-            # The leapfrog kinetic energy the scheme conserves is kinetic − shadow; the pass changes the shadow term
-            # (lighter nodes, new free faces, the spheres' forces) without any work, and releases the springs of
-            # couplings to the converted tets (new couplings are born relaxed): both booked as released with the
-            # rest, so the books stay closed across the pass.
-            after = self.shadow() - coupling_energy(self.model, self.state)
-            released = self.state.energy_released_conversion
-            released.assign(released.numpy() + (after - before))
+        self._book_contact_topology()
+        # The leapfrog kinetic energy the scheme conserves is kinetic − shadow; the pass changes the shadow term
+        # (lighter nodes, new free faces, the spheres' forces) without any work, and releases the springs of
+        # couplings to the converted tets (new couplings are born relaxed): both booked as released with the rest,
+        # so the books stay closed across the pass.
+        self._book_change(CONVERSION, MARK_SHADOW, self.state.energy_released_conversion)
         return ConversionReport(tets, spawned, bonds, couplings, grew)
 
     def _band_incidence(self) -> np.ndarray:

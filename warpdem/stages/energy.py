@@ -166,6 +166,31 @@ assert len(LINE) == kbk.LINES and all(
     )
 ), "kernels/books.py's line indices must follow EnergyBalance's fields"
 
+ALL_PARTS = frozenset({"motion", "stores", "booked"})
+"""Every family of lines: the whole books. The others: "fem_contact" (the FEM contacts' springs and dissipation)
+and "coupling" (the couplings' springs), each a subset of "stores" and "booked"."""
+
+
+@dataclass(frozen=True)
+class BookTerms:
+    """A weighted sum of lines that a topology pass books the change of (:meth:`DeviceBooks.mark`,
+    :meth:`DeviceBooks.book`): ``weights`` (line name, weight) pairs, ``parts`` the families that hold them."""
+
+    parts: frozenset[str]
+    weights: tuple[tuple[str, float], ...]
+
+
+SHADOW = BookTerms(frozenset({"motion"}), (("shadow", 1.0),))
+"""Verlet's shadow term."""
+CONTACT = BookTerms(
+    frozenset({"fem_contact"}),
+    (("elastic", 1.0), ("dissipated_fem_contact", 1.0), ("dissipated_sphere_face", 1.0)),
+)
+"""The FEM contacts' lines: their springs (node–face, node–wall, sphere–face, joint elements) and what they
+dissipated (Simulation._book_contact_topology)."""
+CONVERSION = BookTerms(frozenset({"motion", "coupling"}), (("shadow", 1.0), ("coupling_elastic", -1.0)))
+"""The shadow term less the couplings' springs (Simulation.convert_pass books its change as released)."""
+
 GPU_PARTIALS = 8192
 """Partial sums per line on a GPU (kernels/books.py): threads enough to fill one, each item read once."""
 
@@ -196,12 +221,13 @@ class DeviceBooks:
         f64 = dict(dtype=wp.float64, device=d)
         self.sphere_e = wp.zeros(m.particle_capacity, **f64)
         self.sphere_face_e = wp.zeros(m.particle_capacity if self.sphere_faces else 0, **f64)
-        self.node_e = wp.zeros(m.node_capacity if m.face_capacity else 0, **f64)
+        self.node_e = wp.zeros(m.node_capacity, **f64)
         self.tet_e = wp.zeros(m.tet_capacity, **f64)
         self.bond_e = wp.zeros(m.bond_capacity, **f64)
         self.coupling_e = wp.zeros(m.coupling_capacity, **f64)
         self.cohesive_e = wp.zeros(m.cohesive_capacity, **f64)
         self.touching = wp.zeros(2, dtype=int, device=d)  # scratch of the contact and bond counts
+        self._term_weights: dict[BookTerms, wp.array] = {}
         ratios = [p.shear_stiffness_ratio for p in m.joint_set_props] or [0.0]
         self.shear_ratio = wp.array(np.asarray(ratios, dtype=np.float64), dtype=wp.float64, device=d)
 
@@ -214,7 +240,7 @@ class DeviceBooks:
             m.bond_capacity,
             m.coupling_capacity,
             m.cohesive_capacity,
-            m.face_capacity,
+            m.face_capacity > 0,  # not the count: the surface grows at every split, the scratch does not depend on it
             sphere_faces,
             tuple(p.shear_stiffness_ratio for p in m.joint_set_props),
             str(m.device),
@@ -227,12 +253,61 @@ class DeviceBooks:
             self.capacities
         )
 
-    def evaluate(self, model: Model, state: State, shadow_only: bool = False) -> wp.array:
+    def evaluate(self, model: Model, state: State, parts: frozenset[str] = ALL_PARTS) -> wp.array:
         """Launch the books of ``state`` into :attr:`books` (float64, shape (LINES,), indexed by :data:`LINE`) and
-        return it; ``shadow_only``: only the passes that feed the ``shadow`` line (the other lines hold partial sums
-        then). Launches only: no read-back, no allocation."""
+        return it. ``parts``: which families of lines to sum (:data:`ALL_PARTS` for the whole books; a line of a
+        family left out reads 0 or a partial sum). Launches only: no read-back, no allocation."""
         m, s = model, state
         self.partials.zero_()
+        if "motion" in parts:
+            self._motion(m, s)
+        if "stores" in parts:
+            self._stores(m, s)
+        if "fem_contact" in parts or "stores" in parts:
+            self._fem_contact_stores(m, s)
+        if "coupling" in parts or "stores" in parts:
+            self._coupling_store(m, s)
+        if "booked" in parts:
+            self._booked_lines(m, s)
+        if "fem_contact" in parts or "booked" in parts:
+            self._fem_contact_booked(m, s)
+        wp.launch(
+            kbk.finish_books_kernel, dim=kbk.LINES, inputs=[self.partials], outputs=[self.books], device=self.device
+        )
+        return self.books
+
+    def mark(self, model: Model, state: State, terms: BookTerms, marks: wp.array, slot: int) -> None:
+        """Keep Σ weight × line of ``terms`` now in ``marks[slot]`` (float64, on the device; launches only): the
+        "before" of a pass that :meth:`book` books the change of."""
+        weights = self._weights(terms)
+        self.evaluate(model, state, terms.parts)
+        wp.launch(kbk.mark_books_kernel, dim=1, inputs=[self.books, weights, slot], outputs=[marks], device=self.device)
+
+    def book(self, model: Model, state: State, terms: BookTerms, marks: wp.array, slot: int, into: wp.array) -> None:
+        """Add Σ weight × line of ``terms`` now minus ``marks[slot]`` (:meth:`mark`) to ``into[0]`` (a float64
+        accumulator of the state; launches only): what a pass changed the lines by, booked without a read-back."""
+        weights = self._weights(terms)
+        self.evaluate(model, state, terms.parts)
+        wp.launch(
+            kbk.book_change_kernel,
+            dim=1,
+            inputs=[self.books, weights, marks, slot],
+            outputs=[into],
+            device=self.device,
+        )
+
+    def _weights(self, terms: BookTerms) -> wp.array:
+        """The device vector of ``terms``' weights by line, made once per set of terms."""
+        weights = self._term_weights.get(terms)
+        if weights is None:
+            host = np.zeros(kbk.LINES, dtype=np.float64)
+            for name, w in terms.weights:
+                host[LINE[name]] += w
+            weights = self._term_weights[terms] = wp.array(host, dtype=wp.float64, device=self.device)
+        return weights
+
+    def _motion(self, m: Model, s: State) -> None:
+        """Kinetic energies, gravity potential and shadow term of the spheres, nodes and bodies."""
         g = wp.vec3d(*(float(c) for c in m.gravity))
         h = wp.float64(m.dt**2 / 8.0)
         launch = self._launch
@@ -290,13 +365,6 @@ class DeviceBooks:
                     s.body_t,
                 ],
             )
-        if not shadow_only:
-            self._stores(m, s)
-            self._booked_lines(m, s)
-        wp.launch(
-            kbk.finish_books_kernel, dim=kbk.LINES, inputs=[self.partials], outputs=[self.books], device=self.device
-        )
-        return self.books
 
     def read(self, model: Model, state: State) -> EnergyBalance:
         """:meth:`evaluate` and read the vector back (one read-back) as an :class:`EnergyBalance`."""
@@ -305,7 +373,7 @@ class DeviceBooks:
 
     def shadow(self, model: Model, state: State) -> float:
         """Verlet's shadow term now [J] (:meth:`evaluate` with ``shadow_only``; one read-back)."""
-        return float(self.evaluate(model, state, shadow_only=True).numpy()[LINE["shadow"]])
+        return float(self.evaluate(model, state, SHADOW.parts).numpy()[LINE["shadow"]])
 
     def _launch(self, kernel: wp.Kernel, inputs: list) -> None:
         wp.launch(kernel, dim=self.stride, inputs=[*inputs, self.stride], outputs=[self.partials], device=self.device)
@@ -318,13 +386,24 @@ class DeviceBooks:
         )
 
     def _stores(self, m: Model, s: State) -> None:
-        """The energy the springs and the tets hold now: each stage's per-item energies, then their sums."""
+        """The energy the sphere contacts, bonds, tets and cohesive elements hold now: each stage's per-item
+        energies, then their sums (the FEM contacts' and couplings' are their own parts)."""
         launch_contact_energy(m, s, self.sphere_e, self.touching)
         self._sum(self.sphere_e, s.particle_count, "elastic")
         if m.bond_capacity:
             self.bond_e.zero_()
             launch_bond_energy(m, s, self.bond_e, self.touching)
             self._sum(self.bond_e, s.bond_count, "elastic")
+        if m.tet_capacity:
+            tet_energies(m, s, out=self.tet_e)
+            self._sum(self.tet_e, s.tet_count, "strain")
+        if m.cohesive_capacity:
+            self.cohesive_e.zero_()
+            launch_cohesive_stored(m, s, self.cohesive_e)
+            self._sum(self.cohesive_e, s.cohesive_count, "cohesive_elastic")
+
+    def _fem_contact_stores(self, m: Model, s: State) -> None:
+        """The springs of the node–face, node–wall and sphere–face contacts and of the intact joint elements."""
         if m.node_capacity and m.face_capacity:
             launch_fem_contact_energy(m, s, self.node_e)
             self._sum(self.node_e, s.node_count, "elastic")
@@ -348,13 +427,9 @@ class DeviceBooks:
         if self.sphere_faces:
             launch_sphere_face_energy(m, s, self.sphere_face_e)
             self._sum(self.sphere_face_e, s.particle_count, "elastic")
-        if m.tet_capacity:
-            tet_energies(m, s, out=self.tet_e)
-            self._sum(self.tet_e, s.tet_count, "strain")
-        if m.cohesive_capacity:
-            self.cohesive_e.zero_()
-            launch_cohesive_stored(m, s, self.cohesive_e)
-            self._sum(self.cohesive_e, s.cohesive_count, "cohesive_elastic")
+
+    def _coupling_store(self, m: Model, s: State) -> None:
+        """The springs of the penalty couplings between converted spheres and the continuum."""
         if m.coupling_capacity:
             self.coupling_e.zero_()
             launch_coupling_energy(m, s, self.coupling_e)
@@ -383,6 +458,10 @@ class DeviceBooks:
             (s.energy_step_change, None, "step_change"),
         ):
             self._sum(values, count, line)
+
+    def _fem_contact_booked(self, m: Model, s: State) -> None:
+        """What the FEM contacts' dashpots and friction and the sphere–face contacts dissipated."""
+        n, nn = s.particle_count, s.node_count
         if m.node_capacity and m.face_capacity:
             self._sum(s.node_energy_contact, nn, "dissipated_fem_contact")
         if m.face_capacity:
