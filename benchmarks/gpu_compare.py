@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from gpu_record import check, write_json
+from gpu_record import check, positive_int, write_json
 
 if TYPE_CHECKING:
     from warpdem.simulation import Simulation
@@ -553,13 +553,6 @@ def compare(args: argparse.Namespace) -> int:
 # Command line
 
 
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be > 0 (got {text})")
-    return value
-
-
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python benchmarks/gpu_compare.py",
@@ -568,9 +561,9 @@ def parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--device", default="cuda:0", help="Warp device to compare with the CPU [cuda:0]")
     p.add_argument("--out", type=Path, default=Path("out/gpu_check"), help="output folder [out/gpu_check]")
-    p.add_argument("--cells", type=_positive_int, default=6, help="cells per side of the blocks [6: 1 296 tets]")
-    p.add_argument("--steps", type=_positive_int, default=160, help="steps of each run [160]")
-    p.add_argument("--window", type=_positive_int, help="steps of the early window [steps/8]")
+    p.add_argument("--cells", type=positive_int, default=6, help="cells per side of the blocks [6: 1 296 tets]")
+    p.add_argument("--steps", type=positive_int, default=160, help="steps of each run [160]")
+    p.add_argument("--window", type=positive_int, help="steps of the early window [steps/8]")
     p.add_argument("--scenarios", nargs="+", choices=SCENARIOS, default=list(SCENARIOS), help="runs to do [both]")
     p.add_argument(
         "--reference", type=Path, help="CPU reference file (.npz): loaded when it matches, else written after the runs"

@@ -317,7 +317,8 @@ def _target(row: dict[str, Any]) -> str:
 # Command line
 
 
-def _positive_int(text: str) -> int:
+def positive_int(text: str) -> int:
+    """An argparse type: an integer > 0."""
     value = int(text)
     if value <= 0:
         raise argparse.ArgumentTypeError(f"must be > 0 (got {text})")
@@ -331,9 +332,9 @@ def parser() -> argparse.ArgumentParser:
     )
     sub = p.add_subparsers(dest="command", metavar="{settling-cases,record,summary}", required=True)
     s = sub.add_parser("settling-cases", help="write settling cases (cube numbers of spheres) for bench --data")
-    s.add_argument("sizes", type=_positive_int, nargs="+", help="sphere counts, each a cube number (1000000)")
+    s.add_argument("sizes", type=positive_int, nargs="+", help="sphere counts, each a cube number (1000000)")
     s.add_argument("--data", type=Path, required=True, help="folder to write init_N*.txt and box_N*.json to")
-    s.add_argument("--workers", type=_positive_int, default=os.cpu_count() or 1, help="formatting processes")
+    s.add_argument("--workers", type=positive_int, default=os.cpu_count() or 1, help="formatting processes")
     r = sub.add_parser("record", help="add a step's result to summary.json")
     r.add_argument("--summary", type=Path, required=True, help="summary.json")
     r.add_argument("--name", required=True, help="the check's name")
