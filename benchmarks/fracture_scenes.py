@@ -1,5 +1,6 @@
-"""Reports of the fracture scenes (issue 9 §7): ``python benchmarks/fracture_scenes.py [SCENE ...] [--device cpu]
-[--end-time T] [--checkpoint FILE]`` with SCENE among pmma_plate, brazilian_disc, boulder_impact (default: all three).
+"""Reports of the fracture scenes (issue 9 §7, issue 27): ``python benchmarks/fracture_scenes.py [SCENE ...]
+[--device cpu] [--end-time T] [--checkpoint FILE]`` with SCENE among pmma_plate, brazilian_disc, boulder_impact,
+pmma_plate_remote, pmma_plate_branching (default: all).
 
 Each scene of ``scenes/`` is built as ``warpdem run`` builds it (:func:`warpdem.build.scene_build.build_scene`) and
 stepped in Python, sampling between steps (split passes run inside ``Simulation.advance``):
@@ -8,6 +9,11 @@ stepped in Python, sampling between steps (split passes run inside ``Simulation.
   past the built node count) along x, at its reference position; the tip speed is the least-squares slope of the
   tip position against time over the run from the seed tip to 90 % of the way to the plate edge; its ratio to the
   Rayleigh wave speed c_R ≈ c_s (0.862 + 1.14 ν)/(1 + ν) (Freund's approximation), c_s = sqrt(G/ρ).
+- ``pmma_plate_remote`` (LDEC Fig. 4 as published: remote tension on a plate whose edges are far): the tip as for
+  ``pmma_plate``; the plateau speed is the least-squares slope over a window that starts PLATEAU_FROM past the seed's
+  tip and ends when the crack's first waves are back from the loaded edges (2 H / c_d after it started, c_d the
+  dilatational speed) or PLATEAU_EDGE before the plate's edge; the mesh size in δ_c = 2Γ/T_f. ``pmma_plate_branching``
+  (every node free to split, 1.5 × the load): the same, and how far off the centre line the splits go (branching).
 - ``brazilian_disc``: the load P of the top platen is the sum of the elastic penalty forces of the nodes behind it,
   Σ k_v max(0, −gap_v) (the node–wall law of warpdem.stages.fem_contact without its dashpot, which is small at this
   rate), so σ_t = 2P/(πDt) at the first split and at the peak against T_f, and the lowest load after the peak (a disc
@@ -35,6 +41,10 @@ WINDOW = 20
 """Samples of the running crack over which the fastest tip speed is fitted."""
 MIN_FRAGMENT_TETS = 4
 """A piece of the boulder of fewer tets is a chip, not a fragment."""
+PLATEAU_FROM = 0.010
+"""How far past the seed's tip the remote plate's plateau window starts [m]: the tip's start-up, a few elements."""
+PLATEAU_EDGE = 0.010
+"""How close to the plate's edge the window ends at the latest [m]."""
 
 
 def rayleigh_speed(youngs_modulus: float, poisson_ratio: float, density: float) -> float:
@@ -274,10 +284,81 @@ def checkpoint_fragments(path: Path) -> str:
     )
 
 
+def dilatational_speed(youngs_modulus: float, poisson_ratio: float, density: float) -> float:
+    """c_d = sqrt(E (1 − ν) / ((1 + ν)(1 − 2ν) ρ)) [m/s]: the fastest wave, the first to come back from an edge."""
+    nu = poisson_ratio
+    return math.sqrt(youngs_modulus * (1.0 - nu) / ((1.0 + nu) * (1.0 - 2.0 * nu) * density))
+
+
+def pmma_plate_remote(scene, device: str, end_time: float | None) -> list[str]:
+    """The remote-tension plates (LDEC Fig. 4 as published, and its unconstrained variant): the tip speed's plateau
+    against c_R over a stated window; where every node may split (no ``[fracture].region``), how far from the centre
+    line the splits reach (branching)."""
+    mat = scene.materials[scene.mesh.material]
+    c_r = rayleigh_speed(mat.youngs_modulus, mat.poisson_ratio, mat.density)
+    c_d = dilatational_speed(mat.youngs_modulus, mat.poisson_ratio, mat.density)
+    h = (scene.mesh.hi[0] - scene.mesh.lo[0]) / scene.mesh.divisions[0]
+    delta_c = 2.0 * mat.fracture_energy / mat.tensile_strength  # the linear law's critical opening
+    name = scene.name
+    unconstrained = scene.fracture.region is None
+    edge = float(scene.mesh.hi[0])
+    half_height = float(scene.mesh.hi[1])
+    seed_tip = 0.010 + 0.5 * h  # the seed's rim: 2a = 20 mm, its tip nodes split first
+    times, tips, lines, off_line = [], [], [], []
+    for t, sim, n0 in _stepped(scene, device, end_time):
+        x = _daughters(sim, n0)
+        tip = float(np.abs(x[:, 0]).max()) if len(x) else 0.0
+        times.append(t)
+        tips.append(tip)
+        off = float(np.abs(x[:, 1]).max()) if len(x) else 0.0
+        off_line.append(off)
+        lines.append(
+            f"  t = {t * 1e6:7.1f} µs  tip |x| = {tip * 1e3:6.1f} mm  splits {len(x):5d}  max |y| {off * 1e3:5.1f} mm"
+        )
+        if tip >= edge - h:
+            break  # through to the edge: nothing more to measure
+    times_a, tips_a = np.asarray(times), np.asarray(tips)
+    out = [
+        f"{name}: c_R = {c_r:.0f} m/s, c_d = {c_d:.0f} m/s; h = {h * 1e3:.1f} mm = {h / delta_c:.0f} δ_c "
+        f"(δ_c = 2Γ/T_f = {delta_c * 1e6:.0f} µm; LDEC: 1000 δ_c); plate {2 * edge * 1e3:.0f} × "
+        f"{2 * half_height * 1e3:.0f} mm"
+    ]
+    out += lines[:: max(1, len(lines) // 25)]
+    started = np.nonzero(tips_a > seed_tip + 0.5 * h)[0]
+    if len(started) == 0:
+        return [*out, f"{name}: the crack did not start"]
+    t0 = times_a[started[0]]
+    # The window: from PLATEAU_FROM past the seed's tip (the start-up over) until the crack's own first waves are back
+    # from the loaded edges (t0 + 2 H / c_d) or the tip is within PLATEAU_EDGE of the plate's edge, whichever is first.
+    t_back = t0 + 2.0 * half_height / c_d
+    window = (tips_a >= seed_tip + PLATEAU_FROM) & (times_a <= t_back) & (tips_a <= edge - PLATEAU_EDGE)
+    if np.count_nonzero(window) >= 3:
+        t_w, x_w = times_a[window], tips_a[window]
+        speed = float(np.polyfit(t_w, x_w, 1)[0])
+        out.append(
+            f"{name}: crack starts at t = {t0 * 1e6:.1f} µs; plateau window t = {t_w[0] * 1e6:.1f} .. "
+            f"{t_w[-1] * 1e6:.1f} µs, tip |x| = {x_w[0] * 1e3:.1f} .. {x_w[-1] * 1e3:.1f} mm ({len(t_w)} samples): "
+            f"tip speed {speed:.0f} m/s = {speed / c_r:.2f} c_R (LDEC: near c_R)"
+        )
+        thirds = np.array_split(np.arange(len(t_w)), 3)
+        parts = [f"{float(np.polyfit(t_w[k], x_w[k], 1)[0]) / c_r:.2f}" for k in thirds if len(k) >= 2]
+        out.append(f"{name}: the window's thirds: {' / '.join(parts)} c_R")
+    else:
+        out.append(f"{name}: fewer than 3 samples in the plateau window (crack starts at t = {t0 * 1e6:.1f} µs)")
+    if unconstrained:
+        out.append(
+            f"{name}: splits reach |y| = {max(off_line) * 1e3:.1f} mm off the centre line "
+            f"({max(off_line) / h:.1f} h); a branch leaves the line where |y| grows with |x|"
+        )
+    return out
+
+
 REPORTS: dict[str, Callable[..., list[str]]] = {
     "pmma_plate": pmma_plate,
     "brazilian_disc": brazilian_disc,
     "boulder_impact": boulder_impact,
+    "pmma_plate_remote": pmma_plate_remote,
+    "pmma_plate_branching": pmma_plate_remote,
 }
 
 

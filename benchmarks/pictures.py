@@ -77,6 +77,8 @@ PICTURES = [
     Picture("tunnel_jointed_rock", "tunnel_jointed_rock", 5, keys=(("rock", "stress"),)),
     Picture("tunnel_jointed_rock_nonpersistent", "tunnel_jointed_rock_nonpersistent", 5, keys=(("rock", "stress"),)),
     Picture("pmma_plate", "pmma_plate", 7, "xy", keys=(("rock", "stress"),)),
+    Picture("pmma_plate_remote", "pmma_plate_remote", 17, "xy", color_by="damage", keys=(("rock", "damage"),)),
+    Picture("pmma_plate_branching", "pmma_plate_branching", 11, "xy", keys=(("rock", "damage"),)),
     Picture("brazilian_disc", "brazilian_disc", 15, "xz", keys=(("rock", "damage"),)),
     Picture("boulder_impact", "boulder_impact", 9, "xz", keys=(("spheres", "speed"), ("rock", "stress"))),
     # The last frame, 1 s, recoloured on the largest speed in the window (faster pieces above it are drawn red):
