@@ -12,6 +12,8 @@ Oracles:
 
 from __future__ import annotations
 
+import pathlib
+
 import numpy as np
 import pytest
 import warp as wp
@@ -241,3 +243,31 @@ def test_energy_books_are_one_readback_whatever_the_body_count(device):
     # arrays and allocated 8 on this block.
     assert small.readbacks == 2
     assert small.allocations == 0 and small.copies == 0 and small.syncs == 0 and small.captures == 0
+
+
+def frame_budget(scene, divisions: list[int], device: str, tmp_path) -> Budget:
+    """What writing one frame of ``scene`` meshed with ``divisions`` asks of the device (``Run._write_frame``: the
+    books, the USD frame, the time series, the VTU and fragment outputs the scene asks for), after its first frame."""
+    from warpdem.api import build
+
+    mesh = scene.mesh.model_copy(update={"divisions": divisions})
+    run = build(scene.model_copy(update={"mesh": mesh}), device=device, frames=2, out_dir=tmp_path)
+    try:
+        next(iter(run.frames()))
+        with counted() as budget:
+            run._write_frame()
+    finally:
+        run.close()
+    return budget
+
+
+def test_a_frame_asks_the_same_of_a_larger_mesh(device, tmp_path):
+    """Invariant: a frame reads back a fixed set of arrays, whatever the body count (the books one vector, each output
+    array once: no read-back per body, per face or per line of the books). wave_column at 160 and 1 280 cells."""
+    from warpdem.scene import load_scene
+
+    scene = load_scene(pathlib.Path(__file__).resolve().parents[1] / "scenes" / "wave_column.toml")
+    small = frame_budget(scene, [2, 2, 40], device, tmp_path / "small")
+    large = frame_budget(scene, [4, 4, 80], device, tmp_path / "large")
+    assert small.readbacks == large.readbacks and small.allocations == large.allocations
+    assert small.copies == large.copies and small.syncs == 0 and small.captures == 0
