@@ -271,3 +271,21 @@ def test_a_frame_asks_the_same_of_a_larger_mesh(device, tmp_path):
     large = frame_budget(scene, [4, 4, 80], device, tmp_path / "large")
     assert small.readbacks == large.readbacks and small.allocations == large.allocations
     assert small.copies == large.copies and small.syncs == 0 and small.captures == 0
+
+
+def test_a_splitting_pass_allocates_nothing_once_running(device):
+    """Invariant: once a run has split (the passes' scratch made: the fracture pass's, the surface rebuild's,
+    warpdem.stages.fem_surface.SurfaceScratch), a chunk whose pass splits more nodes allocates nothing while the
+    capacities hold (it allocated 12 arrays, the surface rebuild's, before the scratch was kept)."""
+    sim = cracking_block(8, device, steps=200, interval=1)
+    while int(sim.state.node_splits_total.numpy()[0]) == 0:
+        sim.advance(5)
+    for _ in range(50):
+        before, capacity = int(sim.state.node_splits_total.numpy()[0]), sim.model.node_capacity
+        with counted() as budget:
+            sim.advance(1)
+        split = int(sim.state.node_splits_total.numpy()[0]) > before
+        if split and sim.model.node_capacity == capacity:
+            assert budget.allocations == 0 and budget.captures == 0
+            return
+    pytest.fail("no chunk split within the capacities in 50 steps")

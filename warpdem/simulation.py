@@ -64,7 +64,7 @@ from .stages.fem_contact import (
     hold_contact_stiffness,
     regrow_fem_contacts,
 )
-from .stages.fem_surface import face_slots, rebuild_surface, remap_face_ids
+from .stages.fem_surface import SurfaceScratch, face_slots, rebuild_surface, remap_face_ids
 from .stages.fracture import FracturePass, SplitReport
 from .stages.guard import CriticalStep, GuardReport, StabilityGuard, UnstableRunError
 from .stages.integrate import integrate_first_half, integrate_second_half, kick_drift
@@ -135,6 +135,7 @@ class Simulation:
         self.track_energy = track_energy
         self._device_books: DeviceBooks | None = None
         self._book_marks: wp.array | None = None
+        self._surface_scratch_kept: SurfaceScratch | None = None
         self.use_graph = use_graph
         self.step_count = step
         if time is None:
@@ -640,6 +641,14 @@ class Simulation:
         if self.track_energy:
             self._books().book(self.model, self.state, terms, self._marks(), slot, into)
 
+    def _surface_scratch(self) -> SurfaceScratch:
+        """The surface rebuild's scratch (warpdem.stages.fem_surface.SurfaceScratch), made again when the node or tet
+        capacity has grown."""
+        m = self.model
+        if self._surface_scratch_kept is None or not self._surface_scratch_kept.fits(m):
+            self._surface_scratch_kept = SurfaceScratch(m.node_capacity, m.tet_capacity, m.device)
+        return self._surface_scratch_kept
+
     def _marks(self) -> wp.array:
         """The books' marks across a pass (float64, one slot per MARK_*), made once."""
         if self._book_marks is None:
@@ -689,7 +698,7 @@ class Simulation:
         the face ids of the contact state over, and re-evaluate the forces at dt = 0 (the contact lists rebuilt)."""
         m, s = self.model, self.state
         if m.face_capacity:
-            model, slot_to_face = rebuild_surface(m, s)
+            model, slot_to_face = rebuild_surface(m, s, self._surface_scratch())
             remap_face_ids(model, s, self._face_slot, old_faces, slot_to_face)
             same = all(
                 getattr(model, f) is getattr(m, f) for f in ("face_nodes", "star_tets", "node_contact_stiffness")
@@ -815,7 +824,7 @@ class Simulation:
         at dt = 0 (the contact lists rebuilt once: the new spheres' face slots are sized first)."""
         m, s = self.model, self.state
         if m.face_capacity:
-            model, slot_to_face = rebuild_surface(m, s)
+            model, slot_to_face = rebuild_surface(m, s, self._surface_scratch())
             remap_face_ids(model, s, self._face_slot, old_faces, slot_to_face)
             self.model = model
             drop_converted_load_faces(model, s)

@@ -26,21 +26,57 @@ def build_surface(model: Model, state: State) -> Model:
     return rebuild_surface(model, state)[0]
 
 
-def rebuild_surface(model: Model, state: State) -> tuple[Model, wp.array]:
+class SurfaceScratch:
+    """The scratch of :func:`rebuild_surface` for one model's node and tet capacities, kept by its caller so that a
+    rebuild after every split or conversion pass allocates nothing (issue 24): the stars, the compactor of the
+    tet-face slots, the boundary flags, the face count and the faces' extent. Each rebuild resets what it reads
+    before writing, so a reused scratch gives what a fresh one gives, bit for bit."""
+
+    def __init__(self, node_capacity: int, tet_capacity: int, device: wp.context.Device) -> None:
+        self.key = (node_capacity, tet_capacity, str(device))
+        slots = 4 * tet_capacity
+        self.stars = NodeStars(node_capacity, tet_capacity, device)
+        self.compactor = Compactor(slots, device)
+        self.tet_face_count = wp.zeros(1, dtype=int, device=device)
+        self.dead = wp.zeros(slots, dtype=int, device=device)
+        self.extent = wp.zeros(2, dtype=float, device=device)
+
+    def fits(self, model: Model) -> bool:
+        """Whether this scratch serves ``model``'s capacities and device."""
+        return self.key == (model.node_capacity, model.tet_capacity, str(model.device))
+
+    def reset(self) -> None:
+        """Back to a fresh scratch's values (memsets only): the star slots past their fill and the face neighbours
+        past the live tets are copied into the model whole."""
+        self.stars.tets.zero_()
+        self.stars.tet_face_nbr.fill_(-1)
+        self.tet_face_count.zero_()
+        self.dead.zero_()
+        self.extent.zero_()
+
+
+def rebuild_surface(model: Model, state: State, scratch: SurfaceScratch | None = None) -> tuple[Model, wp.array]:
     """:func:`build_surface`, writing into the model's existing topology arrays where they are large enough (so a
     captured graph that reads them stays valid), and also returning the new face of every tet-face slot (-1 for an
     interior slot), shape (4 tet_capacity,), int32: the map that carries face ids across the rebuild (a face keeps
-    its tet-face slot through any split).
+    its tet-face slot through any split), valid until the next rebuild with the same ``scratch``.
+
+    ``scratch``: the rebuild's working arrays (:class:`SurfaceScratch`), reused when it fits the model's capacities,
+    else made here. A topology array the model does not have yet, or of another size, is a copy of the scratch's.
     """
     m, s = model, state
     d = m.device
     ncap, tcap = m.node_capacity, m.tet_capacity
-    stars = NodeStars(ncap, tcap, d)
+    if scratch is None or not scratch.fits(m):
+        scratch = SurfaceScratch(ncap, tcap, d)
+    else:
+        scratch.reset()
+    stars = scratch.stars
     stars.build(m.tet_nodes, s.tet_count, s.tet_active, s.node_count, ref_face_nbr=m.ref_tet_face_nbr)
     slots = 4 * tcap
-    compactor = Compactor(slots, d)
-    tet_face_count = wp.zeros(1, dtype=int, device=d)
-    dead = wp.zeros(slots, dtype=int, device=d)
+    compactor = scratch.compactor
+    tet_face_count = scratch.tet_face_count
+    dead = scratch.dead
     if tcap:
         wp.launch(kf.count_tet_faces_kernel, dim=1, inputs=[s.tet_count], outputs=[tet_face_count], device=d)
         wp.launch(
@@ -94,7 +130,7 @@ def rebuild_surface(model: Model, state: State) -> tuple[Model, wp.array]:
             outputs=[stiffness, material],
             device=d,
         )
-    extent = wp.zeros(2, dtype=float, device=d)
+    extent = scratch.extent
     if cap:
         wp.launch(
             kf.face_extent_kernel,
@@ -115,6 +151,8 @@ def rebuild_surface(model: Model, state: State) -> tuple[Model, wp.array]:
         if old is not None and old.shape == new.shape:
             wp.copy(old, new)
             new = old
+        else:
+            new = wp.clone(new)  # the model never holds the scratch, which the next rebuild overwrites
         topology[name] = new
     model = dataclasses.replace(
         m,
