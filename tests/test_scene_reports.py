@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parent.parent
     [
         ("facility_scenes.py", "facility_persistent, facility_nonpersistent"),
         ("conversion_scenes.py", "masonry_wall_blast, masonry_tunnel_blast, dam_crest_blast"),
-        ("fracture_scenes.py", "pmma_plate, brazilian_disc, boulder_impact"),
+        ("fracture_scenes.py", "pmma_plate, brazilian_disc, boulder_impact, pmma_plate_remote, pmma_plate_branching"),
     ],
 )
 def test_scene_report_refuses_an_unknown_scene(script: str, allowed: str) -> None:

@@ -189,7 +189,7 @@ CONTACT = BookTerms(
 """The FEM contacts' lines: their springs (node–face, node–wall, sphere–face, joint elements) and what they
 dissipated (Simulation._book_contact_topology)."""
 CONVERSION = BookTerms(frozenset({"motion", "coupling"}), (("shadow", 1.0), ("coupling_elastic", -1.0)))
-"""The shadow term less the couplings' springs (Simulation.convert_pass books its change as released)."""
+"""The shadow term less the couplings' springs (Simulation._convert books its change as released)."""
 
 GPU_PARTIALS = 8192
 """Partial sums per line on a GPU (kernels/books.py): threads enough to fill one, each item read once."""
