@@ -235,7 +235,6 @@ def eval_cohesive_kernel(
     cohesive_broken_total: wp.array(dtype=int),
     cohesive_area_broken: wp.array(dtype=wp.float64),
     cohesive_work_broken: wp.array(dtype=wp.float64),
-    fem_rebuild_flag: wp.array(dtype=int),
     node_f: wp.array(dtype=wp.vec3),
     node_damage: wp.array(dtype=float),
     node_energy_cohesive: wp.array(dtype=wp.float64),
@@ -270,7 +269,9 @@ def eval_cohesive_kernel(
             0,
             (wp.float64(1.0) - wp.float64(0.5) * wp.float64(alpha)) * wp.float64(fc) * wp.float64(delta_c),
         )
-        fem_rebuild_flag[0] = 1  # the crack faces at A and B may now touch: rebuild the FEM contact lists
+        # No FEM list rebuild: the node–face candidate test does not read the cohesive elements, so the crack faces
+        # at A and B were candidates of each other's nodes since the split (a break changes no list; a joint element's
+        # break does, kernels/joints.py, as held_by_joint excludes an intact joint's pair).
         wp.atomic_max(node_damage, a, 1.0)
         wp.atomic_max(node_damage, b, 1.0)
         # The law's dissipation ends at its life total Γ A_f = (1 − α/2) f_c δ_c (eq. 9): what the spring still held

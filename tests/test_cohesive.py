@@ -254,11 +254,12 @@ def test_broken_elements_dissipate_fracture_energy(device):
     # The books are the work the forces did (the same trapezoid, in float32 increments summed in float64).
     np.testing.assert_allclose(books, work, rtol=FORCE_RTOL)
     assert cohesive_energy(model, state) == (0.0, pytest.approx(books.sum(), rel=BOOK_RTOL))
-    # Counters of the breaks (eq. 9) and the flags they raise.
+    # Counters of the breaks (eq. 9). No FEM list rebuild is flagged: the node–face candidate test does not read the
+    # elements, so a break changes no list (tests/test_fem_contact.py holds the lists after a pass to a full build).
     assert int(state.cohesive_broken_total.numpy()[0]) == 3
     np.testing.assert_allclose(state.cohesive_area_broken.numpy()[0], 3 * AREA, rtol=F32_EPS)
     np.testing.assert_allclose(state.cohesive_work_broken.numpy()[0], 3 * gamma_af, rtol=BOOK_RTOL)
-    assert int(state.fem_rebuild_flag.numpy()[0]) == 1
+    assert int(state.fem_rebuild_flag.numpy()[0]) == 0
     np.testing.assert_array_equal(state.node_damage.numpy()[:6], 1.0)
 
 

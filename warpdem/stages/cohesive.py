@@ -29,7 +29,7 @@ def eval_cohesive(model: Model, state: State, dt: float | None = None, track_ene
     ``node_qd`` must hold v_{n+1/2}, as it does during a step's force evaluation). An element whose d_max reaches δ_c
     breaks: no force, ``cohesive_broken`` = 1, what its spring held released into the books, the counters
     ``cohesive_broken_total`` / ``cohesive_area_broken`` / ``cohesive_work_broken`` (Γ A_f, eq. 9) advanced, damage 1
-    on both nodes and ``fem_rebuild_flag`` raised.
+    on both nodes (the FEM contact lists are not rebuilt: their candidates do not depend on the elements).
 
     Args:
         model: the model (``node_ref_q``, ``cohesive_capacity``).
@@ -73,7 +73,6 @@ def eval_cohesive(model: Model, state: State, dt: float | None = None, track_ene
             s.cohesive_broken_total,
             s.cohesive_area_broken,
             s.cohesive_work_broken,
-            s.fem_rebuild_flag,
             s.node_f,
             s.node_damage,
             s.node_energy_cohesive,
