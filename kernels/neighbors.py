@@ -38,6 +38,9 @@ class ListSpec:
             candidate is below the live candidate count).
         active: wp.func (inputs, owner) -> whether the owner has a list at all (an inactive one gets count 0), or
             None when every live owner has one.
+        kept: wp.func (inputs, owner) -> whether the owner keeps its list as it is (a partial rebuild: its slots are
+            neither read nor written), or None when a rebuild rebuilds every owner. Only for a list without history
+            (one built in place).
         history: wp.struct of the per-slot history arrays, :class:`NoHistory` for a list without history.
         copy: wp.func (from history, from slot, to history, to slot) that copies one slot's history (a pair found
             in the old list, and the commit); None without history.
@@ -53,6 +56,7 @@ class ListSpec:
     radius: wp.Function
     accept: wp.Function
     active: wp.Function | None = None
+    kept: wp.Function | None = None
     history: Any = NoHistory
     copy: wp.Function | None = None
     fresh: wp.Function | None = None
@@ -114,6 +118,7 @@ def make_list_kernels(spec: ListSpec) -> ListKernels:
     radius = spec.radius
     accept = spec.accept
     active = spec.active
+    kept = spec.kept
     copy = spec.copy
     fresh = spec.fresh
     OwnerVec = spec.owner_vec
@@ -122,6 +127,8 @@ def make_list_kernels(spec: ListSpec) -> ListKernels:
     has_history = History is not NoHistory
     if (copy is not None) != has_history or (fresh is not None) != has_history:
         raise ValueError("a list with history needs its history struct, copy and fresh; one without, none of them")
+    if kept is not None and has_history:
+        raise ValueError("a partial rebuild (kept) is for a list built in place, one without history")
 
     @wp.kernel(enable_backward=False, module="unique")
     def build_list_kernel(
@@ -146,6 +153,9 @@ def make_list_kernels(spec: ListSpec) -> ListKernels:
         i = wp.tid()  # one thread per owner slot; it writes its own slots
         if i >= owner_count[0]:
             return
+        if wp.static(kept is not None):
+            if kept(inputs, i):
+                return
         if wp.static(active is not None):
             if not active(inputs, i):
                 new_count[i] = 0

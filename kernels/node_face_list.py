@@ -25,7 +25,8 @@ class NodeFaceInputs:
     """What the node–face candidate test reads (kernels/neighbors.py ``ListSpec.inputs``): the Model/State arrays of
     those names, ``fem_skin`` [m], the query radius face_radius + max(fem_skin, largest face_depth) [m], each face's
     centroid and bounding radius about it at the build (``face_center``, ``face_bound`` [m], face_centers_kernel),
-    and ``node_body`` (each node's rigid body, -1 for a deformable node; empty before any switch)."""
+    ``node_body`` (each node's rigid body, -1 for a deformable node; empty before any switch), and ``near`` (1 for a
+    node whose list a partial rebuild refreshes, :func:`mark_near_new_nodes_kernel`; empty for a full rebuild)."""
 
     node_contact_stiffness: wp.array(dtype=float)
     tet_nodes: wp.array(dtype=wp.vec4i)
@@ -42,6 +43,7 @@ class NodeFaceInputs:
     node_q: wp.array(dtype=wp.vec3)
     joint_count: wp.array(dtype=int)
     joint_broken: wp.array(dtype=int)
+    near: wp.array(dtype=int)
     fem_skin: float
     search_radius: float
 
@@ -49,6 +51,14 @@ class NodeFaceInputs:
 @wp.func
 def node_face_search_radius(inputs: NodeFaceInputs, v: int) -> float:
     return inputs.search_radius
+
+
+@wp.func
+def kept_list(inputs: NodeFaceInputs, v: int) -> bool:
+    """In a partial rebuild, a node far from every new node keeps its list (:func:`mark_near_new_nodes_kernel`)."""
+    if inputs.near.shape[0] == 0:
+        return False
+    return inputs.near[v] == 0
 
 
 @wp.func
@@ -131,6 +141,53 @@ NODE_FACE_LIST = make_list_kernels(
         radius=node_face_search_radius,
         accept=is_node_face_candidate,
         active=on_surface,
+        kept=kept_list,
     )
 )
 """Build kernel of the node–face lists (no history: a node's spring follows the node, kernels below)."""
+
+
+@wp.kernel
+def mark_near_new_nodes_kernel(
+    # Model:
+    face_nodes: wp.array(dtype=wp.vec3i),
+    # In:
+    grid: wp.uint64,
+    first_new: int,
+    radius: float,
+    reach: float,
+    # State in:
+    node_count: wp.array(dtype=int),
+    face_count: wp.array(dtype=int),
+    node_q_at_fem_build: wp.array(dtype=wp.vec3),
+    # Out:
+    near: wp.array(dtype=int),
+):
+    """Mark (``near`` = 1; zeroed before) the nodes a split pass may have changed the node–face candidates of
+    (warpdem.stages.fem_contact ``FemContact.refresh_near``): the daughters, from slot ``first_new`` on, and every
+    surface node within ``radius`` of one of them, distances taken where the lists were built (``node_q_at_fem_build``;
+    a daughter holds its parent's). ``grid`` holds the face centroids there; ``reach`` ≥ ``radius`` + the largest
+    face's bounding radius, so every face with a vertex within ``radius`` is offered.
+
+    Why these: a split adds crack faces and re-attaches faces and 1-rings to daughters, all at a split node's place p;
+    a face with a vertex at p lies within its bounding radius of its centroid, and a node that may take the face lies
+    within the query radius of that centroid, so within query radius + largest face radius of p (the host's
+    ``radius``). Every other node's candidate set is what it was: the same faces at the same places. A node with a
+    list is a vertex of a boundary face, so the faces near a daughter name every such node near it."""
+    k = wp.tid()  # one thread per daughter slot
+    v = first_new + k
+    if v >= node_count[0]:
+        return
+    near[v] = 1
+    p = node_q_at_fem_build[v]
+    n_faces = face_count[0]
+    query = wp.hash_grid_query(grid, p, reach)
+    for f in query:
+        if f >= n_faces:
+            continue
+        fn = face_nodes[f]
+        for j in range(3):
+            u = fn[j]
+            d = node_q_at_fem_build[u] - p
+            if wp.dot(d, d) <= radius * radius:
+                near[u] = 1  # a race between daughters writes the same value

@@ -60,6 +60,7 @@ import math
 import numpy as np
 import pytest
 import warp as wp
+from fem_lists_reference import BAND, node_lists_hold_their_candidates, point_triangle_distance
 from warpdem.kernels import fem_contact as kf
 
 from warpdem.build.builder import InteractionProps, ModelBuilder
@@ -92,7 +93,6 @@ ENERGY_RTOL = 0.01
 STEP_BLOWUP = 2.5 * math.sqrt(kf.SPRING_BOUND)
 STABLE_RTOL = 0.1  # at the stable step velocity Verlet's energy oscillates by O((ω dt)²/4) of the fastest modes
 BOOKS_ROUNDOFF = 8.0
-BAND = 1.0e-4  # relative band around a cut-off inside which float32 may decide either way
 # Rigid normals against the star walk: the walk sums area vectors of faces whose float32 vertices carry an error of
 # ε₃₂ |x| (|x| ≤ 2√3 m in a 2 m cube of posed nodes, after the float64 pose is rounded once), over edges h = 1 m: the
 # direction errs by a few ε₃₂ |x| / h ≈ 1e-6; the turned normal rounds R(q) n_v0 once (ε₃₂). Bound: 8 ε₃₂ |x| / h.
@@ -142,22 +142,6 @@ def centre_of_mass_motion(sim: Simulation, nodes: np.ndarray) -> tuple[np.ndarra
     return (mass[:, None] * u).sum(axis=0) / mass.sum(), (mass[:, None] * v).sum(axis=0) / mass.sum()
 
 
-def point_triangle_distance(p: np.ndarray, tri: np.ndarray) -> float:
-    """Exact distance from p to a triangle (float64), by minimising over the face and its three edges."""
-    a, b, c = tri
-    n = np.cross(b - a, c - a)
-    n /= np.linalg.norm(n)
-    q = p - np.dot(p - a, n) * n
-    w = [np.dot(np.cross(c - b, q - b), n), np.dot(np.cross(a - c, q - c), n), np.dot(np.cross(b - a, q - a), n)]
-    if min(w) >= 0.0:
-        return abs(float(np.dot(p - a, n)))
-    best = math.inf
-    for u, v in ((a, b), (b, c), (c, a)):
-        t = np.clip(np.dot(p - u, v - u) / np.dot(v - u, v - u), 0.0, 1.0)
-        best = min(best, float(np.linalg.norm(p - (u + t * (v - u)))))
-    return best
-
-
 # ----------------------------------------------------------------------------------------------------------------
 # Candidate lists
 
@@ -182,38 +166,10 @@ def test_candidate_lists_match_brute_force(device):
     sim = Simulation(model, state)  # builds the lists (growing them until they fit)
     m, s = sim.model, sim.state
 
+    assert node_lists_hold_their_candidates(m, s, len(tets)) > 0
     n_faces = int(s.face_count.numpy()[0])
     faces = m.face_nodes.numpy()[:n_faces]
-    face_depth = m.face_depth.numpy()[:n_faces].astype(np.float64)
     x_nodes = s.node_q_at_fem_build.numpy().astype(np.float64)
-    tets_now = m.tet_nodes.numpy()[: len(tets)]
-    ring = [set() for _ in range(int(s.node_count.numpy()[0]))]
-    for tet in tets_now.tolist():
-        for v in tet:
-            ring[v].update(tet)
-    stiff = m.node_contact_stiffness.numpy()
-    k_nodes = m.max_node_faces
-    index = s.node_face_index.numpy().reshape(-1, k_nodes)
-    count = s.node_face_count.numpy()
-    checked = 0
-    for v in np.nonzero(stiff > 0)[0]:
-        listed = set(index[v, : count[v]].tolist())
-        assert count[v] <= k_nodes
-        for f in range(n_faces):
-            tri = x_nodes[faces[f]]
-            if ring[v] & set(faces[f].tolist()):
-                assert f not in listed, f"node {v} listed against face {f} of its own 1-ring"
-                continue
-            d = point_triangle_distance(x_nodes[v], tri)
-            n = np.cross(tri[1] - tri[0], tri[2] - tri[0])
-            depth = -np.dot(x_nodes[v] - tri[0], n / np.linalg.norm(n))
-            behind = 0.0 < depth < face_depth[f] * (1 - BAND) and d <= depth * (1 + BAND)  # projects inside
-            if d < m.fem_skin * (1 - BAND) or behind:
-                assert f in listed, f"node {v} misses face {f} at {d}"
-                checked += 1
-            elif d > m.fem_skin * (1 + BAND) and not (0.0 < depth < face_depth[f] * (1 + BAND)):
-                assert f not in listed, f"node {v} lists face {f} at {d}"
-    assert checked > 0
 
     k_spheres = m.max_sphere_faces
     sindex = s.sphere_face_index.numpy().reshape(-1, k_spheres)

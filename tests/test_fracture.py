@@ -8,7 +8,8 @@ range, positive volumes, stars and faces equal to a numpy rebuild from the tets,
 node's tets, each element's representative tets holding its nodes); determinism (two runs, permuted tet numbering);
 capacity growth against a large-capacity run; a restart from a checkpoint against the uninterrupted run; the
 energy books across split passes under an impacting ball (a pass moves nothing, so no force works across it), and
-every node's contact force across them (unchanged; a split node's daughters share the parent's by mass).
+every node's contact force across them (unchanged; a split node's daughters share the parent's by mass); the node–face
+lists that passes refresh near the daughters only against a brute force over every node–face pair.
 
 Tolerances: float32 round-off ε₃₂ = 1.19e-7. Masses are float32 sums of a handful of ρV/4 terms: relative
 MASS_RTOL = 16 ε₃₂. Momenta are float64 sums of float32 m v: relative 16 ε₃₂ of Σ m |v|. Accelerations: the
@@ -21,7 +22,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
+from fem_lists_reference import node_lists_hold_their_candidates
 
+from warpdem.bench.fracture import cracking_block, spread_nodes, stretched_block
 from warpdem.build.builder import InteractionProps, ModelBuilder
 from warpdem.build.mesh import box_mesh, tet_signed_volumes
 from warpdem.simulation import Simulation
@@ -759,3 +762,47 @@ def test_freed_hinge_splits_below_strength_only_where_the_cut_is_traction_free(d
     else:
         assert splits == 0
         assert np.all(shared[on_section] > 0)  # every section face still held by a middle-row node
+
+
+def test_lists_refreshed_near_the_daughters_hold_every_candidate(device):
+    """A split pass rebuilds the node–face lists of the nodes near its daughters only and carries the others' face
+    ids over (FemContact.refresh_near), where the lists were last built. Oracle: after such a pass every surface
+    node's list holds exactly what an O(N F) brute force at those positions requires (tests/fem_lists_reference.py,
+    the check a full build passes in tests/test_fem_contact.py). The case: the 3 072-tet stretched block of ``bench
+    fracture`` with 2 % of its nodes free to split, every other one in a first pass (its new face shapes set the
+    stage up again: a full build) and the rest in a second, which must keep the lists of nodes by the first cracks:
+    their face ids move as the new crack faces take their slots."""
+    cells = 8
+    chosen = spread_nodes(cells, 0.02, seed=3)
+    first = np.zeros_like(chosen)
+    first[np.flatnonzero(chosen)[::2]] = True
+    model, state = stretched_block(cells, device, first, node_capacity=2 * (cells + 1) ** 3)
+    sim = Simulation(model, state)
+    assert sim.fracture_pass().splits > 0
+    may_split = np.zeros(sim.model.node_capacity, dtype=np.int32)
+    may_split[: len(chosen)] = chosen
+    sim.model.node_may_split.assign(may_split)
+    builds = int(sim.state.fem_rebuild_total.numpy()[0])
+    assert sim.fracture_pass().splits > 0
+    assert int(sim.state.fem_rebuild_total.numpy()[0]) == builds  # refreshed near the daughters, not built whole
+    kept = (sim.fem_contact.near.numpy() == 0) & (sim.state.node_face_count.numpy() > 0)
+    assert kept.any()  # some lists were carried over, not rebuilt
+    tets = int(sim.state.tet_count.numpy()[0])
+    assert node_lists_hold_their_candidates(sim.model, sim.state, tets) > 0
+
+
+def test_lists_refreshed_in_a_cracking_run_hold_every_candidate(device):
+    """The same oracle through a run that cracks: the 384-tet pulled block of ``bench fracture`` with a pass every
+    step (warpdem.bench.fracture.cracking_block). Its cracks open while the lists are kept, so a refresh that marks
+    too few nodes near the daughters (a reach without the node's own search radius, ``FemContact.near_radius``)
+    leaves a node beside a new crack face without it; checked after every pass that split and kept the lists."""
+    steps = 120
+    sim = cracking_block(4, device, steps, interval=1)
+    refreshed = checked = 0
+    for _ in range(steps):
+        builds, nodes = int(sim.state.fem_rebuild_total.numpy()[0]), int(sim.state.node_count.numpy()[0])
+        sim.advance(1)
+        if int(sim.state.node_count.numpy()[0]) > nodes and int(sim.state.fem_rebuild_total.numpy()[0]) == builds:
+            refreshed += 1
+            checked += node_lists_hold_their_candidates(sim.model, sim.state, int(sim.state.tet_count.numpy()[0]))
+    assert refreshed > 0 and checked > 0  # passes split and kept the lists, and the lists held candidates

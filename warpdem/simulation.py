@@ -259,9 +259,10 @@ class Simulation:
         if self.rigid:
             kick_bodies(self.model, self.state)
 
-    def evaluate_forces(self, after_pass: bool = False) -> None:
+    def evaluate_forces(self, after_pass: bool = False, rebuild_fem: bool = True) -> None:
         """Forces at the current positions without advancing time or history (the set-up evaluation; ``after_pass``:
-        the re-evaluation after a topology pass, where node–face springs that start start relaxed: nothing moved)."""
+        the re-evaluation after a topology pass, where node–face springs that start start relaxed: nothing moved).
+        ``rebuild_fem``: rebuild the FEM contact lists first (False: they are up to date, FemContact.refresh_near)."""
         m, s = self.model, self.state
         s.particle_f.zero_()
         s.particle_t.zero_()
@@ -280,7 +281,8 @@ class Simulation:
             self.neighbors.rebuild_if_needed()
             eval_contacts(m, s, self.track_energy, dt=0.0)
         if self.fem_contact is not None:
-            s.fem_rebuild_flag.fill_(1)
+            if rebuild_fem:
+                s.fem_rebuild_flag.fill_(1)
             self.fem_contact.eval(self.track_energy, dt=0.0, born_relaxed=after_pass)
         eval_bonds(m, s, dt=0.0, track_energy=self.track_energy)
         eval_coupling(m, s, dt=0.0, track_energy=self.track_energy)
@@ -621,7 +623,7 @@ class Simulation:
         self._mark_books(SHADOW, MARK_SHADOW)
         splits, rounds = self._fracture.split(m, s)
         if splits:
-            self._after_split(old_faces)
+            self._after_split(old_faces, self._fracture.first_new_node, splits)
             self._book_contact_topology()
             # The pass changes the forces the next kick uses (daughters lighter than their parent, a face's share of
             # a contact force on one daughter, the re-evaluation at dt = 0) with the velocities as they were:
@@ -693,10 +695,13 @@ class Simulation:
         self._setup()
         return True
 
-    def _after_split(self, old_faces: int) -> None:
-        """After a pass that split nodes: rebuild the surface on the device (crack faces become contact faces), carry
-        the face ids of the contact state over, and re-evaluate the forces at dt = 0 (the contact lists rebuilt)."""
+    def _after_split(self, old_faces: int, first_new: int, new_nodes: int) -> None:
+        """After a pass that split nodes (``new_nodes`` daughters from slot ``first_new`` on): rebuild the surface on
+        the device (crack faces become contact faces), carry the face ids of the contact state over, bring the contact
+        lists up to date (near the daughters only where the stage allows, FemContact.refresh_near; else rebuilt whole)
+        and re-evaluate the forces at dt = 0."""
         m, s = self.model, self.state
+        refreshed = False
         if m.face_capacity:
             model, slot_to_face = rebuild_surface(m, s, self._surface_scratch())
             remap_face_ids(model, s, self._face_slot, old_faces, slot_to_face)
@@ -707,10 +712,13 @@ class Simulation:
             self.model = model
             if same:
                 self.fem_contact.model = model
+                refreshed = self.fem_contact.refresh_near(
+                    first_new, new_nodes, self._face_slot, old_faces, slot_to_face
+                )
             else:
                 # A face array grew or the faces' extent (baked into the launches) changed: new stage, new graphs.
                 self._setup()
-        self.evaluate_forces(after_pass=True)
+        self.evaluate_forces(after_pass=True, rebuild_fem=not refreshed)
         while self._grow_if_overflowed(self.state):
             self.evaluate_forces(after_pass=True)
 

@@ -346,6 +346,7 @@ class FracturePass:
     def split(self, model: Model, state: State, max_rounds: int = MAX_ROUNDS) -> tuple[int, int]:
         """Split the candidates in rounds of independent sets (module docstring). The capacities must hold
         ``node_count + candidates`` nodes and ``cohesive_count + candidates`` elements. Reads back a count per round.
+        The daughters take the node slots from ``first_new_node`` (set here) on.
 
         Returns:
             (nodes split, rounds run).
@@ -360,6 +361,7 @@ class FracturePass:
         splits = 0
         rounds = 0
         before = int(s.node_count.numpy()[0])
+        self.first_new_node = before
         for _ in range(max_rounds):
             rounds += 1
             self.claim_sigma.fill_(-float(kfr.NEVER))
