@@ -38,9 +38,6 @@ class ListSpec:
             candidate is below the live candidate count).
         active: wp.func (inputs, owner) -> whether the owner has a list at all (an inactive one gets count 0), or
             None when every live owner has one.
-        kept: wp.func (inputs, owner) -> whether the owner keeps its list as it is (a partial rebuild: its slots are
-            neither read nor written), or None when a rebuild rebuilds every owner. Only for a list without history
-            (one built in place).
         history: wp.struct of the per-slot history arrays, :class:`NoHistory` for a list without history.
         copy: wp.func (from history, from slot, to history, to slot) that copies one slot's history (a pair found
             in the old list, and the commit); None without history.
@@ -50,18 +47,21 @@ class ListSpec:
             float64 so that nothing depends on where the origin is); ``accept`` receives one.
         grid_vec: type of the grid's points, ``wp.vec3`` or ``wp.vec3d``; the owner's position is converted to it
             for the query (the grid only proposes candidates, ``accept`` decides).
+        kept: wp.func (inputs, owner) -> whether the owner keeps its list as it is (a partial rebuild: its slots are
+            neither read nor written), or None when a rebuild rebuilds every owner. Only for a list without history
+            (one built in place).
     """
 
     inputs: Any
     radius: wp.Function
     accept: wp.Function
     active: wp.Function | None = None
-    kept: wp.Function | None = None
     history: Any = NoHistory
     copy: wp.Function | None = None
     fresh: wp.Function | None = None
     owner_vec: Any = wp.vec3
     grid_vec: Any = wp.vec3
+    kept: wp.Function | None = None
 
 
 @dataclasses.dataclass(frozen=True)

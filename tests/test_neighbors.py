@@ -8,7 +8,9 @@ Oracles:
 - overflow: with too few slots the count is still the brute-force count, ``needed`` is its maximum, and the filled
   slots are a subset of the brute-force set;
 - history: after the points move and the list is rebuilt, a pair that was listed before keeps its tag and a new one
-  gets the fresh value; the list without history, built in place, holds the same candidates in the same order.
+  gets the fresh value; the list without history, built in place, holds the same candidates in the same order;
+- partial rebuild (``ListSpec.kept``): after the points move, an owner flagged kept holds its old row slot for slot and
+  every other owner the brute-force set at the new positions; a kept function on a list with history is refused.
 """
 
 from __future__ import annotations
@@ -68,6 +70,38 @@ WITH_HISTORY = make_list_kernels(
     ListSpec(PointInputs, point_radius, point_accept, point_active, PointHistory, copy_tag, fresh_tag)
 )
 WITHOUT_HISTORY = make_list_kernels(ListSpec(PointInputs, point_radius, point_accept, point_active))
+
+
+@wp.struct
+class KeptInputs:
+    q: wp.array(dtype=wp.vec3)
+    on: wp.array(dtype=int)
+    keep: wp.array(dtype=int)
+    cutoff: float
+
+
+@wp.func
+def kept_radius(inputs: KeptInputs, i: int) -> float:
+    return inputs.cutoff
+
+
+@wp.func
+def kept_active(inputs: KeptInputs, i: int) -> bool:
+    return inputs.on[i] != 0
+
+
+@wp.func
+def kept_accept(inputs: KeptInputs, i: int, x: wp.vec3, j: int) -> bool:
+    d = x - inputs.q[j]
+    return j != i and wp.dot(d, d) < inputs.cutoff * inputs.cutoff
+
+
+@wp.func
+def kept_owner(inputs: KeptInputs, i: int) -> bool:
+    return inputs.keep[i] != 0
+
+
+PARTIAL = make_list_kernels(ListSpec(KeptInputs, kept_radius, kept_accept, kept_active, kept=kept_owner))
 
 
 def brute_force(q: np.ndarray, on: np.ndarray) -> list[set[int]]:
@@ -172,3 +206,61 @@ def test_history_follows_pairs_across_rebuild(device: str) -> None:
     np.testing.assert_array_equal(count_in_place[:LIVE], count[:LIVE])
     for i in range(LIVE):
         np.testing.assert_array_equal(index_in_place[i, : count[i]], index[i, : count[i]])
+
+
+def test_partial_rebuild_keeps_flagged_rows(device: str) -> None:
+    k = 64
+    rng = np.random.default_rng(3)
+    q_host = rng.uniform(0.0, 1.0, (CAPACITY, 3)).astype(np.float32)
+    on = (rng.uniform(size=CAPACITY) > 0.1).astype(np.int32)
+    keep = (rng.uniform(size=CAPACITY) > 0.5).astype(np.int32)
+    q = wp.array(q_host, dtype=wp.vec3, device=device)
+    live = wp.array([LIVE], dtype=int, device=device)
+    grid = wp.HashGrid(16, 16, 16, device=device)
+    lists = SlotArrays(
+        wp.full(CAPACITY, UNTOUCHED, dtype=int, device=device),
+        wp.full(CAPACITY * k, UNTOUCHED, dtype=int, device=device),
+    )
+    needed = wp.zeros(1, dtype=int, device=device)
+    builder = SkinnedList(PARTIAL, CAPACITY, k, device)
+
+    def build(keep_flags: np.ndarray) -> None:
+        grid.build(q, CUTOFF)
+        inputs = make_struct(
+            KeptInputs,
+            q=q,
+            on=wp.array(on, dtype=int, device=device),
+            keep=wp.array(keep_flags, dtype=int, device=device),
+            cutoff=CUTOFF,
+        )
+        builder.rebuild(inputs, grid, live, q, live, lists, needed)
+
+    build(np.zeros(CAPACITY, dtype=np.int32))  # a full build first
+    count_before, index_before = lists.count.numpy(), lists.index.numpy().reshape(CAPACITY, k)
+    q_host = q_host + rng.normal(0.0, 0.03, q_host.shape).astype(np.float32)
+    q.assign(q_host)
+    build(keep)
+    count, index = lists.count.numpy(), lists.index.numpy().reshape(CAPACITY, k)
+    expected = brute_force(q_host, on)
+    moved = 0
+    for i in range(LIVE):
+        if keep[i]:
+            assert count[i] == count_before[i]
+            np.testing.assert_array_equal(index[i], index_before[i])
+        else:
+            assert count[i] == len(expected[i]) and set(index[i, : count[i]].tolist()) == expected[i]
+        moved += set(index_before[i, : count_before[i]].tolist()) != expected[i]
+    assert moved > 0, "the move changed no owner's set: the kept rows were not told apart from rebuilt ones"
+    with pytest.raises(ValueError, match="partial rebuild"):
+        make_list_kernels(
+            ListSpec(
+                PointInputs,
+                point_radius,
+                point_accept,
+                point_active,
+                PointHistory,
+                copy_tag,
+                fresh_tag,
+                kept=kept_owner,
+            )
+        )
