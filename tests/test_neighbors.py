@@ -32,6 +32,7 @@ UNTOUCHED = -7  # sentinel of slots the builder must not write
 class PointInputs:
     q: wp.array(dtype=wp.vec3)
     on: wp.array(dtype=int)
+    keep: wp.array(dtype=int)  # owners a partial rebuild keeps (test_partial_rebuild_keeps_flagged_rows only)
     cutoff: float
 
 
@@ -72,36 +73,12 @@ WITH_HISTORY = make_list_kernels(
 WITHOUT_HISTORY = make_list_kernels(ListSpec(PointInputs, point_radius, point_accept, point_active))
 
 
-@wp.struct
-class KeptInputs:
-    q: wp.array(dtype=wp.vec3)
-    on: wp.array(dtype=int)
-    keep: wp.array(dtype=int)
-    cutoff: float
-
-
 @wp.func
-def kept_radius(inputs: KeptInputs, i: int) -> float:
-    return inputs.cutoff
-
-
-@wp.func
-def kept_active(inputs: KeptInputs, i: int) -> bool:
-    return inputs.on[i] != 0
-
-
-@wp.func
-def kept_accept(inputs: KeptInputs, i: int, x: wp.vec3, j: int) -> bool:
-    d = x - inputs.q[j]
-    return j != i and wp.dot(d, d) < inputs.cutoff * inputs.cutoff
-
-
-@wp.func
-def kept_owner(inputs: KeptInputs, i: int) -> bool:
+def point_kept(inputs: PointInputs, i: int) -> bool:
     return inputs.keep[i] != 0
 
 
-PARTIAL = make_list_kernels(ListSpec(KeptInputs, kept_radius, kept_accept, kept_active, kept=kept_owner))
+PARTIAL = make_list_kernels(ListSpec(PointInputs, point_radius, point_accept, point_active, kept=point_kept))
 
 
 def brute_force(q: np.ndarray, on: np.ndarray) -> list[set[int]]:
@@ -227,7 +204,7 @@ def test_partial_rebuild_keeps_flagged_rows(device: str) -> None:
     def build(keep_flags: np.ndarray) -> None:
         grid.build(q, CUTOFF)
         inputs = make_struct(
-            KeptInputs,
+            PointInputs,
             q=q,
             on=wp.array(on, dtype=int, device=device),
             keep=wp.array(keep_flags, dtype=int, device=device),
@@ -261,6 +238,6 @@ def test_partial_rebuild_keeps_flagged_rows(device: str) -> None:
                 PointHistory,
                 copy_tag,
                 fresh_tag,
-                kept=kept_owner,
+                kept=point_kept,
             )
         )
