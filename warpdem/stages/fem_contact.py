@@ -330,15 +330,8 @@ class FemContact:
         """Build the face grid and the sphere–face lists (the first part of :meth:`rebuild`; alone, it sizes the
         sphere–face slots through ``state.sphere_face_needed`` for a few spheres before the node lists are built).
         Launches only."""
-        m, s, d = self.model, self.state, self.model.device
-        wp.launch(
-            kf.face_centers_kernel,
-            dim=self.face_center.shape[0],
-            inputs=[m.face_nodes, s.face_count, s.node_q],
-            outputs=[self.face_center, self.face_bound],
-            device=d,
-        )
-        self.grid.build(self.face_center, self.cell)
+        m, s = self.model, self.state
+        self._build_face_grid(s.node_q)
         if self.sphere_faces is not None:
             inputs = make_struct(
                 kf.SphereFaceInputs,
@@ -361,6 +354,19 @@ class FemContact:
         if m.node_capacity:
             self._build_node_faces(s.node_q, self.every_node)
         finish_rebuild(s.node_count, s.node_q, s.node_q_at_fem_build, s.fem_rebuild_flag, s.fem_rebuild_total, d)
+
+    def _build_face_grid(self, node_q: wp.array) -> None:
+        """Face centroids and bounding radii (``face_center``, ``face_bound``) with the nodes at ``node_q``, and the
+        face grid over the centroids. Launches only."""
+        m, s = self.model, self.state
+        wp.launch(
+            kf.face_centers_kernel,
+            dim=self.face_center.shape[0],
+            inputs=[m.face_nodes, s.face_count, node_q],
+            outputs=[self.face_center, self.face_bound],
+            device=m.device,
+        )
+        self.grid.build(self.face_center, self.cell)
 
     def _build_node_faces(self, node_q: wp.array, near: wp.array) -> None:
         """Build the node–face lists with the faces and nodes at ``node_q`` (the face grid and ``face_center`` /
@@ -421,14 +427,7 @@ class FemContact:
                 device=d,
             )
         q = s.node_q_at_fem_build
-        wp.launch(
-            kf.face_centers_kernel,
-            dim=self.face_center.shape[0],
-            inputs=[m.face_nodes, s.face_count, q],
-            outputs=[self.face_center, self.face_bound],
-            device=d,
-        )
-        self.grid.build(self.face_center, self.cell)
+        self._build_face_grid(q)
         self.near.zero_()
         wp.launch(
             kf.mark_near_new_nodes_kernel,
@@ -438,6 +437,9 @@ class FemContact:
                 self.grid.id,
                 first_new,
                 self.near_radius,
+                # reach: radius + a face's bounding radius, taken as twice the reference face radius so that a face
+                # stretched to twice its reference extent is still offered (the cracking-run test in
+                # tests/test_fracture.py holds the result to a brute force).
                 self.near_radius + 2.0 * m.face_radius,
                 s.node_count,
                 s.face_count,
