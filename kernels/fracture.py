@@ -65,6 +65,30 @@ def largest_principal(s: wp.mat33) -> wp.vec4:
     return wp.vec4(d[i], p[0], p[1], p[2])
 
 
+EIG_MARGIN = wp.constant(1.0e-4)
+"""Relative margin [-] (of the stress entries' absolute sum) by which a Gershgorin bound must clear a threshold before
+nodal_stress_kernel skips eig3: far above float32's eig3 and summation errors (~1e-6)."""
+
+
+@wp.func
+def stress_bound(s: wp.mat33) -> float:
+    """Gershgorin's upper bound of a symmetric stress's largest eigenvalue [Pa]: max_i (σ_ii + Σ_{j≠i} |σ_ij|)."""
+    return wp.max(
+        s[0, 0] + wp.abs(s[0, 1]) + wp.abs(s[0, 2]),
+        wp.max(s[1, 1] + wp.abs(s[1, 0]) + wp.abs(s[1, 2]), s[2, 2] + wp.abs(s[2, 0]) + wp.abs(s[2, 1])),
+    )
+
+
+@wp.func
+def entry_sum(s: wp.mat33) -> float:
+    """Σ_ij |σ_ij| [Pa]: the scale of a stress's rounding errors."""
+    total = float(0.0)
+    for i in range(3):
+        for j in range(3):
+            total += wp.abs(s[i, j])
+    return total
+
+
 @wp.func
 def centroid_offset(
     tet_nodes: wp.array(dtype=wp.vec4i), node_q: wp.array(dtype=wp.vec3), t: int, x: wp.vec3, p: wp.vec3
@@ -150,12 +174,12 @@ def freed_hinge(
             t2 = ref_tet_face_nbr[4 * t + k]
             if t2 < 0:
                 continue
-            if star_find(star_tets, start, count, t2) < 0:
-                continue
             f = tet_face(n, k)
             n2 = tet_nodes[t2]
             if face_in_tet(n2, f[0], f[1], f[2]) >= 0:
-                continue  # the face still holds both tets
+                continue  # the face still holds both tets (the common case, so tested before the star search)
+            if star_find(star_tets, start, count, t2) < 0:
+                continue  # v itself split across the face
             half_open += 1
             for j in range(3):
                 a = f[j]
@@ -304,7 +328,8 @@ def nodal_stress_kernel(
     if v >= node_count[0]:
         return
     if node_may_split[v] == 0:
-        # σ1 and p1 are only read for candidates: a node outside the fracture region needs neither.
+        # σ1 and p1 are only read for candidates (0 where a node cannot be one): a node outside the fracture region
+        # needs neither.
         node_sigma1[v] = 0.0
         node_p1[v] = wp.vec3(0.0)
         return
@@ -323,15 +348,38 @@ def nodal_stress_kernel(
         node_sigma1[v] = 0.0
         node_p1[v] = wp.vec3(0.0)
         return
-    principal = largest_principal(s / volume)
+    average = s / volume
+    # σ1 (wp.eig3, iterative) costs more than the rest of the node's work together, so it is taken only where the node
+    # may be a candidate. Gershgorin bounds σ1 from above; the margin covers eig3's float32 error and the bound's own
+    # rounding (both ~1e-6 of the entries), so a node skipped here is one eig3 would have put below the same
+    # thresholds, and the candidates are the same bits either way.
+    bound = stress_bound(average)
+    margin = EIG_MARGIN * entry_sum(average)
+    if bound + margin < strength:
+        # Below T_f only a freed hinge in tension splits: the cut around it is open and traction-free, and the node
+        # alone pins its two pieces together (warpdem/stages/fracture.py, "Candidates"). Its star's components make the
+        # partition, so there is a face between the sides. The hinge test (no eig3) goes first: few nodes pass it.
+        node_sigma1[v] = 0.0
+        node_p1[v] = wp.vec3(0.0)
+        if bound + margin <= 0.0:
+            return
+        hinge = freed_hinge(
+            tet_nodes, node_ref_q, ref_tet_face_nbr, no_joints, node_bonded, star_tets, start, count, v, star_comp
+        )
+        if hinge == 0:
+            return
+        principal = largest_principal(average)
+        node_sigma1[v] = principal[0]
+        node_p1[v] = wp.vec3(principal[1], principal[2], principal[3])
+        if principal[0] > 0.0:
+            candidate[v] = 1
+        return
+    principal = largest_principal(average)
     sigma1 = principal[0]
     p = wp.vec3(principal[1], principal[2], principal[3])
     node_sigma1[v] = sigma1
     node_p1[v] = p
     if sigma1 < strength:
-        # Below T_f only a freed hinge in tension splits: the cut around it is open and traction-free, and the node
-        # alone pins its two pieces together (warpdem/stages/fracture.py, "Candidates"). Its star's components make the
-        # partition, so there is a face between the sides.
         if sigma1 > 0.0:
             candidate[v] = freed_hinge(
                 tet_nodes, node_ref_q, ref_tet_face_nbr, no_joints, node_bonded, star_tets, start, count, v, star_comp
@@ -375,15 +423,9 @@ def tension_bound_kernel(
         reached[0] = 1  # a crack has let go somewhere: a freed hinge may split below T_f
     if t >= tet_count[0] or tet_active[t] == 0:
         return
-    s = tet_stress[t]
-    # Gershgorin: every eigenvalue of σ is at most max_i (σ_ii + Σ_{j≠i} |σ_ij|). A node's σ1 is the largest
-    # eigenvalue of an average of its tets' stresses, at most the largest of theirs (λ_max is convex), so no node
-    # can reach T_f while no tet's bound does.
-    bound = wp.max(
-        s[0, 0] + wp.abs(s[0, 1]) + wp.abs(s[0, 2]),
-        wp.max(s[1, 1] + wp.abs(s[1, 0]) + wp.abs(s[1, 2]), s[2, 2] + wp.abs(s[2, 0]) + wp.abs(s[2, 1])),
-    )
-    if bound >= threshold:
+    # A node's σ1 is the largest eigenvalue of an average of its tets' stresses, at most the largest of theirs
+    # (λ_max is convex), so no node can reach T_f while no tet's bound (stress_bound) does.
+    if stress_bound(tet_stress[t]) >= threshold:
         reached[0] = 1
 
 
@@ -643,6 +685,40 @@ def birth_cohesive_kernel(
     cohesive_broken[slot_c] = 0
     cohesive_tet_face[slot_c] = rep
     won_area[i] = area_f
+
+
+@wp.kernel
+def begin_rounds_kernel(
+    # State in:
+    node_count: wp.array(dtype=int),
+    # Out:
+    round_status: wp.array(dtype=int),
+    more: wp.array(dtype=int),
+):
+    _i = wp.tid()  # one thread: the split pass's report (nodes before, nodes after, rounds) and its loop condition
+    round_status[0] = node_count[0]
+    round_status[1] = node_count[0]
+    round_status[2] = 0
+    more[0] = 1
+
+
+@wp.kernel
+def end_round_kernel(
+    # State in:
+    node_count: wp.array(dtype=int),
+    pending_count: wp.array(dtype=int),
+    # In:
+    max_rounds: int,
+    # Out:
+    round_status: wp.array(dtype=int),
+    more: wp.array(dtype=int),
+):
+    _i = wp.tid()  # one thread: count the round; another while candidates wait and rounds are left
+    round_status[1] = node_count[0]
+    round_status[2] = round_status[2] + 1
+    more[0] = 0
+    if pending_count[0] > 0 and round_status[2] < max_rounds:
+        more[0] = 1
 
 
 @wp.kernel

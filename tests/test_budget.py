@@ -21,6 +21,7 @@ import warp as wp
 from warpdem import fused
 from warpdem.bench.fracture import cracking_block
 from warpdem.budget import Budget, counted
+from warpdem.simulation import Simulation
 from warpdem.stages.compaction import Compactor
 from warpdem.stages.energy import CONTACT, SHADOW
 
@@ -192,6 +193,56 @@ def test_a_split_pass_asks_the_same_of_a_larger_mesh(device):
         large.allocations,
         large.captures,
     )
+
+
+def cracking_split_budgets(device: str, use_graph: bool) -> tuple[list[tuple[int, int, Budget]], Simulation]:
+    """Every split pass that split nodes in the cracking block's run (6³ cells, 1 296 tets, a pass every step), as
+    (splits, rounds, what ``FracturePass.split`` asked), and the simulation at the run's end."""
+    from warpdem.stages import fracture
+
+    sim = cracking_block(6, device, steps=200, interval=1)
+    sim.use_graph = use_graph
+    passes = []
+    split = fracture.FracturePass.split
+
+    def counted_split(self, *args, **kwargs):
+        with counted() as budget:
+            splits, rounds = split(self, *args, **kwargs)
+        if splits:
+            passes.append((splits, rounds, budget))
+        return splits, rounds
+
+    try:
+        fracture.FracturePass.split = counted_split
+        sim.advance(200)
+    finally:
+        fracture.FracturePass.split = split
+    return passes, sim
+
+
+def test_split_rounds_replay_one_recorded_loop_bit_for_bit(device):
+    """Invariant: once recorded (the second pass with the same arrays), a split pass's rounds are one graph replay
+    (a device loop, ``wp.capture_while``) and one read-back of the round status, whatever the number of rounds, where
+    launched one by one they read back once per round. Brute-force reference: the same run with every launch made one
+    by one (``Simulation.use_graph`` off, steps and rounds alike) ends in the same bits."""
+    recorded, sim = cracking_split_budgets(device, use_graph=True)
+    eager, ref = cracking_split_budgets(device, use_graph=False)
+    assert [(n, r) for n, r, _ in recorded] == [(n, r) for n, r, _ in eager]
+    replayed = [(r, b) for _, r, b in recorded if b.graph_launches]
+    assert len(replayed) >= len(recorded) // 2, "most passes must replay the recorded rounds"
+    assert {r for r, _ in replayed} != {1}, "the run must have passes of more than one round"
+    for _, budget in replayed:
+        assert (budget.graph_launches, budget.launches, budget.readbacks, budget.allocations) == (1, 1, 1, 0)
+        if budget.captures == 0:  # the pass that records the loop counts the recording's copy too
+            assert budget.copies == 0 and budget.syncs == 0
+    for rounds, budget in ((r, b) for _, r, b in eager):
+        assert budget.readbacks == rounds + 1 and budget.graph_launches == 0
+    for name in ("node_q", "node_qd", "node_mass", "cohesive_a", "cohesive_b", "cohesive_d_max", "crack_area_total"):
+        a, b = getattr(sim.state, name, None), getattr(ref.state, name, None)
+        if a is None:
+            a, b = getattr(sim.model, name), getattr(ref.model, name)
+        assert np.array_equal(a.numpy().view(np.uint8), b.numpy().view(np.uint8)), name
+    assert np.array_equal(sim.model.tet_nodes.numpy(), ref.model.tet_nodes.numpy())
 
 
 def test_chunks_that_change_nothing_share_one_snapshot(device):

@@ -529,9 +529,9 @@ def test_split_passes_under_a_ball_keep_the_books(device):
         e = sim.energy()
         return e.total, e.contact_topology
 
-    def measured_pass():
+    def measured_pass(**kwargs):
         before, topo_before = books()
-        report = split_pass()
+        report = split_pass(**kwargs)
         if report.splits:
             after, topo_after = books()
             jumps.append(after - before)
@@ -596,13 +596,13 @@ def test_split_keeps_every_contact_force(device, far_wall):
     held_in_contact = 0
     worst_force, worst_gain = 0.0, 0.0
 
-    def checked_pass():
+    def checked_pass(**kwargs):
         nonlocal held_in_contact, worst_force, worst_gain
         n0 = sim.node_count
         f0, m0 = static_contact_forces(sim, reevaluate=True), sim.model.node_mass.numpy()[:n0].astype(np.float64)
         k0 = sim.model.node_contact_stiffness.numpy()[:n0].copy()
         gain0, (elastic0, dissipated0) = sim.energy().contact_topology, fem_contact_energy(sim.model, sim.state)
-        report = split_pass()
+        report = split_pass(**kwargs)
         if not report.splits:
             return report
         n1 = sim.node_count
@@ -806,3 +806,52 @@ def test_lists_refreshed_in_a_cracking_run_hold_every_candidate(device):
             refreshed += 1
             checked += node_lists_hold_their_candidates(sim.model, sim.state, int(sim.state.tet_count.numpy()[0]))
     assert refreshed > 0 and checked > 0  # passes split and kept the lists, and the lists held candidates
+
+
+def test_nodal_stress_skips_eig3_only_where_no_candidate_can_be(device):
+    """Brute-force reference: every node's σ1 by NumPy (float64 eigvalsh of the volume-weighted average of its star's
+    tet stresses, LDEC eq. 1) in a cracking run, as its passes find candidates. The kernel takes eig3 only where
+    Gershgorin's bound with its margin reaches the node's T_f or the node is a freed hinge, and writes σ1 = 0 where
+    it does not: every such node's σ1 must lie below its T_f, and every σ1 it took must match the reference.
+
+    Tolerance: the kernel's average and eig3 are float32 over a dozen tets: 64 ε₃₂ of Σ|σ_ij| covers both (the
+    skip's own margin, kernels/fracture.py EIG_MARGIN = 1e-4, is ~800 times wider)."""
+    from warpdem.stages import fracture
+
+    sim = cracking_block(6, device, steps=200, interval=1)
+    checked = {"skipped": 0, "taken": 0, "above": 0}
+    find = fracture.FracturePass.find_candidates
+
+    def checked_find(self, model, state, *args, **kwargs):
+        found = find(self, model, state, *args, **kwargs)
+        n = int(state.node_count.numpy()[0])
+        offset, count, tets = (a.numpy() for a in self.splitter.stars.csr())
+        stress, volume = state.tet_stress.numpy().astype(np.float64), model.tet_volume.numpy().astype(np.float64)
+        strength = model.fracture_material_table.numpy()["tensile_strength"][model.tet_material.numpy()]
+        may = model.node_may_split.numpy()
+        sigma1 = self.sigma1.numpy()
+        if int(self.reached.numpy()[0]) == 0:  # no tet near T_f: the nodal stresses were not evaluated
+            return found
+        for v in range(n):
+            star = tets[offset[v] : offset[v] + count[v]]
+            if not may[v] or len(star) == 0:
+                continue
+            average = np.einsum("t,tij->ij", volume[star], stress[star]) / volume[star].sum()
+            ref = np.linalg.eigvalsh(average)[-1]
+            tol = 64 * F32_EPS * np.abs(average).sum()
+            checked["above"] += int(ref >= strength[star].min())
+            if sigma1[v] == 0.0:
+                checked["skipped"] += 1
+                assert ref < strength[star].min(), f"node {v}: σ1 {ref:.6g} Pa ≥ T_f, eig3 skipped"
+            else:
+                checked["taken"] += 1
+                assert abs(sigma1[v] - ref) <= tol, f"node {v}: σ1 {sigma1[v]:.6g} Pa, reference {ref:.6g} Pa"
+        return found
+
+    try:
+        fracture.FracturePass.find_candidates = checked_find
+        sim.advance(90)
+    finally:
+        fracture.FracturePass.find_candidates = find
+    assert int(sim.state.node_splits_total.numpy()[0]) > 0
+    assert checked["skipped"] > 0 and checked["taken"] > 0 and checked["above"] > 0, checked

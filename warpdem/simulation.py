@@ -366,10 +366,12 @@ class Simulation:
                 remaining += rewound
                 continue
             remaining -= chunk
+            # The chunk ended with the tet stresses evaluated, and a pass leaves them evaluated (evaluate_forces), so
+            # the passes need not evaluate them again (one tet pass each, as much as a third of a step).
             if kc > 0 and self.step_count % kc == 0:
-                self.conversion_pass()
+                self.conversion_pass(stresses_current=True)
             if kf > 0 and self.step_count % kf == 0:
-                self.fracture_pass()
+                self.fracture_pass(stresses_current=True)
             if self._switch_if_due() is not None and stop_at_switch:
                 break
         return n_steps - remaining
@@ -591,12 +593,13 @@ class Simulation:
         return n
 
     # ------------------------------------------------------------------------------------------------------------
-    def fracture_pass(self) -> SplitReport:
+    def fracture_pass(self, stresses_current: bool = False) -> SplitReport:
         """One split pass now, between steps (warpdem.stages.fracture): candidates, capacities grown ×2 to hold them,
         rounds of independent sets; after splits the surface and contact lists are rebuilt and the forces re-evaluated
         at the current positions (dt = 0; what the rebuild gives the FEM contact springs is booked,
         :meth:`_book_contact_topology`, and the change of Verlet's shadow term goes to ``energy_step_change``).
         Captured graphs are kept unless an array they read was reallocated. Reads back a few counts.
+        ``stresses_current``: the tet stresses are up to date (as :meth:`conversion_pass`).
 
         Returns:
             What the pass did (no-op report when fracture is off).
@@ -606,8 +609,8 @@ class Simulation:
         grew = False
         while True:
             if self._fracture is None or not self._fracture.fits(self.model):
-                self._fracture = FracturePass(self.model)
-            found = self._fracture.find_candidates(self.model, self.state)
+                self._fracture = FracturePass(self.model, use_graph=self.use_graph)
+            found = self._fracture.find_candidates(self.model, self.state, stresses_current)
             if found == 0:
                 return SplitReport(0, 0, grew)
             if not self._grow_for_split(found):
@@ -723,18 +726,20 @@ class Simulation:
             self.evaluate_forces(after_pass=True)
 
     # ------------------------------------------------------------------------------------------------------------
-    def conversion_pass(self) -> ConversionReport:
+    def conversion_pass(self, stresses_current: bool = False) -> ConversionReport:
         """One conversion pass now, between steps (warpdem.stages.conversion): tets at their criterion turn into bonded
         spheres; capacities grow ×2 first to hold what the pass writes; then the surface and contact lists are
         rebuilt, the stages set up again (sphere contact comes alive with the first spheres) and the forces
-        re-evaluated at the current positions (dt = 0). Reads back a few counts.
+        re-evaluated at the current positions (dt = 0). Reads back a few counts. ``stresses_current``: the tet
+        stresses are up to date (evaluated at the current positions since anything last moved), so the pass does not
+        evaluate them again.
 
         Returns:
             What the pass did (no-op report when conversion is off).
         """
         if self.model.conversion_interval <= 0:
             return ConversionReport(0, 0, 0, 0, False)
-        return self._convert(None)
+        return self._convert(None, stresses_current)
 
     def convert_tets(self, mask: np.ndarray) -> ConversionReport:
         """Convert the given tets now, whatever their stress (e.g. a scene region that starts as spheres), as a
@@ -758,15 +763,16 @@ class Simulation:
         forced[:nt] = mask.astype(bool)
         return self._convert(forced)
 
-    def _convert(self, forced: np.ndarray | None) -> ConversionReport:
-        """A conversion pass of the tets the criterion flags (``forced`` None) or of ``forced`` (int per tet slot)."""
+    def _convert(self, forced: np.ndarray | None, stresses_current: bool = False) -> ConversionReport:
+        """A conversion pass of the tets the criterion flags (``forced`` None) or of ``forced`` (int per tet slot);
+        ``stresses_current``: as :meth:`conversion_pass`."""
         if self._conversion is None or not self._conversion.fits(self.model):
             self._conversion = ConversionPass(self.model)
         band = self.model.band_width > 0
         if band and forced is not None:
             # A band tet is converted already (it keeps α of its FEM element): it does not convert again.
             forced = np.where(self.state.tet_sphere.numpy() >= 0, 0, forced).astype(np.int32)
-        tets, bonds, couplings = self._conversion.find(self.model, self.state, forced)
+        tets, bonds, couplings = self._conversion.find(self.model, self.state, forced, stresses_current)
         if tets == 0:
             return ConversionReport(0, 0, 0, 0, False)
         self._snapshot_step = None  # a redo must not cross a conversion

@@ -554,13 +554,17 @@ class ConversionPass:
         self.full_stars.build(m.tet_nodes, s.tet_count, self.all_live, s.node_count, face_neighbors=False)
         self.full_stars_built = True
 
-    def find(self, model: Model, state: State, forced: np.ndarray | None = None) -> tuple[int, int, int]:
-        """Refresh the tet stresses, flag the converting tets (the criterion, or ``forced``: bool per tet slot),
-        scan the flags, the bonds each new sphere will own and its couplings. Reads back (tets, bonds, couplings)."""
+    def find(
+        self, model: Model, state: State, forced: np.ndarray | None = None, stresses_current: bool = False
+    ) -> tuple[int, int, int]:
+        """Refresh the tet stresses (unless ``stresses_current``: the caller has just evaluated them at the current
+        positions), flag the converting tets (the criterion, or ``forced``: bool per tet slot), scan the flags, the
+        bonds each new sphere will own and its couplings. Reads back (tets, bonds, couplings)."""
         m, s, d = model, state, self.device
         if m.tet_capacity == 0:
             return 0, 0, 0
-        eval_tet_stresses(m, s)
+        if not stresses_current:
+            eval_tet_stresses(m, s)
         if forced is not None:
             self.forced.assign(np.asarray(forced, dtype=np.int32))
         wp.launch(

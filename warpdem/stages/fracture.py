@@ -78,6 +78,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -216,9 +217,10 @@ class FracturePass:
 
     Args:
         model: the model (its node and tet capacities size the buffers).
+        use_graph: record the split rounds into a graph and replay it (:meth:`split`); False: launch them one by one.
     """
 
-    def __init__(self, model: Model) -> None:
+    def __init__(self, model: Model, use_graph: bool = True) -> None:
         d = model.device
         ncap, tcap = model.node_capacity, model.tet_capacity
         self.device = d
@@ -240,6 +242,12 @@ class FracturePass:
         self.pending_count = wp.zeros(1, dtype=int, device=d)
         self.reached = wp.zeros(1, dtype=int, device=d)
         self.bonded = wp.zeros(n1, dtype=int, device=d)
+        # The round loop's condition and its report (node count before the pass, after it, rounds run): split.
+        self.more = wp.zeros(1, dtype=int, device=d)
+        self.round_status = wp.zeros(3, dtype=int, device=d)
+        self.use_graph = use_graph
+        self._rounds_key: tuple | None = None
+        self._rounds_graph: wp.Graph | None = None
         # The partition finds the faces neighbours have opened through the tets across them, joint faces included.
         self.no_joints = wp.zeros(0, dtype=int, device=d)
         table = model.fracture_material_table
@@ -255,13 +263,15 @@ class FracturePass:
         """Candidates of the pass, shape (1,), int32 (after :meth:`find_candidates`)."""
         return self.select.new_count
 
-    def find_candidates(self, model: Model, state: State) -> int:
-        """Refresh the tet stresses, build the stars, evaluate the nodal stress and list the candidates in node order.
-        Reads back the candidate count."""
+    def find_candidates(self, model: Model, state: State, stresses_current: bool = False) -> int:
+        """Refresh the tet stresses (unless ``stresses_current``: the caller has just evaluated them at the current
+        positions, as ``Simulation.advance`` has at the end of every chunk), build the stars, evaluate the nodal stress
+        and list the candidates in node order. Reads back the candidate count."""
         m, s, d = model, state, self.device
         if m.node_capacity == 0 or m.tet_capacity == 0:
             return 0
-        eval_tet_stresses(m, s)
+        if not stresses_current:
+            eval_tet_stresses(m, s)
         # The common case, no tet near its strength and no crack let go, costs one tet pass and one read-back (kernel
         # tension_bound; once an element has broken, a freed hinge may split below T_f).
         self.reached.zero_()
@@ -345,115 +355,168 @@ class FracturePass:
 
     def split(self, model: Model, state: State, max_rounds: int = MAX_ROUNDS) -> tuple[int, int]:
         """Split the candidates in rounds of independent sets (module docstring). The capacities must hold
-        ``node_count + candidates`` nodes and ``cohesive_count + candidates`` elements. Reads back a count per round.
-        The daughters take the node slots from ``first_new_node`` (set here) on.
+        ``node_count + candidates`` nodes and ``cohesive_count + candidates`` elements. The daughters take the node
+        slots from ``first_new_node`` (set here) on.
+
+        The rounds are a loop on the device (``wp.capture_while`` on :attr:`more`, which each round's last launch
+        sets), recorded into a graph the second time a pass runs with the same arrays (:meth:`_arrays_key`) and
+        replayed from then on; the first time, and where graphs are off or unavailable, the same launches run one by
+        one and the loop reads :attr:`more` back each round. Either way the pass ends with one read-back of
+        :attr:`round_status` (node count before and after, rounds run).
 
         Returns:
             (nodes split, rounds run).
         """
         m, s, d = model, state, self.device
-        sp = self.splitter
-        first_new = sp.compactor.first_new
-        ncap = m.node_capacity
-        extra = load_face_arrays(m.loads)
-        driver = getattr(m.loads, "node_driver", None)
-        extra_nodes = [driver] if isinstance(driver, wp.array) else []
-        splits = 0
-        rounds = 0
-        before = int(s.node_count.numpy()[0])
+        key = (self._arrays_key(m, s), max_rounds)
+        wp.launch(
+            kfr.begin_rounds_kernel, dim=1, inputs=[s.node_count], outputs=[self.round_status, self.more], device=d
+        )
+        if self.use_graph and key == self._rounds_key:
+            if self._rounds_graph is None:
+                try:
+                    with wp.ScopedCapture(device=d) as capture:
+                        wp.capture_while(self.more, lambda: self._round(m, s, max_rounds))
+                    self._rounds_graph = capture.graph
+                except (RuntimeError, NotImplementedError) as exc:
+                    # Conditional graph nodes need CUDA 12.4+; without them the rounds run launch by launch.
+                    warnings.warn(f"graph capture unavailable ({exc}); split rounds run without a graph", stacklevel=2)
+                    self.use_graph = False
+        else:
+            self._rounds_key, self._rounds_graph = key, None
+        if self.use_graph and self._rounds_graph is not None:
+            wp.capture_launch(self._rounds_graph)
+        else:
+            for _ in range(max_rounds):
+                self._round(m, s, max_rounds)
+                if int(self.more.numpy()[0]) == 0:
+                    break
+        before, after, rounds = (int(x) for x in self.round_status.numpy())
         self.first_new_node = before
-        for _ in range(max_rounds):
-            rounds += 1
-            self.claim_sigma.fill_(-float(kfr.NEVER))
-            self.claim_node.fill_(int(kfr.NO_NODE))
-            sp.copies.zero_()
-            sp.star_comp.zero_()
-            self.pending_count.zero_()
-            claim_in = [self.candidate_count, self.candidates, self.pending, self.sigma1, *sp.stars.csr()]
-            wp.launch(kfr.claim_sigma_kernel, dim=ncap, inputs=claim_in, outputs=[self.claim_sigma], device=d)
-            wp.launch(
-                kfr.claim_node_kernel,
-                dim=ncap,
-                inputs=[*claim_in, self.claim_sigma],
-                outputs=[self.claim_node],
-                device=d,
-            )
-            wp.launch(
-                kfr.resolve_claims_kernel,
-                dim=ncap,
-                inputs=[
-                    m.tet_nodes,
-                    m.ref_tet_face_nbr,
-                    s.node_q,
-                    self.candidate_count,
-                    self.candidates,
-                    self.p1,
-                    *sp.stars.csr(),
-                    self.claim_node,
-                    self.no_joints,
-                ],
-                outputs=[self.pending, self.won, sp.copies, sp.star_comp, self.pending_count],
-                device=d,
-            )
-            wp.utils.array_scan(self.won, self.won_offset, inclusive=False)
-            sp.plan_sides(s.node_count)
-            # Elements first (they read the split nodes' stars and sides, not the tets), then the new elements.
-            sp.hand_over(m.ref_tet_face_nbr, s.cohesive_count, s.cohesive_tet_face, s.cohesive_a, s.cohesive_b)
-            if m.joint_capacity:
-                sp.hand_over(m.ref_tet_face_nbr, s.joint_count, m.joint_tet_face, m.joint_a, m.joint_b)
-            wp.launch(
-                kfr.birth_cohesive_kernel,
-                dim=ncap,
-                inputs=[
-                    m.node_ref_q,
-                    m.tet_nodes,
-                    m.tet_inv_ref,
-                    m.tet_volume,
-                    m.tet_material,
-                    m.tet_material_table,
-                    m.fracture_material_table,
-                    m.ref_tet_face_nbr,
-                    s.node_u,
-                    self.candidate_count,
-                    self.candidates,
-                    self.won,
-                    self.won_offset,
-                    self.p1,
-                    *sp.stars.csr(),
-                    sp.star_comp,
-                    first_new,
-                ],
-                outputs=[
-                    s.cohesive_count,
-                    s.cohesive_a,
-                    s.cohesive_b,
-                    s.cohesive_fc,
-                    s.cohesive_delta_c,
-                    s.cohesive_alpha,
-                    s.cohesive_area,
-                    s.cohesive_dir,
-                    s.cohesive_d_max,
-                    s.cohesive_f_prev,
-                    s.cohesive_energy_prev,
-                    s.cohesive_broken,
-                    s.cohesive_tet_face,
-                    self.won_area,
-                ],
-                device=d,
-            )
-            wp.launch(
-                kfr.book_splits_kernel,
-                dim=1,
-                inputs=[self.candidate_count, self.won, self.won_area],
-                outputs=[s.cohesive_count, s.node_splits_total, s.crack_area_total],
-                device=d,
-            )
-            for faces in extra:
-                sp.remap_face_list_sides(m.tet_nodes, faces)
-            sp.apply_sides(m, s, extra_nodes)
-            if int(self.pending_count.numpy()[0]) == 0:
-                break
-        splits = int(s.node_count.numpy()[0]) - before
+        splits = after - before
         if splits and m.joint_capacity:
             sort_joint_elements(m, s)
         return splits, rounds
+
+    @staticmethod
+    def _arrays_key(model: Model, state: State) -> tuple:
+        """What a recorded round loop depends on: the address and shape of every array of the model, its loads and
+        the state, and the model's scalars (capacities, counts of walls and slots), in field order. A growth or a
+        rebuild that reallocates any of them changes the key, and the loop is recorded again."""
+        key = []
+        for obj in (model, model.loads, state):
+            if obj is None or not dataclasses.is_dataclass(obj):
+                continue
+            for f in dataclasses.fields(obj):
+                a = getattr(obj, f.name)
+                if isinstance(a, wp.array):
+                    key.append((a.ptr, a.shape))
+                elif isinstance(a, (int, float, str)):
+                    key.append(a)
+                elif isinstance(a, dict):
+                    key.extend((k, getattr(v, "nodes", None) is not None and v.nodes.ptr) for k, v in a.items())
+        return tuple(key)
+
+    def _round(self, model: Model, state: State, max_rounds: int) -> None:
+        """One round of independent sets: claims, partitions, the elements handed over and born, the daughters
+        replicated; its last launch counts it in :attr:`round_status` and sets :attr:`more` (launches only)."""
+        m, s, d = model, state, self.device
+        sp = self.splitter
+        first_new = sp.compactor.first_new
+        ncap = m.node_capacity
+        driver = getattr(m.loads, "node_driver", None)
+        extra_nodes = [driver] if isinstance(driver, wp.array) else []
+        self.claim_sigma.fill_(-float(kfr.NEVER))
+        self.claim_node.fill_(int(kfr.NO_NODE))
+        sp.copies.zero_()
+        sp.star_comp.zero_()
+        self.pending_count.zero_()
+        claim_in = [self.candidate_count, self.candidates, self.pending, self.sigma1, *sp.stars.csr()]
+        wp.launch(kfr.claim_sigma_kernel, dim=ncap, inputs=claim_in, outputs=[self.claim_sigma], device=d)
+        wp.launch(
+            kfr.claim_node_kernel,
+            dim=ncap,
+            inputs=[*claim_in, self.claim_sigma],
+            outputs=[self.claim_node],
+            device=d,
+        )
+        wp.launch(
+            kfr.resolve_claims_kernel,
+            dim=ncap,
+            inputs=[
+                m.tet_nodes,
+                m.ref_tet_face_nbr,
+                s.node_q,
+                self.candidate_count,
+                self.candidates,
+                self.p1,
+                *sp.stars.csr(),
+                self.claim_node,
+                self.no_joints,
+            ],
+            outputs=[self.pending, self.won, sp.copies, sp.star_comp, self.pending_count],
+            device=d,
+        )
+        wp.utils.array_scan(self.won, self.won_offset, inclusive=False)
+        sp.plan_sides(s.node_count)
+        # Elements first (they read the split nodes' stars and sides, not the tets), then the new elements.
+        sp.hand_over(m.ref_tet_face_nbr, s.cohesive_count, s.cohesive_tet_face, s.cohesive_a, s.cohesive_b)
+        if m.joint_capacity:
+            sp.hand_over(m.ref_tet_face_nbr, s.joint_count, m.joint_tet_face, m.joint_a, m.joint_b)
+        wp.launch(
+            kfr.birth_cohesive_kernel,
+            dim=ncap,
+            inputs=[
+                m.node_ref_q,
+                m.tet_nodes,
+                m.tet_inv_ref,
+                m.tet_volume,
+                m.tet_material,
+                m.tet_material_table,
+                m.fracture_material_table,
+                m.ref_tet_face_nbr,
+                s.node_u,
+                self.candidate_count,
+                self.candidates,
+                self.won,
+                self.won_offset,
+                self.p1,
+                *sp.stars.csr(),
+                sp.star_comp,
+                first_new,
+            ],
+            outputs=[
+                s.cohesive_count,
+                s.cohesive_a,
+                s.cohesive_b,
+                s.cohesive_fc,
+                s.cohesive_delta_c,
+                s.cohesive_alpha,
+                s.cohesive_area,
+                s.cohesive_dir,
+                s.cohesive_d_max,
+                s.cohesive_f_prev,
+                s.cohesive_energy_prev,
+                s.cohesive_broken,
+                s.cohesive_tet_face,
+                self.won_area,
+            ],
+            device=d,
+        )
+        wp.launch(
+            kfr.book_splits_kernel,
+            dim=1,
+            inputs=[self.candidate_count, self.won, self.won_area],
+            outputs=[s.cohesive_count, s.node_splits_total, s.crack_area_total],
+            device=d,
+        )
+        for faces in load_face_arrays(m.loads):
+            sp.remap_face_list_sides(m.tet_nodes, faces)
+        sp.apply_sides(m, s, extra_nodes)
+        wp.launch(
+            kfr.end_round_kernel,
+            dim=1,
+            inputs=[s.node_count, self.pending_count, max_rounds],
+            outputs=[self.round_status, self.more],
+            device=d,
+        )
