@@ -36,6 +36,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import warnings
+from collections.abc import Callable
 
 import numpy as np
 import warp as wp
@@ -43,6 +44,7 @@ import warp as wp
 from .kernels import rigid as kernels_rigid
 from .kernels.tets import TET_ACTIVE
 from .model import NEIGHBOR_FIELDS, Model, State
+from .recorded import Recorded, arrays_key
 from .stages import overlap_band
 from .stages.bonds import compact_bonds, eval_bonds
 from .stages.cohesive import compact_cohesive, eval_cohesive, regrow_cohesive
@@ -205,6 +207,9 @@ class Simulation:
         self._snapshot_step: int | None = None  # the step of the snapshot; None: take one at the next chunk
         self._snapshot_time = 0.0
         self._graphs: tuple | None = None
+        # Between-steps work made of launches only, recorded and replayed (warpdem.recorded); new stages, new records.
+        self._force_recording = Recorded(self.model.device)
+        self._epilogue_recording = Recorded(self.model.device)
         self.rigid = has_bodies(self.state)
         # Every node a rigid body's, none driven: the bodies' pose does all the node kernels' drift would (fixed
         # after the switch: no topology pass runs then).
@@ -263,6 +268,12 @@ class Simulation:
         """Forces at the current positions without advancing time or history (the set-up evaluation; ``after_pass``:
         the re-evaluation after a topology pass, where node–face springs that start start relaxed: nothing moved).
         ``rebuild_fem``: rebuild the FEM contact lists first (False: they are up to date, FemContact.refresh_near)."""
+        m, s = self.model, self.state
+        key = (arrays_key(m, m.loads, s), after_pass, rebuild_fem, self.track_energy)
+        self._recorded(self._force_recording, key, lambda: self._evaluate_forces(after_pass, rebuild_fem))
+
+    def _evaluate_forces(self, after_pass: bool, rebuild_fem: bool) -> None:
+        """:meth:`evaluate_forces`'s launches."""
         m, s = self.model, self.state
         s.particle_f.zero_()
         s.particle_t.zero_()
@@ -497,8 +508,9 @@ class Simulation:
         while True:
             self._run(n_steps)
             # Everything the host needs to know now, in one read-back (warpdem.stages.status).
-            self.guard.launch(self.model, self.state, sphere_lists=self.has_spheres)
-            status = self.status.read(self.model, self.state, self.guard.report, self.guard.clean)
+            m, s = self.model, self.state
+            self._recorded(self._epilogue_recording, (arrays_key(m, s), self.has_spheres), self._epilogue)
+            status = self.status.read()
             # A particle had more neighbours than slots: some contacts were not seen. Grow, restore, redo.
             if not self._grow_if_overflowed(self._snapshot, status):
                 break
@@ -521,6 +533,19 @@ class Simulation:
         # No stage of the step reads the tet stresses; they are brought up to date for whoever reads the state now.
         eval_tet_stresses(self.model, self.state)
         return 0
+
+    def _epilogue(self) -> None:
+        """The chunk's launches before its status read: the stability guard, then the status gathered (launches
+        only)."""
+        self.guard.launch(self.model, self.state, sphere_lists=self.has_spheres)
+        self.status.launch(self.model, self.state, self.guard.report, self.guard.clean)
+
+    def _recorded(self, recording: Recorded, key: tuple, body: Callable[[], None]) -> None:
+        """Run ``body`` (launches only) through ``recording`` (warpdem.recorded), or eagerly without graphs."""
+        if self.use_graph:
+            recording.run(key, body)
+        else:
+            body()
 
     def _first_bad_step(self, report: GuardReport, n_steps: int) -> UnstableRunError:
         """The error for a run of ``n_steps`` that ended in a bad state (the steps since the snapshot: the chunks

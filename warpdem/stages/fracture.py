@@ -78,7 +78,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -87,6 +86,7 @@ import warp as wp
 
 from ..kernels import fracture as kfr
 from ..model import Model, State, fracture_state
+from ..recorded import Recorded, arrays_key
 from .compaction import Compactor
 from .joints import load_face_arrays
 from .tets import eval_tet_stresses
@@ -245,9 +245,9 @@ class FracturePass:
         # The round loop's condition and its report (node count before the pass, after it, rounds run): split.
         self.more = wp.zeros(1, dtype=int, device=d)
         self.round_status = wp.zeros(3, dtype=int, device=d)
-        self.use_graph = use_graph
-        self._rounds_key: tuple | None = None
-        self._rounds_graph: wp.Graph | None = None
+        # The rounds and the candidate search, recorded and replayed (warpdem.recorded).
+        self.rounds = Recorded(d, use_graph)
+        self.search = Recorded(d, use_graph)
         # The partition finds the faces neighbours have opened through the tets across them, joint faces included.
         self.no_joints = wp.zeros(0, dtype=int, device=d)
         table = model.fracture_material_table
@@ -284,6 +284,13 @@ class FracturePass:
         )
         if int(self.reached.numpy()[0]) == 0:
             return 0
+        # Launches only, recorded and replayed (warpdem.recorded): ~15 launches a pass.
+        self.search.run(arrays_key(m, s), lambda: self._search(m, s))
+        return int(self.select.new_count.numpy()[0])
+
+    def _search(self, model: Model, state: State) -> None:
+        """Stars, intact elements per node, nodal stresses, the candidates listed in node order (launches only)."""
+        m, s, d = model, state, self.device
         stars = self.splitter.stars
         # The pass reads the unsplit adjacency (ref_tet_face_nbr), not the current face neighbours.
         stars.build(m.tet_nodes, s.tet_count, s.tet_active, s.node_count, face_neighbors=False)
@@ -319,7 +326,6 @@ class FracturePass:
             outputs=[self.candidates, self.pending],
             device=d,
         )
-        return int(self.select.new_count.numpy()[0])
 
     def count_bonds(self, model: Model, state: State) -> None:
         """``bonded``: the intact cohesive and joint elements at each node (the freed-hinge test, "Candidates")."""
@@ -359,7 +365,7 @@ class FracturePass:
         slots from ``first_new_node`` (set here) on.
 
         The rounds are a loop on the device (``wp.capture_while`` on :attr:`more`, which each round's last launch
-        sets), recorded into a graph the second time a pass runs with the same arrays (:meth:`_arrays_key`) and
+        sets), recorded into a graph the second time a pass runs with the same arrays (warpdem.recorded) and
         replayed from then on; the first time, and where graphs are off or unavailable, the same launches run one by
         one and the loop reads :attr:`more` back each round. Either way the pass ends with one read-back of
         :attr:`round_status` (node count before and after, rounds run).
@@ -368,54 +374,29 @@ class FracturePass:
             (nodes split, rounds run).
         """
         m, s, d = model, state, self.device
-        key = (self._arrays_key(m, s), max_rounds)
         wp.launch(
             kfr.begin_rounds_kernel, dim=1, inputs=[s.node_count], outputs=[self.round_status, self.more], device=d
         )
-        if self.use_graph and key == self._rounds_key:
-            if self._rounds_graph is None:
-                try:
-                    with wp.ScopedCapture(device=d) as capture:
-                        wp.capture_while(self.more, lambda: self._round(m, s, max_rounds))
-                    self._rounds_graph = capture.graph
-                except (RuntimeError, NotImplementedError) as exc:
-                    # Conditional graph nodes need CUDA 12.4+; without them the rounds run launch by launch.
-                    warnings.warn(f"graph capture unavailable ({exc}); split rounds run without a graph", stacklevel=2)
-                    self.use_graph = False
-        else:
-            self._rounds_key, self._rounds_graph = key, None
-        if self.use_graph and self._rounds_graph is not None:
-            wp.capture_launch(self._rounds_graph)
-        else:
+
+        def eager() -> None:
             for _ in range(max_rounds):
                 self._round(m, s, max_rounds)
                 if int(self.more.numpy()[0]) == 0:
                     break
+
+        self.rounds.run(
+            (arrays_key(m, m.loads, s), max_rounds),
+            lambda: wp.capture_while(self.more, lambda: self._round(m, s, max_rounds)),
+            eager,
+            # The fused replicate's word tables: the splitter's cache may drop one that the recording still reads.
+            retain=list(self.splitter.compactor._tables.values()),
+        )
         before, after, rounds = (int(x) for x in self.round_status.numpy())
         self.first_new_node = before
         splits = after - before
         if splits and m.joint_capacity:
             sort_joint_elements(m, s)
         return splits, rounds
-
-    @staticmethod
-    def _arrays_key(model: Model, state: State) -> tuple:
-        """What a recorded round loop depends on: the address and shape of every array of the model, its loads and
-        the state, and the model's scalars (capacities, counts of walls and slots), in field order. A growth or a
-        rebuild that reallocates any of them changes the key, and the loop is recorded again."""
-        key = []
-        for obj in (model, model.loads, state):
-            if obj is None or not dataclasses.is_dataclass(obj):
-                continue
-            for f in dataclasses.fields(obj):
-                a = getattr(obj, f.name)
-                if isinstance(a, wp.array):
-                    key.append((a.ptr, a.shape))
-                elif isinstance(a, (int, float, str)):
-                    key.append(a)
-                elif isinstance(a, dict):
-                    key.extend((k, getattr(v, "nodes", None) is not None and v.nodes.ptr) for k, v in a.items())
-        return tuple(key)
 
     def _round(self, model: Model, state: State, max_rounds: int) -> None:
         """One round of independent sets: claims, partitions, the elements handed over and born, the daughters

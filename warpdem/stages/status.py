@@ -30,7 +30,8 @@ class ChunkStatus:
 
 
 class StatusReader:
-    """Gathers and reads the chunk status: one launch, one read-back.
+    """Gathers and reads the chunk status: one launch (:meth:`launch`, which a recording may replay), one read-back
+    (:meth:`read`).
 
     Args:
         device: Warp device of the model.
@@ -39,10 +40,9 @@ class StatusReader:
     def __init__(self, device: wp.context.Device) -> None:
         self.values = wp.zeros(ks.SLOTS, dtype=wp.float64, device=device)
 
-    def read(self, model: Model, state: State, report: wp.array, clean: wp.array) -> ChunkStatus:
-        """Gather the status of ``state`` and read it back. ``report`` (the stability guard's, its launches done) is
-        copied in and reset to ``clean`` for the next check.
-        """
+    def launch(self, model: Model, state: State, report: wp.array, clean: wp.array) -> None:
+        """Gather the status of ``state`` (launches only). ``report`` (the stability guard's, its launches done) is
+        copied in and reset to ``clean`` for the next check."""
         m, s = model, state
         self.values.zero_()
         wp.launch(
@@ -62,6 +62,9 @@ class StatusReader:
             outputs=[report, self.values],
             device=m.device,
         )
+
+    def read(self) -> ChunkStatus:
+        """Read back the status :meth:`launch` gathered."""
         v = self.values.numpy()
         return ChunkStatus(
             nbr_needed=int(v[ks.NBR_NEEDED]),
