@@ -25,6 +25,7 @@ LAYERS: dict[str, int] = {
     "warpdem.limits": 1,
     "warpdem.budget": 1,
     "warpdem.fused": 1,
+    "warpdem.recorded": 1,
     "warpdem.tables": 1,
     "warpdem.host_data": 1,
     "warpdem.materials": 1,

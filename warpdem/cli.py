@@ -211,6 +211,7 @@ def pass_bench_parser(kind: str) -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", help="Warp device")
     p.add_argument("--json", type=Path, help="also write the results as JSON")
     p.add_argument("--repeat", type=_positive_int, default=3, help="timed runs and passes per size; the fastest counts")
+    _books_option(p)
     return p
 
 
@@ -329,6 +330,7 @@ def main(argv: list[str] | None = None) -> int:
             args.json,
             args.repeat,
             args.seed,
+            args.books == "on",
         )
     if argv[:1] == ["bench"]:
         from .bench import run_bench

@@ -152,14 +152,22 @@ class ConversionPassResult:
     pass_time: float
     pass_in_steps: float
     peak_rss_mb: float
+    books: bool = True
 
 
 def bench_conversion_pass(
-    tets_wanted: int, fraction: float = 0.01, steps: int = 50, device: str = "cpu", repeat: int = 3, seed: int = 0
+    tets_wanted: int,
+    fraction: float = 0.01,
+    steps: int = 50,
+    device: str = "cpu",
+    repeat: int = 3,
+    seed: int = 0,
+    books: bool = True,
 ) -> ConversionPassResult:
     """Time one conversion pass (``Simulation.conversion_pass``) on the stretched block of at least ``tets_wanted``
     tets with ``fraction`` of its tets converting, against force steps of the same mesh with the pass off, as
-    :func:`bench_fracture_pass` times the split pass (each repeat rebuilds the block: a pass changes the mesh)."""
+    :func:`bench_fracture_pass` times the split pass (each repeat rebuilds the block: a pass changes the mesh), with
+    the energy books kept (``books``) or not."""
     from ..simulation import Simulation
 
     cells = cells_for(tets_wanted)
@@ -170,9 +178,9 @@ def bench_conversion_pass(
         if r == 0:
             due = due_tets(model, state)
             bonds_due, couplings_due = lattice_counts(model, state, due)
-            step_time = force_step_time(model, state, steps, repeat)
+            step_time = force_step_time(model, state, steps, repeat, books)
             build_time = build
-        setup, sim = timed(device, functools.partial(Simulation, model, state, track_energy=False))
+        setup, sim = timed(device, functools.partial(Simulation, model, state, track_energy=books))
         if r == 0:
             setup_time = setup
         seconds, report = timed(device, sim.conversion_pass)
@@ -197,14 +205,17 @@ def bench_conversion_pass(
         pass_time=pass_time,
         pass_in_steps=pass_time / step_time,
         peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        books=books,
     )
 
 
-def converting_run_block(cells: int, device: str, steps: int, interval: int, seed: int = 0) -> Simulation:
+def converting_run_block(
+    cells: int, device: str, steps: int, interval: int, seed: int = 0, books: bool = False
+) -> Simulation:
     """The converting run: :func:`pulled_granite` with conversion on in its central slab (tets whose centroid lies
     within CONVERSION_SLAB / 2 of x = 0.5 m: the block fails at its centre), Tresca with τ_f = T_f / 2 of each grain
     (σ_xx ≈ E ε in uniaxial stress reaches 0.9 × 2 τ_f just before the grain's T_f), a pass every ``interval``
-    steps (0: none, the reference). Returns a Simulation."""
+    steps (0: none, the reference); the energy books kept with ``books``. Returns a Simulation."""
     import dataclasses
 
     from ..simulation import Simulation
@@ -223,7 +234,7 @@ def converting_run_block(cells: int, device: str, steps: int, interval: int, see
     model, state = attach_conversion(model, state, props, check_interval=max(interval, 1), may_convert=central)
     if interval == 0:  # the reference: the same model with the pass off
         model = dataclasses.replace(model, conversion_interval=0)
-    return Simulation(model, state, track_energy=False)
+    return Simulation(model, state, track_energy=books)
 
 
 @dataclass
@@ -246,14 +257,16 @@ class ConvertingRunResult:
     spheres: int
     bonds: int
     couplings: int
+    books: bool = True
 
 
 def bench_converting_run(
-    tets_wanted: int, steps: int = 200, interval: int = 1, device: str = "cpu", seed: int = 0
+    tets_wanted: int, steps: int = 200, interval: int = 1, device: str = "cpu", seed: int = 0, books: bool = True
 ) -> ConvertingRunResult:
     """Time ``Simulation.advance(steps - 2)`` on the converting block (:func:`converting_run_block`), passes included,
-    after its first two steps (graph capture; nothing converts before a fifth of the run)."""
-    sim = converting_run_block(cells_for(tets_wanted), device, steps, interval, seed)
+    after its first two steps (graph capture; nothing converts before a fifth of the run), with the energy books
+    kept as a run keeps them (``books``)."""
+    sim = converting_run_block(cells_for(tets_wanted), device, steps, interval, seed, books)
     sim.advance(2)  # capture outside the clock (the kernels were compiled by run_pass_bench's warm-up)
     wall = timed(sim.model.device, lambda: sim.advance(steps - 2))[0]
     tets = int(sim.state.tet_count.numpy()[0])
@@ -273,6 +286,7 @@ def bench_converting_run(
         spheres=int(s.particle_count.numpy()[0]),
         bonds=int(s.bond_count.numpy()[0]),
         couplings=int(s.coupling_count.numpy()[0]),
+        books=books,
     )
 
 
@@ -292,7 +306,13 @@ def format_conversion_pass_row(r: ConversionPassResult, header: bool) -> str:
         f"{'build s':>9}{'setup s':>9}{'step ms':>10}{'pass ms':>10}{'steps':>9}{'RSS MB':>9}"
     )
     return "\n".join(
-        ["conversion pass (steps = pass in force steps of the same mesh; target < 20):", head, "-" * len(head), line]
+        [
+            f"conversion pass (books {'on' if r.books else 'off'}; steps = pass in force steps of the same mesh; "
+            "target < 20):",
+            head,
+            "-" * len(head),
+            line,
+        ]
     )
 
 
@@ -308,7 +328,8 @@ def format_converting_run_row(r: ConvertingRunResult, header: bool) -> str:
         f"{'device':<8}{'tets':>10}{'may':>9}{'interval':>9}{'steps':>7}{'wall s':>9}{'steps/s':>9}"
         f"{'M tet-steps/s':>15}{'converted':>10}{'spheres':>8}{'bonds':>7}{'couplings':>10}"
     )
-    return "\n".join(["converting run (passes included):", head, "-" * len(head), line])
+    title = f"converting run (passes included; books {'on' if r.books else 'off'}):"
+    return "\n".join([title, head, "-" * len(head), line])
 
 
 PASS_BENCHES = {
@@ -337,21 +358,23 @@ def run_pass_bench(
     json_path: Path | None = None,
     repeat: int = 3,
     seed: int = 0,
+    books: bool = True,
 ) -> int:
-    """``python -m warpdem bench fracture|conversion`` (``kind``): print the pass table and the run table; returns the
-    exit status (1 when a pass changed other than the nodes or tets due)."""
+    """``python -m warpdem bench fracture|conversion`` (``kind``): print the pass table and the run table, the energy
+    books kept (``books``) as a run keeps them; returns the exit status (1 when a pass changed other than the nodes or
+    tets due)."""
     bench_pass, bench_run, format_pass, format_run, done = PASS_BENCHES[kind]
     # Compile every kernel of the pass and the step on a small block first, so no size pays for it.
-    bench_pass(6 * 4**3, 0.05, 2, device, 1, seed)
+    bench_pass(6 * 4**3, 0.05, 2, device, 1, seed, books)
     passes, runs = [], []
     for n in sizes:
-        passes.append(bench_pass(n, fraction, steps, device, repeat, seed))
+        passes.append(bench_pass(n, fraction, steps, device, repeat, seed, books))
         print(format_pass(passes[-1], header=len(passes) == 1), flush=True)
     if passes and run_sizes:
         print()
     for n in run_sizes:
         for interval in intervals:
-            runs.append(bench_run(n, run_steps, interval, device, seed))
+            runs.append(bench_run(n, run_steps, interval, device, seed, books))
             print(format_run(runs[-1], header=len(runs) == 1), flush=True)
     write_json(json_path, {"passes": [asdict(r) for r in passes], "runs": [asdict(r) for r in runs]})
     return 0 if all(getattr(r, done) == r.due for r in passes) else 1

@@ -176,20 +176,21 @@ class FracturePassResult:
     pass_time: float
     pass_in_steps: float
     peak_rss_mb: float
+    books: bool = True
 
 
-def force_step_time(model: Model, state: State, steps: int, repeat: int) -> float:
+def force_step_time(model: Model, state: State, steps: int, repeat: int, books: bool = True) -> float:
     """The cost of one force step of a model [s]: the fastest of ``repeat`` runs of ``steps`` steps of
     ``Simulation.advance`` over steps, with the between-steps passes off (fracture_interval = conversion_interval
-    = 0), after compilation and capture. ``state`` is left as it was given (the pass benchmarks time their pass on
-    it next)."""
+    = 0), after compilation and capture, with the energy books kept (``books``, as every run keeps them) or not.
+    ``state`` is left as it was given (the pass benchmarks time their pass on it next)."""
     import dataclasses
 
     from ..simulation import Simulation
 
     snapshot = state.clone()
     plain = Simulation(
-        dataclasses.replace(model, fracture_interval=0, conversion_interval=0), state, track_energy=False
+        dataclasses.replace(model, fracture_interval=0, conversion_interval=0), state, track_energy=books
     )
     plain.advance(2)  # compile and capture outside the clock
     wall = float("inf")
@@ -201,7 +202,13 @@ def force_step_time(model: Model, state: State, steps: int, repeat: int) -> floa
 
 
 def bench_fracture_pass(
-    tets_wanted: int, fraction: float = 0.01, steps: int = 50, device: str = "cpu", repeat: int = 3, seed: int = 0
+    tets_wanted: int,
+    fraction: float = 0.01,
+    steps: int = 50,
+    device: str = "cpu",
+    repeat: int = 3,
+    seed: int = 0,
+    books: bool = True,
 ) -> FracturePassResult:
     """Time one split pass (``Simulation.fracture_pass``) on the stretched block of about ``tets_wanted`` tets with
     ``fraction`` of its nodes splitting, against force steps of the same mesh with the pass off.
@@ -209,6 +216,7 @@ def bench_fracture_pass(
     The force steps are timed first (:func:`force_step_time`), then the state goes back to the stretch it was built
     with and the pass runs once; each further repeat rebuilds the block for another pass (a pass changes the mesh).
     The fastest of each counts (as ``timeit``). Node slots are reserved for the daughters, so the pass does not grow.
+    ``books``: steps and pass keep the energy books, as a run does (False: both without them).
     """
     from ..simulation import Simulation
 
@@ -219,9 +227,9 @@ def bench_fracture_pass(
     for r in range(repeat):
         build, (model, state) = timed(device, lambda: stretched_block(cells, device, may_split, node_capacity=capacity))
         if r == 0:
-            step_time = force_step_time(model, state, steps, repeat)
+            step_time = force_step_time(model, state, steps, repeat, books)
             build_time = build
-        sim = Simulation(model, state, track_energy=False)
+        sim = Simulation(model, state, track_energy=books)
         if r == 0:
             due = qualifying_nodes(sim.model, sim.state, may_split)  # the stresses the Simulation evaluated
         nodes = int(sim.state.node_count.numpy()[0])
@@ -243,6 +251,7 @@ def bench_fracture_pass(
         pass_time=pass_time,
         pass_in_steps=pass_time / step_time,
         peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        books=books,
     )
 
 
@@ -296,10 +305,12 @@ def pulled_granite(cells: int, device: str, steps: int, seed: int = 0) -> tuple[
     return model, state, strengths, left | right
 
 
-def cracking_block(cells: int, device: str, steps: int, interval: int, seed: int = 0) -> Simulation:
+def cracking_block(
+    cells: int, device: str, steps: int, interval: int, seed: int = 0, books: bool = False
+) -> Simulation:
     """The cracking run: :func:`pulled_granite` with every node but the driven ones free to split, a pass every
-    ``interval`` steps (0: none, the reference), so the block cracks through most of the run. Returns a
-    Simulation."""
+    ``interval`` steps (0: none, the reference), so the block cracks through most of the run; the energy books kept
+    with ``books``. Returns a Simulation."""
     import dataclasses
 
     from ..simulation import Simulation
@@ -310,7 +321,7 @@ def cracking_block(cells: int, device: str, steps: int, interval: int, seed: int
     model, state = attach_fracture(model, state, props, check_interval=max(interval, 1), may_split=~driven)
     if interval == 0:  # the reference: the same model with the pass off
         model = dataclasses.replace(model, fracture_interval=0)
-    return Simulation(model, state, track_energy=False)
+    return Simulation(model, state, track_energy=books)
 
 
 @dataclass
@@ -330,14 +341,16 @@ class CrackingRunResult:
     tet_steps_per_second: float
     splits: int
     cohesive_broken: int
+    books: bool = True
 
 
 def bench_cracking_run(
-    tets_wanted: int, steps: int = 200, interval: int = 1, device: str = "cpu", seed: int = 0
+    tets_wanted: int, steps: int = 200, interval: int = 1, device: str = "cpu", seed: int = 0, books: bool = True
 ) -> CrackingRunResult:
     """Time ``Simulation.advance(steps - 2)`` on the cracking block (:func:`cracking_block`), passes included, after
-    its first two steps (graph capture; nothing splits before a quarter of the run)."""
-    sim = cracking_block(cells_for(tets_wanted), device, steps, interval, seed)
+    its first two steps (graph capture; nothing splits before a quarter of the run), with the energy books kept as a
+    run keeps them (``books``; False: without)."""
+    sim = cracking_block(cells_for(tets_wanted), device, steps, interval, seed, books)
     sim.advance(2)  # capture outside the clock (the kernels were compiled by run_pass_bench's warm-up)
     nodes = int(sim.state.node_count.numpy()[0])
     wall = timed(sim.model.device, lambda: sim.advance(steps - 2))[0]
@@ -354,6 +367,7 @@ def bench_cracking_run(
         tet_steps_per_second=tets * (steps - 2) / wall,
         splits=int(sim.state.node_splits_total.numpy()[0]),
         cohesive_broken=int(sim.state.cohesive_broken_total.numpy()[0]),
+        books=books,
     )
 
 
@@ -370,7 +384,13 @@ def format_pass_row(r: FracturePassResult, header: bool) -> str:
         f"{'step ms':>10}{'pass ms':>10}{'steps':>9}{'RSS MB':>9}"
     )
     return "\n".join(
-        ["split pass (steps = pass in force steps of the same mesh; target < 20):", head, "-" * len(head), line]
+        [
+            f"split pass (books {'on' if r.books else 'off'}; steps = pass in force steps of the same mesh; "
+            "target < 20):",
+            head,
+            "-" * len(head),
+            line,
+        ]
     )
 
 
@@ -385,4 +405,5 @@ def format_run_row(r: CrackingRunResult, header: bool) -> str:
         f"{'device':<8}{'tets':>10}{'nodes':>9}{'after':>9}{'interval':>9}{'steps':>7}{'wall s':>9}{'steps/s':>9}"
         f"{'M tet-steps/s':>15}{'splits':>8}{'broken':>8}"
     )
-    return "\n".join(["cracking run (passes included):", head, "-" * len(head), line])
+    title = f"cracking run (passes included; books {'on' if r.books else 'off'}):"
+    return "\n".join([title, head, "-" * len(head), line])
