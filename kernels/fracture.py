@@ -687,19 +687,67 @@ def birth_cohesive_kernel(
     won_area[i] = area_f
 
 
+PASS_REACHED = wp.constant(0)
+PASS_CANDIDATES = wp.constant(1)
+PASS_GO = wp.constant(2)
+PASS_BEFORE = wp.constant(3)
+PASS_AFTER = wp.constant(4)
+PASS_ROUNDS = wp.constant(5)
+PASS_FACES = wp.constant(6)
+PASS_SLOTS = 7
+"""The split pass's status vector (int32), read back once a pass: a tet reached the tension bound, candidates found,
+the rounds ran (candidates and room for them), node count before and after, rounds run, boundary faces before."""
+
+
 @wp.kernel
 def begin_rounds_kernel(
     # State in:
     node_count: wp.array(dtype=int),
     # Out:
-    round_status: wp.array(dtype=int),
+    pass_status: wp.array(dtype=int),
     more: wp.array(dtype=int),
 ):
-    _i = wp.tid()  # one thread: the split pass's report (nodes before, nodes after, rounds) and its loop condition
-    round_status[0] = node_count[0]
-    round_status[1] = node_count[0]
-    round_status[2] = 0
+    _i = wp.tid()  # one thread: the report of the rounds (nodes before, nodes after, rounds) and their loop condition
+    pass_status[PASS_BEFORE] = node_count[0]
+    pass_status[PASS_AFTER] = node_count[0]
+    pass_status[PASS_ROUNDS] = 0
     more[0] = 1
+
+
+@wp.kernel
+def pass_gate_kernel(
+    # State in:
+    node_count: wp.array(dtype=int),
+    cohesive_count: wp.array(dtype=int),
+    face_count: wp.array(dtype=int),
+    # In:
+    candidate_count: wp.array(dtype=int),
+    node_capacity: int,
+    cohesive_capacity: int,
+    # Out:
+    pass_status: wp.array(dtype=int),
+    go: wp.array(dtype=int),
+):
+    _i = wp.tid()  # one thread: split now only if there are candidates and room for a daughter and an element each
+    n = candidate_count[0]
+    pass_status[PASS_CANDIDATES] = n
+    pass_status[PASS_FACES] = face_count[0]
+    go[0] = 0
+    if n > 0 and node_count[0] + n <= node_capacity and cohesive_count[0] + n <= cohesive_capacity:
+        go[0] = 1
+
+
+@wp.kernel
+def finish_pass_kernel(
+    # In:
+    reached: wp.array(dtype=int),
+    go: wp.array(dtype=int),
+    # Out:
+    pass_status: wp.array(dtype=int),
+):
+    _i = wp.tid()  # one thread: the pass's two decisions into its status
+    pass_status[PASS_REACHED] = reached[0]
+    pass_status[PASS_GO] = go[0]
 
 
 @wp.kernel
@@ -710,14 +758,14 @@ def end_round_kernel(
     # In:
     max_rounds: int,
     # Out:
-    round_status: wp.array(dtype=int),
+    pass_status: wp.array(dtype=int),
     more: wp.array(dtype=int),
 ):
     _i = wp.tid()  # one thread: count the round; another while candidates wait and rounds are left
-    round_status[1] = node_count[0]
-    round_status[2] = round_status[2] + 1
+    pass_status[PASS_AFTER] = node_count[0]
+    pass_status[PASS_ROUNDS] = pass_status[PASS_ROUNDS] + 1
     more[0] = 0
-    if pending_count[0] > 0 and round_status[2] < max_rounds:
+    if pending_count[0] > 0 and pass_status[PASS_ROUNDS] < max_rounds:
         more[0] = 1
 
 

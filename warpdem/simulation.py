@@ -635,29 +635,55 @@ class Simulation:
         while True:
             if self._fracture is None or not self._fracture.fits(self.model):
                 self._fracture = FracturePass(self.model, use_graph=self.use_graph)
-            found = self._fracture.find_candidates(self.model, self.state, stresses_current)
-            if found == 0:
+            key, retain = self._prepare_split()
+            # One device program and one read-back (FracturePass.find_and_split): the bound, the search, and the rounds
+            # where there is room for them.
+            found = self._fracture.find_and_split(
+                self.model, self.state, self._before_split, stresses_current, key=key, retain=retain
+            )
+            if found.candidates == 0:
                 return SplitReport(0, 0, grew)
-            if not self._grow_for_split(found):
+            if found.go:
                 break
+            self._grow_for_split(found.candidates)  # no room: nothing changed; grow and search again
             grew = True
-        self._snapshot_step = None  # the pass may split: a redo must not cross it
-        m, s = self.model, self.state
-        old_faces = int(s.face_count.numpy()[0]) if m.face_capacity else 0
-        if m.face_capacity:
-            self._face_slot = face_slots(m, s, self._face_slot)
-        hold_contact_stiffness(m, s)
-        self._mark_books(CONTACT, MARK_CONTACT)
-        self._mark_books(SHADOW, MARK_SHADOW)
-        splits, rounds = self._fracture.split(m, s)
+            stresses_current = True  # the search evaluated them, and a growth moves nothing
+        self._snapshot_step = None  # the pass split: a redo must not cross it
+        splits = found.after - found.before
         if splits:
-            self._after_split(old_faces, self._fracture.first_new_node, splits)
+            self._after_split(found.faces if self.model.face_capacity else 0, found.before, splits)
             self._book_contact_topology()
             # The pass changes the forces the next kick uses (daughters lighter than their parent, a face's share of
             # a contact force on one daughter, the re-evaluation at dt = 0) with the velocities as they were:
             # Verlet's shadow term moves by S(f_new) - S(f_old) with no force working, as at a change of step.
             self._book_change(SHADOW, MARK_SHADOW, self.state.energy_step_change)
-        return SplitReport(splits, rounds, grew)
+        return SplitReport(splits, found.rounds, grew)
+
+    def _prepare_split(self) -> tuple[tuple, list]:
+        """Make what :meth:`_before_split` launches into (the faces' slots, the books' scratch, marks and weights), so
+        that a recording of the pass allocates nothing; returns what the pass's recording must be keyed on and keep
+        (warpdem.recorded) besides the model and state."""
+        m = self.model
+        slots = max(m.face_capacity, 1)
+        if m.face_capacity and (self._face_slot is None or self._face_slot.shape[0] != slots):
+            self._face_slot = wp.full(slots, -1, dtype=int, device=m.device)
+        retain: list = [self._face_slot]
+        if self.track_energy:
+            books = self._books()
+            books.prepare(CONTACT, SHADOW)
+            retain += [books, self._marks()]
+        return (*(id(x) for x in retain), self.track_energy), retain
+
+    def _before_split(self) -> None:
+        """What must be taken before the rounds change the topology (launches only): each boundary face's tet-face
+        slot (the remap of the contacts' face ids), the contact stiffness held by the surface nodes
+        (hold_contact_stiffness), and the marks of the books the pass changes."""
+        m, s = self.model, self.state
+        if m.face_capacity:
+            face_slots(m, s, self._face_slot)
+        hold_contact_stiffness(m, s)
+        self._mark_books(CONTACT, MARK_CONTACT)
+        self._mark_books(SHADOW, MARK_SHADOW)
 
     def _mark_books(self, terms: BookTerms, slot: int) -> None:
         """Keep ``terms`` of the energy books now on the device (warpdem.stages.energy.DeviceBooks.mark; launches

@@ -167,7 +167,7 @@ class Compactor:
         launch, whatever the number of arrays."""
         if self.capacity == 0:
             return
-        table = self._table([a for a, _ in rows], [per_row for _, per_row in rows])
+        table = self.rows_table(rows)
         if table.rows:
             wp.launch(
                 kc.replicate_words_kernel,
@@ -175,6 +175,11 @@ class Compactor:
                 inputs=[count, self.keep, self.old_to_new, *table.args()],
                 device=self.device,
             )
+
+    def rows_table(self, rows: Sequence[tuple[wp.array, int]]) -> WordTable:
+        """The word table :meth:`replicate_rows` launches over for ``rows``, built now if not kept (so that a recording
+        of the replicate allocates nothing, warpdem.recorded)."""
+        return self._table([a for a, _ in rows], [per_row for _, per_row in rows])
 
     def _table(self, arrays: Sequence[wp.array], per_row: Sequence[int] | None = None) -> WordTable:
         """The word table of a set of arrays (kept while the same arrays come again: no allocation per pass)."""

@@ -296,6 +296,11 @@ class DeviceBooks:
             device=self.device,
         )
 
+    def prepare(self, *terms: BookTerms) -> None:
+        """Make the weights of ``terms`` now (so that a recorded :meth:`mark` or :meth:`book` allocates nothing)."""
+        for t in terms:
+            self._weights(t)
+
     def _weights(self, terms: BookTerms) -> wp.array:
         """The device vector of ``terms``' weights by line, made once per set of terms."""
         weights = self._term_weights.get(terms)

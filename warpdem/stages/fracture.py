@@ -78,7 +78,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -123,6 +123,29 @@ class FractureProps:
             )
         if not 0.0 <= self.alpha <= 1.0:
             raise ValueError(f"{where}: alpha must lie in [0, 1], got {self.alpha}")
+
+
+@dataclass
+class PassStatus:
+    """What a whole split pass found and did, as its status vector read it (kernels/fracture.py PASS_*).
+
+    Attributes:
+        reached: a tet reached the tension bound (else nothing more was evaluated).
+        candidates: nodes that qualified.
+        go: the rounds ran (candidates, and room for a daughter and a cohesive element each).
+        before: node count before the pass (the daughters' first slot).
+        after: node count after it.
+        rounds: independent-set rounds run.
+        faces: boundary faces before the pass.
+    """
+
+    reached: int
+    candidates: int
+    go: int
+    before: int
+    after: int
+    rounds: int
+    faces: int
 
 
 @dataclass
@@ -242,10 +265,12 @@ class FracturePass:
         self.pending_count = wp.zeros(1, dtype=int, device=d)
         self.reached = wp.zeros(1, dtype=int, device=d)
         self.bonded = wp.zeros(n1, dtype=int, device=d)
-        # The round loop's condition and its report (node count before the pass, after it, rounds run): split.
+        # The conditions of the pass's branches and round loop, and its status vector (kernels/fracture.py PASS_*).
+        self.go = wp.zeros(1, dtype=int, device=d)
         self.more = wp.zeros(1, dtype=int, device=d)
-        self.round_status = wp.zeros(3, dtype=int, device=d)
-        # The rounds and the candidate search, recorded and replayed (warpdem.recorded).
+        self.pass_status = wp.zeros(kfr.PASS_SLOTS, dtype=int, device=d)
+        # The whole pass, and the search and rounds run apart (find_candidates, split), recorded and replayed.
+        self.whole = Recorded(d, use_graph)
         self.rounds = Recorded(d, use_graph)
         self.search = Recorded(d, use_graph)
         # The partition finds the faces neighbours have opened through the tets across them, joint faces included.
@@ -258,6 +283,96 @@ class FracturePass:
         """Whether the buffers match the model's capacities."""
         return self.node_capacity == model.node_capacity and self.tet_capacity == model.tet_capacity
 
+    def find_and_split(
+        self,
+        model: Model,
+        state: State,
+        before_split: Callable[[], None],
+        stresses_current: bool = False,
+        max_rounds: int = MAX_ROUNDS,
+        key: tuple = (),
+        retain: Sequence[object] = (),
+    ) -> PassStatus:
+        """A whole split pass as one device program, read back once: the tension bound; where a tet reached it, the
+        candidate search; where there are candidates and room for a daughter and an element each (the node and
+        cohesive capacities), ``before_split`` (the caller's launches: marks of the books, the faces' slots) and the
+        rounds. Its branches are conditional graph nodes (``wp.capture_if``) and its rounds a device loop
+        (``wp.capture_while``), so the pass is recorded (warpdem.recorded) the second time it runs with the same arrays
+        and ``key`` (what ``before_split`` reads besides the model and state) and replayed after: one replay and one
+        read-back of :attr:`pass_status`, whatever it found. ``retain``: what ``before_split``'s launches read that the
+        key does not keep alive. Where candidates found no room, nothing changed: grow and run the pass again.
+        ``stresses_current``: as :meth:`find_candidates`. The daughters take the node slots from ``before`` on."""
+        m, s = model, state
+        if m.node_capacity == 0 or m.tet_capacity == 0:
+            return PassStatus(0, 0, False, 0, 0, 0, 0)
+        driver = getattr(m.loads, "node_driver", None)
+        table = self.splitter.sides_table(m, s, [driver] if isinstance(driver, wp.array) else [])
+        self.whole.run(
+            (arrays_key(m, m.loads, s), stresses_current, max_rounds, *key),
+            lambda: self._whole_pass(m, s, before_split, stresses_current, max_rounds),
+            retain=[table, *retain],
+        )
+        status = PassStatus(*(int(x) for x in self.pass_status.numpy()))
+        self.first_new_node = status.before
+        if status.after > status.before and m.joint_capacity:
+            sort_joint_elements(m, s)
+        return status
+
+    def _whole_pass(
+        self, model: Model, state: State, before_split: Callable[[], None], stresses_current: bool, max_rounds: int
+    ) -> None:
+        """:meth:`find_and_split`'s launches (its branches read their conditions back when not recorded)."""
+        m, s, d = model, state, self.device
+        self.pass_status.zero_()
+        self.go.zero_()
+        wp.launch(
+            kfr.begin_rounds_kernel, dim=1, inputs=[s.node_count], outputs=[self.pass_status, self.more], device=d
+        )
+        self._tension_bound(m, s, stresses_current)
+        wp.capture_if(self.reached, lambda: self._search_and_gate(m, s, before_split, max_rounds))
+        wp.launch(kfr.finish_pass_kernel, dim=1, inputs=[self.reached, self.go], outputs=[self.pass_status], device=d)
+
+    def _search_and_gate(self, model: Model, state: State, before_split: Callable[[], None], max_rounds: int) -> None:
+        """The candidate search, then the rounds where there is room for them (launches only)."""
+        m, s, d = model, state, self.device
+        self._search(m, s)
+        wp.launch(
+            kfr.pass_gate_kernel,
+            dim=1,
+            inputs=[
+                s.node_count,
+                s.cohesive_count,
+                s.face_count,
+                self.candidate_count,
+                m.node_capacity,
+                m.cohesive_capacity,
+            ],
+            outputs=[self.pass_status, self.go],
+            device=d,
+        )
+
+        def rounds() -> None:
+            before_split()
+            self.more.fill_(1)  # the node count before is in the status since the pass began
+            wp.capture_while(self.more, lambda: self._round(m, s, max_rounds))
+
+        wp.capture_if(self.go, rounds)
+
+    def _tension_bound(self, model: Model, state: State, stresses_current: bool) -> None:
+        """The tet stresses (unless current) and the tension bound into :attr:`reached` (launches only): 1 where a tet's
+        stress bound reaches the lowest T_f or an element has broken (a freed hinge may split below T_f)."""
+        m, s = model, state
+        if not stresses_current:
+            eval_tet_stresses(m, s)
+        self.reached.zero_()
+        wp.launch(
+            kfr.tension_bound_kernel,
+            dim=m.tet_capacity,
+            inputs=[s.tet_count, s.tet_active, s.tet_stress, s.cohesive_broken_total, self.lowest_strength],
+            outputs=[self.reached],
+            device=self.device,
+        )
+
     @property
     def candidate_count(self) -> wp.array:
         """Candidates of the pass, shape (1,), int32 (after :meth:`find_candidates`)."""
@@ -267,21 +382,11 @@ class FracturePass:
         """Refresh the tet stresses (unless ``stresses_current``: the caller has just evaluated them at the current
         positions, as ``Simulation.advance`` has at the end of every chunk), build the stars, evaluate the nodal stress
         and list the candidates in node order. Reads back the candidate count."""
-        m, s, d = model, state, self.device
+        m, s = model, state
         if m.node_capacity == 0 or m.tet_capacity == 0:
             return 0
-        if not stresses_current:
-            eval_tet_stresses(m, s)
-        # The common case, no tet near its strength and no crack let go, costs one tet pass and one read-back (kernel
-        # tension_bound; once an element has broken, a freed hinge may split below T_f).
-        self.reached.zero_()
-        wp.launch(
-            kfr.tension_bound_kernel,
-            dim=m.tet_capacity,
-            inputs=[s.tet_count, s.tet_active, s.tet_stress, s.cohesive_broken_total, self.lowest_strength],
-            outputs=[self.reached],
-            device=d,
-        )
+        # The common case, no tet near its strength and no crack let go, costs one tet pass and one read-back.
+        self._tension_bound(m, s, stresses_current)
         if int(self.reached.numpy()[0]) == 0:
             return 0
         # Launches only, recorded and replayed (warpdem.recorded): ~15 launches a pass.
@@ -368,14 +473,15 @@ class FracturePass:
         sets), recorded into a graph the second time a pass runs with the same arrays (warpdem.recorded) and
         replayed from then on; the first time, and where graphs are off or unavailable, the same launches run one by
         one and the loop reads :attr:`more` back each round. Either way the pass ends with one read-back of
-        :attr:`round_status` (node count before and after, rounds run).
+        :attr:`pass_status` (node count before and after, rounds run). :meth:`find_and_split` runs it as part of a
+        whole pass.
 
         Returns:
             (nodes split, rounds run).
         """
         m, s, d = model, state, self.device
         wp.launch(
-            kfr.begin_rounds_kernel, dim=1, inputs=[s.node_count], outputs=[self.round_status, self.more], device=d
+            kfr.begin_rounds_kernel, dim=1, inputs=[s.node_count], outputs=[self.pass_status, self.more], device=d
         )
 
         def eager() -> None:
@@ -391,7 +497,8 @@ class FracturePass:
             # The fused replicate's word tables: the splitter's cache may drop one that the recording still reads.
             retain=list(self.splitter.compactor._tables.values()),
         )
-        before, after, rounds = (int(x) for x in self.round_status.numpy())
+        status = self.pass_status.numpy()
+        before, after, rounds = (int(status[k]) for k in (kfr.PASS_BEFORE, kfr.PASS_AFTER, kfr.PASS_ROUNDS))
         self.first_new_node = before
         splits = after - before
         if splits and m.joint_capacity:
@@ -400,7 +507,7 @@ class FracturePass:
 
     def _round(self, model: Model, state: State, max_rounds: int) -> None:
         """One round of independent sets: claims, partitions, the elements handed over and born, the daughters
-        replicated; its last launch counts it in :attr:`round_status` and sets :attr:`more` (launches only)."""
+        replicated; its last launch counts it in :attr:`pass_status` and sets :attr:`more` (launches only)."""
         m, s, d = model, state, self.device
         sp = self.splitter
         first_new = sp.compactor.first_new
@@ -498,6 +605,6 @@ class FracturePass:
             kfr.end_round_kernel,
             dim=1,
             inputs=[s.node_count, self.pending_count, max_rounds],
-            outputs=[self.round_status, self.more],
+            outputs=[self.pass_status, self.more],
             device=d,
         )

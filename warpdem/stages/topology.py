@@ -289,6 +289,10 @@ class NodeSplitter:
                 device=self.device,
             )
 
+    def sides_table(self, model: Model, state: State, extra_node_arrays: Sequence[wp.array] = ()) -> object:
+        """The word table :meth:`apply_sides` replicates through, built now if not kept (Compactor.rows_table)."""
+        return self.compactor.rows_table(carried_node_rows(model, state, extra_node_arrays))
+
     def apply_sides(self, model: Model, state: State, extra_node_arrays: Sequence[wp.array] = ()) -> None:
         """Carry out a planned independent-set split in place: replicate every per-node array into the new slots,
         re-lump both sides' masses, move the + side's tets onto B and set the node count."""
