@@ -66,6 +66,42 @@ def split_pass(cells: int, books: bool = False) -> tuple[int, int, str]:
     return 6 * cells**3, report.splits, b.line()
 
 
+def passes_in_a_run(cells: int) -> tuple[str, str, int, int]:
+    """The counts of the split passes of the cracking run (``cells``³ cells, a pass every step, books kept), each
+    as ``Simulation.fracture_pass`` asks them inside ``advance``: the median of the passes that split and of those
+    that did not, after the run's first three passes of each kind (the first runs eagerly; warpdem.recorded records
+    the pass the second time it sees the same arrays), and how many of each were counted."""
+    from warpdem.bench.fracture import cracking_block
+    from warpdem.simulation import Simulation
+
+    sim = cracking_block(cells, "cpu", steps=200, interval=1)
+    sim.track_energy = True  # as a run keeps them (set so, an older checkout's block takes it too)
+    fracture_pass = Simulation.fracture_pass
+    seen: dict[bool, list] = {True: [], False: []}
+
+    def counted_pass(self, *args, **kwargs):
+        with counted() as b:
+            report = fracture_pass(self, *args, **kwargs)
+        seen[report.splits > 0].append(b)
+        return report
+
+    Simulation.fracture_pass = counted_pass
+    try:
+        sim.advance(200)
+    finally:
+        Simulation.fracture_pass = fracture_pass
+
+    def median(budgets: list) -> str:
+        later = budgets[3:] or budgets
+        if not later:
+            return "none"
+        fields = later[0].__dataclass_fields__
+        values = {f: int(np.median([getattr(b, f) for b in later])) for f in fields}
+        return ", ".join(f"{k} {v}" for k, v in values.items())
+
+    return median(seen[True]), median(seen[False]), len(seen[True]), len(seen[False])
+
+
 def books(cells: int) -> str:
     """The counts of reading the energy books and the shadow term (``Simulation.energy()`` and ``shadow()``) on the
     cracking block of ``cells``³ cells, their scratch made."""
@@ -129,6 +165,10 @@ def main() -> None:
         print(f"{6 * cells**3:>7} tets  1 step + between-steps:   {chunk}")
         print(f"{6 * cells**3:>7} tets  10 steps + between-steps: {chunks}")
         print(f"{6 * cells**3:>7} tets  energy() + shadow():       {books(cells)}")
+    for cells in a.cells:
+        split, idle, n_split, n_idle = passes_in_a_run(cells)
+        print(f"{6 * cells**3:>7} tets  a pass that splits, in a run ({n_split}; median):      {split}")
+        print(f"{6 * cells**3:>7} tets  a pass that splits nothing, in a run ({n_idle}; median): {idle}")
     for keep in (False, True):
         for cells in a.split_cells:
             tets, splits, line = split_pass(cells, keep)

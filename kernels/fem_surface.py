@@ -579,7 +579,7 @@ def tet_face_slots_kernel(
 @wp.kernel
 def remap_face_ids_kernel(
     # In:
-    old_face_count: int,
+    old_face_count: wp.array(dtype=int),
     face_slot: wp.array(dtype=int),
     slot_to_face: wp.array(dtype=int),
     # Out:
@@ -587,7 +587,7 @@ def remap_face_ids_kernel(
 ):
     i = wp.tid()  # one thread per entry of a face-id array: old face → its tet-face slot → the new face of that slot
     f = ids[i]
-    if f < 0 or f >= old_face_count:
+    if f < 0 or f >= old_face_count[0]:
         return
     s = face_slot[f]
     if s < 0:

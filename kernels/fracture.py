@@ -693,10 +693,9 @@ PASS_GO = wp.constant(2)
 PASS_BEFORE = wp.constant(3)
 PASS_AFTER = wp.constant(4)
 PASS_ROUNDS = wp.constant(5)
-PASS_FACES = wp.constant(6)
-PASS_SLOTS = 7
+PASS_SLOTS = 6
 """The split pass's status vector (int32), read back once a pass: a tet reached the tension bound, candidates found,
-the rounds ran (candidates and room for them), node count before and after, rounds run, boundary faces before."""
+the rounds ran (candidates and room for them), node count before and after, rounds run."""
 
 
 @wp.kernel
@@ -719,7 +718,6 @@ def pass_gate_kernel(
     # State in:
     node_count: wp.array(dtype=int),
     cohesive_count: wp.array(dtype=int),
-    face_count: wp.array(dtype=int),
     # In:
     candidate_count: wp.array(dtype=int),
     node_capacity: int,
@@ -731,7 +729,6 @@ def pass_gate_kernel(
     _i = wp.tid()  # one thread: split now only if there are candidates and room for a daughter and an element each
     n = candidate_count[0]
     pass_status[PASS_CANDIDATES] = n
-    pass_status[PASS_FACES] = face_count[0]
     go[0] = 0
     if n > 0 and node_count[0] + n <= node_capacity and cohesive_count[0] + n <= cohesive_capacity:
         go[0] = 1

@@ -153,7 +153,7 @@ def mark_near_new_nodes_kernel(
     face_nodes: wp.array(dtype=wp.vec3i),
     # In:
     grid: wp.uint64,
-    first_new: int,
+    first_new: wp.array(dtype=int),
     radius: float,
     reach: float,
     # State in:
@@ -164,7 +164,7 @@ def mark_near_new_nodes_kernel(
     near: wp.array(dtype=int),
 ):
     """Mark (``near`` = 1; zeroed before) the nodes a split pass may have changed the node–face candidates of
-    (warpdem.stages.fem_contact ``FemContact.refresh_near``): the daughters, from slot ``first_new`` on, and every
+    (warpdem.stages.fem_contact ``FemContact.refresh_near``): the daughters, from slot ``first_new[0]`` on, and every
     surface node within ``radius`` of one of them, distances taken where the lists were built (``node_q_at_fem_build``;
     a daughter holds its parent's). ``grid`` holds the face centroids there; ``reach`` ≥ ``radius`` + the largest
     face's bounding radius, so every face with a vertex within ``radius`` is offered.
@@ -174,8 +174,8 @@ def mark_near_new_nodes_kernel(
     within the query radius of that centroid, so within query radius + largest face radius of p (the host's
     ``radius``). Every other node's candidate set is what it was: the same faces at the same places. A node with a
     list is a vertex of a boundary face, so the faces near a daughter name every such node near it."""
-    k = wp.tid()  # one thread per daughter slot
-    v = first_new + k
+    k = wp.tid()  # one thread per node slot from the first daughter's on (the count is on the device)
+    v = first_new[0] + k
     if v >= node_count[0]:
         return
     near[v] = 1

@@ -474,7 +474,8 @@ def test_face_ids_follow_their_tet_face_slots(device):
     spring = np.full(model.node_capacity * model.node_springs, -1, dtype=np.int32)  # every slot of every node
     spring[:old_count] = np.arange(old_count)[::-1]  # any old face ids
     state.node_face_spring.assign(spring)
-    remap_face_ids(model, state, wp.array(old_slots, dtype=int, device=device), old_count, slot_to_face)
+    old = wp.array([old_count], dtype=int, device=device)
+    remap_face_ids(model, state, wp.array(old_slots, dtype=int, device=device), old, slot_to_face)
     new_ids = state.node_face_spring.numpy()[:old_count]
     assert np.all(new_ids >= 0)
     new_slots = face_slots(model, state).numpy()

@@ -36,7 +36,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import warp as wp
@@ -138,6 +138,8 @@ class Simulation:
         self._device_books: DeviceBooks | None = None
         self._book_marks: wp.array | None = None
         self._surface_scratch_kept: SurfaceScratch | None = None
+        # The boundary face count before a topology pass, kept on the device (carrying face ids over reads it).
+        self._faces_before = wp.zeros(1, dtype=int, device=model.device)
         self.use_graph = use_graph
         self.step_count = step
         if time is None:
@@ -210,6 +212,9 @@ class Simulation:
         # Between-steps work made of launches only, recorded and replayed (warpdem.recorded); new stages, new records.
         self._force_recording = Recorded(self.model.device)
         self._epilogue_recording = Recorded(self.model.device)
+        self._split_books_recording = Recorded(self.model.device)
+        self._refresh_recording = Recorded(self.model.device)
+        self._surface_recordings = (Recorded(self.model.device), Recorded(self.model.device))
         self.rigid = has_bodies(self.state)
         # Every node a rigid body's, none driven: the bodies' pose does all the node kernels' drift would (fixed
         # after the switch: no topology pass runs then).
@@ -540,10 +545,13 @@ class Simulation:
         self.guard.launch(self.model, self.state, sphere_lists=self.has_spheres)
         self.status.launch(self.model, self.state, self.guard.report, self.guard.clean)
 
-    def _recorded(self, recording: Recorded, key: tuple, body: Callable[[], None]) -> None:
-        """Run ``body`` (launches only) through ``recording`` (warpdem.recorded), or eagerly without graphs."""
+    def _recorded(
+        self, recording: Recorded, key: tuple, body: Callable[[], None], retain: Sequence[object] = ()
+    ) -> None:
+        """Run ``body`` (launches only) through ``recording`` (warpdem.recorded; ``retain`` as there), or eagerly
+        without graphs."""
         if self.use_graph:
-            recording.run(key, body)
+            recording.run(key, body, retain=retain)
         else:
             body()
 
@@ -651,13 +659,20 @@ class Simulation:
         self._snapshot_step = None  # the pass split: a redo must not cross it
         splits = found.after - found.before
         if splits:
-            self._after_split(found.faces if self.model.face_capacity else 0, found.before, splits)
-            self._book_contact_topology()
-            # The pass changes the forces the next kick uses (daughters lighter than their parent, a face's share of
-            # a contact force on one daughter, the re-evaluation at dt = 0) with the velocities as they were:
-            # Verlet's shadow term moves by S(f_new) - S(f_old) with no force working, as at a change of step.
-            self._book_change(SHADOW, MARK_SHADOW, self.state.energy_step_change)
+            self._after_split(splits)
+            if self.track_energy:
+                retain = self._prepare_books()
+                key = (arrays_key(self.model, self.state), *(id(x) for x in retain))
+                self._recorded(self._split_books_recording, key, self._book_split, retain)
         return SplitReport(splits, found.rounds, grew)
+
+    def _book_split(self) -> None:
+        """Book what a pass that split changed (launches only): the FEM contacts' lines, and Verlet's shadow term."""
+        self._book_contact_topology()
+        # The pass changes the forces the next kick uses (daughters lighter than their parent, a face's share of a
+        # contact force on one daughter, the re-evaluation at dt = 0) with the velocities as they were: Verlet's
+        # shadow term moves by S(f_new) - S(f_old) with no force working, as at a change of step.
+        self._book_change(SHADOW, MARK_SHADOW, self.state.energy_step_change)
 
     def _prepare_split(self) -> tuple[tuple, list]:
         """Make what :meth:`_before_split` launches into (the faces' slots, the books' scratch, marks and weights), so
@@ -667,12 +682,15 @@ class Simulation:
         slots = max(m.face_capacity, 1)
         if m.face_capacity and (self._face_slot is None or self._face_slot.shape[0] != slots):
             self._face_slot = wp.full(slots, -1, dtype=int, device=m.device)
-        retain: list = [self._face_slot]
-        if self.track_energy:
-            books = self._books()
-            books.prepare(CONTACT, SHADOW)
-            retain += [books, self._marks()]
+        retain: list = [self._face_slot, *(self._prepare_books() if self.track_energy else [])]
         return (*(id(x) for x in retain), self.track_energy), retain
+
+    def _prepare_books(self) -> list:
+        """The books' scratch, marks and the weights a split pass books with, made now; returns them (what a recording
+        that marks or books them must keep)."""
+        books = self._books()
+        books.prepare(CONTACT, SHADOW)
+        return [books, self._marks()]
 
     def _before_split(self) -> None:
         """What must be taken before the rounds change the topology (launches only): each boundary face's tet-face
@@ -681,6 +699,7 @@ class Simulation:
         m, s = self.model, self.state
         if m.face_capacity:
             face_slots(m, s, self._face_slot)
+            wp.copy(self._faces_before, s.face_count)
         hold_contact_stiffness(m, s)
         self._mark_books(CONTACT, MARK_CONTACT)
         self._mark_books(SHADOW, MARK_SHADOW)
@@ -749,29 +768,39 @@ class Simulation:
         self._setup()
         return True
 
-    def _after_split(self, old_faces: int, first_new: int, new_nodes: int) -> None:
-        """After a pass that split nodes (``new_nodes`` daughters from slot ``first_new`` on): rebuild the surface on
-        the device (crack faces become contact faces), carry the face ids of the contact state over, bring the contact
-        lists up to date (near the daughters only where the stage allows, FemContact.refresh_near; else rebuilt whole)
-        and re-evaluate the forces at dt = 0."""
+    def _after_split(self, new_nodes: int) -> None:
+        """After a pass that split nodes (``new_nodes`` daughters from the pass's first new slot on): rebuild the
+        surface on the device (crack faces become contact faces), carry the face ids of the contact state over, bring
+        the contact lists up to date (near the daughters only where the stage allows, FemContact.refresh_near; else
+        rebuilt whole) and re-evaluate the forces at dt = 0. The face count before the pass and the first daughter's
+        slot are read on the device, so the carry-over and the refresh are one recording (warpdem.recorded)."""
         m, s = self.model, self.state
         refreshed = False
         if m.face_capacity:
-            model, slot_to_face = rebuild_surface(m, s, self._surface_scratch())
-            remap_face_ids(model, s, self._face_slot, old_faces, slot_to_face)
+            surface = self._surface_recordings if self.use_graph else None
+            model, slot_to_face = rebuild_surface(m, s, self._surface_scratch(), surface)
             same = all(
                 getattr(model, f) is getattr(m, f) for f in ("face_nodes", "star_tets", "node_contact_stiffness")
             )
             same = same and (model.face_radius, model.face_depth_max) == (m.face_radius, m.face_depth_max)
             self.model = model
-            if same:
+            if same and self.fem_contact.refreshes_near:
                 self.fem_contact.model = model
-                refreshed = self.fem_contact.refresh_near(
-                    first_new, new_nodes, self._face_slot, old_faces, slot_to_face
-                )
+                fem, first_new = self.fem_contact, self._fracture.first_new_slot
+                retain = [fem, self._face_slot, slot_to_face, self._fracture]
+                key = (arrays_key(model, s), *(id(x) for x in retain))
+
+                def refresh() -> None:
+                    remap_face_ids(model, s, self._face_slot, self._faces_before, slot_to_face)
+                    fem.refresh_near(first_new, self._face_slot, self._faces_before, slot_to_face)
+
+                self._recorded(self._refresh_recording, key, refresh, retain)
+                refreshed = True
             else:
-                # A face array grew or the faces' extent (baked into the launches) changed: new stage, new graphs.
-                self._setup()
+                remap_face_ids(model, s, self._face_slot, self._faces_before, slot_to_face)
+                if not same:
+                    # A face array grew or the faces' extent (baked into the launches) changed: new stage, new graphs.
+                    self._setup()
         self.evaluate_forces(after_pass=True, rebuild_fem=not refreshed)
         while self._grow_if_overflowed(self.state):
             self.evaluate_forces(after_pass=True)
@@ -831,7 +860,7 @@ class Simulation:
         # The band replaces the tie's couplings by one per band sphere: slots for each new sphere and the live ones.
         grew = self._grow_for_conversion(spawned, bonds, max(couplings, spawned) if band else couplings)
         m, s = self.model, self.state
-        old_faces = int(s.face_count.numpy()[0]) if m.face_capacity else 0
+        wp.copy(self._faces_before, s.face_count)
         if m.face_capacity:
             self._face_slot = face_slots(m, s, self._face_slot)
         self._mark_books(CONVERSION, MARK_SHADOW)
@@ -841,7 +870,7 @@ class Simulation:
         self._conversion.convert(m, s, self.coupling_compactor)
         if snap is not None:
             overlap_band.apply_band(m, s, snap, self._band_incidence())
-        self._after_conversion(old_faces)
+        self._after_conversion()
         self._book_contact_topology()
         # The leapfrog kinetic energy the scheme conserves is kinetic − shadow; the pass changes the shadow term
         # (lighter nodes, new free faces, the spheres' forces) without any work, and releases the springs of
@@ -882,7 +911,7 @@ class Simulation:
             self.coupling_compactor = Compactor(m.coupling_capacity, m.device)
         return grew
 
-    def _after_conversion(self, old_faces: int) -> None:
+    def _after_conversion(self) -> None:
         """After a pass that converted tets: rebuild the surface on the device (the faces of converted tets'
         neighbours become contact faces), carry the face ids of the contact state over, set the stages up again
         (new spheres, possibly the first: sphere contact comes alive; graphs re-captured) and re-evaluate the forces
@@ -890,7 +919,7 @@ class Simulation:
         m, s = self.model, self.state
         if m.face_capacity:
             model, slot_to_face = rebuild_surface(m, s, self._surface_scratch())
-            remap_face_ids(model, s, self._face_slot, old_faces, slot_to_face)
+            remap_face_ids(model, s, self._face_slot, self._faces_before, slot_to_face)
             self.model = model
             drop_converted_load_faces(model, s)
         self._setup()

@@ -218,7 +218,8 @@ class FemContact:
         # (kernels/node_face_list.py mark_near_new_nodes_kernel); fem_skin covers float rounding and a face stretched
         # past its reference radius.
         self.near_radius = self.node_search + model.face_radius + model.fem_skin
-        self.near: wp.array | None = None  # refresh_near's marks, made at its first call
+        # refresh_near's marks (made here: a recording of it allocates nothing).
+        self.near = wp.zeros(max(model.node_capacity, 1), dtype=int, device=d)
         self.every_node = wp.zeros(0, dtype=int, device=d)  # ``near`` of a full rebuild: every node builds its list
         self.sphere_faces = None
         if has_spheres:
@@ -396,12 +397,19 @@ class FemContact:
         lists = SlotArrays(s.node_face_count, s.node_face_index)
         self.node_faces.rebuild(inputs, self.grid, s.node_count, node_q, s.face_count, lists, s.node_face_needed)
 
+    @property
+    def refreshes_near(self) -> bool:
+        """Whether :meth:`refresh_near` can bring the lists up to date (no spheres: their lists are rebuilt with the
+        sphere list, at the current positions)."""
+        return self.sphere_faces is None and self.model.node_capacity > 0
+
     def refresh_near(
-        self, first_new: int, new_nodes: int, face_slot: wp.array, old_faces: int, slot_to_face: wp.array
+        self, first_new: wp.array, face_slot: wp.array, old_faces: wp.array, slot_to_face: wp.array
     ) -> bool:
-        """After a split pass that appended ``new_nodes`` daughters from node ``first_new`` on and rebuilt the surface
-        (warpdem.stages.fem_surface.rebuild_surface, whose ``slot_to_face`` and the ``face_slot`` of the ``old_faces``
-        before it carry face ids over): bring the node–face lists to what a full rebuild would have built where they
+        """After a split pass that appended daughters from node ``first_new[0]`` on and rebuilt the surface
+        (warpdem.stages.fem_surface.rebuild_surface, whose ``slot_to_face`` and the ``face_slot`` of the
+        ``old_faces[0]`` faces before it carry face ids over; both counts on the device, shape (1,)): bring the
+        node–face lists to what a full rebuild would have built where they
         were last built, rebuilding only the lists of the nodes near a daughter
         (kernels/node_face_list.py mark_near_new_nodes_kernel) and carrying the others' face ids over.
 
@@ -414,24 +422,22 @@ class FemContact:
         Returns whether it refreshed the lists; False where only a full rebuild will do (the model has spheres: the
         sphere–face lists are rebuilt at the current positions with the sphere list). Launches only."""
         m, s, d = self.model, self.state, self.model.device
-        if self.sphere_faces is not None or not m.node_capacity:
+        if not self.refreshes_near:
             return False
-        if self.near is None:
-            self.near = wp.zeros(m.node_capacity, dtype=int, device=d)
-        if old_faces:  # the kept lists' face ids, as remap_face_ids carries the springs' (a split removes no face)
-            wp.launch(
-                kf.remap_face_ids_kernel,
-                dim=s.node_face_index.shape[0],
-                inputs=[old_faces, face_slot, slot_to_face],
-                outputs=[s.node_face_index],
-                device=d,
-            )
+        # The kept lists' face ids, as remap_face_ids carries the springs' (a split removes no face).
+        wp.launch(
+            kf.remap_face_ids_kernel,
+            dim=s.node_face_index.shape[0],
+            inputs=[old_faces, face_slot, slot_to_face],
+            outputs=[s.node_face_index],
+            device=d,
+        )
         q = s.node_q_at_fem_build
         self._build_face_grid(q)
         self.near.zero_()
         wp.launch(
             kf.mark_near_new_nodes_kernel,
-            dim=new_nodes,
+            dim=m.node_capacity,
             inputs=[
                 m.face_nodes,
                 self.grid.id,

@@ -6,11 +6,13 @@ history that names it) across a rebuild. The contact stage that uses them is :mo
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import warp as wp
 
 from ..kernels import fem_contact as kf
 from ..model import Model, State
+from ..recorded import Recorded, arrays_key
 from .compaction import Compactor
 from .topology import NodeStars
 
@@ -55,7 +57,12 @@ class SurfaceScratch:
         self.extent.zero_()
 
 
-def rebuild_surface(model: Model, state: State, scratch: SurfaceScratch | None = None) -> tuple[Model, wp.array]:
+def rebuild_surface(
+    model: Model,
+    state: State,
+    scratch: SurfaceScratch | None = None,
+    recordings: tuple[Recorded, Recorded] | None = None,
+) -> tuple[Model, wp.array]:
     """:func:`build_surface`, writing into the model's existing topology arrays where they are large enough (so a
     captured graph that reads them stays valid), and also returning the new face of every tet-face slot (-1 for an
     interior slot), shape (4 tet_capacity,), int32: the map that carries face ids across the rebuild (a face keeps
@@ -63,52 +70,130 @@ def rebuild_surface(model: Model, state: State, scratch: SurfaceScratch | None =
 
     ``scratch``: the rebuild's working arrays (:class:`SurfaceScratch`), reused when it fits the model's capacities,
     else made here. A topology array the model does not have yet, or of another size, is a copy of the scratch's.
+    ``recordings``: two recordings (warpdem.recorded) for its two runs of launches, the boundary faces flagged and
+    counted, then (the face count read back: the face arrays grow when it passes their capacity) written with the
+    nodes' stiffness and the faces' extent (read back: launches take it as a value); None: launched one by one.
     """
     m, s = model, state
     d = m.device
     ncap, tcap = m.node_capacity, m.tet_capacity
     if scratch is None or not scratch.fits(m):
         scratch = SurfaceScratch(ncap, tcap, d)
-    else:
-        scratch.reset()
-    stars = scratch.stars
-    stars.build(m.tet_nodes, s.tet_count, s.tet_active, s.node_count, ref_face_nbr=m.ref_tet_face_nbr)
-    slots = 4 * tcap
-    compactor = scratch.compactor
-    tet_face_count = scratch.tet_face_count
-    dead = scratch.dead
-    if tcap:
-        wp.launch(kf.count_tet_faces_kernel, dim=1, inputs=[s.tet_count], outputs=[tet_face_count], device=d)
-        wp.launch(
-            kf.flag_boundary_faces_kernel,
-            dim=slots,
-            inputs=[s.tet_count, s.tet_active, stars.tet_face_nbr],
-            outputs=[dead],
-            device=d,
-        )
-    old_to_new = compactor.plan(tet_face_count, dead)
-    count = int(compactor.new_count.numpy()[0])
+    first = (arrays_key(m, s), id(scratch))
+    _run(recordings, 0, first, lambda: _flag_faces(m, s, scratch), [scratch])
+    count = int(scratch.compactor.new_count.numpy()[0])
     cap = max(count, m.face_capacity)
     if m.face_nodes is not None and m.face_capacity >= count:
-        face_nodes, face_tet, face_joint, face_depth = m.face_nodes, m.face_tet, m.face_joint, m.face_depth
+        faces = (m.face_nodes, m.face_tet, m.face_joint, m.face_depth)
     else:
         if m.face_nodes is not None:
             cap = max(count, 2 * m.face_capacity)  # a growing crack surface: amortised growth, as every capacity
-        face_nodes = wp.zeros(cap, dtype=wp.vec3i, device=d)
-        face_tet = wp.zeros(cap, dtype=int, device=d)
-        face_joint = wp.zeros(cap, dtype=int, device=d)
-        face_depth = wp.zeros(cap, dtype=float, device=d)
+        faces = tuple(wp.zeros(cap, dtype=t, device=d) for t in (wp.vec3i, int, int, float))
+    stiffness = _sized(m.node_contact_stiffness, ncap, float, d)
+    material = _sized(m.node_contact_material, ncap, int, d)
+    written = [*faces, stiffness, material]
+    second = (*first, cap, *(a.ptr for a in written))
+    _run(
+        recordings,
+        1,
+        second,
+        lambda: _write_faces(m, s, scratch, faces, stiffness, material, cap),
+        [scratch, *written],
+    )
+    radius, depth_max = (float(v) for v in scratch.extent.numpy())
+    stars = scratch.stars
+    topology = {}
+    for name, new in (
+        ("star_offset", stars.offset),
+        ("star_count", stars.count),
+        ("star_tets", stars.tets),
+        ("tet_face_nbr", stars.tet_face_nbr),
+    ):
+        old = getattr(m, name)
+        if old is not None and old.shape == new.shape:
+            wp.copy(old, new)
+            new = old
+        else:
+            new = wp.clone(new)  # the model never holds the scratch, which the next rebuild overwrites
+        topology[name] = new
+    face_nodes, face_tet, face_joint, face_depth = faces
+    model = dataclasses.replace(
+        m,
+        face_capacity=cap,
+        **topology,
+        face_nodes=face_nodes,
+        face_tet=face_tet,
+        face_joint=face_joint,
+        face_depth=face_depth,
+        node_contact_stiffness=stiffness,
+        node_contact_material=material,
+        face_radius=radius,
+        face_depth_max=depth_max,
+    )
+    return model, scratch.compactor.old_to_new
+
+
+def _run(
+    recordings: tuple[Recorded, Recorded] | None, k: int, key: tuple, body: Callable[[], None], retain: list
+) -> None:
+    """``body`` through recording ``k`` of ``recordings`` (warpdem.recorded), or launched (None)."""
+    if recordings is None:
+        body()
+    else:
+        recordings[k].run(key, body, retain=retain)
+
+
+def _flag_faces(m: Model, s: State, scratch: SurfaceScratch) -> None:
+    """The rebuild's first launches: the scratch reset, the stars and face neighbours, the boundary tet-face slots
+    flagged and counted (``scratch.compactor.new_count``)."""
+    d = m.device
+    tcap = m.tet_capacity
+    scratch.reset()
+    scratch.stars.build(m.tet_nodes, s.tet_count, s.tet_active, s.node_count, ref_face_nbr=m.ref_tet_face_nbr)
+    if tcap:
+        wp.launch(kf.count_tet_faces_kernel, dim=1, inputs=[s.tet_count], outputs=[scratch.tet_face_count], device=d)
+        wp.launch(
+            kf.flag_boundary_faces_kernel,
+            dim=4 * tcap,
+            inputs=[s.tet_count, s.tet_active, scratch.stars.tet_face_nbr],
+            outputs=[scratch.dead],
+            device=d,
+        )
+    scratch.compactor.plan(scratch.tet_face_count, scratch.dead)
+
+
+def _write_faces(
+    m: Model,
+    s: State,
+    scratch: SurfaceScratch,
+    faces: tuple[wp.array, wp.array, wp.array, wp.array],
+    stiffness: wp.array,
+    material: wp.array,
+    cap: int,
+) -> None:
+    """The rebuild's second launches: the boundary faces scattered into ``faces`` (nodes, tet, joint, depth), the
+    face count set, every node's penalty stiffness and contact material, the faces' extent (``scratch.extent``)."""
+    d = m.device
+    ncap, tcap = m.node_capacity, m.tet_capacity
+    stars = scratch.stars
     if tcap:
         wp.launch(
             kf.scatter_boundary_faces_kernel,
-            dim=slots,
-            inputs=[m.node_ref_q, m.tet_nodes, m.tet_volume, m.tet_face_joint, tet_face_count, old_to_new],
-            outputs=[face_nodes, face_tet, face_joint, face_depth],
+            dim=4 * tcap,
+            inputs=[
+                m.node_ref_q,
+                m.tet_nodes,
+                m.tet_volume,
+                m.tet_face_joint,
+                scratch.tet_face_count,
+                scratch.compactor.old_to_new,
+            ],
+            outputs=list(faces),
             device=d,
         )
-    wp.copy(s.face_count, compactor.new_count)
-    stiffness = _reuse(m.node_contact_stiffness, ncap, float, d)
-    material = _reuse(m.node_contact_material, ncap, int, d)
+    wp.copy(s.face_count, scratch.compactor.new_count)
+    stiffness.zero_()
+    material.zero_()
     if ncap:
         wp.launch(
             kf.node_contact_stiffness_kernel,
@@ -130,63 +215,32 @@ def rebuild_surface(model: Model, state: State, scratch: SurfaceScratch | None =
             outputs=[stiffness, material],
             device=d,
         )
-    extent = scratch.extent
     if cap:
         wp.launch(
             kf.face_extent_kernel,
             dim=cap,
-            inputs=[m.node_ref_q, face_nodes, face_depth, s.face_count],
-            outputs=[extent],
+            inputs=[m.node_ref_q, faces[0], faces[3], s.face_count],
+            outputs=[scratch.extent],
             device=d,
         )
-    radius, depth_max = (float(v) for v in extent.numpy())
-    topology = {}
-    for name, new in (
-        ("star_offset", stars.offset),
-        ("star_count", stars.count),
-        ("star_tets", stars.tets),
-        ("tet_face_nbr", stars.tet_face_nbr),
-    ):
-        old = getattr(m, name)
-        if old is not None and old.shape == new.shape:
-            wp.copy(old, new)
-            new = old
-        else:
-            new = wp.clone(new)  # the model never holds the scratch, which the next rebuild overwrites
-        topology[name] = new
-    model = dataclasses.replace(
-        m,
-        face_capacity=cap,
-        **topology,
-        face_nodes=face_nodes,
-        face_tet=face_tet,
-        face_joint=face_joint,
-        face_depth=face_depth,
-        node_contact_stiffness=stiffness,
-        node_contact_material=material,
-        face_radius=radius,
-        face_depth_max=depth_max,
-    )
-    return model, old_to_new
 
 
-def _reuse(a: wp.array | None, n: int, dtype: type, device: wp.context.Device) -> wp.array:
-    """``a`` zeroed when it has n entries, else a new zero array of n."""
+def _sized(a: wp.array | None, n: int, dtype: type, device: wp.context.Device) -> wp.array:
+    """``a`` when it has n entries, else a new zero array of n (zeroed where it is written)."""
     if a is not None and a.shape[0] == n:
-        a.zero_()
         return a
     return wp.zeros(n, dtype=dtype, device=device)
 
 
 def remap_face_ids(
-    model: Model, state: State, face_slot: wp.array, old_face_count: int, slot_to_face: wp.array
+    model: Model, state: State, face_slot: wp.array, old_face_count: wp.array, slot_to_face: wp.array
 ) -> None:
     """Carry the face ids the FEM contact state holds (every spring slot's target ``node_face_spring``, the
     sphere–face candidate slots ``sphere_face_index``) across a surface rebuild: old face → its tet-face slot
     (``face_slot``, taken before the topology changed) → the new face of that slot (``slot_to_face`` from
-    :func:`rebuild_surface`). Launches only."""
+    :func:`rebuild_surface`); ``old_face_count``: the face count before, shape (1,), on the device. Launches only."""
     for ids in (state.node_face_spring, state.sphere_face_index):
-        if ids.shape[0] and old_face_count:
+        if ids.shape[0]:
             wp.launch(
                 kf.remap_face_ids_kernel,
                 dim=ids.shape[0],

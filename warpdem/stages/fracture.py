@@ -136,7 +136,6 @@ class PassStatus:
         before: node count before the pass (the daughters' first slot).
         after: node count after it.
         rounds: independent-set rounds run.
-        faces: boundary faces before the pass.
     """
 
     reached: int
@@ -145,7 +144,6 @@ class PassStatus:
     before: int
     after: int
     rounds: int
-    faces: int
 
 
 @dataclass
@@ -269,6 +267,8 @@ class FracturePass:
         self.go = wp.zeros(1, dtype=int, device=d)
         self.more = wp.zeros(1, dtype=int, device=d)
         self.pass_status = wp.zeros(kfr.PASS_SLOTS, dtype=int, device=d)
+        # The first daughter's slot of the last pass, on the device (a view into the status).
+        self.first_new_slot = self.pass_status[kfr.PASS_BEFORE : kfr.PASS_BEFORE + 1]
         # The whole pass, and the search and rounds run apart (find_candidates, split), recorded and replayed.
         self.whole = Recorded(d, use_graph)
         self.rounds = Recorded(d, use_graph)
@@ -304,7 +304,7 @@ class FracturePass:
         ``stresses_current``: as :meth:`find_candidates`. The daughters take the node slots from ``before`` on."""
         m, s = model, state
         if m.node_capacity == 0 or m.tet_capacity == 0:
-            return PassStatus(0, 0, False, 0, 0, 0, 0)
+            return PassStatus(0, 0, False, 0, 0, 0)
         driver = getattr(m.loads, "node_driver", None)
         table = self.splitter.sides_table(m, s, [driver] if isinstance(driver, wp.array) else [])
         self.whole.run(
@@ -342,7 +342,6 @@ class FracturePass:
             inputs=[
                 s.node_count,
                 s.cohesive_count,
-                s.face_count,
                 self.candidate_count,
                 m.node_capacity,
                 m.cohesive_capacity,
