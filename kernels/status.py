@@ -52,3 +52,18 @@ def chunk_status_kernel(
     if k < cohesive_count[0]:
         if cohesive_broken[k] != 0:
             wp.atomic_add(status, COHESIVE_BROKEN, wp.float64(1.0))
+
+
+@wp.kernel
+def list_needs_kernel(
+    # State in:
+    nbr_needed: wp.array(dtype=int),
+    sphere_face_needed: wp.array(dtype=int),
+    node_face_needed: wp.array(dtype=int),
+    # Out:
+    needs: wp.array(dtype=int),
+):
+    _i = wp.tid()  # one thread: the lists' largest counts since their last build, for one read-back
+    needs[0] = nbr_needed[0]
+    needs[1] = sphere_face_needed[0]
+    needs[2] = node_face_needed[0]

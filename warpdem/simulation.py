@@ -579,8 +579,8 @@ class Simulation:
         fit and continue from ``restore_from`` (a state whose own lists fit). Returns whether it grew. ``status``: the
         counts as the chunk status read them (None: read them now)."""
         if status is None:
-            needed = int(self.state.nbr_needed.numpy()[0])
-            fem = fem_contact_growth(self.model, self.state)
+            needed, sphere_face, node_face = self.status.read_needs(self.state)
+            fem = fem_contact_growth(self.model, self.state, sphere_face, node_face)
         else:
             needed = status.nbr_needed
             fem = fem_contact_growth(self.model, self.state, status.sphere_face_needed, status.node_face_needed)

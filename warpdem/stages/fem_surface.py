@@ -91,31 +91,33 @@ def rebuild_surface(
         faces = tuple(wp.zeros(cap, dtype=t, device=d) for t in (wp.vec3i, int, int, float))
     stiffness = _sized(m.node_contact_stiffness, ncap, float, d)
     material = _sized(m.node_contact_material, ncap, int, d)
-    written = [*faces, stiffness, material]
+    # The stars and face neighbours go into the model's arrays where their shapes hold (copied with the writes);
+    # else the model takes copies of the scratch's (which the next rebuild overwrites).
+    stars = scratch.stars
+    fresh = {"star_offset": stars.offset, "star_count": stars.count, "star_tets": stars.tets}
+    fresh["tet_face_nbr"] = stars.tet_face_nbr
+    topology = {}
+    copies = []
+    for name, new in fresh.items():
+        old = getattr(m, name)
+        if old is not None and old.shape == new.shape:
+            copies.append((old, new))
+            topology[name] = old
+        else:
+            topology[name] = None
+    written = [*faces, stiffness, material, *(old for old, _ in copies)]
     second = (*first, cap, *(a.ptr for a in written))
     _run(
         recordings,
         1,
         second,
-        lambda: _write_faces(m, s, scratch, faces, stiffness, material, cap),
+        lambda: _write_faces(m, s, scratch, faces, stiffness, material, cap, copies),
         [scratch, *written],
     )
     radius, depth_max = (float(v) for v in scratch.extent.numpy())
-    stars = scratch.stars
-    topology = {}
-    for name, new in (
-        ("star_offset", stars.offset),
-        ("star_count", stars.count),
-        ("star_tets", stars.tets),
-        ("tet_face_nbr", stars.tet_face_nbr),
-    ):
-        old = getattr(m, name)
-        if old is not None and old.shape == new.shape:
-            wp.copy(old, new)
-            new = old
-        else:
-            new = wp.clone(new)  # the model never holds the scratch, which the next rebuild overwrites
-        topology[name] = new
+    for name, new in fresh.items():
+        if topology[name] is None:
+            topology[name] = wp.clone(new)
     face_nodes, face_tet, face_joint, face_depth = faces
     model = dataclasses.replace(
         m,
@@ -170,9 +172,11 @@ def _write_faces(
     stiffness: wp.array,
     material: wp.array,
     cap: int,
+    copies: list[tuple[wp.array, wp.array]],
 ) -> None:
     """The rebuild's second launches: the boundary faces scattered into ``faces`` (nodes, tet, joint, depth), the
-    face count set, every node's penalty stiffness and contact material, the faces' extent (``scratch.extent``)."""
+    face count set, every node's penalty stiffness and contact material, the faces' extent (``scratch.extent``), and
+    the ``copies`` (model array, scratch array) of the stars and face neighbours."""
     d = m.device
     ncap, tcap = m.node_capacity, m.tet_capacity
     stars = scratch.stars
@@ -223,6 +227,8 @@ def _write_faces(
             outputs=[scratch.extent],
             device=d,
         )
+    for old, new in copies:
+        wp.copy(old, new)
 
 
 def _sized(a: wp.array | None, n: int, dtype: type, device: wp.context.Device) -> wp.array:

@@ -39,6 +39,20 @@ class StatusReader:
 
     def __init__(self, device: wp.context.Device) -> None:
         self.values = wp.zeros(ks.SLOTS, dtype=wp.float64, device=device)
+        self.needs = wp.zeros(3, dtype=int, device=device)
+
+    def read_needs(self, state: State) -> tuple[int, int, int]:
+        """The lists' largest counts since their last build (neighbours, sphere–face, node–face), in one read-back
+        (between steps: after a set-up or a pass's force evaluation)."""
+        wp.launch(
+            ks.list_needs_kernel,
+            dim=1,
+            inputs=[state.nbr_needed, state.sphere_face_needed, state.node_face_needed],
+            outputs=[self.needs],
+            device=self.needs.device,
+        )
+        nbr, sphere_face, node_face = (int(x) for x in self.needs.numpy())
+        return nbr, sphere_face, node_face
 
     def launch(self, model: Model, state: State, report: wp.array, clean: wp.array) -> None:
         """Gather the status of ``state`` (launches only). ``report`` (the stability guard's, its launches done) is
