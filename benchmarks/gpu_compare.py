@@ -195,9 +195,9 @@ def run_case(scenario: str, cells: int, steps: int, window: int, device: str, ke
     for name in ("fracture_pass", "conversion_pass"):
         method = getattr(sim, name)
 
-        def recorded(method: Any = method) -> Any:
+        def recorded(*args: Any, method: Any = method, **kwargs: Any) -> Any:
             before_pass.append(driven_force(sim))
-            return method()
+            return method(*args, **kwargs)
 
         setattr(sim, name, recorded)  # Simulation.advance calls self.<pass>()
 

@@ -66,9 +66,13 @@ Rules of the split pass (others rely on them):
   neither, and each always holds its element's node, so when a node splits again each of its elements goes to the
   daughter whose side holds the representative tet. Joint elements are then re-sorted by their node pair
   (min, max), the order the contact stage searches them in; an element's A stays the node of its face slot's tet.
-- Capacities: before the rounds, the candidate count is read back; it bounds the pass's new nodes and elements, so
-  the node and cohesive capacities are grown ×2 until they hold it (warpdem.stages.topology.regrow_nodes,
-  warpdem.stages.cohesive.regrow_cohesive) and a pass never overflows half way: a grown run equals a large-capacity one.
+- Capacities: the candidate count bounds the pass's new nodes and elements, so the rounds run only where the node
+  and cohesive capacities hold it (kernel pass_gate, on the device); where they do not, nothing has changed, and the
+  host grows them ×2 until they do (warpdem.stages.topology.regrow_nodes, warpdem.stages.cohesive.regrow_cohesive) and
+  runs the pass again, so a pass never overflows half way: a grown run equals a large-capacity one.
+- On the device: a whole pass is one program (:meth:`FracturePass.find_and_split`: the bound, then the search and
+  the rounds in conditional branches, the rounds a device loop), recorded and replayed (warpdem.recorded), with its
+  counts in a status vector read back once.
 - After a pass with splits (Simulation): boundary faces rebuilt on the device (crack faces become contact faces),
   the face ids held by the FEM contact state remapped through their tet-face slots, contact lists rebuilt, pressure
   faces and node drivers following the split, forces re-evaluated at the current positions with dt = 0.
