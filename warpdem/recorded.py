@@ -1,5 +1,5 @@
-"""Host code recorded once and replayed (issue 24): a between-steps stage made of launches only (a split pass's
-rounds, its candidate search, the forces re-evaluated after a pass, the chunk's guard and status) pays Warp's Python
+"""Host code recorded once and replayed (issue 24): a between-steps stage made of launches only (a whole split pass,
+the surface rebuilt after it, the forces re-evaluated, the chunk's guard and status) pays Warp's Python
 launch path (~30 µs a launch on the CPU, a driver call each on a GPU) every time it runs eagerly. :class:`Recorded`
 records it into a graph (a CUDA graph on GPUs, Warp's recorded graph on the CPU) the second time it runs with the
 same arrays and replays it from then on; the first run, eager, compiles the kernels and builds what the stage caches
@@ -73,19 +73,12 @@ class Recorded:
         self.key: tuple | None = None
         self.graph: Any = None
         self._retained: tuple = ()
-        self.replays = 0
 
-    def run(
-        self,
-        key: tuple,
-        body: Callable[[], None],
-        eager: Callable[[], None] | None = None,
-        retain: Sequence[object] = (),
-    ) -> bool:
-        """Run ``body`` (launches only), or replay its recording. ``eager``: what runs instead of ``body`` when not
-        recorded (a device loop, ``wp.capture_while`` in ``body``, that reads its condition back instead); None:
-        ``body`` itself. ``retain``: objects whose device memory the recording reads but the key does not hold (word
-        tables of a cache that may drop them), kept alive while the recording is. Returns whether it replayed."""
+    def run(self, key: tuple, body: Callable[[], None], retain: Sequence[object] = ()) -> bool:
+        """Run ``body`` (launches only; its ``wp.capture_if`` / ``capture_while`` read their conditions back when it
+        runs eagerly), or replay its recording. ``retain``: objects whose device memory the recording reads but the
+        key does not hold (word tables of a cache that may drop them), kept alive while the recording is. Returns
+        whether it replayed."""
         if self.use_graph and key == self.key:
             if self.graph is None:
                 try:
@@ -100,13 +93,8 @@ class Recorded:
                     self.graph, self._retained = capture.graph, tuple(retain)
             if self.graph is not None:
                 wp.capture_launch(self.graph)
-                self.replays += 1
                 return True
         elif key != self.key:
             self.key, self.graph, self._retained = key, None, ()
-        (eager or body)()
+        body()
         return False
-
-    def forget(self) -> None:
-        """Drop the recording (its arrays are about to be reallocated or freed)."""
-        self.key, self.graph, self._retained = None, None, ()

@@ -242,7 +242,8 @@ class FracturePass:
 
     Args:
         model: the model (its node and tet capacities size the buffers).
-        use_graph: record the split rounds into a graph and replay it (:meth:`split`); False: launch them one by one.
+        use_graph: record a whole pass into a graph and replay it (:meth:`find_and_split`); False: launch it launch
+            by launch.
     """
 
     def __init__(self, model: Model, use_graph: bool = True) -> None:
@@ -273,10 +274,8 @@ class FracturePass:
         self.pass_status = wp.zeros(kfr.PASS_SLOTS, dtype=int, device=d)
         # The first daughter's slot of the last pass, on the device (a view into the status).
         self.first_new_slot = self.pass_status[kfr.PASS_BEFORE : kfr.PASS_BEFORE + 1]
-        # The whole pass, and the search and rounds run apart (find_candidates, split), recorded and replayed.
+        # The whole pass (find_and_split), recorded and replayed.
         self.whole = Recorded(d, use_graph)
-        self.rounds = Recorded(d, use_graph)
-        self.search = Recorded(d, use_graph)
         # The partition finds the faces neighbours have opened through the tets across them, joint faces included.
         self.no_joints = wp.zeros(0, dtype=int, device=d)
         table = model.fracture_material_table
@@ -308,7 +307,7 @@ class FracturePass:
         ``stresses_current``: as :meth:`find_candidates`. The daughters take the node slots from ``before`` on."""
         m, s = model, state
         if m.node_capacity == 0 or m.tet_capacity == 0:
-            return PassStatus(0, 0, False, 0, 0, 0)
+            return PassStatus(0, 0, 0, 0, 0, 0)
         driver = getattr(m.loads, "node_driver", None)
         table = self.splitter.sides_table(m, s, [driver] if isinstance(driver, wp.array) else [])
         self.whole.run(
@@ -356,7 +355,7 @@ class FracturePass:
 
         def rounds() -> None:
             before_split()
-            self.more.fill_(1)  # the node count before is in the status since the pass began
+            # The loop's condition and the node count before were set as the pass began (begin_rounds_kernel).
             wp.capture_while(self.more, lambda: self._round(m, s, max_rounds))
 
         wp.capture_if(self.go, rounds)
@@ -382,9 +381,10 @@ class FracturePass:
         return self.select.new_count
 
     def find_candidates(self, model: Model, state: State, stresses_current: bool = False) -> int:
-        """Refresh the tet stresses (unless ``stresses_current``: the caller has just evaluated them at the current
-        positions, as ``Simulation.advance`` has at the end of every chunk), build the stars, evaluate the nodal stress
-        and list the candidates in node order. Reads back the candidate count."""
+        """The first half of :meth:`find_and_split` on its own, launch by launch (for a caller that inspects the
+        candidates before :meth:`split`): refresh the tet stresses (unless ``stresses_current``: the caller has just
+        evaluated them at the current positions), build the stars, evaluate the nodal stress and list the candidates
+        in node order. Reads back the candidate count."""
         m, s = model, state
         if m.node_capacity == 0 or m.tet_capacity == 0:
             return 0
@@ -392,8 +392,7 @@ class FracturePass:
         self._tension_bound(m, s, stresses_current)
         if int(self.reached.numpy()[0]) == 0:
             return 0
-        # Launches only, recorded and replayed (warpdem.recorded): ~15 launches a pass.
-        self.search.run(arrays_key(m, s), lambda: self._search(m, s))
+        self._search(m, s)
         return int(self.select.new_count.numpy()[0])
 
     def _search(self, model: Model, state: State) -> None:
@@ -468,16 +467,10 @@ class FracturePass:
         return self.won
 
     def split(self, model: Model, state: State, max_rounds: int = MAX_ROUNDS) -> tuple[int, int]:
-        """Split the candidates in rounds of independent sets (module docstring). The capacities must hold
+        """The second half of :meth:`find_and_split` on its own, launch by launch (after :meth:`find_candidates`):
+        split the candidates in rounds of independent sets (module docstring). The capacities must hold
         ``node_count + candidates`` nodes and ``cohesive_count + candidates`` elements. The daughters take the node
-        slots from ``first_new_node`` (set here) on.
-
-        The rounds are a loop on the device (``wp.capture_while`` on :attr:`more`, which each round's last launch
-        sets), recorded into a graph the second time a pass runs with the same arrays (warpdem.recorded) and
-        replayed from then on; the first time, and where graphs are off or unavailable, the same launches run one by
-        one and the loop reads :attr:`more` back each round. Either way the pass ends with one read-back of
-        :attr:`pass_status` (node count before and after, rounds run). :meth:`find_and_split` runs it as part of a
-        whole pass.
+        slots from ``first_new_node`` (set here) on. Reads back the loop's condition each round and the status once.
 
         Returns:
             (nodes split, rounds run).
@@ -486,20 +479,7 @@ class FracturePass:
         wp.launch(
             kfr.begin_rounds_kernel, dim=1, inputs=[s.node_count], outputs=[self.pass_status, self.more], device=d
         )
-
-        def eager() -> None:
-            for _ in range(max_rounds):
-                self._round(m, s, max_rounds)
-                if int(self.more.numpy()[0]) == 0:
-                    break
-
-        self.rounds.run(
-            (arrays_key(m, m.loads, s), max_rounds),
-            lambda: wp.capture_while(self.more, lambda: self._round(m, s, max_rounds)),
-            eager,
-            # The fused replicate's word tables: the splitter's cache may drop one that the recording still reads.
-            retain=list(self.splitter.compactor._tables.values()),
-        )
+        wp.capture_while(self.more, lambda: self._round(m, s, max_rounds))
         status = self.pass_status.numpy()
         before, after, rounds = (int(status[k]) for k in (kfr.PASS_BEFORE, kfr.PASS_AFTER, kfr.PASS_ROUNDS))
         self.first_new_node = before

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
+from ..fused import WordTable
 from ..kernels import topology as kt
 from ..model import Model, State
 from .compaction import Compactor
@@ -289,7 +290,7 @@ class NodeSplitter:
                 device=self.device,
             )
 
-    def sides_table(self, model: Model, state: State, extra_node_arrays: Sequence[wp.array] = ()) -> object:
+    def sides_table(self, model: Model, state: State, extra_node_arrays: Sequence[wp.array] = ()) -> WordTable:
         """The word table :meth:`apply_sides` replicates through, built now if not kept (Compactor.rows_table)."""
         return self.compactor.rows_table(carried_node_rows(model, state, extra_node_arrays))
 
