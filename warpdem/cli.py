@@ -371,6 +371,13 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(str(f) for f in files))
         return 0
     args = run_parser().parse_args(argv)
+    from .parallel.run import rank_is_follower
+
+    if rank_is_follower():
+        # Under mpiexec every rank runs this command; rank 0 speaks for the run (its errors are every rank's).
+        args.quiet = True
+        sys.stdout = open(os.devnull, "w")  # noqa: SIM115 (for the life of the process)
+        sys.stderr = sys.stdout
 
     from .scene import SceneError, default_scene_path, load_scene
 

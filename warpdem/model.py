@@ -182,6 +182,11 @@ class Model:
             is it; not nan, which a checkpoint's attributes could not compare equal).
         tet_may_rigid: 1 where a tet may turn rigid (the scene's region or materials), else 0, shape
             (tet_capacity,), int32; None: every tet.
+        radius_bound: the largest sphere radius of the whole run [m] where this model is one rank's subdomain
+            (warpdem.parallel), so that every rank's contact grid has the whole run's cells; 0: from the radii.
+        grid_owners: the sphere capacity of the whole run where this model is a subdomain, which sizes the contact
+            grid's hash table as the whole run's (the same cells share a bucket, so candidates come in the same
+            order); 0: ``particle_capacity``.
     """
 
     device: wp.context.Device
@@ -281,10 +286,15 @@ class Model:
     rigid_check_interval: int = 100
     deformable_critical_dt: float = 0.0
     tet_may_rigid: wp.array | None = None
+    radius_bound: float = 0.0
+    grid_owners: int = 0
 
     @property
     def max_radius(self) -> float:
-        """Largest sphere radius [m] (host copy, for the grid cell size)."""
+        """Largest sphere radius [m] (host copy, for the grid cell size): ``radius_bound`` where set (a subdomain's,
+        the whole run's largest), else the largest of the model's spheres."""
+        if self.radius_bound > 0.0:
+            return self.radius_bound
         r = self.particle_radius.numpy()
         return float(r.max()) if r.size else 0.0
 

@@ -33,6 +33,7 @@ from ..build.scene_build import finalize_scene, scene_builder, start_as_spheres
 from ..io.checkpoint import checkpoint_name
 from ..io.output import PART_PALETTE, ramp_colors
 from ..io.restart import restore_checkpoint, save_checkpoint
+from ..parallel.run import NotDecomposable, make_simulation, release_ranks
 from ..scene import Scene, SceneError
 from ..simulation import Simulation
 from ..stages.energy import EnergyBalance, balance_error
@@ -267,7 +268,12 @@ class Run(RunAccess):
             note = end_time_note(end_time, fps, model.dt, substeps, last_step)
             if note is not None:
                 self._say(note)
-        self.sim = sim = Simulation(model, state, primed=primed, step=step, time=sim_time)
+        try:
+            # One process, or under mpiexec rank 0's view of a run decomposed over the ranks (warpdem.parallel); the
+            # other ranks follow it inside this call and leave the process from it.
+            self.sim = sim = make_simulation(model, state, primed=primed, step=step, time=sim_time)
+        except NotDecomposable as exc:
+            raise SceneError(f"{scene.source}: {exc}") from None
         if not restart:
             # A new run converts its start_as_spheres region here, before frame 0; a restart's checkpoint holds them.
             start_as_spheres(scene, sim)
@@ -915,8 +921,11 @@ def run_scene(scene: Scene, options: RunOptions | None = None) -> RunSummary:
     """
     options = options or RunOptions()
     run = Run(scene, options)
-    with _StopRequest(run, options.quiet):
-        return run.run()
+    try:
+        with _StopRequest(run, options.quiet):
+            return run.run()
+    finally:
+        release_ranks(run.sim)
 
 
 @dataclasses.dataclass(frozen=True)

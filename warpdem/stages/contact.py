@@ -39,7 +39,7 @@ class NeighborList:
         device = model.device
         cap = model.particle_capacity
         # A float64 grid over the float64 centres: no float32 copy to keep, and the same candidates at any offset.
-        self.grid = wp.HashGrid(*(hash_grid_dims(cap),) * 3, device=device, dtype=wp.float64)
+        self.grid = wp.HashGrid(*(hash_grid_dims(model.grid_owners or cap),) * 3, device=device, dtype=wp.float64)
         # Reserve for every slot now, so that a rebuild inside a captured graph never allocates.
         self.grid.reserve(cap)
         self.cell = 2.0 * model.max_radius + model.skin

@@ -1,0 +1,210 @@
+"""Spheres as host rows, keyed by global id: what a rank sends when spheres migrate or become ghosts, what it builds
+its subdomain's Model and State from, and what rank 0 writes back into the whole state for output.
+
+A sphere's global id is its index in the whole model the scene builds (every rank builds it the same way); a
+subdomain keeps its spheres sorted by global id, so its loops run in the whole run's order. A slot's partner is held
+as a global id in rows (a local index means nothing on another rank) and translated back where the rows land.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import warp as wp
+
+from ..model import NEIGHBOR_FIELDS, Model, State
+
+MODEL_FIELDS = (
+    "particle_radius",
+    "particle_mass",
+    "particle_inv_mass",
+    "particle_inv_inertia",
+    "particle_material",
+    "particle_motion",
+    "particle_part",
+    "particle_id",
+)
+"""Model fields with one entry per sphere."""
+
+STATE_FIELDS = (
+    "particle_q",
+    "particle_qd",
+    "particle_qd_carry",
+    "particle_omega",
+    "particle_f",
+    "particle_t",
+    "particle_q_at_build",
+    "particle_bonds_broken",
+    "energy_damping",
+    "energy_friction",
+    "energy_boundary_work",
+    "energy_bond_broken",
+    "energy_bond_trapezoid",
+    "energy_stiffness_change",
+    "contact_f_normal",
+    "contact_f_tangential",
+    "contact_t_tangential",
+    "contact_energy_prev",
+)
+"""State fields with one entry per sphere (besides its list: ``nbr_count`` and the slots)."""
+
+PARTNER = "nbr_partner"
+"""The rows' name of the slots' partners as global ids (-1 past a sphere's count)."""
+
+
+@dataclasses.dataclass
+class Rows:
+    """Host rows of some spheres.
+
+    Attributes:
+        gid: global ids, shape (n,), int64.
+        fields: per-sphere arrays by field name, each shape (n, ...): the Model and State fields above, ``wall_shear``
+            (n, num_walls, 3), ``nbr_count`` (n,), and the slots (n, K, ...) of ``nbr_shear``, ``nbr_bond`` and
+            :data:`PARTNER`.
+    """
+
+    gid: np.ndarray
+    fields: dict[str, np.ndarray]
+
+    def __len__(self) -> int:
+        return int(self.gid.shape[0])
+
+    def take(self, where: np.ndarray) -> Rows:
+        """The rows at ``where`` (indices or a mask)."""
+        return Rows(self.gid[where], {name: a[where] for name, a in self.fields.items()})
+
+    @staticmethod
+    def join(parts: list[Rows]) -> Rows:
+        """Rows of several parts in one, sorted by global id (the parts hold no id twice). Slots are padded to the
+        widest part's K (partner -1, bond -1)."""
+        parts = [p for p in parts if p.fields]
+        k = max(p.fields[PARTNER].shape[1] for p in parts)
+        gid = np.concatenate([p.gid for p in parts])
+        order = np.argsort(gid, kind="stable")
+        fields = {}
+        for name in parts[0].fields:
+            arrays = [_pad_slots(name, p.fields[name], k) for p in parts]
+            fields[name] = np.concatenate(arrays)[order]
+        return Rows(gid[order], fields)
+
+
+def _pad_slots(name: str, a: np.ndarray, k: int) -> np.ndarray:
+    if name not in (*NEIGHBOR_FIELDS, PARTNER) or a.shape[1] == k:
+        return a
+    fill = -1 if name in ("nbr_bond", PARTNER) else 0
+    pad = [(0, 0), (0, k - a.shape[1])] + [(0, 0)] * (a.ndim - 2)
+    return np.pad(a, pad, constant_values=fill)
+
+
+def rows_of(model: Model, state: State, gid: np.ndarray, local: np.ndarray) -> Rows:
+    """The rows of the local spheres ``local`` (indices) of a subdomain whose spheres have the global ids ``gid``
+    (shape (particle_count,))."""
+    cap, k, walls = model.particle_capacity, model.max_neighbors, model.num_walls
+    fields = {name: getattr(model, name).numpy()[local] for name in MODEL_FIELDS}
+    fields.update({name: getattr(state, name).numpy()[local] for name in STATE_FIELDS})
+    fields["wall_shear"] = state.wall_shear.numpy().reshape(cap, walls, 3)[local]
+    count = np.minimum(state.nbr_count.numpy()[local], k)
+    fields["nbr_count"] = count
+    index = state.nbr_index.numpy().reshape(cap, k)[local]
+    live = np.arange(k)[None, :] < count[:, None]
+    fields[PARTNER] = np.where(live, gid[np.where(live, index, 0)], -1).astype(np.int64)
+    fields["nbr_shear"] = state.nbr_shear.numpy().reshape(cap, k, 3)[local]
+    fields["nbr_bond"] = state.nbr_bond.numpy().reshape(cap, k)[local]
+    return Rows(gid[local].astype(np.int64), fields)
+
+
+def _slot_arrays(rows: Rows, k: int) -> dict[str, np.ndarray]:
+    """``nbr_count`` and the slots of ``rows`` as local arrays (n, k, ...): the partners found among the rows as local
+    indices, moved to the front of their sphere's slots in their order; a partner not among them is dropped (the list
+    is rebuilt right after: it only carries history)."""
+    n = len(rows)
+    partner = _pad_slots(PARTNER, rows.fields[PARTNER], k)[:, :k]
+    found = np.minimum(np.searchsorted(rows.gid, partner), max(n - 1, 0))
+    keep = (partner >= 0) & (rows.gid[found] == partner) if n else partner >= 0
+    order = np.argsort(~keep, axis=1, kind="stable")
+    count = keep.sum(axis=1).astype(np.int32)
+    live = np.arange(k)[None, :] < count[:, None]
+    index = np.take_along_axis(np.where(keep, found, 0), order, axis=1)
+    shear = np.take_along_axis(_pad_slots("nbr_shear", rows.fields["nbr_shear"], k)[:, :k], order[..., None], 1)
+    bond = np.take_along_axis(_pad_slots("nbr_bond", rows.fields["nbr_bond"], k)[:, :k], order, axis=1)
+    return {
+        "nbr_count": count,
+        "nbr_index": np.where(live, index, 0).astype(np.int32),
+        "nbr_shear": np.where(live[..., None], shear, 0.0).astype(np.float32),
+        "nbr_bond": np.where(live, bond, -1).astype(np.int32),
+    }
+
+
+def _local_arrays(rows: Rows, k: int, cap: int) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """The Model and State per-sphere arrays of ``rows`` at capacity ``cap`` (≥ len(rows)) with ``k`` slots, as
+    host arrays shaped like the device ones (slots and wall histories flattened); dead slots zero (bond -1)."""
+    n = len(rows)
+
+    def padded(a: np.ndarray, fill: float = 0) -> np.ndarray:
+        full = np.full((cap, *a.shape[1:]), fill, dtype=a.dtype)
+        full[:n] = a
+        return full
+
+    model = {name: padded(rows.fields[name]) for name in MODEL_FIELDS}
+    state = {name: padded(rows.fields[name]) for name in STATE_FIELDS}
+    state["wall_shear"] = padded(rows.fields["wall_shear"]).reshape(-1, 3)
+    for name, a in _slot_arrays(rows, k).items():
+        full = padded(a, -1 if name == "nbr_bond" else 0)
+        state[name] = full if name == "nbr_count" else full.reshape(cap * k, *a.shape[2:])
+    return model, state
+
+
+def subdomain(model: Model, state: State, rows: Rows, max_neighbors: int, capacity: int) -> tuple[Model, State]:
+    """A Model and State of the spheres of ``rows`` (sorted by global id) in ``capacity`` slots (≥ len(rows), ≥ 1),
+    with ``max_neighbors`` list slots each; everything that is not per sphere (walls, clock, counters, tables) is
+    copied from ``model``/``state``."""
+    device = model.device
+    mhost, shost = _local_arrays(rows, max_neighbors, capacity)
+    mfields = {name: wp.array(a, dtype=getattr(model, name).dtype, device=device) for name, a in mhost.items()}
+    sfields = {name: wp.clone(a) for name, a in state.arrays().items()}
+    sfields.update({name: wp.array(a, dtype=getattr(state, name).dtype, device=device) for name, a in shost.items()})
+    sfields["particle_count"] = wp.array([len(rows)], dtype=int, device=device)
+    local_model = dataclasses.replace(model, particle_capacity=capacity, max_neighbors=max_neighbors, **mfields)
+    return local_model, State(**sfields)
+
+
+def fill(model: Model, state: State, rows: Rows) -> None:
+    """Write the spheres of ``rows`` into a subdomain's own arrays (no allocation: recorded graphs stay valid); the
+    rows must fit its capacity and its ``max_neighbors``."""
+    mhost, shost = _local_arrays(rows, model.max_neighbors, model.particle_capacity)
+    for obj, host in ((model, mhost), (state, shost)):
+        for name, a in host.items():
+            target = getattr(obj, name)
+            if target.device.is_cpu:
+                np.copyto(target.numpy().reshape(a.shape), a)  # the host view is the array itself: no staging copy
+            else:
+                target.assign(a)
+    state.particle_count.fill_(len(rows))
+
+
+def write_rows(model: Model, state: State, rows: Rows) -> None:
+    """Write ``rows`` into the whole run's ``state`` at their global ids (the whole model's order), slots with their
+    partners as whole indices; ``state`` must have at least the rows' K slots (``model.max_neighbors``)."""
+    cap, k, walls = model.particle_capacity, model.max_neighbors, model.num_walls
+    at = rows.gid
+    for name in STATE_FIELDS:
+        host = getattr(state, name).numpy()
+        host[at] = rows.fields[name]
+        getattr(state, name).assign(host)
+    shear = state.wall_shear.numpy().reshape(cap, walls, 3)
+    shear[at] = rows.fields["wall_shear"]
+    state.wall_shear.assign(shear.reshape(-1, 3))
+    count = state.nbr_count.numpy()
+    count[at] = rows.fields["nbr_count"]
+    state.nbr_count.assign(count)
+    slots = {
+        "nbr_index": np.maximum(_pad_slots(PARTNER, rows.fields[PARTNER], k), 0).astype(np.int32),
+        "nbr_shear": _pad_slots("nbr_shear", rows.fields["nbr_shear"], k),
+        "nbr_bond": _pad_slots("nbr_bond", rows.fields["nbr_bond"], k),
+    }
+    for name, a in slots.items():
+        arr = getattr(state, name)
+        host = arr.numpy().reshape(cap, k, *a.shape[2:])
+        host[at] = a[:, :k]
+        arr.assign(host.reshape(cap * k, *a.shape[2:]))

@@ -1,0 +1,245 @@
+"""A run on several ranks as the runner sees it: rank 0 drives, the other ranks follow its commands.
+
+Rank 0 holds a :class:`Decomposed` in place of the :class:`~warpdem.simulation.Simulation`: each ``advance`` is sent
+to every rank, each steps its subdomain, and the owned spheres are gathered into the whole run's state on rank 0,
+which writes frames, books and checkpoints from it as one process would (the whole state is the one-process state bit
+for bit on the CPU). The other ranks run :func:`serve` until rank 0 says stop. A checkpoint is therefore one file
+of the whole run, and a restart on any number of ranks cuts it again.
+
+What is decomposed so far (issue 25, first part): spheres with their contact laws and history, rolling, walls and
+gravity. A scene with anything else is refused on more than one rank with a message that says what.
+"""
+
+from __future__ import annotations
+
+import atexit
+from typing import Any
+
+from ..model import Model, State
+from ..simulation import Simulation, regrow_neighbors
+from ..stages.guard import CriticalStep, UnstableRunError
+from .comm import world
+from .rows import Rows, write_rows
+from .subdomain import Subdomain
+
+SHARED_FIELDS = ("time", "wall_point", "rebuild_total")
+"""Whole-run State arrays every rank holds alike, copied from rank 0's subdomain into the whole state."""
+
+
+class NotDecomposable(ValueError):
+    """The scene has what a decomposed run cannot run yet; the message says what."""
+
+
+class WorkerDone(SystemExit):
+    """A follower rank's run is over (rank 0 said stop): the process exits with status 0, nothing printed."""
+
+    def __init__(self) -> None:
+        super().__init__(0)
+
+
+def unsupported(model: Model, state: State) -> list[str]:
+    """What ``model`` has that a decomposed run cannot run yet (empty: it can)."""
+    found = []
+    if model.node_capacity or int(state.node_count.numpy()[0]):
+        found.append("FEM nodes and tets (continuum, fracture, conversion, joints)")
+    if model.bond_capacity:
+        found.append("bonds between spheres")
+    if model.face_capacity:
+        found.append("FEM surface contact")
+    if model.loads is not None:
+        found.append("loads (pressure, blast, drivers)")
+    if model.rigid_switch:
+        found.append("the rigid-block switch")
+    if model.conversion_interval or model.coupling_capacity:
+        found.append("FEM→DEM conversion")
+    if int(state.particle_count.numpy()[0]) == 0:
+        found.append("no spheres at all")
+    return found
+
+
+def make_simulation(model: Model, state: State, **kwargs: Any) -> Simulation | Decomposed:
+    """The stepper of a run: a :class:`~warpdem.simulation.Simulation` in one process; under ``mpiexec`` with more
+    than one rank, a :class:`Decomposed` on rank 0, while every other rank follows it in :func:`serve` and leaves
+    with :class:`WorkerDone`.
+
+    Raises:
+        NotDecomposable: the scene has what a decomposed run cannot run yet (every rank raises it alike).
+    """
+    comm = world()
+    if comm is None:
+        return Simulation(model, state, **kwargs)
+    missing = unsupported(model, state)
+    if missing:
+        raise NotDecomposable(
+            f"this scene cannot run on {comm.Get_size()} ranks yet; decomposed so far: spheres, their "
+            f"contacts, walls and gravity; this scene has {', '.join(missing)} (run it in one process)"
+        )
+    if comm.Get_rank() == 0:
+        sim = Decomposed(comm, model, state, **kwargs)
+        # Whatever way rank 0 leaves (an error in the runner included), the followers are released.
+        atexit.register(sim.close)
+        return sim
+    serve(comm, model, state, **kwargs)
+    raise WorkerDone()
+
+
+def _gather(comm: Any, local: Subdomain) -> list[Rows] | None:
+    """Every rank's owned rows at rank 0 (None elsewhere), then the lists' largest count (rank 0 gets the max)."""
+    rows = comm.gather(local.owned_rows(), root=0)
+    if comm.Get_rank() > 0:
+        from mpi4py import MPI
+
+        comm.reduce(int(local.state.nbr_needed.numpy()[0]), op=MPI.MAX, root=0)
+    return rows
+
+
+def serve(comm: Any, model: Model, state: State, **kwargs: Any) -> None:
+    """A follower rank: step its subdomain as rank 0 commands, until it says stop. An unstable run stops every rank
+    together (rank 0 reports it); any other error here aborts the whole job, since rank 0 would wait for this rank."""
+    try:
+        local = Subdomain(comm, model, state, **kwargs)
+        _gather(comm, local)
+        while True:
+            command, args = comm.bcast(None, root=0)
+            if command == "stop":
+                return
+            if command == "advance":
+                try:
+                    local.advance(*args)
+                except UnstableRunError:
+                    continue  # rank 0 raised it too and ends the run; wait for its stop
+                _gather(comm, local)
+            elif command == "set_time_step":
+                local.set_time_step(*args)
+    except Exception as exc:
+        import sys
+        import traceback
+
+        # The process's own stderr: the command line sends a follower's output to nowhere.
+        traceback.print_exc(file=sys.__stderr__)
+        print(
+            f"rank {comm.Get_rank()}: {type(exc).__name__}: {exc}; aborting every rank", file=sys.__stderr__, flush=True
+        )
+        comm.Abort(1)
+
+
+class Decomposed:
+    """Rank 0's stepper of a run decomposed over ``comm``: the :class:`~warpdem.simulation.Simulation` interface
+    the runner uses, over the whole run's state gathered after every ``advance``.
+
+    Args:
+        comm: the MPI communicator (mpi4py).
+        model, state: the whole run (every rank built it alike).
+        Other keywords: as :class:`~warpdem.simulation.Simulation`.
+    """
+
+    def __init__(self, comm: Any, model: Model, state: State, **kwargs: Any) -> None:
+        self.comm = comm
+        self.ranks = comm.Get_size()
+        self.local = Subdomain(comm, model, state, **kwargs)
+        # The whole run, never stepped: what frames, books and checkpoints read.
+        self.whole = Simulation(model, state, primed=True, step=kwargs.get("step", 0), time=kwargs.get("time"))
+        self._closed = False
+        self._collect()
+
+    # The runner's view of the whole run.
+    @property
+    def model(self) -> Model:
+        return self.whole.model
+
+    @property
+    def state(self) -> State:
+        return self.whole.state
+
+    @property
+    def step_count(self) -> int:
+        return self.local.step_count
+
+    @property
+    def time(self) -> float:
+        return self.local.time
+
+    rigid = False
+    rigid_report = None
+    has_spheres = True
+
+    @property
+    def particle_count(self) -> int:
+        return self.whole.particle_count
+
+    @property
+    def bond_count(self) -> int:
+        return self.whole.bond_count
+
+    @property
+    def node_count(self) -> int:
+        return self.whole.node_count
+
+    def energy(self) -> Any:
+        return self.whole.energy()
+
+    def shadow(self) -> float:
+        return self.whole.shadow()
+
+    def contact_count(self) -> int:
+        return self.whole.contact_count()
+
+    def advance(self, n_steps: int, stop_at_switch: bool = False) -> int:
+        """``n_steps`` on every rank, then the owned spheres gathered into the whole state."""
+        self.comm.bcast(("advance", (n_steps, stop_at_switch)), root=0)
+        self.local.advance(n_steps, stop_at_switch)
+        self._collect()
+        return n_steps
+
+    def set_time_step(self, dt: float, critical: CriticalStep | None = None) -> float:
+        self.comm.bcast(("set_time_step", (dt, critical)), root=0)
+        self.whole.set_time_step(dt, critical)
+        return self.local.set_time_step(dt, critical)
+
+    def close(self) -> None:
+        """Release the follower ranks (they leave :func:`serve`); idempotent."""
+        if not self._closed:
+            self._closed = True
+            self.comm.bcast(("stop", ()), root=0)
+
+    def _collect(self) -> None:
+        """The owned rows of every rank into the whole state, the shared arrays from rank 0's subdomain."""
+        rows = Rows.join(_gather(self.comm, self.local))
+        w = self.whole
+        k = rows.fields["nbr_shear"].shape[1]
+        if k > w.model.max_neighbors:
+            w.model, w.state = regrow_neighbors(w.model, w.state, k)
+            w._setup()
+        write_rows(w.model, w.state, rows)
+        for name in SHARED_FIELDS:
+            getattr(w.state, name).assign(getattr(self.local.state, name))
+        from mpi4py import MPI
+
+        needed = self.comm.reduce(int(self.local.state.nbr_needed.numpy()[0]), op=MPI.MAX, root=0)
+        w.state.nbr_needed.fill_(needed)
+        w.step_count, w.time = self.local.step_count, self.local.time
+        w.state.rebuild_flag.zero_()
+
+
+def rank_is_follower() -> bool:
+    """Whether this process is a rank other than 0 of a decomposed run (it prints nothing of the run)."""
+    comm = world()
+    return comm is not None and comm.Get_rank() > 0
+
+
+def release_ranks(sim: object) -> None:
+    """Release the followers of a decomposed run (a no-op for any other stepper)."""
+    if isinstance(sim, Decomposed):
+        sim.close()
+
+
+__all__ = [
+    "Decomposed",
+    "NotDecomposable",
+    "WorkerDone",
+    "make_simulation",
+    "rank_is_follower",
+    "release_ranks",
+    "serve",
+    "unsupported",
+]
