@@ -13,6 +13,7 @@ gravity. A scene with anything else is refused on more than one rank with a mess
 from __future__ import annotations
 
 import atexit
+import signal
 from typing import Any
 
 from ..model import Model, State
@@ -96,6 +97,10 @@ def _gather(comm: Any, local: Subdomain) -> list[Rows] | None:
 def serve(comm: Any, model: Model, state: State, **kwargs: Any) -> None:
     """A follower rank: step its subdomain as rank 0 commands, until it says stop. An unstable run stops every rank
     together (rank 0 reports it); any other error here aborts the whole job, since rank 0 would wait for this rank."""
+    # mpiexec passes Ctrl-C (and a TERM) to every rank: rank 0 stops the run at the next frame and writes its
+    # checkpoint (warpdem.runner), which needs every rank to keep stepping and gathering until it says stop.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     try:
         local = Subdomain(comm, model, state, **kwargs)
         _gather(comm, local)

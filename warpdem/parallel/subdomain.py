@@ -3,10 +3,11 @@
 
 Per step (DESIGN.md, "Scale"): after the drift each rank sends the centres, velocities and spins of its owned spheres
 that others hold as ghosts, one message per neighbour; forces on ghosts are computed again where they are held
-("newton off"), nothing is sent back. The list rebuild is decided by all ranks together (the skin test over owned
-spheres, then a max-reduce); at a rebuild the spheres migrate to the slab their centre is in, each with its whole
-history (the slots keyed by partner id), the ghosts are chosen again and the slabs re-balanced when the owned counts
-differ by more than 10 %.
+("newton off"), nothing is sent back; the same message carries the reduction of the owned spheres' skin tests, so the
+ranks meet once a step. The list rebuild is decided by all ranks together. At a rebuild where a sphere has moved more
+than the migration margin since the last migration, the spheres migrate to the slab their centre is in, each with its
+whole history (the slots keyed by partner id), the ghosts are chosen again, and the slabs are cut again first when the
+ranks' measured work differs by more than 10 %.
 
 On the CPU a rank's result is the one-process result bit for bit: a subdomain keeps its spheres sorted by global id
 and its grid has the whole run's cells and hash table, so every thread sees the same pairs in the same order and every
@@ -16,6 +17,7 @@ force sums in the same order (tests/test_parallel.py holds it).
 from __future__ import annotations
 
 import dataclasses
+import time
 from typing import Any
 
 import numpy as np
@@ -30,7 +32,7 @@ from .domain import Slabs
 from .rows import Rows, fill, rows_of, subdomain
 
 IMBALANCE = 1.10
-"""Largest owned count over the mean before the slabs are cut again (at a migration)."""
+"""Largest rank's measured step work over the mean before the slabs are cut again (at a migration)."""
 
 HEADROOM = 1.25
 """Sphere slots a subdomain allocates per sphere it holds, so that migrations fill its arrays in place (no new arrays,
@@ -88,6 +90,7 @@ class Subdomain(Simulation):
         mine = rows_of(template, state, whole, whole).take(self.slabs.holds(q, comm.Get_rank()))
         self._moved = wp.zeros(2, dtype=int, device=model.device)
         self._views_of: State | None = None
+        self._busy = 0.0  # seconds of this rank's own step work since the last migration
         local_model, local_state = subdomain(template, state, mine, model.max_neighbors, capacity_for(len(mine)))
         self._allocate_flags(local_model.particle_capacity)
         self._adopt(mine.gid, self.slabs.owner(mine.fields["particle_q"]), mine.fields["particle_q"])
@@ -163,16 +166,22 @@ class Subdomain(Simulation):
 
     def _body(self) -> None:
         halves = self._halves
+        start = time.perf_counter()
         if halves is None:
             self._drift_half()
         else:
             wp.capture_launch(halves[0])
+        self._busy += time.perf_counter() - start
         self._exchange()
+        start = time.perf_counter()
         if self._halves is None:  # none yet, or a growth dropped them
             self._forces()
             self._record_halves()
         else:
             wp.capture_launch(self._halves[1])
+        # The rank's own work (its kernels run on this thread on the CPU), not its waits: the measured cost the slabs
+        # are balanced by.
+        self._busy += time.perf_counter() - start
 
     def _record_halves(self) -> None:
         """Record the two halves of a step (after an eager run of each, so every kernel is compiled)."""
@@ -228,13 +237,20 @@ class Subdomain(Simulation):
             self._views_of = s
         return self._views
 
-    def _rebalanced(self, q_owned: np.ndarray, weight: np.ndarray) -> None:
-        """Cut the slabs again when the owned counts differ by more than :data:`IMBALANCE` (every rank the same)."""
-        counts = self.comm.allgather(len(q_owned))
-        if max(counts) <= IMBALANCE * max(np.mean(counts), 1e-300):
+    def _rebalanced(self, q_owned: np.ndarray) -> None:
+        """Cut the slabs again when the ranks' measured work since the last migration differs by more than
+        :data:`IMBALANCE` (every rank decides from the same gathered figures): each owned sphere weighs its rank's work
+        over its owned count, so a slab that took longer gives up spheres in proportion. Where the work was not
+        measured (no step yet), the owned counts decide."""
+        busy = np.array(self.comm.allgather(self._busy))
+        counts = np.array(self.comm.allgather(len(q_owned)), dtype=np.float64)
+        self._busy = 0.0
+        cost = busy if busy.min() > 0.0 else counts
+        if cost.max() <= IMBALANCE * max(cost.mean(), 1e-300):
             return
+        share = cost[self.comm.Get_rank()] / max(len(q_owned), 1)
         q_all = np.concatenate(self.comm.allgather(q_owned))
-        w_all = np.concatenate(self.comm.allgather(weight))
+        w_all = np.concatenate(self.comm.allgather(np.full(len(q_owned), share)))
         self.slabs = Slabs.balanced(q_all, w_all, len(counts), self.slabs.halo)
 
     def _migrate(self) -> None:
@@ -245,7 +261,7 @@ class Subdomain(Simulation):
         owned = np.flatnonzero(self._owned_host)
         rows = rows_of(m, s, self.gid, owned)
         q = rows.fields["particle_q"]
-        self._rebalanced(q, 1.0 + rows.fields["nbr_count"].astype(np.float64))
+        self._rebalanced(q)
         rows.fields["rank"] = self.slabs.owner(q)
         outgoing = [rows.take(self.slabs.holds(q, d)) for d in range(size)]
         arrived = Rows.join(self.comm.alltoall(outgoing))
