@@ -13,7 +13,7 @@ import dataclasses
 import numpy as np
 import warp as wp
 
-from ..model import NEIGHBOR_FIELDS, Model, State
+from ..model import BOND_FIELDS, NEIGHBOR_FIELDS, Model, State
 
 MODEL_FIELDS = (
     "particle_radius",
@@ -52,6 +52,9 @@ STATE_FIELDS = (
 PARTNER = "nbr_partner"
 """The rows' name of the slots' partners as global ids (-1 past a sphere's count)."""
 
+BOND_ROW_FIELDS = tuple(name for name in BOND_FIELDS if name not in ("bond_i", "bond_j", "bond_key"))
+"""Bond fields a bond carries between ranks (its ends travel as global ids, its key is made where it lands)."""
+
 
 @dataclasses.dataclass
 class Rows:
@@ -89,6 +92,66 @@ class Rows:
         return Rows(gid[order], fields)
 
 
+@dataclasses.dataclass
+class Bonds:
+    """Host rows of some bonds.
+
+    Attributes:
+        ends: the two spheres' global ids, lower first, shape (n, 2), int64.
+        fields: :data:`BOND_ROW_FIELDS` by name, each shape (n, ...).
+    """
+
+    ends: np.ndarray
+    fields: dict[str, np.ndarray]
+
+    def __len__(self) -> int:
+        return int(self.ends.shape[0])
+
+    def take(self, where: np.ndarray) -> Bonds:
+        """The bonds at ``where`` (indices or a mask)."""
+        return Bonds(self.ends[where], {name: a[where] for name, a in self.fields.items()})
+
+    @staticmethod
+    def join(parts: list[Bonds]) -> Bonds:
+        """The bonds of several parts in one, in key order (lower end, then upper), each once."""
+        ends = np.concatenate([p.ends for p in parts])
+        order = np.lexsort((ends[:, 1], ends[:, 0]))
+        ends = ends[order]
+        first = np.ones(len(ends), dtype=bool)
+        first[1:] = np.any(ends[1:] != ends[:-1], axis=1)
+        fields = {name: np.concatenate([p.fields[name] for p in parts])[order][first] for name in parts[0].fields}
+        return Bonds(ends[first], fields)
+
+
+def bonds_of(state: State, gid: np.ndarray) -> Bonds:
+    """The live bonds (broken ones not yet compacted included) of a model whose spheres have the global ids ``gid``."""
+    n = int(state.bond_count.numpy()[0])
+    i, j = state.bond_i.numpy()[:n], state.bond_j.numpy()[:n]
+    ends = np.stack([gid[i], gid[j]], axis=1).astype(np.int64)
+    return Bonds(ends, {name: getattr(state, name).numpy()[:n].copy() for name in BOND_ROW_FIELDS})
+
+
+def _bond_arrays(bonds: Bonds, gid: np.ndarray, particle_capacity: int, capacity: int) -> dict[str, np.ndarray]:
+    """The State bond arrays of ``bonds`` (each end among ``gid``, sorted) at ``capacity`` slots, keyed by the local
+    indices (the key order is the global one: local indices follow global ids)."""
+    n = len(bonds)
+    local = np.searchsorted(gid, bonds.ends)
+    if n and not np.array_equal(gid[np.minimum(local, len(gid) - 1)], bonds.ends):
+        raise ValueError("a bond whose two spheres are not both held")
+    arrays = {
+        "bond_i": local[:, 0].astype(np.int32),
+        "bond_j": local[:, 1].astype(np.int32),
+        "bond_key": (local[:, 0] * particle_capacity + local[:, 1]).astype(np.int64),
+        **bonds.fields,
+    }
+    out = {}
+    for name, a in arrays.items():
+        full = np.zeros((capacity, *a.shape[1:]), dtype=a.dtype)
+        full[:n] = a
+        out[name] = full
+    return out
+
+
 def _pad_slots(name: str, a: np.ndarray, k: int) -> np.ndarray:
     if name not in (*NEIGHBOR_FIELDS, PARTNER) or a.shape[1] == k:
         return a
@@ -114,10 +177,11 @@ def rows_of(model: Model, state: State, gid: np.ndarray, local: np.ndarray) -> R
     return Rows(gid[local].astype(np.int64), fields)
 
 
-def _slot_arrays(rows: Rows, k: int) -> dict[str, np.ndarray]:
+def _slot_arrays(rows: Rows, k: int, bond_key: np.ndarray, particle_capacity: int) -> dict[str, np.ndarray]:
     """``nbr_count`` and the slots of ``rows`` as local arrays (n, k, ...): the partners found among the rows as local
     indices, moved to the front of their sphere's slots in their order; a partner not among them is dropped (the list
-    is rebuilt right after: it only carries history)."""
+    is rebuilt right after: it only carries history). A slot's bond is looked up in ``bond_key`` (the live bonds'
+    local keys, ascending), as a list build finds it."""
     n = len(rows)
     partner = _pad_slots(PARTNER, rows.fields[PARTNER], k)[:, :k]
     found = np.minimum(np.searchsorted(rows.gid, partner), max(n - 1, 0))
@@ -127,7 +191,11 @@ def _slot_arrays(rows: Rows, k: int) -> dict[str, np.ndarray]:
     live = np.arange(k)[None, :] < count[:, None]
     index = np.take_along_axis(np.where(keep, found, 0), order, axis=1)
     shear = np.take_along_axis(_pad_slots("nbr_shear", rows.fields["nbr_shear"], k)[:, :k], order[..., None], 1)
-    bond = np.take_along_axis(_pad_slots("nbr_bond", rows.fields["nbr_bond"], k)[:, :k], order, axis=1)
+    key = np.arange(n)[:, None].astype(np.int64) * particle_capacity + index
+    bond = np.full(key.shape, -1, dtype=np.int64)
+    if len(bond_key):
+        at = np.minimum(np.searchsorted(bond_key, key), len(bond_key) - 1)
+        bond = np.where(bond_key[at] == key, at, -1)
     return {
         "nbr_count": count,
         "nbr_index": np.where(live, index, 0).astype(np.int32),
@@ -136,9 +204,12 @@ def _slot_arrays(rows: Rows, k: int) -> dict[str, np.ndarray]:
     }
 
 
-def _local_arrays(rows: Rows, k: int, cap: int) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """The Model and State per-sphere arrays of ``rows`` at capacity ``cap`` (≥ len(rows)) with ``k`` slots, as
-    host arrays shaped like the device ones (slots and wall histories flattened); dead slots zero (bond -1)."""
+def _local_arrays(
+    rows: Rows, bonds: Bonds, k: int, cap: int, bond_cap: int
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """The Model and State per-sphere and per-bond arrays of ``rows`` and ``bonds`` at capacities ``cap`` (≥ len(rows))
+    and ``bond_cap`` with ``k`` slots, as host arrays shaped like the device ones (slots and wall histories flattened);
+    dead slots zero (bond -1)."""
     n = len(rows)
 
     def padded(a: np.ndarray, fill: float = 0) -> np.ndarray:
@@ -149,30 +220,38 @@ def _local_arrays(rows: Rows, k: int, cap: int) -> tuple[dict[str, np.ndarray], 
     model = {name: padded(rows.fields[name]) for name in MODEL_FIELDS}
     state = {name: padded(rows.fields[name]) for name in STATE_FIELDS}
     state["wall_shear"] = padded(rows.fields["wall_shear"]).reshape(-1, 3)
-    for name, a in _slot_arrays(rows, k).items():
+    if bond_cap:
+        state.update(_bond_arrays(bonds, rows.gid, cap, bond_cap))
+    keys = state["bond_key"][: len(bonds)] if bond_cap else np.zeros(0, dtype=np.int64)
+    for name, a in _slot_arrays(rows, k, keys, cap).items():
         full = padded(a, -1 if name == "nbr_bond" else 0)
         state[name] = full if name == "nbr_count" else full.reshape(cap * k, *a.shape[2:])
     return model, state
 
 
-def subdomain(model: Model, state: State, rows: Rows, max_neighbors: int, capacity: int) -> tuple[Model, State]:
+def subdomain(
+    model: Model, state: State, rows: Rows, bonds: Bonds, max_neighbors: int, capacity: int, bond_capacity: int
+) -> tuple[Model, State]:
     """A Model and State of the spheres of ``rows`` (sorted by global id) in ``capacity`` slots (≥ len(rows), ≥ 1),
-    with ``max_neighbors`` list slots each; everything that is not per sphere (walls, clock, counters, tables) is
-    copied from ``model``/``state``."""
+    with ``max_neighbors`` list slots each, and of ``bonds`` in ``bond_capacity`` slots (0 where the model has no
+    bonds); everything else (walls, clock, counters, tables) is copied from ``model``/``state``."""
     device = model.device
-    mhost, shost = _local_arrays(rows, max_neighbors, capacity)
+    mhost, shost = _local_arrays(rows, bonds, max_neighbors, capacity, bond_capacity)
     mfields = {name: wp.array(a, dtype=getattr(model, name).dtype, device=device) for name, a in mhost.items()}
     sfields = {name: wp.clone(a) for name, a in state.arrays().items()}
     sfields.update({name: wp.array(a, dtype=getattr(state, name).dtype, device=device) for name, a in shost.items()})
     sfields["particle_count"] = wp.array([len(rows)], dtype=int, device=device)
-    local_model = dataclasses.replace(model, particle_capacity=capacity, max_neighbors=max_neighbors, **mfields)
+    sfields["bond_count"] = wp.array([len(bonds)], dtype=int, device=device)
+    local_model = dataclasses.replace(
+        model, particle_capacity=capacity, max_neighbors=max_neighbors, bond_capacity=bond_capacity, **mfields
+    )
     return local_model, State(**sfields)
 
 
-def fill(model: Model, state: State, rows: Rows) -> None:
-    """Write the spheres of ``rows`` into a subdomain's own arrays (no allocation: recorded graphs stay valid); the
-    rows must fit its capacity and its ``max_neighbors``."""
-    mhost, shost = _local_arrays(rows, model.max_neighbors, model.particle_capacity)
+def fill(model: Model, state: State, rows: Rows, bonds: Bonds) -> None:
+    """Write the spheres of ``rows`` and the ``bonds`` into a subdomain's own arrays (no allocation: recorded graphs
+    stay valid); they must fit its capacities and its ``max_neighbors``."""
+    mhost, shost = _local_arrays(rows, bonds, model.max_neighbors, model.particle_capacity, model.bond_capacity)
     for obj, host in ((model, mhost), (state, shost)):
         for name, a in host.items():
             target = getattr(obj, name)
@@ -181,30 +260,52 @@ def fill(model: Model, state: State, rows: Rows) -> None:
             else:
                 target.assign(a)
     state.particle_count.fill_(len(rows))
+    state.bond_count.fill_(len(bonds))
 
 
-def write_rows(model: Model, state: State, rows: Rows) -> None:
-    """Write ``rows`` into the whole run's ``state`` at their global ids (the whole model's order), slots with their
-    partners as whole indices; ``state`` must have at least the rows' K slots (``model.max_neighbors``)."""
+def write_rows(model: Model, state: State, rows: Rows, bonds: Bonds) -> None:
+    """Write ``rows`` and ``bonds`` into the whole run's ``state`` at their global ids (the whole model's order),
+    slots with their partners as whole indices and their bonds looked up by key; ``state`` must have at least the
+    rows' K slots (``model.max_neighbors``) and room for the bonds."""
     cap, k, walls = model.particle_capacity, model.max_neighbors, model.num_walls
     at = rows.gid
+
+    def put(arr: wp.array, host: np.ndarray) -> None:
+        if arr.device.is_cpu:
+            np.copyto(arr.numpy().reshape(host.shape), host)
+        else:
+            arr.assign(host)
+
     for name in STATE_FIELDS:
-        host = getattr(state, name).numpy()
+        host = getattr(state, name).numpy().copy()
         host[at] = rows.fields[name]
-        getattr(state, name).assign(host)
-    shear = state.wall_shear.numpy().reshape(cap, walls, 3)
+        put(getattr(state, name), host)
+    shear = state.wall_shear.numpy().reshape(cap, walls, 3).copy()
     shear[at] = rows.fields["wall_shear"]
-    state.wall_shear.assign(shear.reshape(-1, 3))
-    count = state.nbr_count.numpy()
+    put(state.wall_shear, shear)
+    count = state.nbr_count.numpy().copy()
     count[at] = rows.fields["nbr_count"]
-    state.nbr_count.assign(count)
+    put(state.nbr_count, count)
+    keys = np.zeros(0, dtype=np.int64)
+    if model.bond_capacity:
+        whole = np.arange(cap, dtype=np.int64)
+        for name, host in _bond_arrays(bonds, whole, cap, model.bond_capacity).items():
+            put(getattr(state, name), host)
+        state.bond_count.fill_(len(bonds))
+        keys = state.bond_key.numpy()[: len(bonds)]
+    partner = _pad_slots(PARTNER, rows.fields[PARTNER], k)[:, :k]
+    key = at[:, None] * cap + np.maximum(partner, 0)
+    bond = np.full(key.shape, -1, dtype=np.int64)
+    if len(keys):
+        found = np.minimum(np.searchsorted(keys, key), len(keys) - 1)
+        bond = np.where((keys[found] == key) & (partner >= 0), found, -1)
     slots = {
-        "nbr_index": np.maximum(_pad_slots(PARTNER, rows.fields[PARTNER], k), 0).astype(np.int32),
-        "nbr_shear": _pad_slots("nbr_shear", rows.fields["nbr_shear"], k),
-        "nbr_bond": _pad_slots("nbr_bond", rows.fields["nbr_bond"], k),
+        "nbr_index": np.maximum(partner, 0).astype(np.int32),
+        "nbr_shear": _pad_slots("nbr_shear", rows.fields["nbr_shear"], k)[:, :k],
+        "nbr_bond": bond.astype(np.int32),
     }
     for name, a in slots.items():
         arr = getattr(state, name)
-        host = arr.numpy().reshape(cap, k, *a.shape[2:])
-        host[at] = a[:, :k]
-        arr.assign(host.reshape(cap * k, *a.shape[2:]))
+        host = arr.numpy().reshape(cap, k, *a.shape[2:]).copy()
+        host[at] = a
+        put(arr, host)

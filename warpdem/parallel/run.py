@@ -6,8 +6,9 @@ which writes frames, books and checkpoints from it as one process would (the who
 for bit on the CPU). The other ranks run :func:`serve` until rank 0 says stop. A checkpoint is therefore one file
 of the whole run, and a restart on any number of ranks cuts it again.
 
-What is decomposed so far (issue 25, first part): spheres with their contact laws and history, rolling, walls and
-gravity. A scene with anything else is refused on more than one rank with a message that says what.
+What is decomposed so far (issue 25, first part): spheres with their contact laws and history, rolling, bonds and their
+breakage, walls and gravity. A scene with anything else is refused on more than one rank with a message that says
+what.
 """
 
 from __future__ import annotations
@@ -16,11 +17,13 @@ import atexit
 import signal
 from typing import Any
 
+import numpy as np
+
 from ..model import Model, State
 from ..simulation import Simulation, regrow_neighbors
 from ..stages.guard import CriticalStep, UnstableRunError
 from .comm import world
-from .rows import Rows, write_rows
+from .rows import Bonds, Rows, write_rows
 from .subdomain import Subdomain
 
 SHARED_FIELDS = ("time", "wall_point", "rebuild_total")
@@ -43,8 +46,6 @@ def unsupported(model: Model, state: State) -> list[str]:
     found = []
     if model.node_capacity or int(state.node_count.numpy()[0]):
         found.append("FEM nodes and tets (continuum, fracture, conversion, joints)")
-    if model.bond_capacity:
-        found.append("bonds between spheres")
     if model.face_capacity:
         found.append("FEM surface contact")
     if model.loads is not None:
@@ -73,7 +74,7 @@ def make_simulation(model: Model, state: State, **kwargs: Any) -> Simulation | D
     if missing:
         raise NotDecomposable(
             f"this scene cannot run on {comm.Get_size()} ranks yet; decomposed so far: spheres, their "
-            f"contacts, walls and gravity; this scene has {', '.join(missing)} (run it in one process)"
+            f"contacts and bonds, walls and gravity; this scene has {', '.join(missing)} (run it in one process)"
         )
     if comm.Get_rank() == 0:
         sim = Decomposed(comm, model, state, **kwargs)
@@ -84,7 +85,7 @@ def make_simulation(model: Model, state: State, **kwargs: Any) -> Simulation | D
     raise WorkerDone()
 
 
-def _gather(comm: Any, local: Subdomain) -> list[Rows] | None:
+def _gather(comm: Any, local: Subdomain) -> list[tuple[Rows, Bonds]] | None:
     """Every rank's owned rows at rank 0 (None elsewhere), then the lists' largest count (rank 0 gets the max)."""
     rows = comm.gather(local.owned_rows(), root=0)
     if comm.Get_rank() > 0:
@@ -103,17 +104,17 @@ def serve(comm: Any, model: Model, state: State, **kwargs: Any) -> None:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     try:
         local = Subdomain(comm, model, state, **kwargs)
-        _gather(comm, local)
         while True:
             command, args = comm.bcast(None, root=0)
             if command == "stop":
                 return
-            if command == "advance":
+            if command == "gather":
+                _gather(comm, local)
+            elif command == "advance":
                 try:
                     local.advance(*args)
                 except UnstableRunError:
                     continue  # rank 0 raised it too and ends the run; wait for its stop
-                _gather(comm, local)
             elif command == "set_time_step":
                 local.set_time_step(*args)
     except Exception as exc:
@@ -130,7 +131,8 @@ def serve(comm: Any, model: Model, state: State, **kwargs: Any) -> None:
 
 class Decomposed:
     """Rank 0's stepper of a run decomposed over ``comm``: the :class:`~warpdem.simulation.Simulation` interface
-    the runner uses, over the whole run's state gathered after every ``advance``.
+    the runner uses, over the whole run's state, gathered from the ranks when it is read after an ``advance`` (the
+    runner advances in pieces between frames; the state is read at the frames).
 
     Args:
         comm: the MPI communicator (mpi4py).
@@ -145,16 +147,20 @@ class Decomposed:
         # The whole run, never stepped: what frames, books and checkpoints read.
         self.whole = Simulation(model, state, primed=True, step=kwargs.get("step", 0), time=kwargs.get("time"))
         self._closed = False
-        self._collect()
+        self._stale = True  # the whole state lags the ranks'
+        # Bonds only break (none is made here): the whole run's broken count follows from the intact ones.
+        self._bonds_start = int(state.bond_count.numpy()[0])
+        self._broken_start = int(state.bonds_broken_total.numpy()[0])
+        self._broken_start -= int(np.count_nonzero(state.bond_broken.numpy()[: self._bonds_start]))
 
     # The runner's view of the whole run.
     @property
     def model(self) -> Model:
-        return self.whole.model
+        return self._gathered().model
 
     @property
     def state(self) -> State:
-        return self.whole.state
+        return self._gathered().state
 
     @property
     def step_count(self) -> int:
@@ -170,35 +176,35 @@ class Decomposed:
 
     @property
     def particle_count(self) -> int:
-        return self.whole.particle_count
+        return self._gathered().particle_count
 
     @property
     def bond_count(self) -> int:
-        return self.whole.bond_count
+        return self._gathered().bond_count
 
     @property
     def node_count(self) -> int:
-        return self.whole.node_count
+        return self._gathered().node_count
 
     def energy(self) -> Any:
-        return self.whole.energy()
+        return self._gathered().energy()
 
     def shadow(self) -> float:
-        return self.whole.shadow()
+        return self._gathered().shadow()
 
     def contact_count(self) -> int:
-        return self.whole.contact_count()
+        return self._gathered().contact_count()
 
     def advance(self, n_steps: int, stop_at_switch: bool = False) -> int:
-        """``n_steps`` on every rank, then the owned spheres gathered into the whole state."""
+        """``n_steps`` on every rank (the whole state is gathered when next read)."""
         self.comm.bcast(("advance", (n_steps, stop_at_switch)), root=0)
+        self._stale = True
         self.local.advance(n_steps, stop_at_switch)
-        self._collect()
         return n_steps
 
     def set_time_step(self, dt: float, critical: CriticalStep | None = None) -> float:
         self.comm.bcast(("set_time_step", (dt, critical)), root=0)
-        self.whole.set_time_step(dt, critical)
+        self._gathered().set_time_step(dt, critical)
         return self.local.set_time_step(dt, critical)
 
     def close(self) -> None:
@@ -207,15 +213,28 @@ class Decomposed:
             self._closed = True
             self.comm.bcast(("stop", ()), root=0)
 
+    def _gathered(self) -> Simulation:
+        """The whole run, its state gathered from the ranks first where it lags theirs."""
+        if self._stale and not self._closed:
+            self.comm.bcast(("gather", ()), root=0)
+            self._collect()
+            self._stale = False
+        return self.whole
+
     def _collect(self) -> None:
         """The owned rows of every rank into the whole state, the shared arrays from rank 0's subdomain."""
-        rows = Rows.join(_gather(self.comm, self.local))
+        parts = _gather(self.comm, self.local)
+        rows = Rows.join([p[0] for p in parts])
+        bonds = Bonds.join([p[1] for p in parts])
         w = self.whole
         k = rows.fields["nbr_shear"].shape[1]
         if k > w.model.max_neighbors:
             w.model, w.state = regrow_neighbors(w.model, w.state, k)
             w._setup()
-        write_rows(w.model, w.state, rows)
+        write_rows(w.model, w.state, rows, bonds)
+        if w.model.bond_capacity:
+            intact = int(np.count_nonzero(bonds.fields["bond_broken"] == 0))
+            w.state.bonds_broken_total.fill_(self._broken_start + self._bonds_start - intact)
         for name in SHARED_FIELDS:
             getattr(w.state, name).assign(getattr(self.local.state, name))
         from mpi4py import MPI

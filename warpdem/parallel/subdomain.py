@@ -29,7 +29,7 @@ from ..simulation import Simulation, regrow_neighbors
 from ..stages.guard import UnstableRunError
 from ..stages.integrate import integrate_first_half, kick_drift
 from .domain import Slabs
-from .rows import Rows, fill, rows_of, subdomain
+from .rows import Bonds, Rows, bonds_of, fill, rows_of, subdomain
 
 IMBALANCE = 1.10
 """Largest rank's measured step work over the mean before the slabs are cut again (at a migration)."""
@@ -54,16 +54,23 @@ def migration_margin(model: Model) -> float:
     return MARGIN_SKINS * model.skin
 
 
-def halo_width(model: Model) -> float:
-    """Ghost width beyond a slab [m]: 2 r_max + 2 skin + 2 margin.
+def halo_width(model: Model, longest_bond: float = 0.0) -> float:
+    """Ghost width beyond a slab [m]: max(2 r_max, the longest bond's rest length) + 2 skin + 2 margin.
 
     The spheres migrate at a list rebuild where one has moved more than the margin since the last migration; between
     two rebuilds each moves less than half the skin, so until a migration none is further than margin + skin/2 from
     where it migrated. A pair a list may hold is closer than r_i + r_j + skin ≤ 2 r_max + skin when the list is built,
     so its partner was within 2 r_max + skin + 2 (margin + skin/2) of the owned sphere's slab at the migration: it is
     held. A subdomain made between two builds (a restart) holds the pairs of the lists it inherits too (closer than
-    2 r_max + 2 skin)."""
-    return 2.0 * model.max_radius + 2.0 * model.skin + 2.0 * migration_margin(model)
+    2 r_max + 2 skin). A bond's two spheres lie within its rest length plus the skin of each other (it breaks first),
+    so the bonds of an owned sphere are held whole too."""
+    reach = max(2.0 * model.max_radius, longest_bond)
+    return reach + 2.0 * model.skin + 2.0 * migration_margin(model)
+
+
+def bond_capacity_for(model: Model, n: int) -> int:
+    """Bond slots for a subdomain of ``n`` bonds: none where the model has none, else as :func:`capacity_for`."""
+    return capacity_for(n) if model.bond_capacity else 0
 
 
 class Subdomain(Simulation):
@@ -86,12 +93,24 @@ class Subdomain(Simulation):
         whole = np.arange(n)
         # The whole run's largest radius and sphere capacity: every rank's grid has the whole run's cells and buckets.
         template = dataclasses.replace(model, radius_bound=model.max_radius, grid_owners=model.particle_capacity)
-        self.slabs = Slabs.balanced(q, np.ones(n), comm.Get_size(), halo_width(template))
-        mine = rows_of(template, state, whole, whole).take(self.slabs.holds(q, comm.Get_rank()))
+        bonds = bonds_of(state, whole)
+        longest = float(bonds.fields["bond_rest_length"].max()) if len(bonds) else 0.0
+        self.slabs = Slabs.balanced(q, np.ones(n), comm.Get_size(), halo_width(template, longest))
+        held = self.slabs.holds(q, comm.Get_rank())
+        mine = rows_of(template, state, whole, whole).take(held)
+        my_bonds = bonds.take(held[bonds.ends[:, 0]] & held[bonds.ends[:, 1]])
         self._moved = wp.zeros(2, dtype=int, device=model.device)
         self._views_of: State | None = None
         self._busy = 0.0  # seconds of this rank's own step work since the last migration
-        local_model, local_state = subdomain(template, state, mine, model.max_neighbors, capacity_for(len(mine)))
+        local_model, local_state = subdomain(
+            template,
+            state,
+            mine,
+            my_bonds,
+            model.max_neighbors,
+            capacity_for(len(mine)),
+            bond_capacity_for(model, len(my_bonds)),
+        )
         self._allocate_flags(local_model.particle_capacity)
         self._adopt(mine.gid, self.slabs.owner(mine.fields["particle_q"]), mine.fields["particle_q"])
         super().__init__(local_model, local_state, use_graph=False, primed=primed, **kwargs)
@@ -263,15 +282,32 @@ class Subdomain(Simulation):
         q = rows.fields["particle_q"]
         self._rebalanced(q)
         rows.fields["rank"] = self.slabs.owner(q)
-        outgoing = [rows.take(self.slabs.holds(q, d)) for d in range(size)]
-        arrived = Rows.join(self.comm.alltoall(outgoing))
+        # A bond goes with its lower sphere's owner, to every rank that holds both its spheres.
+        bonds = bonds_of(s, self.gid)
+        lower = np.searchsorted(self.gid, bonds.ends[:, 0])
+        upper = np.searchsorted(self.gid, bonds.ends[:, 1])
+        bonds = bonds.take(self._owned_host[lower])
+        q_local = self.state.particle_q.numpy()
+        ends_q = (q_local[lower[self._owned_host[lower]]], q_local[upper[self._owned_host[lower]]])
+        outgoing = [
+            (
+                rows.take(self.slabs.holds(q, d)),
+                bonds.take(self.slabs.holds(ends_q[0], d) & self.slabs.holds(ends_q[1], d)),
+            )
+            for d in range(size)
+        ]
+        parts = self.comm.alltoall(outgoing)
+        arrived = Rows.join([p[0] for p in parts])
+        arrived_bonds = Bonds.join([p[1] for p in parts])
         owner = arrived.fields.pop("rank")
-        if len(arrived) <= m.particle_capacity:
-            fill(m, s, arrived)  # in place: the recorded halves stay valid
+        if len(arrived) <= m.particle_capacity and len(arrived_bonds) <= m.bond_capacity:
+            fill(m, s, arrived, arrived_bonds)  # in place: the recorded halves stay valid
         else:
-            cap = capacity_for(len(arrived))
-            self.model, self.state = subdomain(m, s, arrived, m.max_neighbors, cap)
-            self._allocate_flags(cap)
+            cap = max(m.particle_capacity, capacity_for(len(arrived)))
+            bond_cap = max(m.bond_capacity, bond_capacity_for(m, len(arrived_bonds)))
+            self.model, self.state = subdomain(m, s, arrived, arrived_bonds, m.max_neighbors, cap, bond_cap)
+            if cap != self.owned.shape[0]:
+                self._allocate_flags(cap)
             self._setup()
         self._adopt(arrived.gid, owner, arrived.fields["particle_q"])
 
@@ -314,8 +350,13 @@ class Subdomain(Simulation):
             raise UnstableRunError(
                 self.time, self.step_count, "another rank's spheres", "see the first rank's message", ""
             )
+        # Broken bonds compacted away at the chunk's end, as in one process (every rank sees the same bonds break).
+        self.remove_broken_bonds(status.bonds_broken)
         return 0
 
-    def owned_rows(self) -> Rows:
-        """The rows of the spheres this rank owns (global ids, whole histories)."""
-        return rows_of(self.model, self.state, self.gid, np.flatnonzero(self._owned_host))
+    def owned_rows(self) -> tuple[Rows, Bonds]:
+        """The rows of the spheres this rank owns (global ids, whole histories), and the bonds whose lower sphere it
+        owns."""
+        rows = rows_of(self.model, self.state, self.gid, np.flatnonzero(self._owned_host))
+        bonds = bonds_of(self.state, self.gid)
+        return rows, bonds.take(self._owned_host[np.searchsorted(self.gid, bonds.ends[:, 0])])
