@@ -25,10 +25,11 @@ ROOT = Path(__file__).resolve().parent.parent
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
 
 
-def channel_pour(spheres: int, end_time: float) -> str:
-    """The scene of ``spheres`` beads in a channel sized to hold them at volume fraction 0.3 [TOML text]."""
+def channel_pour(spheres: int, end_time: float, height: float = 0.2) -> str:
+    """The scene of ``spheres`` beads in a channel 0.2 m wide, filled to ``height`` [m] and long enough to hold them
+    at volume fraction 0.3 [TOML text] (tests/test_parallel.py runs a short, low one)."""
     mean_volume = 4.0 / 3.0 * 3.14159 * 0.0045**3
-    length = max(0.1, spheres * mean_volume / 0.3 / (0.19 * 0.19)) + 0.02
+    length = max(0.1, spheres * mean_volume / 0.3 / (0.19 * (height - 0.01))) + 0.02
     return f"""
 schema_version = 1
 name = "channel_pour"
@@ -68,7 +69,7 @@ material = "glass"
 [[particles]]
 kind = "packing"
 part = "beads"
-region = {{ box = {{ lo = [0.005, 0.005, 0.005], hi = [{length - 0.005:.4f}, 0.195, 0.195] }} }}
+region = {{ box = {{ lo = [0.005, 0.005, 0.005], hi = [{length - 0.005:.4f}, 0.195, {height - 0.005:.4f}] }} }}
 radius = 0.004
 radius_max = 0.005
 arrangement = "random"

@@ -37,7 +37,7 @@ LAYERS: dict[str, int] = {
     "warpdem.simulation": 5,
     "warpdem.io": 6,
     "warpdem.bench": 6,
-    "warpdem.parallel": 6,
+    "warpdem.parallel": 5.5,
     "warpdem.runner": 7,
     "warpdem.api": 8,
     "warpdem.cli": 9,

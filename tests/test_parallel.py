@@ -4,9 +4,10 @@ and gravity.
 Oracles:
 - One process is the reference, bit for bit: on the CPU a subdomain keeps its spheres in global-id order and its
   contact grid has the whole run's cells and buckets, so every pair is seen in the same order and every force sums in
-  the same order. The time series (every energy line, every count, every frame) and the final checkpoint's spheres and
-  lists are compared for equality, not within a tolerance, at 2, 3 and 4 ranks (3 and 4 oversubscribed here: ghosts
-  then come from ranks beyond the next slab).
+  the same order. The time series (every energy line, every count, every frame) and the final checkpoint's spheres,
+  lists and bonds are compared for equality, not within a tolerance: a pour at 2, 3 and 4 ranks (3 and 4
+  oversubscribed here: ghosts then come from ranks beyond the next slab), the default scene's bonded beam breaking at
+  2 ranks.
 - A checkpoint is the whole run's, whatever the rank count: a run stopped on 2 ranks and resumed in one process, and
   one stopped in one process and resumed on 2 ranks, end bit for bit where the uninterrupted run ends.
 - The slabs and the rows by themselves: every centre has exactly one owner, which holds it; equal shares of the weight
@@ -15,6 +16,7 @@ Oracles:
 
 from __future__ import annotations
 
+import importlib.util
 import subprocess
 import sys
 from pathlib import Path
@@ -26,62 +28,17 @@ import pytest
 from warpdem.parallel.domain import Slabs
 
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
+ROOT = Path(__file__).resolve().parent.parent
 
-# 159 beads dropped 5 mm–6 cm into a box 12 cm long: 3 918 steps, 70 contacts at the end, each bead past the
-# migration margin (2 skins) several times, so spheres migrate and their histories travel with them.
-TINY_POUR = """
-schema_version = 1
-name = "tiny_pour"
-description = "Beads dropped into a box: the decomposed-run test"
 
-[run]
-end_time = 0.12
-dt = "auto"
-safety_factor = 0.2
-output_rate = 50.0
-seed = 3
-
-[gravity]
-vector = [0.0, 0.0, -9.81]
-
-[materials.glass]
-density = 2500.0
-youngs_modulus = 5.0e7
-poisson_ratio = 0.25
-
-[materials.steel]
-density = 7800.0
-youngs_modulus = 2.0e8
-poisson_ratio = 0.3
-
-[interactions]
-default = { friction = 0.5, restitution = 0.5, rolling_friction = 0.05 }
-
-[contact]
-normal = "hertz"
-tangential = "mindlin"
-rolling = "constant_torque"
-
-[parts.beads]
-material = "glass"
-
-[[particles]]
-kind = "packing"
-part = "beads"
-region = { box = { lo = [0.01, 0.01, 0.005], hi = [0.11, 0.05, 0.06] } }
-radius = 0.004
-radius_max = 0.005
-arrangement = "random"
-volume_fraction = 0.3
-count = 300
-
-[[walls]]
-kind = "box"
-lo = [0.0, 0.0, 0.0]
-hi = [0.12, 0.06, 0.2]
-material = "steel"
-open_top = true
-"""
+def _channel_pour() -> str:
+    """300 beads dropped from up to 4.5 cm into a box 12 cm by 20 cm (benchmarks/parallel_scaling.py's pour, short
+    and low): 3 912 steps to 0.12 s, 49 contacts at the end, each bead past the migration margin (2 skins) several
+    times, so spheres migrate and their histories travel with them."""
+    spec = importlib.util.spec_from_file_location("parallel_scaling", ROOT / "benchmarks" / "parallel_scaling.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.channel_pour(300, 0.12, height=0.05)
 
 
 def _mpi_ready() -> bool:
@@ -131,7 +88,7 @@ def _final_spheres(out: Path) -> dict[str, np.ndarray]:
     return found
 
 
-def _assert_same_run(a: Path, b: Path, what: str, stem: str = "tiny_pour") -> None:
+def _assert_same_run(a: Path, b: Path, what: str, stem: str = "channel_pour") -> None:
     series_a, series_b = (p / f"{stem}_series.csv" for p in (a, b))
     assert series_a.read_text() == series_b.read_text(), f"{what}: the time series differ"
     fa, fb = _final_spheres(a), _final_spheres(b)
@@ -143,8 +100,8 @@ def _assert_same_run(a: Path, b: Path, what: str, stem: str = "tiny_pour") -> No
 def one_process(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """The scene and its one-process run."""
     root = tmp_path_factory.mktemp("parallel")
-    scene = root / "tiny_pour.toml"
-    scene.write_text(TINY_POUR)
+    scene = root / "channel_pour.toml"
+    scene.write_text(_channel_pour())
     _run(scene, root / "one", 1)
     return scene, root / "one"
 
@@ -201,7 +158,7 @@ def test_a_bonded_beam_breaking_matches_one_process_bit_for_bit(tmp_path: Path) 
 def test_a_scene_with_tets_is_refused_on_ranks_with_what_it_has(tmp_path: Path) -> None:
     # A scene of tets is not decomposed yet: every rank stops before stepping with rank 0's message naming the scene
     # and what it has; nothing is written.
-    scene = Path(__file__).parent.parent / "scenes" / "wave_column.toml"
+    scene = ROOT / "scenes" / "wave_column.toml"
     done = subprocess.run(
         [str(MPIEXEC), "-n", "2", sys.executable, "-m", "warpdem", str(scene), "--out", str(tmp_path / "out")],
         capture_output=True,
@@ -241,7 +198,7 @@ def test_rows_round_trip_through_a_subdomain(device: str) -> None:
     from warpdem.scene import load_scene
     from warpdem.simulation import Simulation
 
-    scene_path = Path(__file__).parent.parent / "scenes" / "granular_pour.toml"
+    scene_path = ROOT / "scenes" / "granular_pour.toml"
     model, state = build_scene(load_scene(scene_path), device)
     sim = Simulation(model, state)
     sim.advance(400)  # lists with partners and tangential springs

@@ -298,6 +298,18 @@ def _naming_file(line: str, scene_name: str, path: Path) -> str:
     return f"{path}: {line[len(prefix) :]}" if line.startswith(prefix) else line
 
 
+def _quiet_follower() -> bool:
+    """Under mpiexec every rank runs the command and rank 0 speaks for it (its errors are every rank's): another
+    rank's output goes nowhere. Returns whether this is such a rank."""
+    from .parallel.run import rank_is_follower
+
+    if not rank_is_follower():
+        return False
+    sys.stdout = open(os.devnull, "w")  # noqa: SIM115 (for the life of the process)
+    sys.stderr = sys.stdout
+    return True
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit status."""
     argv = sys.argv[1:] if argv is None else argv
@@ -336,6 +348,7 @@ def main(argv: list[str] | None = None) -> int:
         from .bench import run_bench
 
         args = bench_parser().parse_args(argv[1:])
+        _quiet_follower()
         init_warp()
         return run_bench(args.sizes, args.steps, args.device, args.json, args.data, args.repeat, args.books == "on")
     if argv[:1] == ["plot"]:
@@ -371,13 +384,8 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(str(f) for f in files))
         return 0
     args = run_parser().parse_args(argv)
-    from .parallel.run import rank_is_follower
-
-    if rank_is_follower():
-        # Under mpiexec every rank runs this command; rank 0 speaks for the run (its errors are every rank's).
+    if _quiet_follower():
         args.quiet = True
-        sys.stdout = open(os.devnull, "w")  # noqa: SIM115 (for the life of the process)
-        sys.stderr = sys.stdout
 
     from .scene import SceneError, default_scene_path, load_scene
 

@@ -876,6 +876,41 @@ def rigid_state(model: Model) -> dict[str, wp.array]:
     }
 
 
+PARTICLE_MODEL_FIELDS = {
+    "particle_radius": 0,
+    "particle_mass": 0,
+    "particle_inv_mass": 0,
+    "particle_inv_inertia": 0,
+    "particle_material": 0,
+    "particle_motion": 0,
+    "particle_part": 0,
+    "particle_id": -1,
+}
+"""Per-particle Model fields and the value of an empty slot."""
+
+PARTICLE_STATE_FIELDS = (
+    "particle_q",
+    "particle_qd",
+    "particle_qd_carry",
+    "particle_omega",
+    "particle_f",
+    "particle_t",
+    "particle_q_at_build",
+    "nbr_count",
+    "particle_bonds_broken",
+    "energy_damping",
+    "energy_friction",
+    "energy_boundary_work",
+    "energy_bond_broken",
+    "energy_bond_trapezoid",
+    "energy_stiffness_change",
+    "contact_f_normal",
+    "contact_f_tangential",
+    "contact_t_tangential",
+    "contact_energy_prev",
+)
+"""Per-particle State fields (empty slots 0)."""
+
 NEIGHBOR_FIELDS = ("nbr_index", "nbr_shear", "nbr_bond")
 """State fields with max_neighbors slots per particle (regrown together)."""
 

@@ -47,6 +47,7 @@ class BenchResult:
     kinetic_rotational: float
     mean_height: float
     mean_height_initial: float
+    ranks: int = 1
 
 
 def find_case(n: int, data_dir: Path | None = None) -> tuple[np.ndarray, dict]:
@@ -66,9 +67,11 @@ def find_case(n: int, data_dir: Path | None = None) -> tuple[np.ndarray, dict]:
 
 
 def settling_case(n: int, device: str, track_energy: bool = False, data_dir: Path | None = None):
-    """Model, state and Simulation of the settling case."""
+    """The settling case's stepper: a Simulation, or under mpiexec rank 0's view of it decomposed over the ranks
+    (warpdem.parallel.run.make_simulation; another rank steps its part inside this call and leaves it with
+    WorkerDone when rank 0 releases it)."""
     from ..build.builder import InteractionProps, ModelBuilder
-    from ..simulation import Simulation
+    from ..parallel.run import make_simulation
 
     q, box = find_case(n, data_dir)
     b = ModelBuilder(normal="hertz", tangential="mindlin", gravity=(0.0, 0.0, -9.81))
@@ -82,23 +85,32 @@ def settling_case(n: int, device: str, track_energy: bool = False, data_dir: Pat
     b.add_plane_wall((0, 0, 0), (0, 1, 0), "glass")
     b.add_plane_wall((0, ly, 0), (0, -1, 0), "glass")
     model, state = b.finalize(device, dt=5.0e-5, max_neighbors=8)
-    return Simulation(model, state, track_energy=track_energy)
+    return make_simulation(model, state, track_energy=track_energy)
 
 
 def bench_settling(
     n: int, steps: int = 2000, device: str = "cpu", data_dir: Path | None = None, repeat: int = 3, books: bool = True
-) -> BenchResult:
+) -> BenchResult | None:
     """Run the settling case and measure it (compilation and graph capture happen before the clock starts), with the
     energy books kept as every run keeps them (``books``; off: the step without them, for comparison).
 
     The case runs ``repeat`` times from its initial state and the fastest run counts, as ``timeit`` does: the
     slower ones measured whatever else the machine was doing.
+
+    Under mpiexec the case runs decomposed over the ranks (warpdem.parallel); rank 0 returns the result, another rank
+    None (it stepped its part of each repeat).
     """
     import warp as wp
 
+    from ..parallel.run import WorkerDone, release_ranks
+
     wall = float("inf")
-    for _ in range(repeat):
-        sim = settling_case(n, device, track_energy=books, data_dir=data_dir)
+    sim = None
+    for k in range(repeat):
+        try:
+            sim = settling_case(n, device, track_energy=books, data_dir=data_dir)
+        except WorkerDone:
+            continue  # a follower rank: rank 0's repeat is over
         z0 = float(sim.state.particle_q.numpy()[:n, 2].mean())
         sim.advance(2)  # compile kernels and capture the step graph outside the timed part
         rebuilds0 = int(sim.state.rebuild_total.numpy()[0])
@@ -107,15 +119,22 @@ def bench_settling(
         sim.advance(steps - 2)
         wp.synchronize_device(device)
         wall = min(wall, time.perf_counter() - t0)
+        if k < repeat - 1:
+            release_ranks(sim)
+    if sim is None:
+        return None
     m = sim.model
     e = sim.energy()
     pairs = sim.contact_count()
     q = sim.state.particle_q.numpy()[:n]
-    mem = sum(a.capacity for a in (*sim.model.arrays().values(), *sim.state.arrays().values()))
-    mem += sum(
-        a.capacity
-        for a in (sim.neighbors.new_count, sim.neighbors.new_index, sim.neighbors.new_shear, sim.neighbors.new_bond)
-    )
+    ranks = getattr(sim, "ranks", 1)
+    rebuilds = int(sim.state.rebuild_total.numpy()[0]) - rebuilds0
+    release_ranks(sim)
+    # Memory of the stepping arrays: rank 0's subdomain on ranks (the whole state it gathers into is output's).
+    stepper = getattr(sim, "local", sim)
+    mem = sum(a.capacity for a in (*stepper.model.arrays().values(), *stepper.state.arrays().values()))
+    nbr = stepper.neighbors
+    mem += sum(a.capacity for a in (nbr.new_count, nbr.new_index, nbr.new_shear, nbr.new_bond))
     return BenchResult(
         device=str(device),
         particles=n,
@@ -125,25 +144,26 @@ def bench_settling(
         wall_time=wall,
         particle_steps_per_second=n * (steps - 2) / wall,
         mean_contacts_per_particle=2.0 * pairs / n,
-        neighbor_rebuilds=int(sim.state.rebuild_total.numpy()[0]) - rebuilds0,
+        neighbor_rebuilds=rebuilds,
         state_memory_mb=mem / 2**20,
         peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         kinetic_translational=e.kinetic_translational,
         kinetic_rotational=e.kinetic_rotational,
         mean_height=float(q[:, 2].mean()),
         mean_height_initial=z0,
+        ranks=ranks,
     )
 
 
 def format_table(rows: list[BenchResult]) -> str:
     head = (
-        f"{'device':<8}{'N':>8}{'steps':>7}{'books':>6}{'wall s':>9}{'M p-steps/s':>13}{'contacts/p':>11}"
+        f"{'device':<8}{'ranks':>6}{'N':>8}{'steps':>7}{'books':>6}{'wall s':>9}{'M p-steps/s':>13}{'contacts/p':>11}"
         f"{'rebuilds':>9}{'mem MB':>9}{'RSS MB':>9}{'KE_t J':>11}{'KE_r J':>11}{'z_mean m':>10}"
     )
     lines = [head, "-" * len(head)]
     for r in rows:
         lines.append(
-            f"{r.device:<8}{r.particles:>8}{r.steps:>7}{'on' if r.books else 'off':>6}{r.wall_time:>9.3f}"
+            f"{r.device:<8}{r.ranks:>6}{r.particles:>8}{r.steps:>7}{'on' if r.books else 'off':>6}{r.wall_time:>9.3f}"
             f"{r.particle_steps_per_second / 1e6:>13.2f}"
             f"{r.mean_contacts_per_particle:>11.2f}{r.neighbor_rebuilds:>9}{r.state_memory_mb:>9.1f}{r.peak_rss_mb:>9.0f}"
             f"{r.kinetic_translational:>11.3e}{r.kinetic_rotational:>11.3e}{r.mean_height:>10.4f}"
@@ -164,12 +184,15 @@ def run_bench(
     rows = []
     for n in sizes:
         try:
-            rows.append(bench_settling(n, steps, device, data_dir, repeat, books))
+            row = bench_settling(n, steps, device, data_dir, repeat, books)
         except FileNotFoundError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
+        if row is None:
+            continue  # a follower rank of a decomposed bench: rank 0 reports
+        rows.append(row)
         print(format_table(rows[-1:]) if len(rows) == 1 else format_table(rows).splitlines()[-1], flush=True)
-    if json_path is not None:
+    if json_path is not None and rows:
         json_path.write_text(json.dumps([asdict(r) for r in rows], indent=1))
     return 0
 

@@ -13,41 +13,13 @@ import dataclasses
 import numpy as np
 import warp as wp
 
-from ..model import BOND_FIELDS, NEIGHBOR_FIELDS, Model, State
+from ..model import BOND_FIELDS, NEIGHBOR_FIELDS, PARTICLE_MODEL_FIELDS, PARTICLE_STATE_FIELDS, Model, State
 
-MODEL_FIELDS = (
-    "particle_radius",
-    "particle_mass",
-    "particle_inv_mass",
-    "particle_inv_inertia",
-    "particle_material",
-    "particle_motion",
-    "particle_part",
-    "particle_id",
-)
+MODEL_FIELDS = tuple(PARTICLE_MODEL_FIELDS)
 """Model fields with one entry per sphere."""
 
-STATE_FIELDS = (
-    "particle_q",
-    "particle_qd",
-    "particle_qd_carry",
-    "particle_omega",
-    "particle_f",
-    "particle_t",
-    "particle_q_at_build",
-    "particle_bonds_broken",
-    "energy_damping",
-    "energy_friction",
-    "energy_boundary_work",
-    "energy_bond_broken",
-    "energy_bond_trapezoid",
-    "energy_stiffness_change",
-    "contact_f_normal",
-    "contact_f_tangential",
-    "contact_t_tangential",
-    "contact_energy_prev",
-)
-"""State fields with one entry per sphere (besides its list: ``nbr_count`` and the slots)."""
+STATE_FIELDS = tuple(name for name in PARTICLE_STATE_FIELDS if name != "nbr_count")
+"""State fields with one entry per sphere besides its list (``nbr_count`` and the slots travel apart)."""
 
 PARTNER = "nbr_partner"
 """The rows' name of the slots' partners as global ids (-1 past a sphere's count)."""
@@ -217,7 +189,7 @@ def _local_arrays(
         full[:n] = a
         return full
 
-    model = {name: padded(rows.fields[name]) for name in MODEL_FIELDS}
+    model = {name: padded(rows.fields[name], PARTICLE_MODEL_FIELDS[name]) for name in MODEL_FIELDS}
     state = {name: padded(rows.fields[name]) for name in STATE_FIELDS}
     state["wall_shear"] = padded(rows.fields["wall_shear"]).reshape(-1, 3)
     if bond_cap:

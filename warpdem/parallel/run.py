@@ -118,15 +118,18 @@ def serve(comm: Any, model: Model, state: State, **kwargs: Any) -> None:
             elif command == "set_time_step":
                 local.set_time_step(*args)
     except Exception as exc:
-        import sys
-        import traceback
+        _abort(comm, exc)
 
-        # The process's own stderr: the command line sends a follower's output to nowhere.
-        traceback.print_exc(file=sys.__stderr__)
-        print(
-            f"rank {comm.Get_rank()}: {type(exc).__name__}: {exc}; aborting every rank", file=sys.__stderr__, flush=True
-        )
-        comm.Abort(1)
+
+def _abort(comm: Any, exc: BaseException) -> None:
+    """End every rank after an error on this one, with its traceback and one line on the process's own stderr (the
+    command line sends a follower's output to nowhere)."""
+    import sys
+    import traceback
+
+    traceback.print_exception(exc, file=sys.__stderr__)
+    print(f"rank {comm.Get_rank()}: {type(exc).__name__}: {exc}; aborting every rank", file=sys.__stderr__, flush=True)
+    comm.Abort(1)
 
 
 class Decomposed:
@@ -196,10 +199,21 @@ class Decomposed:
         return self._gathered().contact_count()
 
     def advance(self, n_steps: int, stop_at_switch: bool = False) -> int:
-        """``n_steps`` on every rank (the whole state is gathered when next read)."""
+        """``n_steps`` on every rank (the whole state is gathered when next read).
+
+        Raises:
+            UnstableRunError: as :meth:`~warpdem.simulation.Simulation.advance`, on every rank together. Any other
+                error here aborts every rank with its message: the others would wait for this one in the next
+                exchange.
+        """
         self.comm.bcast(("advance", (n_steps, stop_at_switch)), root=0)
         self._stale = True
-        self.local.advance(n_steps, stop_at_switch)
+        try:
+            self.local.advance(n_steps, stop_at_switch)
+        except UnstableRunError:
+            raise
+        except BaseException as exc:
+            _abort(self.comm, exc)
         return n_steps
 
     def set_time_step(self, dt: float, critical: CriticalStep | None = None) -> float:

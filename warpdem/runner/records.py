@@ -140,6 +140,8 @@ class RunSummary:
     loads: list[tuple[str, float, float]] = field(default_factory=list)
     """Each pressure load's name, the area it pushes on [m²] and the normal impulse ∫∫ p dA dt it delivered [N s]
     (warpdem.load_data.LoadModel.loaded_areas, .impulses)."""
+    ranks: int = 1
+    """The MPI ranks the run was decomposed over (warpdem.parallel; 1: one process)."""
 
     def format(self) -> str:
         e0, e1 = self.energy_start, self.energy_end
@@ -151,6 +153,8 @@ class RunSummary:
                 step += f"  (critical {self.critical_dt:.4g} s, set by {self.critical_dt_source})"
             lines.append(step)
         wall = f"wall time        {self.wall_time:.3f} s"
+        if self.ranks > 1:
+            wall += f" on {self.ranks} ranks"
         if spheres:
             wall += f"  ({self.particle_steps_per_second / 1e6:.3f} M particle-steps/s)"
         if self.compile_time > 0.0:

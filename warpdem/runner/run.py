@@ -865,6 +865,7 @@ class Run(RunAccess):
             critical_dt=sim.model.critical_dt,
             critical_dt_source=sim.model.critical_dt_source,
             loads=self._load_records(),
+            ranks=getattr(sim, "ranks", 1),
         )
 
     def _load_records(self) -> list[tuple[str, float, float]]:

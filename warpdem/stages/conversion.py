@@ -82,7 +82,16 @@ from ..kernels import conversion as kcv
 from ..kernels import conversion_bonds as kcb
 from ..kernels import multisphere as kms
 from ..kernels import topology as kt
-from ..model import BOND_FIELDS, COUPLING_FIELDS, NEIGHBOR_FIELDS, Model, State, conversion_state
+from ..model import (
+    BOND_FIELDS,
+    COUPLING_FIELDS,
+    NEIGHBOR_FIELDS,
+    PARTICLE_MODEL_FIELDS,
+    PARTICLE_STATE_FIELDS,
+    Model,
+    State,
+    conversion_state,
+)
 from . import multisphere
 from .compaction import Compactor
 from .coupling import compact_coupling
@@ -396,42 +405,6 @@ def conversion_critical_step(
 
 # ----------------------------------------------------------------------------------------------------------------
 # Capacity growth
-
-
-PARTICLE_MODEL_FIELDS = {
-    "particle_radius": 0,
-    "particle_mass": 0,
-    "particle_inv_mass": 0,
-    "particle_inv_inertia": 0,
-    "particle_material": 0,
-    "particle_motion": 0,
-    "particle_part": 0,
-    "particle_id": -1,
-}
-"""Per-particle Model fields and the value of an empty slot."""
-
-PARTICLE_STATE_FIELDS = (
-    "particle_q",
-    "particle_qd",
-    "particle_qd_carry",
-    "particle_omega",
-    "particle_f",
-    "particle_t",
-    "particle_q_at_build",
-    "nbr_count",
-    "particle_bonds_broken",
-    "energy_damping",
-    "energy_friction",
-    "energy_boundary_work",
-    "energy_bond_broken",
-    "energy_bond_trapezoid",
-    "energy_stiffness_change",
-    "contact_f_normal",
-    "contact_f_tangential",
-    "contact_t_tangential",
-    "contact_energy_prev",
-)
-"""Per-particle State fields (empty slots 0)."""
 
 
 def _grow_rows(a: wp.array, rows: int, per_row: int, capacity: int, fill: int = 0) -> wp.array:
