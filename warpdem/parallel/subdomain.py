@@ -7,7 +7,7 @@ that others hold as ghosts, one message per neighbour; forces on ghosts are comp
 ranks meet once a step. The list rebuild is decided by all ranks together. At a rebuild where a sphere has moved more
 than the migration margin since the last migration, the spheres migrate to the slab their centre is in, each with its
 whole history (the slots keyed by partner id), the ghosts are chosen again, and the slabs are cut again first when the
-ranks' measured work differs by more than 10 %.
+ranks' measured work differs by more than 10 % (checked at list rebuilds, a migration then taking place).
 
 On the CPU a rank's result is the one-process result bit for bit: a subdomain keeps its spheres sorted by global id
 and its grid has the whole run's cells and hash table, so every thread sees the same pairs in the same order and every
@@ -32,7 +32,10 @@ from .domain import Slabs
 from .rows import Bonds, Rows, bonds_of, fill, rows_of, subdomain
 
 IMBALANCE = 1.10
-"""Largest rank's measured step work over the mean before the slabs are cut again (at a migration)."""
+"""Largest rank's measured step work over the mean before the slabs are cut again (at a list rebuild)."""
+
+MEASURED = 0.25
+"""Seconds of step work each rank must have measured before the ranks' work is compared: less is noise."""
 
 HEADROOM = 1.25
 """Sphere slots a subdomain allocates per sphere it holds, so that migrations fill its arrays in place (no new arrays,
@@ -101,7 +104,8 @@ class Subdomain(Simulation):
         my_bonds = bonds.take(held[bonds.ends[:, 0]] & held[bonds.ends[:, 1]])
         self._moved = wp.zeros(2, dtype=int, device=model.device)
         self._views_of: State | None = None
-        self._busy = 0.0  # seconds of this rank's own step work since the last migration
+        self._busy = 0.0  # seconds of this rank's own step work since the ranks' work was last compared
+        self._slowest = -1  # the rank found slowest at that comparison (-1: none)
         local_model, local_state = subdomain(
             template,
             state,
@@ -217,9 +221,25 @@ class Subdomain(Simulation):
         before it a migration (one past the margin since the last)."""
         moved = self._halo()
         if moved[0]:
-            if moved[1]:
-                self._migrate()
+            busy = self._measured_work()
+            if moved[1] or busy is not None:
+                self._migrate(busy)
             self._rebuild_lists()
+
+    def _measured_work(self) -> np.ndarray | None:
+        """At a list rebuild: every rank's measured step work since the last decision [s] (the same figures on every
+        rank) when the same rank's exceeded the mean by more than :data:`IMBALANCE` twice running, so that the slabs
+        are cut again; None when they are even, when too little was measured to tell (under :data:`MEASURED` on some
+        rank), or on the first uneven window (a 2-core machine's timings wander by ±20 % between windows of one cut:
+        one window alone would cut the slabs back and forth)."""
+        busy = np.array(self.comm.allgather(self._busy))
+        if busy.min() < MEASURED:
+            return None
+        self._busy = 0.0
+        slowest = int(np.argmax(busy)) if busy.max() > IMBALANCE * busy.mean() else -1
+        confirmed = slowest >= 0 and slowest == self._slowest
+        self._slowest = -1 if confirmed else slowest
+        return busy if confirmed else None
 
     def _halo(self) -> np.ndarray:
         """One message to each rank that holds owned spheres as ghosts: centres, velocities, spins (float64 rows of 9;
@@ -256,31 +276,31 @@ class Subdomain(Simulation):
             self._views_of = s
         return self._views
 
-    def _rebalanced(self, q_owned: np.ndarray) -> None:
-        """Cut the slabs again when the ranks' measured work since the last migration differs by more than
-        :data:`IMBALANCE` (every rank decides from the same gathered figures): each owned sphere weighs its rank's work
-        over its owned count, so a slab that took longer gives up spheres in proportion. Where the work was not
-        measured (no step yet), the owned counts decide."""
-        busy = np.array(self.comm.allgather(self._busy))
-        counts = np.array(self.comm.allgather(len(q_owned)), dtype=np.float64)
-        self._busy = 0.0
-        cost = busy if busy.min() > 0.0 else counts
-        if cost.max() <= IMBALANCE * max(cost.mean(), 1e-300):
-            return
-        share = cost[self.comm.Get_rank()] / max(len(q_owned), 1)
+    def _rebalance(self, q_owned: np.ndarray, busy: np.ndarray) -> None:
+        """Cut the slabs again by the ranks' measured work ``busy`` [s] (shape (ranks,), the same on every rank): each
+        owned sphere weighs its rank's work over its owned count, so a slab that took longer gives up spheres in
+        proportion."""
+        share = busy[self.comm.Get_rank()] / max(len(q_owned), 1)
         q_all = np.concatenate(self.comm.allgather(q_owned))
         w_all = np.concatenate(self.comm.allgather(np.full(len(q_owned), share)))
-        self.slabs = Slabs.balanced(q_all, w_all, len(counts), self.slabs.halo)
+        balanced = Slabs.balanced(q_all, w_all, len(busy), self.slabs.halo)
+        if balanced.axis == self.slabs.axis:
+            # Half way to the cuts the measurement asks for: the measurement is noisy and each cut costs a migration.
+            cuts = tuple(0.5 * (a + b) for a, b in zip(self.slabs.cuts, balanced.cuts, strict=True))
+            balanced = Slabs(balanced.axis, cuts, balanced.halo)
+        self.slabs = balanced
 
-    def _migrate(self) -> None:
-        """Owned spheres (with their lists) to every rank that holds them by the slabs (cut again first where the
-        counts drifted apart), and the subdomain made of what arrives: in its own arrays where they hold it."""
+    def _migrate(self, busy: np.ndarray | None = None) -> None:
+        """Owned spheres (with their lists) to every rank that holds them by the slabs (cut again first by the ranks'
+        measured work ``busy`` where given, :meth:`_measured_work`), and the subdomain made of what arrives: in its
+        own arrays where they hold it."""
         m, s = self.model, self.state
         size = self.comm.Get_size()
         owned = np.flatnonzero(self._owned_host)
         rows = rows_of(m, s, self.gid, owned)
         q = rows.fields["particle_q"]
-        self._rebalanced(q)
+        if busy is not None:
+            self._rebalance(q, busy)
         rows.fields["rank"] = self.slabs.owner(q)
         # A bond goes with its lower sphere's owner, to every rank that holds both its spheres.
         bonds = bonds_of(s, self.gid)
