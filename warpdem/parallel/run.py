@@ -139,8 +139,9 @@ class Decomposed:
 
     Args:
         comm: the MPI communicator (mpi4py).
-        model, state: the whole run (every rank built it alike).
-        Other keywords: as :class:`~warpdem.simulation.Simulation`.
+        model: the whole run's model (every rank built it alike).
+        state: the whole run's state.
+        **kwargs: as :class:`~warpdem.simulation.Simulation`'s.
     """
 
     def __init__(self, comm: Any, model: Model, state: State, **kwargs: Any) -> None:

@@ -81,10 +81,11 @@ class Subdomain(Simulation):
 
     Args:
         comm: the MPI communicator (mpi4py).
-        model, state: the whole run, spheres indexed by global id.
+        model: the whole run's model, spheres indexed by global id.
+        state: the whole run's state.
         primed: the whole state holds its forces (a restart): no evaluation at set-up, the lists kept.
-        Other keywords: as :class:`~warpdem.simulation.Simulation`. A step is not one recorded graph here: the halo
-            runs on the host between its two halves, each recorded after its first eager run (:meth:`_body`).
+        **kwargs: as :class:`~warpdem.simulation.Simulation`'s. A step is not one recorded graph here: the halo runs
+            on the host between its two halves, each recorded after its first eager run (:meth:`_body`).
     """
 
     def __init__(self, comm: Any, model: Model, state: State, *, primed: bool = False, **kwargs: Any) -> None:
