@@ -1,6 +1,9 @@
 """A run decomposed over MPI ranks against the same run in one process (issue 25): wall time, speed-up, and whether
 the time series is the one process's bit for bit.
 
+Each row also gives the bytes all ranks' halo messages carry in a step at the run's end (9 float64 a ghost) and the
+ghosts over the spheres owned (the share of the owned state sent each step).
+
 The case is a pour: ``--spheres`` beads (radius 4–5 mm, volume fraction 0.3) in a channel 0.2 m wide and tall and as
 long as they need, dropped onto its floor for ``--end-time`` simulated seconds (Hertz–Mindlin with rolling
 resistance, walls, gravity: what decomposes so far). The channel's length is its longest extent, so the ranks get
@@ -120,7 +123,9 @@ def main(argv: list[str] | None = None) -> int:
             scene.write_text(channel_pour(n, args.end_time))
             one = run(scene, Path(tmp) / f"{n}_1", 1)
             reference = (Path(tmp) / f"{n}_1" / "channel_pour_series.csv").read_text()
-            rows.append({"spheres": one["particles"], "ranks": 1, "steps": one["steps"], "wall_s": one["wall_time"]})
+            rows.append(
+                {"spheres": one["particles"], "ranks": 1, "steps": one["steps"], "wall_s": one["wall_time"], "halo": 0}
+            )
             for ranks in args.ranks:
                 many = run(scene, Path(tmp) / f"{n}_{ranks}", ranks)
                 series = (Path(tmp) / f"{n}_{ranks}" / "channel_pour_series.csv").read_text()
@@ -130,18 +135,24 @@ def main(argv: list[str] | None = None) -> int:
                         "ranks": ranks,
                         "steps": many["steps"],
                         "wall_s": many["wall_time"],
+                        "halo": many["halo_bytes_per_step"],
                         "speedup": one["wall_time"] / many["wall_time"],
                         "identical_series": series == reference,
                     }
                 )
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps({"commit": commit.stdout.strip(), "rows": rows}, indent=1) + "\n")
-    print("| spheres | ranks | steps | wall time [s] | speed-up | series as one process |")
-    print("| ---: | ---: | ---: | ---: | ---: | --- |")
+    print("| spheres | ranks | steps | wall time [s] | speed-up | halo [kB a step] | ghosts / owned | series |")
+    print("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |")
     for r in rows:
         speedup = f"{r['speedup']:.2f}×" if "speedup" in r else "—"
         same = {True: "bit for bit", False: "DIFFERS"}.get(r.get("identical_series"), "(reference)")
-        print(f"| {r['spheres']} | {r['ranks']} | {r['steps']} | {r['wall_s']:.2f} | {speedup} | {same} |")
+        # A ghost is fed 9 float64 a step; its owner steps the same 9 values for each sphere it owns.
+        ghosts = r["halo"] / 72 / r["spheres"]
+        print(
+            f"| {r['spheres']} | {r['ranks']} | {r['steps']} | {r['wall_s']:.2f} | {speedup} | {r['halo'] / 1e3:.1f} "
+            f"| {ghosts:.3f} | {same} |"
+        )
     return 0 if all(r.get("identical_series", True) for r in rows) else 1
 
 

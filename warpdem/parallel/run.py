@@ -85,9 +85,10 @@ def make_simulation(model: Model, state: State, **kwargs: Any) -> Simulation | D
     raise WorkerDone()
 
 
-def _gather(comm: Any, local: Subdomain) -> list[tuple[Rows, Bonds]] | None:
-    """Every rank's owned rows at rank 0 (None elsewhere), then the lists' largest count (rank 0 gets the max)."""
-    rows = comm.gather(local.owned_rows(), root=0)
+def _gather(comm: Any, local: Subdomain) -> list[tuple[Rows, Bonds, int]] | None:
+    """Every rank's owned rows and bonds and its halo's bytes a step at rank 0 (None elsewhere), then the lists'
+    largest count (rank 0 gets the max)."""
+    rows = comm.gather((*local.owned_rows(), local.halo_bytes()), root=0)
     if comm.Get_rank() > 0:
         from mpi4py import MPI
 
@@ -151,6 +152,8 @@ class Decomposed:
         # The whole run, never stepped: what frames, books and checkpoints read.
         self.whole = Simulation(model, state, primed=True, step=kwargs.get("step", 0), time=kwargs.get("time"))
         self._closed = False
+        self.halo_bytes = 0  # bytes of a step's halo messages, all ranks (at the last gather)
+        self.owned: list[int] = []  # spheres each rank owns (at the last gather)
         self._stale = True  # the whole state lags the ranks'
         # Bonds only break (none is made here): the whole run's broken count follows from the intact ones.
         self._bonds_start = int(state.bond_count.numpy()[0])
@@ -239,6 +242,9 @@ class Decomposed:
     def _collect(self) -> None:
         """The owned rows of every rank into the whole state, the shared arrays from rank 0's subdomain."""
         parts = _gather(self.comm, self.local)
+        # What the ranks send each other a step now, and what they own (the halo against the owned work).
+        self.halo_bytes = sum(p[2] for p in parts)
+        self.owned = [len(p[0]) for p in parts]
         rows = Rows.join([p[0] for p in parts])
         bonds = Bonds.join([p[1] for p in parts])
         w = self.whole

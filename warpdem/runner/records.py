@@ -142,6 +142,8 @@ class RunSummary:
     (warpdem.load_data.LoadModel.loaded_areas, .impulses)."""
     ranks: int = 1
     """The MPI ranks the run was decomposed over (warpdem.parallel; 1: one process)."""
+    halo_bytes_per_step: int = 0
+    """On ranks: the bytes all ranks' halo messages carry in one step at the end of the run (0 in one process)."""
 
     def format(self) -> str:
         e0, e1 = self.energy_start, self.energy_end
@@ -154,7 +156,7 @@ class RunSummary:
             lines.append(step)
         wall = f"wall time        {self.wall_time:.3f} s"
         if self.ranks > 1:
-            wall += f" on {self.ranks} ranks"
+            wall += f" on {self.ranks} ranks (halo {self.halo_bytes_per_step / 1e3:.1f} kB a step)"
         if spheres:
             wall += f"  ({self.particle_steps_per_second / 1e6:.3f} M particle-steps/s)"
         if self.compile_time > 0.0:

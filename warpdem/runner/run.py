@@ -866,6 +866,7 @@ class Run(RunAccess):
             critical_dt_source=sim.model.critical_dt_source,
             loads=self._load_records(),
             ranks=getattr(sim, "ranks", 1),
+            halo_bytes_per_step=getattr(sim, "halo_bytes", 0),
         )
 
     def _load_records(self) -> list[tuple[str, float, float]]:
