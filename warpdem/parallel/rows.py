@@ -35,8 +35,8 @@ class Rows:
     Attributes:
         gid: global ids, shape (n,), int64.
         fields: per-sphere arrays by field name, each shape (n, ...): the Model and State fields above, ``wall_shear``
-            (n, num_walls, 3), ``nbr_count`` (n,), and the slots (n, K, ...) of ``nbr_shear``, ``nbr_bond`` and
-            :data:`PARTNER`.
+            (n, num_walls, 3), ``nbr_count`` (n,), and the slots (n, K, ...) of ``nbr_shear`` and :data:`PARTNER` (a
+            slot's bond is not carried: where the rows land it is looked up by key, as a list build finds it).
     """
 
     gid: np.ndarray
@@ -52,7 +52,7 @@ class Rows:
     @staticmethod
     def join(parts: list[Rows]) -> Rows:
         """Rows of several parts in one, sorted by global id (the parts hold no id twice). Slots are padded to the
-        widest part's K (partner -1, bond -1)."""
+        widest part's K (partner -1)."""
         parts = [p for p in parts if p.fields]
         k = max(p.fields[PARTNER].shape[1] for p in parts)
         gid = np.concatenate([p.gid for p in parts])
@@ -127,7 +127,7 @@ def _bond_arrays(bonds: Bonds, gid: np.ndarray, particle_capacity: int, capacity
 def _pad_slots(name: str, a: np.ndarray, k: int) -> np.ndarray:
     if name not in (*NEIGHBOR_FIELDS, PARTNER) or a.shape[1] == k:
         return a
-    fill = -1 if name in ("nbr_bond", PARTNER) else 0
+    fill = -1 if name == PARTNER else 0
     pad = [(0, 0), (0, k - a.shape[1])] + [(0, 0)] * (a.ndim - 2)
     return np.pad(a, pad, constant_values=fill)
 
@@ -145,7 +145,6 @@ def rows_of(model: Model, state: State, gid: np.ndarray, local: np.ndarray) -> R
     live = np.arange(k)[None, :] < count[:, None]
     fields[PARTNER] = np.where(live, gid[np.where(live, index, 0)], -1).astype(np.int64)
     fields["nbr_shear"] = state.nbr_shear.numpy().reshape(cap, k, 3)[local]
-    fields["nbr_bond"] = state.nbr_bond.numpy().reshape(cap, k)[local]
     return Rows(gid[local].astype(np.int64), fields)
 
 
@@ -163,17 +162,34 @@ def _slot_arrays(rows: Rows, k: int, bond_key: np.ndarray, particle_capacity: in
     live = np.arange(k)[None, :] < count[:, None]
     index = np.take_along_axis(np.where(keep, found, 0), order, axis=1)
     shear = np.take_along_axis(_pad_slots("nbr_shear", rows.fields["nbr_shear"], k)[:, :k], order[..., None], 1)
-    key = np.arange(n)[:, None].astype(np.int64) * particle_capacity + index
-    bond = np.full(key.shape, -1, dtype=np.int64)
-    if len(bond_key):
-        at = np.minimum(np.searchsorted(bond_key, key), len(bond_key) - 1)
-        bond = np.where(bond_key[at] == key, at, -1)
+    bond = _slot_bonds(bond_key, np.arange(n)[:, None].astype(np.int64) * particle_capacity + index, live)
     return {
         "nbr_count": count,
         "nbr_index": np.where(live, index, 0).astype(np.int32),
         "nbr_shear": np.where(live[..., None], shear, 0.0).astype(np.float32),
-        "nbr_bond": np.where(live, bond, -1).astype(np.int32),
+        "nbr_bond": bond,
     }
+
+
+def _slot_bonds(bond_key: np.ndarray, key: np.ndarray, live: np.ndarray) -> np.ndarray:
+    """Each live slot's bond: the index of its pair's key ``key`` (i * capacity + j) in the ascending ``bond_key``,
+    -1 where the pair has none or the slot is dead (int32, the shape of ``key``)."""
+    bond = np.full(key.shape, -1, dtype=np.int32)
+    if len(bond_key):
+        at = np.minimum(np.searchsorted(bond_key, key), len(bond_key) - 1)
+        bond = np.where(live & (bond_key[at] == key), at, -1).astype(np.int32)
+    return bond
+
+
+def _write(array: wp.array, host: np.ndarray) -> None:
+    """Copy ``host`` into ``array`` (its shape as ``host``'s): on the CPU through the array's own host view, no
+    staging copy, and nothing to do where ``host`` is that view."""
+    if array.device.is_cpu:
+        view = array.numpy().reshape(host.shape)
+        if not np.shares_memory(view, host):
+            np.copyto(view, host)
+    else:
+        array.assign(host)
 
 
 def _local_arrays(
@@ -226,11 +242,7 @@ def fill(model: Model, state: State, rows: Rows, bonds: Bonds) -> None:
     mhost, shost = _local_arrays(rows, bonds, model.max_neighbors, model.particle_capacity, model.bond_capacity)
     for obj, host in ((model, mhost), (state, shost)):
         for name, a in host.items():
-            target = getattr(obj, name)
-            if target.device.is_cpu:
-                np.copyto(target.numpy().reshape(a.shape), a)  # the host view is the array itself: no staging copy
-            else:
-                target.assign(a)
+            _write(getattr(obj, name), a)
     state.particle_count.fill_(len(rows))
     state.bond_count.fill_(len(bonds))
 
@@ -242,42 +254,26 @@ def write_rows(model: Model, state: State, rows: Rows, bonds: Bonds) -> None:
     cap, k, walls = model.particle_capacity, model.max_neighbors, model.num_walls
     at = rows.gid
 
-    def put(arr: wp.array, host: np.ndarray) -> None:
-        if arr.device.is_cpu:
-            np.copyto(arr.numpy().reshape(host.shape), host)
-        else:
-            arr.assign(host)
+    def scatter(array: wp.array, shape: tuple[int, ...], values: np.ndarray) -> None:
+        """``values`` into the rows ``at`` of ``array`` seen as ``shape`` (on the CPU in place, through its view)."""
+        host = array.numpy().reshape(shape)
+        host[at] = values
+        _write(array, host)
 
     for name in STATE_FIELDS:
-        host = getattr(state, name).numpy().copy()
-        host[at] = rows.fields[name]
-        put(getattr(state, name), host)
-    shear = state.wall_shear.numpy().reshape(cap, walls, 3).copy()
-    shear[at] = rows.fields["wall_shear"]
-    put(state.wall_shear, shear)
-    count = state.nbr_count.numpy().copy()
-    count[at] = rows.fields["nbr_count"]
-    put(state.nbr_count, count)
+        array = getattr(state, name)
+        scatter(array, array.numpy().shape, rows.fields[name])
+    scatter(state.wall_shear, (cap, walls, 3), rows.fields["wall_shear"])
+    scatter(state.nbr_count, (cap,), rows.fields["nbr_count"])
     keys = np.zeros(0, dtype=np.int64)
     if model.bond_capacity:
         whole = np.arange(cap, dtype=np.int64)
         for name, host in _bond_arrays(bonds, whole, cap, model.bond_capacity).items():
-            put(getattr(state, name), host)
+            _write(getattr(state, name), host)
         state.bond_count.fill_(len(bonds))
         keys = state.bond_key.numpy()[: len(bonds)]
     partner = _pad_slots(PARTNER, rows.fields[PARTNER], k)[:, :k]
-    key = at[:, None] * cap + np.maximum(partner, 0)
-    bond = np.full(key.shape, -1, dtype=np.int64)
-    if len(keys):
-        found = np.minimum(np.searchsorted(keys, key), len(keys) - 1)
-        bond = np.where((keys[found] == key) & (partner >= 0), found, -1)
-    slots = {
-        "nbr_index": np.maximum(partner, 0).astype(np.int32),
-        "nbr_shear": _pad_slots("nbr_shear", rows.fields["nbr_shear"], k)[:, :k],
-        "nbr_bond": bond.astype(np.int32),
-    }
-    for name, a in slots.items():
-        arr = getattr(state, name)
-        host = arr.numpy().reshape(cap, k, *a.shape[2:]).copy()
-        host[at] = a
-        put(arr, host)
+    live = partner >= 0
+    scatter(state.nbr_index, (cap, k), np.maximum(partner, 0).astype(np.int32))
+    scatter(state.nbr_shear, (cap, k, 3), _pad_slots("nbr_shear", rows.fields["nbr_shear"], k)[:, :k])
+    scatter(state.nbr_bond, (cap, k), _slot_bonds(keys, at[:, None] * cap + np.maximum(partner, 0), live))

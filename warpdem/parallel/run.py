@@ -85,15 +85,10 @@ def make_simulation(model: Model, state: State, **kwargs: Any) -> Simulation | D
     raise WorkerDone()
 
 
-def _gather(comm: Any, local: Subdomain) -> list[tuple[Rows, Bonds, int]] | None:
-    """Every rank's owned rows and bonds and its halo's bytes a step at rank 0 (None elsewhere), then the lists'
-    largest count (rank 0 gets the max)."""
-    rows = comm.gather((*local.owned_rows(), local.halo_bytes()), root=0)
-    if comm.Get_rank() > 0:
-        from mpi4py import MPI
-
-        comm.reduce(int(local.state.nbr_needed.numpy()[0]), op=MPI.MAX, root=0)
-    return rows
+def _gather(comm: Any, local: Subdomain) -> list[tuple[Rows, Bonds, int, int]] | None:
+    """Every rank's owned rows and bonds, its halo's bytes a step and its lists' largest count, at rank 0 (None
+    elsewhere)."""
+    return comm.gather((*local.owned_rows(), local.halo_bytes(), int(local.state.nbr_needed.numpy()[0])), root=0)
 
 
 def serve(comm: Any, model: Model, state: State, **kwargs: Any) -> None:
@@ -153,7 +148,6 @@ class Decomposed:
         self.whole = Simulation(model, state, primed=True, step=kwargs.get("step", 0), time=kwargs.get("time"))
         self._closed = False
         self.halo_bytes = 0  # bytes of a step's halo messages, all ranks (at the last gather)
-        self.owned: list[int] = []  # spheres each rank owns (at the last gather)
         self._stale = True  # the whole state lags the ranks'
         # Bonds only break (none is made here): the whole run's broken count follows from the intact ones.
         self._bonds_start = int(state.bond_count.numpy()[0])
@@ -242,9 +236,7 @@ class Decomposed:
     def _collect(self) -> None:
         """The owned rows of every rank into the whole state, the shared arrays from rank 0's subdomain."""
         parts = _gather(self.comm, self.local)
-        # What the ranks send each other a step now, and what they own (the halo against the owned work).
-        self.halo_bytes = sum(p[2] for p in parts)
-        self.owned = [len(p[0]) for p in parts]
+        self.halo_bytes = sum(p[2] for p in parts)  # what the ranks send each other a step now
         rows = Rows.join([p[0] for p in parts])
         bonds = Bonds.join([p[1] for p in parts])
         w = self.whole
@@ -258,10 +250,7 @@ class Decomposed:
             w.state.bonds_broken_total.fill_(self._broken_start + self._bonds_start - intact)
         for name in SHARED_FIELDS:
             getattr(w.state, name).assign(getattr(self.local.state, name))
-        from mpi4py import MPI
-
-        needed = self.comm.reduce(int(self.local.state.nbr_needed.numpy()[0]), op=MPI.MAX, root=0)
-        w.state.nbr_needed.fill_(needed)
+        w.state.nbr_needed.fill_(max(p[3] for p in parts))
         w.step_count, w.time = self.local.step_count, self.local.time
         w.state.rebuild_flag.zero_()
 

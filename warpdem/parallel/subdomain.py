@@ -101,7 +101,7 @@ class Subdomain(Simulation):
         longest = float(bonds.fields["bond_rest_length"].max()) if len(bonds) else 0.0
         self.slabs = Slabs.balanced(q, np.ones(n), comm.Get_size(), halo_width(template, longest))
         held = self.slabs.holds(q, comm.Get_rank())
-        mine = rows_of(template, state, whole, whole).take(held)
+        mine = rows_of(template, state, whole, np.flatnonzero(held))
         my_bonds = bonds.take(held[bonds.ends[:, 0]] & held[bonds.ends[:, 1]])
         self._moved = wp.zeros(2, dtype=int, device=model.device)
         self._views_of: State | None = None
@@ -128,11 +128,11 @@ class Subdomain(Simulation):
         self._q_at_migration = wp.zeros(capacity, dtype=wp.vec3d, device=device)
 
     def _adopt(self, gid: np.ndarray, owner: np.ndarray, q: np.ndarray) -> None:
-        """Take ``gid`` (sorted) as the local spheres, ``owner`` as their ranks and ``q`` as their centres (all shape
+        """Take ``gid`` (sorted) as the local spheres, with ``owner`` their ranks and ``q`` their centres (all shape
         (n, ...)): the owned flags, the centres the margin is measured from, and the halo's send and receive lists
         (local indices in global-id order on both sides; a sender and a receiver decide from the same centres)."""
         rank, size = self.comm.Get_rank(), self.comm.Get_size()
-        self.gid, self.owner = gid, owner
+        self.gid = gid
         owned = owner == rank
         flags = np.zeros(self.owned.shape[0], dtype=np.int32)
         flags[: len(gid)] = owned
@@ -153,6 +153,7 @@ class Subdomain(Simulation):
     def _setup(self) -> None:
         super()._setup()
         self._halves: tuple | None = None  # new arrays: the recorded halves are recorded again
+        self._lists_kept: list[wp.array] | None = None  # the lists before a rebuild (made at the first)
 
     def _flag_moved(self) -> None:
         """The skin and margin tests over owned spheres into ``_moved``, and the drift's own flag lowered (a ghost's
@@ -304,17 +305,11 @@ class Subdomain(Simulation):
             self._rebalance(q, busy)
         rows.fields["rank"] = self.slabs.owner(q)
         # A bond goes with its lower sphere's owner, to every rank that holds both its spheres.
-        bonds = bonds_of(s, self.gid)
-        lower = np.searchsorted(self.gid, bonds.ends[:, 0])
-        upper = np.searchsorted(self.gid, bonds.ends[:, 1])
-        bonds = bonds.take(self._owned_host[lower])
-        q_local = self.state.particle_q.numpy()
-        ends_q = (q_local[lower[self._owned_host[lower]]], q_local[upper[self._owned_host[lower]]])
+        bonds, ends = self._owned_bonds()
+        q_local = s.particle_q.numpy()
+        lower_q, upper_q = q_local[ends[:, 0]], q_local[ends[:, 1]]
         outgoing = [
-            (
-                rows.take(self.slabs.holds(q, d)),
-                bonds.take(self.slabs.holds(ends_q[0], d) & self.slabs.holds(ends_q[1], d)),
-            )
+            (rows.take(self.slabs.holds(q, d)), bonds.take(self.slabs.holds(lower_q, d) & self.slabs.holds(upper_q, d)))
             for d in range(size)
         ]
         parts = self.comm.alltoall(outgoing)
@@ -339,21 +334,23 @@ class Subdomain(Simulation):
         from mpi4py import MPI
 
         names = ("nbr_count", *NEIGHBOR_FIELDS, "rebuild_total")
-        before = [wp.clone(getattr(self.state, name)) for name in names]
         while True:
+            if self._lists_kept is None:  # once per set of arrays: a rebuild copies, it does not allocate
+                self._lists_kept = [wp.empty_like(getattr(self.state, name)) for name in names]
+            for name, kept in zip(names, self._lists_kept, strict=True):
+                wp.copy(kept, getattr(self.state, name))
             self.neighbors.rebuild()
             needed = self.comm.allreduce(int(self.state.nbr_needed.numpy()[0]), op=MPI.MAX)
             k = self.model.max_neighbors
             if needed <= k:
                 return
-            for name, kept in zip(names, before, strict=True):
-                getattr(self.state, name).assign(kept)
+            for name, kept in zip(names, self._lists_kept, strict=True):
+                wp.copy(getattr(self.state, name), kept)
             while k < needed:
                 k *= 2
             self.model, self.state = regrow_neighbors(self.model, self.state, k)
             self._setup()
             self.growths += 1
-            before = [wp.clone(getattr(self.state, name)) for name in names]
 
     def _advance_chunk(self, n_steps: int) -> int:
         """n steps, then the status read: the guard's verdict is every rank's (one rank's bad sphere stops all)."""
@@ -379,9 +376,15 @@ class Subdomain(Simulation):
         """Bytes this rank sends in a step's halo messages (9 float64 a ghost it feeds)."""
         return sum(72 * len(idx) for idx in self._send.values())
 
+    def _owned_bonds(self) -> tuple[Bonds, np.ndarray]:
+        """The bonds whose lower sphere this rank owns (each bond is sent or gathered by that rank only), and their
+        two spheres' local indices, shape (n, 2)."""
+        bonds = bonds_of(self.state, self.gid)
+        ends = np.searchsorted(self.gid, bonds.ends)
+        mine = self._owned_host[ends[:, 0]]
+        return bonds.take(mine), ends[mine]
+
     def owned_rows(self) -> tuple[Rows, Bonds]:
         """The rows of the spheres this rank owns (global ids, whole histories), and the bonds whose lower sphere it
         owns."""
-        rows = rows_of(self.model, self.state, self.gid, np.flatnonzero(self._owned_host))
-        bonds = bonds_of(self.state, self.gid)
-        return rows, bonds.take(self._owned_host[np.searchsorted(self.gid, bonds.ends[:, 0])])
+        return rows_of(self.model, self.state, self.gid, np.flatnonzero(self._owned_host)), self._owned_bonds()[0]
