@@ -36,3 +36,55 @@ def owned_moved_kernel(
     d = wp.vec3(x - particle_q_at_migration[i])
     if wp.dot(d, d) > margin * margin:
         moved[1] = 1
+
+
+@wp.kernel
+def owned_nodes_moved_kernel(
+    # Model:
+    half_fem_skin: float,
+    margin: float,
+    node_contact_stiffness: wp.array(dtype=float),
+    # State in:
+    node_count: wp.array(dtype=int),
+    node_owned: wp.array(dtype=int),
+    node_q: wp.array(dtype=wp.vec3),
+    node_q_at_fem_build: wp.array(dtype=wp.vec3),
+    node_q_at_decomposition: wp.array(dtype=wp.vec3),
+    joint_failed: wp.array(dtype=int),
+    # Out (zeroed before the launch):
+    moved: wp.array(dtype=int),
+):
+    """``moved[0] = 1`` when an owned contact node moved more than half the FEM skin since the FEM lists were built
+    (the node drift's own test, kernels/neighbors.py flag_past_half_fem_skin, over owned nodes only; ``half_fem_skin``
+    < 0: no FEM contact), or a joint element this rank holds failed in the last step (``joint_failed[0]``: its pair
+    enters the lists at this step's build, kernels/joints.py); ``moved[1] = 1`` when an owned node moved more than
+    ``margin`` [m] since the items were last decomposed."""
+    i = wp.tid()  # one thread per node slot
+    if i == 0 and joint_failed[0] != 0:
+        moved[0] = 1
+    if i >= node_count[0] or node_owned[i] == 0:
+        return
+    x = node_q[i]
+    if half_fem_skin >= 0.0:
+        if node_contact_stiffness[i] != 0.0:
+            d = x - node_q_at_fem_build[i]
+            if wp.dot(d, d) > half_fem_skin * half_fem_skin:
+                moved[0] = 1
+    d = x - node_q_at_decomposition[i]
+    if wp.dot(d, d) > margin * margin:
+        moved[1] = 1
+
+
+@wp.kernel
+def forget_ghost_records_kernel(
+    # State in:
+    count: wp.array(dtype=int),
+    owned: wp.array(dtype=int),
+    # Out:
+    passed: wp.array(dtype=int),
+):
+    """Clear the faces a ghost went past (-1, warpdem.stages.guard): its owner judges it; a ghost at the rim of what a
+    rank holds misses faces its owner sees, and its record would stop the run for nothing."""
+    i = wp.tid()  # one thread per slot
+    if i < count[0] and owned[i] == 0:
+        passed[i] = -1

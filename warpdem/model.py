@@ -187,6 +187,8 @@ class Model:
         grid_owners: the sphere capacity of the whole run where this model is a subdomain, which sizes the contact
             grid's hash table as the whole run's (the same cells share a bucket, so candidates come in the same
             order); 0: ``particle_capacity``.
+        face_grid_owners: the boundary face capacity of the whole run where this model is a subdomain, which sizes the
+            FEM contact grid's hash table as the whole run's; 0: ``face_capacity``.
     """
 
     device: wp.context.Device
@@ -288,6 +290,7 @@ class Model:
     tet_may_rigid: wp.array | None = None
     radius_bound: float = 0.0
     grid_owners: int = 0
+    face_grid_owners: int = 0
 
     @property
     def max_radius(self) -> float:

@@ -6,8 +6,10 @@ which writes frames, books and checkpoints from it as one process would (the who
 for bit on the CPU). The other ranks run :func:`serve` until rank 0 says stop. A checkpoint is therefore one file
 of the whole run, and a restart on any number of ranks cuts it again.
 
-What is decomposed so far (issue 25, first part): spheres with their contact laws and history, rolling, bonds and their
-breakage, walls and gravity. A scene with anything else is refused on more than one rank with a message that says
+What is decomposed so far (issue 25): spheres with their contact laws and history, rolling, bonds and their
+breakage (warpdem.parallel.subdomain); or Cosserat tets with joint elements, FEM contact, pressure loads,
+non-reflecting dashpots and drivers (warpdem.parallel.continuum); walls and gravity. A scene with anything else
+(both together, fracture, conversion, the rigid switch) is refused on more than one rank with a message that says
 what.
 """
 
@@ -17,17 +19,13 @@ import atexit
 import signal
 from typing import Any
 
-import numpy as np
-
 from ..model import Model, State
-from ..simulation import Simulation, regrow_neighbors
+from ..simulation import Simulation
 from ..stages.guard import CriticalStep, UnstableRunError
 from .comm import world
-from .rows import Bonds, Rows, write_rows
+from .continuum import ContinuumSubdomain
+from .ranked import SHARED_FIELDS, Ranked
 from .subdomain import Subdomain
-
-SHARED_FIELDS = ("time", "wall_point", "rebuild_total")
-"""Whole-run State arrays every rank holds alike, copied from rank 0's subdomain into the whole state."""
 
 
 class NotDecomposable(ValueError):
@@ -44,19 +42,27 @@ class WorkerDone(SystemExit):
 def unsupported(model: Model, state: State) -> list[str]:
     """What ``model`` has that a decomposed run cannot run yet (empty: it can)."""
     found = []
-    if model.node_capacity or int(state.node_count.numpy()[0]):
-        found.append("FEM nodes and tets (continuum, fracture, conversion, joints)")
-    if model.face_capacity:
-        found.append("FEM surface contact")
-    if model.loads is not None:
-        found.append("loads (pressure, blast, drivers)")
-    if model.rigid_switch:
-        found.append("the rigid-block switch")
+    spheres = int(state.particle_count.numpy()[0]) > 0
+    nodes = model.node_capacity > 0 and int(state.node_count.numpy()[0]) > 0
+    if spheres and nodes:
+        found.append("spheres and tets together")
+    if not spheres and not nodes:
+        found.append("neither spheres nor tets")
+    if model.has_fracture or model.fracture_interval:
+        found.append("nodal fracture")
     if model.conversion_interval or model.coupling_capacity:
         found.append("FEM→DEM conversion")
-    if int(state.particle_count.numpy()[0]) == 0:
-        found.append("no spheres at all")
+    if model.rigid_switch or model.rigid_energy_fraction > 0.0:
+        found.append("the rigid-block switch")
     return found
+
+
+def subdomain_of(comm: Any, model: Model, state: State, **kwargs: Any) -> Ranked:
+    """This rank's part of the whole run ``model``/``state``: its spheres (:class:`~warpdem.parallel.subdomain
+    .Subdomain`), or its tets (:class:`~warpdem.parallel.continuum.ContinuumSubdomain`)."""
+    if model.node_capacity and int(state.node_count.numpy()[0]):
+        return ContinuumSubdomain(comm, model, state, **kwargs)
+    return Subdomain(comm, model, state, **kwargs)
 
 
 def make_simulation(model: Model, state: State, **kwargs: Any) -> Simulation | Decomposed:
@@ -73,8 +79,9 @@ def make_simulation(model: Model, state: State, **kwargs: Any) -> Simulation | D
     missing = unsupported(model, state)
     if missing:
         raise NotDecomposable(
-            f"this scene cannot run on {comm.Get_size()} ranks yet; decomposed so far: spheres, their "
-            f"contacts and bonds, walls and gravity; this scene has {', '.join(missing)} (run it in one process)"
+            f"this scene cannot run on {comm.Get_size()} ranks yet; decomposed so far: spheres with their contacts "
+            "and bonds, or tets with their joints, contacts, loads and boundaries, walls and gravity; this scene has "
+            f"{', '.join(missing)} (run it in one process)"
         )
     if comm.Get_rank() == 0:
         sim = Decomposed(comm, model, state, **kwargs)
@@ -85,10 +92,9 @@ def make_simulation(model: Model, state: State, **kwargs: Any) -> Simulation | D
     raise WorkerDone()
 
 
-def _gather(comm: Any, local: Subdomain) -> list[tuple[Rows, Bonds, int, int]] | None:
-    """Every rank's owned rows and bonds, its halo's bytes a step and its lists' largest count, at rank 0 (None
-    elsewhere)."""
-    return comm.gather((*local.owned_rows(), local.halo_bytes(), int(local.state.nbr_needed.numpy()[0])), root=0)
+def _gather(comm: Any, local: Ranked) -> list[tuple[Any, int, int]] | None:
+    """Every rank's owned part, its halo's bytes a step and its lists' largest count, at rank 0 (None elsewhere)."""
+    return comm.gather((local.owned_part(), local.halo_bytes(), local.list_needs()), root=0)
 
 
 def serve(comm: Any, model: Model, state: State, **kwargs: Any) -> None:
@@ -99,7 +105,7 @@ def serve(comm: Any, model: Model, state: State, **kwargs: Any) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     try:
-        local = Subdomain(comm, model, state, **kwargs)
+        local = subdomain_of(comm, model, state, **kwargs)
         while True:
             command, args = comm.bcast(None, root=0)
             if command == "stop":
@@ -143,16 +149,12 @@ class Decomposed:
     def __init__(self, comm: Any, model: Model, state: State, **kwargs: Any) -> None:
         self.comm = comm
         self.ranks = comm.Get_size()
-        self.local = Subdomain(comm, model, state, **kwargs)
+        self.local = subdomain_of(comm, model, state, **kwargs)
         # The whole run, never stepped: what frames, books and checkpoints read.
         self.whole = Simulation(model, state, primed=True, step=kwargs.get("step", 0), time=kwargs.get("time"))
         self._closed = False
         self.halo_bytes = 0  # bytes of a step's halo messages, all ranks (at the last gather)
         self._stale = True  # the whole state lags the ranks'
-        # Bonds only break (none is made here): the whole run's broken count follows from the intact ones.
-        self._bonds_start = int(state.bond_count.numpy()[0])
-        self._broken_start = int(state.bonds_broken_total.numpy()[0])
-        self._broken_start -= int(np.count_nonzero(state.bond_broken.numpy()[: self._bonds_start]))
 
     # The runner's view of the whole run.
     @property
@@ -173,7 +175,10 @@ class Decomposed:
 
     rigid = False
     rigid_report = None
-    has_spheres = True
+
+    @property
+    def has_spheres(self) -> bool:
+        return self.local.has_spheres
 
     @property
     def particle_count(self) -> int:
@@ -234,23 +239,18 @@ class Decomposed:
         return self.whole
 
     def _collect(self) -> None:
-        """The owned rows of every rank into the whole state, the shared arrays from rank 0's subdomain."""
+        """The owned parts of every rank into the whole state, the shared arrays from rank 0's part."""
         parts = _gather(self.comm, self.local)
-        self.halo_bytes = sum(p[2] for p in parts)  # what the ranks send each other a step now
-        rows = Rows.join([p[0] for p in parts])
-        bonds = Bonds.join([p[1] for p in parts])
+        self.halo_bytes = sum(p[1] for p in parts)  # what the ranks send each other a step now
         w = self.whole
-        k = rows.fields["nbr_shear"].shape[1]
-        if k > w.model.max_neighbors:
-            w.model, w.state = regrow_neighbors(w.model, w.state, k)
+        model, state = self.local.write_whole(w.model, w.state, [p[0] for p in parts])
+        if model is not w.model or state is not w.state:
+            w.model, w.state = model, state
             w._setup()
-        write_rows(w.model, w.state, rows, bonds)
-        if w.model.bond_capacity:
-            intact = int(np.count_nonzero(bonds.fields["bond_broken"] == 0))
-            w.state.bonds_broken_total.fill_(self._broken_start + self._bonds_start - intact)
         for name in SHARED_FIELDS:
             getattr(w.state, name).assign(getattr(self.local.state, name))
-        w.state.nbr_needed.fill_(max(p[3] for p in parts))
+        needs = max(p[2] for p in parts)
+        (w.state.nbr_needed if self.local.has_spheres else w.state.node_face_needed).fill_(needs)
         w.step_count, w.time = self.local.step_count, self.local.time
         w.state.rebuild_flag.zero_()
 

@@ -202,7 +202,8 @@ class FemContact:
         self.has_spheres = has_spheres
         d = model.device
         fcap = max(model.face_capacity, 1)
-        self.grid = wp.HashGrid(*(hash_grid_dims(fcap),) * 3, device=d)
+        # A subdomain's grid has the whole run's buckets (Model.face_grid_owners): candidates come in the same order.
+        self.grid = wp.HashGrid(*(hash_grid_dims(model.face_grid_owners or fcap),) * 3, device=d)
         self.grid.reserve(fcap)  # so that a rebuild inside a captured graph never allocates
         self.face_center = wp.zeros(fcap, dtype=wp.vec3, device=d)
         self.face_bound = wp.zeros(fcap, dtype=float, device=d)

@@ -1,0 +1,262 @@
+"""What every rank's part of a decomposed run shares (issue 25), whatever it holds: a
+:class:`~warpdem.simulation.Simulation` of its own items and their ghosts, stepped with one forward halo message per
+neighbour between the drift and the forces.
+
+Per step (DESIGN.md, "Scale"): after the drift each rank sends the positions and velocities of its owned items that
+others hold as ghosts (:class:`Channel`: spheres, FEM nodes); forces on ghosts are computed again where they are held
+("newton off"), nothing is sent back; the same wait completes one reduction of the owned items' skin tests, so the
+ranks meet once a step and decide together what the one-process run decides from all items (a list rebuild, a
+migration). The subclasses say what is held and what the tests are: warpdem.parallel.subdomain (spheres and bonds),
+warpdem.parallel.continuum (tets, joints, loads).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+from ..model import Model, State
+from ..simulation import Simulation
+from ..stages.guard import UnstableRunError
+from ..stages.integrate import integrate_first_half, kick_drift
+from ..stages.tets import eval_tet_stresses
+
+IMBALANCE = 1.10
+"""Largest rank's measured step work over the mean before the slabs are cut again (at a list rebuild)."""
+
+MEASURED = 0.25
+"""Seconds of step work each rank must have measured before the ranks' work is compared: less is noise."""
+
+SHARED_FIELDS = ("time", "wall_point", "rebuild_total", "fem_rebuild_total", "fem_sphere_builds_seen")
+"""State arrays every rank holds alike (the clock, the walls, the list builds all ranks decide together)."""
+
+
+@dataclasses.dataclass
+class Channel:
+    """One kind of item the halo refreshes: the State fields it carries (vec3 each, rows of 3 k values in one
+    message per neighbour and kind), the local indices each rank is sent and each rank's ghosts received, in global-id
+    order on both sides.
+
+    Attributes:
+        fields: State field names, each (capacity,) vec3 (or vec3d).
+        dtype: the message's numpy dtype (float64 carries float32 values exactly).
+        send: local indices of owned items by destination rank.
+        recv: local indices of ghosts by source rank.
+        tag: the MPI tag of its messages.
+    """
+
+    fields: tuple[str, ...]
+    dtype: type
+    send: dict[int, np.ndarray]
+    recv: dict[int, np.ndarray]
+    tag: int
+
+    def __post_init__(self) -> None:
+        width = 3 * len(self.fields)
+        # The message buffers, made once per set of lists.
+        self.outbox = {d: np.empty((len(idx), width), dtype=self.dtype) for d, idx in self.send.items()}
+        self.inbox = {s: np.empty((len(idx), width), dtype=self.dtype) for s, idx in self.recv.items()}
+
+    @staticmethod
+    def between(
+        fields: tuple[str, ...], dtype: type, tag: int, rank: int, owner: np.ndarray, held_by: list[np.ndarray]
+    ) -> Channel:
+        """The channel of local items whose ranks are ``owner`` (shape (n,)), where ``held_by[d]`` says which of them
+        rank d holds (shape (n,), bool; every rank decides from the same data, so sends and receives match)."""
+        recv = {src: np.flatnonzero(owner == src) for src in range(len(held_by)) if src != rank}
+        mine = owner == rank
+        send = {d: np.flatnonzero(mine & held) for d, held in enumerate(held_by) if d != rank}
+        return Channel(
+            fields,
+            dtype,
+            {d: idx for d, idx in send.items() if len(idx)},
+            {s: idx for s, idx in recv.items() if len(idx)},
+            tag,
+        )
+
+    @property
+    def bytes_sent(self) -> int:
+        """Bytes this rank sends of it a step."""
+        return sum(block.nbytes for block in self.outbox.values())
+
+
+class Ranked(Simulation):
+    """A rank's part of a decomposed run, stepped (subclasses: what it holds, :meth:`_flag_moved`, :meth:`_exchange`).
+
+    Args:
+        comm: the MPI communicator (mpi4py).
+        model: the rank's own model (its items and ghosts).
+        state: its state.
+        flags: the skin tests reduced over the ranks each step (``self._moved``'s length).
+        **kwargs: as :class:`~warpdem.simulation.Simulation`'s. A step is not one recorded graph here: the halo runs
+            on the host between its two halves, each recorded after its first eager run (:meth:`_body`).
+    """
+
+    channels: list[Channel]
+
+    def __init__(self, comm: Any, model: Model, state: State, flags: int, **kwargs: Any) -> None:
+        if model.device.is_cuda:
+            raise NotImplementedError("a decomposed run on CUDA devices is not built yet: run its ranks on the CPU")
+        self.comm = comm
+        self._moved = wp.zeros(flags, dtype=int, device=model.device)
+        self._views_of: State | None = None
+        self._busy = 0.0  # seconds of this rank's own step work since the ranks' work was last compared
+        self._slowest = -1  # the rank found slowest at that comparison (-1: none)
+        self.migrations = 0  # times the items moved between ranks since the start (every rank counts alike)
+        super().__init__(model, state, use_graph=False, **kwargs)
+
+    def _setup(self) -> None:
+        super()._setup()
+        self._halves: tuple | None = None  # new arrays: the recorded halves are recorded again
+
+    # ------------------------------------------------------------------------------------------------------------
+    # The step
+    def _flag_moved(self) -> None:
+        """The owned items' skin tests into ``self._moved``, and the drift's own flags lowered (a ghost's drift on a
+        partial force may have raised them; what is rebuilt is decided together, :meth:`_exchange`). Launches only."""
+        raise NotImplementedError
+
+    def _exchange(self) -> None:
+        """Between the drift and the forces: the halo (:meth:`_halo`) and what every rank decides with it."""
+        raise NotImplementedError
+
+    def _drift_half(self) -> None:
+        """A step's launches before the halo: kick, drift, the skin tests."""
+        kick_drift(self.model, self.state, self.track_energy, self.drift_nodes)
+        self._flag_moved()
+
+    def _head(self) -> None:
+        integrate_first_half(self.model, self.state, self.track_energy, self.drift_nodes)
+        self._flag_moved()
+        self._exchange()
+        self._forces()
+
+    def _body(self) -> None:
+        start = time.perf_counter()
+        if self._halves is None:
+            self._drift_half()
+        else:
+            wp.capture_launch(self._halves[0])
+        self._busy += time.perf_counter() - start
+        self._exchange()
+        start = time.perf_counter()
+        if self._halves is None:  # none yet, or new arrays dropped them
+            self._forces()
+            self._record_halves()
+        else:
+            wp.capture_launch(self._halves[1])
+        # The rank's own work (its kernels run on this thread on the CPU), not its waits: the measured cost the slabs
+        # are balanced by.
+        self._busy += time.perf_counter() - start
+
+    def _record_halves(self) -> None:
+        """Record the two halves of a step (after an eager run of each, so every kernel is compiled)."""
+        graphs = []
+        for part in (self._drift_half, self._forces):
+            with wp.ScopedCapture(device=self.model.device) as capture:
+                part()
+            graphs.append(capture.graph)
+        self._halves = tuple(graphs)
+
+    def _halo(self) -> np.ndarray:
+        """One message to each rank per channel that holds owned items as ghosts (rows of each item's vec3 fields);
+        with them, one reduction of the owned items' skin tests, whose result it returns (``self._moved``'s shape).
+        One wait for all, so the ranks meet once a step."""
+        from mpi4py import MPI
+
+        views, flags = self._host_views()
+        moved = np.zeros_like(flags)
+        requests = [self.comm.Iallreduce(flags, moved, op=MPI.MAX)]
+        for channel, arrays in zip(self.channels, views, strict=True):
+            for src, block in channel.inbox.items():
+                requests.append(self.comm.Irecv(block, source=src, tag=channel.tag))
+            for dest, idx in channel.send.items():
+                block = channel.outbox[dest]
+                for k, a in enumerate(arrays):
+                    block[:, 3 * k : 3 * k + 3] = a[idx]
+                requests.append(self.comm.Isend(block, dest=dest, tag=channel.tag))
+        MPI.Request.Waitall(requests)
+        for channel, arrays in zip(self.channels, views, strict=True):
+            for src, idx in channel.recv.items():
+                block = channel.inbox[src]
+                for k, a in enumerate(arrays):
+                    a[idx] = block[:, 3 * k : 3 * k + 3]
+        return moved
+
+    def _host_views(self) -> tuple[list[list[np.ndarray]], np.ndarray]:
+        """The host views of the arrays the halo reads and writes, by channel, and of the skin tests' flags (on the CPU
+        the arrays themselves; made once per State, as a view costs tens of microseconds to make)."""
+        s = self.state
+        if self._views_of is not s:
+            self._views = (
+                [[getattr(s, name).numpy() for name in channel.fields] for channel in self.channels],
+                self._moved.numpy(),
+            )
+            self._views_of = s
+        return self._views
+
+    def _drop_views(self) -> None:
+        """Forget the host views (the channels or the arrays changed)."""
+        self._views_of = None
+
+    # ------------------------------------------------------------------------------------------------------------
+    # Between steps
+    def _measured_work(self) -> np.ndarray | None:
+        """At a list rebuild: every rank's measured step work since the last decision [s] (the same figures on every
+        rank) when the same rank's exceeded the mean by more than :data:`IMBALANCE` twice running, so that the slabs
+        are cut again; None when they are even, when too little was measured to tell (under :data:`MEASURED` on some
+        rank), or on the first uneven window (a 2-core machine's timings wander by ±20 % between windows of one cut:
+        one window alone would cut the slabs back and forth)."""
+        busy = np.array(self.comm.allgather(self._busy))
+        if busy.min() < MEASURED:
+            return None
+        self._busy = 0.0
+        slowest = int(np.argmax(busy)) if busy.max() > IMBALANCE * busy.mean() else -1
+        confirmed = slowest >= 0 and slowest == self._slowest
+        self._slowest = -1 if confirmed else slowest
+        return busy if confirmed else None
+
+    def _advance_chunk(self, n_steps: int) -> int:
+        """n steps, then the status read: the guard's verdict is every rank's (one rank's bad item stops all)."""
+        self._run(n_steps)
+        self._epilogue()
+        status = self.status.read()
+        self.step_count += n_steps
+        self.time = status.time
+        report = self.guard.interpret(status.guard)
+        from mpi4py import MPI
+
+        if self.comm.allreduce(report is not None, op=MPI.LOR):
+            if report is not None:
+                raise self.guard.error(self.model, self.state, report, self.step_count, self.time)
+            raise UnstableRunError(
+                self.time, self.step_count, "another rank's items", "see the first rank's message", ""
+            )
+        # Broken bonds compacted away at the chunk's end, as in one process (every rank sees the same bonds break).
+        self.remove_broken_bonds(status.bonds_broken)
+        if self.model.node_capacity:
+            # As one process: the tet stresses brought up to date for whoever reads the state now.
+            eval_tet_stresses(self.model, self.state)
+        return 0
+
+    def halo_bytes(self) -> int:
+        """Bytes this rank sends in a step's halo messages."""
+        return sum(channel.bytes_sent for channel in self.channels)
+
+    def owned_part(self) -> Any:
+        """What this rank owns, as rows keyed by global id (picklable): what rank 0 writes into the whole run's state
+        (:meth:`write_whole`)."""
+        raise NotImplementedError
+
+    def write_whole(self, model: Model, state: State, parts: list[Any]) -> tuple[Model, State]:
+        """Write every rank's :meth:`owned_part` into the whole run's ``model``/``state``; returns them, grown where a
+        part has more list slots."""
+        raise NotImplementedError
+
+    def list_needs(self) -> int:
+        """The largest list count this rank's lists needed (what the whole run's status reports)."""
+        raise NotImplementedError
