@@ -181,6 +181,11 @@ class Decomposed:
         return self.local.has_spheres
 
     @property
+    def migrations(self) -> int:
+        """Times the items moved between ranks so far (every rank counts alike)."""
+        return self.local.migrations
+
+    @property
     def particle_count(self) -> int:
         return self._gathered().particle_count
 

@@ -144,6 +144,8 @@ class RunSummary:
     """The MPI ranks the run was decomposed over (warpdem.parallel; 1: one process)."""
     halo_bytes_per_step: int = 0
     """On ranks: the bytes all ranks' halo messages carry in one step at the end of the run (0 in one process)."""
+    migrations: int = 0
+    """On ranks: how many times the spheres migrated, or the tets' items were decomposed again, between ranks."""
 
     def format(self) -> str:
         e0, e1 = self.energy_start, self.energy_end
@@ -156,7 +158,10 @@ class RunSummary:
             lines.append(step)
         wall = f"wall time        {self.wall_time:.3f} s"
         if self.ranks > 1:
-            wall += f" on {self.ranks} ranks (halo {self.halo_bytes_per_step / 1e3:.1f} kB a step)"
+            wall += (
+                f" on {self.ranks} ranks (halo {self.halo_bytes_per_step / 1e3:.1f} kB a step, "
+                f"{self.migrations} migration{'s' if self.migrations != 1 else ''})"
+            )
         if spheres:
             wall += f"  ({self.particle_steps_per_second / 1e6:.3f} M particle-steps/s)"
         if self.compile_time > 0.0:

@@ -867,6 +867,7 @@ class Run(RunAccess):
             loads=self._load_records(),
             ranks=getattr(sim, "ranks", 1),
             halo_bytes_per_step=getattr(sim, "halo_bytes", 0),
+            migrations=getattr(sim, "migrations", 0),
         )
 
     def _load_records(self) -> list[tuple[str, float, float]]:
