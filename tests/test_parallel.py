@@ -318,8 +318,11 @@ def test_tets_with_joints_and_loads_match_one_process_bit_for_bit(
     # element's and loaded face's state at the end, equal to one process's. The sheared beam's joint elements fail
     # and its items are decomposed again mid-run (its top moves past the margin); the blast's pulse crosses the cuts.
     scene, reference = continuum_run
-    _run(scene, tmp_path / "out", ranks)
+    done = _run(scene, tmp_path / "out", ranks)
     _assert_same_continuum(reference, tmp_path / "out", f"{scene.stem} on {ranks} ranks", scene.stem)
+    # The blast's block (12 m, ghosts within 5.0 m of a slab) leaves one rank 94 % of the nodes: rank 0 says the
+    # ranks gain little; the beam's (14 m, 4.5 m) leaves it 81 %, under the 90 % it warns at.
+    assert ("too short along its longest side" in done.stderr) == (scene.stem == "jointed_blast"), done.stderr
     if scene.stem == "sheared_joint":
         assert _final_continuum(reference)["joints_broken_total"][0] > 0  # the comparison covers failed elements
 

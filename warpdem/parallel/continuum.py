@@ -117,6 +117,8 @@ class ContinuumSubdomain(Ranked):
         q = s.node_q.numpy()[:nn]
         self.slabs = Slabs.balanced(q, np.ones(nn), size, self._halo_width)
         held = [held_items(m, s, self.slabs, r) for r in range(size)]
+        # The largest share of the nodes one rank holds: near 1, the ranks step the whole model each.
+        self.held_share = max(len(h.ids["node"]) for h in held) / max(nn, 1)
         mine = held[rank]
         self._ids = Ids(mine, m, s)
         local_model, local_state = take(m, s, mine)

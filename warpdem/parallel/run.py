@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import atexit
 import signal
+import sys
 from typing import Any
 
 from ..model import Model, State
@@ -26,6 +27,9 @@ from .comm import world
 from .continuum import ContinuumSubdomain
 from .ranked import SHARED_FIELDS, Ranked
 from .subdomain import Subdomain
+
+CROWDED = 0.9
+"""The share of the whole run's nodes a rank may hold before rank 0 warns that the ranks gain little."""
 
 
 class NotDecomposable(ValueError):
@@ -126,7 +130,6 @@ def serve(comm: Any, model: Model, state: State, **kwargs: Any) -> None:
 def _abort(comm: Any, exc: BaseException) -> None:
     """End every rank after an error on this one, with its traceback and one line on the process's own stderr (the
     command line sends a follower's output to nowhere)."""
-    import sys
     import traceback
 
     traceback.print_exception(exc, file=sys.__stderr__)
@@ -150,6 +153,14 @@ class Decomposed:
         self.comm = comm
         self.ranks = comm.Get_size()
         self.local = subdomain_of(comm, model, state, **kwargs)
+        share = getattr(self.local, "held_share", 0.0)
+        if share > CROWDED:
+            print(
+                f"warning: one rank holds {100 * share:.0f} % of the nodes (its slab and the ghosts within "
+                f"{self.local.slabs.halo:.3g} m of it, two FEM contact reaches and a tet edge): the model is too "
+                f"short along its longest side for {self.ranks} ranks to gain time",
+                file=sys.stderr,
+            )
         # The whole run, never stepped: what frames, books and checkpoints read.
         self.whole = Simulation(model, state, primed=True, step=kwargs.get("step", 0), time=kwargs.get("time"))
         self._closed = False
