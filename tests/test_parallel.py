@@ -17,8 +17,11 @@ Oracles:
 from __future__ import annotations
 
 import importlib.util
+import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import h5py
@@ -118,6 +121,81 @@ def test_a_checkpoint_resumes_on_another_rank_count(
     (checkpoint,) = (out / "checkpoints").glob("*.h5")
     _run(scene, out, then, "--restart", str(checkpoint))
     _assert_same_run(reference, out, f"{first} ranks then {then}")
+
+
+def _started_past_two_frames(command: list[str], series: Path) -> subprocess.Popen:
+    """The launcher of ``command``, in a session of its own, once the run has written its second frame."""
+    launcher = subprocess.Popen(
+        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+    )
+    deadline = time.monotonic() + 300
+    while launcher.poll() is None and time.monotonic() < deadline:
+        if series.is_file() and len(series.read_text().splitlines()) >= 3:
+            break
+        time.sleep(0.02)
+    assert launcher.poll() is None, "the run ended before the test could reach it"
+    return launcher
+
+
+def _ranks_of(out: Path) -> list[int]:
+    """The pids of the rank processes writing to ``out``."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            words = (entry / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"warpdem" in words and str(out).encode() in words and not words[0].endswith(b"mpiexec"):
+            found.append(int(entry.name))
+    return sorted(found)
+
+
+def test_ctrl_c_under_mpiexec_checkpoints_and_the_run_resumes_bit_for_bit(
+    one_process: tuple[Path, Path], tmp_path: Path
+) -> None:
+    # Ctrl-C in a terminal reaches the launcher, which passes it to every rank (MPICH starts each in a session of its
+    # own): the followers leave it to rank 0, which stops within a second, every rank still stepping, writes the
+    # checkpoint and exits 130; resumed in one process, the run ends where the uninterrupted run ends, bit for bit.
+    # The signal goes after the second frame of six (the series file is rewritten at each).
+    scene, reference = one_process
+    out = tmp_path / "out"
+    command = [*_mpiexec(2), sys.executable, "-m", "warpdem", str(scene), "--out", str(out), "--quiet"]
+    launcher = subprocess.Popen(
+        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+    )
+    series = out / "channel_pour_series.csv"
+    deadline = time.monotonic() + 300
+    while launcher.poll() is None and time.monotonic() < deadline:
+        if series.is_file() and len(series.read_text().splitlines()) >= 3:
+            break
+        time.sleep(0.02)
+    assert launcher.poll() is None, "the run ended before it could be interrupted"
+    os.killpg(launcher.pid, signal.SIGINT)
+    _, err = launcher.communicate(timeout=300)
+    assert launcher.returncode == 130, err[-3000:]
+    (checkpoint,) = (out / "checkpoints").glob("*.h5")
+    with h5py.File(checkpoint) as f:
+        assert 0.0 < f["state"]["time"][0] < 0.12  # mid-run
+    _run(scene, out, 1, "--restart", str(checkpoint))
+    _assert_same_run(reference, out, "interrupted on 2 ranks, resumed in one process")
+
+
+def test_a_rank_that_dies_ends_every_rank(one_process: tuple[Path, Path], tmp_path: Path) -> None:
+    # A rank killed mid-run (SIGKILL: it can say nothing; rank 0 or the follower, whichever has the larger pid) must
+    # not leave the other waiting in the next exchange: the launcher sees it die, ends the other and says which process
+    # died; nothing is left running.
+    scene, _ = one_process
+    out = tmp_path / "out"
+    command = [*_mpiexec(2), sys.executable, "-m", "warpdem", str(scene), "--out", str(out), "--quiet"]
+    launcher = _started_past_two_frames(command, out / "channel_pour_series.csv")
+    ranks = _ranks_of(out)
+    assert len(ranks) == 2, ranks
+    os.kill(ranks[1], signal.SIGKILL)
+    stdout, _ = launcher.communicate(timeout=120)
+    assert launcher.returncode != 0
+    assert "BAD TERMINATION" in stdout and "Killed (signal 9)" in stdout, stdout[-2000:]
+    time.sleep(0.5)
+    assert _ranks_of(out) == []
 
 
 def test_a_bonded_beam_breaking_matches_one_process_bit_for_bit(tmp_path: Path) -> None:
