@@ -120,7 +120,7 @@ class ContinuumSubdomain(Ranked):
         # The largest share of the nodes one rank holds: near 1, the ranks step the whole model each.
         self.held_share = max(len(h.ids["node"]) for h in held) / max(nn, 1)
         mine = held[rank]
-        self._ids = Ids(mine, m, s)
+        self._ids = Ids(mine, m)
         local_model, local_state = take(m, s, mine)
         owner = self.slabs.owner(q)
         nodes = mine.ids["node"]

@@ -113,6 +113,7 @@ class Held:
 
 
 def live_count(state: State, space: str) -> int:
+    """The live items of kind ``space`` (one of :data:`COUNTS`) in ``state`` (reads back)."""
     return int(getattr(state, COUNTS[space]).numpy()[0])
 
 
@@ -152,7 +153,7 @@ def held_items(model: Model, state: State, slabs: Slabs, rank: int) -> Held:
 class Ids:
     """Translation of item ids between the whole run and one rank's subdomain (:class:`Held`)."""
 
-    def __init__(self, held: Held, model: Model, state: State) -> None:
+    def __init__(self, held: Held, model: Model) -> None:
         self.held = held
         size = {space: int(getattr(model, cap)) + 1 for space, cap in CAPACITIES.items()}
         self.local = {space: held.local_of(space, size[space]) for space in ("node", "tet", "face")}
@@ -209,7 +210,7 @@ def _star(model: Model, ids: Ids) -> dict[str, np.ndarray]:
     }
 
 
-def _local_loads(loads: LoadModel | None, held: Held, ids: Ids, model: Model) -> LoadModel | None:
+def _local_loads(loads: LoadModel | None, held: Held, ids: Ids) -> LoadModel | None:
     """The loaded face sets of what is held (their State slots renumbered set after set), node drivers per node."""
     if loads is None:
         return None
@@ -243,7 +244,7 @@ def take(model: Model, state: State, held: Held) -> tuple[Model, State]:
     translated; everything not per item copied. The face grid keeps the whole run's buckets (``face_grid_owners``),
     so that candidates come in the same order."""
     device = model.device
-    ids = Ids(held, model, state)
+    ids = Ids(held, model)
     counts = {space: len(held.ids[space]) for space in SPACES}
 
     def taken(obj: Model | State) -> dict[str, wp.array]:
@@ -279,7 +280,7 @@ def take(model: Model, state: State, held: Held) -> tuple[Model, State]:
         **mfields,
         **{CAPACITIES[space]: counts[space] for space in CAPACITIES},
         face_grid_owners=model.face_grid_owners or model.face_capacity,
-        loads=_local_loads(model.loads, held, ids, model),
+        loads=_local_loads(model.loads, held, ids),
     )
     return local_model, State(**sfields)
 
