@@ -29,7 +29,7 @@ from ..model import Model, State
 from ..stages.fem_contact import FemContact, regrow_fem_contacts
 from .domain import Slabs
 from .items import Ids, Part, face_sets, held_items, live_count, owned_part, take, write_parts
-from .ranked import SHARED_FIELDS, Channel, Ranked
+from .ranked import Channel, Ranked
 
 NODE_FIELDS = ("node_u", "node_q", "node_qd")
 """What the halo refreshes of a ghost node: displacement (the tets read it), position (the contacts), velocity."""
@@ -202,7 +202,7 @@ class ContinuumSubdomain(Ranked):
         builds = int(self.state.fem_rebuild_total.numpy()[0])
         while True:
             self.fem_contact.rebuild()
-            needed = self.comm.allreduce(self.list_needs(), op=MPI.MAX)
+            needed = self.comm.allreduce(self._needs(), op=MPI.MAX)
             k = self.model.max_node_faces
             if needed <= k:
                 return
@@ -229,11 +229,12 @@ class ContinuumSubdomain(Ranked):
     # ------------------------------------------------------------------------------------------------------------
     def owned_part(self) -> Part:
         part = owned_part(self.model, self.state, self._ids, self._owned)
-        part.needs = self.list_needs()
+        part.needs = self._needs()
         part.rebuild = int(self._joint_failed.numpy()[0])
         return part
 
-    def list_needs(self) -> int:
+    def _needs(self) -> int:
+        """The most candidate faces a node of this rank's needed at a list build (reads back)."""
         return int(self.state.node_face_needed.numpy()[0])
 
     def write_whole(self, model: Model, state: State, parts: list[Part]) -> tuple[Model, State]:
@@ -244,8 +245,7 @@ class ContinuumSubdomain(Ranked):
         if k > model.max_node_faces:
             model, state = regrow_fem_contacts(model, state, model.max_sphere_faces, k)
         write_parts(model, state, parts)
-        for name in SHARED_FIELDS:
-            getattr(state, name).assign(getattr(self.state, name))
+        self._share_into(state)
         state.node_face_needed.fill_(max(p.needs for p in parts))
         state.fem_rebuild_flag.fill_(max(p.rebuild for p in parts))
         nj = live_count(state, "joint")

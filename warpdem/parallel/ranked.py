@@ -248,15 +248,17 @@ class Ranked(Simulation):
         return sum(channel.bytes_sent for channel in self.channels)
 
     def owned_part(self) -> Any:
-        """What this rank owns, as rows keyed by global id (picklable): what rank 0 writes into the whole run's state
-        (:meth:`write_whole`)."""
+        """What this rank owns, as rows keyed by global id, with the largest count its lists needed (picklable): what
+        is written into the whole run's state (:meth:`write_whole`)."""
         raise NotImplementedError
 
     def write_whole(self, model: Model, state: State, parts: list[Any]) -> tuple[Model, State]:
-        """Write every rank's :meth:`owned_part` into the whole run's ``model``/``state``; returns them, grown where a
-        part has more list slots."""
+        """Write every rank's :meth:`owned_part` into the whole run's ``model``/``state``, the arrays every rank holds
+        alike from this rank's (:meth:`_share_into`), the lists' largest count over the parts; returns them, grown
+        where a part has more list slots."""
         raise NotImplementedError
 
-    def list_needs(self) -> int:
-        """The largest list count this rank's lists needed (what the whole run's status reports)."""
-        raise NotImplementedError
+    def _share_into(self, state: State) -> None:
+        """The arrays every rank holds alike (:data:`SHARED_FIELDS`), from this rank's state into ``state``."""
+        for name in SHARED_FIELDS:
+            getattr(state, name).assign(getattr(self.state, name))

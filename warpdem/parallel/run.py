@@ -25,7 +25,7 @@ from ..simulation import Simulation
 from ..stages.guard import CriticalStep, UnstableRunError
 from .comm import world
 from .continuum import ContinuumSubdomain
-from .ranked import SHARED_FIELDS, Ranked
+from .ranked import Ranked
 from .subdomain import Subdomain
 
 CROWDED = 0.9
@@ -96,9 +96,9 @@ def make_simulation(model: Model, state: State, **kwargs: Any) -> Simulation | D
     raise WorkerDone()
 
 
-def _gather(comm: Any, local: Ranked) -> list[tuple[Any, int, int]] | None:
-    """Every rank's owned part, its halo's bytes a step and its lists' largest count, at rank 0 (None elsewhere)."""
-    return comm.gather((local.owned_part(), local.halo_bytes(), local.list_needs()), root=0)
+def _gather(comm: Any, local: Ranked) -> list[tuple[Any, int]] | None:
+    """Every rank's owned part and its halo's bytes a step, at rank 0 (None elsewhere)."""
+    return comm.gather((local.owned_part(), local.halo_bytes()), root=0)
 
 
 def serve(comm: Any, model: Model, state: State, **kwargs: Any) -> None:
@@ -255,7 +255,7 @@ class Decomposed:
         return self.whole
 
     def _collect(self) -> None:
-        """The owned parts of every rank into the whole state, the shared arrays from rank 0's part."""
+        """The owned parts of every rank into the whole state (the shared arrays from rank 0's)."""
         parts = _gather(self.comm, self.local)
         self.halo_bytes = sum(p[1] for p in parts)  # what the ranks send each other a step now
         w = self.whole
@@ -263,10 +263,6 @@ class Decomposed:
         if model is not w.model or state is not w.state:
             w.model, w.state = model, state
             w._setup()
-        for name in SHARED_FIELDS:
-            getattr(w.state, name).assign(getattr(self.local.state, name))
-        needs = max(p[2] for p in parts)
-        (w.state.nbr_needed if self.local.has_spheres else w.state.node_face_needed).fill_(needs)
         w.step_count, w.time = self.local.step_count, self.local.time
         w.state.rebuild_flag.zero_()
 

@@ -259,13 +259,10 @@ class Subdomain(Ranked):
         owns."""
         return rows_of(self.model, self.state, self.gid, np.flatnonzero(self._owned_host)), self._owned_bonds()[0]
 
-    def owned_part(self) -> tuple[Rows, Bonds]:
-        return self.owned_rows()
+    def owned_part(self) -> tuple[Rows, Bonds, int]:
+        return (*self.owned_rows(), int(self.state.nbr_needed.numpy()[0]))
 
-    def list_needs(self) -> int:
-        return int(self.state.nbr_needed.numpy()[0])
-
-    def write_whole(self, model: Model, state: State, parts: list[tuple[Rows, Bonds]]) -> tuple[Model, State]:
+    def write_whole(self, model: Model, state: State, parts: list[tuple[Rows, Bonds, int]]) -> tuple[Model, State]:
         """Every rank's owned spheres and bonds into the whole run's state; the broken-bond count follows from the
         intact bonds (each rank counts the bonds it holds, some twice)."""
         rows = Rows.join([p[0] for p in parts])
@@ -277,4 +274,6 @@ class Subdomain(Ranked):
         if model.bond_capacity:
             intact = int(np.count_nonzero(bonds.fields["bond_broken"] == 0))
             state.bonds_broken_total.fill_(self._broken_start + self._bonds_start - intact)
+        self._share_into(state)
+        state.nbr_needed.fill_(max(p[2] for p in parts))
         return model, state
