@@ -224,6 +224,9 @@ class PairLaws:
         stiffnesses: (δ, r_a, r_b, R*, p) → (k_n, k_t) [N/m] of the springs at overlap δ ≥ 0.
         pair_interaction: force and rolling torque on body a of a touching pair and its new tangential spring.
         pair_dissipation: energy a touching pair dissipated during the step (normal, tangential) [J].
+        parting_spring: whether k_t(0) can be nonzero (a linear tangential spring on a linear normal one), so that a
+            pair that parts lets go of ½ k_t(0) |ξ|²; otherwise that term is an exact zero and the kernels leave it
+            out at code generation (else every parted pair and every wall out of reach tests its spring each step).
     """
 
     normal_force: wp.Function
@@ -232,6 +235,7 @@ class PairLaws:
     stiffnesses: wp.Function
     pair_interaction: wp.Function
     pair_dissipation: wp.Function
+    parting_spring: bool
 
 
 @functools.cache
@@ -276,11 +280,12 @@ def make_pair_laws(normal: str, tangential: str, rolling: str) -> PairLaws:
         shear: wp.vec3,
         p: ContactPair,
         dt: float,
-    ) -> wp.mat33:
+    ):
         """Force and torque on body a of a touching pair, and the updated tangential spring.
 
         v_rel is the velocity of a's contact point relative to b's. Returns rows: (force on a [N],
-        rolling torque on a [N m], new spring ξ [m]); the caller adds the moment of the tangential force.
+        rolling torque on a [N m], new spring ξ [m]), the caller adding the moment of the tangential force; and the
+        springs' stiffnesses (k_n, k_t) [N/m] at δ, as :func:`stiffnesses` gives them, for the energy books.
         """
         vn = wp.dot(v_rel, n)
         fnv = normal_force(delta, vn, ra, rb, rstar, mstar, p)
@@ -293,9 +298,10 @@ def make_pair_laws(normal: str, tangential: str, rolling: str) -> PairLaws:
         ft = tang[0]
         force = fn * n + ft
         torque = rolling_torque(omega_rel, fn, rstar, p)
-        return wp.mat33(
+        rows = wp.mat33(
             force[0], force[1], force[2], torque[0], torque[1], torque[2], tang[1, 0], tang[1, 1], tang[1, 2]
         )
+        return rows, wp.vec2(kn, kt)
 
     @wp.func
     def pair_dissipation(
@@ -331,7 +337,15 @@ def make_pair_laws(normal: str, tangential: str, rolling: str) -> PairLaws:
         d_t = d_t - wp.dot(rolling_t, omega_rel) * dt
         return wp.vec2(d_n, d_t)
 
-    return PairLaws(normal_force, tangential_stiffness, elastic_energy, stiffnesses, pair_interaction, pair_dissipation)
+    return PairLaws(
+        normal_force,
+        tangential_stiffness,
+        elastic_energy,
+        stiffnesses,
+        pair_interaction,
+        pair_dissipation,
+        parting_spring=not hertz and tangential == "linear",
+    )
 
 
 @functools.cache
@@ -365,6 +379,7 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
     elastic_energy = laws.elastic_energy
     stiffnesses = laws.stiffnesses
     pair_interaction = laws.pair_interaction
+    book_parting = track_energy and laws.parting_spring
 
     @wp.kernel(enable_backward=False, module="unique")
     def eval_contacts_kernel(
@@ -423,7 +438,7 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
         a_t = float(0.0)  # the same at the old springs, ½ k_t(δ_{n+1}) |ξ_n|² [J]
         fn_i = wp.vec3(0.0)  # this thread's share of i's contact force sums
         ft_i = wp.vec3(0.0)
-        tt_i = wp.vec3(0.0)
+        touched = int(0)
         count = wp.min(nbr_count[i], max_neighbors)
         for s in range(count):
             slot = i * max_neighbors + s
@@ -435,7 +450,7 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
             dist2 = wp.dot(d, d)
             rsum = ri + rj
             if dist2 >= rsum * rsum:
-                if wp.static(track_energy):
+                if wp.static(book_parting):
                     # The pair parted: its tangential spring goes, ½ k_t(0) |ξ|² to friction (zero where k_t(0) = 0;
                     # the change from k_t(δ_n) to k_t(0) is the stiffness change): it counts in a_t, not in e_t.
                     sh = nbr_shear[slot]
@@ -464,18 +479,19 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
             mstar = 1.0 / inv_sum
             p = pair_table[mat_i * num_materials + particle_material[j]]
             shear_old = nbr_shear[slot]
-            out = pair_interaction(n, delta, ri, rj, rstar, mstar, v_rel, omega_rel, shear_old, p, dt)
+            out, k = pair_interaction(n, delta, ri, rj, rstar, mstar, v_rel, omega_rel, shear_old, p, dt)
             force = out[0]
             roll = out[1]
             nbr_shear[slot] = out[2]
             ft = force - wp.dot(force, n) * n
             f_i += force
             t_i += wp.cross(-ci * n, ft) + roll
+            t_j = wp.cross(cj * n, -ft) - roll
             wp.atomic_add(particle_f, j, -force)
-            wp.atomic_add(particle_t, j, wp.cross(cj * n, -ft) - roll)
+            wp.atomic_add(particle_t, j, t_j)
             if wp.static(track_energy):
+                touched = 1
                 fn = wp.dot(force, n)
-                k = stiffnesses(delta, ri, rj, rstar, p)
                 e_n += elastic_energy(delta, k[0])
                 e_t += 0.5 * k[1] * wp.dot(out[2], out[2])
                 a_t += 0.5 * k[1] * wp.dot(shear_old, shear_old)
@@ -483,12 +499,11 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
                 d_fric -= 0.5 * dt * (wp.dot(ft, v_rel) + wp.dot(roll, omega_rel))
                 fn_i += fn * n
                 ft_i += ft
-                tt_i += wp.cross(-ci * n, ft) + roll
                 book_contact_force(
                     j,
                     -fn * n,
                     -ft,
-                    wp.cross(cj * n, -ft) - roll,
+                    t_j,
                     contact_f_normal,
                     contact_f_tangential,
                     contact_t_tangential,
@@ -498,7 +513,7 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
             gap = wp.dot(wp.vec3(xi - wall_point[w]), nw)
             slot = i * num_walls + w
             if gap >= ri:
-                if wp.static(track_energy):
+                if wp.static(book_parting):
                     sh = wall_shear[slot]
                     if wp.dot(sh, sh) > 0.0:
                         p = pair_table[mat_i * num_materials + wall_material[w]]
@@ -515,7 +530,7 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
             mstar = 1.0 / inv_mi
             shear_old = wall_shear[slot]
             # A flat wall is a sphere of infinite radius: R* = r_i, and the linear stiffness uses r_wall = r_i.
-            out = pair_interaction(nw, delta, ri, ri, ri, mstar, v_rel, wi, shear_old, p, dt)
+            out, k = pair_interaction(nw, delta, ri, ri, ri, mstar, v_rel, wi, shear_old, p, dt)
             force = out[0]
             roll = out[1]
             wall_shear[slot] = out[2]
@@ -523,11 +538,11 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
             f_i += force
             t_i += wp.cross(-ci * nw, ft) + roll
             if wp.static(track_energy):
+                touched = 1
                 # The integrator books the half ahead against the sphere's own velocity, -½ dt f·v_{n+3/2}; against
                 # the wall's it is -½ dt f·(v_{n+3/2} - v_w): the wall's share, +½ dt f·v_w, is booked here (v_w is
                 # constant), with the half behind against the relative velocity: -½ dt f·(v_rel - v_w) in all.
                 fn = wp.dot(force, nw)
-                k = stiffnesses(delta, ri, ri, ri, p)
                 e_n += elastic_energy(delta, k[0])
                 e_t += 0.5 * k[1] * wp.dot(out[2], out[2])
                 a_t += 0.5 * k[1] * wp.dot(shear_old, shear_old)
@@ -535,24 +550,28 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
                 d_fric -= 0.5 * dt * (wp.dot(ft, v_rel - vw) + wp.dot(roll, wi))
                 fn_i += fn * nw
                 ft_i += ft
-                tt_i += wp.cross(-ci * nw, ft) + roll
                 w_wall += wp.dot(force, vw) * dt  # work of the moving wall on the sphere over the step (both halves)
         wp.atomic_add(particle_f, i, f_i)
         wp.atomic_add(particle_t, i, t_i)
         if wp.static(track_energy):
-            book_contact_force(i, fn_i, ft_i, tt_i, contact_f_normal, contact_f_tangential, contact_t_tangential)
             prev = contact_energy_prev[i]
-            contact_energy_prev[i] = wp.vec2(e_n, e_t)
-            if dt > 0.0:  # the set-up evaluation (dt = 0) only records the springs' energies
-                # ΔU in float64 so that its sum over the steps telescopes to U_now - U_start exactly. The tangential
-                # springs' change splits at the old springs under the new stiffness, a_t: ξ's change (friction: a
-                # parting pair's spring goes there) and k_t's (the stiffness change).
-                d_n = wp.float64(d_damp) - (wp.float64(e_n) - wp.float64(prev[0]))
-                d_t = wp.float64(d_fric) - (wp.float64(e_t) - wp.float64(a_t))
-                energy_damping[i] = energy_damping[i] + d_n
-                energy_friction[i] = energy_friction[i] + d_t
-                energy_stiffness_change[i] = energy_stiffness_change[i] + (wp.float64(a_t) - wp.float64(prev[1]))
-                energy_wall_work[i] = energy_wall_work[i] + wp.float64(w_wall)
+            # A sphere that touched nothing, now or at the last evaluation, and had no spring to let go has nothing
+            # to book: every term below is an exact zero, so skipping it changes no bit (most spheres of a loose
+            # packing, and its cost with the books on).
+            if touched != 0 or prev[0] != 0.0 or prev[1] != 0.0 or a_t != 0.0:
+                # t_i is all contact torque: its tangential and rolling parts are the books' torque sum.
+                book_contact_force(i, fn_i, ft_i, t_i, contact_f_normal, contact_f_tangential, contact_t_tangential)
+                contact_energy_prev[i] = wp.vec2(e_n, e_t)
+                if dt > 0.0:  # the set-up evaluation (dt = 0) only records the springs' energies
+                    # ΔU in float64 so that its sum over the steps telescopes to U_now - U_start exactly. The
+                    # tangential springs' change splits at the old springs under the new stiffness, a_t: ξ's change
+                    # (friction: a parting pair's spring goes there) and k_t's (the stiffness change).
+                    d_n = wp.float64(d_damp) - (wp.float64(e_n) - wp.float64(prev[0]))
+                    d_t = wp.float64(d_fric) - (wp.float64(e_t) - wp.float64(a_t))
+                    energy_damping[i] = energy_damping[i] + d_n
+                    energy_friction[i] = energy_friction[i] + d_t
+                    energy_stiffness_change[i] = energy_stiffness_change[i] + (wp.float64(a_t) - wp.float64(prev[1]))
+                    energy_wall_work[i] = energy_wall_work[i] + wp.float64(w_wall)
 
     @wp.kernel(enable_backward=False, module="unique")
     def contact_energy_kernel(
@@ -671,7 +690,7 @@ def make_wall_force_kernel(normal: str, tangential: str, rolling: str) -> wp.Ker
             # As eval_contacts_kernel: a wall is a sphere of infinite radius, R* = r_i, m* = m_i.
             v_rel = (particle_qd[i] - (ri - delta) * wp.cross(wi, nw)) - wall_velocity[w]
             p = pair_table[particle_material[i] * num_materials + wall_material[w]]
-            out = pair_interaction(
+            out, _k = pair_interaction(
                 nw, delta, ri, ri, ri, 1.0 / inv_mi, v_rel, wi, wall_shear[i * num_walls + w], p, 0.0
             )
             f = out[0]

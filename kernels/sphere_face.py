@@ -256,8 +256,8 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
             w, n, dist, touching, interior = sphere_face_contact(x, r, fn, node_q)
             if not (touching and (interior or f == best_f)):
                 sh = sphere_face_shear[slot]
-                if wp.static(track_energy):
-                    # A spring let go of is released at k_t(0) (zero where k_t follows the overlap).
+                if wp.static(track_energy and laws.parting_spring):
+                    # A spring let go of is released at k_t(0) (zero where k_t follows the overlap: left out).
                     p = pair_table[mat_i * num_materials + tet_material[face_tet[f]]]
                     a = 0.5 * tangential_stiffness(0.0, r, normal_force(0.0, 0.0, r, r, r, 1.0, p)[2], p)
                     a = a * wp.dot(sh, sh)
@@ -303,7 +303,7 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
             mstar = 1.0 / inv_sum
             p = pair_table[mat_i * num_materials + tet_material[face_tet[f]]]
             # A face is flat: R* = r, as for a wall.
-            out = pair_interaction(n, delta, r, r, r, mstar, v_rel, wi, shear_old, p, dt)
+            out, k = pair_interaction(n, delta, r, r, r, mstar, v_rel, wi, shear_old, p, dt)
             force = out[0]
             roll = out[1]
             sphere_face_shear[slot] = out[2]
@@ -315,11 +315,9 @@ def make_sphere_face_kernel(normal: str, tangential: str, rolling: str, track_en
             wp.atomic_add(node_f, fn[1], -w[1] * force)
             wp.atomic_add(node_f, fn[2], -w[2] * force)
             if wp.static(track_energy):
-                fnv = normal_force(delta, 0.0, r, r, r, 1.0, p)
-                kt = tangential_stiffness(delta, r, fnv[2], p)
-                e_n += elastic_energy(delta, fnv[2])
-                e_t += 0.5 * kt * wp.dot(out[2], out[2])
-                a_t += 0.5 * kt * wp.dot(shear_old, shear_old)
+                e_n += elastic_energy(delta, k[0])
+                e_t += 0.5 * k[1] * wp.dot(out[2], out[2])
+                a_t += 0.5 * k[1] * wp.dot(shear_old, shear_old)
                 d_behind -= 0.5 * dt * (wp.dot(force, v_rel) + wp.dot(roll, wi))
                 wp.atomic_add(node_f_sphere_face, fn[0], -w[0] * force)
                 wp.atomic_add(node_f_sphere_face, fn[1], -w[1] * force)
