@@ -1,7 +1,10 @@
-"""Kernels of a subdomain's per-step exchange (warpdem.parallel.subdomain): the Verlet-skin test over the spheres a
-rank owns, for the list rebuild every rank decides together, and the same test against the migration margin."""
+"""Kernels of a subdomain's per-step exchange (warpdem.parallel.subdomain, .continuum): the Verlet-skin test over the
+items a rank owns, for the list rebuild every rank decides together, and the same test against the migration margin;
+and the halo messages' rows packed from and unpacked into the items' arrays."""
 
 from __future__ import annotations
+
+from typing import Any
 
 import warp as wp
 
@@ -88,3 +91,40 @@ def forget_ghost_records_kernel(
     i = wp.tid()  # one thread per slot
     if i < count[0] and owned[i] == 0:
         passed[i] = -1
+
+
+@wp.kernel
+def pack_rows_kernel(
+    a: wp.array(dtype=Any),
+    b: wp.array(dtype=Any),
+    c: wp.array(dtype=Any),
+    index: wp.array(dtype=int),
+    # Out:
+    rows: wp.array(dtype=Any),
+):
+    """Row r of a halo message (three vec3 of the message's precision, ``rows[3 r .. 3 r + 2]``) from item
+    ``index[r]`` of the three fields ``a``, ``b``, ``c`` (vec3 or vec3d each; a float32 value is exact in float64).
+    One thread per row; ``index`` holds every destination's rows, one after the other."""
+    r = wp.tid()
+    k = index[r]
+    rows[3 * r] = rows.dtype(a[k])
+    rows[3 * r + 1] = rows.dtype(b[k])
+    rows[3 * r + 2] = rows.dtype(c[k])
+
+
+@wp.kernel
+def unpack_rows_kernel(
+    rows: wp.array(dtype=Any),
+    index: wp.array(dtype=int),
+    # Out:
+    a: wp.array(dtype=Any),
+    b: wp.array(dtype=Any),
+    c: wp.array(dtype=Any),
+):
+    """Item ``index[r]`` of the three fields from row r of the received messages (:func:`pack_rows_kernel`'s layout;
+    a float32 field gets back the float32 value its owner sent). One thread per row."""
+    r = wp.tid()
+    k = index[r]
+    a[k] = a.dtype(rows[3 * r])
+    b[k] = b.dtype(rows[3 * r + 1])
+    c[k] = c.dtype(rows[3 * r + 2])

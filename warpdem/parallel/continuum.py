@@ -126,7 +126,7 @@ class ContinuumSubdomain(Ranked):
         nodes = mine.ids["node"]
         node_owner = owner[nodes]
         held_by = [np.isin(nodes, other.ids["node"]) for other in held]
-        self.channels = [Channel.between(NODE_FIELDS, np.float32, 2, rank, node_owner, held_by)]
+        self.channels = [Channel.between(NODE_FIELDS, np.float32, 2, rank, node_owner, held_by, m.device)]
         # Who owns what besides the nodes (for output and the next decomposition): a tet, its lowest node's owner; a
         # joint element, its node A's (the lower); a loaded face, its first node's. Each holds the item whole.
         loaded = [faces.nodes.numpy()[mine.sets[key], 0] for key, faces in face_sets(m.loads) if key != "dashpots"]
@@ -139,7 +139,6 @@ class ContinuumSubdomain(Ranked):
         self._owned = {space: np.flatnonzero(o == rank) for space, o in owners.items()}
         self.owned = wp.array((node_owner == rank).astype(np.int32), dtype=int, device=m.device)
         self._q_at_decomposition = wp.clone(local_state.node_q)
-        self._drop_views()
         return local_model, local_state
 
     def _setup(self) -> None:
@@ -211,7 +210,6 @@ class ContinuumSubdomain(Ranked):
             self.model, self.state = regrow_fem_contacts(self.model, self.state, self.model.max_sphere_faces, k)
             self.state.fem_rebuild_total.fill_(builds)
             self._setup()
-            self._drop_views()
             self.growths += 1
 
     def _epilogue(self) -> None:

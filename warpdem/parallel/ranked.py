@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
+from ..kernels import halo as kh
 from ..model import Model, State
 from ..simulation import Simulation
 from ..stages.guard import UnstableRunError
@@ -37,9 +38,11 @@ SHARED_FIELDS = ("time", "wall_point", "rebuild_total", "fem_rebuild_total", "fe
 
 @dataclasses.dataclass
 class Channel:
-    """One kind of item the halo refreshes: the State fields it carries (vec3 each, rows of 3 k values in one
-    message per neighbour and kind), the local indices each rank is sent and each rank's ghosts received, in global-id
-    order on both sides.
+    """One kind of item the halo refreshes: the three State fields it carries (vec3 each, a row of 9 values per item
+    in one message per neighbour and kind), the local indices each rank is sent and each rank's ghosts received, in
+    global-id order on both sides. The rows are packed and unpacked by one kernel each (kernels/halo.py) in buffers
+    made once per set of lists, each neighbour's message a slice of one buffer (on the CPU the numpy views MPI reads
+    and writes are the arrays themselves).
 
     Attributes:
         fields: State field names, each (capacity,) vec3 (or vec3d).
@@ -47,6 +50,7 @@ class Channel:
         send: local indices of owned items by destination rank.
         recv: local indices of ghosts by source rank.
         tag: the MPI tag of its messages.
+        device: the Warp device of the fields.
     """
 
     fields: tuple[str, ...]
@@ -54,19 +58,62 @@ class Channel:
     send: dict[int, np.ndarray]
     recv: dict[int, np.ndarray]
     tag: int
+    device: Any = "cpu"
 
     def __post_init__(self) -> None:
-        width = 3 * len(self.fields)
-        # The message buffers, made once per set of lists.
-        self.outbox = {d: np.empty((len(idx), width), dtype=self.dtype) for d, idx in self.send.items()}
-        self.inbox = {s: np.empty((len(idx), width), dtype=self.dtype) for s, idx in self.recv.items()}
+        if len(self.fields) != 3:
+            raise ValueError(f"a halo channel carries three vec3 fields, not {self.fields}")
+        self._send_index, self._send_rows, self.outbox = self._buffer(self.send)
+        self._recv_index, self._recv_rows, self.inbox = self._buffer(self.recv)
+
+    def _buffer(self, by_rank: dict[int, np.ndarray]) -> tuple[wp.array, wp.array, dict[int, np.ndarray]]:
+        """The local indices of ``by_rank``'s items one rank after the other (int32), a buffer of their rows (3 vec3
+        of the message's precision per item) and each rank's rows in it as a (count, 9) numpy view."""
+        index = np.concatenate([by_rank[r] for r in by_rank]) if by_rank else np.zeros(0, dtype=np.int32)
+        vec = wp.vec3d if np.dtype(self.dtype) == np.float64 else wp.vec3f
+        rows = wp.empty(3 * len(index), dtype=vec, device=self.device)
+        view = rows.numpy().reshape(len(index), 9)
+        blocks, start = {}, 0
+        for r, idx in by_rank.items():
+            blocks[r] = view[start : start + len(idx)]
+            start += len(idx)
+        return wp.array(index.astype(np.int32), dtype=int, device=self.device), rows, blocks
+
+    def pack(self, state: State) -> None:
+        """Every destination's rows from the owned items' fields in ``state`` (one launch)."""
+        if self._send_index.shape[0]:
+            wp.launch(
+                kh.pack_rows_kernel,
+                dim=self._send_index.shape[0],
+                inputs=[*(getattr(state, name) for name in self.fields), self._send_index],
+                outputs=[self._send_rows],
+                device=self.device,
+            )
+
+    def unpack(self, state: State) -> None:
+        """The ghosts' fields in ``state`` from the rows received (one launch)."""
+        if self._recv_index.shape[0]:
+            wp.launch(
+                kh.unpack_rows_kernel,
+                dim=self._recv_index.shape[0],
+                inputs=[self._recv_rows, self._recv_index],
+                outputs=[getattr(state, name) for name in self.fields],
+                device=self.device,
+            )
 
     @staticmethod
     def between(
-        fields: tuple[str, ...], dtype: type, tag: int, rank: int, owner: np.ndarray, held_by: list[np.ndarray]
+        fields: tuple[str, ...],
+        dtype: type,
+        tag: int,
+        rank: int,
+        owner: np.ndarray,
+        held_by: list[np.ndarray],
+        device: Any = "cpu",
     ) -> Channel:
         """The channel of local items whose ranks are ``owner`` (shape (n,)), where ``held_by[d]`` says which of them
-        rank d holds (shape (n,), bool; every rank decides from the same data, so sends and receives match)."""
+        rank d holds (shape (n,), bool; every rank decides from the same data, so sends and receives match), of
+        fields on ``device``."""
         recv = {src: np.flatnonzero(owner == src) for src in range(len(held_by)) if src != rank}
         mine = owner == rank
         send = {d: np.flatnonzero(mine & held) for d, held in enumerate(held_by) if d != rank}
@@ -76,6 +123,7 @@ class Channel:
             {d: idx for d, idx in send.items() if len(idx)},
             {s: idx for s, idx in recv.items() if len(idx)},
             tag,
+            device,
         )
 
     @property
@@ -103,7 +151,7 @@ class Ranked(Simulation):
             raise NotImplementedError("a decomposed run on CUDA devices is not built yet: run its ranks on the CPU")
         self.comm = comm
         self._moved = wp.zeros(flags, dtype=int, device=model.device)
-        self._views_of: State | None = None
+        self._flags = self._moved.numpy()  # its host view (the array itself on the CPU), what the reduction sends
         self._busy = 0.0  # seconds of this rank's own step work since the ranks' work was last compared
         self._slowest = -1  # the rank found slowest at that comparison (-1: none)
         self.migrations = 0  # times the items moved between ranks since the start (every rank counts alike)
@@ -168,40 +216,18 @@ class Ranked(Simulation):
         One wait for all, so the ranks meet once a step."""
         from mpi4py import MPI
 
-        views, flags = self._host_views()
-        moved = np.zeros_like(flags)
-        requests = [self.comm.Iallreduce(flags, moved, op=MPI.MAX)]
-        for channel, arrays in zip(self.channels, views, strict=True):
+        moved = np.zeros_like(self._flags)
+        requests = [self.comm.Iallreduce(self._flags, moved, op=MPI.MAX)]
+        for channel in self.channels:
             for src, block in channel.inbox.items():
                 requests.append(self.comm.Irecv(block, source=src, tag=channel.tag))
-            for dest, idx in channel.send.items():
-                block = channel.outbox[dest]
-                for k, a in enumerate(arrays):
-                    block[:, 3 * k : 3 * k + 3] = a[idx]
+            channel.pack(self.state)
+            for dest, block in channel.outbox.items():
                 requests.append(self.comm.Isend(block, dest=dest, tag=channel.tag))
         MPI.Request.Waitall(requests)
-        for channel, arrays in zip(self.channels, views, strict=True):
-            for src, idx in channel.recv.items():
-                block = channel.inbox[src]
-                for k, a in enumerate(arrays):
-                    a[idx] = block[:, 3 * k : 3 * k + 3]
+        for channel in self.channels:
+            channel.unpack(self.state)
         return moved
-
-    def _host_views(self) -> tuple[list[list[np.ndarray]], np.ndarray]:
-        """The host views of the arrays the halo reads and writes, by channel, and of the skin tests' flags (on the CPU
-        the arrays themselves; made once per State, as a view costs tens of microseconds to make)."""
-        s = self.state
-        if self._views_of is not s:
-            self._views = (
-                [[getattr(s, name).numpy() for name in channel.fields] for channel in self.channels],
-                self._moved.numpy(),
-            )
-            self._views_of = s
-        return self._views
-
-    def _drop_views(self) -> None:
-        """Forget the host views (the channels or the arrays changed)."""
-        self._views_of = None
 
     # ------------------------------------------------------------------------------------------------------------
     # Between steps

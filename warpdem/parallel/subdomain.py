@@ -132,8 +132,7 @@ class Subdomain(Ranked):
         self._q_at_migration.assign(at)
         self._owned_host = owned
         held_by = [self.slabs.holds(q, d) for d in range(size)]
-        self.channels = [Channel.between(SPHERE_FIELDS, np.float64, 1, rank, owner, held_by)]
-        self._drop_views()
+        self.channels = [Channel.between(SPHERE_FIELDS, np.float64, 1, rank, owner, held_by, self.owned.device)]
 
     def _setup(self) -> None:
         super()._setup()
@@ -243,7 +242,6 @@ class Subdomain(Ranked):
                 k *= 2
             self.model, self.state = regrow_neighbors(self.model, self.state, k)
             self._setup()
-            self._drop_views()
             self.growths += 1
 
     def _owned_bonds(self) -> tuple[Bonds, np.ndarray]:
