@@ -676,3 +676,47 @@ def test_restart_extends_a_cracked_stage(tmp_path, restart_frame):
     write_cracking_cube(pieces, RockFrames("stress"))
     write_cracking_cube(pieces, RockFrames("stress"), first_frame=restart_frame)
     assert_stages_equal(Usd.Stage.Open(str(pieces)), Usd.Stage.Open(str(whole)))
+
+
+def test_a_run_past_usd_max_spheres_writes_a_subsample_and_says_so(tmp_path, capsys):
+    """The default scene's first 40 ms (2 frames) with output.usd_max_spheres = 100: the stage's last frame holds
+    exactly the spheres whose id is a multiple of the smallest power of two k with ceil(N / k) <= 100 (N and the ids
+    from the end's checkpoint, brute force), /World/Particles.warpdem:sphereStride = k, and the summary says so; a
+    restart from the middle checkpoint continues that stage (its check compares the spheres the stage holds) and ends
+    with the same stage, sample by sample."""
+    import tomllib
+
+    import tomli_w
+    from stage_compare import assert_stages_equal
+
+    from warpdem.cli import main
+
+    scene = tomllib.loads((Path(__file__).parents[1] / "warpdem" / "data" / "default.toml").read_text())
+    scene["run"]["end_time"] = 0.04
+    scene["output"] = {**scene.get("output", {}), "usd_max_spheres": 100, "checkpoint_every": 0.02}
+    path = tmp_path / "many.toml"
+    path.write_text(tomli_w.dumps(scene))
+    out = tmp_path / "out"
+    assert main([str(path), "--out", str(out)]) == 0, capsys.readouterr().err
+    printed = capsys.readouterr().out
+    middle, end = sorted((out / "checkpoints").glob("*.h5"))
+    arrays, _ = read_checkpoint(end)
+    ids = arrays["model/particle_id"][: int(arrays["state/particle_count"][0])]
+    stride = 1
+    while -(-len(ids) // stride) > 100:
+        stride *= 2
+    assert stride > 1
+    (stage_path,) = out.glob("*.usdc")
+    stage = Usd.Stage.Open(str(stage_path))
+    points = UsdGeom.Points(stage.GetPrimAtPath("/World/Particles"))
+    last = stage.GetEndTimeCode()
+    assert last == 2.0
+    np.testing.assert_array_equal(np.asarray(points.GetIdsAttr().Get(last)), ids[ids % stride == 0])
+    assert points.GetPrim().GetAttribute("warpdem:sphereStride").Get(last) == stride
+    assert f"spheres subsampled: those whose id is a multiple of {stride}" in printed
+
+    shutil.copytree(out, tmp_path / "again")
+    again = tmp_path / "again"
+    assert main([str(path), "--out", str(again), "--restart", str(again / "checkpoints" / middle.name)]) == 0
+    assert "new stage" not in capsys.readouterr().err
+    assert_stages_equal(Usd.Stage.Open(str(again / stage_path.name)), Usd.Stage.Open(str(stage_path)))

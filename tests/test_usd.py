@@ -491,3 +491,72 @@ def test_rock_alone_writes_no_particles_prim(tmp_path: pathlib.Path) -> None:
     stage = Usd.Stage.Open(str(path))
     assert not stage.GetPrimAtPath("/World/Particles")
     assert stage.GetPrimAtPath("/World/Rock")
+
+
+def subsampled_frames() -> list[dict]:
+    """Four frames of spheres with ids 0..9, 0..9, 0..5 and 0..19, bonded in a chain (i, i + 1) and pairs (i, i + 4)."""
+    rng = np.random.default_rng(7)
+    frames = []
+    for k, n in enumerate((10, 10, 6, 20)):
+        chain = [(i, i + 1) for i in range(n - 1)] + [(i, i + 4) for i in range(n - 4)]
+        frames.append(
+            {
+                "time": 0.01 * k,
+                "positions": rng.normal(size=(n, 3)),
+                "radii": rng.uniform(0.01, 0.05, size=n),
+                "velocities": rng.normal(size=(n, 3)),
+                "ids": np.arange(n, dtype=np.int64),
+                "colors": rng.uniform(0.0, 1.0, size=(n, 3)),
+                "bonds": np.array(chain),
+                "bonds_broken": rng.integers(0, 3, size=n),
+            }
+        )
+    return frames
+
+
+def test_spheres_past_the_limit_are_subsampled_by_id(tmp_path: pathlib.Path) -> None:
+    """Past ``max_spheres`` a frame holds the spheres whose id is a multiple of the stride, the smallest power of two
+    with ceil(N / stride) <= max_spheres, never lowered: brute force over each frame's ids, with the bonds whose both
+    ends are kept renumbered into the kept list; and a restart from frame 2 authors the same stage."""
+    from stage_compare import assert_stages_equal
+
+    frames = subsampled_frames()
+    path = tmp_path / "sub.usda"
+    with UsdWriter(path, FPS, max_spheres=3) as writer:
+        strides = []
+        for frame in frames:
+            writer.write_frame(**frame)
+            strides.append(writer.sphere_stride)
+    # 10 spheres: 10 > 3, 5 > 3, 3 <= 3 at stride 4; 6 keeps 4 (never lowered); 20: 5 > 3 at 4, 3 at 8.
+    assert strides == [4, 4, 4, 8]
+    stage = Usd.Stage.Open(str(path))
+    points = UsdGeom.Points(stage.GetPrimAtPath("/World/Particles"))
+    stride_attr = points.GetPrim().GetAttribute("warpdem:sphereStride")
+    curves = UsdGeom.BasisCurves(stage.GetPrimAtPath("/World/Bonds"))
+    damage = UsdGeom.PrimvarsAPI(points.GetPrim()).GetPrimvar("bondsBroken")
+    for code, (frame, stride) in enumerate(zip(frames, strides, strict=True)):
+        kept = [i for i in frame["ids"] if i % stride == 0]
+        np.testing.assert_array_equal(np.asarray(points.GetIdsAttr().Get(code)), kept)
+        np.testing.assert_allclose(np.asarray(points.GetPointsAttr().Get(code)), frame["positions"][kept], rtol=RTOL)
+        np.testing.assert_array_equal(np.asarray(damage.Get(code)), frame["bonds_broken"][kept])
+        assert stride_attr.Get(code) == stride
+        ends = [(a, b) for a, b in frame["bonds"] if a in kept and b in kept]
+        expected = frame["positions"][np.array(ends, dtype=int).reshape(-1)]
+        drawn = np.asarray(curves.GetPointsAttr().Get(code)).reshape(-1, 3)
+        np.testing.assert_allclose(drawn, expected, rtol=RTOL, atol=1e-7)
+    # A restart from frame 2 (the stride read back from the stage) authors what the uninterrupted writer did.
+    restarted = tmp_path / "restarted.usda"
+    with UsdWriter(restarted, FPS, max_spheres=3) as writer:
+        for frame in frames[:3]:
+            writer.write_frame(**frame)
+    with UsdWriter(restarted, FPS, first_frame=2, append=True, max_spheres=3) as writer:
+        assert writer.sphere_stride == 4
+        for frame in frames[2:]:
+            writer.write_frame(**frame)
+    assert_stages_equal(Usd.Stage.Open(str(restarted)), stage)
+
+
+def test_max_spheres_below_one_is_refused(tmp_path: pathlib.Path) -> None:
+    with pytest.raises(ValueError, match="max_spheres must be at least 1"):
+        UsdWriter(tmp_path / "x.usdc", FPS, max_spheres=0)
+    assert not list(tmp_path.iterdir())

@@ -59,6 +59,10 @@ _SUFFIXES = (".usd", ".usdc", ".usda")
 # The prims a frame defines only once it carries their data; a restart drops them again where no sample is left.
 _LAZY_PRIMS = ("/World/Particles", "/World/Bonds", "/World/Rock", "/World/Cohesive")
 
+_STRIDE_ATTR = "warpdem:sphereStride"
+"""The custom attribute of /World/Particles that says which spheres a frame holds: those whose id is a multiple of it
+(authored from the first frame over the writer's ``max_spheres``)."""
+
 # Radius-to-width ratio of the bond curves: thin enough to leave the spheres visible, thick enough to see.
 _BOND_WIDTH_PER_MEAN_RADIUS = 0.5
 
@@ -95,6 +99,7 @@ class UsdWriter:
         first_frame: int = 0,
         append: bool = False,
         continue_partial: bool = False,
+        max_spheres: int | None = None,
     ) -> None:
         """Creates the partial stage and authors the stage metadata (or copies the stage a restart extends).
 
@@ -111,6 +116,10 @@ class UsdWriter:
             continue_partial: With ``append``, continue the partial file a killed writer left (in place) rather than
                 the final file; the caller has checked that it holds the frames to keep. Otherwise a partial file on
                 disk is deleted.
+            max_spheres: Past this many spheres in a frame, only the spheres whose id is a multiple of a stride (a
+                power of two, the smallest that brings the frame within the limit, never lowered again, so that the
+                same spheres stay drawn) are written, with their bonds between them; the stride is authored as
+                ``/World/Particles.warpdem:sphereStride`` and kept as :attr:`sphere_stride`. None: every sphere.
 
         Raises:
             ValueError: If the suffix is not one of ``.usd``, ``.usdc``, ``.usda``, the frame rate is not a
@@ -129,6 +138,8 @@ class UsdWriter:
         fps = float(frames_per_second)
         if not (math.isfinite(fps) and fps > 0.0):
             raise ValueError(f"USD output {str(final_path)!r}: frames_per_second must be > 0, got {frames_per_second}")
+        if max_spheres is not None and max_spheres < 1:
+            raise ValueError(f"USD output {str(final_path)!r}: max_spheres must be at least 1, got {max_spheres}")
 
         final_path.parent.mkdir(parents=True, exist_ok=True)
         final_path = final_path.resolve()
@@ -209,6 +220,10 @@ class UsdWriter:
         self.extended = existing
         """Whether this writer continues an existing stage (``append`` and the file was there)."""
         self._continues_partial = resume_partial  # the partial file holds a killed run's frames: never deleted
+        self.max_spheres = max_spheres
+        self.sphere_stride = 1
+        """The ids a frame's spheres are written at: the multiples of this (1: all)."""
+        self._stride_authored = 1  # the stride the stage holds (1 where none is authored)
         if existing:
             self._attach(float(first_frame) - 1.0)
 
@@ -223,6 +238,9 @@ class UsdWriter:
             ids = self._particle_attrs["ids"]
             if ids.GetNumTimeSamples():
                 self._last_ids = np.asarray(ids.Get(code), dtype=np.int64)
+            stride = self._points.GetPrim().GetAttribute(_STRIDE_ATTR)
+            if stride and stride.GetNumTimeSamples():
+                self.sphere_stride = self._stride_authored = int(stride.Get(code))
         if self._stage.GetPrimAtPath("/World/Bonds"):
             self._define_bonds()
         rock = self._stage.GetPrimAtPath("/World/Rock")
@@ -341,6 +359,20 @@ class UsdWriter:
                 raise ValueError(f"bonds: indices must lie in [0, {n}), got range [{bond_arr.min()}, {bond_arr.max()}]")
         checked_surface = check_surface(surface) if surface is not None else None
         checked_cohesive = check_curves(cohesive) if cohesive is not None else None
+        if self.max_spheres is not None:
+            while -(-n // self.sphere_stride) > self.max_spheres:
+                self.sphere_stride *= 2
+        if self.sphere_stride > 1 and n:
+            keep = ids_arr % self.sphere_stride == 0
+            pos, rad, vel, col, ids_arr = pos[keep], rad[keep], vel[keep], col[keep], ids_arr[keep]
+            if bonds_broken is not None:
+                bonds_broken = np.asarray(bonds_broken).reshape(n)[keep]
+            if fragments is not None:
+                fragments = np.asarray(fragments).reshape(n)[keep]
+            if bond_arr is not None:
+                renumber = np.cumsum(keep) - 1  # a kept sphere's index among the kept
+                bond_arr = renumber[bond_arr[keep[bond_arr[:, 0]] & keep[bond_arr[:, 1]]]]
+            n = len(ids_arr)
 
         code = float(self._first_frame + self._frame_count)
         # Until the frame is complete, :meth:`close` drops what it authored (an interrupt inside this method).
@@ -355,6 +387,12 @@ class UsdWriter:
                 self._set_particles(code - 1.0, none3, none3, np.zeros(0, np.float32), none3)
         if self._points is not None:
             self._set_particles(code, pos, vel, rad, col)
+            if self.sphere_stride != self._stride_authored:
+                from pxr import Sdf
+
+                attr = self._points.GetPrim().CreateAttribute(_STRIDE_ATTR, Sdf.ValueTypeNames.Int, custom=True)
+                attr.Set(self.sphere_stride, code)
+                self._stride_authored = self.sphere_stride
             # ids are only needed where the particle set changes; held samples keep the file small.
             if self._last_ids is None or not np.array_equal(self._last_ids, ids_arr):
                 self._particle_attrs["ids"].Set(Vt.Int64Array.FromNumpy(ids_arr), code)
@@ -713,10 +751,11 @@ def _drop_samples_from(stage: Any, code: float) -> None:
             stage.RemovePrim(path)
 
 
-def stage_frame(path: str | os.PathLike, code: int) -> tuple[float, float | None, np.ndarray | None]:
+def stage_frame(path: str | os.PathLike, code: int) -> tuple[float, float | None, np.ndarray | None, int]:
     """What a stage written by :class:`UsdWriter` holds at one frame: its frame rate [frames/s], the simulated time
-    [s] of the frame (``/World.warpdem:time``; None where there is no such sample) and the sphere centres [m]
-    (float32, shape (N, 3); None without spheres at that frame).
+    [s] of the frame (``/World.warpdem:time``; None where there is no such sample), the sphere centres [m]
+    (float32, shape (N, 3); None without spheres at that frame) and the stride of the ids they are (1: every sphere;
+    :attr:`UsdWriter.sphere_stride`).
 
     Raises:
         ValueError: If the file cannot be opened as a USD stage.
@@ -737,4 +776,6 @@ def stage_frame(path: str | os.PathLike, code: int) -> tuple[float, float | None
     points = None
     if points_attr and points_attr.GetNumTimeSamples():
         points = np.asarray(points_attr.Get(code), dtype=np.float32).reshape(-1, 3)
-    return stage.GetTimeCodesPerSecond(), time, points
+    stride_attr = particles.GetAttribute(_STRIDE_ATTR) if particles else None
+    stride = int(stride_attr.Get(code)) if stride_attr and stride_attr.GetNumTimeSamples() else 1
+    return stage.GetTimeCodesPerSecond(), time, points, stride

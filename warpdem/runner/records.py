@@ -98,6 +98,7 @@ class RunSummary:
     tets: int = 0
     tet_steps_per_second: float = 0.0
     pvd_path: Path | None = None
+    usd_sphere_stride: int = 1
     frame: int = 0
     """The last frame written (a run stopped between two frames ends after it, at ``simulated_time``)."""
     interrupted_by: int | None = None
@@ -248,6 +249,11 @@ class RunSummary:
         )
         if self.usd_path is not None:
             lines.append(f"USD              {self.usd_path}")
+            if self.usd_sphere_stride > 1:
+                lines.append(
+                    f"                 spheres subsampled: those whose id is a multiple of {self.usd_sphere_stride} "
+                    "(a frame held more than output.usd_max_spheres)"
+                )
         if self.pvd_path is not None:
             lines.append(f"VTU series       {self.pvd_path}")
         if self.fragments_path is not None:

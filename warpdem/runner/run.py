@@ -162,6 +162,7 @@ class Run(RunAccess):
         self._compile = 0.0  # [s] kernel compiling and loading in this run's calls
         self._steps_per_piece = 1
         self._writer: Any = None
+        self._usd_stride = 1  # the stride of the spheres the stage holds (UsdWriter.sphere_stride), kept past it
         self._progress: Any = None
 
     # ------------------------------------------------------------------------------------------------------------
@@ -303,7 +304,7 @@ class Run(RunAccess):
         output_stem = usd_path.stem  # VTU files are named like the stage; a restart continues both
         _take_over(usd_path)
         continue_partial = restart and _stage_to_continue(
-            usd_path, _StageCheck(1.0 / frame_period, first_frame, sim.state, attrs)
+            usd_path, _StageCheck(1.0 / frame_period, first_frame, sim.state, attrs, sim.model.particle_id)
         )
         checkpoint_every = (
             options.checkpoint_every if options.checkpoint_every is not None else scene.output.checkpoint_every
@@ -347,6 +348,7 @@ class Run(RunAccess):
                 first_frame=first_written,
                 append=restart,
                 continue_partial=continue_partial,
+                max_spheres=scene.output.usd_max_spheres,
             )
         except (OSError, RuntimeError) as exc:  # pxr reports a layer it cannot create as a RuntimeError
             if options.usd is not None or options.out_dir is not None:
@@ -594,7 +596,12 @@ class Run(RunAccess):
         )
         # What a restart from between this frame and the next checks the stage against (the points as stored).
         self._frame_step, self._frame_time = sim.step_count, sim.time
-        self._frame_crc = zlib.crc32(np.ascontiguousarray(q, dtype=np.float32).tobytes()) if n else None
+        stored = (
+            q
+            if self._writer.sphere_stride == 1
+            else q[sim.model.particle_id.numpy()[:n] % self._writer.sphere_stride == 0]
+        )
+        self._frame_crc = zlib.crc32(np.ascontiguousarray(stored, dtype=np.float32).tobytes()) if n else None
         self._energy_end = energy
         self._in_play = max(self._in_play, energy.in_play)
         self.frame = Frame(
@@ -775,6 +782,7 @@ class Run(RunAccess):
             self._progress = None
         writer, self._writer = self._writer, None
         if writer is not None:
+            self._usd_stride = writer.sphere_stride
             if publish:
                 writer.close()
             else:
@@ -838,6 +846,7 @@ class Run(RunAccess):
             energy_start=self._energy_start,
             energy_end=end,
             usd_path=self._usd_path,
+            usd_sphere_stride=self._writer.sphere_stride if self._writer is not None else self._usd_stride,
             checkpoints=list(self.checkpoints),
             nodes=sim.node_count,
             tets=tets,
@@ -938,19 +947,22 @@ class _StageCheck:
 
     A checkpoint taken at a frame is compared with its state itself; one taken between two frames (a stop request)
     says where its last frame was: ``frame_time`` [s] and ``frame_points_crc32`` (CRC-32 of its float32 sphere
-    centres; absent: no spheres, or an older checkpoint).
+    centres as the stage stores them; absent: no spheres, or an older checkpoint). A stage that holds a subsample
+    of the spheres (``[output] usd_max_spheres``) is compared on the spheres it holds.
 
     Args:
         fps: the run's frame rate [frames/s].
         frame: the checkpoint's frame.
         state: the restored state.
         attrs: the checkpoint's attributes.
+        particle_id: the restored model's sphere ids (a wp.array).
     """
 
     fps: float
     frame: int
     state: Any
     attrs: dict
+    particle_id: Any
 
     @property
     def between(self) -> bool:
@@ -962,13 +974,15 @@ class _StageCheck:
         from ..io.usd import stage_frame
 
         try:
-            rate, held_time, held_points = stage_frame(path, self.frame)
+            rate, held_time, held_points, stride = stage_frame(path, self.frame)
         except ValueError as exc:
             return " ".join(str(exc).split())
         frame_time = float(self.attrs.get("frame_time", self.attrs["time"]))
         if not self.between:
             n = int(self.state.particle_count.numpy()[0])
             points = self.state.particle_q.numpy()[:n].astype(np.float32) if n else None
+            if points is not None and stride > 1:
+                points = points[self.particle_id.numpy()[:n] % stride == 0]
             same_points = (held_points is None) == (points is None) and (
                 points is None or np.array_equal(held_points, points)
             )

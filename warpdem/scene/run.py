@@ -213,6 +213,14 @@ class Output(_Model):
         "fragment = a colour per fragment (warpdem.stages.fragments).",
     )
     bonds_as_curves: Bool = Field(default=False, description="Write intact bonds as USD curves.")
+    usd_max_spheres: Int = Field(
+        default=2_000_000,
+        ge=1,
+        description="Past this many spheres in a frame the USD file holds a subsample: the spheres whose id is a "
+        "multiple of a power of two, the smallest that brings the frame within the limit, kept for the rest of the run "
+        "(authored as /World/Particles.warpdem:sphereStride; the summary says it). The checkpoints and the VTU "
+        "spheres keep all [-].",
+    )
     cohesive_as_curves: Bool = Field(
         default=False,
         description="Write the intact cohesive elements of the crack tips (nodal fracture) as USD curves.",
