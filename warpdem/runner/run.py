@@ -258,7 +258,7 @@ class Run(RunAccess):
         self._out_dir = out_dir = Path(options.out_dir) if options.out_dir is not None else Path(scene.output.directory)
         usd_path = Path(options.usd) if options.usd is not None else out_dir / scene.output.usd
         if step >= last_step:
-            held = _StageCheck(1.0 / frame_period, first_frame, state, attrs)
+            held = _StageCheck(1.0 / frame_period, first_frame, state, attrs, model.particle_id)
             published = _publish_left_stage(usd_path, held)
             raise NothingToDo(
                 f"nothing to do: the checkpoint is at t = {sim_time:.9g} s (frame {first_frame}), the run ends at "
