@@ -10,7 +10,8 @@
 #      momentum, energy books, device against CPU over an early window, device against itself (OUT/compare.json);
 #   c. the benchmarks at GPU sizes through python -m warpdem bench ... --json (and benchmarks/gather_forces.py, the
 #      tets' forces gathered against scattered): the documented 1 M sizes first, then the larger ones (8 M spheres,
-#      4 M tets), the cracking runs last, so a check cut short by its deadline loses those first.
+#      4 M tets), the cracking runs, and last a pour on 2 ranks of the GPU against one process
+#      (benchmarks/gpu_ranks.py, where mpiexec is found), so a check cut short by its deadline loses those first.
 # CPU mode (--cpu, or no CUDA device): b and c at small sizes on the CPU, with the same background jobs and command
 # lines, so CI exercises the script (it runs after the tests, so the kernel cache is warm); a is left out (CI ran
 # the tests).
@@ -93,7 +94,7 @@ fi
 deadline=$((SECONDS + deadline_s))
 
 log=$out/gpu_check.log
-rm -f "$out"/summary.json "$out"/compare.json "$out"/bench_*.json "$out"/steps/*.log
+rm -f "$out"/summary.json "$out"/compare.json "$out"/gpu_ranks.json "$out"/bench_*.json "$out"/steps/*.log
 : >"$log"
 say() { printf '%s\n' "$*" | tee -a "$log"; }
 
@@ -183,6 +184,19 @@ bench() {
     step "$name" "$kind" "$limit" "$min" "$json" "$py" -m warpdem bench "$@" --device "$device" --json "$json"
 }
 
+# ranks_on_device SPHERES [ARGS...]: benchmarks/gpu_ranks.py, a pour in one process and on 2 ranks of the device
+# (issue 25), where an MPI launcher is found (the GPU machine has mpi4py; its launcher may be missing: skipped).
+ranks_on_device() {
+    local spheres=$1
+    shift
+    if [[ -x $(dirname "$(command -v "$py")")/mpiexec ]] || command -v mpiexec >/dev/null; then
+        step "2 ranks against one process, $spheres spheres" command 120 40 "" \
+            "$py" benchmarks/gpu_ranks.py --spheres "$spheres" --json "$out/gpu_ranks.json" "$@"
+    else
+        record --name "2 ranks against one process" --kind skipped --note "no mpiexec beside $py or on PATH"
+    fi
+}
+
 # Host work that needs no GPU starts in the background, in both modes alike (so CI runs these paths too): the CPU
 # side of the comparison (on a fresh GPU machine its CPU kernels compile from a cold cache: ~1.5 min on one core,
 # hidden behind the CUDA tests) and settling cases the package does not ship (8 M lines of text: ~40 s on one core,
@@ -205,7 +219,7 @@ if [[ $mode == cuda ]]; then
     # the books, the counted budget, tets, contact, the Simulation, fracture, conversion (~100 CUDA cases; the CPU
     # cases take ~1.5 min on one CPU core).
     tests=(tests/test_books.py tests/test_budget.py tests/test_tets.py tests/test_contact.py tests/test_simulation.py
-        tests/test_fracture.py tests/test_conversion.py)
+        tests/test_fracture.py tests/test_conversion.py tests/test_parallel.py)
     present=()
     missing=()
     for t in "${tests[@]}"; do
@@ -264,6 +278,7 @@ if [[ $mode == cuda ]]; then
         fracture --tets 384 --repeat 1 --steps 2 --run-tets 10000 --run-steps 200 --intervals 0 1 10
     bench "bench conversion run, 10 000 tets" conversion 90 30 bench_conversion_run.json \
         conversion --tets 384 --repeat 1 --steps 2 --run-tets 10000 --run-steps 200 --intervals 0 1 10
+    ranks_on_device 2000
 else
     # The smallest sizes the benchmarks take (the pass benchmarks warm up on 384 tets whatever the size), few steps.
     bench "bench settling, 8 000 spheres" settling 120 20 bench_settling.json \
@@ -279,6 +294,7 @@ else
         fracture --tets 384 --repeat 1 --steps 2 --run-tets 1296 --run-steps 40 --intervals 0 1
     bench "bench conversion run, 1 296 tets" conversion 120 20 bench_conversion_run.json \
         conversion --tets 384 --repeat 1 --steps 2 --run-tets 1296 --run-steps 40 --intervals 0 1
+    ranks_on_device 1000 --cpu
 fi
 
 say "==== summary (${SECONDS} s)"

@@ -12,6 +12,9 @@ Oracles:
   one stopped in one process and resumed on 2 ranks, end bit for bit where the uninterrupted run ends.
 - The slabs and the rows by themselves: every centre has exactly one owner, which holds it; equal shares of the weight
   to one sphere; rows taken from a subdomain and put back give the same spheres, lists and partners.
+- The path GPU ranks take: a halo channel is a copy, staged through host buffers or not, on every device the tests
+  see; the staging forced on CPU ranks leaves the pour one process's bit for bit; ranks asking for "cuda" take their
+  node's GPUs in turn.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import numpy as np
 import pytest
 
 from warpdem.parallel.domain import Slabs
+from warpdem.parallel.ranked import STAGING_VARIABLE
 
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
 ROOT = Path(__file__).resolve().parent.parent
@@ -53,13 +57,16 @@ def _mpiexec(ranks: int) -> list[str]:
     return [str(MPIEXEC), "-n", str(ranks)]
 
 
-def _run(scene: Path, out: Path, ranks: int, *args: str) -> subprocess.CompletedProcess:
-    """Run ``scene`` into ``out`` on ``ranks`` ranks (1: one process), its summary as ``out/summary.json``."""
+def _run(
+    scene: Path, out: Path, ranks: int, *args: str, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess:
+    """Run ``scene`` into ``out`` on ``ranks`` ranks (1: one process), its summary as ``out/summary.json``, with
+    ``env`` added to the environment."""
     summary = ["--summary-json", str(out / "summary.json")]
     command = [sys.executable, "-m", "warpdem", str(scene), "--out", str(out), "--quiet", *summary, *args]
     if ranks > 1:
         command = [*_mpiexec(ranks), *command]
-    done = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    done = subprocess.run(command, capture_output=True, text=True, timeout=600, env={**os.environ, **(env or {})})
     assert done.returncode == 0, f"{ranks} ranks: {done.stdout[-2000:]}{done.stderr[-3000:]}"
     return done
 
@@ -118,6 +125,17 @@ def test_ranks_match_one_process_bit_for_bit(one_process: tuple[Path, Path], tmp
     _run(scene, tmp_path / "out", ranks)
     _assert_same_run(reference, tmp_path / "out", f"{ranks} ranks")
     assert _summary(tmp_path / "out")["migrations"] > 0  # the comparison covers spheres that moved between ranks
+
+
+def test_halo_staged_through_host_copies_matches_one_process_bit_for_bit(
+    one_process: tuple[Path, Path], tmp_path: Path
+) -> None:
+    # The path GPU ranks take (their messages copied to page-locked host buffers and back, one device wait before
+    # the sends), forced on the CPU: copies move bits, so the run is still one process's.
+    scene, reference = one_process
+    _run(scene, tmp_path / "out", 2, env={STAGING_VARIABLE: "1"})
+    _assert_same_run(reference, tmp_path / "out", "2 ranks, staged halo")
+    assert _summary(tmp_path / "out")["migrations"] > 0
 
 
 @pytest.mark.parametrize(("first", "then"), [(2, 1), (1, 2)])
@@ -470,3 +488,56 @@ def test_rows_round_trip_through_a_subdomain(device: str) -> None:
         shear = half.fields["nbr_shear"][i][: half.fields["nbr_count"][i]][kept]
         assert np.array_equal(back.fields["nbr_shear"][i][: back.fields["nbr_count"][i]], shear)
     assert int(local_state.particle_count.numpy()[0]) == len(half)
+
+
+@pytest.mark.parametrize("precision", [np.float64, np.float32])
+@pytest.mark.parametrize("staged", [False, True])
+def test_a_channel_carries_each_ghost_its_owners_fields_exactly(device: str, precision: type, staged: bool) -> None:
+    # Oracle: the halo is a copy. Rank 0 sends rows of its items 1, 4, 6 (three vec3 fields each) to rank 1, whose
+    # ghosts 0, 2, 5 receive them; the MPI message is played by copying the outbox's block into the inbox's. Every
+    # ghost then holds its owner's values bit for bit (spheres' float64 fields in float64 rows, nodes' float32 in
+    # float32), nothing else changes, and a staged channel's blocks are host copies, not the device buffers (on a GPU
+    # the only way).
+    from types import SimpleNamespace
+
+    import warp as wp
+
+    from warpdem.parallel.ranked import Channel
+
+    vec = wp.vec3d if precision == np.float64 else wp.vec3f
+    rng = np.random.default_rng(7)
+    names = ("a", "b", "c")
+    owner = SimpleNamespace(**{n: wp.array(rng.normal(size=(8, 3)), dtype=vec, device=device) for n in names})
+    ghost = SimpleNamespace(**{n: wp.zeros(8, dtype=vec, device=device) for n in names})
+    sent, received = np.array([1, 4, 6]), np.array([0, 2, 5])
+    if not staged and device != "cpu":
+        with pytest.raises(
+            ValueError, match="must be staged"
+        ):  # MPI reads host memory; a GPU buffer's numpy() is a copy
+            Channel(names, precision, {1: sent}, {}, tag=1, device=device, staged=staged)
+        return
+    out = Channel(names, precision, {1: sent}, {}, tag=1, device=device, staged=staged)
+    into = Channel(names, precision, {}, {0: received}, tag=1, device=device, staged=staged)
+    out.pack(owner)
+    wp.synchronize_device(device)  # what the rank does before its sends
+    np.copyto(into.inbox[0], out.outbox[1])
+    into.unpack(ghost)
+    for n in names:
+        expected = np.zeros((8, 3), dtype=precision)
+        expected[received] = getattr(owner, n).numpy()[sent]
+        assert np.array_equal(getattr(ghost, n).numpy(), expected), n
+    assert out.bytes_sent == 3 * 9 * np.dtype(precision).itemsize
+    assert np.shares_memory(out.outbox[1], out._send_rows.numpy()) == (not staged and device == "cpu")
+
+
+def test_ranks_asking_for_cuda_take_their_nodes_gpus_in_turn() -> None:
+    # Invariant: rank r of a node of g GPUs takes GPU r mod g, so each GPU serves ceil or floor of ranks/g ranks; a
+    # node without one leaves "cuda", which fails as one process does.
+    from warpdem.parallel.comm import local_gpu
+
+    for gpus in (1, 2, 4):
+        taken = [local_gpu(r, gpus) for r in range(6)]
+        assert taken[:gpus] == [f"cuda:{g}" for g in range(gpus)]
+        counts = [taken.count(f"cuda:{g}") for g in range(gpus)]
+        assert max(counts) - min(counts) <= 1 and sum(counts) == 6
+    assert local_gpu(3, 0) == "cuda"

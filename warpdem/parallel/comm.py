@@ -23,3 +23,26 @@ def world() -> Any | None:
         return None
     comm = MPI.COMM_WORLD
     return comm if comm.Get_size() > 1 else None
+
+
+def rank_device(name: str) -> str:
+    """The Warp device this process runs on when asked for ``name``: ``name`` itself, except ``"cuda"`` (no index)
+    on several ranks, which gives the ranks of one node that node's GPUs in turn (:func:`local_gpu`), one rank per
+    GPU where there are as many. Every rank calls it (it splits the world by node)."""
+    comm = world()
+    if comm is None or name != "cuda":
+        return name
+    import warp as wp
+    from mpi4py import MPI
+
+    node = comm.Split_type(MPI.COMM_TYPE_SHARED)
+    try:
+        return local_gpu(node.Get_rank(), wp.get_cuda_device_count())
+    finally:
+        node.Free()
+
+
+def local_gpu(local_rank: int, gpus: int) -> str:
+    """The GPU of the ``local_rank``-th rank on a node of ``gpus`` GPUs: ``cuda:<local_rank mod gpus>`` (``"cuda"``
+    where there is none, which then fails as one process would, saying the device is not available)."""
+    return f"cuda:{local_rank % gpus}" if gpus > 0 else "cuda"

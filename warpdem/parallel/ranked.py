@@ -13,6 +13,7 @@ warpdem.parallel.continuum (tets, joints, loads).
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from typing import Any
 
@@ -36,13 +37,30 @@ SHARED_FIELDS = ("time", "wall_point", "rebuild_total", "fem_rebuild_total", "fe
 """State arrays every rank holds alike (the clock, the walls, the list builds all ranks decide together)."""
 
 
+STAGING_VARIABLE = "WARPDEM_HALO_STAGING"
+"""An environment variable: set to 1, the CPU ranks stage their halo messages through host copies as GPU ranks do."""
+
+
+def staging_forced() -> bool:
+    """Whether :data:`STAGING_VARIABLE` asks the CPU ranks to stage their messages (tests the path GPU ranks take)."""
+    return os.environ.get(STAGING_VARIABLE, "") == "1"
+
+
+def host_mirror(array: wp.array) -> wp.array:
+    """A host array shaped and typed like ``array``, page-locked where CUDA is present (copies to and from a GPU
+    then run asynchronously, at full speed)."""
+    return wp.empty(array.shape, dtype=array.dtype, device="cpu", pinned=wp.is_cuda_available())
+
+
 @dataclasses.dataclass
 class Channel:
     """One kind of item the halo refreshes: the three State fields it carries (vec3 each, a row of 9 values per item
     in one message per neighbour and kind), the local indices each rank is sent and each rank's ghosts received, in
     global-id order on both sides. The rows are packed and unpacked by one kernel each (kernels/halo.py) in buffers
-    made once per set of lists, each neighbour's message a slice of one buffer (on the CPU the numpy views MPI reads
-    and writes are the arrays themselves).
+    made once per set of lists, each neighbour's message a slice of one buffer. On the CPU the numpy views MPI reads
+    and writes are those buffers themselves; on a GPU the messages are staged through page-locked host copies of them
+    (:attr:`staged`; one copy each way a step, the caller synchronising the device once before the sends), which
+    works with any MPI, CUDA-aware or not.
 
     Attributes:
         fields: State field names, each (capacity,) vec3 (or vec3d).
@@ -51,6 +69,8 @@ class Channel:
         recv: local indices of ghosts by source rank.
         tag: the MPI tag of its messages.
         device: the Warp device of the fields.
+        staged: whether the messages go through host copies of the device buffers (None: where the device is not
+            the CPU; :func:`staging_forced` forces it on the CPU, which tests the path GPU ranks take).
     """
 
     fields: tuple[str, ...]
@@ -59,28 +79,37 @@ class Channel:
     recv: dict[int, np.ndarray]
     tag: int
     device: Any = "cpu"
+    staged: bool | None = None
 
     def __post_init__(self) -> None:
         if len(self.fields) != 3:
             raise ValueError(f"a halo channel carries three vec3 fields, not {self.fields}")
-        self._send_index, self._send_rows, self.outbox = self._buffer(self.send)
-        self._recv_index, self._recv_rows, self.inbox = self._buffer(self.recv)
+        on_cpu = wp.get_device(self.device).is_cpu
+        if self.staged is None:
+            self.staged = not on_cpu or staging_forced()
+        elif not (self.staged or on_cpu):
+            raise ValueError(f"a halo channel on {self.device} must be staged: MPI reads host memory")
+        self._send_index, self._send_rows, self._send_host, self.outbox = self._buffer(self.send)
+        self._recv_index, self._recv_rows, self._recv_host, self.inbox = self._buffer(self.recv)
 
-    def _buffer(self, by_rank: dict[int, np.ndarray]) -> tuple[wp.array, wp.array, dict[int, np.ndarray]]:
+    def _buffer(self, by_rank: dict[int, np.ndarray]) -> tuple[wp.array, wp.array, wp.array, dict[int, np.ndarray]]:
         """The local indices of ``by_rank``'s items one rank after the other (int32), a buffer of their rows (3 vec3
-        of the message's precision per item) and each rank's rows in it as a (count, 9) numpy view."""
+        of the message's precision per item), the host array MPI reads or writes (the buffer itself unless staged)
+        and each rank's rows in that as a (count, 9) numpy view."""
         index = np.concatenate([by_rank[r] for r in by_rank]) if by_rank else np.zeros(0, dtype=np.int32)
         vec = wp.vec3d if np.dtype(self.dtype) == np.float64 else wp.vec3f
         rows = wp.empty(3 * len(index), dtype=vec, device=self.device)
-        view = rows.numpy().reshape(len(index), 9)
+        host = host_mirror(rows) if self.staged else rows
+        view = host.numpy().reshape(len(index), 9)
         blocks, start = {}, 0
         for r, idx in by_rank.items():
             blocks[r] = view[start : start + len(idx)]
             start += len(idx)
-        return wp.array(index.astype(np.int32), dtype=int, device=self.device), rows, blocks
+        return wp.array(index.astype(np.int32), dtype=int, device=self.device), rows, host, blocks
 
     def pack(self, state: State) -> None:
-        """Every destination's rows from the owned items' fields in ``state`` (one launch)."""
+        """Every destination's rows from the owned items' fields in ``state`` (one launch; staged: then copied to the
+        host, asynchronously on a GPU: the caller synchronises before the sends)."""
         if self._send_index.shape[0]:
             wp.launch(
                 kh.pack_rows_kernel,
@@ -89,10 +118,14 @@ class Channel:
                 outputs=[self._send_rows],
                 device=self.device,
             )
+            if self.staged:
+                wp.copy(self._send_host, self._send_rows)
 
     def unpack(self, state: State) -> None:
-        """The ghosts' fields in ``state`` from the rows received (one launch)."""
+        """The ghosts' fields in ``state`` from the rows received (staged: copied to the device first; one launch)."""
         if self._recv_index.shape[0]:
+            if self.staged:
+                wp.copy(self._recv_rows, self._recv_host)
             wp.launch(
                 kh.unpack_rows_kernel,
                 dim=self._recv_index.shape[0],
@@ -147,11 +180,13 @@ class Ranked(Simulation):
     channels: list[Channel]
 
     def __init__(self, comm: Any, model: Model, state: State, flags: int, **kwargs: Any) -> None:
-        if model.device.is_cuda:
-            raise NotImplementedError("a decomposed run on CUDA devices is not built yet: run its ranks on the CPU")
         self.comm = comm
         self._moved = wp.zeros(flags, dtype=int, device=model.device)
-        self._flags = self._moved.numpy()  # its host view (the array itself on the CPU), what the reduction sends
+        # What the reduction sends: on the CPU the array itself (through its numpy view); on a GPU a page-locked
+        # copy, made each step in the halo's one synchronisation (:meth:`_halo`).
+        self._staged = not model.device.is_cpu or staging_forced()
+        self._moved_host = host_mirror(self._moved) if self._staged else self._moved
+        self._flags = self._moved_host.numpy()
         self._busy = 0.0  # seconds of this rank's own step work since the ranks' work was last compared
         self._slowest = -1  # the rank found slowest at that comparison (-1: none)
         self.migrations = 0  # times the items moved between ranks since the start (every rank counts alike)
@@ -189,7 +224,7 @@ class Ranked(Simulation):
             self._drift_half()
         else:
             wp.capture_launch(self._halves[0])
-        self._busy += time.perf_counter() - start
+        self._busy += self._finished() - start
         self._exchange()
         start = time.perf_counter()
         if self._halves is None:  # none yet, or new arrays dropped them
@@ -199,7 +234,14 @@ class Ranked(Simulation):
             wp.capture_launch(self._halves[1])
         # The rank's own work (its kernels run on this thread on the CPU), not its waits: the measured cost the slabs
         # are balanced by.
-        self._busy += time.perf_counter() - start
+        self._busy += self._finished() - start
+
+    def _finished(self) -> float:
+        """The clock [s] once the work launched so far has run: on a GPU after waiting for it (the halo waits for the
+        first half anyway; the second's wait is what measuring a GPU rank's work costs)."""
+        if not self.model.device.is_cpu:
+            wp.synchronize_device(self.model.device)
+        return time.perf_counter()
 
     def _record_halves(self) -> None:
         """Record the two halves of a step (after an eager run of each, so every kernel is compiled)."""
@@ -216,12 +258,20 @@ class Ranked(Simulation):
         One wait for all, so the ranks meet once a step."""
         from mpi4py import MPI
 
-        moved = np.zeros_like(self._flags)
-        requests = [self.comm.Iallreduce(self._flags, moved, op=MPI.MAX)]
+        requests = [
+            self.comm.Irecv(block, source=src, tag=channel.tag)
+            for channel in self.channels
+            for src, block in channel.inbox.items()
+        ]
         for channel in self.channels:
-            for src, block in channel.inbox.items():
-                requests.append(self.comm.Irecv(block, source=src, tag=channel.tag))
             channel.pack(self.state)
+        if self._staged:
+            # The skin tests and the packed rows to the host, and one wait for the device before MPI reads them.
+            wp.copy(self._moved_host, self._moved)
+            wp.synchronize_device(self.model.device)
+        moved = np.zeros_like(self._flags)
+        requests.append(self.comm.Iallreduce(self._flags, moved, op=MPI.MAX))
+        for channel in self.channels:
             for dest, block in channel.outbox.items():
                 requests.append(self.comm.Isend(block, dest=dest, tag=channel.tag))
         MPI.Request.Waitall(requests)

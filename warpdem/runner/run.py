@@ -33,6 +33,7 @@ from ..build.scene_build import finalize_scene, scene_builder, start_as_spheres
 from ..io.checkpoint import checkpoint_name
 from ..io.output import PART_PALETTE, ramp_colors
 from ..io.restart import restore_checkpoint, save_checkpoint
+from ..parallel.comm import rank_device
 from ..parallel.run import NotDecomposable, make_simulation, release_ranks
 from ..scene import Scene, SceneError
 from ..simulation import Simulation
@@ -191,7 +192,8 @@ class Run(RunAccess):
     def _start(self) -> None:
         scene, options = self.scene, self.options
         run = scene.run
-        device_name = options.device or run.device
+        # "cuda" on several ranks: each rank its node's next GPU (warpdem.parallel.comm.rank_device).
+        device_name = rank_device(options.device or run.device)
         try:
             device = wp.get_device(device_name)
         except (ValueError, RuntimeError) as exc:
