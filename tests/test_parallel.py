@@ -518,14 +518,19 @@ def test_a_channel_carries_each_ghost_its_owners_fields_exactly(device: str, pre
         return
     out = Channel(names, precision, {1: sent}, {}, tag=1, device=device, staged=staged)
     into = Channel(names, precision, {}, {0: received}, tag=1, device=device, staged=staged)
-    out.pack(owner)
-    wp.synchronize_device(device)  # what the rank does before its sends
-    np.copyto(into.inbox[0], out.outbox[1])
-    into.unpack(ghost)
-    for n in names:
-        expected = np.zeros((8, 3), dtype=precision)
-        expected[received] = getattr(owner, n).numpy()[sent]
-        assert np.array_equal(getattr(ghost, n).numpy(), expected), n
+    # Twice, the second time into and from new arrays (a regrowth replaces the state's): the launches recorded for
+    # the first arrays must not write the old ones.
+    for _ in range(2):
+        out.pack(owner)
+        wp.synchronize_device(device)  # what the rank does before its sends
+        np.copyto(into.inbox[0], out.outbox[1])
+        into.unpack(ghost)
+        for n in names:
+            expected = np.zeros((8, 3), dtype=precision)
+            expected[received] = getattr(owner, n).numpy()[sent]
+            assert np.array_equal(getattr(ghost, n).numpy(), expected), n
+        owner = SimpleNamespace(**{n: wp.array(rng.normal(size=(8, 3)), dtype=vec, device=device) for n in names})
+        ghost = SimpleNamespace(**{n: wp.zeros(8, dtype=vec, device=device) for n in names})
     assert out.bytes_sent == 3 * 9 * np.dtype(precision).itemsize
     assert np.shares_memory(out.outbox[1], out._send_rows.numpy()) == (not staged and device == "cpu")
 

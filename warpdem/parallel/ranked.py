@@ -91,6 +91,7 @@ class Channel:
             raise ValueError(f"a halo channel on {self.device} must be staged: MPI reads host memory")
         self._send_index, self._send_rows, self._send_host, self.outbox = self._buffer(self.send)
         self._recv_index, self._recv_rows, self._recv_host, self.inbox = self._buffer(self.recv)
+        self._recorded: dict[str, tuple[tuple[wp.array, ...], Any]] = {}  # pack/unpack: the arrays, their launch
 
     def _buffer(self, by_rank: dict[int, np.ndarray]) -> tuple[wp.array, wp.array, wp.array, dict[int, np.ndarray]]:
         """The local indices of ``by_rank``'s items one rank after the other (int32), a buffer of their rows (3 vec3
@@ -111,13 +112,8 @@ class Channel:
         """Every destination's rows from the owned items' fields in ``state`` (one launch; staged: then copied to the
         host, asynchronously on a GPU: the caller synchronises before the sends)."""
         if self._send_index.shape[0]:
-            wp.launch(
-                kh.pack_rows_kernel,
-                dim=self._send_index.shape[0],
-                inputs=[*(getattr(state, name) for name in self.fields), self._send_index],
-                outputs=[self._send_rows],
-                device=self.device,
-            )
+            fields = [getattr(state, name) for name in self.fields]
+            self._launch("pack", kh.pack_rows_kernel, [*fields, self._send_index], [self._send_rows], self._send_index)
             if self.staged:
                 wp.copy(self._send_host, self._send_rows)
 
@@ -126,13 +122,23 @@ class Channel:
         if self._recv_index.shape[0]:
             if self.staged:
                 wp.copy(self._recv_rows, self._recv_host)
-            wp.launch(
-                kh.unpack_rows_kernel,
-                dim=self._recv_index.shape[0],
-                inputs=[self._recv_rows, self._recv_index],
-                outputs=[getattr(state, name) for name in self.fields],
-                device=self.device,
-            )
+            fields = [getattr(state, name) for name in self.fields]
+            self._launch("unpack", kh.unpack_rows_kernel, [self._recv_rows, self._recv_index], fields, self._recv_index)
+
+    def _launch(
+        self, what: str, kernel: wp.Kernel, inputs: list[wp.array], outputs: list[wp.array], index: wp.array
+    ) -> None:
+        """Launch ``kernel`` over the items of ``index``, from a launch recorded for these very arrays (a step launches
+        it again and again: a recorded launch skips the checks and packing of its arguments, most of a small
+        launch's cost on the CPU); recorded again when the state's arrays were replaced (a regrowth). The record
+        keeps the arrays, so no other array can take their identity."""
+        arrays = (*inputs, *outputs)
+        kept = self._recorded.get(what)
+        if kept is None or any(a is not b for a, b in zip(kept[0], arrays, strict=True)):
+            dim = index.shape[0]
+            command = wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=self.device, record_cmd=True)
+            kept = self._recorded[what] = (arrays, command)
+        kept[1].launch()
 
     @staticmethod
     def between(
