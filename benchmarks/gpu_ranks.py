@@ -22,7 +22,6 @@ import argparse
 import importlib.util
 import json
 import os
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -52,8 +51,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", type=Path, help="the figures and checks as JSON")
     p.add_argument("--cpu", action="store_true", help="both runs on the CPU (a dry run of the script)")
     args = p.parse_args(argv)
-    beside = Path(sys.executable).parent / "mpiexec"
-    mpiexec = str(beside) if beside.exists() else shutil.which("mpiexec")
+    sys.path.insert(0, str(ROOT))
+    from warpdem.parallel.comm import launcher
+
+    mpiexec = launcher()
     if mpiexec is None:
         print("gpu_ranks: no mpiexec beside this Python or on PATH: nothing to check")
         return 3

@@ -158,3 +158,21 @@ def test_block_bench_makes_one_body_per_cell(tmp_path, device):
     out = tmp_path / "blocks.json"
     assert main(["bench", "blocks", "--blocks", "8", "--steps", "2", "--repeat", "1", "--json", str(out)]) == 0
     assert json.loads(out.read_text())["blocks"][0]["blocks"] == 8
+
+
+def test_bench_ranks_2_runs_the_case_decomposed_and_ends_where_one_process_does(tmp_path):
+    # `bench --ranks 2` is `mpiexec -n 2 python -m warpdem bench`: the oracle is the decomposed run's bit-identity
+    # with one process on the CPU (tests/test_parallel.py), so the kinetic energies, the mean height, the contacts
+    # and the list rebuilds after 1000 steps (spheres falling onto each other: contacts and a rebuild) are equal,
+    # not close, and the record says 2 ranks.
+    runs = {}
+    for ranks in (1, 2):
+        out = tmp_path / f"ranks{ranks}.json"
+        args = ["bench", "--sizes", "10000", "--steps", "1000", "--repeat", "1", "--json", str(out)]
+        assert main([*args, "--ranks", str(ranks)]) == 0
+        (runs[ranks],) = json.loads(out.read_text())
+    assert runs[1]["ranks"] == 1 and runs[2]["ranks"] == 2
+    assert runs[1]["mean_contacts_per_particle"] > 0 and runs[1]["neighbor_rebuilds"] > 0
+    for key in ("kinetic_translational", "kinetic_rotational", "mean_height", "mean_contacts_per_particle"):
+        assert runs[2][key] == runs[1][key], key
+    assert runs[2]["neighbor_rebuilds"] == runs[1]["neighbor_rebuilds"]

@@ -114,8 +114,27 @@ def bench_parser() -> argparse.ArgumentParser:
         help="folder with init_N*.txt(.gz) and box_N*.json (default: the cases shipped in warpdem/data/bench)",
     )
     p.add_argument("--repeat", type=_positive_int, default=3, help="runs per size; the fastest counts")
+    p.add_argument(
+        "--ranks",
+        type=_positive_int,
+        default=1,
+        help="run the case decomposed over this many MPI ranks (the same as mpiexec -n N python -m warpdem bench)",
+    )
     _books_option(p)
     return p
+
+
+def _without_ranks(argv: list[str]) -> list[str]:
+    """``argv`` without its ``--ranks N`` (or ``--ranks=N``)."""
+    out, skip = [], False
+    for word in argv:
+        if skip:
+            skip = False
+        elif word == "--ranks":
+            skip = True
+        elif not word.startswith("--ranks="):
+            out.append(word)
+    return out
 
 
 def _books_option(p: argparse.ArgumentParser) -> None:
@@ -348,6 +367,10 @@ def main(argv: list[str] | None = None) -> int:
         from .bench import run_bench
 
         args = bench_parser().parse_args(argv[1:])
+        if args.ranks > 1:
+            from .parallel.comm import run_on_ranks
+
+            return run_on_ranks(args.ranks, _without_ranks(argv))
         _quiet_follower()
         init_warp()
         return run_bench(args.sizes, args.steps, args.device, args.json, args.data, args.repeat, args.books == "on")
