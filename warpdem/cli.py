@@ -124,15 +124,15 @@ def bench_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _without_ranks(argv: list[str]) -> list[str]:
-    """``argv`` without its ``--ranks N`` (or ``--ranks=N``)."""
+def _without_option(argv: list[str], option: str) -> list[str]:
+    """``argv`` without ``option`` and its value (``--option VALUE`` or ``--option=VALUE``)."""
     out, skip = [], False
     for word in argv:
         if skip:
             skip = False
-        elif word == "--ranks":
+        elif word == option:
             skip = True
-        elif not word.startswith("--ranks="):
+        elif not word.startswith(f"{option}="):
             out.append(word)
     return out
 
@@ -370,7 +370,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.ranks > 1:
             from .parallel.comm import run_on_ranks
 
-            return run_on_ranks(args.ranks, _without_ranks(argv))
+            return run_on_ranks(args.ranks, _without_option(argv, "--ranks"))
         _quiet_follower()
         init_warp()
         return run_bench(args.sizes, args.steps, args.device, args.json, args.data, args.repeat, args.books == "on")
@@ -493,12 +493,5 @@ def main(argv: list[str] | None = None) -> int:
 
 def resume_command(argv: list[str], checkpoint: Path) -> str:
     """The command line that continues a run: the same arguments, ``--restart`` the given checkpoint."""
-    args, skip = [], False
-    for arg in argv:
-        if skip:
-            skip = False
-        elif arg == "--restart":
-            skip = True
-        elif not arg.startswith("--restart="):
-            args.append(arg)
+    args = _without_option(argv, "--restart")
     return shlex.join(["python", "-m", "warpdem", *args, "--restart", str(checkpoint)])
