@@ -176,3 +176,12 @@ def test_bench_ranks_2_runs_the_case_decomposed_and_ends_where_one_process_does(
     for key in ("kinetic_translational", "kinetic_rotational", "mean_height", "mean_contacts_per_particle"):
         assert runs[2][key] == runs[1][key], key
     assert runs[2]["neighbor_rebuilds"] == runs[1]["neighbor_rebuilds"]
+    # Where each rank's timed steps went: parts of the wall time, so each is >= 0 and a rank's parts (its kernels
+    # and its exchange, which holds the halo's four and the rebuilds) sum to no more than the wall time a step; the
+    # between part is the exchange less the halo, >= 0 up to the clock's resolution (1 us a call at most).
+    assert runs[1]["rank_step_ms"] is None
+    wall_ms = 1e3 * runs[2]["wall_time"] / (runs[2]["steps"] - 2)
+    for ms in runs[2]["rank_step_ms"]:
+        assert all(ms[k] >= 0.0 for k in ("kernels", "pack", "post", "wait", "unpack")), ms
+        assert ms["between"] >= -1e-3, ms
+        assert ms["kernels"] + ms["exchange"] <= wall_ms, (ms, wall_ms)

@@ -48,6 +48,9 @@ class BenchResult:
     mean_height: float
     mean_height_initial: float
     ranks: int = 1
+    rank_step_ms: list[dict[str, float]] | None = None
+    """Under ranks: where each rank's timed steps went, ms a step (warpdem.parallel.ranked.STEP_TIMES, with
+    ``between``: the exchange less the halo, i.e. list rebuilds and migrations); None in one process."""
 
 
 def find_case(n: int, data_dir: Path | None = None) -> tuple[np.ndarray, dict]:
@@ -106,6 +109,7 @@ def bench_settling(
 
     wall = float("inf")
     sim = None
+    rank_ms = None
     for k in range(repeat):
         try:
             sim = settling_case(n, device, track_energy=books, data_dir=data_dir)
@@ -114,11 +118,15 @@ def bench_settling(
         z0 = float(sim.state.particle_q.numpy()[:n, 2].mean())
         sim.advance(2)  # compile kernels and capture the step graph outside the timed part
         rebuilds0 = int(sim.state.rebuild_total.numpy()[0])
+        times0 = sim.step_times() if hasattr(sim, "step_times") else None  # a decomposed run's (a gather: untimed)
         wp.synchronize_device(device)
         t0 = time.perf_counter()
         sim.advance(steps - 2)
         wp.synchronize_device(device)
-        wall = min(wall, time.perf_counter() - t0)
+        elapsed = time.perf_counter() - t0
+        if elapsed < wall:
+            wall = elapsed
+            rank_ms = None if times0 is None else _per_step(times0, sim.step_times(), steps - 2)
         if k < repeat - 1:
             release_ranks(sim)
     if sim is None:
@@ -152,7 +160,32 @@ def bench_settling(
         mean_height=float(q[:, 2].mean()),
         mean_height_initial=z0,
         ranks=ranks,
+        rank_step_ms=rank_ms,
     )
+
+
+def _per_step(before: list[dict[str, float]], after: list[dict[str, float]], steps: int) -> list[dict[str, float]]:
+    """Each rank's step time between two reads of ``Decomposed.step_times`` [s], as ms a step, with ``between``."""
+    out = []
+    for b, a in zip(before, after, strict=True):
+        ms = {name: 1e3 * (a[name] - b[name]) / steps for name in a}
+        ms["between"] = ms["exchange"] - ms["pack"] - ms["post"] - ms["wait"] - ms["unpack"]
+        out.append(ms)
+    return out
+
+
+def format_rank_times(rows: list[BenchResult]) -> str:
+    """Where each rank's timed steps went, ms a step, for the rows run on ranks (empty where none was)."""
+    names = ("kernels", "pack", "post", "wait", "unpack", "between")
+    head = f"{'N':>8}{'rank':>6}" + "".join(f"{name:>9}" for name in names)
+    lines = []
+    for r in rows:
+        for rank, ms in enumerate(r.rank_step_ms or []):
+            lines.append(f"{r.particles:>8}{rank:>6}" + "".join(f"{ms[name]:>9.3f}" for name in names))
+    if not lines:
+        return ""
+    title = "ms a step by rank: own kernels, halo (pack, post, wait, unpack), list rebuilds and migrations (between)"
+    return "\n".join([title, head, "-" * len(head), *lines])
 
 
 def format_table(rows: list[BenchResult]) -> str:
@@ -192,6 +225,9 @@ def run_bench(
             continue  # a follower rank of a decomposed bench: rank 0 reports
         rows.append(row)
         print(format_table(rows[-1:]) if len(rows) == 1 else format_table(rows).splitlines()[-1], flush=True)
+    by_rank = format_rank_times(rows)
+    if by_rank:
+        print(by_rank, flush=True)
     if json_path is not None and rows:
         json_path.write_text(json.dumps([asdict(r) for r in rows], indent=1))
     return 0

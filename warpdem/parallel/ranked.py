@@ -33,6 +33,12 @@ IMBALANCE = 1.10
 MEASURED = 0.25
 """Seconds of step work each rank must have measured before the ranks' work is compared: less is noise."""
 
+STEP_TIMES = ("kernels", "pack", "post", "wait", "unpack", "exchange")
+"""What a rank's step time is cut into, cumulative seconds since the start (:attr:`Ranked.times`): its own kernels
+(the two halves), the halo's packing (with a GPU's copies and wait), posting the messages, waiting for them (the other
+ranks' imbalance and the transfer), unpacking, and the whole exchange (the halo and, every few steps, a list rebuild
+or a migration)."""
+
 SHARED_FIELDS = ("time", "wall_point", "rebuild_total", "fem_rebuild_total", "fem_sphere_builds_seen")
 """State arrays every rank holds alike (the clock, the walls, the list builds all ranks decide together)."""
 
@@ -194,6 +200,7 @@ class Ranked(Simulation):
         self._moved_host = host_mirror(self._moved) if self._staged else self._moved
         self._flags = self._moved_host.numpy()
         self._busy = 0.0  # seconds of this rank's own step work since the ranks' work was last compared
+        self.times = dict.fromkeys(STEP_TIMES, 0.0)  # where this rank's step time went [s], since the start
         self._slowest = -1  # the rank found slowest at that comparison (-1: none)
         self.migrations = 0  # times the items moved between ranks since the start (every rank counts alike)
         super().__init__(model, state, use_graph=False, **kwargs)
@@ -230,8 +237,10 @@ class Ranked(Simulation):
             self._drift_half()
         else:
             wp.capture_launch(self._halves[0])
-        self._busy += self._finished() - start
+        first = self._finished() - start
+        start = time.perf_counter()
         self._exchange()
+        self.times["exchange"] += time.perf_counter() - start
         start = time.perf_counter()
         if self._halves is None:  # none yet, or new arrays dropped them
             self._forces()
@@ -240,7 +249,9 @@ class Ranked(Simulation):
             wp.capture_launch(self._halves[1])
         # The rank's own work (its kernels run on this thread on the CPU), not its waits: the measured cost the slabs
         # are balanced by.
-        self._busy += self._finished() - start
+        work = first + self._finished() - start
+        self._busy += work
+        self.times["kernels"] += work
 
     def _finished(self) -> float:
         """The clock [s] once the work launched so far has run: on a GPU after waiting for it (the halo waits for the
@@ -264,6 +275,7 @@ class Ranked(Simulation):
         One wait for all, so the ranks meet once a step."""
         from mpi4py import MPI
 
+        clock = [time.perf_counter()]
         requests = [
             self.comm.Irecv(block, source=src, tag=channel.tag)
             for channel in self.channels
@@ -275,14 +287,22 @@ class Ranked(Simulation):
             # The skin tests and the packed rows to the host, and one wait for the device before MPI reads them.
             wp.copy(self._moved_host, self._moved)
             wp.synchronize_device(self.model.device)
+        clock.append(time.perf_counter())
         moved = np.zeros_like(self._flags)
         requests.append(self.comm.Iallreduce(self._flags, moved, op=MPI.MAX))
         for channel in self.channels:
             for dest, block in channel.outbox.items():
                 requests.append(self.comm.Isend(block, dest=dest, tag=channel.tag))
+        clock.append(time.perf_counter())
         MPI.Request.Waitall(requests)
+        clock.append(time.perf_counter())
         for channel in self.channels:
             channel.unpack(self.state)
+        if self._staged:
+            wp.synchronize_device(self.model.device)  # the unpacking's time, not the next half's
+        clock.append(time.perf_counter())
+        for name, spent in zip(("pack", "post", "wait", "unpack"), np.diff(clock), strict=True):
+            self.times[name] += spent
         return moved
 
     # ------------------------------------------------------------------------------------------------------------

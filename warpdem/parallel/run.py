@@ -96,9 +96,10 @@ def make_simulation(model: Model, state: State, **kwargs: Any) -> Simulation | D
     raise WorkerDone()
 
 
-def _gather(comm: Any, local: Ranked) -> list[tuple[Any, int]] | None:
-    """Every rank's owned part and its halo's bytes a step, at rank 0 (None elsewhere)."""
-    return comm.gather((local.owned_part(), local.halo_bytes()), root=0)
+def _gather(comm: Any, local: Ranked) -> list[tuple[Any, int, dict[str, float]]] | None:
+    """Every rank's owned part, its halo's bytes a step and where its step time went (:attr:`Ranked.times`), at rank
+    0 (None elsewhere)."""
+    return comm.gather((local.owned_part(), local.halo_bytes(), dict(local.times)), root=0)
 
 
 def serve(comm: Any, model: Model, state: State, **kwargs: Any) -> None:
@@ -165,6 +166,7 @@ class Decomposed:
         self.whole = Simulation(model, state, primed=True, step=kwargs.get("step", 0), time=kwargs.get("time"))
         self._closed = False
         self.halo_bytes = 0  # bytes of a step's halo messages, all ranks (at the last gather)
+        self.rank_times: list[dict[str, float]] = []  # each rank's Ranked.times at the last gather [s]
         self._stale = True  # the whole state lags the ranks'
 
     # The runner's view of the whole run.
@@ -210,6 +212,12 @@ class Decomposed:
 
     def energy(self) -> Any:
         return self._gathered().energy()
+
+    def step_times(self) -> list[dict[str, float]]:
+        """Where each rank's step time went since the start, cumulative seconds by :data:`~warpdem.parallel.ranked
+        .STEP_TIMES` (gathered now where the ranks have stepped since)."""
+        self._gathered()
+        return [dict(t) for t in self.rank_times]
 
     def shadow(self) -> float:
         return self._gathered().shadow()
@@ -258,6 +266,7 @@ class Decomposed:
         """The owned parts of every rank into the whole state (the shared arrays from rank 0's)."""
         parts = _gather(self.comm, self.local)
         self.halo_bytes = sum(p[1] for p in parts)  # what the ranks send each other a step now
+        self.rank_times = [p[2] for p in parts]
         w = self.whole
         model, state = self.local.write_whole(w.model, w.state, [p[0] for p in parts])
         if model is not w.model or state is not w.state:
