@@ -19,7 +19,6 @@ PATH the script says so and exits 3 (nothing to check).
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import os
 import subprocess
@@ -27,14 +26,9 @@ import sys
 import tempfile
 from pathlib import Path
 
+from parallel_scaling import channel_pour  # beside this script (a script's folder is on sys.path)
+
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def _pour(spheres: int, end_time: float) -> str:
-    spec = importlib.util.spec_from_file_location("parallel_scaling", ROOT / "benchmarks" / "parallel_scaling.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.channel_pour(spheres, end_time, height=0.05)
 
 
 def _run(command: list[str], out: Path) -> dict:
@@ -61,12 +55,12 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         scene = work / "channel_pour.toml"
-        scene.write_text(_pour(args.spheres, args.end_time))
+        scene.write_text(channel_pour(args.spheres, args.end_time, height=0.05))
         runs = {}
         devices = ("cpu", "cpu") if args.cpu else ("cuda:0", "cuda")
-        for name, launcher, device in (("one", [], devices[0]), ("two", [mpiexec, "-n", "2"], devices[1])):
+        for name, prefix, device in (("one", [], devices[0]), ("two", [mpiexec, "-n", "2"], devices[1])):
             out = work / name
-            command = [*launcher, sys.executable, "-m", "warpdem", str(scene), "--out", str(out), "--quiet"]
+            command = [*prefix, sys.executable, "-m", "warpdem", str(scene), "--out", str(out), "--quiet"]
             command += ["--device", device, "--summary-json", str(out / "summary.json")]
             env_note = os.environ.get("CUDA_VISIBLE_DEVICES", "all")
             print(f"gpu_ranks: {name}: {' '.join(command)} (CUDA_VISIBLE_DEVICES {env_note})", flush=True)

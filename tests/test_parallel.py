@@ -511,9 +511,8 @@ def test_a_channel_carries_each_ghost_its_owners_fields_exactly(device: str, pre
     ghost = SimpleNamespace(**{n: wp.zeros(8, dtype=vec, device=device) for n in names})
     sent, received = np.array([1, 4, 6]), np.array([0, 2, 5])
     if not staged and device != "cpu":
-        with pytest.raises(
-            ValueError, match="must be staged"
-        ):  # MPI reads host memory; a GPU buffer's numpy() is a copy
+        # MPI reads host memory, and a GPU buffer's numpy() is a copy: an unstaged channel there is refused.
+        with pytest.raises(ValueError, match="must be staged"):
             Channel(names, precision, {1: sent}, {}, tag=1, device=device, staged=staged)
         return
     out = Channel(names, precision, {1: sent}, {}, tag=1, device=device, staged=staged)

@@ -47,9 +47,10 @@ STAGING_VARIABLE = "WARPDEM_HALO_STAGING"
 """An environment variable: set to 1, the CPU ranks stage their halo messages through host copies as GPU ranks do."""
 
 
-def staging_forced() -> bool:
-    """Whether :data:`STAGING_VARIABLE` asks the CPU ranks to stage their messages (tests the path GPU ranks take)."""
-    return os.environ.get(STAGING_VARIABLE, "") == "1"
+def staged_on(device: Any) -> bool:
+    """Whether halo messages on ``device`` go through host copies: on a GPU (MPI reads host memory), and on the CPU
+    where :data:`STAGING_VARIABLE` asks for it (which tests the path GPU ranks take)."""
+    return not wp.get_device(device).is_cpu or os.environ.get(STAGING_VARIABLE, "") == "1"
 
 
 def host_mirror(array: wp.array) -> wp.array:
@@ -75,8 +76,7 @@ class Channel:
         recv: local indices of ghosts by source rank.
         tag: the MPI tag of its messages.
         device: the Warp device of the fields.
-        staged: whether the messages go through host copies of the device buffers (None: where the device is not
-            the CPU; :func:`staging_forced` forces it on the CPU, which tests the path GPU ranks take).
+        staged: whether the messages go through host copies of the device buffers (None: :func:`staged_on`).
     """
 
     fields: tuple[str, ...]
@@ -90,10 +90,9 @@ class Channel:
     def __post_init__(self) -> None:
         if len(self.fields) != 3:
             raise ValueError(f"a halo channel carries three vec3 fields, not {self.fields}")
-        on_cpu = wp.get_device(self.device).is_cpu
         if self.staged is None:
-            self.staged = not on_cpu or staging_forced()
-        elif not (self.staged or on_cpu):
+            self.staged = staged_on(self.device)
+        elif not (self.staged or wp.get_device(self.device).is_cpu):
             raise ValueError(f"a halo channel on {self.device} must be staged: MPI reads host memory")
         self._send_index, self._send_rows, self._send_host, self.outbox = self._buffer(self.send)
         self._recv_index, self._recv_rows, self._recv_host, self.inbox = self._buffer(self.recv)
@@ -196,9 +195,10 @@ class Ranked(Simulation):
         self._moved = wp.zeros(flags, dtype=int, device=model.device)
         # What the reduction sends: on the CPU the array itself (through its numpy view); on a GPU a page-locked
         # copy, made each step in the halo's one synchronisation (:meth:`_halo`).
-        self._staged = not model.device.is_cpu or staging_forced()
+        self._staged = staged_on(model.device)
         self._moved_host = host_mirror(self._moved) if self._staged else self._moved
         self._flags = self._moved_host.numpy()
+        self._moved_all = np.zeros_like(self._flags)  # the reduction's result, every rank's flags (reused each step)
         self._busy = 0.0  # seconds of this rank's own step work since the ranks' work was last compared
         self.times = dict.fromkeys(STEP_TIMES, 0.0)  # where this rank's step time went [s], since the start
         self._slowest = -1  # the rank found slowest at that comparison (-1: none)
@@ -288,7 +288,7 @@ class Ranked(Simulation):
             wp.copy(self._moved_host, self._moved)
             wp.synchronize_device(self.model.device)
         clock.append(time.perf_counter())
-        moved = np.zeros_like(self._flags)
+        moved = self._moved_all
         requests.append(self.comm.Iallreduce(self._flags, moved, op=MPI.MAX))
         for channel in self.channels:
             for dest, block in channel.outbox.items():
