@@ -32,6 +32,7 @@ from warpdem.build.geology import (
     GeologyMesh,
     JointSet,
     MeshImportError,
+    Refinement,
     RockMass,
     Room,
     Shaft,
@@ -182,6 +183,45 @@ def test_persistent_grid_blocks_volume_and_joint_area(on_faces: bool) -> None:
     for name, area in [("x-", length * height), ("y+", length * height), ("z-", length * length)]:
         np.testing.assert_allclose(face_areas(mesh.points, mesh.boundary_faces[name]).sum(), area, rtol=REL_FLAT)
     assert len(mesh.boundary_faces["opening"]) == 0
+
+
+def mean_tet_edge(points: np.ndarray, tets: np.ndarray) -> float:
+    """Mean of the six edge lengths over the tets [m]."""
+    ends = np.array(list(itertools.combinations(range(4), 2)))
+    return float(np.linalg.norm(points[tets[:, ends[:, 0]]] - points[tets[:, ends[:, 1]]], axis=2).mean())
+
+
+def test_refinement_box_meshes_finer_in_proportion() -> None:
+    """A refinement box is meshed at its own edge: Gmsh makes a mesh whose mean edge is a fixed multiple c of the
+    target edge (c ≈ 1.2 for its Delaunay tets away from the model's faces), so the tets inside the box and those far
+    from it have mean edges in the ratio of their targets, h_r / h = 1/2, to the scatter of c between two parts of a
+    few thousand tets each (15 %). The box changes sizes only: the volume is the model's to round-off and the mesh
+    conforms to the joint through the coarse part; without the box the mesh is the model's at h throughout (the same
+    mean edge on either side, and the same far from the box as with it, so the halving is the box's doing)."""
+    h, h_fine = 0.5, 0.25
+    rock = RockMass((0, 0, 0), (8.0, 2.0, 4.0))
+    joints = [JointSet(90.0, 90.0, spacing=100.0, offset=2.0)]  # a vertical plane x = 2 through the coarse part
+    box = Refinement((5.0, -1.0, -1.0), (9.0, 3.0, 5.0), h_fine)
+    sides = {}
+    for name, refinements in (("plain", []), ("boxed", [box])):
+        mesh = mesh_geology(Geology(rock, joint_sets=joints, h=h, refinements=refinements))
+        assert_valid(mesh)
+        assert_conforming(mesh)
+        np.testing.assert_allclose(tet_volumes(mesh.points, mesh.tets).sum(), 8.0 * 2.0 * 4.0, rtol=REL_FLAT)
+        np.testing.assert_allclose(face_areas(mesh.points, mesh.joint_faces).sum(), 2.0 * 4.0, rtol=REL_FLAT)
+        x = mesh.points[mesh.tets].mean(axis=1)[:, 0]
+        far, inside = x < 3.0, x > 5.0 + h  # the coarse side's tets, and the box's beyond the grading at its face
+        sides[name] = (mean_tet_edge(mesh.points, mesh.tets[far]), mean_tet_edge(mesh.points, mesh.tets[inside]))
+    far_plain, inside_plain = sides["plain"]
+    far_boxed, inside_boxed = sides["boxed"]
+    assert inside_plain / far_plain == pytest.approx(1.0, rel=0.15)
+    assert inside_boxed / far_boxed == pytest.approx(h_fine / h, rel=0.15)
+    assert far_boxed / far_plain == pytest.approx(1.0, rel=0.15)
+
+
+def test_refinement_must_be_finer() -> None:
+    with pytest.raises(ValueError, match=r"refinements\[0\]\.h = 0\.6 must be below h = 0\.5"):
+        Geology(RockMass((0, 0, 0), (1, 1, 1)), h=0.5, refinements=[Refinement((0, 0, 0), (1, 1, 1), 0.6)])
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -452,6 +452,20 @@ MESH_BAD_SCENES = [
         "a circular tunnel needs 'radius'",
     ),
     (
+        "refinement_not_finer",
+        edit("h = 2.0\n", "h = 2.0\nrefinements = [{ lo = [0, 0, 0], hi = [5, 5, 5], h = 2.5 }]\n", base=GEOLOGY_BASE),
+        "mesh.refinements",
+        "[0].h = 2.5 m must be below the mesh's h = 2 m (a finer edge)",
+    ),
+    (
+        "refinement_outside_model",
+        edit(
+            "h = 2.0\n", "h = 2.0\nrefinements = [{ lo = [11, 0, 0], hi = [12, 5, 5], h = 1.0 }]\n", base=GEOLOGY_BASE
+        ),
+        "mesh.refinements",
+        "[0]: the box [[11.0, 0.0, 0.0], [12.0, 5.0, 5.0]] does not overlap the model's box",
+    ),
+    (
         "tunnel_bad_axis",
         edit('axis = "y"', 'axis = "z"', base=GEOLOGY_BASE),
         "mesh.openings[0].axis",
@@ -1314,3 +1328,9 @@ def test_resolution_scales_the_mesh(tmp_path: Path) -> None:
     arch = load_scene(write(tmp_path, ARCH.replace("end_time = 0.1", "end_time = 0.1\nresolution = 2.0")))
     assert arch.scaled_mesh().divisions == (12, 4, 8)
     assert arch.face_set_names() == ["left", "right", "downstream", "upstream", "base", "crest"]
+    boxed = GEOLOGY_BASE.replace("end_time = 0.01", "end_time = 0.01\nresolution = 2.0").replace(
+        "h = 2.0\n", "h = 2.0\nrefinements = [{ lo = [0, 0, 0], hi = [10, 10, 5], h = 1.0 }]\n"
+    )
+    geology = load_scene(write(tmp_path, boxed))
+    assert geology.scaled_mesh().h == 1.0 and [r.h for r in geology.scaled_mesh().refinements] == [0.5]
+    assert geology.mesh.refinements[0].h == 1.0

@@ -37,6 +37,7 @@ from .jointing import (
     Geology,
     JointSet,
     Opening,
+    Refinement,
     RockMass,
     Room,
     Shaft,
@@ -68,6 +69,7 @@ __all__ = [
     "GeologyMesh",
     "JointSet",
     "MeshImportError",
+    "Refinement",
     "RockMass",
     "Room",
     "Shaft",
@@ -157,7 +159,8 @@ def _gmsh_options(h: float, refine: bool) -> dict[str, float]:
     """Every Gmsh option a mesh depends on, so that a caller's own Gmsh settings do not leak in.
 
     Args:
-        h: target tet edge length [m]. refine: a background size field (opening refinement) sets the sizes.
+        h: target tet edge length [m]. refine: a background size field (opening refinement, refinement boxes) sets
+            the sizes.
     """
     return {
         "General.Terminal": 0,
@@ -175,6 +178,19 @@ def _gmsh_options(h: float, refine: bool) -> dict[str, float]:
         "Mesh.OptimizeThreshold": OPTIMIZE_THRESHOLD,
         "Mesh.OptimizeNetgen": 0,  # adds ~70 % tets and lowers the stable step on jointed models
     }
+
+
+def _box_size_field(field_mesh: Any, refinement: Refinement, h: float) -> int:
+    """Gmsh's Box field of a refinement box: ``refinement.h`` inside it (faces included), ``h`` outside; returns its
+    tag."""
+    tag = field_mesh.add("Box")
+    for name, value in zip(("XMin", "YMin", "ZMin"), refinement.lo, strict=True):
+        field_mesh.setNumber(tag, name, float(value))
+    for name, value in zip(("XMax", "YMax", "ZMax"), refinement.hi, strict=True):
+        field_mesh.setNumber(tag, name, float(value))
+    field_mesh.setNumber(tag, "VIn", float(refinement.h))
+    field_mesh.setNumber(tag, "VOut", float(h))
+    return tag
 
 
 @contextlib.contextmanager
@@ -319,7 +335,8 @@ def mesh_geology(geology: Geology) -> GeologyMesh:
     margin = _MARGIN * diag
     tol = _REL_TOL * diag
     joint_surfaces = _joint_geometry(geology)
-    refine = geology.h_opening is not None and bool(geology.openings)
+    refine_openings = geology.h_opening is not None and bool(geology.openings)
+    refine = refine_openings or bool(geology.refinements)
     with _gmsh_model(_gmsh_options(geology.h, refine), f"warpdem_geology_{id(geology)}", "mesh_geology") as gmsh:
         occ = gmsh.model.occ
 
@@ -378,23 +395,32 @@ def mesh_geology(geology: Geology) -> GeologyMesh:
         surface_set = {s: k for s, k in surface_set.items() if s in surfaces}
 
         if refine:
-            walls = [
-                s
-                for s in sorted(surfaces)
-                if len(gmsh.model.getAdjacencies(2, s)[0]) == 1
-                and not _on_box_face(gmsh.model.getBoundingBox(2, s), lo, hi, 1e3 * tol)
-            ]
             field_mesh = gmsh.model.mesh.field
-            distance = field_mesh.add("Distance")
-            field_mesh.setNumbers(distance, "SurfacesList", walls)
-            field_mesh.setNumber(distance, "Sampling", 30)
-            threshold = field_mesh.add("Threshold")
-            field_mesh.setNumber(threshold, "InField", distance)
-            field_mesh.setNumber(threshold, "SizeMin", geology.h_opening)
-            field_mesh.setNumber(threshold, "SizeMax", geology.h)
-            field_mesh.setNumber(threshold, "DistMin", 0.0)
-            field_mesh.setNumber(threshold, "DistMax", geology.refine_distance or 4.0 * geology.h)
-            field_mesh.setAsBackgroundMesh(threshold)
+            fields = []
+            if refine_openings:
+                walls = [
+                    s
+                    for s in sorted(surfaces)
+                    if len(gmsh.model.getAdjacencies(2, s)[0]) == 1
+                    and not _on_box_face(gmsh.model.getBoundingBox(2, s), lo, hi, 1e3 * tol)
+                ]
+                distance = field_mesh.add("Distance")
+                field_mesh.setNumbers(distance, "SurfacesList", walls)
+                field_mesh.setNumber(distance, "Sampling", 30)
+                threshold = field_mesh.add("Threshold")
+                field_mesh.setNumber(threshold, "InField", distance)
+                field_mesh.setNumber(threshold, "SizeMin", geology.h_opening)
+                field_mesh.setNumber(threshold, "SizeMax", geology.h)
+                field_mesh.setNumber(threshold, "DistMin", 0.0)
+                field_mesh.setNumber(threshold, "DistMax", geology.refine_distance or 4.0 * geology.h)
+                fields.append(threshold)
+            for r in geology.refinements:
+                fields.append(_box_size_field(field_mesh, r, geology.h))
+            if len(fields) > 1:  # the finest size any field asks for at a point
+                smallest = field_mesh.add("Min")
+                field_mesh.setNumbers(smallest, "FieldsList", fields)
+                fields = [smallest]
+            field_mesh.setAsBackgroundMesh(fields[0])
         gmsh.model.mesh.generate(3)
 
         coords, index, tet_parts, block_parts = _gmsh_volume_tets(gmsh, volume_tags, "mesh_geology")

@@ -161,6 +161,29 @@ Opening = Tunnel | Shaft | Room
 
 
 @dataclass
+class Refinement:
+    """A box meshed finer than the rest of a geology model (a wall that needs more elements through its thickness
+    than the rock around it): Gmsh's tets have edge ``h`` inside it, the model's ``h`` outside, the change abrupt at
+    its faces (Gmsh grades the tets across them).
+
+    Attributes:
+        lo: Lower corner (x, y, z) [m].
+        hi: Upper corner (x, y, z) [m].
+        h: Target tet edge length inside [m]; below the model's ``h``.
+    """
+
+    lo: tuple[float, float, float]
+    hi: tuple[float, float, float]
+    h: float
+
+    def __post_init__(self) -> None:
+        if np.any(np.asarray(self.hi, float) <= np.asarray(self.lo, float)):
+            raise ValueError(f"Refinement: hi {self.hi!r} must exceed lo {self.lo!r} on every axis")
+        if not self.h > 0:
+            raise ValueError(f"Refinement.h must be > 0, got {self.h!r}")
+
+
+@dataclass
 class Solid:
     """An axis-aligned box put back inside the openings (a concrete box in a tunnel, a charge's casing): a body of its
     own, meshed with the rock but sharing no node with it, with an optional box-shaped cavity (a charge chamber).
@@ -290,6 +313,7 @@ class Geology:
             change when sets are added or the box is resized.
         solids: Boxes put back inside the openings (:class:`Solid`), each a separate body of the mesh; joints do not
             cut them.
+        refinements: Boxes meshed at an edge below ``h`` (:class:`Refinement`).
     """
 
     rock: RockMass
@@ -300,6 +324,7 @@ class Geology:
     refine_distance: float | None = None
     seed: int = 0
     solids: list[Solid] = field(default_factory=list)
+    refinements: list[Refinement] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         names = [s.name for s in self.solids]
@@ -313,6 +338,9 @@ class Geology:
             raise ValueError(f"Geology.h must be > 0, got {self.h!r}")
         if self.h_opening is not None and not self.h_opening > 0:
             raise ValueError(f"Geology.h_opening must be > 0, got {self.h_opening!r}")
+        for i, r in enumerate(self.refinements):
+            if not r.h < self.h:
+                raise ValueError(f"Geology.refinements[{i}].h = {r.h!r} must be below h = {self.h!r}")
         for i, js in enumerate(self.joint_sets):
             if js.persistence != "layers":
                 continue

@@ -42,6 +42,7 @@ from .geology import (
     GeologyMesh,
     JointSet,
     MeshImportError,
+    Refinement,
     RockMass,
     Room,
     Shaft,
@@ -149,7 +150,8 @@ def _geology(spec: GeologyMeshSpec, seed: int) -> Geology:
         )
         for s in spec.solids
     ]
-    return Geology(rock, openings, joint_sets, spec.h, spec.h_opening, spec.refine_distance, seed, solids)
+    refinements = [Refinement(r.lo, r.hi, r.h) for r in spec.refinements]
+    return Geology(rock, openings, joint_sets, spec.h, spec.h_opening, spec.refine_distance, seed, solids, refinements)
 
 
 def _box(spec: BoxMesh) -> GeologyMesh:

@@ -219,6 +219,12 @@ class CavitySpec(Box):
     """The cavity of a solid: an axis-aligned box inside it (a region's box, the same fields and checks)."""
 
 
+class RefinementSpec(Box):
+    """A box of a geology mesh meshed finer than ``h`` (a wall that needs more elements through its thickness)."""
+
+    h: Float = Field(gt=0, description="Tet edge length inside the box [m]; below the mesh's h.")
+
+
 class SolidSpec(_Model):
     """A box put back inside an opening of a geology mesh (a concrete box in a tunnel): a body of its own, meshed with
     the rock but sharing no node with it, not cut by the joints, with an optional cavity (a charge chamber)."""
@@ -346,6 +352,10 @@ class GeologyMeshSpec(_Model):
     refine_distance: Float | None = Field(
         default=None, gt=0, description="Distance over which the size grows from h_opening to h [m]; default 4 h."
     )
+    refinements: list[RefinementSpec] = Field(
+        default_factory=list,
+        description="Boxes meshed at an edge below h (Gmsh's Box size fields; the finest size wins where they meet).",
+    )
     seed: Int | None = Field(default=None, ge=0, description="Seed of the joint jitter; default run.seed.")
     fixed: Bool = _fixed_field()
     velocity: Vec3 = _velocity_field()
@@ -354,6 +364,25 @@ class GeologyMeshSpec(_Model):
     @classmethod
     def _check_hi(cls, value: tuple[float, float, float], info: ValidationInfo) -> tuple[float, float, float]:
         return _hi_above_lo(value, info)
+
+    @field_validator("refinements")
+    @classmethod
+    def _check_refinements(cls, value: list[RefinementSpec], info: ValidationInfo) -> list[RefinementSpec]:
+        # Gmsh takes the finest size asked for, so a box coarser than h would change nothing: refused, not ignored.
+        lo, hi, h = info.data.get("lo"), info.data.get("hi"), info.data.get("h")
+        for i, r in enumerate(value):
+            if h is not None and not r.h < h:
+                raise ValueError(f"[{i}].h = {r.h:g} m must be below the mesh's h = {h:g} m (a finer edge)")
+            if (
+                lo is not None
+                and hi is not None
+                and not all(a < d and c < b for a, b, c, d in zip(r.lo, r.hi, lo, hi, strict=True))
+            ):
+                raise ValueError(
+                    f"[{i}]: the box [{list(r.lo)}, {list(r.hi)}] does not overlap the model's box [{list(lo)}, "
+                    f"{list(hi)}]"
+                )
+        return value
 
     @field_validator("openings")
     @classmethod

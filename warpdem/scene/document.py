@@ -237,7 +237,8 @@ class Scene(_Model):
         box in whole cells of a block's, warpdem.build.bricks), of a geology mesh: model volume / the volume of a
         regular tet of edge e, e³/(6√2), e the smaller of h and the closest joint spacing (Gmsh conforms the tets to
         every joint plane; with planes closer than h it makes tets of their spacing or flat ones it cannot finish),
-        and of edge h_opening, as if the refinement filled the model: an upper bound, a node per 4 tets; neighbour
+        and of edge h_opening, as if the refinement filled the model: an upper bound, plus each refinement box's part
+        of the model at its edge, a node per 4 tets; neighbour
         slots: sphere slots (at least the one the builder always makes) × neighbors_per_particle; explicit
         capacities as given. Spheres of files are counted when read (the builder).
 
@@ -300,6 +301,10 @@ class Scene(_Model):
             tets = volume / _regular_tet_volume(edge)
             if mesh.openings and mesh.h_opening is not None and mesh.h_opening < edge:
                 tets += volume / _regular_tet_volume(mesh.h_opening)
+            for r in mesh.refinements:  # the box's part of the model at its edge, on top of the whole at h
+                sides = zip(r.lo, r.hi, mesh.lo, mesh.hi, strict=True)
+                inside = math.prod(max(0.0, min(b, n) - max(a, m)) for a, b, m, n in sides)
+                tets += inside / _regular_tet_volume(r.h)
             nodes = tets / 4.0
             if key != "mesh.h":
                 why = (
@@ -346,8 +351,9 @@ class Scene(_Model):
         return [(worst[0], problem + (why if worst[0] == key else ""))]
 
     def scaled_mesh(self) -> Mesh | None:
-        """The ``[mesh]`` at ``run.resolution``: edge lengths h and h_opening divided by it, box and arch divisions
-        multiplied by it (rounded, at least 1); a mesh file as it is. Resolution 1 gives the mesh as written."""
+        """The ``[mesh]`` at ``run.resolution``: edge lengths h, h_opening and the refinements' h divided by it, box and
+        arch divisions multiplied by it (rounded, at least 1); a mesh file as it is. Resolution 1 gives the mesh as
+        written."""
         mesh, k = self.mesh, self.run.resolution
         if mesh is None or k == 1.0 or mesh.kind == "file":
             return mesh
@@ -358,6 +364,8 @@ class Scene(_Model):
             update["h_charge"] = mesh.h_charge / k
         if mesh.kind == "geology" and mesh.h_opening is not None:
             update["h_opening"] = mesh.h_opening / k
+        if mesh.kind == "geology" and mesh.refinements:
+            update["refinements"] = [r.model_copy(update={"h": r.h / k}) for r in mesh.refinements]
         return mesh.model_copy(update=update)
 
     def _joint_surface_problem(self) -> tuple[str, str] | None:

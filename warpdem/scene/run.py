@@ -61,8 +61,9 @@ class Run(_Model):
         default=1.0,
         gt=0,
         le=1000,
-        description="Mesh refinement knob: tet edge lengths h (and h_opening) are divided by it, box and arch "
-        "divisions multiplied by it (Scene.scaled_mesh); 1 is sized for two CPU cores, a GPU takes 4 or more [-].",
+        description="Mesh refinement knob: tet edge lengths h (h_opening, the refinements' h, h_charge) are divided "
+        "by it, box and arch divisions multiplied by it (Scene.scaled_mesh); 1 is sized for two CPU cores, a GPU takes "
+        "4 or more [-].",
     )
 
     @field_validator("device")
