@@ -157,11 +157,18 @@ def _slot_arrays(rows: Rows, k: int, bond_key: np.ndarray, particle_capacity: in
     partner = _pad_slots(PARTNER, rows.fields[PARTNER], k)[:, :k]
     found = np.minimum(np.searchsorted(rows.gid, partner), max(n - 1, 0))
     keep = (partner >= 0) & (rows.gid[found] == partner) if n else partner >= 0
-    order = np.argsort(~keep, axis=1, kind="stable")
     count = keep.sum(axis=1).astype(np.int32)
     live = np.arange(k)[None, :] < count[:, None]
-    index = np.take_along_axis(np.where(keep, found, 0), order, axis=1)
-    shear = np.take_along_axis(_pad_slots("nbr_shear", rows.fields["nbr_shear"], k)[:, :k], order[..., None], 1)
+    index = np.where(keep, found, 0)
+    shear = _pad_slots("nbr_shear", rows.fields["nbr_shear"], k)[:, :k]
+    # Only a sphere that lost a partner ahead of a kept one has slots to move forward (most keep every partner, or
+    # lose their last ones): the stable partition is taken over those rows alone.
+    moved = np.flatnonzero(np.any(keep != live, axis=1))
+    if len(moved):
+        order = np.argsort(~keep[moved], axis=1, kind="stable")
+        index[moved] = np.take_along_axis(index[moved], order, axis=1)
+        shear = shear.copy()
+        shear[moved] = np.take_along_axis(shear[moved], order[..., None], axis=1)
     bond = _slot_bonds(bond_key, np.arange(n)[:, None].astype(np.int64) * particle_capacity + index, live)
     return {
         "nbr_count": count,
