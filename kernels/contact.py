@@ -568,10 +568,16 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
                     # (friction: a parting pair's spring goes there) and k_t's (the stiffness change).
                     d_n = wp.float64(d_damp) - (wp.float64(e_n) - wp.float64(prev[0]))
                     d_t = wp.float64(d_fric) - (wp.float64(e_t) - wp.float64(a_t))
+                    d_k = wp.float64(a_t) - wp.float64(prev[1])
+                    # An exact zero adds nothing to a line, so it is not stored (walls at rest do no work; linear
+                    # laws change no stiffness): each store is a line of its own array, what the books cost here.
                     energy_damping[i] = energy_damping[i] + d_n
-                    energy_friction[i] = energy_friction[i] + d_t
-                    energy_stiffness_change[i] = energy_stiffness_change[i] + (wp.float64(a_t) - wp.float64(prev[1]))
-                    energy_wall_work[i] = energy_wall_work[i] + wp.float64(w_wall)
+                    if d_t != wp.float64(0.0):
+                        energy_friction[i] = energy_friction[i] + d_t
+                    if d_k != wp.float64(0.0):
+                        energy_stiffness_change[i] = energy_stiffness_change[i] + d_k
+                    if w_wall != 0.0:
+                        energy_wall_work[i] = energy_wall_work[i] + wp.float64(w_wall)
 
     @wp.kernel(enable_backward=False, module="unique")
     def contact_energy_kernel(

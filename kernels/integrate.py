@@ -110,8 +110,15 @@ def book_contact_work_ahead(
     """Book minus the half of the sphere contacts' work that lies ahead of their evaluation, -½ dt f_n·v_{n+1/2}
     (normal → damping, tangential and rolling with ½ dt t_n·ω_{n+1/2} → friction) [J], now that v_{n+1/2} is known,
     and clear the sums for the next evaluation (the other half: kernels/contact.py ``make_contact_kernels``)."""
-    w_n = 0.5 * dt * wp.dot(contact_f_normal[i], v)
-    w_t = 0.5 * dt * (wp.dot(contact_f_tangential[i], v) + wp.dot(contact_t_tangential[i], omega))
+    fn = contact_f_normal[i]
+    ft = contact_f_tangential[i]
+    tt = contact_t_tangential[i]
+    # Most spheres of a loose packing touched nothing: their sums are zero already and are left unwritten (the
+    # stores, not the arithmetic, are what the books cost a sphere here).
+    if fn == wp.vec3(0.0) and ft == wp.vec3(0.0) and tt == wp.vec3(0.0):
+        return
+    w_n = 0.5 * dt * wp.dot(fn, v)
+    w_t = 0.5 * dt * (wp.dot(ft, v) + wp.dot(tt, omega))
     if w_n != 0.0:
         energy_damping[i] = energy_damping[i] - wp.float64(w_n)
     if w_t != 0.0:
