@@ -193,6 +193,17 @@ WALL_FACE_X = 1.45
 """The wall's face towards the box [m] (scenes/masonry_wall_blast.toml)."""
 
 
+def wall_resolution(points: np.ndarray, tets: np.ndarray) -> tuple[float, float]:
+    """The wall's tets' mean edge and its thickness along x (across the wall) [m]: ``points`` the reference node
+    positions, shape (N, 3), ``tets`` the wall's tets, shape (T, 4). Their ratio is the elements through the wall."""
+    from warpdem.tables import TET_EDGES
+
+    corners = points[tets].astype(np.float64)
+    edge = float(np.linalg.norm(corners[:, TET_EDGES[:, 1]] - corners[:, TET_EDGES[:, 0]], axis=2).mean())
+    x = corners[..., 0]
+    return edge, float(x.max() - x.min())
+
+
 def largest_piece_share(sim, tets: np.ndarray, nodes: np.ndarray) -> float:
     """The largest intact piece of a part of the mesh as a share of the part's mass [-]: the part is the tets flagged
     in ``tets`` (shape (T,), bool) and their nodes (``nodes``, shape (N,), bool); its mass is its nodes' lumped mass
@@ -234,9 +245,7 @@ def wall_report(scene, device: str, end_time: float | None) -> list[str]:
     crest = wall_nodes & np.isclose(ref[:, 2], top, atol=1e-6)
     box = sim.particle_count  # the box's spheres, the first slots
     box_radius = m.particle_radius.numpy()[:box].astype(np.float64)
-    edge = ref[tets[wall]]
-    h = float(np.mean(np.linalg.norm(edge[:, [1, 2, 3, 2, 3, 3]] - edge[:, [0, 0, 0, 1, 1, 2]], axis=2)))
-    thickness = float(ref[wall_nodes, 0].max() - ref[wall_nodes, 0].min())
+    h, thickness = wall_resolution(ref, tets[wall])
     steps = max(1, round((end_time or scene.run.end_time) / m.dt))
     out = [
         f"{scene.name}: {nt} tets ({int(wall.sum())} in the wall, mean edge {h * 1e3:.1f} mm: {thickness / h:.1f} "

@@ -108,14 +108,14 @@ class Scenario:
 
 
 def sample_conversion(run, frame, samples: Samples) -> None:
-    """Once: each material's tets, those that start as spheres, their mean edge and the extent of their box [m]. Per
-    frame: the converted fraction of each material's tets (``converted_<material>``; a converted tet is one
-    with a sphere, ``tet_sphere`` >= 0: with the overlap band, the default, band tets stay active with weight alpha),
-    their reference volume (``converted_volume`` [m³]), spheres, fragments, the fastest sphere [m/s], sphere–face
-    contact dissipation [J] (nonzero once spheres hit a continuum surface), the load's force |F| [N] (the time
-    series' load0), and the largest intact piece of the masonry as a share of its mass (``masonry_piece``,
-    conversion_scenes.largest_piece_share)."""
-    from conversion_scenes import largest_piece_share  # beside this script, in benchmarks/
+    """Once: each material's tets and those that start as spheres, and the masonry's mean tet edge and thickness
+    along x [m] (conversion_scenes.wall_resolution). Per frame: the converted fraction of each material's tets
+    (``converted_<material>``; a converted tet is one with a sphere, ``tet_sphere`` >= 0: with the overlap band, the
+    default, band tets stay active with weight alpha), their reference volume (``converted_volume`` [m³]), spheres,
+    fragments, the fastest sphere [m/s], sphere–face contact dissipation [J] (nonzero once spheres hit a continuum
+    surface), the load's force |F| [N] (the time series' load0), and the largest intact piece of the masonry as a
+    share of its mass (``masonry_piece``, conversion_scenes.largest_piece_share)."""
+    from conversion_scenes import largest_piece_share, wall_resolution  # beside this script, in benchmarks/
 
     model, state = run.model, run.state
     nt = int(state.tet_count.numpy()[0])
@@ -126,16 +126,12 @@ def sample_conversion(run, frame, samples: Samples) -> None:
         samples.facts["tets"] = nt
         corners = model.node_ref_q.numpy()[tets].astype(np.float64)
         samples.facts["volume"] = np.abs(np.linalg.det(corners[:, 1:] - corners[:, :1])) / 6.0
-        ends = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
-        edges = np.linalg.norm(corners[:, ends[:, 0]] - corners[:, ends[:, 1]], axis=2)  # (tets, 6) [m]
         for m, name in enumerate(model.material_names):
-            mine = material == m
-            samples.facts[f"tets_{name}"] = int(np.count_nonzero(mine))
-            samples.facts[f"start_as_spheres_{name}"] = int(np.count_nonzero(converted & mine))
-            if mine.any():
-                samples.facts[f"mean_edge_{name}"] = float(edges[mine].mean())
-                points = corners[mine].reshape(-1, 3)
-                samples.facts[f"extent_{name}"] = points.max(axis=0) - points.min(axis=0)
+            samples.facts[f"tets_{name}"] = int(np.count_nonzero(material == m))
+            samples.facts[f"start_as_spheres_{name}"] = int(np.count_nonzero(converted & (material == m)))
+        if "masonry" in model.material_names:
+            masonry = material == model.material_names.index("masonry")
+            samples.facts["wall_resolution"] = wall_resolution(model.node_ref_q.numpy(), tets[masonry])
         samples.facts["peak_pressure"] = max(
             (load.history.peak for load in run.scene.loads if load.kind == "pressure"), default=0.0
         )
@@ -337,7 +333,7 @@ each tet a large share of the section)."""
 def _wall_mesh(s: Samples) -> tuple[str, str]:
     """The wall's resolution: its thickness (the masonry's extent along x, across the wall) over its tets' mean
     edge."""
-    thickness, edge = float(s.facts["extent_masonry"][0]), s.facts["mean_edge_masonry"]
+    edge, thickness = s.facts["wall_resolution"]
     through = thickness / edge
     text = (
         f"{s.facts['tets_masonry']} tets of mean edge {1e3 * edge:.1f} mm: {through:.1f} through its {thickness:.2f} m"

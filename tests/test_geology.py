@@ -44,6 +44,7 @@ from warpdem.build.geology import (
     read_mesh,
     write_mesh,
 )
+from warpdem.tables import TET_EDGES
 
 REL_FLAT = 1e-9
 NORMAL_TOL = 1e-9
@@ -187,8 +188,7 @@ def test_persistent_grid_blocks_volume_and_joint_area(on_faces: bool) -> None:
 
 def mean_tet_edge(points: np.ndarray, tets: np.ndarray) -> float:
     """Mean of the six edge lengths over the tets [m]."""
-    ends = np.array(list(itertools.combinations(range(4), 2)))
-    return float(np.linalg.norm(points[tets[:, ends[:, 0]]] - points[tets[:, ends[:, 1]]], axis=2).mean())
+    return float(np.linalg.norm(points[tets[:, TET_EDGES[:, 1]]] - points[tets[:, TET_EDGES[:, 0]]], axis=2).mean())
 
 
 def test_refinement_box_meshes_finer_in_proportion() -> None:

@@ -163,8 +163,8 @@ Opening = Tunnel | Shaft | Room
 @dataclass
 class Refinement:
     """A box meshed finer than the rest of a geology model (a wall that needs more elements through its thickness
-    than the rock around it): Gmsh's tets have edge ``h`` inside it, the model's ``h`` outside, the change abrupt at
-    its faces (Gmsh grades the tets across them).
+    than the rock around it): Gmsh's tets have edge ``h`` inside it and the model's ``h`` outside; the size steps at
+    its faces, and Gmsh grades the tets across them.
 
     Attributes:
         lo: Lower corner (x, y, z) [m].
