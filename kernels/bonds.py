@@ -142,9 +142,7 @@ def eval_bonds_kernel(
     bond_energy_prev: wp.array(dtype=wp.vec2),
     particle_f: wp.array(dtype=wp.vec3),
     particle_t: wp.array(dtype=wp.vec3),
-    contact_f_normal: wp.array(dtype=wp.vec3),
-    contact_f_tangential: wp.array(dtype=wp.vec3),
-    contact_t_tangential: wp.array(dtype=wp.vec3),
+    contact_sums: wp.array(dtype=wp.mat33),
     energy_damping: wp.array(dtype=wp.float64),
     energy_friction: wp.array(dtype=wp.float64),
     energy_bond_broken: wp.array(dtype=wp.float64),
@@ -250,12 +248,8 @@ def eval_bonds_kernel(
     wp.atomic_add(particle_t, j, wp.cross(arms[1] * n, -ft))
     if track_energy == 0:
         return
-    book_contact_force(
-        i, fn * n, ft, wp.cross(-arms[0] * n, ft), contact_f_normal, contact_f_tangential, contact_t_tangential
-    )
-    book_contact_force(
-        j, -fn * n, -ft, wp.cross(arms[1] * n, -ft), contact_f_normal, contact_f_tangential, contact_t_tangential
-    )
+    book_contact_force(i, fn * n, ft, wp.cross(-arms[0] * n, ft), contact_sums)
+    book_contact_force(j, -fn * n, -ft, wp.cross(arms[1] * n, -ft), contact_sums)
     if dt > 0.0:  # the set-up evaluation (dt = 0) only records the springs' energies
         # The half of the work behind, ½ dt f·v_rel, as one float32 product per spring and dashpot pair (so the books'
         # total is the same sum, to float64 rounding, as with both on one line), split in float64: the dashpots' part,

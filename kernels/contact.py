@@ -196,16 +196,14 @@ def book_contact_force(
     fn_vec: wp.vec3,
     ft: wp.vec3,
     torque: wp.vec3,
-    contact_f_normal: wp.array(dtype=wp.vec3),
-    contact_f_tangential: wp.array(dtype=wp.vec3),
-    contact_t_tangential: wp.array(dtype=wp.vec3),
+    contact_sums: wp.array(dtype=wp.mat33),
 ):
     """Add a contact's normal force, tangential force and tangential + rolling torque on sphere i [N, N, N m] to its
-    sums, which the integrator dots with v_{n+1/2} and ω_{n+1/2} for the half of the force's work that lies ahead
-    (kernels/integrate.py ``book_contact_work_ahead``)."""
-    wp.atomic_add(contact_f_normal, i, fn_vec)
-    wp.atomic_add(contact_f_tangential, i, ft)
-    wp.atomic_add(contact_t_tangential, i, torque)
+    sums, the rows of ``contact_sums[i]``, which the integrator dots with v_{n+1/2} and ω_{n+1/2} for the half of the
+    force's work that lies ahead (kernels/integrate.py ``book_contact_work_ahead``). The three sums are one record so
+    that a pair's other sphere, reached at random, costs one cache line, not three (warpdem.model.State
+    ``contact_sums``); each row adds as its own vec3 would, bit for bit."""
+    wp.atomic_add(contact_sums, i, wp.matrix_from_rows(fn_vec, ft, torque))
 
 
 NORMAL_MODELS = ("hertz", "linear")
@@ -410,9 +408,7 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
         wall_shear: wp.array(dtype=wp.vec3),
         particle_f: wp.array(dtype=wp.vec3),
         particle_t: wp.array(dtype=wp.vec3),
-        contact_f_normal: wp.array(dtype=wp.vec3),
-        contact_f_tangential: wp.array(dtype=wp.vec3),
-        contact_t_tangential: wp.array(dtype=wp.vec3),
+        contact_sums: wp.array(dtype=wp.mat33),
         contact_energy_prev: wp.array(dtype=wp.vec2),
         energy_damping: wp.array(dtype=wp.float64),
         energy_friction: wp.array(dtype=wp.float64),
@@ -504,9 +500,7 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
                     -fn * n,
                     -ft,
                     t_j,
-                    contact_f_normal,
-                    contact_f_tangential,
-                    contact_t_tangential,
+                    contact_sums,
                 )
         for w in range(num_walls):
             nw = wall_normal[w]
@@ -560,7 +554,7 @@ def make_contact_kernels(normal: str, tangential: str, rolling: str, track_energ
             # packing, and its cost with the books on).
             if touched != 0 or prev[0] != 0.0 or prev[1] != 0.0 or a_t != 0.0:
                 # t_i is all contact torque: its tangential and rolling parts are the books' torque sum.
-                book_contact_force(i, fn_i, ft_i, t_i, contact_f_normal, contact_f_tangential, contact_t_tangential)
+                book_contact_force(i, fn_i, ft_i, t_i, contact_sums)
                 contact_energy_prev[i] = wp.vec2(e_n, e_t)
                 if dt > 0.0:  # the set-up evaluation (dt = 0) only records the springs' energies
                     # ΔU in float64 so that its sum over the steps telescopes to U_now - U_start exactly. The

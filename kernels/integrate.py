@@ -101,31 +101,28 @@ def book_contact_work_ahead(
     dt: float,
     v: wp.vec3,
     omega: wp.vec3,
-    contact_f_normal: wp.array(dtype=wp.vec3),
-    contact_f_tangential: wp.array(dtype=wp.vec3),
-    contact_t_tangential: wp.array(dtype=wp.vec3),
+    contact_sums: wp.array(dtype=wp.mat33),
     energy_damping: wp.array(dtype=wp.float64),
     energy_friction: wp.array(dtype=wp.float64),
 ):
     """Book minus the half of the sphere contacts' work that lies ahead of their evaluation, -½ dt f_n·v_{n+1/2}
     (normal → damping, tangential and rolling with ½ dt t_n·ω_{n+1/2} → friction) [J], now that v_{n+1/2} is known,
     and clear the sums for the next evaluation (the other half: kernels/contact.py ``make_contact_kernels``)."""
-    fn = contact_f_normal[i]
-    ft = contact_f_tangential[i]
-    tt = contact_t_tangential[i]
+    sums = contact_sums[i]
     # Most spheres of a loose packing touched nothing: their sums are zero already and are left unwritten (the
     # stores, not the arithmetic, are what the books cost a sphere here).
-    if fn == wp.vec3(0.0) and ft == wp.vec3(0.0) and tt == wp.vec3(0.0):
+    if sums == wp.mat33(0.0):
         return
+    fn = sums[0]
+    ft = sums[1]
+    tt = sums[2]
     w_n = 0.5 * dt * wp.dot(fn, v)
     w_t = 0.5 * dt * (wp.dot(ft, v) + wp.dot(tt, omega))
     if w_n != 0.0:
         energy_damping[i] = energy_damping[i] - wp.float64(w_n)
     if w_t != 0.0:
         energy_friction[i] = energy_friction[i] - wp.float64(w_t)
-    contact_f_normal[i] = wp.vec3(0.0)
-    contact_f_tangential[i] = wp.vec3(0.0)
-    contact_t_tangential[i] = wp.vec3(0.0)
+    contact_sums[i] = wp.mat33(0.0)
 
 
 @wp.func
@@ -350,9 +347,7 @@ def make_particle_drift_kernel(after_second_half: bool) -> wp.Kernel:
         particle_t: wp.array(dtype=wp.vec3),
         rebuild_flag: wp.array(dtype=int),
         energy_boundary_work: wp.array(dtype=wp.float64),
-        contact_f_normal: wp.array(dtype=wp.vec3),
-        contact_f_tangential: wp.array(dtype=wp.vec3),
-        contact_t_tangential: wp.array(dtype=wp.vec3),
+        contact_sums: wp.array(dtype=wp.mat33),
         energy_damping: wp.array(dtype=wp.float64),
         energy_friction: wp.array(dtype=wp.float64),
     ):
@@ -388,9 +383,7 @@ def make_particle_drift_kernel(after_second_half: bool) -> wp.Kernel:
                 dt,
                 v,
                 omega,
-                contact_f_normal,
-                contact_f_tangential,
-                contact_t_tangential,
+                contact_sums,
                 energy_damping,
                 energy_friction,
             )

@@ -258,3 +258,35 @@ def test_latest_checkpoint_of_a_scene(tmp_path: pathlib.Path) -> None:
     assert latest_checkpoint(tmp_path, "pour") == tmp_path / "pour_checkpoint_0000000050.h5"
     assert latest_checkpoint(tmp_path, "other") is None
     assert latest_checkpoint(tmp_path) == tmp_path / "pour_checkpoint_0000000050.h5"
+
+
+def test_a_format_12_checkpoint_with_three_force_sums_resumes_bit_for_bit(tmp_path: pathlib.Path) -> None:
+    """Format 13 keeps the sphere contacts' three force sums as one record per sphere (``state/contact_sums``, its
+    rows the normal force, tangential force and torque sums); format 12 kept three arrays. The default scene's
+    frame-1 checkpoint (its bonds load every sphere, so the sums are not zero: checked) rewritten as format 12 wrote
+    it, the three arrays in place of the record, restarts (warpdem.io.restart.FIELD_MIGRATIONS) and ends at frame 2
+    equal to the uninterrupted run, array by array, bit for bit (CPU: same kernels, same order of operations)."""
+    from warpdem.runner import RunOptions, run_scene
+    from warpdem.scene import default_scene_path, load_scene
+
+    scene = load_scene(default_scene_path())
+    period = 1.0 / scene.run.output_rate  # a checkpoint every frame: frames 1 and 2
+    options = RunOptions(device="cpu", frames=2, out_dir=tmp_path / "run", checkpoint_every=period, quiet=True)
+    summary = run_scene(scene, options)
+    middle, end = summary.checkpoints
+    end_arrays, _ = read_checkpoint(end)
+    sums = read_checkpoint(middle)[0]["state/contact_sums"]
+    assert sums.shape[1:] == (3, 3) and np.count_nonzero(sums) > 0
+    old = tmp_path / "old" / middle.name
+    old.parent.mkdir()
+    old.write_bytes(middle.read_bytes())
+    with h5py.File(old, "r+") as f:
+        del f["state/contact_sums"]
+        for row, name in enumerate(("contact_f_normal", "contact_f_tangential", "contact_t_tangential")):
+            f[f"state/{name}"] = sums[:, row]
+        f.attrs["warpdem_format_version"] = 12
+    again = run_scene(scene, RunOptions(device="cpu", frames=2, out_dir=tmp_path / "again", quiet=True, restart=old))
+    arrays, _ = read_checkpoint(again.checkpoints[-1])
+    assert arrays.keys() == end_arrays.keys()
+    for name, expected in end_arrays.items():
+        np.testing.assert_array_equal(arrays[name], expected, err_msg=name)

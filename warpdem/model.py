@@ -376,12 +376,11 @@ class State:
         energy_stiffness_change: energy the contacts' tangential springs gained without work because k_t follows
             the overlap (Mindlin, or a linear k_t on a Hertz k_n) [J], per particle, shape (particle_capacity,),
             float64.
-        contact_f_normal: sum of the sphere contacts' normal forces on each sphere at the last evaluation [N], for
-            the integrator's booking of the half of their work that lies ahead (kernels/contact.py), shape
-            (particle_capacity,), vec3.
-        contact_f_tangential: the same for their tangential forces [N], shape (particle_capacity,), vec3.
-        contact_t_tangential: the same for their tangential and rolling torques [N m], shape (particle_capacity,),
-            vec3.
+        contact_sums: sums of the sphere contacts' and bonds' forces on each sphere at the last evaluation, for the
+            integrator's booking of the half of their work that lies ahead (kernels/contact.py), one record per
+            sphere, its rows the normal forces [N], the tangential forces [N] and the tangential and rolling torques
+            [N m], shape (particle_capacity,), mat33 (one record, so that a pair's other sphere costs one cache line
+            of books, not three).
         contact_energy_prev: (normal, tangential) spring energy of the contacts each sphere owns (its half list and
             its walls) at the last evaluation [J], shape (particle_capacity,), vec2.
         node_count: live FEM nodes, shape (1,), int32.
@@ -623,9 +622,7 @@ class State:
     energy_bond_broken: wp.array
     energy_bond_trapezoid: wp.array
     energy_stiffness_change: wp.array
-    contact_f_normal: wp.array
-    contact_f_tangential: wp.array
-    contact_t_tangential: wp.array
+    contact_sums: wp.array
     contact_energy_prev: wp.array
     node_count: wp.array
     tet_count: wp.array
@@ -907,9 +904,7 @@ PARTICLE_STATE_FIELDS = (
     "energy_bond_broken",
     "energy_bond_trapezoid",
     "energy_stiffness_change",
-    "contact_f_normal",
-    "contact_f_tangential",
-    "contact_t_tangential",
+    "contact_sums",
     "contact_energy_prev",
 )
 """Per-particle State fields (empty slots 0)."""

@@ -282,9 +282,7 @@ class Simulation:
         m, s = self.model, self.state
         s.particle_f.zero_()
         s.particle_t.zero_()
-        s.contact_f_normal.zero_()
-        s.contact_f_tangential.zero_()
-        s.contact_t_tangential.zero_()
+        s.contact_sums.zero_()
         s.node_f.zero_()
         # The next kick books the half ahead of exactly the viscous forces evaluated here (none of the damping: it
         # starts with the next drift), whatever a pass took out since the last step (warpdem.stages.integrate).

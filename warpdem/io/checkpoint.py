@@ -31,7 +31,9 @@ where no tet had converted); 11 the pressure loads' hand-over to the spheres of 
 (``loads/pressure_<kind>_handed_area``, ``state/load_face_force``, ``state/load_face_work``: zero in an older run,
 which dropped the faces of converted tets without a hand-over, so its dropped faces stay dropped and the books close
 from zero); 12 the impulse each pressure face delivered (``state/load_face_impulse``: a report's counter, counted
-from the restart of an older run).
+from the restart of an older run); 13 the sphere contacts' three force sums as one record per sphere
+(``state/contact_sums``, made from an older file's ``contact_f_normal``, ``contact_f_tangential`` and
+``contact_t_tangential``, the same values).
 
 Files are written to ``<name>.tmp-<pid>`` in the target directory and moved over the final name with
 ``os.replace``, so a crash or an error mid-write never damages the previous checkpoint.
@@ -64,7 +66,7 @@ __all__ = [
 FORMAT_NAME = "warpdem-checkpoint"
 """Value of the root attribute ``warpdem_format`` identifying a warpdem checkpoint."""
 
-FORMAT_VERSION = 12
+FORMAT_VERSION = 13
 """Newest checkpoint format this module writes and reads (module docstring, "Versions"); bump when the layout changes
 or fields are added, and list what older files may lack in warpdem.io.restart.FIELD_MIGRATIONS."""
 

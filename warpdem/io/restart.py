@@ -292,6 +292,13 @@ class FieldMigration:
     make: Callable[[dict[str, np.ndarray], dict, Model], np.ndarray] | None = None
 
 
+def _contact_sums(arrays: dict[str, np.ndarray], attrs: dict, model: Model) -> np.ndarray:
+    """The one record per sphere of an older checkpoint's three contact force sums (format 13: warpdem.model.State
+    ``contact_sums``), its rows the normal force, tangential force and torque sums, the same values."""
+    rows = [arrays[f"state/{name}"] for name in ("contact_f_normal", "contact_f_tangential", "contact_t_tangential")]
+    return np.stack(rows, axis=1)
+
+
 _RIGID_FIELDS = ("rigid_nodes", *RIGID_BODY_FIELDS, *RIGID_NODE_FIELDS)
 FIELD_MIGRATIONS: dict[str, FieldMigration] = {
     # Bulk viscosity and mass damping book Verlet's trapezoid (cea7fdb).
@@ -363,6 +370,9 @@ FIELD_MIGRATIONS: dict[str, FieldMigration] = {
     # The impulse each pressure face delivered (format 12): a report's counter, not a part of the books or of the
     # motion; an older run's restart counts it from the restart.
     "state/load_face_impulse": FieldMigration(12, _always),
+    # The sphere contacts' three force sums as one record per sphere (format 13): an older file held them as three
+    # arrays, the record's rows.
+    "state/contact_sums": FieldMigration(13, _always, "state/particle_qd", _contact_sums),
 }
 """The fields added since checkpoint format 1, by checkpoint key (``state/<name>``, ``model/<name>``, ``attribute
 <name>`` for a model scalar), and when a restart may fill them from the fresh model and state

@@ -113,7 +113,7 @@ _COUNTERS = (
 )
 _STATE_SIZES: dict[str, Size] = {
     **_each("particle_q particle_qd particle_qd_carry particle_omega particle_f particle_t particle_q_at_build", _P),
-    **_each("nbr_count particle_bonds_broken contact_f_normal contact_f_tangential contact_t_tangential", _P),
+    **_each("nbr_count particle_bonds_broken contact_sums", _P),
     **_each("energy_damping energy_friction energy_boundary_work energy_bond_broken energy_stiffness_change", _P),
     **_each("contact_energy_prev energy_bond_trapezoid", _P),
     **_each(" ".join(NEIGHBOR_FIELDS), Size(("particle_capacity", "max_neighbors"))),

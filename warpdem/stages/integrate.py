@@ -183,9 +183,7 @@ def _particle_drift_outputs(s: State) -> list:
         s.particle_t,
         s.rebuild_flag,
         s.energy_boundary_work,
-        s.contact_f_normal,
-        s.contact_f_tangential,
-        s.contact_t_tangential,
+        s.contact_sums,
         s.energy_damping,
         s.energy_friction,
     ]
