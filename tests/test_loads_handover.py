@@ -144,6 +144,11 @@ def test_a_pulse_delivers_its_impulse_whether_the_loaded_tets_convert_or_not(dev
     print(f"{when}: worst balance error {worst:.3g}")
     np.testing.assert_allclose(dp, expected, rtol=0.0, atol=tol)
     assert tol < 0.01 * np.linalg.norm(expected)  # the check is tight: a lost face's share would show
+    # The summary's loaded area is the top's whether its faces are the tets' or handed over to their spheres (a
+    # handed face counts with its area at the hand-over: the top's strain under the load, AREA_STRAIN of p/(λ + 2μ)
+    # at most, and float32 rounding of the area vectors).
+    area_now = float(sim.model.loads.loaded_areas()[0])
+    np.testing.assert_allclose(area_now, SIDE * SIDE, rtol=AREA_STRAIN * PEAK / (LAM + 2.0 * MU) + 8.0 * F32_EPS)
     e = sim.energy()
     handed_work = float(sim.state.load_face_work.numpy().sum())
     if when == "never":

@@ -121,12 +121,19 @@ class LoadModel:
     drivers: wp.array | None
 
     def loaded_areas(self) -> np.ndarray:
-        """The reference area each pressure load pushes on, Σ |A_f| Σ_k w_fk over its faces [m²], shape (L,),
-        float64 (index = load id; faces handed over to spheres count as they were)."""
+        """The area each pressure load pushes on, Σ |A_f| Σ_k w_fk over its faces [m²], shape (L,), float64 (index =
+        load id): a face's reference area while its tet is a tet; a face handed over to the spheres of its converted
+        tet counts with the area it pushes them with, |a_c| (``handed_area``, its area when its tet converted); a face
+        dropped without a hand-over (a restart of an older run) pushes on nothing and counts zero."""
         areas = np.zeros(len(self.pressure_names))
         for faces in self.pressure.values():
             covered = faces.weight.numpy().astype(np.float64).sum(axis=1) / 3.0
-            np.add.at(areas, faces.index.numpy(), covered_areas(faces.edge_a.numpy(), faces.edge_b.numpy(), covered))
+            area = covered_areas(faces.edge_a.numpy(), faces.edge_b.numpy(), covered)
+            if faces.handed_area is not None:
+                # A handed-over face's reference edges are zero (dropped): its area is the handed one's.
+                handed = np.linalg.norm(faces.handed_area.numpy().astype(np.float64), axis=1) * covered
+                area = area + handed
+            np.add.at(areas, faces.index.numpy(), area)
         return areas
 
     def impulses(self, load_face_impulse: np.ndarray) -> np.ndarray:
