@@ -30,6 +30,7 @@ INSTANTS = (1.0 / 6.0, 0.5, 1.0)
 """Fractions of the run the pictures show."""
 
 CIMNE = "the adaptive DEM/FEM blast paper (CIMNE; `../shared/seeds/adaptive_dem_fem_blast.txt`)"
+LDEC = "the LDEC FEM/DEM fracture paper (LLNL; `../shared/seeds/ldec_fem_dem_fracture.txt`)"
 
 
 @dataclass
@@ -90,6 +91,10 @@ class Scenario:
         view: the preview's view of the pictures.
         window: the part of the view drawn (warpdem.io.preview.render's ``window``: horizontal and vertical bounds in
             the view's axes [m]); None: the whole scene.
+        instants: the fractions of the run the pictures show (the paper's instants where it gives them).
+        color_by: the pictures' colours (warpdem.io.preview.render's ``color_by``: "stage", or "speed" as the
+            paper's figure colours them).
+        scale: the value drawn red when recolouring (the paper's key's top), or None: the largest drawn.
     """
 
     scene: str
@@ -100,6 +105,9 @@ class Scenario:
     plot: dict[str, str]
     view: str = "xz"
     window: tuple[float, float, float, float] | None = None
+    instants: tuple[float, ...] = INSTANTS
+    color_by: str = "stage"
+    scale: float | None = None
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -222,9 +230,18 @@ def write_report(scenario: Scenario, samples: Samples, stage: Path, out: Path, c
 
     codes = stage_frames(Usd.Stage.Open(str(stage)))
     times = np.asarray(samples.time)
-    picked = [codes[int(np.argmin(np.abs(times - f * t_end)))] for f in INSTANTS]
+    picked = [codes[int(np.argmin(np.abs(times - f * t_end)))] for f in scenario.instants]
     with tempfile.TemporaryDirectory() as scratch:
-        pictures = render(stage, scratch, frames=picked, view=scenario.view, size=(520, 520), window=scenario.window)
+        pictures = render(
+            stage,
+            scratch,
+            frames=picked,
+            view=scenario.view,
+            size=(520, 520),
+            window=scenario.window,
+            color_by=scenario.color_by,
+            scale=scenario.scale,
+        )
         images = [plt.imread(p) for p in pictures]
     fig = plt.figure(figsize=(13, 8.5))
     grid = fig.add_gridspec(2, 3, height_ratios=(1.5, 1.0))
@@ -351,6 +368,132 @@ def _final_zone(s: Samples) -> tuple[str, str]:
     return text, "reproduced (no growth over the last frames)" if settled else "not reproduced (still growing)"
 
 
+# ----------------------------------------------------------------------------------------------------------------------
+# The LDEC limestone tunnel (§4, Fig. 9)
+# ----------------------------------------------------------------------------------------------------------------------
+
+RUBBLE_BAND = 1.0
+"""How far into the rock around the tunnel the rubble row looks [m] (the rock LDEC's reflected waves break)."""
+RUBBLE_PIECE = 0.5
+"""A piece smaller than this share of a whole brick counts as rubble [-]."""
+LDEC_CELL = 0.1
+"""LDEC's element size in §4 [m] ("10 cm" tets: docs/scenes.md)."""
+
+
+def sample_limestone(run, frame, samples: Samples) -> None:
+    """Once: the tunnel as cut and the charge's place (benchmarks/limestone_tunnel.py ``tunnel_section``), the
+    bricks, the cell size, the slab's top, and each tet's reference centroid and volume. Per frame: the fill (the
+    solid volume in the tunnel over its volume, limestone_tunnel.py ``rubble_volume``), the highest rock above the
+    slab's top [m], and the share of the rock within RUBBLE_BAND of the tunnel that lies in pieces smaller than
+    RUBBLE_PIECE of a brick (``band_rubble``: 0 before the rigid switch, whose bodies are the pieces)."""
+    from limestone_tunnel import rubble_volume, tunnel_section  # beside this script, in benchmarks/
+
+    model, state, scene = run.model, run.state, run.scene
+    nt = int(state.tet_count.numpy()[0])
+    tets = model.tet_nodes.numpy()[:nt]
+    if not samples.time:
+        lo, hi = tunnel_section(scene)
+        samples.facts.update(
+            lo_x=lo[0],
+            lo_z=lo[2],
+            hi_x=hi[0],
+            hi_z=hi[2],
+            volume=float((hi[0] - lo[0]) * (hi[2] - lo[2]) * (hi[1] - lo[1])),
+        )
+        tunnel, charge = scene.mesh.openings[0], scene.mesh.openings[1]
+        samples.facts.update(
+            brick_x=scene.mesh.brick[0],
+            brick_z=scene.mesh.brick[2],
+            brick_volume=float(np.prod(scene.mesh.brick)),
+            tunnel_w=tunnel.width,
+            tunnel_h=tunnel.height,
+            charge_dx=charge.center[0] - tunnel.center[0],
+            charge_dz=charge.center[1] - tunnel.center[1],
+            charge_r=charge.radius,
+            cover=float(model.node_ref_q.numpy()[:, 2].max()) - (charge.center[1] + charge.radius),
+            cell=scene.mesh.h / scene.run.resolution,
+            top=float(model.node_ref_q.numpy()[:, 2].max()),
+            peak_pressure=max(load.history.peak for load in scene.loads if load.kind == "pressure"),
+        )
+        corners = model.node_ref_q.numpy()[tets].astype(np.float64)
+        centre = corners.mean(axis=1)
+        x, z = centre[:, 0], centre[:, 2]
+        d = RUBBLE_BAND
+        near = (x > lo[0] - d) & (x < hi[0] + d) & (z > lo[2] - d) & (z < hi[2] + d)
+        inside = (x > lo[0]) & (x < hi[0]) & (z > lo[2]) & (z < hi[2])
+        samples.facts["band"] = near & ~inside
+        samples.facts["tet_volume"] = np.abs(np.linalg.det(corners[:, 1:] - corners[:, :1])) / 6.0
+    facts = samples.facts
+    lo = np.array([facts["lo_x"], 0.0, facts["lo_z"]])
+    hi = np.array([facts["hi_x"], 0.0, facts["hi_z"]])
+    samples.time.append(frame.time)
+    samples.add("fill", rubble_volume(run.sim, lo, hi)[0] / facts["volume"])
+    nn = run.sim.node_count
+    samples.add("cover_rise", float(state.node_q.numpy()[:nn, 2].max()) - facts["top"])
+    share = 0.0
+    body = getattr(state, "node_body", None)
+    if run.sim.rigid and body is not None and body.shape[0]:
+        owner = body.numpy()[tets[:, 0]]
+        volume = facts["tet_volume"]
+        pieces = np.bincount(owner[owner >= 0], weights=volume[owner >= 0])
+        small = np.zeros(nt, dtype=bool)
+        small[owner >= 0] = pieces[owner[owner >= 0]] < RUBBLE_PIECE * facts["brick_volume"]
+        band = facts["band"]
+        share = float(volume[band & small].sum() / volume[band].sum())
+    samples.add("band_rubble", share)
+
+
+def _limestone_setup(s: Samples) -> tuple[str, str]:
+    f = s.facts
+    text = (
+        f"bricks {f['brick_x']:.2f} m × {f['brick_z']:.2f} m; the tunnel {f['tunnel_w']:.2f} m × "
+        f"{f['tunnel_h']:.2f} m, cut cell by cell {f['hi_x'] - f['lo_x']:.3f} m × {f['hi_z'] - f['lo_z']:.3f} m"
+    )
+    return text, "as published (to a cell)"
+
+
+def _limestone_charge(s: Samples) -> tuple[str, str]:
+    f = s.facts
+    text = (
+        f"an equivalent cavity (its crushed zone) of radius {f['charge_r']:.2f} m, {-f['charge_dx']:.2f} m left of and "
+        f"{f['charge_dz']:.2f} m above the tunnel's centre, {f['peak_pressure'] / 1e6:.0f} MPa on its wall (calibrated "
+        "on the peak particle speed at the tunnel: docs/scenes.md)"
+    )
+    return text, "as published (the charge as a cavity)"
+
+
+def _limestone_cells(s: Samples) -> tuple[str, str]:
+    cell = s.facts["cell"]
+    text = f"cells of {100 * cell:.1f} cm (LDEC: {100 * LDEC_CELL:.0f} cm; `[run] resolution = 3` builds them)"
+    return text, "as published" if cell <= 1.05 * LDEC_CELL else "differs (coarser)"
+
+
+def _limestone_rubble(s: Samples) -> tuple[str, str]:
+    share = s.column("band_rubble")[-1]
+    text = (
+        f"{100 * share:.0f} % of the rock within {RUBBLE_BAND:g} m of the tunnel lies in pieces under "
+        f"{100 * RUBBLE_PIECE:.0f} % of a brick at {1e3 * s.time[-1]:.0f} ms"
+    )
+    verdict = "reproduced" if share >= 0.5 else "partly" if share >= 0.2 else "not reproduced"
+    return text, f"{verdict} (reproduced from 50 %, partly from 20 %)"
+
+
+def _limestone_fill(s: Samples) -> tuple[str, str]:
+    fill = s.column("fill")
+    text = f"solid fill {fill[-1]:.3f} of the tunnel's volume at {1e3 * s.time[-1]:.0f} ms (largest {fill.max():.3f})"
+    from limestone_tunnel import RUBBLE_SOLID_FRACTION
+
+    filled = fill[-1] >= RUBBLE_SOLID_FRACTION
+    return text, f"{'reproduced' if filled else 'not reproduced'} (a loose pile fills it at {RUBBLE_SOLID_FRACTION})"
+
+
+def _limestone_cover(s: Samples) -> tuple[str, str]:
+    rise = s.column("cover_rise")
+    f = s.facts
+    text = f"the highest rock {rise.max():.1f} m above the slab's top (the cover over the charge: {f['cover']:.1f} m)"
+    return text, "as published (the cover stays)" if rise.max() <= 1.0 else "differs (the cover is thrown)"
+
+
 SCENARIOS: dict[str, Scenario] = {
     "masonry_wall_blast": Scenario(
         scene="masonry_wall_blast",
@@ -429,6 +572,38 @@ SCENARIOS: dict[str, Scenario] = {
         ),
         plot={"converted_concrete": "dam tets converted (incl. the start region)"},
         window=(-9.0, 9.0, 50.0, 64.0),  # the crest about the charge, seen from downstream (as docs' crater picture)
+    ),
+    "limestone_tunnel": Scenario(
+        scene="limestone_tunnel",
+        title="A tunnel in infrequently jointed limestone (LDEC §4, Fig. 9)",
+        source=LDEC,
+        sample=sample_limestone,
+        claims=(
+            Claim(
+                "§4",
+                '"blocks of limestone, measuring 1.83 m wide, by 0.30 m high, surrounding a tunnel measuring 2.73 m '
+                'by 2.80 m"',
+                _limestone_setup,
+            ),
+            Claim(
+                "§4",
+                '"a tamped, one-ton detonation located 4.88 m left and 5.75 m above the tunnel"',
+                _limestone_charge,
+            ),
+            Claim("§4", "10 cm elements (the model's resolution)", _limestone_cells),
+            Claim(
+                "§4",
+                '"a significant portion of the rock mass surrounding the tunnel is reduced to rubble"',
+                _limestone_rubble,
+            ),
+            Claim("§4, Fig. 9", '"This rubble mass is sufficient to fill in the original tunnel"', _limestone_fill),
+            Claim("Fig. 9", "the rock over the charge stays in place (no crater in the pictures)", _limestone_cover),
+        ),
+        plot={"fill": "solid fill of the tunnel", "band_rubble": "rubble share of the rock within 1 m of it"},
+        window=(-0.8, 11.5, -0.5, 20.5),  # the slab and 20 m above its foot (as docs/limestone_tunnel.png)
+        instants=(0.01, 0.5, 1.0),  # Fig. 9's 10, 500 and 1000 ms of the 1 s run
+        color_by="speed",
+        scale=10.0,  # Fig. 9's key: 0-10 m/s
     ),
 }
 """The scenarios by scene name."""
