@@ -30,6 +30,7 @@ import math
 import sys
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -290,20 +291,63 @@ def dilatational_speed(youngs_modulus: float, poisson_ratio: float, density: flo
     return math.sqrt(youngs_modulus * (1.0 - nu) / ((1.0 + nu) * (1.0 - 2.0 * nu) * density))
 
 
+@dataclass(frozen=True)
+class RemotePlate:
+    """What the remote-tension plates' reports measure against (LDEC Fig. 4): the speeds, the mesh and the geometry.
+
+    Attributes:
+        c_r: Rayleigh speed [m/s]. c_d: dilatational speed [m/s], the first wave back from an edge.
+        h: element size along x [m]. delta_c: the linear law's critical opening 2Γ/T_f [m].
+        edge: the plate's edge along x [m]. half_height: half its height [m].
+        seed_tip: the seed's rim [m] (2a = 20 mm: its tip nodes split first).
+        unconstrained: every node may split (no ``[fracture].region``).
+    """
+
+    c_r: float
+    c_d: float
+    h: float
+    delta_c: float
+    edge: float
+    half_height: float
+    seed_tip: float
+    unconstrained: bool
+
+    @staticmethod
+    def of(scene) -> RemotePlate:
+        mat = scene.materials[scene.mesh.material]
+        h = (scene.mesh.hi[0] - scene.mesh.lo[0]) / scene.mesh.divisions[0]
+        return RemotePlate(
+            c_r=rayleigh_speed(mat.youngs_modulus, mat.poisson_ratio, mat.density),
+            c_d=dilatational_speed(mat.youngs_modulus, mat.poisson_ratio, mat.density),
+            h=h,
+            delta_c=2.0 * mat.fracture_energy / mat.tensile_strength,
+            edge=float(scene.mesh.hi[0]),
+            half_height=float(scene.mesh.hi[1]),
+            seed_tip=0.010 + 0.5 * h,
+            unconstrained=scene.fracture.region is None,
+        )
+
+    def plateau(self, times: np.ndarray, tips: np.ndarray) -> tuple[float | None, np.ndarray]:
+        """The crack's start [s] (None: it did not start) and the plateau window over the samples ``times`` [s],
+        ``tips`` (the tip's |x| [m]): from PLATEAU_FROM past the seed's tip (the start-up over) until the crack's own
+        first waves are back from the loaded edges (start + 2 H / c_d) or the tip is within PLATEAU_EDGE of the
+        plate's edge, whichever is first."""
+        started = np.nonzero(tips > self.seed_tip + 0.5 * self.h)[0]
+        if len(started) == 0:
+            return None, np.zeros(len(times), dtype=bool)
+        t0 = float(times[started[0]])
+        t_back = t0 + 2.0 * self.half_height / self.c_d
+        window = (tips >= self.seed_tip + PLATEAU_FROM) & (times <= t_back) & (tips <= self.edge - PLATEAU_EDGE)
+        return t0, window
+
+
 def pmma_plate_remote(scene, device: str, end_time: float | None) -> list[str]:
     """The remote-tension plates (LDEC Fig. 4 as published, and its unconstrained variant): the tip speed's plateau
     against c_R over a stated window; where every node may split (no ``[fracture].region``), how far from the centre
     line the splits reach (branching)."""
-    mat = scene.materials[scene.mesh.material]
-    c_r = rayleigh_speed(mat.youngs_modulus, mat.poisson_ratio, mat.density)
-    c_d = dilatational_speed(mat.youngs_modulus, mat.poisson_ratio, mat.density)
-    h = (scene.mesh.hi[0] - scene.mesh.lo[0]) / scene.mesh.divisions[0]
-    delta_c = 2.0 * mat.fracture_energy / mat.tensile_strength  # the linear law's critical opening
+    plate = RemotePlate.of(scene)
+    c_r, h, edge = plate.c_r, plate.h, plate.edge
     name = scene.name
-    unconstrained = scene.fracture.region is None
-    edge = float(scene.mesh.hi[0])
-    half_height = float(scene.mesh.hi[1])
-    seed_tip = 0.010 + 0.5 * h  # the seed's rim: 2a = 20 mm, its tip nodes split first
     times, tips, lines, off_line = [], [], [], []
     for t, sim, n0 in _stepped(scene, device, end_time):
         x = _daughters(sim, n0)
@@ -319,19 +363,14 @@ def pmma_plate_remote(scene, device: str, end_time: float | None) -> list[str]:
             break  # through to the edge: nothing more to measure
     times_a, tips_a = np.asarray(times), np.asarray(tips)
     out = [
-        f"{name}: c_R = {c_r:.0f} m/s, c_d = {c_d:.0f} m/s; h = {h * 1e3:.1f} mm = {h / delta_c:.0f} δ_c "
-        f"(δ_c = 2Γ/T_f = {delta_c * 1e6:.0f} µm; LDEC: 1000 δ_c); plate {2 * edge * 1e3:.0f} × "
-        f"{2 * half_height * 1e3:.0f} mm"
+        f"{name}: c_R = {c_r:.0f} m/s, c_d = {plate.c_d:.0f} m/s; h = {h * 1e3:.1f} mm = {h / plate.delta_c:.0f} δ_c "
+        f"(δ_c = 2Γ/T_f = {plate.delta_c * 1e6:.0f} µm; LDEC: 1000 δ_c); plate {2 * edge * 1e3:.0f} × "
+        f"{2 * plate.half_height * 1e3:.0f} mm"
     ]
     out += lines[:: max(1, len(lines) // 25)]
-    started = np.nonzero(tips_a > seed_tip + 0.5 * h)[0]
-    if len(started) == 0:
+    t0, window = plate.plateau(times_a, tips_a)
+    if t0 is None:
         return [*out, f"{name}: the crack did not start"]
-    t0 = times_a[started[0]]
-    # The window: from PLATEAU_FROM past the seed's tip (the start-up over) until the crack's own first waves are back
-    # from the loaded edges (t0 + 2 H / c_d) or the tip is within PLATEAU_EDGE of the plate's edge, whichever is first.
-    t_back = t0 + 2.0 * half_height / c_d
-    window = (tips_a >= seed_tip + PLATEAU_FROM) & (times_a <= t_back) & (tips_a <= edge - PLATEAU_EDGE)
     if np.count_nonzero(window) >= 3:
         t_w, x_w = times_a[window], tips_a[window]
         speed = float(np.polyfit(t_w, x_w, 1)[0])
@@ -345,7 +384,7 @@ def pmma_plate_remote(scene, device: str, end_time: float | None) -> list[str]:
         out.append(f"{name}: the window's thirds: {' / '.join(parts)} c_R")
     else:
         out.append(f"{name}: fewer than 3 samples in the plateau window (crack starts at t = {t0 * 1e6:.1f} µs)")
-    if unconstrained:
+    if plate.unconstrained:
         out.append(
             f"{name}: splits reach |y| = {max(off_line) * 1e3:.1f} mm off the centre line "
             f"({max(off_line) / h:.1f} h); a branch leaves the line where |y| grows with |x|"
