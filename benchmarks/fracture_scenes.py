@@ -30,8 +30,8 @@ import math
 import sys
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -291,8 +291,7 @@ def dilatational_speed(youngs_modulus: float, poisson_ratio: float, density: flo
     return math.sqrt(youngs_modulus * (1.0 - nu) / ((1.0 + nu) * (1.0 - 2.0 * nu) * density))
 
 
-@dataclass(frozen=True)
-class RemotePlate:
+class RemotePlate(NamedTuple):
     """What the remote-tension plates' reports measure against (LDEC Fig. 4): the speeds, the mesh and the geometry.
 
     Attributes:
