@@ -130,7 +130,7 @@ def report(
         say(line)
     rows = []
     ref = sim.model.node_ref_q.numpy().astype(np.float64)
-    m0_top = ref[:, 2].max()  # the slab's top [m]
+    top = float(ref[:, 2].max())  # the slab's top [m]
     peak = np.zeros(len(ref))  # the nodes' largest speed in the deformable phase [m/s] (daughters of splits left out)
     e0 = sim.energy()
     in_play = e0.in_play
@@ -165,9 +165,7 @@ def report(
         say(line)
     if sim.rigid_report is not None:
         say(sim.rigid_report.format())
-    top = float(m0_top)
-    nn = int(sim.state.node_count.numpy()[0])
-    heights = sim.state.node_q.numpy()[:nn, 2].astype(np.float64)
+    heights = rock_heights(sim)
     say(
         f"cover: the highest rock at z = {heights.max():.2f} m against the slab's top at {top:.2f} m; "
         f"{np.count_nonzero(heights > top + 1.0)} nodes more than 1 m above it"
@@ -188,6 +186,12 @@ def report(
             w.writerows(rows)
         tmp.replace(csv_path)
     return out
+
+
+def rock_heights(sim) -> np.ndarray:
+    """The live nodes' heights z now [m], shape (N,), float64: how far the charge threw the rock over the slab."""
+    nn = int(sim.state.node_count.numpy()[0])
+    return sim.state.node_q.numpy()[:nn, 2].astype(np.float64)
 
 
 def rubble_volume(sim, lo: np.ndarray, hi: np.ndarray) -> tuple[float, int]:
