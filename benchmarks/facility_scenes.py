@@ -31,6 +31,17 @@ t = 0) and stepped in Python, read back every SAMPLE_STEPS steps. What LDEC §3 
   r' the distance from the mirror image of ground zero in the nearest held face (the echo at the direct wave's own
   mean speed), which in this 24 m box is what ends most windows. As a check of the window, the same fit of the largest
   speed within WAVE_WINDOW (echoes included: LDEC's Fig. 7 at 30 ms, 10 ms at 1:3);
+- diffraction around the largest room (LDEC: "the irregular model resulted in more diffraction of waves around
+  cavities"): the first-pulse PPV (as above) at SHADOW probes, the free nodes nearest points half a metre below the
+  room's floor over its footprint (inset by a metre), which the straight path from ground zero reaches only through
+  the room, against LIT probes at the same depth on a ring of LIT_RING about ground zero whose straight path crosses
+  no opening. Each PPV is scaled by its distance r from ground zero (a body wave's spreading, 1/r, taken out) and the
+  measure is the mean of PPV·r in the shadow over its mean on the lit ring, with its standard error: 0 for a cavity
+  that casts a full shadow, more where the wave bends round it. Not a transmitted share: the patch radiates more
+  straight down than 25° off the vertical, where the ring lies, so an unobstructed rock reads above 1; the measure is
+  for comparing the two geologies, which share the source. The first arrivals' medians beside it;
+- the load as delivered: the loaded area [m²] and the normal impulse [N s] of the pressure load at the end (the
+  run's summary's figures, warpdem.load_data), so the two geologies are seen to take the same blast;
 - rubble: the volume of block material inside each opening's original cross-section (each tet sampled at the four
   points of the degree-2 Keast rule, each carrying a quarter of its volume, at the blocks' current pose), every
   RUBBLE_INTERVAL, section by section: the largest room, the plain tunnel stretches, the junctions (main tunnel with
@@ -81,6 +92,14 @@ ATTENUATION_POLAR = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0)
 """Angles from the vertical of the attenuation probes' rays [deg]."""
 ATTENUATION_AZIMUTHS = 8
 """Rays at each angle from the vertical, evenly spaced around it (every 45°: along and between the openings' axes)."""
+SHADOW_DEPTH = 0.5
+"""Depth of the diffraction probes below the largest room's floor [m]: in the blocks the room's floor cuts, above
+the held base layer."""
+LIT_RING = 8.0
+"""Horizontal radius of the lit diffraction probes' ring about ground zero [m]: outside the room's footprint and the
+main tunnel's, at 17.5-19.2 m from ground zero as the shadow probes' 17.5-17.8 m."""
+LIT_AZIMUTHS = 16
+"""Points on the lit ring, evenly spaced (those whose path crosses an opening, or that lie over one, are dropped)."""
 CHIMNEY_DROP = 0.1
 """A block above an opening has collapsed once it has sunk this much below its layer's reference blocks [m]. The
 joints close under the blast's peak by p/k_n = 100 MPa / 2.5 GPa/m = 4 cm at the surface (less deeper, where the
@@ -234,10 +253,40 @@ def attenuation_probes(scene) -> list[tuple[float, np.ndarray]]:
                 p = gz + r * direction
                 if not (np.all(p >= lo + 0.5) and np.all(p <= hi - 0.5)) or over_opening(sections, p):
                     continue
-                path = gz + np.linspace(0.0, r, max(2, math.ceil(r / 0.05) + 1))[:, None] * direction
-                if not any(np.any(sec.contains(path)) for sec in sections):
+                if through_rock(sections, gz, p):
                     out.append((r, p))
     return out
+
+
+def through_rock(sections: list[Section], gz: np.ndarray, p: np.ndarray) -> bool:
+    """Whether the straight path from ground zero ``gz`` to ``p`` [m] crosses no opening section (checked every
+    5 cm)."""
+    r = float(np.linalg.norm(p - gz))
+    path = gz + np.linspace(0.0, 1.0, max(2, math.ceil(r / 0.05) + 1))[:, None] * (p - gz)
+    return not any(np.any(sec.contains(path)) for sec in sections)
+
+
+def diffraction_probes(scene) -> dict[str, list[np.ndarray]]:
+    """The points [m] of the diffraction measure (module docstring): "shadow", every 2 m over the largest room's
+    footprint inset by 1 m, SHADOW_DEPTH below its floor (the path from ground zero runs through the room); "lit",
+    LIT_AZIMUTHS points on a ring of LIT_RING about ground zero at the same depth, kept where the path crosses no
+    opening and the point lies over none, at least 0.5 m inside the box. Whether a probe's block is held is for the
+    caller."""
+    gz, _ = load_patch(scene)
+    lo, hi = np.asarray(scene.mesh.lo), np.asarray(scene.mesh.hi)
+    sections = facility_sections(scene)
+    room = next(sec for sec in sections if sec.kind == "room")
+    z = room.lo[2] - SHADOW_DEPTH
+    grid = [np.arange(room.lo[k] + 1.0, room.hi[k] - 0.5, 2.0) for k in range(2)]
+    shadow = [np.array([x, y, z]) for x in grid[0] for y in grid[1]]
+    lit = []
+    for k in range(LIT_AZIMUTHS):
+        b = 2.0 * math.pi * k / LIT_AZIMUTHS
+        p = np.array([gz[0] + LIT_RING * math.cos(b), gz[1] + LIT_RING * math.sin(b), z])
+        inside = np.all(p >= lo + 0.5) and np.all(p <= hi - 0.5)
+        if inside and not over_opening(sections, p) and through_rock(sections, gz, p):
+            lit.append(p)
+    return {"shadow": shadow, "lit": lit}
 
 
 def echo_distance(scene, x: np.ndarray) -> float:
@@ -285,6 +334,34 @@ def attenuation_fit(r: np.ndarray, ppv: np.ndarray) -> dict:
         "alpha": float(-slope_a),
         "alpha_se": float(math.sqrt(cov_a[0, 0])),
         "probes": len(r),
+    }
+
+
+def diffraction_summary(shadow: list[dict], lit: list[dict]) -> dict:
+    """The diffraction measure from the shadow and lit probes' rows (``distance`` [m], ``arrival`` [s], ``ppv``
+    [m/s]; module docstring): ``ratio``, the mean of PPV·r over the reached shadow probes (an average over the room's
+    footprint: the probes lie on an even grid) over its mean on the lit ring, with its standard error ``ratio_se``
+    (each mean's standard error, s/sqrt(k), propagated to first order; NaN without two reached probes on either side);
+    the medians of the first arrivals [s]; and the probes reached on each side."""
+
+    def reached(rows: list[dict]) -> np.ndarray:
+        ok = [p for p in rows if math.isfinite(p["ppv"]) and p["ppv"] > 0.0]
+        return np.array([[p["ppv"] * p["distance"], p["arrival"]] for p in ok]).reshape(-1, 2)
+
+    s, li = reached(shadow), reached(lit)
+    if len(s) < 2 or len(li) < 2:
+        nan = math.nan
+        return {"ratio": nan, "ratio_se": nan, "shadow_arrival": nan, "lit_arrival": nan, "reached": (len(s), len(li))}
+    mean_s, mean_l = float(s[:, 0].mean()), float(li[:, 0].mean())
+    rel_s = float(s[:, 0].std(ddof=1)) / math.sqrt(len(s)) / mean_s
+    rel_l = float(li[:, 0].std(ddof=1)) / math.sqrt(len(li)) / mean_l
+    ratio = mean_s / mean_l
+    return {
+        "ratio": ratio,
+        "ratio_se": ratio * math.hypot(rel_s, rel_l),
+        "shadow_arrival": float(np.median(s[:, 1])),
+        "lit_arrival": float(np.median(li[:, 1])),
+        "reached": (len(s), len(li)),
     }
 
 
@@ -522,7 +599,15 @@ def report(scene, device: str, end_time: float | None) -> dict:
         b = node_body[i]
         if not fixed[b] and i not in field and not over_opening(sections, extent_lo[b], extent_hi[b]):
             field[i] = (r, echo_distance(scene, ref[i]))
-    nodes = np.array(sorted({i for pts in probes.values() for _, i in pts} | set(field)))
+    free_nodes = np.flatnonzero(~fixed[node_body[: len(ref)]])
+    gz, _ = load_patch(scene)
+    bent = {}  # kind -> {node: distance from ground zero}: the diffraction probes, in free blocks (the base is held)
+    for kind, pts in diffraction_probes(scene).items():
+        near = (free_nodes[np.argmin(np.linalg.norm(ref[free_nodes] - q, axis=1))] for q in pts)
+        bent[kind] = {int(i): float(np.linalg.norm(ref[i] - gz)) for i in near}
+    nodes = np.array(
+        sorted({i for pts in probes.values() for _, i in pts} | set(field) | {i for d in bent.values() for i in d})
+    )
     steps = max(1, round((end_time or scene.run.end_time) / model.dt))
     times, sampled, velocities = [0.0], [], [np.zeros((len(nodes), 3))]
     nt = int(sim.state.tet_count.numpy()[0])
@@ -605,6 +690,19 @@ def report(scene, device: str, end_time: float | None) -> dict:
     # The window's check: the largest speed of the wave within WAVE_WINDOW, the frame's echoes included.
     whole = np.array([float(wave[:, column[p["node"]]].max()) for p in reached])
     attenuation["window"] = attenuation_fit(np.array([p["distance"] for p in reached]), whole)
+    diffraction = {}
+    for kind, probes_of_kind in bent.items():
+        rows = []
+        for i, r in probes_of_kind.items():
+            arrival, ppv = first_pulse_ppv(t, wave[:, column[i]], r, echo_distance(scene, ref[i]), pulse)
+            rows.append({"distance": r, "node": i, "arrival": arrival, "ppv": ppv})
+        diffraction[kind] = rows
+    diffraction.update(diffraction_summary(diffraction["shadow"], diffraction["lit"]))
+    loads = sim.model.loads
+    load = {
+        "area": float(loads.loaded_areas()[0]),
+        "impulse": float(loads.impulses(sim.state.load_face_impulse.numpy())[0]),
+    }
     pictures["x_end"] = current_positions(sim)
     pictures["moved_end"] = np.linalg.norm(sim.state.body_dc.numpy(), axis=1)[tet_body]
     volumes = history["rubble"][-1]
@@ -627,6 +725,8 @@ def report(scene, device: str, end_time: float | None) -> dict:
         "waves": waves,
         "free_field": free_field,
         "attenuation": attenuation,
+        "diffraction": diffraction,
+        "load": load,
         "sections": [
             {"name": s.name, "kind": s.kind, "volume": s.volume, "rubble": v, "chimney": c[0], "layers": c[1]}
             for s, v, c in zip(sections, volumes, chimney, strict=True)
@@ -653,6 +753,9 @@ def format_side_by_side(results: list[dict]) -> list[str]:
         )
     )
     lines.append(row("build / run wall [s]", [f"{r['build_s']:.0f} / {r['run_s']:.0f}" for r in results]))
+    lines.append(
+        row("load: area [m²], impulse [N s]", [f"{r['load']['area']:.1f}, {r['load']['impulse']:.4g}" for r in results])
+    )
     lines.append(row("books: error / energy in play", [f"{r['books']:+.2e} of {r['in_play']:.3g} J" for r in results]))
     lines.append(
         f"wave speed by direction (first arrival at {ARRIVAL_FRACTION:.0%} of each probe's peak speed; "
@@ -719,6 +822,25 @@ def format_side_by_side(results: list[dict]) -> list[str]:
         row(
             f"  check: largest speed within {WAVE_WINDOW * 1e3:.0f} ms, n; α",
             [f"{r['attenuation']['window']['n']:.2f}; {r['attenuation']['window']['alpha']:.3f}" for r in results],
+        )
+    )
+    lines.append(
+        row(
+            "diffraction: mean PPV·r shadow / lit ± s.e. (probes)",
+            [
+                f"{r['diffraction']['ratio']:.2f} ± {r['diffraction']['ratio_se']:.2f} "
+                f"({r['diffraction']['reached'][0]} / {r['diffraction']['reached'][1]})"
+                for r in results
+            ],
+        )
+    )
+    lines.append(
+        row(
+            "  first arrival, shadow / lit [ms]",
+            [
+                f"{r['diffraction']['shadow_arrival'] * 1e3:.2f} / {r['diffraction']['lit_arrival'] * 1e3:.2f}"
+                for r in results
+            ],
         )
     )
     lines.append(

@@ -22,15 +22,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from facility_report import FACILITY, write_facility_report  # beside this script, in benchmarks/
+from report_common import CIMNE, LDEC, OUT_DIR, ROOT, SCENES_DIR, Claim, claim_table, write_atomically
 
-ROOT = Path(__file__).resolve().parent.parent
-SCENES_DIR = ROOT / "scenes"
-OUT_DIR = ROOT / "docs" / "reports"
 INSTANTS = (1.0 / 6.0, 0.5, 1.0)
 """Fractions of the run the pictures show."""
-
-CIMNE = "the adaptive DEM/FEM blast paper (CIMNE; `../shared/seeds/adaptive_dem_fem_blast.txt`)"
-LDEC = "the LDEC FEM/DEM fracture paper (LLNL; `../shared/seeds/ldec_fem_dem_fracture.txt`)"
 
 
 @dataclass
@@ -60,21 +56,6 @@ class Samples:
         values = self.column(name)
         hits = np.nonzero(values > above)[0]
         return None if len(hits) == 0 else self.time[int(hits[0])]
-
-
-@dataclass(frozen=True)
-class Claim:
-    """One row of a report: what the paper says, and how warpdem's run is held against it.
-
-    Attributes:
-        where: the paper's section or figure.
-        paper: the paper's words (quoted) or the set-up it states.
-        judge: the samples → (warpdem's measured figure, the verdict with its criterion).
-    """
-
-    where: str
-    paper: str
-    judge: Callable[[Samples], tuple[str, str]]
 
 
 @dataclass(frozen=True)
@@ -211,7 +192,6 @@ def write_report(scenario: Scenario, samples: Samples, stage: Path, out: Path, c
     from warpdem.io.preview import render, stage_frames
 
     out.mkdir(parents=True, exist_ok=True)
-    rows = [(claim.where, claim.paper, *claim.judge(samples)) for claim in scenario.claims]
     t_end = samples.time[-1]
     lines = [
         f"# {scenario.title} — the paper beside warpdem",
@@ -220,16 +200,13 @@ def write_report(scenario: Scenario, samples: Samples, stage: Path, out: Path, c
         f"{1e3 * (samples.time[1] - samples.time[0]):.3g} ms (its output frames); paper: {scenario.source}.",
         f"Written by `{command}`; every figure below is measured on that run at its output frames.",
         "",
-        "| where | the paper | warpdem | verdict |",
-        "|---|---|---|---|",
+        *claim_table(scenario.claims, samples),
+        "",
+        f"![{scenario.scene}]({scenario.scene}.png)",
+        "",
     ]
-    # A "|" inside a cell (|x|) would end it: Markdown tables take it escaped.
-    lines += ["| " + " | ".join(cell.replace("|", "\\|") for cell in row) + " |" for row in rows]
-    lines += ["", f"![{scenario.scene}]({scenario.scene}.png)", ""]
     md = out / f"{scenario.scene}.md"
-    tmp = md.with_suffix(".md.tmp")
-    tmp.write_text("\n".join(lines))
-    tmp.replace(md)
+    write_atomically(md, "\n".join(lines))
 
     # The pictures at the instants, drawn by the preview from the stage, then set over the plot.
     from pxr import Usd
@@ -746,9 +723,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=OUT_DIR, help=f"where the reports go [{OUT_DIR.relative_to(ROOT)}]")
     parser.add_argument("--work", type=Path, help="where the runs go [a temporary folder]")
     args = parser.parse_args(argv)
-    unknown = [name for name in args.scenes if name not in SCENARIOS]
+    allowed = [*SCENARIOS, FACILITY]
+    unknown = [name for name in args.scenes if name not in allowed]
     if unknown:
-        parser.error(f"unknown scenario {unknown[0]!r}; allowed: {', '.join(SCENARIOS)}")
+        parser.error(f"unknown scenario {unknown[0]!r}; allowed: {', '.join(allowed)}")
     # What reproduces the report: the scenes and the end time (where the runs and reports go does not change them).
     command = " ".join(
         ["python benchmarks/seed_report.py", *args.scenes]
@@ -757,7 +735,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     with tempfile.TemporaryDirectory() as scratch:
         work = args.work or Path(scratch)
-        for name in args.scenes or list(SCENARIOS):
+        for name in args.scenes or allowed:
+            if name == FACILITY:  # two scenes side by side (benchmarks/facility_report.py)
+                for path in write_facility_report(args.out, args.device, args.end_time, command.strip()):
+                    print(f"{name}: wrote {path}")
+                continue
             scenario = SCENARIOS[name]
             samples, stage = run_scenario(scenario, work, args.device, args.end_time)
             for path in write_report(scenario, samples, stage, args.out, command.strip()):

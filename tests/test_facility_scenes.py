@@ -246,3 +246,51 @@ def test_chimney_counts_the_sinking_into_an_opening_not_the_layers_shared_push()
     # The shared push alone is no chimney.
     dc[over, 2] = -0.05
     assert facility.chimneys(centres, fixed, dc, [room], planes, 20.0)[0][0] == 0.0
+
+
+def test_diffraction_probes_lie_in_the_rooms_shadow_and_on_a_lit_ring():
+    """Oracle: the geometry, by a finer brute force. Every shadow probe lies SHADOW_DEPTH below the largest room's
+    floor, inside its footprint, and the straight path from ground zero to it (sampled every millimetre) runs through
+    the room; every lit probe lies at the same depth, LIT_RING from ground zero horizontally, over no opening, and its
+    path meets none. Both sets are not empty (the measure is defined)."""
+    for name in facility.SCENES:
+        scene = load_scene(SCENES_DIR / f"{name}.toml")
+        sections = facility.facility_sections(scene)
+        room = next(sec for sec in sections if sec.kind == "room")
+        gz, _ = facility.load_patch(scene)
+        probes = facility.diffraction_probes(scene)
+        assert probes["shadow"] and probes["lit"]
+
+        def path(p: np.ndarray, gz: np.ndarray = gz) -> np.ndarray:
+            return gz + np.linspace(0.0, 1.0, round(np.linalg.norm(p - gz) / 1e-3) + 1)[:, None] * (p - gz)
+
+        for p in probes["shadow"]:
+            assert p[2] == room.lo[2] - facility.SHADOW_DEPTH
+            assert np.all((p[:2] > room.lo[:2]) & (p[:2] < room.hi[:2]))
+            assert np.any(room.contains(path(p))), f"{name}: shadow probe at {p} is lit"
+        for p in probes["lit"]:
+            assert p[2] == room.lo[2] - facility.SHADOW_DEPTH
+            np.testing.assert_allclose(np.hypot(*(p[:2] - gz[:2])), facility.LIT_RING, rtol=1e-12)
+            assert not facility.over_opening(sections, p)
+            assert not any(np.any(sec.contains(path(p))) for sec in sections), f"{name}: lit probe at {p} is shadowed"
+
+
+def test_diffraction_measure_takes_out_the_spreading_and_reads_the_shadows_share():
+    """Oracle: built rows. A wave spreading as 1/r (PPV = 30 / r) gives PPV·r = 30 on both sides; in a shadow that
+    passes a share s of it, PPV·r = 30 s there, so the measure is s exactly (means of equal values, standard error
+    0), whatever the probes' distances. Scatter about those values: the mean's standard error s/sqrt(k) by hand. A
+    probe the wave never reached (NaN) is left out; with fewer than two reached on a side, the measure is NaN."""
+    lit = [{"distance": r, "arrival": r / 3000.0, "ppv": 30.0 / r} for r in (17.6, 18.4, 19.2)]
+    lit.append({"distance": 19.0, "arrival": float("nan"), "ppv": float("nan")})
+    shadow = [{"distance": r, "arrival": r / 2500.0, "ppv": 0.4 * 30.0 / r} for r in (17.5, 17.6, 17.8, 17.9)]
+    d = facility.diffraction_summary(shadow, lit)
+    np.testing.assert_allclose(d["ratio"], 0.4, rtol=1e-14)
+    assert d["ratio_se"] < 1e-14
+    np.testing.assert_allclose(d["lit_arrival"], 18.4 / 3000.0, rtol=1e-14)
+    np.testing.assert_allclose(d["shadow_arrival"], 17.7 / 2500.0, rtol=1e-14)
+    assert tuple(d["reached"]) == (4, 3)
+    # PPV·r of 10 and 14 in the shadow (mean 12, s = 2 sqrt(2), s.e. 2), 30 on the ring: 0.4 ± 2/30.
+    scattered = [{"distance": 20.0, "arrival": 0.0, "ppv": v / 20.0} for v in (10.0, 14.0)]
+    d = facility.diffraction_summary(scattered, lit)
+    np.testing.assert_allclose([d["ratio"], d["ratio_se"]], [0.4, 2.0 / 30.0], rtol=1e-13)
+    assert np.isnan(facility.diffraction_summary(shadow, lit[2:])["ratio"])
