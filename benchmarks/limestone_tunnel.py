@@ -1,6 +1,10 @@
 """Report of the LDEC §4 limestone tunnel (scenes/limestone_tunnel.toml): ``python benchmarks/limestone_tunnel.py
-[--scene PATH] [--device cpu] [--end-time T] [--resolution R] [--top free|non_reflecting] [--samples N]
-[--csv PATH]``.
+[--scene PATH] [--device cpu] [--end-time T] [--resolution R] [--top free|non_reflecting] [--friction MU]
+[--switch-time T] [--samples N] [--csv PATH]``.
+
+``--friction`` sets the friction coefficient of every joint and of rock on rock where no joint is (the scene's
+``[joints]`` and ``[interactions.default]``, both 0.6); ``--switch-time`` the time the pieces turn into rigid blocks
+(``[rigid] switch_time``, 10 ms): the two knobs of why the rubble does or does not fill the tunnel (docs/scenes.md).
 
 ``--top non_reflecting`` adds Lysmer–Kuhlemeyer dashpots on the slab's top (z+) to the scene: a tunnel deep in the
 rock, whose charge's wave leaves through the top instead of coming back from a free surface as tension, so the cover
@@ -229,6 +233,8 @@ def main(argv: list[str] | None = None) -> int:
         default="free",
         help="the slab's top as the scene has it (free), or with non-reflecting dashpots added (a deep tunnel)",
     )
+    parser.add_argument("--friction", type=float, default=None, help="joints' and rock-on-rock friction; default 0.6")
+    parser.add_argument("--switch-time", type=float, default=None, help="[rigid] switch_time [s]; default the scene's")
     parser.add_argument("--samples", type=int, default=20)
     parser.add_argument("--csv", type=Path, default=None, help="write the samples to this CSV file")
     args = parser.parse_args(argv)
@@ -239,6 +245,20 @@ def main(argv: list[str] | None = None) -> int:
     scene = load_scene(args.scene)
     if args.resolution is not None:
         scene = scene.model_copy(update={"run": scene.run.model_copy(update={"resolution": args.resolution})})
+    if args.friction is not None:
+        if not args.friction >= 0.0:
+            parser.error(f"--friction: {args.friction:g} is not a friction coefficient (allowed: >= 0)")
+        default = scene.interactions.default.model_copy(update={"friction": args.friction})
+        scene = scene.model_copy(
+            update={
+                "joints": scene.joints.model_copy(update={"friction": args.friction}),
+                "interactions": scene.interactions.model_copy(update={"default": default}),
+            }
+        )
+    if args.switch_time is not None:
+        if not args.switch_time > 0.0:
+            parser.error(f"--switch-time: {args.switch_time:g} s is not a time after the start (allowed: > 0)")
+        scene = scene.model_copy(update={"rigid": scene.rigid.model_copy(update={"switch_time": args.switch_time})})
     if args.top == "non_reflecting":
         from warpdem.scene.loads import Boundary
 
