@@ -9,7 +9,6 @@ error where facility_scenes' docstring gives it: wave speeds are fits over 5–6
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import NamedTuple
@@ -172,9 +171,7 @@ def _diffraction(r: Runs) -> tuple[str, str]:
 def _room_collapse(r: Runs) -> tuple[str, str]:
     n = r.nonpersistent
     share = _room(n)["rubble"] / _room(n)["volume"]
-    history = n["history"]
-    k = len(history["time"]) - 1
-    mean, most, _ = history["roof"][k]
+    mean, most, _ = n["history"]["roof"][-1]
     text = (
         f"non-persistent: {share:.1%} of the room's {_room(n)['volume']:.0f} m³ is rubble at "
         f"{1e3 * n['end_time']:.0f} ms; its roof bed {100 * mean:.0f} cm down on average ({100 * most:.0f} cm at most)"
@@ -267,31 +264,17 @@ CLAIMS = (
 
 
 def run_facility(device: str, end_time: float | None) -> Runs:
-    """Runs both geologies (facility_scenes.report) to ``end_time`` [s] (END_TIME if None)."""
-    from warpdem.cli import init_warp
+    """Runs both geologies (facility_scenes.run_scenes) to ``end_time`` [s] (END_TIME if None)."""
     from warpdem.scene import load_scene
 
-    init_warp()
-    scenes = [load_scene(SCENES_DIR / f"{name}.toml") for name in fs.SCENES]
-    results = []
-    for scene in scenes:
-        results.append(fs.report(scene, device, end_time or END_TIME))
-        print(f"{scene.name}: built in {results[-1]['build_s']:.0f} s, ran in {results[-1]['run_s']:.0f} s", flush=True)
-    return Runs(*results, scenes[0])
+    persistent, nonpersistent = fs.run_scenes(fs.SCENES, device, end_time or END_TIME)
+    return Runs(persistent, nonpersistent, load_scene(SCENES_DIR / f"{fs.SCENES[0]}.toml"))
 
 
 def write_facility_report(out: Path, device: str, end_time: float | None, command: str) -> list[Path]:
     """Runs the facility and writes OUT/facility.md, OUT/facility.png and OUT/facility.json (the runs' figures, as
     facility_scenes.py --json writes them). Returns the paths."""
-    return write_facility_files(out, run_facility(device, end_time), command)
-
-
-def write_facility_files(out: Path, runs: Runs, command: str) -> list[Path]:
-    """Writes the report of ``runs`` (:func:`write_facility_report`); the picture only where the runs hold their
-    pictures' arrays (runs read back from facility.json do not: the claims and tables are rewritten, the picture
-    kept). Returns the paths written."""
-    for run in runs.both:  # the measure from its probes' rows (runs read back from an older facility.json too)
-        run["diffraction"].update(fs.diffraction_summary(run["diffraction"]["shadow"], run["diffraction"]["lit"]))
+    runs = run_facility(device, end_time)
     side_by_side = fs.format_side_by_side(list(runs.both))
     print("\n".join(side_by_side))
     out.mkdir(parents=True, exist_ok=True)
@@ -321,9 +304,6 @@ def write_facility_files(out: Path, runs: Runs, command: str) -> list[Path]:
     ]
     md, png, js = (out / f"{FACILITY}.{ext}" for ext in ("md", "png", "json"))
     write_atomically(md, "\n".join(lines))
-    figures = [{k: v for k, v in r.items() if not k.startswith("_")} for r in runs.both]
-    write_atomically(js, json.dumps(figures, indent=1))
-    if "_pictures" not in p:
-        return [md, js]
+    write_atomically(js, fs.figures_json(list(runs.both)))
     fs.draw_sections(list(runs.both), png)
     return [md, png, js]

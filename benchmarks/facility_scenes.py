@@ -208,6 +208,12 @@ def load_patch(scene) -> tuple[np.ndarray, float]:
     return np.array([cyl.center[0], cyl.center[1], scene.mesh.hi[2]]), float(cyl.radius)
 
 
+def in_box(lo: np.ndarray, hi: np.ndarray, p: np.ndarray) -> bool:
+    """Whether a probe point ``p`` [m] lies at least half a metre inside the box ``lo``..``hi`` [m] (its nearest node
+    is then not on a held face)."""
+    return bool(np.all(p >= lo + 0.5) and np.all(p <= hi - 0.5))
+
+
 def probe_points(scene) -> dict[str, list[tuple[float, np.ndarray]]]:
     """(distance along the ray [m], point [m]) of the probes of each ray that lie in the rock: inside the box, in
     none of the openings."""
@@ -219,11 +225,7 @@ def probe_points(scene) -> dict[str, list[tuple[float, np.ndarray]]]:
         a = math.radians(angle)
         direction = np.array([0.0, -math.sin(a), -math.cos(a)])
         pts = [(r, gz + r * direction) for r in PROBE_DISTANCES]
-        out[name] = [
-            (r, p)
-            for r, p in pts
-            if np.all(p >= lo + 0.5) and np.all(p <= hi - 0.5) and not any(sec.contains(p) for sec in sections)
-        ]
+        out[name] = [(r, p) for r, p in pts if in_box(lo, hi, p) and not any(sec.contains(p) for sec in sections)]
     return out
 
 
@@ -251,7 +253,7 @@ def attenuation_probes(scene) -> list[tuple[float, np.ndarray]]:
             direction = np.array([math.sin(a) * math.cos(b), math.sin(a) * math.sin(b), -math.cos(a)])
             for r in PROBE_DISTANCES:
                 p = gz + r * direction
-                if not (np.all(p >= lo + 0.5) and np.all(p <= hi - 0.5)) or over_opening(sections, p):
+                if not in_box(lo, hi, p) or over_opening(sections, p):
                     continue
                 if through_rock(sections, gz, p):
                     out.append((r, p))
@@ -283,8 +285,7 @@ def diffraction_probes(scene) -> dict[str, list[np.ndarray]]:
     for k in range(LIT_AZIMUTHS):
         b = 2.0 * math.pi * k / LIT_AZIMUTHS
         p = np.array([gz[0] + LIT_RING * math.cos(b), gz[1] + LIT_RING * math.sin(b), z])
-        inside = np.all(p >= lo + 0.5) and np.all(p <= hi - 0.5)
-        if inside and not over_opening(sections, p) and through_rock(sections, gz, p):
+        if in_box(lo, hi, p) and not over_opening(sections, p) and through_rock(sections, gz, p):
             lit.append(p)
     return {"shadow": shadow, "lit": lit}
 
@@ -909,6 +910,24 @@ def format_side_by_side(results: list[dict]) -> list[str]:
     return lines
 
 
+def run_scenes(names: list[str] | tuple[str, ...], device: str, end_time: float | None) -> list[dict]:
+    """Runs each named scene (:func:`report`) to ``end_time`` [s] (the scene's if None), saying how long each took."""
+    from warpdem.cli import init_warp
+    from warpdem.scene import load_scene
+
+    init_warp()
+    results = []
+    for name in names:
+        results.append(report(load_scene(SCENES_DIR / f"{name}.toml"), device, end_time))
+        print(f"{name}: built in {results[-1]['build_s']:.0f} s, ran in {results[-1]['run_s']:.0f} s", flush=True)
+    return results
+
+
+def figures_json(results: list[dict]) -> str:
+    """The runs' figures as JSON: every entry but the arrays (names starting with an underscore)."""
+    return json.dumps([{k: v for k, v in r.items() if not k.startswith("_")} for r in results], indent=1)
+
+
 def main(argv: list[str] | None = None) -> int:
     from scene_reports import chosen_scenes, scene_parser  # beside this script, in benchmarks/
 
@@ -916,22 +935,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, help="also write the figures to this JSON file")
     parser.add_argument("--picture", type=Path, help="also draw the sections of the scenes to this PNG file")
     args = parser.parse_args(argv)
-    names = chosen_scenes(parser, args, SCENES)
-    from warpdem.cli import init_warp
-    from warpdem.scene import load_scene
-
-    init_warp()
-    results = []
-    for name in names:
-        results.append(report(load_scene(SCENES_DIR / f"{name}.toml"), args.device, args.end_time))
-        print(f"{name}: built in {results[-1]['build_s']:.0f} s, ran in {results[-1]['run_s']:.0f} s", flush=True)
+    results = run_scenes(chosen_scenes(parser, args, SCENES), args.device, args.end_time)
     print("\n".join(format_side_by_side(results)))
     if args.picture is not None:
         draw_sections(results, args.picture)
     if args.json is not None:
-        args.json.write_text(
-            json.dumps([{k: v for k, v in r.items() if not k.startswith("_")} for r in results], indent=1)
-        )
+        args.json.write_text(figures_json(results))
     return 0
 
 
