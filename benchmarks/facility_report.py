@@ -95,8 +95,9 @@ def _load(r: Runs) -> tuple[str, str]:
 
 def _joints(r: Runs) -> tuple[str, str]:
     return (
-        "bedding 2 m apart; vertical joints through two beds, staggered by 1 m in the next two (regular, not random)",
-        "differs (non-persistent, not randomized)",
+        "bedding 2 m apart; every vertical plane 1 m apart alternates random runs of 1 to 3 beds with and without "
+        "a joint piece (4 m persistence and 2 m spacing on average; exactly vertical, on half metres)",
+        "reproduced (randomized persistence through a few layers; LDEC's sets are near-vertical, these vertical)",
     )
 
 

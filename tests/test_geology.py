@@ -517,6 +517,71 @@ def test_layer_joints_fill_alternate_slab_groups(layers: int, phase: int) -> Non
     assert_conforming(mesh)
 
 
+@pytest.mark.parametrize(("shortest", "longest"), [(1, 3), (2, 2), (1, 1)])
+def test_random_runs_alternate_within_their_lengths(shortest: int, longest: int) -> None:
+    """Oracle: the definition of the randomized persistence (jointing._random_runs). Runs with and without a piece
+    alternate, so between two pieces lies one gap: every piece and every gap inside [first, last) is ``shortest`` to
+    ``longest`` slabs long (the ones cut by an end may be shorter); both lengths are drawn from the same uniform law,
+    so the share of slabs with a piece tends to 1/2, within 4 standard errors of a binomial over the runs drawn."""
+    from warpdem.build.jointing import _random_runs
+
+    first, last = -3, 400
+    covered = 0
+    for seed in range(40):
+        runs = _random_runs(np.random.default_rng(seed), first, last, shortest, longest)
+        assert runs and all(first <= a < b <= last for a, b in runs)
+        starts, ends = zip(*runs, strict=True)
+        for a, b in runs:
+            assert b - a <= longest and (b - a >= shortest or a == first or b == last)
+        gaps = np.asarray(starts[1:]) - np.asarray(ends[:-1])
+        assert np.all((gaps >= shortest) & (gaps <= longest))
+        covered += sum(b - a for a, b in runs)
+    share = covered / (40 * (last - first))
+    runs_drawn = 40 * (last - first) / (0.5 * (shortest + longest))
+    assert abs(share - 0.5) < 4.0 * 0.5 / math.sqrt(runs_drawn) + (longest - shortest) / (last - first)
+
+
+def test_randomized_layer_joints_persist_through_whole_slabs() -> None:
+    """A randomized "layers" set (layers_max) meshed: every joint face of the set lies in one slab between bedding
+    planes (its pieces end on them), each plane's filled slabs form runs of 1..3 slabs with gaps of 1..3 slabs
+    (runs at the box's top and bottom may be cut short), the set's area is 2 m × the filled slabs' thickness per
+    plane (exact up to float64: planes only), and another seed draws another pattern."""
+    side, height, s_ref = 2.0, 4.0, 0.25
+    sets = [
+        JointSet(0.0, 0.0, spacing=s_ref),  # bedding at z = 0.25, 0.5, ..., 3.75: 16 slabs
+        JointSet(90.0, 90.0, 0.5, 0.25, persistence="layers", reference=0, layers=1, layers_max=3),
+    ]
+
+    def filled(seed: int) -> tuple[dict[int, set[int]], GeologyMesh]:
+        box = RockMass((0, 0, 0), (side, side, height))
+        mesh = mesh_geology(Geology(box, joint_sets=sets, h=0.25, seed=seed))
+        vertical = mesh.joint_faces[mesh.joint_face_set == 1]
+        pts = mesh.points[vertical]
+        plane = np.rint((pts[:, :, 0].mean(axis=1) - 0.25) / 0.5).astype(int)
+        slab = np.floor(pts[:, :, 2].mean(axis=1) / s_ref).astype(int)
+        for k in np.unique(slab):  # no face crosses a bedding plane
+            z = pts[slab == k][:, :, 2]
+            assert z.min() >= k * s_ref - 1e-12 and z.max() <= (k + 1) * s_ref + 1e-12
+        slabs = {int(p): set(slab[plane == p].tolist()) for p in np.unique(plane)}
+        area = face_areas(mesh.points, mesh.joint_faces)[mesh.joint_face_set == 1].sum()
+        np.testing.assert_allclose(area, side * s_ref * sum(len(v) for v in slabs.values()), rtol=REL_FLAT)
+        return slabs, mesh
+
+    slabs, mesh = filled(seed=1)
+    assert_valid(mesh)
+    assert_conforming(mesh)
+    n_slabs = round(height / s_ref)
+    for p, ks in slabs.items():
+        mask = np.array([k in ks for k in range(n_slabs)] + [False])
+        edges = np.flatnonzero(np.diff(np.concatenate([[False], mask]).astype(int)))
+        starts, ends = edges[0::2], edges[1::2]
+        for a, b in zip(starts, ends, strict=True):
+            assert b - a <= 3 and (b - a >= 1), (p, a, b)
+        gaps = starts[1:] - ends[:-1]
+        assert np.all((gaps >= 1) & (gaps <= 3)), (p, gaps)
+    assert filled(seed=2)[0] != slabs
+
+
 def test_disc_joint_is_embedded_not_cutting() -> None:
     radius, h = 0.5, 0.15
     disc = JointSet(90.0, 90.0, spacing=10.0, offset=0.2, persistence="disc", radius=radius, disc_spacing=3.0)

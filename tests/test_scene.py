@@ -511,6 +511,19 @@ MESH_BAD_SCENES = [
         "joint set 2 is not persistent",
     ),
     (
+        "layers_max_below_layers",
+        GEOLOGY_BASE + '\n[[mesh.joint_sets]]\ndip = 90.0\ndip_direction = 0.0\nspacing = 2.0\npersistence = "layers"\n'
+        "reference = 0\nlayers = 2\nlayers_max = 1\n",
+        "mesh.joint_sets[1]",
+        "'layers_max' (1) must be at least 'layers' (2)",
+    ),
+    (
+        "layers_max_without_layers",
+        edit("spacing = 3.0", "spacing = 3.0\nlayers_max = 3", base=GEOLOGY_BASE),
+        "mesh.joint_sets[0]",
+        "'layers_max' not used with persistence 'persistent'",
+    ),
+    (
         "bad_phase",
         edit("spacing = 3.0", "spacing = 3.0\nphase = 2", base=GEOLOGY_BASE),
         "mesh.joint_sets[0].phase",

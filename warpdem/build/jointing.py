@@ -251,6 +251,10 @@ class JointSet:
         layers: Number of consecutive slabs a plane persists through (``"layers"``). Slab k lies between
             reference planes k and k + 1; the set's planes fill the slabs with ``(k // layers) % 2 == phase``.
         phase: 0 or 1, which alternation of slab groups holds joints (``"layers"``).
+        layers_max: Randomized persistence (``"layers"``; LDEC's "non-persistent (i.e., randomized)" geology, its
+            Fig. 6): each plane of the set, on its own, alternates runs of slabs that hold a joint piece with runs
+            that hold none, each run a uniform draw of ``layers`` to ``layers_max`` slabs, starting at a random point
+            of a random run; a run's piece is one plane polygon through its slabs. ``phase`` is not used then.
         jitter_position: Each plane (each disc, each plane piece of a ``"layers"`` group) is shifted along its
             normal by a uniform draw from ``[-jitter_position, jitter_position]`` [m]; disc centres are also
             shifted by such draws along strike and dip.
@@ -269,6 +273,7 @@ class JointSet:
     reference: int | None = None
     layers: int = 1
     phase: int = 0
+    layers_max: int | None = None
     jitter_position: float = 0.0
     jitter_angle: float = 0.0
     name: str | None = None
@@ -290,6 +295,10 @@ class JointSet:
                 raise ValueError("JointSet: persistence 'layers' needs reference (index of a persistent set)")
             if self.layers < 1 or self.phase not in (0, 1):
                 raise ValueError(f"JointSet: layers must be ≥ 1 and phase 0 or 1, got {self.layers}, {self.phase}")
+            if self.layers_max is not None and self.layers_max < self.layers:
+                raise ValueError(f"JointSet: layers_max must be ≥ layers ({self.layers}), got {self.layers_max}")
+        elif self.layers_max is not None:
+            raise ValueError(f"JointSet: layers_max is for persistence 'layers', not {self.persistence!r}")
         elif self.persistence != "persistent":
             raise ValueError(
                 f"JointSet.persistence: expected 'persistent', 'disc' or 'layers', got {self.persistence!r}"
@@ -488,6 +497,40 @@ class _JointDisc:
     radius: float
 
 
+def _layer_pieces(js: JointSet, ref_ks: list[int], ks: range, seed: int, i: int) -> list[tuple[int, int, int, int]]:
+    """The pieces of a ``"layers"`` set ``i``: (plane index k, first reference plane k0, last k1, jitter key), a
+    piece lying in the slabs between reference planes k0 and k1 (``ref_ks``: the reference set's plane indices, in
+    order). Regular: every plane fills the slab groups g (``layers`` slabs each) with g % 2 == phase, keyed by g.
+    Randomized (``layers_max``): each plane alternates runs of ``layers`` to ``layers_max`` slabs with and without a
+    piece (:func:`_random_runs`), its draws its own (keyed by (seed, set, plane) alone), a piece keyed by its k0."""
+    pieces = []
+    if js.layers_max is None:
+        for g in sorted({math.floor(k / js.layers) for k in ref_ks[:-1]}):
+            if g % 2 == js.phase:
+                pieces += [(k, g * js.layers, (g + 1) * js.layers, g) for k in ks]
+        return pieces
+    for k in ks:
+        rng = _rng(seed, i, k, 0, 0, 0)  # six keys: no other surface's generator has as many
+        pieces += [(k, k0, k1, k0) for k0, k1 in _random_runs(rng, ref_ks[0], ref_ks[-1], js.layers, js.layers_max)]
+    return pieces
+
+
+def _random_runs(rng: np.random.Generator, first: int, last: int, shortest: int, longest: int) -> list[tuple[int, int]]:
+    """Runs [k0, k1) of the slabs first..last - 1 that hold a joint piece: runs with and without alternate, each
+    ``shortest`` to ``longest`` slabs long (uniform), the first with or without (even odds) and begun a uniform
+    0..longest - 1 slabs before ``first``, so that the pattern has no edge at the box's."""
+    runs = []
+    has_piece = bool(rng.integers(2))
+    k = first - int(rng.integers(longest))
+    while k < last:
+        n = int(rng.integers(shortest, longest + 1))
+        if has_piece and min(k + n, last) > max(k, first):
+            runs.append((max(k, first), min(k + n, last)))
+        k += n
+        has_piece = not has_piece
+    return runs
+
+
 def _joint_geometry(geology: Geology) -> list[_JointPolygon | _JointDisc]:
     """Joint surfaces of every set: polygons clipped to the box grown by the margin (and to the slabs of a
     ``"layers"`` set), and discs. Pieces outside the box or inside openings are removed after the fragment."""
@@ -524,23 +567,21 @@ def _joint_geometry(geology: Geology) -> list[_JointPolygon | _JointDisc]:
         elif js.persistence == "layers":
             ref = planes[js.reference]
             ref_ks = sorted(ref)
-            groups = sorted({math.floor(k / js.layers) for k in ref_ks[:-1]})
             ks = _plane_index_range(nominal[i], js.offset, js.spacing, lo, hi, pad=1)
-            for g in groups:
-                k0, k1 = g * js.layers, (g + 1) * js.layers
-                if g % 2 != js.phase or k0 not in ref or k1 not in ref:
+            for k, k0, k1, key in _layer_pieces(js, ref_ks, ks, seed, i):
+                if k0 not in ref or k1 not in ref:
                     continue
                 bottom, top = ref[k0], ref[k1]
-                for k in ks:  # each group's pieces jitter independently: the joints do not line up across groups
-                    plane = _jittered_plane(js, nominal[i], k, _rng(seed, i, k, g))
-                    if not _cuts_box(plane, lo, hi, tol):
-                        continue
-                    poly = _clip_to_box(_plane_square(plane, centre, diag), glo, ghi)
-                    poly = _clip_polygon(poly, -bottom.normal, -bottom.distance) if poly else poly
-                    poly = _clip_polygon(poly, top.normal, top.distance) if poly else poly
-                    poly = _dedupe(poly, tol) if poly else poly
-                    if len(poly) >= 3 and _polygon_area(poly) > tol * diag:
-                        surfaces.append(_JointPolygon(i, poly))
+                # Each piece jitters on its own: the joints do not line up across groups.
+                plane = _jittered_plane(js, nominal[i], k, _rng(seed, i, k, key))
+                if not _cuts_box(plane, lo, hi, tol):
+                    continue
+                poly = _clip_to_box(_plane_square(plane, centre, diag), glo, ghi)
+                poly = _clip_polygon(poly, -bottom.normal, -bottom.distance) if poly else poly
+                poly = _clip_polygon(poly, top.normal, top.distance) if poly else poly
+                poly = _dedupe(poly, tol) if poly else poly
+                if len(poly) >= 3 and _polygon_area(poly) > tol * diag:
+                    surfaces.append(_JointPolygon(i, poly))
         else:  # disc
             pitch = js.disc_spacing or 2.5 * js.radius
             e1, e2 = _in_plane_axes(nominal[i])

@@ -133,6 +133,7 @@ def _geology(spec: GeologyMeshSpec, seed: int) -> Geology:
             reference=js.reference,
             layers=js.layers,
             phase=js.phase,
+            layers_max=js.layers_max,
             jitter_position=js.jitter_position,
             jitter_angle=js.jitter_angle,
             name=js.name,

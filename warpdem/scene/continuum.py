@@ -315,6 +315,12 @@ class JointSetSpec(JointProperties):
     )
     layers: Int = Field(default=1, ge=1, description="Slabs a plane persists through (persistence 'layers') [-].")
     phase: Literal[0, 1] = Field(default=0, description="Which alternation of slab groups holds joints (0 or 1).")
+    layers_max: Int | None = Field(
+        default=None,
+        ge=1,
+        description="Randomized persistence (persistence 'layers'): each plane alternates runs of 'layers' to "
+        "'layers_max' slabs with and without a joint piece, its own random draws ('phase' unused).",
+    )
     jitter_position: Float = Field(default=0.0, ge=0, description="Uniform random shift of each plane [m].")
     jitter_angle: Float = Field(default=0.0, ge=0, description="Uniform random tilt of each plane's normal [deg].")
 
@@ -326,11 +332,18 @@ class JointSetSpec(JointProperties):
             raise ValueError("persistence 'layers' needs 'reference' (the index of a persistent joint set)")
         unused = [
             key
-            for key, wanted in (("radius", "disc"), ("disc_spacing", "disc"), ("reference", "layers"))
+            for key, wanted in (
+                ("radius", "disc"),
+                ("disc_spacing", "disc"),
+                ("reference", "layers"),
+                ("layers_max", "layers"),
+            )
             if getattr(self, key) is not None and self.persistence != wanted
         ]
         if unused:
             raise ValueError(f"{', '.join(repr(k) for k in unused)} not used with persistence {self.persistence!r}")
+        if self.layers_max is not None and self.layers_max < self.layers:
+            raise ValueError(f"'layers_max' ({self.layers_max}) must be at least 'layers' ({self.layers})")
         return self
 
 
