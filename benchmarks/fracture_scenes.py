@@ -42,10 +42,10 @@ WINDOW = 20
 """Samples of the running crack over which the fastest tip speed is fitted."""
 MIN_FRAGMENT_TETS = 4
 """A piece of the boulder of fewer tets is a chip, not a fragment."""
-PLATEAU_FROM = 0.010
-"""How far past the seed's tip the remote plate's plateau window starts [m]: the tip's start-up, a few elements."""
-PLATEAU_EDGE = 0.010
-"""How close to the plate's edge the window ends at the latest [m]."""
+PLATEAU_FROM = 5.0
+"""How far past the seed's tip the remote plate's plateau window starts [elements]: the tip's start-up."""
+PLATEAU_EDGE = 5.0
+"""How close to the plate's edge the window ends at the latest [elements]."""
 
 
 def rayleigh_speed(youngs_modulus: float, poisson_ratio: float, density: float) -> float:
@@ -298,7 +298,8 @@ class RemotePlate(NamedTuple):
         c_r: Rayleigh speed [m/s]. c_d: dilatational speed [m/s], the first wave back from an edge.
         h: element size along x [m]. delta_c: the linear law's critical opening 2Γ/T_f [m].
         edge: the plate's edge along x [m]. half_height: half its height [m].
-        seed_tip: the seed's rim [m] (2a = 20 mm: its tip nodes split first).
+        seed_tip: the seed's rim [m], its tip nodes' x (they split first) and half an element: the last grid plane
+            inside the seed crack's box (which reaches half an element past the tips, so that no node lies on its edge).
         unconstrained: every node may split (no ``[fracture].region``).
     """
 
@@ -322,7 +323,7 @@ class RemotePlate(NamedTuple):
             delta_c=2.0 * mat.fracture_energy / mat.tensile_strength,
             edge=float(scene.mesh.hi[0]),
             half_height=float(scene.mesh.hi[1]),
-            seed_tip=0.010 + 0.5 * h,
+            seed_tip=(math.floor(scene.fracture.seed_cracks[0].region.box.hi[0] / h) + 0.5) * h,
             unconstrained=scene.fracture.region is None,
         )
 
@@ -336,7 +337,11 @@ class RemotePlate(NamedTuple):
             return None, np.zeros(len(times), dtype=bool)
         t0 = float(times[started[0]])
         t_back = t0 + 2.0 * self.half_height / self.c_d
-        window = (tips >= self.seed_tip + PLATEAU_FROM) & (times <= t_back) & (tips <= self.edge - PLATEAU_EDGE)
+        window = (
+            (tips >= self.seed_tip + PLATEAU_FROM * self.h)
+            & (times <= t_back)
+            & (tips <= self.edge - PLATEAU_EDGE * self.h)
+        )
         return t0, window
 
 
