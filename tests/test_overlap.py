@@ -11,7 +11,12 @@ Oracles:
   Warp's NVRTC (as tests/test_cuda_codegen.py does for the scenes' kernels), on machines without a GPU too;
 - scenes: a sphere placed inside a tet block, or two spheres overlapping by half a radius, are refused with a line
   naming run.allow_initial_overlap, the count and the worst overlap (δ / r = 0.5 exactly); the key lets them build;
-  an overlap under the tolerance builds and is reported; every shipped scene with spheres starts clean.
+  an overlap under the tolerance builds and is reported; every shipped scene with spheres starts clean;
+- mesh nodes (warpdem.build.overlap.initial_node_overlap): two unit cubes of a mesh file, the upper one sunk by SINK
+  into the lower one, start with node–face springs compressed by exactly SINK less the offset the set-up carries
+  (float32 rounding of the extent; to DEPTH_ATOL), are refused by the runner with a line naming
+  run.allow_initial_overlap, and run with it; the same cubes stacked exactly start with nothing compressed (every
+  shipped scene with a mesh starts so: it stays at rest, tests/test_scenes_at_rest.py).
 """
 
 from __future__ import annotations
@@ -24,16 +29,20 @@ import warp as wp
 from warp._src import context
 from warpdem.kernels import overlap as ko
 
+from warpdem.build.geology import GeologyMesh, write_mesh
 from warpdem.build.mesh import box_mesh
 from warpdem.build.overlap import (
     OVERLAP_TOLERANCE,
     ROUNDOFF,
+    initial_node_overlap,
     initial_overlap,
     sphere_pair_overlaps,
     sphere_rock_penetration,
 )
 from warpdem.build.scene_build import build_scene, finalize_scene, scene_builder
+from warpdem.runner import RunOptions, run_scene
 from warpdem.scene import SceneError, default_scene_path, load_scene, parse_scene
+from warpdem.simulation import Simulation
 
 DEPTH_ATOL = 1e-6  # [m] float32 positions of order 1 m: ~1e-7 each, a few roundings
 MARGIN = 1e-4  # [m] distance kept from the cube's faces by the inside/outside test points
@@ -205,3 +214,60 @@ def test_shipped_scenes_start_clean(path):
 
 def test_sphere_scenes_are_found():
     assert len(SPHERE_SCENES) >= 3  # granular_pour, bonded_slab_impact, the default
+
+
+SINK = 0.05
+"""How far the upper cube starts inside the lower one [m]: 20–40 % of the reach of the lower cube's top faces (half the
+height of a 0.5 m Kuhn cell's tets over them), far past OVERLAP_TOLERANCE."""
+
+
+def two_cubes_file(tmp_path: Path, sink: float) -> Path:
+    """A mesh file of two unit cubes (Kuhn cells of 0.5 m), separate bodies, the upper one ``sink`` into the lower."""
+    points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (2, 2, 2))
+    upper = points + np.array([0.0, 0.0, 1.0 - sink])
+    mesh = GeologyMesh(
+        points=np.concatenate([points, upper]),
+        tets=np.concatenate([tets, tets + len(points)]),
+        tet_block=np.repeat([0, 1], len(tets)),
+        tet_material=np.zeros(2 * len(tets), dtype=np.int32),
+        material_names=["rock"],
+        joint_faces=np.zeros((0, 3), dtype=np.int64),
+        joint_face_set=np.zeros(0, dtype=np.int64),
+        joint_set_names=[],
+        boundary_faces={},
+        num_blocks=2,
+    )
+    path = tmp_path / "cubes.msh"
+    write_mesh(path, mesh)
+    return path
+
+
+def cubes_scene(path: Path, allow: bool | None = None) -> dict:
+    run = {"end_time": 1e-4} | ({} if allow is None else {"allow_initial_overlap": allow})
+    return {
+        "name": "cubes",
+        "run": run,
+        "gravity": {"vector": [0.0, 0.0, 0.0]},
+        "materials": {"rock": dict(ROCK)},
+        "mesh": {"kind": "file", "path": str(path), "material": "rock"},
+    }
+
+
+def test_mesh_nodes_pressed_into_another_block_are_measured_and_refused_unless_allowed(tmp_path):
+    sunk = parse_scene(cubes_scene(two_cubes_file(tmp_path, SINK)))
+    overlap = initial_node_overlap(*build_scene(sunk, "cpu"))
+    assert overlap.nodes == 0  # the built State has no spring yet: the set-up evaluation makes them
+    sim = Simulation(*build_scene(sunk, "cpu"))
+    overlap = initial_node_overlap(sim.model, sim.state)
+    assert overlap.nodes > 0 and overlap.exceeds(OVERLAP_TOLERANCE)
+    # The set-up carries a depth within float32 rounding of the model's extent as the spring's offset (noise_depth).
+    np.testing.assert_allclose(overlap.worst_depth, SINK - sim.fem_contact.noise_depth, rtol=0.0, atol=DEPTH_ATOL)
+
+    with pytest.raises(SceneError, match=r"run.allow_initial_overlap: \d+ mesh node\(s\) start pressed into a face"):
+        run_scene(sunk, RunOptions(device="cpu", frames=1, out_dir=tmp_path / "refused", quiet=True))
+    assert not (tmp_path / "refused").exists()  # refused before anything is written
+    allowed = parse_scene(cubes_scene(two_cubes_file(tmp_path, SINK), allow=True))
+    run_scene(allowed, RunOptions(device="cpu", frames=1, out_dir=tmp_path / "allowed", quiet=True))
+
+    stacked = Simulation(*build_scene(parse_scene(cubes_scene(two_cubes_file(tmp_path, 0.0))), "cpu"))
+    assert initial_node_overlap(stacked.model, stacked.state).nodes == 0

@@ -237,3 +237,83 @@ def initial_overlap(
             "worst_penetrating_point": q[s],
         }
     return InitialOverlap(**found)
+
+
+NODE_ROUNDOFF = 1.0e-3
+"""Compressions up to this fraction of a face's reach (``Model.face_depth``, half the height of the tet over it) are
+touching, not overlapping: the set-up evaluation carries a node's depth within float32 rounding of the model's extent
+as its spring's offset, and this measure recomputes the depth in float64 from the same float32 positions [-]."""
+
+
+@dataclass(frozen=True)
+class NodeOverlap:
+    """Mesh nodes whose node–face springs start compressed after the set-up evaluation: pressed into a face of another
+    block beyond float32 rounding. Points in metres.
+
+    Attributes:
+        nodes: nodes with a spring compressed by more than NODE_ROUNDOFF of its face's reach.
+        worst_node: the most compressed one (node index), or None. worst_share: its compression over the face's reach
+            (half the height of the tet over the face) [-]. worst_depth: that compression [m].
+        worst_point: its position [m], shape (3,). worst_face: the face it is pressed into.
+    """
+
+    nodes: int = 0
+    worst_node: int | None = None
+    worst_share: float = 0.0
+    worst_depth: float = 0.0
+    worst_point: np.ndarray | None = None
+    worst_face: int | None = None
+
+    def exceeds(self, tolerance: float = OVERLAP_TOLERANCE) -> bool:
+        """Whether a scene must be refused: a node pressed deeper than ``tolerance`` of its face's reach."""
+        return self.worst_share > tolerance
+
+    def format(self) -> str:
+        """One line: the count, the worst compression and where it is."""
+        if not self.nodes:
+            return "no mesh node starts pressed into another block"
+        return (
+            f"{self.nodes} mesh node(s) start pressed into a face of another block, the worst by "
+            f"{self.worst_depth:.3g} m = {100.0 * self.worst_share:.3g} % of the face's reach (node "
+            f"{self.worst_node} at {_point(self.worst_point)}, face {self.worst_face})"
+        )
+
+
+def initial_node_overlap(model, state) -> NodeOverlap:
+    """The node–face springs compressed at the start, from the State after the set-up force evaluation
+    (warpdem.simulation.Simulation.evaluate_forces): each slot's depth behind its face's plane (float64, from the
+    float32 positions) less the offset the evaluation carried, against the face's reach.
+
+    Why it is checked: a mesh built from one geology puts no node inside another block, and a scene's bodies are
+    meant to start apart or touching, so a compressed spring is a set-up mistake or a false contact (a node on one
+    block's face, at the rim of the perpendicular outer face of the same block half a tet's height away:
+    docs/limitations.md) that throws the blocks apart in the first steps."""
+    k = model.node_springs
+    nn = int(state.node_count.numpy()[0])
+    if nn == 0 or model.face_capacity == 0:
+        return NodeOverlap()
+    spring = state.node_face_spring.numpy()[: nn * k]
+    slots = np.nonzero(spring >= 0)[0]
+    if len(slots) == 0:
+        return NodeOverlap()
+    faces = spring[slots]
+    nodes = slots // k
+    q = state.node_q.numpy()[:nn].astype(np.float64)
+    corner = q[model.face_nodes.numpy()[faces]]
+    normal = np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    depth = -np.einsum("ij,ij->i", q[nodes] - corner[:, 0], normal)
+    compression = np.maximum(depth - state.node_face_offset.numpy()[slots], 0.0)
+    share = compression / model.face_depth.numpy()[faces]
+    pressed = share > NODE_ROUNDOFF
+    if not np.any(pressed):
+        return NodeOverlap()
+    w = int(np.argmax(share))
+    return NodeOverlap(
+        nodes=len(np.unique(nodes[pressed])),
+        worst_node=int(nodes[w]),
+        worst_share=float(share[w]),
+        worst_depth=float(compression[w]),
+        worst_point=q[nodes[w]],
+        worst_face=int(faces[w]),
+    )

@@ -29,6 +29,7 @@ import numpy as np
 import warp as wp
 
 from .._version import __version__
+from ..build.overlap import OVERLAP_TOLERANCE, initial_node_overlap
 from ..build.scene_build import finalize_scene, scene_builder, start_as_spheres
 from ..io.checkpoint import checkpoint_name
 from ..io.output import PART_PALETTE, ramp_colors
@@ -189,6 +190,22 @@ class Run(RunAccess):
                 self._abort()
                 raise
 
+    def _check_node_overlap(self, sim: Simulation) -> None:
+        """Mesh nodes pressed into other blocks at the start (warpdem.build.overlap.initial_node_overlap): a note, and
+        a refusal beyond OVERLAP_TOLERANCE of a face's reach unless ``run.allow_initial_overlap``, as for spheres."""
+        scene = self.scene
+        overlap = initial_node_overlap(sim.model, sim.state)
+        if not overlap.nodes:
+            return
+        if overlap.exceeds(OVERLAP_TOLERANCE) and not scene.run.allow_initial_overlap:
+            raise SceneError(
+                f"{scene.source}: run.allow_initial_overlap: {overlap.format()}; the first steps throw them apart. A "
+                "mesh of one geology puts no node inside another block: this is a false contact where a joint ends on "
+                "another (docs/limitations.md); draw other joints (run.seed) or move a joint set's offset, or set "
+                "allow_initial_overlap = true in [run] to start from this state anyway"
+            )
+        self._say(f"initial overlap: {overlap.format()}")
+
     def _start(self) -> None:
         scene, options = self.scene, self.options
         run = scene.run
@@ -280,6 +297,8 @@ class Run(RunAccess):
         if not restart:
             # A new run converts its start_as_spheres region here, before frame 0; a restart's checkpoint holds them.
             start_as_spheres(scene, sim)
+            if isinstance(sim, Simulation):  # a decomposed run's state lives on its ranks; one process checks it
+                self._check_node_overlap(sim)
         self._grid, self._last_step, self._total_frames = grid, last_step, total_frames
         # With dt = "auto" a run takes the rigid blocks' step at the step of the switch (a switch from the start took
         # it above: the same step, no change); a restart knows from its checkpoint whether it did (one written at a
