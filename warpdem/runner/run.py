@@ -201,7 +201,7 @@ class Run(RunAccess):
             raise SceneError(
                 f"{scene.source}: run.allow_initial_overlap: {overlap.format()}; the first steps throw them apart. A "
                 "mesh of one geology puts no node inside another block: this is a false contact where a joint ends on "
-                "another (docs/limitations.md); draw other joints (run.seed) or move a joint set's offset, or set "
+                "another (docs/limitations.md); draw other joints ([mesh] seed) or move a joint set's offset, or set "
                 "allow_initial_overlap = true in [run] to start from this state anyway"
             )
         self._say(f"initial overlap: {overlap.format()}")

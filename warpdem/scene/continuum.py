@@ -369,7 +369,9 @@ class GeologyMeshSpec(_Model):
         default_factory=list,
         description="Boxes meshed at an edge below h (Gmsh's Box size fields; the finest size wins where they meet).",
     )
-    seed: Int | None = Field(default=None, ge=0, description="Seed of the joint jitter; default run.seed.")
+    seed: Int | None = Field(
+        default=None, ge=0, description="Seed of the joints' jitter and randomized persistence; default run.seed."
+    )
     fixed: Bool = _fixed_field()
     velocity: Vec3 = _velocity_field()
 

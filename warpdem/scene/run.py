@@ -45,12 +45,17 @@ class Run(_Model):
         default=0.2, gt=0, le=1, description="Fraction (0, 1] of the critical time step used when dt = 'auto' [-]."
     )
     output_rate: Float = Field(default=50.0, gt=0, description="Output frames per simulated second [Hz].")
-    seed: Int = Field(default=0, ge=0, description="Seed of the random number generator (random packings) [-].")
+    seed: Int = Field(
+        default=0,
+        ge=0,
+        description="Seed of the random number generator (random packings; the joints' draws unless [mesh] seed) [-].",
+    )
     device: Str = Field(default="cpu", description="Warp device: 'cpu', 'cuda' or 'cuda:<index>'.")
     allow_initial_overlap: Bool = Field(
         default=False,
         description="Run even when spheres start overlapping each other or the rock by more than 5 % of a radius, "
-        "or with a centre inside the rock (warpdem.build.overlap); otherwise such a scene is refused at build time.",
+        "or with a centre inside the rock, or mesh nodes start pressed into another block by more than 5 % of a "
+        "face's reach (warpdem.build.overlap); otherwise such a scene is refused before its first step.",
     )
     allow_unstable_dt: Bool = Field(
         default=False,
