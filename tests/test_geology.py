@@ -521,8 +521,10 @@ def test_layer_joints_fill_alternate_slab_groups(layers: int, phase: int) -> Non
 def test_random_runs_alternate_within_their_lengths(shortest: int, longest: int) -> None:
     """Oracle: the definition of the randomized persistence (jointing._random_runs). Runs with and without a piece
     alternate, so between two pieces lies one gap: every piece and every gap inside [first, last) is ``shortest`` to
-    ``longest`` slabs long (the ones cut by an end may be shorter); both lengths are drawn from the same uniform law,
-    so the share of slabs with a piece tends to 1/2, within 4 standard errors of a binomial over the runs drawn."""
+    ``longest`` slabs long (the ones cut by an end may be shorter). Both lengths are drawn from one uniform law of
+    mean μ and variance σ² = ((longest - shortest + 1)² - 1)/12, so over N slabs in all (M ≈ N / 2μ pairs of runs)
+    the share of slabs with a piece is 1/2 + Σ(A - B) / (4 M μ), of standard error σ / (2 sqrt(μ N)): it must lie
+    within 4 of them, plus the runs the ends cut, at most ``longest`` / (last - first) of each seed's slabs."""
     from warpdem.build.jointing import _random_runs
 
     first, last = -3, 400
@@ -536,9 +538,11 @@ def test_random_runs_alternate_within_their_lengths(shortest: int, longest: int)
         gaps = np.asarray(starts[1:]) - np.asarray(ends[:-1])
         assert np.all((gaps >= shortest) & (gaps <= longest))
         covered += sum(b - a for a, b in runs)
-    share = covered / (40 * (last - first))
-    runs_drawn = 40 * (last - first) / (0.5 * (shortest + longest))
-    assert abs(share - 0.5) < 4.0 * 0.5 / math.sqrt(runs_drawn) + (longest - shortest) / (last - first)
+    slabs = 40 * (last - first)
+    mean = 0.5 * (shortest + longest)
+    sigma = math.sqrt(((longest - shortest + 1) ** 2 - 1) / 12.0)
+    share = covered / slabs
+    assert abs(share - 0.5) <= 4.0 * sigma / (2.0 * math.sqrt(mean * slabs)) + longest / (last - first)
 
 
 def test_randomized_layer_joints_persist_through_whole_slabs() -> None:

@@ -255,9 +255,9 @@ def cubes_scene(path: Path, allow: bool | None = None) -> dict:
 
 def test_mesh_nodes_pressed_into_another_block_are_measured_and_refused_unless_allowed(tmp_path):
     sunk = parse_scene(cubes_scene(two_cubes_file(tmp_path, SINK)))
-    overlap = initial_node_overlap(*build_scene(sunk, "cpu"))
-    assert overlap.nodes == 0  # the built State has no spring yet: the set-up evaluation makes them
-    sim = Simulation(*build_scene(sunk, "cpu"))
+    model, state = build_scene(sunk, "cpu")
+    assert initial_node_overlap(model, state).nodes == 0  # the built State has no spring yet: the set-up makes them
+    sim = Simulation(model, state)
     overlap = initial_node_overlap(sim.model, sim.state)
     assert overlap.nodes > 0 and overlap.exceeds(OVERLAP_TOLERANCE)
     # The set-up carries a depth within float32 rounding of the model's extent as the spring's offset (noise_depth).

@@ -19,12 +19,16 @@ Positions go to the device relative to the middle of their bounding box, so floa
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
 
 from ..kernels import overlap as ko
 from ..stages.bonds import find_bond_pairs
+
+if TYPE_CHECKING:
+    from ..model import Model, State
 
 OVERLAP_TOLERANCE = 0.05
 """Largest initial overlap a scene may start with unless it allows more: of the smaller radius for a sphere pair, of
@@ -279,7 +283,7 @@ class NodeOverlap:
         )
 
 
-def initial_node_overlap(model, state) -> NodeOverlap:
+def initial_node_overlap(model: Model, state: State) -> NodeOverlap:
     """The node–face springs compressed at the start, from the State after the set-up force evaluation
     (warpdem.simulation.Simulation.evaluate_forces): each slot's depth behind its face's plane (float64, from the
     float32 positions) less the offset the evaluation carried, against the face's reach.

@@ -199,9 +199,10 @@ class Run(RunAccess):
             return
         if overlap.exceeds(OVERLAP_TOLERANCE) and not scene.run.allow_initial_overlap:
             raise SceneError(
-                f"{scene.source}: run.allow_initial_overlap: {overlap.format()}; the first steps throw them apart. A "
-                "mesh of one geology puts no node inside another block: this is a false contact where a joint ends on "
-                "another (docs/limitations.md); draw other joints ([mesh] seed) or move a joint set's offset, or set "
+                f"{scene.source}: run.allow_initial_overlap: {overlap.format()}; the first steps throw them apart. "
+                "Either two bodies are meshed into each other (move one out), or, in a mesh of one geology, which puts "
+                "no node inside another block, this is a false contact where a joint ends on another "
+                "(docs/limitations.md): draw other joints ([mesh] seed) or move a joint set's offset. Or set "
                 "allow_initial_overlap = true in [run] to start from this state anyway"
             )
         self._say(f"initial overlap: {overlap.format()}")
