@@ -256,6 +256,12 @@ def spring_depth(
     return wp.max(plane_depth(x, f, face_nodes, node_q) - offset, 0.0)
 
 
+SET_UP_RELAXED = wp.constant(1.0e38)
+"""A ``relaxed_depth`` below this at dt = 0 is the set-up's (float32 rounding of the model's extent), above it the
+re-evaluation's after a pass or a switch (RELAXED_ALL, warpdem.stages.fem_contact) [m]: only the set-up drops a node
+lying on a body's surface from a face behind it across a convex edge (kernels/node_face_target.py
+``exits_over_convex_edge``)."""
+
 PASSED_COMPRESSION = wp.constant(0.5)
 """The compression of a spring let go of past its face's reach, as a fraction of that reach, from which the node has
 gone through the face (:func:`passed_face`) [-]. A spring at its design load is compressed by σ / (f E) of the tet's
@@ -505,6 +511,7 @@ def make_node_contact_kernel(track_energy: bool):
                 old,
                 hints,
                 first_scan[0],
+                int(dt <= 0.0) & int(relaxed_depth < SET_UP_RELAXED),
             )
         f_v = wp.vec3(0.0)
         d_v = float(0.0)  # minus the work behind [J] (the wall's share of the work ahead included)

@@ -155,6 +155,69 @@ def in_held_plane(nf: wp.vec3, rows: wp.mat33) -> int:
 
 
 @wp.func
+def exits_over_convex_edge(
+    v: int,
+    x: wp.vec3,
+    f: int,
+    fn: wp.vec3i,
+    depth: float,
+    max_node_faces: int,
+    node_face_count: wp.array(dtype=int),
+    node_face_index: wp.array(dtype=int),
+    face_nodes: wp.array(dtype=wp.vec3i),
+    face_normal: wp.array(dtype=wp.vec3),
+    face_origin: wp.array(dtype=wp.vec3),
+    node_q: wp.array(dtype=wp.vec3),
+    tol: float,
+) -> bool:
+    """Whether node v (at x), depth δ behind face f and projecting onto an edge or vertex of f, lies on or behind a
+    face g of another plane direction, less deep by more than ``tol`` [m] and projecting into g (within BARY_EPS),
+    with no vertex of f in front of g's plane by more than ``tol``: f meets g's body at a convex edge or corner,
+    behind g. Then v lies on the surface there, not inside the body through f, and f is no target. Asked only at
+    set-up (``at_set_up`` in :func:`new_plane_face`; kernels/fem_contact.py ``SET_UP_RELAXED``).
+
+    Why: inside a body at a convex edge is behind every face there, and the way out is through the nearest. A node
+    lying on the top face g of a block, less than half a tet's height in from the block's side plane, projects onto
+    the rim of a side face f behind f (a T-junction of a geology meshed on a lattice: facility_nonpersistent's
+    randomized joints at [mesh] seed 3). Taken as f's target at set-up, where a spring carries only a rounding depth
+    as its offset, it started pressed by that whole depth (5e9 J of contact energy at t = 0). After a pass or a switch
+    a new spring starts relaxed, and in a step at the depth gained in the step, so the rule is not asked there: a node
+    pressed into f at a flush edge (on g's plane within rounding) keeps f. A node in front of g (past the edge, within
+    the rim tolerance: tests/test_rim_contact.py) or on both planes within ``tol`` (flush blocks) presses f as before.
+    g must be among v's candidates: a face of v's own star, or held to v by an intact joint element, is not, so a
+    node lying on its own block's top face and half a tet behind that block's side face (a self-contact) still takes
+    it (docs/limitations.md)."""
+    n_f = face_normal[f]
+    count = wp.min(node_face_count[v], max_node_faces)
+    for s in range(count):
+        g = node_face_index[v * max_node_faces + s]
+        if g == f:
+            continue
+        gn = face_nodes[g]
+        n_g = face_normal[g]
+        if same_plane(n_f, n_g):
+            continue
+        o_g = face_origin[g]
+        depth_g = -wp.dot(x - o_g, n_g)
+        if depth_g < -tol or depth_g >= depth - tol:
+            # In front of g: past the body's edge, on f's rim, where the rim tolerance lets it press f (a joint
+            # whose nodes all lie past the edges of the faces opposite, tests/test_rim_contact.py). Not clearly less
+            # deep: on both planes by rounding (flush blocks), f as before.
+            continue
+        convex = int(1)  # no vertex of f in front of g's plane
+        for k in range(3):
+            if wp.dot(node_q[fn[k]] - o_g, n_g) > tol:
+                convex = 0
+        if convex == 0:
+            continue
+        b = node_q[gn[1]]
+        c = node_q[gn[2]]
+        if min3(projection_barycentric(x, o_g, b, c, wp.cross(b - o_g, c - o_g))) >= -BARY_EPS:
+            return True
+    return False
+
+
+@wp.func
 def new_plane_face(
     v: int,
     x: wp.vec3,
@@ -181,6 +244,7 @@ def new_plane_face(
     has_normal: int,
     survivors: Survivors,
     n_survivors: int,
+    at_set_up: int,
 ):
     """The shallowest face node v (at x, its own surface's outward normal n_v) penetrates outside the plane
     directions its slots hold (``faces``, their normals ``normals``): of the candidate faces that face it
@@ -208,6 +272,9 @@ def new_plane_face(
     that pass every test (``survivors``, their number handed back), and the later ones test only those, in the same
     order and arithmetic: the same face as a full scan, at a few tests instead of some thirty. A first scan with
     more than SURVIVORS of them hands back -1, and the later ones scan the whole list.
+
+    ``at_set_up`` (1 in the set-up evaluation): a face the node projects onto the rim of from a surface it lies on,
+    across that body's convex edge, is no target (:func:`exits_over_convex_edge`).
 
     Returns:
         (face or -1, its slot in v's candidate list (-1 with no face), depth δ [m], barycentric weights of the
@@ -249,6 +316,23 @@ def new_plane_face(
         w = projection_barycentric(x, a, b, c, wp.cross(b - a, c - a))
         if min3(w) < -rim_margins(f, rims)[0]:
             continue
+        if (at_set_up & int(min3(w) <= BARY_EPS)) != 0:
+            if exits_over_convex_edge(
+                v,
+                x,
+                f,
+                fn,
+                depth,
+                max_node_faces,
+                node_face_count,
+                node_face_index,
+                face_nodes,
+                face_normal,
+                face_origin,
+                node_q,
+                tol,
+            ):
+                continue
         if first and passed < SURVIVORS:
             survivors[passed] = s
         passed = wp.min(passed + 1, SURVIVORS + 1)
@@ -309,6 +393,7 @@ def node_face_targets(
     old: wp.vec3i,
     hints: wp.vec3i,
     first_scan: int,
+    at_set_up: int,
 ):
     """The faces node v (at x) is pushed out of, one per slot: ``old`` holds each slot's face at the last
     evaluation (-1 for none), ``hints`` their list slots then, ``first_scan`` -2 (the later scans for a new plane test
@@ -425,6 +510,7 @@ def node_face_targets(
             has_normal,
             survivors,
             n_survivors,
+            at_set_up,
         )
         if f < 0:
             break

@@ -463,11 +463,13 @@ def assert_set_up_agrees_and_rests(sim: Simulation, within: bool) -> None:
 def test_set_up_forces_across_faces_are_those_of_the_next_evaluation(device, depth):
     # Two free blocks without gravity, the upper meshed into the lower by depth × the rounding depth (the largest
     # coordinate is 2 m): the set-up springs carry up to the rounding depth as an offset and push with the rest (they
-    # pushed with the whole depth, which the books and every later evaluation read as 0).
+    # pushed with the whole depth, which the books and every later evaluation read as 0). Two cells across, so that
+    # the upper block's bottom has a node inside the lower's top face: its nodes on the lower's side planes lie on the
+    # lower's surface, not in it, and start no spring (kernels/node_face_target.py exits_over_convex_edge).
     d = depth * ROUNDING_ULPS * F32_EPS * 2.0
     parts = {
-        "lower": ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (1, 1, 1)),
-        "upper": ((0.0, 0.0, 1.0 - d), (1.0, 1.0, 2.0 - d), (1, 1, 1)),
+        "lower": ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (2, 2, 1)),
+        "upper": ((0.0, 0.0, 1.0 - d), (1.0, 1.0, 2.0 - d), (2, 2, 1)),
     }
     b, _ = block_parts(device, parts, (0.0, 0.0, 0.0))
     model, state = b.finalize(device, safety_factor=0.5)

@@ -16,7 +16,9 @@ Oracles:
   into the lower one, start with node–face springs compressed by exactly SINK less the offset the set-up carries
   (float32 rounding of the extent; to DEPTH_ATOL), are refused by the runner with a line naming
   run.allow_initial_overlap, and run with it; the same cubes stacked exactly start with nothing compressed (every
-  shipped scene with a mesh starts so: it stays at rest, tests/test_scenes_at_rest.py).
+  shipped scene with a mesh starts so: it stays at rest, tests/test_scenes_at_rest.py), and so do the cubes stacked
+  with the upper one shifted over the lower's edge (a T-junction: nodes on one cube's face within half a tet of the
+  other's side face, at its rim).
 """
 
 from __future__ import annotations
@@ -221,10 +223,11 @@ SINK = 0.05
 height of a 0.5 m Kuhn cell's tets over them), far past OVERLAP_TOLERANCE."""
 
 
-def two_cubes_file(tmp_path: Path, sink: float) -> Path:
-    """A mesh file of two unit cubes (Kuhn cells of 0.5 m), separate bodies, the upper one ``sink`` into the lower."""
+def two_cubes_file(tmp_path: Path, sink: float, shift: float = 0.0) -> Path:
+    """A mesh file of two unit cubes (Kuhn cells of 0.5 m), separate bodies, the upper one ``sink`` into the lower and
+    ``shift`` along x."""
     points, tets = box_mesh((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (2, 2, 2))
-    upper = points + np.array([0.0, 0.0, 1.0 - sink])
+    upper = points + np.array([shift, 0.0, 1.0 - sink])
     mesh = GeologyMesh(
         points=np.concatenate([points, upper]),
         tets=np.concatenate([tets, tets + len(points)]),
@@ -271,3 +274,18 @@ def test_mesh_nodes_pressed_into_another_block_are_measured_and_refused_unless_a
 
     stacked = Simulation(*build_scene(parse_scene(cubes_scene(two_cubes_file(tmp_path, 0.0))), "cpu"))
     assert initial_node_overlap(stacked.model, stacked.state).nodes == 0
+
+
+@pytest.mark.parametrize("shift", [0.77, 0.8, 0.9, 0.95])
+def test_cube_resting_over_an_edge_starts_with_nothing_pressed(tmp_path, shift):
+    """The upper cube rests on the lower one shifted by ``shift`` along x, over its edge: the upper cube's bottom
+    edge at x = shift lies on the lower cube's top face, 1 − shift in from its side face x = 1 (within half the
+    height of the tets over that face, 0.25 m), and the lower cube's top edge at x = 1 on the upper cube's bottom face,
+    as far in from the upper's side face x = shift: each node projects onto the rim of the other cube's side face,
+    behind it (a T-junction of a geology meshed on a lattice). Oracle: the cubes touch without penetrating, so no
+    spring starts pressed (six nodes started 1 − shift deep before kernels/node_face_target.py
+    exits_over_convex_edge), and the run is not refused."""
+    scene = parse_scene(cubes_scene(two_cubes_file(tmp_path, 0.0, shift)))
+    sim = Simulation(*build_scene(scene, "cpu"))
+    assert initial_node_overlap(sim.model, sim.state).nodes == 0
+    run_scene(scene, RunOptions(device="cpu", frames=1, out_dir=tmp_path / "run", quiet=True))
