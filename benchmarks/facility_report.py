@@ -35,11 +35,13 @@ MINIMAL = 0.01
 
 
 class Runs(NamedTuple):
-    """The facility's two runs (facility_scenes.report's dicts) and the persistent scene (the shared set-up)."""
+    """The facility's two runs (facility_scenes.report's dicts), the persistent scene (the shared set-up) and the
+    non-persistent one (its joint sets)."""
 
     persistent: dict
     nonpersistent: dict
     scene: object
+    nonpersistent_scene: object
 
     @property
     def both(self) -> tuple[dict, dict]:
@@ -94,10 +96,27 @@ def _load(r: Runs) -> tuple[str, str]:
 
 
 def _joints(r: Runs) -> tuple[str, str]:
+    """The randomized sets of the non-persistent scene, read from it: each plane alternates runs of ``layers`` to
+    ``layers_max`` beds with a piece and without one, each run length a uniform draw, so a piece persists through the
+    mean run, (layers + layers_max)/2 beds, and half the slabs of a plane hold one (twice the planes' spacing
+    between pieces on average)."""
+    sets = r.nonpersistent_scene.mesh.joint_sets
+    random = [s for s in sets if s.layers_max is not None]
+    bed = sets[random[0].reference].spacing
+    parts = []
+    for s in random:
+        mean_run = 0.5 * (s.layers + s.layers_max) * bed
+        tilt = "exactly" if s.jitter_angle == 0.0 else f"within {s.jitter_angle:g}° of"
+        parts.append(
+            f"'{s.name}', {tilt} vertical planes {s.spacing:g} m apart in random runs of {s.layers} to "
+            f"{s.layers_max} beds with and without a piece ({mean_run:g} m persistence and {2.0 * s.spacing:g} m "
+            "spacing on average)"
+        )
     return (
-        "bedding 2 m apart; every vertical plane 1 m apart alternates random runs of 1 to 3 beds with and without "
-        "a joint piece (4 m persistence and 2 m spacing on average; exactly vertical, on half metres)",
-        "reproduced (randomized persistence through a few layers; LDEC's sets are near-vertical, these vertical)",
+        f"bedding {bed:g} m apart; " + "; ".join(parts),
+        "reproduced (randomized persistence through a few layers; LDEC's sets are near-vertical, these vertical)"
+        if random
+        else "not reproduced (no randomized set)",
     )
 
 
@@ -269,7 +288,8 @@ def run_facility(device: str, end_time: float | None) -> Runs:
     from warpdem.scene import load_scene
 
     persistent, nonpersistent = fs.run_scenes(fs.SCENES, device, end_time or END_TIME)
-    return Runs(persistent, nonpersistent, load_scene(SCENES_DIR / f"{fs.SCENES[0]}.toml"))
+    scenes = (load_scene(SCENES_DIR / f"{name}.toml") for name in fs.SCENES)
+    return Runs(persistent, nonpersistent, *scenes)
 
 
 def write_facility_report(out: Path, device: str, end_time: float | None, command: str) -> list[Path]:
