@@ -580,7 +580,7 @@ def test_randomized_layer_joints_persist_through_whole_slabs() -> None:
         edges = np.flatnonzero(np.diff(np.concatenate([[False], mask]).astype(int)))
         starts, ends = edges[0::2], edges[1::2]
         for a, b in zip(starts, ends, strict=True):
-            assert b - a <= 3 and (b - a >= 1), (p, a, b)
+            assert b - a <= 3, (p, a, b)  # and at least layers = 1, as every run found is
         gaps = starts[1:] - ends[:-1]
         assert np.all((gaps >= 1) & (gaps <= 3)), (p, gaps)
     assert filled(seed=2)[0] != slabs
