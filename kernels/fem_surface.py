@@ -77,7 +77,8 @@ def face_tet_slot(
 
 @wp.struct
 class RimFaces:
-    """What :func:`rim_margins` reads: the Model arrays of those names (``ref_tet_face_nbr`` empty where neither
+    """What :func:`rim_margins` and the set-up's convex-edge test (kernels/node_face_target.py
+    ``exits_over_convex_edge``) read: the Model arrays of those names (``ref_tet_face_nbr`` empty where neither
     fracture nor conversion is attached: then no face was inside the built mesh)."""
 
     face_joint: wp.array(dtype=int)
@@ -85,6 +86,7 @@ class RimFaces:
     face_nodes: wp.array(dtype=wp.vec3i)
     tet_nodes: wp.array(dtype=wp.vec4i)
     ref_tet_face_nbr: wp.array(dtype=int)
+    tet_face_joint: wp.array(dtype=int)
 
 
 @wp.func

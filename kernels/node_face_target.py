@@ -17,6 +17,7 @@ from .fem_surface import (
     projection_barycentric,
     rim_margins,
 )
+from .topology import tet_face, triangle_area_vector
 
 wp.set_module_options({"enable_backward": False})
 
@@ -155,6 +156,17 @@ def in_held_plane(nf: wp.vec3, rows: wp.mat33) -> int:
 
 
 @wp.func
+def wholly_behind(fn: wp.vec3i, o: wp.vec3, n: wp.vec3, node_q: wp.array(dtype=wp.vec3), tol: float) -> bool:
+    """Whether no vertex of the face with nodes ``fn`` lies in front of the plane through ``o`` with unit normal
+    ``n`` by more than ``tol`` [m]."""
+    behind = True
+    for k in range(3):
+        if wp.dot(node_q[fn[k]] - o, n) > tol:
+            behind = False
+    return behind
+
+
+@wp.func
 def exits_over_convex_edge(
     v: int,
     x: wp.vec3,
@@ -167,6 +179,12 @@ def exits_over_convex_edge(
     face_nodes: wp.array(dtype=wp.vec3i),
     face_normal: wp.array(dtype=wp.vec3),
     face_origin: wp.array(dtype=wp.vec3),
+    tet_nodes: wp.array(dtype=wp.vec4i),
+    tet_face_nbr: wp.array(dtype=int),
+    star_offset: wp.array(dtype=int),
+    star_count: wp.array(dtype=int),
+    star_tets: wp.array(dtype=int),
+    rims: RimFaces,
     node_q: wp.array(dtype=wp.vec3),
     tol: float,
 ) -> bool:
@@ -184,9 +202,12 @@ def exits_over_convex_edge(
     a new spring starts relaxed, and in a step at the depth gained in the step, so the rule is not asked there: a node
     pressed into f at a flush edge (on g's plane within rounding) keeps f. A node in front of g (past the edge, within
     the rim tolerance: tests/test_rim_contact.py) or on both planes within ``tol`` (flush blocks) presses f as before.
-    g must be among v's candidates: a face of v's own star, or held to v by an intact joint element, is not, so a
-    node lying on its own block's top face and half a tet behind that block's side face (a self-contact) still takes
-    it (docs/limitations.md)."""
+
+    The faces g are v's candidates, and the joint faces of v's own star seen from the block across the joint (the
+    face's plane with its normal turned, ``rims.tet_face_joint``): a face of the block v rests on whose corner is v's
+    joint partner is no candidate of v (kernels/node_face_list.py), and the node lies on it, at the partner, so
+    depth 0 and inside it (facility_nonpersistent at [mesh] seed 4: two nodes on a bedding plane, half a tet in from
+    the lift shaft's wall of the block under them, joint partners of that block's node there)."""
     n_f = face_normal[f]
     count = wp.min(node_face_count[v], max_node_faces)
     for s in range(count):
@@ -204,16 +225,26 @@ def exits_over_convex_edge(
             # whose nodes all lie past the edges of the faces opposite, tests/test_rim_contact.py). Not clearly less
             # deep: on both planes by rounding (flush blocks), f as before.
             continue
-        convex = int(1)  # no vertex of f in front of g's plane
-        for k in range(3):
-            if wp.dot(node_q[fn[k]] - o_g, n_g) > tol:
-                convex = 0
-        if convex == 0:
+        if not wholly_behind(fn, o_g, n_g, node_q, tol):
             continue
         b = node_q[gn[1]]
         c = node_q[gn[2]]
         if min3(projection_barycentric(x, o_g, b, c, wp.cross(b - o_g, c - o_g))) >= -BARY_EPS:
             return True
+    if depth <= tol:
+        return False  # on f's plane within rounding: no face across a joint at v is clearly less deep
+    start = star_offset[v]
+    for e in range(start, start + star_count[v]):
+        t = star_tets[e]
+        tn = tet_nodes[t]
+        for k in range(4):
+            if tn[k] == v or tet_face_nbr[4 * t + k] >= 0 or rims.tet_face_joint[4 * t + k] < 0:
+                continue
+            h = tet_face(tn, k)
+            # The face across the joint lies on h, at v (depth 0, v one of its corners), facing the other way.
+            n_g = -wp.normalize(triangle_area_vector(node_q[h[0]], node_q[h[1]], node_q[h[2]]))
+            if not same_plane(n_f, n_g) and wholly_behind(fn, x, n_g, node_q, tol):
+                return True
     return False
 
 
@@ -329,6 +360,12 @@ def new_plane_face(
                 face_nodes,
                 face_normal,
                 face_origin,
+                tet_nodes,
+                tet_face_nbr,
+                star_offset,
+                star_count,
+                star_tets,
+                rims,
                 node_q,
                 tol,
             ):

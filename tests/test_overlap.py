@@ -18,7 +18,10 @@ Oracles:
   run.allow_initial_overlap, and run with it; the same cubes stacked exactly start with nothing compressed (every
   shipped scene with a mesh starts so: it stays at rest, tests/test_scenes_at_rest.py), and so do the cubes stacked
   with the upper one shifted over the lower's edge (a T-junction: nodes on one cube's face within half a tet of the
-  other's side face, at its rim).
+  other's side face, at its rim); and facility_nonpersistent's randomized joints at the [mesh] seeds whose meshes
+  hold such T-junctions (seed 3: across two blocks' faces; seed 4: on a bedding plane at a node the block beneath
+  shares through a joint element, half a tet from that block's lift-shaft wall), one geology whose blocks touch
+  without penetrating, start with nothing pressed.
 """
 
 from __future__ import annotations
@@ -50,6 +53,7 @@ DEPTH_ATOL = 1e-6  # [m] float32 positions of order 1 m: ~1e-7 each, a few round
 MARGIN = 1e-4  # [m] distance kept from the cube's faces by the inside/outside test points
 SCENES = [*sorted((Path(__file__).resolve().parent.parent / "scenes").glob("*.toml")), default_scene_path()]
 SPHERE_SCENES = [p for p in SCENES if "[[particles]]" in p.read_text()]
+FACILITY = Path(__file__).resolve().parent.parent / "scenes" / "facility_nonpersistent.toml"
 
 
 def brute_force_pairs(q: np.ndarray, r: np.ndarray) -> dict[tuple[int, int], float]:
@@ -289,3 +293,17 @@ def test_cube_resting_over_an_edge_starts_with_nothing_pressed(tmp_path, shift):
     sim = Simulation(*build_scene(scene, "cpu"))
     assert initial_node_overlap(sim.model, sim.state).nodes == 0
     run_scene(scene, RunOptions(device="cpu", frames=1, out_dir=tmp_path / "run", quiet=True))
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_randomized_facility_starts_with_nothing_pressed(seed):
+    """facility_nonpersistent's joints drawn at [mesh] ``seed`` (8 ships): a mesh of one geology puts no node inside
+    another block, so no node–face spring may start pressed. Seed 3 started 17 nodes pressed by half a tet into the
+    side face of a block whose top face they lie on, seed 4 two such nodes (at 4.5, 9.5, 16 m, 0.5 m behind the lift
+    shaft's wall of the block beneath), whose face there is no candidate of theirs: its corner under them is their
+    joint partner (kernels/node_face_target.py exits_over_convex_edge). Each draw is a new Gmsh mesh (~15 s)."""
+    data = load_scene(FACILITY).model_dump(warnings=False)
+    data["mesh"]["seed"] = seed
+    sim = Simulation(*build_scene(parse_scene(data), "cpu"))
+    overlap = initial_node_overlap(sim.model, sim.state)
+    assert overlap.nodes == 0, overlap.format()

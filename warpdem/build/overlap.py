@@ -289,10 +289,10 @@ def initial_node_overlap(model: Model, state: State) -> NodeOverlap:
     float32 positions) less the offset the evaluation carried, against the face's reach.
 
     Why it is checked: a mesh built from one geology puts no node inside another block, and a scene's bodies are
-    meant to start apart or touching, so a compressed spring is a set-up mistake or a false contact (a node on its
-    own block's face, at the rim of that block's perpendicular outer face half a tet's height away, which the set-up's
-    test of kernels/node_face_target.py exits_over_convex_edge does not see: docs/limitations.md) that throws the
-    blocks apart in the first steps."""
+    meant to start apart or touching, so a compressed spring is a set-up mistake or a false contact of the set-up's
+    target tests (kernels/node_face_target.py: a node at a T-junction of joints lies on one block's face and behind the
+    rim of another's, which exits_over_convex_edge tells from a penetration; a case it missed would show here) that
+    throws the blocks apart in the first steps."""
     k = model.node_springs
     nn = int(state.node_count.numpy()[0])
     if nn == 0 or model.face_capacity == 0:

@@ -714,6 +714,7 @@ def rim_faces(model: Model) -> kf.RimFaces:
         face_nodes=m.face_nodes,
         tet_nodes=m.tet_nodes,
         ref_tet_face_nbr=ref,
+        tet_face_joint=m.tet_face_joint,
     )
 
 
