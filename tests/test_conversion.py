@@ -711,6 +711,16 @@ def test_attach_conversion_refuses_a_step_the_bonded_spheres_cannot_take():
     model, state = b.finalize("cpu", safety_factor=0.5)
     model, _ = attach_conversion(model, state, [ConversionProps(tresca_strength=TRESCA)])
     assert model.dt < model.critical_dt and "bonded spheres" in model.critical_dt_source
+    # dt = "auto" (the fraction it was built at given): the spheres' step joins the critical step and dt becomes that
+    # fraction of the smaller, at 0.9 as at 0.5 (dt = s × min(tets' step, spheres' step), in float64 exactly).
+    for safety in (0.9, 0.5):
+        model, state = b.finalize("cpu", safety_factor=safety)
+        tets_step = model.critical_dt
+        model, _ = attach_conversion(model, state, [ConversionProps(tresca_strength=TRESCA)], safety_factor=safety)
+        assert model.critical_dt < tets_step and "bonded spheres" in model.critical_dt_source
+        assert model.dt == safety * model.critical_dt
+    with pytest.raises(ValueError, match="safety_factor must be a number in"):
+        attach_conversion(model, state, [ConversionProps(tresca_strength=TRESCA)], safety_factor=1.5)
 
 
 CONTACT_RTOL = 16 * F32_EPS

@@ -284,6 +284,7 @@ def attach_scene_conversion(scene: Scene, model: Model, state: State) -> tuple[M
             part=model.part_names.index(conversion.part),
             band_width=conversion.band_width if conversion.coupling == "band" else 0,
             band_penalty=conversion.band_penalty,
+            safety_factor=scene.run.safety_factor if scene.run.dt == "auto" else None,
         )
     except ValueError as exc:
         # Values the schema already checks; a direct caller's mistake still names the key.
