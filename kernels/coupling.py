@@ -4,10 +4,13 @@ warpdem/stages/coupling.py).
 
 Coupling c ties sphere p to tet t: the material point is x_mp = Σ_a N_a x_a, N_a the fixed barycentric coordinates
 (``coupling_bary``) and x_a = X_a + u_a the tet's nodes; the gap g = x_mp - x_p; the force k g acts on the sphere and
--N_a k g on node a. Positions: sphere centres are float64, X_a and u_a float32. The gap is formed as
-Σ_a N_a ((X_a - x_p) + u_a) with X_a - x_p taken in float64 and rounded once (as kernels/fem_contact.py
-``relative_position`` does for sphere–face geometry), so it resolves to ε₃₂ of the tet's size wherever the pair is,
-not to ε₃₂ of the distance from the origin.
+-N_a k g on node a. Positions: sphere centres are float64, X_a and u_a float32. The gap is formed in float64,
+Σ_a N_a ((X_a - x_p) + u_a), exact for the float32 state (each term a difference of points a tet's size apart), and
+rounded to float32 once, past its rest value: g then carries ε₃₂ of itself, wherever the pair is. Formed in float32
+(X_a - x_p rounded to ε₃₂ of the tet's size, ~1e-8 m at 0.1 m) it carried that rounding against gaps of ~1e-6 m at
+small strains: the springs' energy and force were off by about 1 % from step to step, so the force was not the gradient
+of a smooth U and the books drifted by up to 3e-3 of the energy in play (tests/test_loads_handover.py: a pulsed block
+whose top layer alone converted, now within 1.5e-6).
 """
 
 from __future__ import annotations
@@ -64,12 +67,19 @@ def coupling_gap(
     bary: wp.vec4,
     node_ref_q: wp.array(dtype=wp.vec3),
     node_u: wp.array(dtype=wp.vec3),
-) -> wp.vec3:
-    """g = x_mp - x_p = Σ_a N_a (x_a - x_p) [m] (CIMNE eq. 9's constraint residual u_D - N_F u_F, up to sign)."""
-    g = wp.vec3(0.0)
+) -> wp.vec3d:
+    """g = x_mp - x_p = Σ_a N_a (x_a - x_p) [m] in float64 (CIMNE eq. 9's constraint residual u_D - N_F u_F, up to
+    sign): exact for the float32 X_a, u_a and N_a (module docstring)."""
+    g = wp.vec3d(0.0, 0.0, 0.0)
     for a in range(4):
-        g += bary[a] * node_from_point(node_ref_q[nodes[a]], node_u[nodes[a]], x)
+        g += wp.float64(bary[a]) * ((wp.vec3d(node_ref_q[nodes[a]]) - x) + wp.vec3d(node_u[nodes[a]]))
     return g
+
+
+@wp.func
+def coupling_stretch(g: wp.vec3d, rest: wp.vec3) -> wp.vec3:
+    """The gap past its rest value at birth, g - g₀ [m] (warpdem.model.State.coupling_rest), rounded once."""
+    return wp.vec3(g - wp.vec3d(rest))
 
 
 @wp.kernel
@@ -105,7 +115,7 @@ def eval_coupling_kernel(
     bary = coupling_bary[c]
     k = coupling_k[c]
     # The gap past its rest value at birth (the float32 rounding of N_a, warpdem.model.State.coupling_rest).
-    g = coupling_gap(particle_q[p], nodes, bary, node_ref_q, node_u) - coupling_rest[c]
+    g = coupling_stretch(coupling_gap(particle_q[p], nodes, bary, node_ref_q, node_u), coupling_rest[c])
     # Penalty form of eq. 9: U = ½ k |g|², f_p = -∂U/∂x_p = k g, f_a = -∂U/∂x_a = -N_a k g.
     f = k * g
     wp.atomic_add(particle_f, p, f)
@@ -141,8 +151,8 @@ def coupling_energy_kernel(
     t = coupling_tet[c]
     if tet_active[t] == 0:
         return
-    g = coupling_gap(particle_q[coupling_particle[c]], tet_nodes[t], coupling_bary[c], node_ref_q, node_u)
-    g -= coupling_rest[c]
+    g64 = coupling_gap(particle_q[coupling_particle[c]], tet_nodes[t], coupling_bary[c], node_ref_q, node_u)
+    g = coupling_stretch(g64, coupling_rest[c])
     energy[c] = wp.float64(0.5 * coupling_k[c]) * wp.float64(wp.dot(g, g))
 
 
@@ -201,6 +211,7 @@ def coupling_rest_kernel(
     if c < first or c >= coupling_count[0]:
         return
     # Born relaxed: the gap now, as eval_coupling_kernel forms it, is the rest it subtracts (the float32 rounding
-    # of N_a and of X_a - x_p, a few ε₃₂ of the tet's size).
+    # of N_a, a few ε₃₂ of the tet's size).
     p = coupling_particle[c]
-    coupling_rest[c] = coupling_gap(particle_q[p], tet_nodes[coupling_tet[c]], coupling_bary[c], node_ref_q, node_u)
+    g = coupling_gap(particle_q[p], tet_nodes[coupling_tet[c]], coupling_bary[c], node_ref_q, node_u)
+    coupling_rest[c] = wp.vec3(g)

@@ -319,7 +319,7 @@ def write_sub_couplings_kernel(
             coupling_k[c] = capped_coupling_stiffness(kn, bary, n, node_mass, particle_mass[p])
             coupling_energy_prev[c] = 0.0
             # The gap N_a leaves in float32 (~ε₃₂ × the tet's size) is the spring's rest gap: born relaxed.
-            coupling_rest[c] = coupling_gap(x, n, bary, node_ref_q, node_u)
+            coupling_rest[c] = wp.vec3(coupling_gap(x, n, bary, node_ref_q, node_u))
             c += 1
 
 
