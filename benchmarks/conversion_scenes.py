@@ -3,8 +3,9 @@
 dam_crest_blast (default: all three).
 
 Each scene is built as ``warpdem run`` builds it (:func:`warpdem.build.scene_build.build_scene`, the
-``start_as_spheres`` region converted on the new Simulation) and stepped in Python, sampling between steps (conversion
-passes run inside ``Simulation.advance``). A converted tet is a live tet with a sphere (``tet_sphere`` >= 0; with the
+``start_as_spheres`` region converted on the new Simulation; with ``dt = "auto"`` the step that lands on the frames,
+as the command line takes it: :func:`cli_model`) and stepped in Python, sampling between steps (conversion passes run
+inside ``Simulation.advance``). A converted tet is a live tet with a sphere (``tet_sphere`` >= 0; with the
 overlap band, the default, those in the band stay active with weight alpha); its place is its centroid at the reference
 positions. Per sample: converted tets (per material), spheres, intact and broken bonds, the fastest sphere, and the
 fractured zone: its extent, the distance of the farthest converted tet from the scene's charge (the centre of the
@@ -93,13 +94,27 @@ def wall_reach(sim, started: int, wall: tuple[np.ndarray, int, float]) -> tuple[
     return float(reach.max()), float(speed.max())
 
 
-def report(scene, device: str, end_time: float | None) -> list[str]:
-    """Converted tets, spheres, bonds and the fractured zone's extent over the run."""
-    from warpdem.build.scene_build import build_scene, start_as_spheres
-    from warpdem.simulation import Simulation
+def cli_model(scene, device: str):
+    """The scene's model and state as the command line steps them: built by ``build_scene``, with ``dt = "auto"``
+    the step that lands on the frames (warpdem.runner.timing.frame_step), so the report follows the command line's run
+    (and the seed report's) rather than one a step apart, which a blast's chaos takes elsewhere."""
+    import dataclasses
+
+    from warpdem.build.scene_build import build_scene
+    from warpdem.runner.timing import frame_step
 
     model, state = build_scene(scene, device)
-    sim = Simulation(model, state)
+    if scene.run.dt == "auto":
+        model = dataclasses.replace(model, dt=frame_step(model.dt, 1.0 / scene.run.output_rate)[1])
+    return model, state
+
+
+def report(scene, device: str, end_time: float | None) -> list[str]:
+    """Converted tets, spheres, bonds and the fractured zone's extent over the run."""
+    from warpdem.build.scene_build import start_as_spheres
+    from warpdem.simulation import Simulation
+
+    sim = Simulation(*cli_model(scene, device))
     started = start_as_spheres(scene, sim)
     nt = int(sim.state.tet_count.numpy()[0])
     tets = sim.model.tet_nodes.numpy()[:nt]
@@ -226,12 +241,11 @@ def largest_piece_share(sim, tets: np.ndarray, nodes: np.ndarray) -> float:
 
 def wall_report(scene, device: str, end_time: float | None) -> list[str]:
     """The masonry wall's first hit, DEM zone, largest intact piece and failure over the run (module docstring)."""
-    from warpdem.build.scene_build import build_scene, start_as_spheres
+    from warpdem.build.scene_build import start_as_spheres
     from warpdem.simulation import Simulation
 
     wall0 = time.perf_counter()
-    model, state = build_scene(scene, device)
-    sim = Simulation(model, state)
+    sim = Simulation(*cli_model(scene, device))
     started = start_as_spheres(scene, sim)
     m, s = sim.model, sim.state
     nt, nn = int(s.tet_count.numpy()[0]), sim.node_count

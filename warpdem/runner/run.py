@@ -57,6 +57,7 @@ from .timing import (
     FrameGrid,
     _check_steps,
     end_time_note,
+    frame_step,
     kernel_load_seconds,
     take_rigid_step,
 )
@@ -239,8 +240,8 @@ class Run(RunAccess):
             )
         _check_steps(scene, frame_period / model.dt, options, None)
         if run.dt == "auto":
-            substeps = max(1, math.ceil(frame_period / model.dt))
-            model = dataclasses.replace(model, dt=frame_period / substeps)
+            substeps, dt = frame_step(model.dt, frame_period)
+            model = dataclasses.replace(model, dt=dt)
         else:
             substeps = max(1, round(frame_period / model.dt))
             if abs(substeps * model.dt - frame_period) > 1e-9 * frame_period:

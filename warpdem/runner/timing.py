@@ -170,6 +170,13 @@ def take_rigid_step(
     return RigidStepChange(FrameGrid(substeps, sim.step_count + bridge, frame, sim.time + left), dt, pending=True)
 
 
+def frame_step(dt: float, frame_period: float) -> tuple[int, float]:
+    """The steps per frame and the step [s] of a run with ``dt = "auto"``: the whole number of steps no longer than
+    ``dt`` that fills a frame period [s] (a step at most ``dt``, so the frames land on steps)."""
+    substeps = max(1, math.ceil(frame_period / dt))
+    return substeps, frame_period / substeps
+
+
 def end_step(end_time: float, dt: float) -> int:
     """The step a run to ``end_time`` [s] ends at: the nearest one (at least 1), so it ends within dt/2 of the time
     asked, never a frame beyond."""
