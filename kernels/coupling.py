@@ -6,7 +6,8 @@ Coupling c ties sphere p to tet t: the material point is x_mp = Σ_a N_a x_a, N_
 (``coupling_bary``) and x_a = X_a + u_a the tet's nodes; the gap g = x_mp - x_p; the force k g acts on the sphere and
 -N_a k g on node a. Positions: sphere centres are float64, X_a and u_a float32. The gap is formed in float64,
 Σ_a N_a ((X_a - x_p) + u_a), exact for the float32 state (each term a difference of points a tet's size apart), and
-rounded to float32 once, past its rest value: g then carries ε₃₂ of itself, wherever the pair is. Formed in float32
+rounded to float32 once before its rest value is taken off (:func:`coupling_stretch`): g then carries ε₃₂ of itself,
+wherever the pair is. Formed in float32
 (X_a - x_p rounded to ε₃₂ of the tet's size, ~1e-8 m at 0.1 m) it carried that rounding against gaps of ~1e-6 m at
 small strains: the springs' energy and force were off by about 1 % from step to step, so the force was not the gradient
 of a smooth U and the books drifted by up to 3e-3 of the energy in play (tests/test_loads_handover.py: a pulsed block
@@ -78,8 +79,13 @@ def coupling_gap(
 
 @wp.func
 def coupling_stretch(g: wp.vec3d, rest: wp.vec3) -> wp.vec3:
-    """The gap past its rest value at birth, g - g₀ [m] (warpdem.model.State.coupling_rest), rounded once."""
-    return wp.vec3(g - wp.vec3d(rest))
+    """The gap past its rest value at birth, g - g₀ [m] (warpdem.model.State.coupling_rest: g at birth rounded to
+    float32): g rounded to float32 first, so a coupling whose pair has not moved since its birth holds exactly zero.
+    Subtracted in float64 instead, the rest's own rounding (~1e-15 m) was left as a force of ~1e-6 N at rest, which
+    moved the spheres by less than a rounding of their centres and the bonds, whose length resolves to a float32 ulp,
+    answered with tens of newtons (dam_crest_blast at rest: tests/test_scenes_at_rest.py). The rounding of g is of
+    g's own size (a few 1e-15 m at the ~5e-8 m of a rest gap), not of the tet's."""
+    return wp.vec3(g) - rest
 
 
 @wp.kernel
