@@ -11,7 +11,7 @@ wherever the pair is. Formed in float32
 (X_a - x_p rounded to ε₃₂ of the tet's size, ~1e-8 m at 0.1 m) it carried that rounding against gaps of ~1e-6 m at
 small strains: the springs' energy and force were off by about 1 % from step to step, so the force was not the gradient
 of a smooth U and the books drifted by up to 3e-3 of the energy in play (tests/test_loads_handover.py: a pulsed block
-whose top layer alone converted, now within 1.5e-6).
+whose top layer alone converted, now within 1.0e-6).
 """
 
 from __future__ import annotations

@@ -39,7 +39,7 @@ from ..parallel.run import NotDecomposable, make_simulation, release_ranks
 from ..scene import Scene, SceneError
 from ..simulation import Simulation
 from ..stages.energy import EnergyBalance, balance_error
-from ..stages.guard import UnstableRunError, energy_from_nowhere, likely_cause
+from ..stages.guard import UnstableRunError, books_from_nowhere, likely_cause
 from ..stages.loads import PressureAmplitudes, pressure_amplitudes, scale_pressure_loads
 from ..stages.rigid import RigidReport
 from ..stages.rigid_step import rigid_time_step
@@ -202,9 +202,9 @@ class Run(RunAccess):
             raise SceneError(
                 f"{scene.source}: run.allow_initial_overlap: {overlap.format()}; the first steps throw them apart. "
                 "Either two bodies are meshed into each other (move one out), or, in a mesh of one geology, which puts "
-                "no node inside another block, this is a false contact where a joint ends on another "
-                "(docs/limitations.md): draw other joints ([mesh] seed) or move a joint set's offset. Or set "
-                "allow_initial_overlap = true in [run] to start from this state anyway"
+                "no node inside another block, this is a false contact of the set-up where a joint ends on another "
+                "(docs/physics.md, node–face springs): draw other joints ([mesh] seed) or move a joint set's offset. "
+                "Or set allow_initial_overlap = true in [run] to start from this state anyway"
             )
         self._say(f"initial overlap: {overlap.format()}")
 
@@ -474,24 +474,12 @@ class Run(RunAccess):
 
     def _check_energy(self, energy: EnergyBalance) -> None:
         """Stop the run (warpdem.stages.guard.UnstableRunError) when energy appeared from nowhere since its start
-        (warpdem.stages.guard.energy_from_nowhere): the books close for Verlet at any step, so an unstable step
+        (warpdem.stages.guard.books_from_nowhere): the books close for Verlet at any step, so an unstable step
         allowed by allow_unstable_dt shows here, not in the balance."""
         s0, sim = self._energy_start, self.sim
         if s0 is None:  # frame 0: the books start here
             return
-        found = energy_from_nowhere(
-            (s0.total, s0.shadow, s0.in_play, s0.gravity_potential),
-            (
-                energy.total,
-                energy.shadow,
-                energy.gravity_potential,
-                energy.boundary_work - s0.boundary_work,
-                energy.load_work - s0.load_work,
-                energy.stiffness_change - s0.stiffness_change + energy.contact_topology - s0.contact_topology,
-            ),
-            sim.model.dt,
-            sim.model.critical_dt,
-        )
+        found = books_from_nowhere(s0, energy, sim.model.dt, sim.model.critical_dt)
         if found is not None:
             appeared, allowed = found
             problem = (
