@@ -34,8 +34,7 @@ from warpdem.build.builder import ModelBuilder
 from warpdem.build.mesh import boundary_faces, box_mesh
 from warpdem.simulation import Simulation
 from warpdem.stages.conversion import ConversionProps, attach_conversion
-from warpdem.stages.energy import balance_error
-from warpdem.stages.guard import books_from_nowhere
+from warpdem.stages.energy import balance_error, books_from_nowhere
 from warpdem.stages.loads import PressureHistory, load_forces
 from warpdem.stages.tets import TetProps, lame_parameters
 from warpdem.tables import TET_FACES
@@ -201,7 +200,7 @@ def test_restart_continues_bit_for_bit_after_a_hand_over(tmp_path):
 def test_a_converted_top_layer_runs_at_the_scenes_safety_factor(device):
     """The block with its loaded top layer converted before the pulse, at RUNAWAY_SAFETY: the step is that fraction
     of the smaller of the tets' and the bonded spheres' critical steps, and the run stays stable. Oracle: the
-    runner's test of energy from nowhere (warpdem.stages.guard.books_from_nowhere): Verlet's books close at any step,
+    runner's test of energy from nowhere (warpdem.stages.energy.books_from_nowhere): Verlet's books close at any step,
     stable or not, through the shadow term S, which a stable step keeps within (dt / dt_c)² of the energy stored; what
     the kinetic and stored energies gain beyond the load's work and S's allowance is a run-away. Checked every 10
     steps through the pulse; before the fix the block ran away within it."""

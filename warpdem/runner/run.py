@@ -38,8 +38,8 @@ from ..parallel.comm import rank_device
 from ..parallel.run import NotDecomposable, make_simulation, release_ranks
 from ..scene import Scene, SceneError
 from ..simulation import Simulation
-from ..stages.energy import EnergyBalance, balance_error
-from ..stages.guard import UnstableRunError, books_from_nowhere, likely_cause
+from ..stages.energy import EnergyBalance, balance_error, books_from_nowhere
+from ..stages.guard import UnstableRunError, likely_cause
 from ..stages.loads import PressureAmplitudes, pressure_amplitudes, scale_pressure_loads
 from ..stages.rigid import RigidReport
 from ..stages.rigid_step import rigid_time_step
@@ -474,7 +474,7 @@ class Run(RunAccess):
 
     def _check_energy(self, energy: EnergyBalance) -> None:
         """Stop the run (warpdem.stages.guard.UnstableRunError) when energy appeared from nowhere since its start
-        (warpdem.stages.guard.books_from_nowhere): the books close for Verlet at any step, so an unstable step
+        (warpdem.stages.energy.books_from_nowhere): the books close for Verlet at any step, so an unstable step
         allowed by allow_unstable_dt shows here, not in the balance."""
         s0, sim = self._energy_start, self.sim
         if s0 is None:  # frame 0: the books start here

@@ -23,6 +23,7 @@ from .fem_contact import (
     launch_sphere_face_energy,
     sphere_face_rows,
 )
+from .guard import energy_from_nowhere
 from .rigid import has_bodies
 from .tets import tet_energies
 
@@ -482,3 +483,24 @@ def energy_balance(m: Model, s: State, books: DeviceBooks | None = None) -> Ener
     if books is None or not books.fits(m, spheres):
         books = DeviceBooks(m, spheres)
     return books.read(m, s)
+
+
+def books_from_nowhere(
+    start: EnergyBalance, now: EnergyBalance, dt: float, critical_dt: float
+) -> tuple[float, float] | None:
+    """:func:`warpdem.stages.guard.energy_from_nowhere` between two states of the books: ``start``
+    where the run began, ``now`` after it; the work put in, the load work and the stiffness and contact-topology gains
+    taken as their changes since ``start``."""
+    return energy_from_nowhere(
+        (start.total, start.shadow, start.in_play, start.gravity_potential),
+        (
+            now.total,
+            now.shadow,
+            now.gravity_potential,
+            now.boundary_work - start.boundary_work,
+            now.load_work - start.load_work,
+            now.stiffness_change - start.stiffness_change + now.contact_topology - start.contact_topology,
+        ),
+        dt,
+        critical_dt,
+    )

@@ -39,16 +39,12 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
 
 from ..kernels import guard as kg
 from ..model import Model, State
-
-if TYPE_CHECKING:
-    from .energy import EnergyBalance
 
 SPEED_LIMIT_FACTOR = 10.0
 """Run-away speed bound relative to the fastest launch speed of the scene (initial, wall, driver, load) [-]."""
@@ -169,27 +165,6 @@ def energy_from_nowhere(
     rounding = 16.0 * float(np.finfo(np.float32).eps) * max(abs(gravity0), abs(gravity), flow)
     allowed = (ratio + BOOKS_SLACK) * flow + abs(shadow0) + rounding
     return (appeared, allowed) if appeared > allowed else None
-
-
-def books_from_nowhere(
-    start: EnergyBalance, now: EnergyBalance, dt: float, critical_dt: float
-) -> tuple[float, float] | None:
-    """:func:`energy_from_nowhere` between two states of the books (warpdem.stages.energy.EnergyBalance): ``start``
-    where the run began, ``now`` after it; the work put in, the load work and the stiffness and contact-topology gains
-    taken as their changes since ``start``."""
-    return energy_from_nowhere(
-        (start.total, start.shadow, start.in_play, start.gravity_potential),
-        (
-            now.total,
-            now.shadow,
-            now.gravity_potential,
-            now.boundary_work - start.boundary_work,
-            now.load_work - start.load_work,
-            now.stiffness_change - start.stiffness_change + now.contact_topology - start.contact_topology,
-        ),
-        dt,
-        critical_dt,
-    )
 
 
 class UnstableRunError(RuntimeError):
