@@ -26,7 +26,7 @@ GRAVITY_POTENTIAL = wp.constant(3)
 KINETIC_NODES = wp.constant(8)
 SHADOW = wp.constant(15)
 KINETIC_RIGID = wp.constant(20)
-LINES = wp.constant(27)
+LINES = wp.constant(28)
 """Number of lines (fields of EnergyBalance)."""
 
 
@@ -108,11 +108,13 @@ def node_books_kernel(
     has_drivers: int,
     gravity: wp.vec3d,
     shadow_factor: wp.float64,
+    substeps: int,
     # State in:
     node_count: wp.array(dtype=int),
     node_u: wp.array(dtype=wp.vec3),
     node_qd: wp.array(dtype=wp.vec3),
     node_f: wp.array(dtype=wp.vec3),
+    node_f_fast: wp.array(dtype=wp.vec3),
     stride: int,
     # Out:
     partials: wp.array2d(dtype=wp.float64),
@@ -120,7 +122,8 @@ def node_books_kernel(
     """The FEM nodes' kinetic energy ½ m v² (a rigid body's nodes excluded: the body counts), the moving nodes'
     gravity potential −m (X + u)·g (X + u in float64, so the potential keeps the displacements' precision) and the
     shadow term m dt²/8 |a|² of the kicked components of the nodes' acceleration a = f/m + g (not those a velocity
-    driver holds)."""
+    driver holds), and with ``substeps`` n > 1 that of the sub-steps, m (dt/n)²/8 |f_fast/m|² (warpdem.stages.substep;
+    ``node_f_fast`` is zero without them)."""
     t = wp.tid()
     kinetic = wp.float64(0.0)
     potential = wp.float64(0.0)
@@ -142,6 +145,10 @@ def node_books_kernel(
                     wp.vec3d(node_f[i]) * wp.float64(inv_mass) + gravity, wp.vec3d(node_free_directions(motion))
                 )
                 shadow += shadow_factor * m * wp.dot(a, a)
+                if substeps > 1:
+                    free = wp.vec3d(node_free_directions(motion))
+                    fast = wp.cw_mul(wp.vec3d(node_f_fast[i]) * wp.float64(inv_mass), free)
+                    shadow += shadow_factor * m * wp.dot(fast, fast) / wp.float64(substeps * substeps)
     partials[KINETIC_NODES, t] = partials[KINETIC_NODES, t] + kinetic
     partials[GRAVITY_POTENTIAL, t] = partials[GRAVITY_POTENTIAL, t] + potential
     partials[SHADOW, t] = partials[SHADOW, t] + shadow

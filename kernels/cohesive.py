@@ -64,6 +64,9 @@ law, goes to a line of its own (``node_energy_cohesive_trapezoid``): on a resolv
 law's integral (exactly on its linear pieces) and it holds rounding (tests/test_cohesive.py); where a blast moves the
 daughters past δ_c, or through each other, in a step it holds what the force did off the law, of either sign (on
 limestone_tunnel: elements born in a split pass whose daughters cross by 40–100 δ_c in their first step; issue 28).
+Sub-stepping the elements' nodes (``Model.cohesive_substeps`` n, warpdem.stages.substep) evaluates the elements n
+times a step at dt/n: ``step`` and ``dt`` below are then the sub-step's, s shrinks by n², and the trapezoid line
+with it.
 The break step books ½ dt f_n · v_rel + U_n: the element applies no force from then on, so nothing is left ahead. A
 split gives the new element f_prev = its force at birth (f_c along ``cohesive_dir``) and U = 0; a hand-over keeps
 both.

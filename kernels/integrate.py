@@ -225,6 +225,35 @@ def node_second_half_velocity(
 
 
 @wp.func
+def start_node_forces(
+    i: int,
+    dt: float,
+    v: wp.vec3,
+    node_mass: wp.array(dtype=float),
+    node_damping: wp.array(dtype=float),
+    node_f: wp.array(dtype=wp.vec3),
+    node_energy_damping: wp.array(dtype=wp.float64),
+    node_f_viscous: wp.array(dtype=wp.vec3),
+):
+    """What a node's drift ends with (:func:`drift_node`): the half ahead of the last evaluation's viscous forces
+    booked against the step's velocity ``v`` [m/s], the accumulator started at the damping force −α m v and the half
+    behind of that force booked (also after a sub-stepped node's sub-steps, warpdem.stages.substep, with v the
+    step's mean velocity)."""
+    alpha = node_damping[i]
+    f_viscous = node_f_viscous[i]
+    dissipated = -0.5 * dt * wp.dot(f_viscous, v)
+    f0 = wp.vec3(0.0)
+    if alpha > 0.0:
+        f0 = -alpha * node_mass[i] * v
+        dissipated = dissipated + 0.5 * alpha * node_mass[i] * wp.dot(v, v) * dt
+    if dissipated != 0.0:
+        node_energy_damping[i] = node_energy_damping[i] + wp.float64(dissipated)
+    if alpha > 0.0 or wp.length_sq(f_viscous) > 0.0:  # a node no compressed tet touched keeps its zero unwritten
+        node_f_viscous[i] = f0
+    node_f[i] = f0
+
+
+@wp.func
 def drift_node(
     i: int,
     dt: float,
@@ -260,18 +289,7 @@ def drift_node(
     x = node_ref_q[i] + u
     node_q[i] = x
     flag_past_half_fem_skin(i, x, half_fem_skin, node_contact_stiffness, node_q_at_fem_build, fem_rebuild_flag)
-    alpha = node_damping[i]
-    f_viscous = node_f_viscous[i]
-    dissipated = -0.5 * dt * wp.dot(f_viscous, v)
-    f0 = wp.vec3(0.0)
-    if alpha > 0.0:
-        f0 = -alpha * node_mass[i] * v
-        dissipated = dissipated + 0.5 * alpha * node_mass[i] * wp.dot(v, v) * dt
-    if dissipated != 0.0:
-        node_energy_damping[i] = node_energy_damping[i] + wp.float64(dissipated)
-    if alpha > 0.0 or wp.length_sq(f_viscous) > 0.0:  # a node no compressed tet touched keeps its zero unwritten
-        node_f_viscous[i] = f0
-    node_f[i] = f0
+    start_node_forces(i, dt, v, node_mass, node_damping, node_f, node_energy_damping, node_f_viscous)
 
 
 @wp.kernel
@@ -439,6 +457,51 @@ def integrate_second_half_kernel(
         energy_boundary_work[i] = energy_boundary_work[i] + w
 
 
+@wp.struct
+class SubstepNodes:
+    """The nodes whose cohesive forces are sub-stepped (warpdem.stages.substep; r-RESPA) as the step's node kernels
+    see them: ``node_slot`` per node slot its sub-step slot or -1 (empty: no sub-steps); per sub-step slot the
+    velocity after the step's first half kick (``v_start``), that kick's increment (``dv_start``) and the velocity
+    the sub-steps ended with (``v_end``), all [m/s]; ``node_energy_substep`` the State's line [J]."""
+
+    node_slot: wp.array(dtype=int)
+    v_start: wp.array(dtype=wp.vec3)
+    dv_start: wp.array(dtype=wp.vec3)
+    v_end: wp.array(dtype=wp.vec3)
+    node_energy_substep: wp.array(dtype=wp.float64)
+
+
+@wp.func
+def substep_slot(i: int, sub: SubstepNodes) -> int:
+    """Node i's sub-step slot, -1 when its forces are not sub-stepped."""
+    if sub.node_slot.shape[0] == 0:
+        return -1
+    return sub.node_slot[i]
+
+
+@wp.func
+def velocity_before_kick(i: int, slot: int, v: wp.vec3, sub: SubstepNodes) -> wp.vec3:
+    """The velocity the second half kick starts from [m/s]: ``node_qd`` (``v``), or for a sub-stepped node the
+    velocity its sub-steps ended with (``node_qd`` holds the step's mean velocity for the forces' evaluation)."""
+    if slot >= 0:
+        return sub.v_end[slot]
+    return v
+
+
+@wp.func
+def book_substep_kick(
+    i: int, slot: int, mass: float, dv: wp.vec3, v_kicked: wp.vec3, v_mean: wp.vec3, sub: SubstepNodes
+):
+    """Book m dv·(v_kicked − v_mean) [J] for a sub-stepped node (``slot`` ≥ 0): what a half kick ``dv`` of the
+    forces other than the cohesive ones adds to the kinetic energy beyond the ½ dt f·v_mean their lines book,
+    ``v_kicked`` the velocity the kick took the node from (second half) or to (first half), ``v_mean`` the step's
+    mean velocity (warpdem.stages.substep)."""
+    if slot >= 0:
+        w = wp.float64(mass) * wp.float64(wp.dot(dv, v_kicked - v_mean))
+        if w != wp.float64(0.0):
+            sub.node_energy_substep[i] = sub.node_energy_substep[i] + w
+
+
 def make_node_drift_kernel(after_second_half: bool) -> wp.Kernel:
     """The FEM node kernel that ends a half step in a drift: the first half, or with ``after_second_half`` the second
     half of step n before it (kick-drift), the choice made at code generation. The second half judges drivers at
@@ -465,6 +528,7 @@ def make_node_drift_kernel(after_second_half: bool) -> wp.Kernel:
         node_count: wp.array(dtype=int),
         time: wp.array(dtype=wp.float64),
         node_q_at_fem_build: wp.array(dtype=wp.vec3),
+        sub: SubstepNodes,
         # State out:
         node_u: wp.array(dtype=wp.vec3),
         node_q: wp.array(dtype=wp.vec3),
@@ -490,11 +554,15 @@ def make_node_drift_kernel(after_second_half: bool) -> wp.Kernel:
                 node_f[i] = wp.vec3(0.0)
                 return
         free = node_free_directions(motion)
+        slot = substep_slot(i, sub)
         v = node_qd[i]
         carry = node_qd_carry[i]
         t_step = time[0]
         work = float(0.0)
         if wp.static(after_second_half):
+            v_mean = v
+            v = velocity_before_kick(i, slot, v, sub)
+            v_before = v
             v, carry, work = node_second_half_velocity(
                 i,
                 dt,
@@ -510,7 +578,9 @@ def make_node_drift_kernel(after_second_half: bool) -> wp.Kernel:
                 num_drivers,
                 node_f,
             )
+            book_substep_kick(i, slot, node_mass[i], v - v_before, v_before, v_mean, sub)
             t_step = t_step + dt64
+        v_n = v
         v, carry, work_next = node_first_half_velocity(
             i, dt, gravity, t_step, free, v, carry, node_mass, node_inv_mass, node_driver, drivers, num_drivers, node_f
         )
@@ -518,6 +588,12 @@ def make_node_drift_kernel(after_second_half: bool) -> wp.Kernel:
             node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(work) + wp.float64(work_next)
         node_qd[i] = v
         node_qd_carry[i] = carry
+        if slot >= 0:
+            # The sub-steps drift the node under its cohesive forces, and their last kernel starts its accumulator
+            # (kernels/substep.py); its share of this kick is booked there, against the step's mean velocity.
+            sub.v_start[slot] = v
+            sub.dv_start[slot] = v - v_n
+            return
         drift_node(
             i,
             dt,
@@ -558,6 +634,7 @@ def integrate_nodes_second_half_kernel(
     node_count: wp.array(dtype=int),
     time: wp.array(dtype=wp.float64),
     node_f: wp.array(dtype=wp.vec3),
+    sub: SubstepNodes,
     # State out:
     node_qd: wp.array(dtype=wp.vec3),
     node_qd_carry: wp.array(dtype=wp.vec3),
@@ -567,13 +644,16 @@ def integrate_nodes_second_half_kernel(
     if i >= node_count[0]:
         return
     free = node_free_directions(node_motion[i])
+    slot = substep_slot(i, sub)
+    v_mean = node_qd[i]
+    v_before = velocity_before_kick(i, slot, v_mean, sub)
     v, carry, work = node_second_half_velocity(
         i,
         dt,
         gravity,
         time[0],
         free,
-        node_qd[i],
+        v_before,
         node_qd_carry[i],
         node_mass,
         node_inv_mass,
@@ -584,6 +664,7 @@ def integrate_nodes_second_half_kernel(
     )
     if work != 0.0:
         node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(work)
+    book_substep_kick(i, slot, node_mass[i], v - v_before, v_before, v_mean, sub)
     node_qd[i] = v
     node_qd_carry[i] = carry
 

@@ -86,6 +86,7 @@ def reference_balance(m: Model, s: State, absolute: bool = False) -> EnergyBalan
             else 0.0
         ),
         bond_trapezoid=add(s.energy_bond_trapezoid.numpy()[:n]),
+        substep_work=add(s.node_energy_substep.numpy()[:nn]),
     )
 
 
@@ -107,4 +108,8 @@ def shadow_term(m: Model, s: State, mass: np.ndarray, free: np.ndarray, g: np.nd
         a *= NODE_FREE_DIRECTIONS[m.node_motion.numpy()[:nn]]
         node_mass = m.node_mass.numpy()[:nn].astype(np.float64)
         total += np.sum((node_mass * np.sum(a * a, axis=1))[kicked])
+        # The sub-steps' part, (dt/n)²/8 |f_c|²/m of the cohesive forces kept apart (warpdem.stages.substep).
+        fast = s.node_f_fast.numpy()[:nn].astype(np.float64) * inv_mass[:, None]
+        fast *= NODE_FREE_DIRECTIONS[m.node_motion.numpy()[:nn]]
+        total += np.sum((node_mass * np.sum(fast * fast, axis=1))[kicked]) / m.cohesive_substeps**2
     return float(m.dt**2 / 8.0 * total) + body_energy(m, s)[1]

@@ -137,6 +137,10 @@ class Model:
         fracture_interval: steps between two split passes; 0: no split pass (fracture off, or a rigid switch stopped
             the passes: :attr:`has_fracture` tells the two apart).
         cohesive_capacity: cohesive element slots (grows ×2 on overflow between steps).
+        cohesive_substeps: sub-steps n of the cohesive elements' daughters per step (≥ 1): with n > 1 their nodes
+            move under the elements' forces in n velocity-Verlet sub-steps of dt/n between the half kicks of every
+            other force (a multiple-time-step integration, r-RESPA; warpdem.stages.substep), so that an opening
+            crossed within a step is resolved; 1: one step for every force, as without fracture.
         node_may_split: 1 where a node may split (the scene's fracture region), else 0, shape (node_capacity,), int32
             (a daughter inherits its parent's flag).
         fracture_material_table: T_f, Γ and α of every material id, shape (num_materials,), FractureMaterial
@@ -269,6 +273,7 @@ class Model:
     joint_set: wp.array | None = None
     fracture_interval: int = 0
     cohesive_capacity: int = 0
+    cohesive_substeps: int = 1
     node_may_split: wp.array | None = None
     fracture_material_table: wp.array | None = None
     ref_tet_face_nbr: wp.array | None = None
@@ -516,6 +521,14 @@ class State:
         node_energy_cohesive_trapezoid: the rest of what the node's cohesive elements spent, their work as Verlet does
             it (the trapezoid) less the change of their energy and the law's dissipation: 0 where the steps resolve
             the opening, of either sign where an element crosses δ_c in a step [J], shape (node_capacity,), float64.
+        node_f_fast: the cohesive elements' forces on each node at the last evaluation [N], kept apart from
+            ``node_f`` while their nodes are sub-stepped (``Model.cohesive_substeps`` > 1; zero otherwise), shape
+            (node_capacity,), vec3.
+        node_substepped: 1 where a node is sub-stepped (``Model.cohesive_substeps`` > 1): a node of an intact cohesive
+            element at the last pass that split or converted (warpdem.stages.substep), shape (node_capacity,), int32.
+        node_energy_substep: the work of the forces other than the cohesive ones over a sub-stepped node's motion
+            that their lines, booked against the step's mean velocity, do not hold [J] (warpdem.stages.substep;
+            either sign, 0 without sub-steps), shape (node_capacity,), float64.
         node_splits_total: node splits since the start, shape (1,), int32.
         crack_area_total: Σ A_f of every cohesive element born [m²] (both faces), shape (1,), float64.
         energy_contact_topology: energy the FEM contacts' springs gained without work at split and conversion passes
@@ -691,6 +704,9 @@ class State:
     node_damage: wp.array
     node_energy_cohesive: wp.array
     node_energy_cohesive_trapezoid: wp.array
+    node_f_fast: wp.array
+    node_substepped: wp.array
+    node_energy_substep: wp.array
     node_splits_total: wp.array
     crack_area_total: wp.array
     energy_contact_topology: wp.array
@@ -802,6 +818,9 @@ def fracture_state(model: Model) -> dict[str, wp.array]:
         "node_damage": wp.zeros(ncap, dtype=float, device=d),
         "node_energy_cohesive": wp.zeros(ncap, dtype=wp.float64, device=d),
         "node_energy_cohesive_trapezoid": wp.zeros(ncap, dtype=wp.float64, device=d),
+        "node_f_fast": wp.zeros(ncap, dtype=wp.vec3, device=d),
+        "node_substepped": wp.zeros(ncap, dtype=int, device=d),
+        "node_energy_substep": wp.zeros(ncap, dtype=wp.float64, device=d),
         "node_splits_total": wp.zeros(1, **one),
         "crack_area_total": wp.zeros(1, dtype=wp.float64, device=d),
         "energy_contact_topology": wp.zeros(1, dtype=wp.float64, device=d),

@@ -84,6 +84,7 @@ from .stages.rigid import (
 )
 from .stages.rigid_step import rigid_step_after_switch
 from .stages.status import ChunkStatus, StatusReader
+from .stages.substep import Substeps
 from .stages.tets import eval_tet_stresses, eval_tets
 from .stages.topology import regrow_nodes
 
@@ -224,6 +225,10 @@ class Simulation:
         # a switch or a pass, each followed by this set-up).
         nt = int(self.state.tet_count.numpy()[0])
         self.deformable_tets = bool(np.any(self.state.tet_active.numpy()[:nt] == int(TET_ACTIVE)))
+        # The cohesive elements' nodes sub-stepped (warpdem.stages.substep); the rigid switch sets the model's
+        # sub-steps to 1 (the elements take the blocks' step).
+        m = self.model
+        self.substeps = Substeps(m, self.state) if m.cohesive_substeps > 1 and m.cohesive_capacity else None
 
     # ------------------------------------------------------------------------------------------------------------
     def step(self) -> None:
@@ -236,7 +241,7 @@ class Simulation:
         m, s = self.model, self.state
         if self.deformable_tets:
             eval_tets(m, s)  # with every tet rigid or gone its kernel returns at each (a launch over every slot)
-        if m.cohesive_capacity:
+        if m.cohesive_capacity and self.substeps is None:  # sub-stepped: evaluated in the sub-steps
             eval_cohesive(m, s, track_energy=self.track_energy)
         if self.has_spheres:
             self.neighbors.rebuild_if_needed()
@@ -251,23 +256,34 @@ class Simulation:
 
     def _head(self) -> None:
         """First half of the first step of a run, and its forces."""
-        integrate_first_half(self.model, self.state, self.track_energy, self.drift_nodes)
+        integrate_first_half(self.model, self.state, self.track_energy, self.drift_nodes, self._substep_nodes())
+        self._substep()
         if self.rigid:
             drift_bodies(self.model, self.state, after_second_half=False, deformable=self.deformable_tets)
         self._forces()
 
     def _body(self) -> None:
         """Second half of a step, first half of the next (one pass: warpdem.stages.integrate.kick_drift), its forces."""
-        kick_drift(self.model, self.state, self.track_energy, self.drift_nodes)
+        kick_drift(self.model, self.state, self.track_energy, self.drift_nodes, self._substep_nodes())
+        self._substep()
         if self.rigid:
             drift_bodies(self.model, self.state, after_second_half=True, deformable=self.deformable_tets)
         self._forces()
 
     def _tail(self) -> None:
         """Second half of the last step of a run."""
-        integrate_second_half(self.model, self.state)
+        integrate_second_half(self.model, self.state, self._substep_nodes())
         if self.rigid:
             kick_bodies(self.model, self.state)
+
+    def _substep_nodes(self):
+        """The sub-stepped nodes as the step's node kernels take them (None: no sub-steps)."""
+        return self.substeps.nodes_struct(self.state) if self.substeps is not None else None
+
+    def _substep(self) -> None:
+        """The sub-steps of the cohesive elements' nodes, between the first half kick and the other forces."""
+        if self.substeps is not None:
+            self.substeps.run(self.model, self.state, self.track_energy)
 
     def evaluate_forces(self, after_pass: bool = False, rebuild_fem: bool = True) -> None:
         """Forces at the current positions without advancing time or history (the set-up evaluation; ``after_pass``:
@@ -288,8 +304,10 @@ class Simulation:
         # starts with the next drift), whatever a pass took out since the last step (warpdem.stages.integrate).
         s.node_f_viscous.zero_()
         eval_tets(m, s, dt=0.0)
+        s.node_f_fast.zero_()
         if m.cohesive_capacity:
-            eval_cohesive(m, s, dt=0.0, track_energy=self.track_energy)
+            substeps = self.substeps.n if self.substeps is not None else 1
+            eval_cohesive(m, s, dt=0.0, track_energy=self.track_energy, substeps=substeps)
         if self.has_spheres:
             s.rebuild_flag.fill_(1)
             self.neighbors.rebuild_if_needed()
@@ -429,7 +447,7 @@ class Simulation:
         m, s = self.model, self.state
         before = self.energy() if self.track_energy else None
         s, report = make_bodies(m, s)
-        self.model = dataclasses.replace(m, fracture_interval=0, conversion_interval=0)
+        self.model = dataclasses.replace(m, fracture_interval=0, conversion_interval=0, cohesive_substeps=1)
         self.state = s
         self._setup()
         # The nodes take their bodies' velocity field (positions are unchanged: u = u0 at the switch).
@@ -658,6 +676,8 @@ class Simulation:
         splits = found.after - found.before
         if splits:
             self._after_split(splits)
+            if self.substeps is not None:  # the new elements' daughters take the sub-steps from the next step
+                self.substeps.mark(self.model, self.state)
             if self.track_energy:
                 retain = self._prepare_books()
                 key = (arrays_key(self.model, self.state), *(id(x) for x in retain))
@@ -875,6 +895,8 @@ class Simulation:
         # couplings to the converted tets (new couplings are born relaxed): both booked as released with the rest,
         # so the books stay closed across the pass.
         self._book_change(CONVERSION, MARK_SHADOW, self.state.energy_released_conversion)
+        if self.substeps is not None:
+            self.substeps.mark(self.model, self.state)
         return ConversionReport(tets, spawned, bonds, couplings, grew)
 
     def _band_incidence(self) -> np.ndarray:

@@ -376,6 +376,7 @@ def attach_scene_fracture(scene: Scene, model: Model, state: State) -> tuple[Mod
             check_interval=fracture.check_interval,
             may_split=may_split,
             cohesive_capacity=fracture.cohesive_capacity,
+            cohesive_substeps=fracture.cohesive_substeps,
         )
     except ValueError as exc:
         raise SceneError(f"{scene.source}: fracture: {exc}") from None

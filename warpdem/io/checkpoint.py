@@ -33,7 +33,9 @@ which dropped the faces of converted tets without a hand-over, so its dropped fa
 from zero); 12 the impulse each pressure face delivered (``state/load_face_impulse``: a report's counter, counted
 from the restart of an older run); 13 the sphere contacts' three force sums as one record per sphere
 (``state/contact_sums``, made from an older file's ``contact_f_normal``, ``contact_f_tangential`` and
-``contact_t_tangential``, the same values).
+``contact_t_tangential``, the same values); 14 the cohesive elements' sub-steps (the model scalar
+``cohesive_substeps``, ``state/node_f_fast``, ``state/node_substepped`` and ``state/node_energy_substep``: 1 and zero
+in an older run, which took one step for every force).
 
 Files are written to ``<name>.tmp-<pid>`` in the target directory and moved over the final name with
 ``os.replace``, so a crash or an error mid-write never damages the previous checkpoint.
@@ -66,7 +68,7 @@ __all__ = [
 FORMAT_NAME = "warpdem-checkpoint"
 """Value of the root attribute ``warpdem_format`` identifying a warpdem checkpoint."""
 
-FORMAT_VERSION = 13
+FORMAT_VERSION = 14
 """Newest checkpoint format this module writes and reads (module docstring, "Versions"); bump when the layout changes
 or fields are added, and list what older files may lack in warpdem.io.restart.FIELD_MIGRATIONS."""
 

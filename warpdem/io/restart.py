@@ -373,6 +373,12 @@ FIELD_MIGRATIONS: dict[str, FieldMigration] = {
     # The sphere contacts' three force sums as one record per sphere (format 13): an older file held them as three
     # arrays, the record's rows.
     "state/contact_sums": FieldMigration(13, _always, "state/particle_qd", _contact_sums),
+    # The cohesive elements' daughters sub-stepped (format 14): an older run took one step for every force, so its
+    # cohesive forces were part of node_f, none kept apart, and no sub-step work was booked.
+    "attribute cohesive_substeps": FieldMigration(14, _always),
+    "state/node_f_fast": FieldMigration(14, _always, "state/node_f"),
+    "state/node_substepped": FieldMigration(14, _always, "state/node_damage"),
+    "state/node_energy_substep": FieldMigration(14, _always, "state/node_energy_cohesive"),
 }
 """The fields added since checkpoint format 1, by checkpoint key (``state/<name>``, ``model/<name>``, ``attribute
 <name>`` for a model scalar), and when a restart may fill them from the fresh model and state

@@ -126,6 +126,7 @@ _STATE_SIZES: dict[str, Size] = {
     **_each(
         "node_damage node_energy_cohesive node_energy_cohesive_trapezoid node_f_sphere_face node_energy_sphere_face", _N
     ),
+    **_each("node_f_fast node_substepped node_energy_substep", _N),
     **_each("tet_active tet_stress tet_sphere", _T),
     # Sphere–face rows: empty in a model without boundary faces (warpdem.stages.fem_contact.sphere_face_rows).
     **_each(

@@ -220,6 +220,9 @@ class RunSummary:
                 row("cohesive diss.", e0.dissipated_cohesive, e1.dissipated_cohesive),
                 row("coh. trapezoid", e0.cohesive_trapezoid, e1.cohesive_trapezoid),
             ]
+            if e0.substep_work or e1.substep_work:
+                # The other forces' work over the sub-stepped daughters' motion (warpdem.stages.substep).
+                lines.append(row("sub-step work", e0.substep_work, e1.substep_work))
         if e0.released_conversion or e1.released_conversion or e0.coupling_elastic or e1.coupling_elastic:
             # FEM → DEM conversion: what left the mechanical books as tets turned into spheres, and the penalty
             # springs tying the spheres to the continuum (warpdem.stages.conversion, warpdem.stages.coupling), so the

@@ -46,6 +46,15 @@ class Fracture(_Model):
     cohesive_capacity: Int | None = Field(
         default=None, gt=0, description="Initial cohesive element slots (they grow); default chosen by the build."
     )
+    cohesive_substeps: Int = Field(
+        default=1,
+        ge=1,
+        le=64,
+        description=(
+            "Sub-steps per step of the cohesive elements' nodes under the elements' forces [-]: 1 steps them with "
+            "every other force; n > 1 resolves openings a blast drives through δ_c within a step (n ≥ √β)."
+        ),
+    )
     seed_cracks: list[SeedCrack] = Field(default_factory=list, description="Open pre-cracks made at build time.")
 
 

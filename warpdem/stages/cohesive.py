@@ -19,7 +19,9 @@ from .compaction import Compactor, grow_live_slots
 from .integrate import pose_ahead
 
 
-def eval_cohesive(model: Model, state: State, dt: float | None = None, track_energy: bool = True) -> None:
+def eval_cohesive(
+    model: Model, state: State, dt: float | None = None, track_energy: bool = True, substeps: int = 1
+) -> None:
     """Add the forces of the intact cohesive elements to ``state.node_f`` and advance their history (launches only).
 
     Per element (one thread per slot of ``model.cohesive_capacity``): the central force of LDEC eqs. 5–8, +f on A
@@ -37,6 +39,9 @@ def eval_cohesive(model: Model, state: State, dt: float | None = None, track_ene
         dt: time step [s] (None: ``model.dt``); 0 evaluates the forces only (the set-up and post-split evaluation):
             no history, no books, no break.
         track_energy: book the dissipated energy.
+        substeps: n > 1: the elements' nodes are sub-stepped (warpdem.stages.substep): the forces go to
+            ``state.node_f_fast`` instead of ``node_f``, and the opening threshold follows the sub-step dt/n
+            (kernels/cohesive.py ``open_length``); ``dt`` is then the sub-step's.
     """
     if model.cohesive_capacity == 0:
         return
@@ -48,7 +53,7 @@ def eval_cohesive(model: Model, state: State, dt: float | None = None, track_ene
             # Model:
             m.node_ref_q,
             m.node_inv_mass,
-            m.dt,
+            m.dt / substeps,
             m.dt if dt is None else dt,
             # State in:
             s.cohesive_count,
@@ -73,7 +78,7 @@ def eval_cohesive(model: Model, state: State, dt: float | None = None, track_ene
             s.cohesive_broken_total,
             s.cohesive_area_broken,
             s.cohesive_work_broken,
-            s.node_f,
+            s.node_f_fast if substeps > 1 else s.node_f,
             s.node_damage,
             s.node_energy_cohesive,
             s.node_energy_cohesive_trapezoid,

@@ -72,7 +72,11 @@ class EnergyBalance:
     leapfrog kinetic energy of the steps before a change (kinetic − S(dt_old)) and after it (kinetic − S(dt_new))
     differ by that, with no force working. A split pass changes the forces instead (lighter daughters, a face's
     share of a contact force on one daughter, the re-evaluation at dt = 0) at the same velocities: its
-    S(f_new) − S(f_old) goes to the same line.
+    S(f_new) − S(f_old) goes to the same line. With the cohesive elements' daughters sub-stepped
+    (``Model.cohesive_substeps`` n > 1; warpdem.stages.substep) the shadow term holds their sub-steps' part too,
+    (dt/n)²/8 |f_c|²/m of the cohesive forces, and ``substep_work`` is the work the other forces did over those
+    nodes' sub-stepped motion beyond what their lines book against the step's mean velocity (either sign; it enters
+    the total like work put in).
     """
 
     kinetic_translational: float
@@ -102,6 +106,7 @@ class EnergyBalance:
     dissipated_sphere_face: float = 0.0
     bond_trapezoid: float = 0.0
     cohesive_trapezoid: float = 0.0
+    substep_work: float = 0.0
 
     @property
     def kinetic(self) -> float:
@@ -142,6 +147,7 @@ class EnergyBalance:
             + self.dissipated_sphere_face
             + self.bond_trapezoid
             + self.cohesive_trapezoid
+            - self.substep_work
         )
 
 
@@ -346,10 +352,12 @@ class DeviceBooks:
                 int(drivers is not None),
                 g,
                 h,
+                m.cohesive_substeps,
                 s.node_count,
                 s.node_u,
                 s.node_qd,
                 s.node_f,
+                s.node_f_fast,
             ],
         )
         if has_bodies(s):
@@ -458,6 +466,7 @@ class DeviceBooks:
             (s.node_energy_absorbed, nn, "absorbed_boundaries"),
             (s.node_energy_cohesive, nn, "dissipated_cohesive"),
             (s.node_energy_cohesive_trapezoid, nn, "cohesive_trapezoid"),
+            (s.node_energy_substep, nn, "substep_work"),
             (s.energy_released_conversion, None, "released_conversion"),
             (s.energy_released_rigid, None, "released_rigid_switch"),
             (s.energy_contact_topology, None, "contact_topology"),

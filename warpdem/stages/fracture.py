@@ -180,6 +180,10 @@ def fracture_material_table(materials: Sequence[FractureProps], device: wp.conte
     return wp.array(table, dtype=kfr.FractureMaterial, device=device)
 
 
+MAX_SUBSTEPS = 64
+"""Most sub-steps of the cohesive elements' nodes per step (β up to 4096 resolved; each costs two launches)."""
+
+
 def attach_fracture(
     model: Model,
     state: State,
@@ -188,6 +192,7 @@ def attach_fracture(
     check_interval: int = 1,
     may_split: np.ndarray | None = None,
     cohesive_capacity: int | None = None,
+    cohesive_substeps: int = 1,
 ) -> tuple[Model, State]:
     """Turn nodal fracture on for a built model (before its Simulation is made).
 
@@ -196,6 +201,9 @@ def attach_fracture(
         check_interval: steps between split passes (>= 1).
         may_split: bool per live node, True where a node may split; None: every node.
         cohesive_capacity: initial cohesive element slots (grown ×2 on demand); None: max(64, node_count // 8).
+        cohesive_substeps: sub-steps of the cohesive elements' nodes per step (>= 1; warpdem.stages.substep): 1
+            steps them with every other force; n > 1 resolves an opening crossed within a step (n ≥ √β, β the share
+            of δ_c an element's peak force opens in one step). Not with node velocity drivers.
 
     Returns:
         The model (``fracture_interval``, ``cohesive_capacity``, ``node_may_split``, ``fracture_material_table``,
@@ -215,6 +223,19 @@ def attach_fracture(
         raise ValueError(f"attach_fracture: check_interval must be an integer >= 1, got {check_interval!r}")
     if model.tet_capacity == 0:
         raise ValueError("attach_fracture: the model has no tets to split")
+    if (
+        isinstance(cohesive_substeps, bool)
+        or not isinstance(cohesive_substeps, (int, np.integer))
+        or not 1 <= cohesive_substeps <= MAX_SUBSTEPS
+    ):
+        raise ValueError(
+            f"attach_fracture: cohesive_substeps must be an integer from 1 to {MAX_SUBSTEPS}, got {cohesive_substeps!r}"
+        )
+    if cohesive_substeps > 1 and model.loads is not None and model.loads.num_drivers:
+        raise ValueError(
+            "attach_fracture: cohesive_substeps > 1 with node velocity drivers is not supported (a driven daughter's "
+            "sub-steps are not built); use cohesive_substeps = 1 or drive the model by loads or walls"
+        )
     nn = int(state.node_count.numpy()[0])
     flags = live_flags(may_split, nn, model.node_capacity, "attach_fracture", "may_split", "node")
     if cohesive_capacity is None:
@@ -230,6 +251,7 @@ def attach_fracture(
         model,
         fracture_interval=int(check_interval),
         cohesive_capacity=int(cohesive_capacity),
+        cohesive_substeps=int(cohesive_substeps),
         node_may_split=wp.array(flags, dtype=int, device=d),
         fracture_material_table=fracture_material_table(materials, d),
         ref_tet_face_nbr=reference_face_neighbors(model, state),

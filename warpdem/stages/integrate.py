@@ -15,14 +15,41 @@ from ..kernels import rigid as kr
 from ..model import Model, State
 from .neighbors import make_struct
 
+_NO_SUBSTEPS: dict[str, ki.SubstepNodes] = {}
 
-def integrate_first_half(model: Model, state: State, track_energy: bool = True, nodes: bool = True) -> None:
+
+def no_substeps(device: wp.context.Device) -> ki.SubstepNodes:
+    """The struct of a step without sub-steps (an empty ``node_slot``: every node takes the plain step), made once
+    per device so that a captured step allocates nothing."""
+    key = str(device)
+    if key not in _NO_SUBSTEPS:
+        empty3 = wp.empty(0, dtype=wp.vec3, device=device)
+        _NO_SUBSTEPS[key] = make_struct(
+            ki.SubstepNodes,
+            node_slot=wp.empty(0, dtype=int, device=device),
+            v_start=empty3,
+            dv_start=empty3,
+            v_end=empty3,
+            node_energy_substep=wp.empty(0, dtype=wp.float64, device=device),
+        )
+    return _NO_SUBSTEPS[key]
+
+
+def integrate_first_half(
+    model: Model,
+    state: State,
+    track_energy: bool = True,
+    nodes: bool = True,
+    sub: ki.SubstepNodes | None = None,
+) -> None:
     """Kick by dt/2 with the forces of the last evaluation, drift by dt, clear the force accumulators (FEM nodes:
     start them at the mass-proportional damping force) and raise the rebuild flags if a sphere has moved half the
     skin or a surface node half the FEM skin; with ``track_energy`` book the half of the sphere contacts' and bonds'
     work that lies ahead of their evaluation (kernels/integrate.py ``book_contact_work_ahead``). ``nodes``: False
-    skips the FEM node kernel (every node rigid and undriven: warpdem.stages.rigid ``every_node_rigid``)."""
-    _drift(model, state, ki.integrate_first_half_kernel, ki.integrate_nodes_first_half_kernel, track_energy, nodes)
+    skips the FEM node kernel (every node rigid and undriven: warpdem.stages.rigid ``every_node_rigid``). ``sub``:
+    the sub-stepped nodes (warpdem.stages.substep ``Substeps.nodes_struct``), which are kicked but not drifted here;
+    None: none."""
+    _drift(model, state, ki.integrate_first_half_kernel, ki.integrate_nodes_first_half_kernel, track_energy, nodes, sub)
     _advance_walls(model, state)
 
 
@@ -74,9 +101,10 @@ def book_half_ahead(
     )
 
 
-def integrate_second_half(model: Model, state: State) -> None:
+def integrate_second_half(model: Model, state: State, sub: ki.SubstepNodes | None = None) -> None:
     """Kick by dt/2 with the forces at the new positions; count the work of driven spheres and nodes; advance the
-    state's time by dt (last, so that both halves of the step see the same t_n)."""
+    state's time by dt (last, so that both halves of the step see the same t_n). ``sub``: as in
+    :func:`integrate_first_half` (a sub-stepped node is kicked from the velocity its sub-steps ended with)."""
     m, s = model, state
     wp.launch(
         ki.integrate_second_half_kernel,
@@ -115,6 +143,7 @@ def integrate_second_half(model: Model, state: State) -> None:
                 s.node_count,
                 s.time,
                 s.node_f,
+                sub if sub is not None else no_substeps(m.device),
             ],
             outputs=[s.node_qd, s.node_qd_carry, s.node_energy_boundary_work],
             device=m.device,
@@ -122,12 +151,18 @@ def integrate_second_half(model: Model, state: State) -> None:
     _advance_time(m, s)
 
 
-def kick_drift(model: Model, state: State, track_energy: bool = True, nodes: bool = True) -> None:
+def kick_drift(
+    model: Model,
+    state: State,
+    track_energy: bool = True,
+    nodes: bool = True,
+    sub: ki.SubstepNodes | None = None,
+) -> None:
     """The second half of step n and the first half of step n + 1 in one pass (:func:`integrate_second_half` then
     :func:`integrate_first_half`, bit for bit): kick by dt/2 twice with the forces f_{n+1}, book the work of driven
-    spheres and nodes, drift, clear the accumulators, flag a rebuild; the clock advances in between. ``nodes``: as
-    in :func:`integrate_first_half`."""
-    _drift(model, state, ki.kick_drift_particles_kernel, ki.kick_drift_nodes_kernel, track_energy, nodes)
+    spheres and nodes, drift, clear the accumulators, flag a rebuild; the clock advances in between. ``nodes`` and
+    ``sub``: as in :func:`integrate_first_half`."""
+    _drift(model, state, ki.kick_drift_particles_kernel, ki.kick_drift_nodes_kernel, track_energy, nodes, sub)
     # The nodes judged their drivers at t_n + dt/2 and t_n + 3dt/2 from the clock as it was; it moves on now, before
     # the walls and the forces of step n + 1, as between two separate steps.
     _advance_time(model, state)
@@ -135,10 +170,16 @@ def kick_drift(model: Model, state: State, track_energy: bool = True, nodes: boo
 
 
 def _drift(
-    m: Model, s: State, particle_kernel: wp.Kernel, node_kernel: wp.Kernel, track_energy: bool, nodes: bool = True
+    m: Model,
+    s: State,
+    particle_kernel: wp.Kernel,
+    node_kernel: wp.Kernel,
+    track_energy: bool,
+    nodes: bool = True,
+    sub: ki.SubstepNodes | None = None,
 ) -> None:
     """Launch the sphere and node kernels that end a half step in a drift (first half, or kick-drift); the node
-    kernel only with ``nodes``."""
+    kernel only with ``nodes``, ``sub`` its sub-stepped nodes (None: none)."""
     wp.launch(
         particle_kernel,
         dim=m.particle_capacity,
@@ -150,7 +191,13 @@ def _drift(
         wp.launch(
             node_kernel,
             dim=m.node_capacity,
-            inputs=[*_node_drift_model(m), s.node_count, s.time, s.node_q_at_fem_build],
+            inputs=[
+                *_node_drift_model(m),
+                s.node_count,
+                s.time,
+                s.node_q_at_fem_build,
+                sub if sub is not None else no_substeps(m.device),
+            ],
             outputs=_node_drift_outputs(s),
             device=m.device,
         )
