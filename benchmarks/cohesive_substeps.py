@@ -73,8 +73,8 @@ def main(argv: list[str] | None = None) -> int:
         r = run_once(args.scene, int(n), safety, args.end_time)
         print(
             f"| {int(n)} | {r['safety']:g} | {r['splits']:.0f} | {r['cohesive_broken']:.0f} "
-            f"| {r['energy_dissipated_cohesive']:.0f} | {r['energy_cohesive_trapezoid']:.0f} "
-            f"| {r['energy_substep_work']:.0f} | {r['energy_error']:.1e} | {r['wall']:.1f} |",
+            f"| {r['energy_dissipated_cohesive']:.4g} | {r['energy_cohesive_trapezoid']:.4g} "
+            f"| {r['energy_substep_work']:.4g} | {r['energy_error']:.1e} | {r['wall']:.1f} |",
             flush=True,
         )
     return 0
