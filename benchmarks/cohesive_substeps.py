@@ -36,14 +36,12 @@ def run_once(path: Path, substeps: int, safety: float | None, end_time: float) -
     frame's lines."""
     scene = load_scene(path)
     fracture = scene.fracture.model_copy(update={"cohesive_substeps": substeps})
-    update = {"output_rate": 1.0 / end_time}
-    if safety is not None:
-        update["safety_factor"] = safety
-    run = scene.run.model_copy(update=update)
+    run = scene.run if safety is None else scene.run.model_copy(update={"safety_factor": safety})
     scene = scene.model_copy(update={"fracture": fracture, "run": run})
     with tempfile.TemporaryDirectory() as out:
         start = time.perf_counter()
-        run_scene(scene, RunOptions(device="cpu", frames=1, out_dir=Path(out), quiet=True))
+        # The scene's own frames, so the steps are those of ``warpdem run`` to the same end.
+        run_scene(scene, RunOptions(device="cpu", end_time=end_time, out_dir=Path(out), quiet=True))
         wall = time.perf_counter() - start
         series = read_series(next(Path(out).glob("*_series.csv")))
     row = {name: float(series[name][-1]) for name in series}

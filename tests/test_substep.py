@@ -16,7 +16,9 @@ Oracles:
   force) across its sub-steps: kinetic − shadow (both parts) + gravity potential + stored + spent − the sub-step work
   line is constant to the rounding of the sub-steps (tests/test_cohesive.py ``verlet_rounding``, n sub-steps a step);
   the sub-step line is not zero (the slow kicks meet velocities the cohesive force changed within the step), so the
-  oracle reads it.
+  oracle reads it;
+- bad input: sub-steps outside 1–64 and sub-steps with node velocity drivers are scene errors naming the file and
+  the key.
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ import numpy as np
 import pytest
 from test_cohesive import AREA, FC, GAMMA, critical_opening, daughter_model, set_elements, unit, verlet_rounding
 
+from warpdem.build.scene_build import build_scene
+from warpdem.scene import SceneError, parse_scene
 from warpdem.stages.cohesive import cohesive_energy, eval_cohesive
 from warpdem.stages.integrate import integrate_first_half, integrate_second_half
 from warpdem.stages.substep import Substeps
@@ -163,3 +167,41 @@ def test_books_close_with_forces_that_are_not_substepped(device):
     assert drift <= rounding
     assert abs(sub_work[-1]) > 10.0 * rounding  # the line is needed: without it the books would not close
     np.testing.assert_array_equal(state.node_u.numpy()[0], 0.0)  # the held node stayed
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Bad input: what the sub-steps are not built for is refused with the file, the key and what is allowed.
+
+FRACTURE_BOX = {
+    "schema_version": 1,
+    "run": {"end_time": 1e-4},
+    "materials": {
+        "rock": {
+            "density": 2600.0,
+            "youngs_modulus": 1e9,
+            "poisson_ratio": 0.25,
+            "tensile_strength": 1e6,
+            "fracture_energy": 10.0,
+        }
+    },
+    "mesh": {"kind": "box", "lo": [0, 0, 0], "hi": [1, 1, 1], "divisions": [2, 2, 2], "material": "rock"},
+    "fracture": {"enabled": True, "cohesive_substeps": 8},
+}
+
+
+@pytest.mark.parametrize("value", [0, 65, 2.5])
+def test_substeps_out_of_range_are_a_scene_error(value):
+    data = {**FRACTURE_BOX, "fracture": {"enabled": True, "cohesive_substeps": value}}
+    with pytest.raises(SceneError, match=r"s\.toml: fracture\.cohesive_substeps"):
+        parse_scene(data, source="s.toml")
+
+
+def test_substeps_with_velocity_drivers_are_refused():
+    data = {**FRACTURE_BOX, "loads": [{"kind": "velocity", "faces": "z+", "velocity": [0, 0, -1]}]}
+    scene = parse_scene(data, source="s.toml")
+    with pytest.raises(SceneError, match=r"s\.toml: fracture: .*cohesive_substeps > 1 with node velocity drivers"):
+        build_scene(scene, "cpu")
+    # One step a step is what a driven model takes: it builds.
+    data["fracture"] = {"enabled": True, "cohesive_substeps": 1}
+    model, _ = build_scene(parse_scene(data, source="s.toml"), "cpu")
+    assert model.cohesive_substeps == 1
