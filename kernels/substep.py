@@ -32,7 +32,7 @@ wp.set_module_options({"enable_backward": False})
 
 
 @wp.func
-def fast_half_kick(i: int, h: float, free: wp.vec3, v: wp.vec3, carry: wp.vec3, a: wp.vec3):
+def fast_half_kick(h: float, free: wp.vec3, v: wp.vec3, carry: wp.vec3, a: wp.vec3):
     """v + h/2 a [m/s] by the kicks' compensated sum, in the node's free components; returns (v, carry)."""
     v, carry = carried_sum(v, carry, 0.5 * h * a)
     return wp.cw_mul(free, v), wp.cw_mul(free, carry)
@@ -69,8 +69,8 @@ def substep_kick_drift_kernel(
     v = node_qd[i]
     carry = node_qd_carry[i]
     if first == 0:
-        v, carry = fast_half_kick(i, h, free, v, carry, a)
-    v, carry = fast_half_kick(i, h, free, v, carry, a)
+        v, carry = fast_half_kick(h, free, v, carry, a)
+    v, carry = fast_half_kick(h, free, v, carry, a)
     node_qd[i] = v
     node_qd_carry[i] = carry
     u = node_u[i] + h * v
@@ -119,7 +119,7 @@ def substep_finish_kernel(
         return
     i = nodes[k]
     free = node_free_directions(node_motion[i])
-    v, carry = fast_half_kick(i, h, free, node_qd[i], node_qd_carry[i], node_f_fast[i] * node_inv_mass[i])
+    v, carry = fast_half_kick(h, free, node_qd[i], node_qd_carry[i], node_f_fast[i] * node_inv_mass[i])
     sub.v_end[k] = v
     node_qd_carry[i] = carry
     v_mean = dx[k] / dt
@@ -159,11 +159,14 @@ def number_substep_nodes_kernel(
     nodes: wp.array(dtype=int),
 ):
     """Give each marked node a sub-step slot, -1 to the others (``count`` must start at 0). The slots' order differs
-    between runs on a GPU; nothing depends on it: each slot's arithmetic is its node's alone."""
+    between runs on a GPU; nothing depends on it: each slot's arithmetic is its node's alone. The marks are the nodes
+    of at most the element slots (two each), which ``nodes`` holds; a node past them (none is) would take the plain
+    step rather than be written out of bounds."""
     i = wp.tid()  # one thread per node slot
+    node_slot[i] = -1
     if i >= node_count[0] or node_substepped[i] == 0:
-        node_slot[i] = -1
         return
     k = wp.atomic_add(count, 0, 1)
-    node_slot[i] = k
-    nodes[k] = i
+    if k < nodes.shape[0]:
+        node_slot[i] = k
+        nodes[k] = i
