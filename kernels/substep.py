@@ -25,17 +25,53 @@ from __future__ import annotations
 import warp as wp
 
 from .integrate import SubstepNodes, book_substep_kick, carried_sum, start_node_forces
+from .loads import NodeDriver, driver_holds
 from .neighbors import flag_past_half_fem_skin
 from .tets import node_free_directions
 
 wp.set_module_options({"enable_backward": False})
 
 
+@wp.struct
+class StepDrivers:
+    """The node velocity drivers as the sub-steps see them: per node its driver or -1 (``node_driver``; empty
+    without drivers), the drivers, their number, the clock at the step's start [s] and the step [s]."""
+
+    node_driver: wp.array(dtype=int)
+    drivers: wp.array(dtype=NodeDriver)
+    num_drivers: int
+    time: wp.array(dtype=wp.float64)
+    dt: float
+
+
 @wp.func
-def fast_half_kick(h: float, free: wp.vec3, v: wp.vec3, carry: wp.vec3, a: wp.vec3):
-    """v + h/2 a [m/s] by the kicks' compensated sum, in the node's free components; returns (v, carry)."""
-    v, carry = carried_sum(v, carry, 0.5 * h * a)
-    return wp.cw_mul(free, v), wp.cw_mul(free, carry)
+def held_by_driver(i: int, drive: StepDrivers) -> bool:
+    """Whether a velocity driver holds node i over this step: judged at the step's midpoint, as the step's half kicks
+    judge it (kernels/integrate.py), so the sub-steps agree with them."""
+    if drive.num_drivers == 0:
+        return False
+    d = drive.node_driver[i]
+    if d < 0:
+        return False
+    return driver_holds(drive.drivers[d], drive.time[0] + wp.float64(0.5 * drive.dt))
+
+
+@wp.func
+def fast_half_kick(h: float, free: wp.vec3, v: wp.vec3, carry: wp.vec3, f: wp.vec3, inv_mass: float, held: bool):
+    """v + h/2 f/m [m/s] by the kicks' compensated sum, in the node's free components; returns (v, carry, the work
+    of a driver [J]). A node a driver holds keeps its velocity, and the driver does −½ h f·v against the cohesive
+    force ``f`` [N], as it does against the step's other forces (kernels/loads.py ``drive_first_half``)."""
+    if held:
+        return v, carry, -0.5 * h * wp.dot(f, v)
+    v, carry = carried_sum(v, carry, 0.5 * h * f * inv_mass)
+    return wp.cw_mul(free, v), wp.cw_mul(free, carry), float(0.0)
+
+
+@wp.func
+def book_driver_work(i: int, work: float, node_energy_boundary_work: wp.array(dtype=wp.float64)):
+    """Add a driver's work [J] to node i's load-work line (``node_energy_boundary_work``)."""
+    if work != 0.0:
+        node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(work)
 
 
 @wp.kernel
@@ -49,12 +85,14 @@ def substep_kick_drift_kernel(
     nodes: wp.array(dtype=int),
     count: wp.array(dtype=int),
     first: int,
+    drive: StepDrivers,
     # State out:
     node_u: wp.array(dtype=wp.vec3),
     node_q: wp.array(dtype=wp.vec3),
     node_qd: wp.array(dtype=wp.vec3),
     node_qd_carry: wp.array(dtype=wp.vec3),
     node_f_fast: wp.array(dtype=wp.vec3),
+    node_energy_boundary_work: wp.array(dtype=wp.float64),
     dx: wp.array(dtype=wp.vec3),
 ):
     """One sub-step's kicks and drift of a sub-stepped node: the second half kick of the last sub-step (not at the
@@ -65,12 +103,16 @@ def substep_kick_drift_kernel(
         return
     i = nodes[k]
     free = node_free_directions(node_motion[i])
-    a = node_f_fast[i] * node_inv_mass[i]
+    f = node_f_fast[i]
+    inv_mass = node_inv_mass[i]
+    held = held_by_driver(i, drive)
     v = node_qd[i]
     carry = node_qd_carry[i]
+    work = float(0.0)
     if first == 0:
-        v, carry = fast_half_kick(h, free, v, carry, a)
-    v, carry = fast_half_kick(h, free, v, carry, a)
+        v, carry, work = fast_half_kick(h, free, v, carry, f, inv_mass, held)
+    v, carry, work_next = fast_half_kick(h, free, v, carry, f, inv_mass, held)
+    book_driver_work(i, work + work_next, node_energy_boundary_work)
     node_qd[i] = v
     node_qd_carry[i] = carry
     u = node_u[i] + h * v
@@ -102,10 +144,12 @@ def substep_finish_kernel(
     node_q: wp.array(dtype=wp.vec3),
     node_f_fast: wp.array(dtype=wp.vec3),
     sub: SubstepNodes,
+    drive: StepDrivers,
     # State out:
     node_qd: wp.array(dtype=wp.vec3),
     node_qd_carry: wp.array(dtype=wp.vec3),
     node_f: wp.array(dtype=wp.vec3),
+    node_energy_boundary_work: wp.array(dtype=wp.float64),
     node_energy_damping: wp.array(dtype=wp.float64),
     node_f_viscous: wp.array(dtype=wp.vec3),
     fem_rebuild_flag: wp.array(dtype=int),
@@ -119,7 +163,9 @@ def substep_finish_kernel(
         return
     i = nodes[k]
     free = node_free_directions(node_motion[i])
-    v, carry = fast_half_kick(h, free, node_qd[i], node_qd_carry[i], node_f_fast[i] * node_inv_mass[i])
+    held = held_by_driver(i, drive)
+    v, carry, work = fast_half_kick(h, free, node_qd[i], node_qd_carry[i], node_f_fast[i], node_inv_mass[i], held)
+    book_driver_work(i, work, node_energy_boundary_work)
     sub.v_end[k] = v
     node_qd_carry[i] = carry
     v_mean = dx[k] / dt

@@ -17,20 +17,23 @@ Oracles:
   line is constant to the rounding of the sub-steps (tests/test_cohesive.py ``verlet_rounding``, n sub-steps a step);
   the sub-step line is not zero (the slow kicks meet velocities the cohesive force changed within the step), so the
   oracle reads it;
-- bad input: sub-steps outside 1–64 and sub-steps with node velocity drivers are scene errors naming the file and
-  the key.
+- (c) a daughter held by a velocity driver keeps the driver's velocity through the sub-steps, and the books close
+  with the driver's work against the element on the load line;
+- bad input: sub-steps outside 1–64 are a scene error naming the file and the key.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import warp as wp
 from test_cohesive import AREA, FC, GAMMA, critical_opening, daughter_model, set_elements, unit, verlet_rounding
+from warpdem.kernels.loads import NodeDriver
 
-from warpdem.build.scene_build import build_scene
 from warpdem.scene import SceneError, parse_scene
 from warpdem.stages.cohesive import cohesive_energy, eval_cohesive
 from warpdem.stages.integrate import integrate_first_half, integrate_second_half
@@ -48,12 +51,19 @@ def pair_step() -> float:
 
 
 def run_pair(
-    device: str, substeps: int, steps: int, gravity=(0.0, 0.0, 0.0), held_a: bool = False, damping: float = 0.0
+    device: str,
+    substeps: int,
+    steps: int,
+    gravity=(0.0, 0.0, 0.0),
+    held_a: bool = False,
+    damping: float = 0.0,
+    driven_a: bool = False,
 ):
     """Daughters A, B leaving each other along p1 (A held when ``held_a``; mass-proportional ``damping`` α [1/s] on
     both), stepped ``steps`` times with ``substeps`` sub-steps. Returns the model, the state and per step (steps + 1
     rows) the books' lines: kinetic, shadow (both parts), gravity potential, stored, spent (law + trapezoid), damping
-    dissipation, sub-step work [J]; and the largest displacement and speed of a node."""
+    dissipation, sub-step work, the drivers' work [J]; and the largest displacement and speed of a node.
+    ``driven_a``: a velocity driver holds A at its initial velocity from t = 0 on."""
     model, state = daughter_model(device, 1, capacity=2)
     dt = pair_step()
     model = dataclasses.replace(model, dt=dt, cohesive_substeps=substeps, gravity=tuple(gravity))
@@ -73,6 +83,19 @@ def run_pair(
         v[0] = -v0 * (mu / 2.0) * p1
     v[1] = v0 * (mu / 3.0) * p1
     state.node_qd.assign(v)
+    if driven_a:
+        node_driver = np.full(model.node_capacity, -1, dtype=np.int32)
+        node_driver[0] = 0
+        driver = NodeDriver()
+        driver.velocity = wp.vec3(*v[0])
+        driver.start = 0.0
+        driver.end = math.inf
+        loads = SimpleNamespace(
+            node_driver=wp.array(node_driver, dtype=int, device=device),
+            drivers=wp.array([driver], dtype=NodeDriver, device=device),
+            num_drivers=1,
+        )
+        model = dataclasses.replace(model, loads=loads)
     sub = None
     if substeps > 1:
         sub = Substeps(model, state)
@@ -81,6 +104,7 @@ def run_pair(
     eval_cohesive(model, state, dt=0.0, substeps=substeps)  # the set-up evaluation, as Simulation's
     g = np.asarray(gravity, dtype=np.float64)
     moving = np.array([not held_a, True])
+    kicked = moving & np.array([not driven_a, True])  # a driven node has no shadow term: nothing kicks it
 
     def books() -> list[float]:
         u = state.node_u.numpy()[:2].astype(np.float64)
@@ -89,13 +113,14 @@ def run_pair(
         kinetic = 0.5 * float(np.sum((mass * np.sum(vel * vel, axis=1))[moving]))
         a_slow = state.node_f.numpy()[:2].astype(np.float64) / mass[:, None] + g
         a_fast = state.node_f_fast.numpy()[:2].astype(np.float64) / mass[:, None]
-        shadow = dt**2 / 8.0 * float(np.sum((mass * np.sum(a_slow * a_slow, axis=1))[moving]))
-        shadow += (dt / substeps) ** 2 / 8.0 * float(np.sum((mass * np.sum(a_fast * a_fast, axis=1))[moving]))
+        shadow = dt**2 / 8.0 * float(np.sum((mass * np.sum(a_slow * a_slow, axis=1))[kicked]))
+        shadow += (dt / substeps) ** 2 / 8.0 * float(np.sum((mass * np.sum(a_fast * a_fast, axis=1))[kicked]))
         potential = -float(np.sum((mass * (x @ g))[moving]))
         stored, spent = cohesive_energy(model, state)
         damped = float(state.node_energy_damping.numpy()[:2].sum())
         sub_work = float(state.node_energy_substep.numpy()[:2].sum())
-        return [kinetic, shadow, potential, stored, spent, damped, sub_work]
+        driven = float(state.node_energy_boundary_work.numpy()[:2].sum())
+        return [kinetic, shadow, potential, stored, spent, damped, sub_work, driven]
 
     rows = [books()]
     u_max = v_max = 0.0
@@ -130,7 +155,7 @@ def test_substeps_resolve_an_opening_crossed_within_a_step(device, substeps):
     first step (measured 0.88 Γ A_f; 5.0e-3, 1.3e-3 and 4.1e-4 Γ A_f at n = 8, 32, 64)."""
     steps = 4
     _, state, rows, u_max, v_max = run_pair(device, substeps, steps)
-    kinetic, shadow, _, stored, spent, _, sub_work = rows.T
+    kinetic, shadow, _, stored, spent, _, sub_work, _ = rows.T
     assert int(state.cohesive_broken.numpy()[0]) == 1
     assert stored[-1] == 0.0 and sub_work[-1] == 0.0  # no force but the element's: nothing else to book
     gamma_af = GAMMA * AREA
@@ -158,7 +183,7 @@ def test_books_close_with_forces_that_are_not_substepped(device):
     steps, substeps = 6, 16
     g = 1.0e3 * unit([1.0, 2.0, 0.0]).astype(np.float64)
     _, state, rows, u_max, v_max = run_pair(device, substeps, steps, gravity=g, held_a=True, damping=2000.0)
-    kinetic, shadow, potential, stored, spent, damped, sub_work = rows.T
+    kinetic, shadow, potential, stored, spent, damped, sub_work, _ = rows.T
     total = kinetic - shadow + potential + stored + spent + damped - sub_work
     f_max = FC + 3.0 * float(np.linalg.norm(g)) + 3.0 * 2000.0 * v_max
     rounding = verlet_rounding(steps * substeps, f_max, u_max, v_max, 3.0)
@@ -196,12 +221,26 @@ def test_substeps_out_of_range_are_a_scene_error(value):
         parse_scene(data, source="s.toml")
 
 
-def test_substeps_with_velocity_drivers_are_refused():
-    data = {**FRACTURE_BOX, "loads": [{"kind": "velocity", "faces": "z+", "velocity": [0, 0, -1]}]}
-    scene = parse_scene(data, source="s.toml")
-    with pytest.raises(SceneError, match=r"s\.toml: fracture: .*cohesive_substeps > 1 with node velocity drivers"):
-        build_scene(scene, "cpu")
-    # One step a step is what a driven model takes: it builds.
-    data["fracture"] = {"enabled": True, "cohesive_substeps": 1}
-    model, _ = build_scene(parse_scene(data, source="s.toml"), "cpu")
-    assert model.cohesive_substeps == 1
+def test_a_driven_daughter_keeps_its_velocity_and_the_driver_books_its_work(device):
+    """(c): A held at its velocity by a driver, B leaving it: through the sub-steps A keeps the driver's velocity
+    exactly, the element breaks, and the books close to rounding with the driver's work (−½ h f·V a half kick, on the
+    load line) in them; the driver did work (the element pulled on A), so the oracle reads the line."""
+    steps, substeps = 4, 8
+    _, state, rows, u_max, v_max = run_pair(device, substeps, steps, driven_a=True)
+    kinetic, shadow, _, stored, spent, _, sub_work, driven = rows.T
+    assert int(state.cohesive_broken.numpy()[0]) == 1
+    v = state.node_qd.numpy()
+    np.testing.assert_array_equal(v[0], rows_velocity_a(state))
+    total = kinetic - shadow + stored + spent - sub_work - driven
+    rounding = verlet_rounding(steps * substeps, FC, u_max, v_max, 3.0)
+    drift = float(np.abs(total - total[0]).max())
+    print(f"driven: books' drift {drift:.2e} J, drivers' work {driven[-1]:.2e} J, rounding bound {rounding:.1e} J")
+    assert drift <= rounding
+    assert abs(driven[-1]) > 10.0 * rounding
+
+
+def rows_velocity_a(state) -> np.ndarray:
+    """The velocity the driver holds A at (the initial one, :func:`run_pair`), as float32."""
+    mu = 1.2
+    v0 = math.sqrt(2.0 * ENERGY_RATIO * GAMMA * AREA / mu)
+    return (-v0 * (mu / 2.0) * unit([2.0, -1.0, 2.0])).astype(np.float32)

@@ -203,7 +203,7 @@ def attach_fracture(
         cohesive_capacity: initial cohesive element slots (grown ×2 on demand); None: max(64, node_count // 8).
         cohesive_substeps: sub-steps of the cohesive elements' nodes per step (>= 1; warpdem.stages.substep): 1
             steps them with every other force; n > 1 resolves an opening crossed within a step (n ≥ √β, β the share
-            of δ_c an element's peak force opens in one step). Not with node velocity drivers.
+            of δ_c an element's peak force opens in one step).
 
     Returns:
         The model (``fracture_interval``, ``cohesive_capacity``, ``node_may_split``, ``fracture_material_table``,
@@ -231,11 +231,7 @@ def attach_fracture(
         raise ValueError(
             f"attach_fracture: cohesive_substeps must be an integer from 1 to {MAX_SUBSTEPS}, got {cohesive_substeps!r}"
         )
-    if cohesive_substeps > 1 and model.loads is not None and model.loads.num_drivers:
-        raise ValueError(
-            "attach_fracture: cohesive_substeps > 1 with node velocity drivers is not supported (a driven daughter's "
-            "sub-steps are not built); use cohesive_substeps = 1 or drive the model by loads or walls"
-        )
+
     nn = int(state.node_count.numpy()[0])
     flags = live_flags(may_split, nn, model.node_capacity, "attach_fracture", "may_split", "node")
     if cohesive_capacity is None:

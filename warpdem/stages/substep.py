@@ -21,8 +21,9 @@ to the kinetic energy beyond that, m dv·(v − v_mean) at the velocities the ki
 
 Cost: per sub-step two launches (the nodes' kick and drift, over the sub-step slots; the elements, over theirs);
 the sub-stepped nodes are listed on the device after every pass, the launches run over capacities, so a pass needs
-no new graph. Not with velocity drivers (a driven node's sub-steps are not built: refused at attach) nor after a
-rigid switch (fracture stops there: the elements take the step again, warpdem.simulation).
+no new graph. A node a velocity driver holds keeps its velocity through the sub-steps, the driver doing the work
+against the cohesive forces (kernels/substep.py). Not after a rigid switch (fracture stops there: the elements take
+the step again, warpdem.simulation).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import warp as wp
 
 from ..kernels import integrate as ki
 from ..kernels import substep as ks
+from ..kernels.loads import NodeDriver
 from ..model import Model, State
 from .cohesive import eval_cohesive
 from .neighbors import make_struct
@@ -56,6 +58,7 @@ class Substeps:
         self.v_start = wp.zeros(self.capacity, dtype=wp.vec3, device=d)
         self.dv_start = wp.zeros(self.capacity, dtype=wp.vec3, device=d)
         self.v_end = wp.zeros(self.capacity, dtype=wp.vec3, device=d)
+        self._no_drivers: tuple[wp.array, wp.array] | None = None
         self.number(model, state)
 
     def mark(self, model: Model, state: State) -> None:
@@ -103,12 +106,21 @@ class Substeps:
         end of the drift (kernels/substep.py)."""
         m, s, d = model, state, model.device
         h = m.dt / self.n
+        drive = self._drivers(m, s)
         for k in range(self.n):
             wp.launch(
                 ks.substep_kick_drift_kernel,
                 dim=self.capacity,
-                inputs=[m.node_ref_q, m.node_inv_mass, m.node_motion, h, self.nodes, self.count, int(k == 0)],
-                outputs=[s.node_u, s.node_q, s.node_qd, s.node_qd_carry, s.node_f_fast, self.dx],
+                inputs=[m.node_ref_q, m.node_inv_mass, m.node_motion, h, self.nodes, self.count, int(k == 0), drive],
+                outputs=[
+                    s.node_u,
+                    s.node_q,
+                    s.node_qd,
+                    s.node_qd_carry,
+                    s.node_f_fast,
+                    s.node_energy_boundary_work,
+                    self.dx,
+                ],
                 device=d,
             )
             eval_cohesive(m, s, dt=h, track_energy=track_energy, substeps=self.n)
@@ -133,7 +145,32 @@ class Substeps:
                 s.node_q,
                 s.node_f_fast,
                 self.nodes_struct(s),
+                drive,
             ],
-            outputs=[s.node_qd, s.node_qd_carry, s.node_f, s.node_energy_damping, s.node_f_viscous, s.fem_rebuild_flag],
+            outputs=[
+                s.node_qd,
+                s.node_qd_carry,
+                s.node_f,
+                s.node_energy_boundary_work,
+                s.node_energy_damping,
+                s.node_f_viscous,
+                s.fem_rebuild_flag,
+            ],
             device=d,
+        )
+
+    def _drivers(self, model: Model, state: State) -> ks.StepDrivers:
+        """The node velocity drivers as the sub-step kernels take them (kernels/substep.py ``StepDrivers``)."""
+        loads = model.loads
+        if loads is None or loads.num_drivers == 0:
+            if self._no_drivers is None:
+                self._no_drivers = (
+                    wp.empty(0, dtype=int, device=model.device),
+                    wp.empty(0, dtype=NodeDriver, device=model.device),
+                )
+            node_driver, drivers, num = *self._no_drivers, 0
+        else:
+            node_driver, drivers, num = loads.node_driver, loads.drivers, loads.num_drivers
+        return make_struct(
+            ks.StepDrivers, node_driver=node_driver, drivers=drivers, num_drivers=num, time=state.time, dt=model.dt
         )
