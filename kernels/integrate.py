@@ -225,6 +225,14 @@ def node_second_half_velocity(
 
 
 @wp.func
+def book_driver_work(i: int, work: float, node_energy_boundary_work: wp.array(dtype=wp.float64)):
+    """Add a velocity driver's work [J] to node i's load-work line (``node_energy_boundary_work``); an exact zero
+    (no driver) is not stored."""
+    if work != 0.0:
+        node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(work)
+
+
+@wp.func
 def start_node_forces(
     i: int,
     dt: float,
@@ -662,8 +670,7 @@ def integrate_nodes_second_half_kernel(
         num_drivers,
         node_f,
     )
-    if work != 0.0:
-        node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(work)
+    book_driver_work(i, work, node_energy_boundary_work)
     book_substep_kick(i, slot, node_mass[i], v - v_before, v_before, v_mean, sub)
     node_qd[i] = v
     node_qd_carry[i] = carry

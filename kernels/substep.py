@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .integrate import SubstepNodes, book_substep_kick, carried_sum, start_node_forces
+from .integrate import SubstepNodes, book_driver_work, book_substep_kick, carried_sum, start_node_forces
 from .loads import NodeDriver, driver_holds
 from .neighbors import flag_past_half_fem_skin
 from .tets import node_free_directions
@@ -65,13 +65,6 @@ def fast_half_kick(h: float, free: wp.vec3, v: wp.vec3, carry: wp.vec3, f: wp.ve
         return v, carry, -0.5 * h * wp.dot(f, v)
     v, carry = carried_sum(v, carry, 0.5 * h * f * inv_mass)
     return wp.cw_mul(free, v), wp.cw_mul(free, carry), float(0.0)
-
-
-@wp.func
-def book_driver_work(i: int, work: float, node_energy_boundary_work: wp.array(dtype=wp.float64)):
-    """Add a driver's work [J] to node i's load-work line (``node_energy_boundary_work``)."""
-    if work != 0.0:
-        node_energy_boundary_work[i] = node_energy_boundary_work[i] + wp.float64(work)
 
 
 @wp.kernel

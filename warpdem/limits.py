@@ -25,6 +25,7 @@ __all__ = [
     "F32_MIN",
     "MAX_ELEMENTS",
     "MAX_STEPS",
+    "MAX_SUBSTEPS",
     "format_bytes",
     "memory_budget",
     "size_problem",
@@ -42,6 +43,10 @@ MAX_ELEMENTS = 2**31 - 1
 MAX_STEPS = 10**9
 """Most time steps of one run by default (``--max-steps``): even at a microsecond a step, 10⁹ steps take 17 minutes,
 and a step count far beyond it means a time step or end time that was not meant."""
+
+MAX_SUBSTEPS = 64
+"""Most sub-steps a step of the cohesive elements' nodes (``[fracture] cohesive_substeps``; warpdem.stages.substep):
+β up to 4096 resolved, two launches a sub-step."""
 
 # Memory of one item, host and device together, for the estimates. Measured on the shipped scenes by summing the
 # Model and State arrays: 144-156 B a sphere slot, 36 B a neighbour slot, 136 B a tet and 176 B a node slot; the

@@ -13,6 +13,7 @@ from pydantic import (
     model_validator,
 )
 
+from ..limits import MAX_SUBSTEPS
 from .fields import Bool, Float, Int, Name, Str, Vec3, _Model
 from .regions import Region
 
@@ -49,7 +50,7 @@ class Fracture(_Model):
     cohesive_substeps: Int = Field(
         default=1,
         ge=1,
-        le=64,
+        le=MAX_SUBSTEPS,
         description=(
             "Sub-steps per step of the cohesive elements' nodes under the elements' forces [-]: 1 steps them with "
             "every other force; n > 1 resolves openings a blast drives through δ_c within a step (n ≥ √β)."

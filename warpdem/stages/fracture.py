@@ -89,6 +89,7 @@ import numpy as np
 import warp as wp
 
 from ..kernels import fracture as kfr
+from ..limits import MAX_SUBSTEPS
 from ..model import Model, State, fracture_state
 from ..recorded import Recorded, arrays_key
 from .compaction import Compactor
@@ -178,10 +179,6 @@ def fracture_material_table(materials: Sequence[FractureProps], device: wp.conte
             m.fracture_energy = float(p.fracture_energy)
         table.append(m)
     return wp.array(table, dtype=kfr.FractureMaterial, device=device)
-
-
-MAX_SUBSTEPS = 64
-"""Most sub-steps of the cohesive elements' nodes per step (β up to 4096 resolved; each costs two launches)."""
 
 
 def attach_fracture(

@@ -15,24 +15,9 @@ from ..kernels import rigid as kr
 from ..model import Model, State
 from .neighbors import make_struct
 
-_NO_SUBSTEPS: dict[str, ki.SubstepNodes] = {}
-
-
-def no_substeps(device: wp.context.Device) -> ki.SubstepNodes:
-    """The struct of a step without sub-steps (an empty ``node_slot``: every node takes the plain step), made once
-    per device so that a captured step allocates nothing."""
-    key = str(device)
-    if key not in _NO_SUBSTEPS:
-        empty3 = wp.empty(0, dtype=wp.vec3, device=device)
-        _NO_SUBSTEPS[key] = make_struct(
-            ki.SubstepNodes,
-            node_slot=wp.empty(0, dtype=int, device=device),
-            v_start=empty3,
-            dv_start=empty3,
-            v_end=empty3,
-            node_energy_substep=wp.empty(0, dtype=wp.float64, device=device),
-        )
-    return _NO_SUBSTEPS[key]
+NO_SUBSTEPS = ki.SubstepNodes()
+"""The sub-stepped nodes of a step without sub-steps: none (the struct's arrays unset, so ``node_slot`` is empty and
+every node takes the plain step; kernels/integrate.py ``substep_slot``)."""
 
 
 def integrate_first_half(
@@ -125,7 +110,7 @@ def integrate_second_half(model: Model, state: State, sub: ki.SubstepNodes | Non
         device=m.device,
     )
     if m.node_capacity:
-        node_driver, drivers, num_drivers = _node_drivers(m)
+        node_driver, drivers, num_drivers = node_drivers(m)
         wp.launch(
             ki.integrate_nodes_second_half_kernel,
             dim=m.node_capacity,
@@ -143,7 +128,7 @@ def integrate_second_half(model: Model, state: State, sub: ki.SubstepNodes | Non
                 s.node_count,
                 s.time,
                 s.node_f,
-                sub if sub is not None else no_substeps(m.device),
+                sub if sub is not None else NO_SUBSTEPS,
             ],
             outputs=[s.node_qd, s.node_qd_carry, s.node_energy_boundary_work],
             device=m.device,
@@ -196,7 +181,7 @@ def _drift(
                 s.node_count,
                 s.time,
                 s.node_q_at_fem_build,
-                sub if sub is not None else no_substeps(m.device),
+                sub if sub is not None else NO_SUBSTEPS,
             ],
             outputs=_node_drift_outputs(s),
             device=m.device,
@@ -238,7 +223,7 @@ def _particle_drift_outputs(s: State) -> list:
 
 def _node_drift_model(m: Model) -> list:
     """Model inputs of the node kernels that end in a drift (first half and kick-drift)."""
-    node_driver, drivers, num_drivers = _node_drivers(m)
+    node_driver, drivers, num_drivers = node_drivers(m)
     return [
         m.node_ref_q,
         m.node_mass,
@@ -287,7 +272,7 @@ def _advance_time(m: Model, s: State) -> None:
     wp.launch(ki.advance_time_kernel, dim=1, inputs=[wp.float64(m.dt)], outputs=[s.time], device=m.device)
 
 
-def _node_drivers(model: Model) -> tuple[wp.array | None, wp.array | None, int]:
+def node_drivers(model: Model) -> tuple[wp.array | None, wp.array | None, int]:
     """The node velocity drivers of a model (warpdem.stages.loads): per-node driver ids, drivers, their count."""
     loads = model.loads
     if loads is None or loads.num_drivers == 0:

@@ -32,9 +32,9 @@ import warp as wp
 
 from ..kernels import integrate as ki
 from ..kernels import substep as ks
-from ..kernels.loads import NodeDriver
 from ..model import Model, State
 from .cohesive import eval_cohesive
+from .integrate import node_drivers
 from .neighbors import make_struct
 
 
@@ -58,7 +58,6 @@ class Substeps:
         self.v_start = wp.zeros(self.capacity, dtype=wp.vec3, device=d)
         self.dv_start = wp.zeros(self.capacity, dtype=wp.vec3, device=d)
         self.v_end = wp.zeros(self.capacity, dtype=wp.vec3, device=d)
-        self._no_drivers: tuple[wp.array, wp.array] | None = None
         self.number(model, state)
 
     def mark(self, model: Model, state: State) -> None:
@@ -160,17 +159,9 @@ class Substeps:
         )
 
     def _drivers(self, model: Model, state: State) -> ks.StepDrivers:
-        """The node velocity drivers as the sub-step kernels take them (kernels/substep.py ``StepDrivers``)."""
-        loads = model.loads
-        if loads is None or loads.num_drivers == 0:
-            if self._no_drivers is None:
-                self._no_drivers = (
-                    wp.empty(0, dtype=int, device=model.device),
-                    wp.empty(0, dtype=NodeDriver, device=model.device),
-                )
-            node_driver, drivers, num = *self._no_drivers, 0
-        else:
-            node_driver, drivers, num = loads.node_driver, loads.drivers, loads.num_drivers
+        """The node velocity drivers as the sub-step kernels take them (kernels/substep.py ``StepDrivers``; without
+        drivers the arrays stay unset, so the kernels see none)."""
+        node_driver, drivers, num = node_drivers(model)
         return make_struct(
             ks.StepDrivers, node_driver=node_driver, drivers=drivers, num_drivers=num, time=state.time, dt=model.dt
         )
